@@ -1,0 +1,59 @@
+"""C-functions for the complementarity u1 - u2 ≥ 0, λ ≥ 0, (u1 - u2) λ = 0 (DESIGN §3).
+
+With a = X1 - X2 and b = X3 (nodal), a C-function satisfies C(a, b) = 0 ⇔ a ≥ 0, b ≥ 0,
+ab = 0. Each one here returns its value and one element of its Clarke Jacobian, written row by
+row as α_l (X1 - X2)_l + β_l X3_l, so that the Newton rows read α a + β b = B3 with
+B3 = α a + β b - C(a, b) (= J_C X - C(X) of DESIGN §3).
+"""
+
+import numpy as np
+
+
+def c_min(a, b):
+    """min(a, b)."""
+    return np.minimum(a, b)
+
+
+def jacobian_min(a, b):
+    """Row e1 - e2 (α = 1, β = 0) where a ≤ b, else e3 (α = 0, β = 1)."""
+    take_a = a <= b
+    return take_a.astype(float), (~take_a).astype(float)
+
+
+def c_fb(a, b):
+    """Fischer–Burmeister: sqrt(a² + b²) - (a + b), computed without overflow (hypot)."""
+    return np.hypot(a, b) - (a + b)
+
+
+# At the kink (a, b) = (0, 0) any (ξ - 1, ζ - 1) with ξ² + ζ² ≤ 1 is in the Clarke Jacobian.
+# We take ξ = ζ = 1/√2: the limit along the diagonal a = b > 0, symmetric in a and b.
+FB_KINK = 1.0 / np.sqrt(2.0)
+
+
+def jacobian_fb(a, b):
+    """(a/ρ - 1, b/ρ - 1) with ρ = sqrt(a² + b²); (1/√2 - 1, 1/√2 - 1) at ρ = 0."""
+    rho = np.hypot(a, b)
+    kink = rho == 0
+    safe = np.where(kink, 1.0, rho)
+    alpha = np.where(kink, FB_KINK, a / safe) - 1.0
+    beta = np.where(kink, FB_KINK, b / safe) - 1.0
+    return alpha, beta
+
+
+CFUNCTIONS = {"min": (c_min, jacobian_min), "fb": (c_fb, jacobian_fb)}
+
+
+def get(name):
+    """(C, Jacobian) of the C-function called `name` ('min' or 'fb')."""
+    try:
+        return CFUNCTIONS[name]
+    except KeyError:
+        raise ValueError(f"unknown C-function {name!r} (choose from: {', '.join(CFUNCTIONS)})") \
+            from None
+
+
+def linearise(name, a, b):
+    """α, β, B3 = α a + β b - C(a, b): the semismooth Newton rows at (a, b) (DESIGN §3)."""
+    C, J = get(name)
+    alpha, beta = J(a, b)
+    return alpha, beta, alpha * a + beta * b - C(a, b)

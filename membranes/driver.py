@@ -1,0 +1,149 @@
+"""The API: `solve(problem, ...)` runs the discretisation and semismooth Newton on a problem.
+
+    >>> from membranes import scenes, solve
+    >>> sol = solve(scenes.disk(h=0.05), cfun="fb")
+    >>> sol.converged, sol.newton_iterations, sol.energy_error
+    >>> sol.u1, sol.u2, sol.lam          # dolfinx P1 Functions on the computational mesh
+    >>> sol.history                      # one dict per iterate (X^0 included)
+
+Only what the problem declares is computed: the energy error only where the scene knows the
+exact solution (its evaluation time is not counted in the wall times).
+"""
+
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import cfunctions
+from .discretisation import EnergyError, discretise
+from .meshes import mesh_size
+from .newton import SYSTEMS, semismooth_newton
+from .newton_system import linear_rows, split
+
+NEWTON_VARIANTS = ("exact",)
+LINEAR_SOLVERS = ("direct",)
+
+
+@dataclass
+class Solution:
+    problem: object
+    disc: object
+    X: np.ndarray
+    converged: bool
+    reason: str
+    newton_iterations: int
+    linear_iterations: int
+    wall_time_s: float
+    history: list
+    options: dict
+    energy_error: float = None
+    functions: list = field(default_factory=list)
+
+    @property
+    def u1(self):
+        return self.functions[0]
+
+    @property
+    def u2(self):
+        return self.functions[1]
+
+    @property
+    def lam(self):
+        return self.functions[2]
+
+    def complementarity_violation(self):
+        """Largest violation of w = u1 - u2 ≥ 0, λ ≥ 0, λ w = 0 at interior vertices, relative
+        to the data scale (u: max(g, |u|∞); λ: max(|λ|∞, max_a |F_α,a| / D_a))."""
+        d = self.disc
+        u1, u2, lam = split(self.X, d.n)
+        inner = d.interior
+        w, lam = (u1 - u2)[inner], lam[inner]
+        u_scale = max(d.problem.g, np.abs(u1).max(), np.abs(u2).max())
+        load = np.maximum(np.abs(d.F1), np.abs(d.F2))[inner] / d.D[inner]
+        lam_scale = max(np.abs(lam).max(initial=0.0), load.max(initial=0.0),
+                        np.finfo(float).tiny)
+        return float(max(np.max(-w, initial=0.0) / u_scale,
+                         np.max(-lam, initial=0.0) / lam_scale,
+                         np.max(np.abs(w * lam), initial=0.0) / (u_scale * lam_scale)))
+
+    def summary(self):
+        """The documented keys of summary.json (README)."""
+        p = self.problem
+        mesh = p.mesh
+        return {
+            "scene": p.name,
+            "description": p.description,
+            "n_vertices": int(mesh.topology.index_map(0).size_global),
+            "n_cells": int(mesh.topology.index_map(2).size_global),
+            "h": mesh_size(mesh),
+            "h_coarse": mesh_size(p.hierarchy.meshes[0]),
+            "levels": p.levels,
+            "mu1": p.mu1, "mu2": p.mu2, "g": p.g,
+            "newton": self.options["newton"],
+            "cfun": self.options["cfun"],
+            "system": self.options["system"],
+            "linear_solver": self.options["linear_solver"],
+            "converged": self.converged,
+            "reason": self.reason,
+            "newton_iterations": self.newton_iterations,
+            "linear_iterations": self.linear_iterations,
+            "wall_time_s": self.wall_time_s,
+            "final_residual": self.history[-1]["residual"],
+            "complementarity_violation": self.complementarity_violation(),
+            "energy_error": self.energy_error,
+        }
+
+
+def _check_choice(name, value, choices):
+    if value not in choices:
+        raise ValueError(f"unknown {name} {value!r} (choose from: {', '.join(choices)})")
+
+
+def solve(problem, newton="exact", cfun="min", system="full", linear_solver="direct",
+          tol=1e-10, max_newton=100, progress=False):
+    """Solve the discrete contact problem of `problem` by semismooth Newton (DESIGN §3, §8).
+
+    newton: 'exact' (each Newton system solved exactly); cfun: 'min' or 'fb';
+    system: 'full' (3N) or 'eliminated' (2N); linear_solver: 'direct' (MUMPS);
+    tol: stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol; progress: True for one stderr line per Newton step,
+    or a callable taking the line.
+    """
+    _check_choice("Newton variant", newton, NEWTON_VARIANTS)
+    cfunctions.get(cfun)
+    _check_choice("Newton system", system, SYSTEMS)
+    _check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
+    if not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be a positive finite number, got {tol}")
+    if int(max_newton) < 1:
+        raise ValueError(f"max_newton must be at least 1, got {max_newton}")
+    say = progress if callable(progress) else \
+        (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
+
+    t0 = time.perf_counter()
+    disc = discretise(problem)
+    rows = linear_rows(disc)
+    setup_time = time.perf_counter() - t0
+    error = EnergyError(disc) if problem.exact is not None else None
+
+    def monitor(rec, X):
+        rec["wall_time_s"] += setup_time
+        rec["energy_error"] = error(X) if error is not None else None
+        if say is not None:
+            line = (f"newton {rec['newton_it']:3d}  residual {rec['residual']:.3e}  "
+                    f"linear its {rec['cumulative_linear_its']:5d}  "
+                    f"time {rec['wall_time_s']:7.2f} s")
+            if rec["energy_error"] is not None:
+                line += f"  energy error {rec['energy_error']:.4e}"
+            say(line)
+
+    result = semismooth_newton(rows, problem.g, cfun=cfun, system=system, tol=tol,
+                               max_it=int(max_newton), monitor=monitor)
+    last = result.history[-1]
+    return Solution(problem, disc, result.X, result.converged, result.reason,
+                    result.newton_iterations, result.linear_iterations, last["wall_time_s"],
+                    result.history,
+                    {"newton": newton, "cfun": cfun, "system": system,
+                     "linear_solver": linear_solver},
+                    energy_error=last["energy_error"], functions=disc.functions(result.X))

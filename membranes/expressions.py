@@ -1,0 +1,106 @@
+"""User data formulas: a small, safe language for f1, f2 in x and y.
+
+A formula such as ``-1 + 0.5*sin(pi*x)*max(y, 0)`` is parsed once with Python's :mod:`ast`
+(never ``eval``) and can then be built twice from the same tree: as a UFL expression of the
+spatial coordinate (for assembly) and as a numpy function (to check that the data are finite
+on the mesh). Allowed: numbers, ``x``, ``y``, ``pi``, ``+ - * / **``, and the functions
+``sin cos exp sqrt abs min max``. Anything else is a :class:`ValueError` naming the problem.
+"""
+
+import ast
+import math
+
+import numpy as np
+import ufl
+
+# name -> (UFL builder, numpy builder, number of arguments; None for "two or more")
+_FUNCTIONS = {
+    "sin": (ufl.sin, np.sin, 1),
+    "cos": (ufl.cos, np.cos, 1),
+    "exp": (ufl.exp, np.exp, 1),
+    "sqrt": (ufl.sqrt, np.sqrt, 1),
+    "abs": (abs, np.abs, 1),
+    "min": (ufl.min_value, np.minimum, None),
+    "max": (ufl.max_value, np.maximum, None),
+}
+_CONSTANTS = {"pi": math.pi}
+_VARIABLES = ("x", "y")
+_BINARY = {ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b,
+           ast.Mult: lambda a, b: a * b, ast.Div: lambda a, b: a / b,
+           ast.Pow: lambda a, b: a ** b}
+_UNARY = {ast.USub: lambda a: -a, ast.UAdd: lambda a: a}
+
+
+class Formula:
+    """A parsed data formula in x and y."""
+
+    def __init__(self, text, name="expression"):
+        self.text = str(text)
+        self.name = name
+        try:
+            tree = ast.parse(self.text.strip(), mode="eval")
+        except SyntaxError as e:
+            raise ValueError(f"{name}: cannot parse {self.text!r} ({e.msg})") from None
+        self._tree = tree.body
+        self._check(self._tree)
+
+    def _check(self, node):
+        if isinstance(node, ast.Constant):
+            if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
+                raise ValueError(f"{self.name}: {node.value!r} is not a number in {self.text!r}")
+        elif isinstance(node, ast.Name):
+            if node.id not in _VARIABLES and node.id not in _CONSTANTS:
+                raise ValueError(f"{self.name}: unknown name {node.id!r} in {self.text!r} "
+                                 f"(allowed: x, y, pi, {', '.join(_FUNCTIONS)})")
+        elif isinstance(node, ast.BinOp) and type(node.op) in _BINARY:
+            self._check(node.left)
+            self._check(node.right)
+        elif isinstance(node, ast.UnaryOp) and type(node.op) in _UNARY:
+            self._check(node.operand)
+        elif isinstance(node, ast.Call):
+            if not isinstance(node.func, ast.Name) or node.func.id not in _FUNCTIONS:
+                fname = node.func.id if isinstance(node.func, ast.Name) else ast.unparse(node.func)
+                raise ValueError(f"{self.name}: unknown function {fname!r} in {self.text!r} "
+                                 f"(allowed: {', '.join(_FUNCTIONS)})")
+            nargs = _FUNCTIONS[node.func.id][2]
+            if node.keywords or (nargs is not None and len(node.args) != nargs) \
+                    or (nargs is None and len(node.args) < 2):
+                want = nargs if nargs is not None else "at least 2"
+                raise ValueError(f"{self.name}: {node.func.id}() takes {want} argument(s) "
+                                 f"in {self.text!r}")
+            for a in node.args:
+                self._check(a)
+        else:
+            raise ValueError(f"{self.name}: unsupported syntax {ast.unparse(node)!r} "
+                             f"in {self.text!r}")
+
+    def _build(self, node, x, y, which):
+        if isinstance(node, ast.Constant):
+            return float(node.value)
+        if isinstance(node, ast.Name):
+            return {"x": x, "y": y}.get(node.id, _CONSTANTS.get(node.id))
+        if isinstance(node, ast.BinOp):
+            return _BINARY[type(node.op)](self._build(node.left, x, y, which),
+                                          self._build(node.right, x, y, which))
+        if isinstance(node, ast.UnaryOp):
+            return _UNARY[type(node.op)](self._build(node.operand, x, y, which))
+        fn = _FUNCTIONS[node.func.id][which]
+        args = [self._build(a, x, y, which) for a in node.args]
+        out = fn(args[0], args[1]) if len(args) > 1 else fn(args[0])
+        for a in args[2:]:
+            out = fn(out, a)
+        return out
+
+    def ufl(self, x):
+        """The formula as a UFL expression of the spatial coordinate ``x`` (shape (2,))."""
+        return self._build(self._tree, x[0], x[1], 0)
+
+    def numpy(self, points):
+        """The formula at ``points`` of shape (2, n) or (3, n); returns an array of length n."""
+        points = np.asarray(points, dtype=float)
+        with np.errstate(all="ignore"):
+            v = self._build(self._tree, points[0], points[1], 1)
+        return np.broadcast_to(np.asarray(v, dtype=float), points[0].shape)
+
+    def __repr__(self):
+        return f"Formula({self.text!r})"

@@ -1,0 +1,49 @@
+"""Mesh hierarchy T_0 ⊂ T_1 ⊂ … ⊂ T_J by uniform (Plaza) refinement (DESIGN §6).
+
+The computational mesh is the finest, T_J. For every level j ≥ 1 the parent map gives, for
+each cell of T_j, the cell of T_{j-1} that contains it (`plaza_refine_data`); the multilevel
+algebraic flux of a later stage walks these maps. Nested refinement keeps the polygon of T_0:
+on the disk the computational domain does not follow the circle (DESIGN §9).
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Hierarchy:
+    meshes: list                                  # [T_0, …, T_J]
+    parent_cells: list = field(default_factory=list)  # parent_cells[j-1][c] = parent of c ∈ T_j
+
+    @property
+    def levels(self):
+        return len(self.meshes) - 1
+
+    @property
+    def finest(self):
+        return self.meshes[-1]
+
+
+def refine_uniformly(mesh):
+    """One uniform refinement of `mesh`; returns the fine mesh and its parent-cell map."""
+    import ufl
+    from dolfinx import cpp, mesh as dmesh
+    mesh.topology.create_entities(1)
+    fine, parent_cell, _ = cpp.refinement.plaza_refine_data(
+        mesh._mesh, False, cpp.refinement.RefinementOptions.parent_cell_and_facet)
+    domain = ufl.Mesh(mesh.ufl_domain().ufl_coordinate_element())
+    return dmesh.Mesh(fine, domain), np.asarray(parent_cell, dtype=np.int32)
+
+
+def build_hierarchy(coarse, levels):
+    """T_0 = `coarse` and `levels` uniform refinements of it."""
+    levels = int(levels)
+    if levels < 0:
+        raise ValueError(f"levels must be a non-negative integer, got {levels}")
+    h = Hierarchy([coarse])
+    for _ in range(levels):
+        fine, parents = refine_uniformly(h.meshes[-1])
+        h.meshes.append(fine)
+        h.parent_cells.append(parents)
+    return h

@@ -1,0 +1,63 @@
+"""Linear solves of the Newton systems through petsc4py.
+
+For now the direct solver: LU factorisation with MUMPS (DESIGN §8, "exact" Newton solved
+exactly). A solve returns the solution and the number of linear iterations it counts as
+(1 for a direct solve, so that cumulative counts stay meaningful as "solver applications").
+"""
+
+import numpy as np
+from petsc4py import PETSc
+
+
+def petsc_matrix(A):
+    """A scipy CSR matrix as a serial PETSc AIJ matrix."""
+    A = A.tocsr()
+    M = PETSc.Mat().createAIJ(size=A.shape, csr=(A.indptr.astype(PETSc.IntType),
+                                                 A.indices.astype(PETSc.IntType), A.data),
+                              comm=PETSc.COMM_SELF)
+    M.assemble()
+    return M
+
+
+class LinearSolveError(RuntimeError):
+    pass
+
+
+def _mumps_solve(M, rhs, workspace_percent):
+    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+    try:
+        ksp.setOperators(M)
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
+        pc.setFactorSetUpSolverType()
+        # ICNTL(14): extra workspace in percent. The default (20 %) is too small for the full
+        # Newton system, whose zero λ-diagonal forces off-diagonal pivots, and MUMPS then
+        # returns a failed factorisation (seen on the disk scene).
+        pc.getFactorMatrix().setMumpsIcntl(14, workspace_percent)
+        x = rhs.duplicate()
+        try:
+            ksp.solve(rhs, x)
+        except PETSc.Error:
+            return None
+        if ksp.getConvergedReason() < 0 or not np.all(np.isfinite(x.array)):
+            return None
+        return x.array.copy()
+    finally:
+        ksp.destroy()
+
+
+def solve_direct(A, b):
+    """Solve A x = b with MUMPS LU; returns (x, 1). Retries once with more MUMPS workspace."""
+    M = petsc_matrix(A)
+    rhs = PETSc.Vec().createWithArray(np.ascontiguousarray(b, dtype=float), comm=PETSc.COMM_SELF)
+    try:
+        for workspace in (100, 400):
+            x = _mumps_solve(M, rhs, workspace)
+            if x is not None:
+                return x, 1
+        raise LinearSolveError("MUMPS LU factorisation failed (singular matrix or workspace)")
+    finally:
+        rhs.destroy()
+        M.destroy()

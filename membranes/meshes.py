@@ -1,0 +1,121 @@
+"""Computational domains: the unit disk and the unit square from gmsh, and 2D gmsh files.
+
+Every mesh is a dolfinx P1 triangular mesh with geometric dimension 2. gmsh is opened and
+closed inside each function; `dolfinx.io.gmshio.read_from_msh` is broken in dolfinx 0.5.2, so a
+`.msh` file is opened with gmsh and converted with `gmshio.model_to_mesh`, which keeps only the
+cells of a physical group (a file without 2D physical groups gets one holding every surface).
+"""
+
+import contextlib
+import os
+
+import numpy as np
+from mpi4py import MPI
+
+_GMSH_TRIANGLE = 2  # gmsh element type of the 3-node triangle
+
+
+@contextlib.contextmanager
+def _gmsh_session():
+    import gmsh
+    gmsh.initialize([])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.Verbosity", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        yield gmsh
+    finally:
+        gmsh.finalize()
+
+
+def _check_size(h):
+    h = float(h)
+    if not np.isfinite(h) or h <= 0:
+        raise ValueError(f"mesh size h must be a positive finite number, got {h}")
+    return h
+
+
+def _to_dolfinx(gmsh, comm):
+    from dolfinx.io import gmshio
+    mesh, _, _ = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=2)
+    return mesh
+
+
+def _mesh_surface(gmsh, h, comm):
+    gmsh.model.occ.synchronize()
+    surfaces = [tag for _, tag in gmsh.model.getEntities(2)]
+    gmsh.model.addPhysicalGroup(2, surfaces, 1)
+    gmsh.option.setNumber("Mesh.CharacteristicLengthMin", 0.0)
+    gmsh.option.setNumber("Mesh.CharacteristicLengthMax", h)
+    gmsh.model.mesh.generate(2)
+    return _to_dolfinx(gmsh, comm)
+
+
+def unit_disk(h, comm=MPI.COMM_WORLD):
+    """Unstructured mesh of the unit disk with target cell size h (DESIGN §9)."""
+    h = _check_size(h)
+    with _gmsh_session() as gmsh:
+        gmsh.model.add("disk")
+        gmsh.model.occ.addDisk(0.0, 0.0, 0.0, 1.0, 1.0)
+        return _mesh_surface(gmsh, h, comm)
+
+
+def unit_square(h, comm=MPI.COMM_WORLD):
+    """Unstructured mesh of (0, 1)² with target cell size h."""
+    h = _check_size(h)
+    with _gmsh_session() as gmsh:
+        gmsh.model.add("square")
+        gmsh.model.occ.addRectangle(0.0, 0.0, 0.0, 1.0, 1.0)
+        return _mesh_surface(gmsh, h, comm)
+
+
+def read_msh(path, comm=MPI.COMM_WORLD):
+    """Read a 2D triangular gmsh `.msh` file; ValueError names what is wrong with it."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ValueError(f"mesh file {path!r} does not exist")
+    if not os.access(path, os.R_OK):
+        raise ValueError(f"mesh file {path!r} is not readable")
+    with _gmsh_session() as gmsh:
+        try:
+            gmsh.open(path)
+        except Exception as e:
+            raise ValueError(f"cannot read mesh file {path!r}: {e}") from None
+        dim = gmsh.model.getDimension()
+        if dim == 3 or gmsh.model.mesh.getElementTypes(3).size:
+            raise ValueError(f"mesh file {path!r} is 3D; a 2D triangular mesh is required")
+        types = list(gmsh.model.mesh.getElementTypes(2))
+        if dim < 2 or not types:
+            raise ValueError(f"mesh file {path!r} has no 2D cells")
+        if types != [_GMSH_TRIANGLE]:
+            names = [gmsh.model.mesh.getElementProperties(t)[0] for t in types]
+            raise ValueError(f"mesh file {path!r} is not a linear triangular mesh "
+                             f"(cells: {', '.join(names)})")
+        _, coords, _ = gmsh.model.mesh.getNodes()
+        z = np.abs(coords.reshape(-1, 3)[:, 2])
+        if z.size and z.max() > 1e-12 * max(1.0, np.abs(coords).max()):
+            raise ValueError(f"mesh file {path!r} is 3D (nodes off the plane z = 0)")
+        if not np.all(np.isfinite(coords)):
+            raise ValueError(f"mesh file {path!r} has non-finite node coordinates")
+        if not gmsh.model.getPhysicalGroups(2):
+            gmsh.model.addPhysicalGroup(2, [t for _, t in gmsh.model.getEntities(2)], 1)
+        try:
+            return _to_dolfinx(gmsh, comm)
+        except Exception as e:
+            raise ValueError(f"cannot convert mesh file {path!r}: {e}") from None
+
+
+def cell_diameters(mesh):
+    """Diameter of every local cell (the longest edge of the triangle)."""
+    x = mesh.geometry.x[:, :2]
+    cells = mesh.geometry.dofmap.array.reshape(-1, 3)
+    ncells = mesh.topology.index_map(2).size_local
+    p = x[cells[:ncells]]
+    edges = [np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in ((0, 1), (1, 2), (2, 0))]
+    return np.max(edges, axis=0)
+
+
+def mesh_size(mesh):
+    """h: the largest cell diameter over all processes."""
+    d = cell_diameters(mesh)
+    return mesh.comm.allreduce(float(d.max()) if d.size else 0.0, op=MPI.MAX)

@@ -1,0 +1,102 @@
+"""Problem data of the two-membrane contact problem (DESIGN §1).
+
+A :class:`Problem` holds the mesh hierarchy (the computational mesh is the finest level),
+the moduli μ1, μ2 > 0, the boundary value g > 0 of membrane 1, the loads f1, f2, and what the
+scene declares beyond that: an exact solution where one is known, and a level set across which
+the data jump (so that cells it cuts are integrated with a composite rule, DESIGN §7, §9).
+
+Data are *builders*: callables taking the UFL spatial coordinate ``x`` and returning a UFL
+expression, or :class:`membranes.expressions.Formula` objects (user formulas, which are also
+checked to be finite on the mesh). Bad data raise ValueError with a one-line message.
+"""
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+from .expressions import Formula
+
+
+@dataclass
+class ExactSolution:
+    """u1, u2, λ as builders x ↦ UFL expression."""
+    u1: Callable
+    u2: Callable
+    lam: Callable
+
+
+def as_builder(data):
+    """A data item as a callable x ↦ UFL expression (numbers and Formulas accepted)."""
+    if isinstance(data, Formula):
+        return data.ufl
+    if callable(data):
+        return data
+    value = float(data)
+    return lambda x: value
+
+
+def positive_number(name, value):
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not np.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    if value <= 0:
+        raise ValueError(f"{name} must be positive, got {value}")
+    return value
+
+
+def _sample_points(mesh):
+    """Vertices and cell midpoints of the local mesh, shape (2, n)."""
+    x = mesh.geometry.x[:, :2]
+    cells = mesh.geometry.dofmap.array.reshape(-1, 3)
+    return np.vstack([x, x[cells].mean(axis=1)]).T
+
+
+@dataclass
+class Problem:
+    name: str
+    hierarchy: object            # membranes.hierarchy.Hierarchy
+    mu1: float
+    mu2: float
+    g: float
+    f1: object
+    f2: object
+    exact: Optional[ExactSolution] = None
+    interface: Optional[Callable] = None   # numpy level set φ(points (2, n)); data jump at φ = 0
+    description: str = ""
+    domain: str = ""
+
+    def __post_init__(self):
+        self.mu1 = positive_number("mu1", self.mu1)
+        self.mu2 = positive_number("mu2", self.mu2)
+        self.g = positive_number("g", self.g)
+        points = None
+        for name in ("f1", "f2"):
+            data = getattr(self, name)
+            if isinstance(data, str):
+                data = Formula(data, name)
+                setattr(self, name, data)
+            if isinstance(data, Formula):
+                points = _sample_points(self.mesh) if points is None else points
+                values = data.numpy(points)
+                bad = ~np.isfinite(values)
+                if bad.any():
+                    p = points[:, np.argmax(bad)]
+                    raise ValueError(f"{name} = {data.text!r} is not finite on the mesh "
+                                     f"(e.g. at x = {p[0]:.6g}, y = {p[1]:.6g})")
+            elif not callable(data):
+                v = float(data)
+                if not np.isfinite(v):
+                    raise ValueError(f"{name} must be finite, got {v}")
+
+    @property
+    def mesh(self):
+        """The computational mesh T_J."""
+        return self.hierarchy.finest
+
+    @property
+    def levels(self):
+        return self.hierarchy.levels
