@@ -75,10 +75,11 @@ class Formula:
                              f"in {self.text!r}")
 
     def _build(self, node, x, y, which):
-        if isinstance(node, ast.Constant):
-            return float(node.value)
+        if isinstance(node, ast.Constant):   # numpy floats: 1/0 gives inf, not an exception
+            return float(node.value) if which == 0 else np.float64(node.value)
         if isinstance(node, ast.Name):
-            return {"x": x, "y": y}.get(node.id, _CONSTANTS.get(node.id))
+            value = {"x": x, "y": y}.get(node.id, _CONSTANTS.get(node.id))
+            return value if which == 0 or node.id in _VARIABLES else np.float64(value)
         if isinstance(node, ast.BinOp):
             return _BINARY[type(node.op)](self._build(node.left, x, y, which),
                                           self._build(node.right, x, y, which))

@@ -72,8 +72,10 @@ def unit_square(h, comm=MPI.COMM_WORLD):
 def read_msh(path, comm=MPI.COMM_WORLD):
     """Read a 2D triangular gmsh `.msh` file; ValueError names what is wrong with it."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
+    if not os.path.exists(path):
         raise ValueError(f"mesh file {path!r} does not exist")
+    if not os.path.isfile(path):
+        raise ValueError(f"mesh file {path!r} is not a file")
     if not os.access(path, os.R_OK):
         raise ValueError(f"mesh file {path!r} is not readable")
     with _gmsh_session() as gmsh:

@@ -1,0 +1,138 @@
+"""Command line: ``membranes solve ...`` and ``membranes scenes``.
+
+Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out),
+3 the solver did not converge (the outputs are written, with converged = false and a reason).
+Progress: one line per Newton step on stderr (``--quiet`` silences it).
+"""
+
+import argparse
+import json
+import logging
+import sys
+
+EXIT_BAD_INPUT = 2
+EXIT_NOT_CONVERGED = 3
+
+DATA_OPTIONS = ("mu1", "mu2", "g", "f1", "f2", "mesh", "domain")
+
+
+class BadInput(ValueError):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise BadInput(message)
+
+
+def _parser():
+    p = _Parser(prog="membranes",
+                description="Contact of two elastic membranes: semismooth Newton on P1 "
+                            "finite elements (FEniCSx).")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    s = sub.add_parser("solve", help="solve a scene and write summary, history and solution")
+    s.add_argument("--scene", choices=("disk", "square", "user"),
+                   help="disk (default) or square with known exact solutions, or user data "
+                        "(implied by --mu1/--mu2/--g/--f1/--f2/--mesh/--domain)")
+    s.add_argument("--mesh", metavar="FILE", help="2D triangular gmsh .msh file (user scene)")
+    s.add_argument("--domain", choices=("disk", "square"),
+                   help="domain of the user scene when no --mesh is given (default disk)")
+    s.add_argument("--h", type=float, help="gmsh target size of the coarse mesh (default 0.05)")
+    s.add_argument("--levels", type=int, default=0,
+                   help="uniform refinements of the coarse mesh; the finest is computed on")
+    s.add_argument("--mu1", type=float, help="modulus of membrane 1 (> 0, default 1)")
+    s.add_argument("--mu2", type=float, help="modulus of membrane 2 (> 0, default 1)")
+    s.add_argument("--g", type=float, help="boundary value of membrane 1 (> 0, default 0.05)")
+    s.add_argument("--f1", metavar="EXPR", help="load of membrane 1, formula in x, y "
+                   "(pi sin cos exp sqrt abs min max; default 0)")
+    s.add_argument("--f2", metavar="EXPR", help="load of membrane 2 (default 0)")
+    s.add_argument("--newton", choices=("exact",), default="exact")
+    s.add_argument("--cfun", choices=("min", "fb"), default="min")
+    s.add_argument("--system", choices=("full", "eliminated"), default="full",
+                   help="Newton system: full 3N or eliminated 2N (DESIGN §3)")
+    s.add_argument("--linear-solver", choices=("direct",), default="direct")
+    s.add_argument("--tol", type=float, default=1e-10,
+                   help="stop at ||R_lin|| / ||(F, 0)|| <= TOL (default 1e-10)")
+    s.add_argument("--max-newton", type=int, default=100)
+    s.add_argument("--out", metavar="DIR", help="write summary.json, history.csv, "
+                   "solution.xdmf there")
+    s.add_argument("--quiet", action="store_true", help="no progress lines")
+    sub.add_parser("scenes", help="list the scenes")
+    return p
+
+
+def _scene_arguments(args):
+    given = [k for k in DATA_OPTIONS if getattr(args, k) is not None]
+    scene = args.scene or ("user" if given else "disk")
+    if scene != "user" and given:
+        raise BadInput(f"--{given[0]} applies to --scene user only (scene {scene} has its "
+                       f"own data)")
+    if args.mesh is not None and args.h is not None:
+        raise BadInput("give --mesh or --h, not both")
+    if args.mesh is not None and args.domain is not None:
+        raise BadInput("give --mesh or --domain, not both")
+    if args.levels < 0:
+        raise BadInput(f"--levels must be a non-negative integer, got {args.levels}")
+    if args.max_newton < 1:
+        raise BadInput(f"--max-newton must be at least 1, got {args.max_newton}")
+    kwargs = {"levels": args.levels}
+    if args.h is not None:
+        kwargs["h"] = args.h
+    if scene == "user":
+        for k in DATA_OPTIONS:
+            if getattr(args, k) is not None:
+                kwargs[k] = getattr(args, k)
+    return scene, kwargs
+
+
+def _quiet_jit_logging():
+    # The JIT compiler (ffcx, via setuptools) logs every C compilation at INFO level on the
+    # root logger's handler; keep stderr for our progress lines and real warnings.
+    for handler in logging.getLogger().handlers:
+        handler.setLevel(logging.WARNING)
+
+
+def _solve(args):
+    scene, kwargs = _scene_arguments(args)
+    from . import scenes
+    from .driver import solve
+    from .outputs import write_outputs
+    _quiet_jit_logging()
+    problem = scenes.make(scene, **kwargs)
+    sol = solve(problem, newton=args.newton, cfun=args.cfun, system=args.system,
+                linear_solver=args.linear_solver, tol=args.tol, max_newton=args.max_newton,
+                progress=not args.quiet)
+    if args.out is not None:
+        write_outputs(sol, args.out)
+    summary = sol.summary()
+    keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "converged",
+            "newton_iterations", "linear_iterations", "wall_time_s", "energy_error")
+    print(json.dumps({k: summary[k] for k in keys}))
+    if not sol.converged:
+        print(f"membranes: not converged: {sol.reason}", file=sys.stderr)
+        return EXIT_NOT_CONVERGED
+    return 0
+
+
+def _scenes():
+    from .scenes import NEEDS, SCENES
+    for name, fn in SCENES.items():
+        print(f"{name:8s} {fn.__doc__.strip().splitlines()[0]}")
+        print(f"{'':8s} needs: {NEEDS[name]}")
+    return 0
+
+
+def main(argv=None):
+    try:
+        args = _parser().parse_args(argv)
+        if args.command == "scenes":
+            return _scenes()
+        return _solve(args)
+    except ValueError as e:   # BadInput and every data/mesh error of the API
+        message = " ".join(str(e).split())
+        print(f"membranes: error: {message}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

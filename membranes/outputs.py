@@ -1,0 +1,76 @@
+"""Files a run writes to its output folder.
+
+* ``summary.json`` — the keys of :meth:`membranes.driver.Solution.summary`;
+* ``history.csv``  — one row per recorded iterate (X^0 included), columns HISTORY_COLUMNS;
+* ``solution.xdmf`` (+ ``solution.h5``) — P1 functions ``u1``, ``u2``, ``lambda`` on the
+  computational mesh, readable by ParaView.
+
+Everything is written into a fresh temporary folder beside the target and moved into place
+at the end, so an interrupted or failed run leaves nothing half-written in the output folder.
+"""
+
+import csv
+import json
+import math
+import os
+import shutil
+import tempfile
+
+OUTPUT_FILES = ("summary.json", "history.csv", "solution.xdmf", "solution.h5")
+HISTORY_COLUMNS = ("newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
+                   "residual", "energy_error")
+
+
+def _json_safe(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_summary(path, summary):
+    with open(path, "w") as f:
+        json.dump({k: _json_safe(v) for k, v in summary.items()}, f, indent=2)
+        f.write("\n")
+
+
+def write_history(path, history, columns=HISTORY_COLUMNS):
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(columns)
+        for rec in history:
+            writer.writerow(["" if rec.get(c) is None else rec[c] for c in columns])
+
+
+def write_solution(path, mesh, functions):
+    from dolfinx.io import XDMFFile
+    with XDMFFile(mesh.comm, path, "w") as xdmf:
+        xdmf.write_mesh(mesh)
+        for f in functions:
+            xdmf.write_function(f)
+
+
+def write_outputs(solution, out_dir):
+    """Write the three outputs of `solution` into `out_dir` (created if missing)."""
+    comm = solution.problem.mesh.comm
+    out_dir = os.path.abspath(out_dir)
+    parent = os.path.dirname(out_dir)
+    tmp = None
+    if comm.rank == 0:
+        os.makedirs(parent, exist_ok=True)
+        tmp = tempfile.mkdtemp(prefix=".membranes-", dir=parent)
+    tmp = comm.bcast(tmp, root=0)
+    summary = solution.summary()          # collective (global mesh sizes)
+    try:
+        write_solution(os.path.join(tmp, "solution.xdmf"), solution.problem.mesh,
+                       solution.functions)
+        if comm.rank == 0:
+            write_summary(os.path.join(tmp, "summary.json"), summary)
+            write_history(os.path.join(tmp, "history.csv"), solution.history)
+            os.makedirs(out_dir, exist_ok=True)
+            for name in OUTPUT_FILES:
+                os.replace(os.path.join(tmp, name), os.path.join(out_dir, name))
+        comm.barrier()
+    finally:
+        if comm.rank == 0:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out_dir
