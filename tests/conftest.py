@@ -1,0 +1,54 @@
+"""Shared fixtures: solves are cached per session so several tests can check one run."""
+
+import functools
+import logging
+
+import pytest
+
+from membranes import scenes, solve
+
+for _handler in logging.getLogger().handlers:   # JIT compilation logs at INFO on root
+    _handler.setLevel(logging.WARNING)
+
+
+@functools.lru_cache(maxsize=None)
+def scene(name, h, **kwargs):
+    return scenes.make(name, h=h, **kwargs)
+
+
+@functools.lru_cache(maxsize=None)
+def solved(name, h, cfun="min", system="full"):
+    return solve(scene(name, h), cfun=cfun, system=system)
+
+
+@pytest.fixture
+def solved_scene():
+    return solved
+
+
+def write_msh(path, kind):
+    """Write a small gmsh file: 'triangles', 'quads' (recombined), 'box' (3D) or 'p2'."""
+    import gmsh
+    gmsh.initialize([])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add(kind)
+        if kind == "box":
+            gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+            gmsh.model.occ.synchronize()
+            gmsh.model.addPhysicalGroup(3, [1], 1)
+            gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.5)
+            gmsh.model.mesh.generate(3)
+        else:
+            gmsh.model.occ.addRectangle(0, 0, 0, 2, 1)
+            gmsh.model.occ.synchronize()
+            gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.2)
+            if kind == "quads":
+                gmsh.option.setNumber("Mesh.RecombineAll", 1)
+            gmsh.model.mesh.generate(2)
+            if kind == "p2":
+                gmsh.model.mesh.setOrder(2)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    return path

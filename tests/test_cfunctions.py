@@ -1,0 +1,97 @@
+"""C-functions (DESIGN §3), min against Fischer–Burmeister, and complementarity at round-off."""
+
+import numpy as np
+import pytest
+
+from membranes import cfunctions
+from membranes.newton_system import split
+
+from membranes import solve
+
+from .conftest import scene, solved
+
+RNG = np.random.default_rng(0)
+
+
+@pytest.mark.parametrize("name", ["min", "fb"])
+def test_zero_set_is_complementarity(name):
+    C, _ = cfunctions.get(name)
+    a = np.concatenate([RNG.uniform(0.1, 1, 50), np.zeros(50), RNG.uniform(-1, -0.1, 50),
+                        RNG.uniform(0.1, 1, 50)])
+    b = np.concatenate([np.zeros(50), RNG.uniform(0.1, 1, 50), RNG.uniform(0.1, 1, 50),
+                        RNG.uniform(0.1, 1, 50)])
+    value = C(a, b)
+    complementary = (a >= 0) & (b >= 0) & (a * b == 0)
+    assert np.all(value[complementary] == 0)
+    assert np.all(np.abs(value[~complementary]) > 1e-3)
+
+
+@pytest.mark.parametrize("name", ["min", "fb"])
+def test_jacobian_is_derivative_where_smooth(name):
+    C, J = cfunctions.get(name)
+    a, b = RNG.uniform(-1, 1, 200), RNG.uniform(-1, 1, 200)
+    keep = np.abs(a - b) > 1e-3          # away from the kink of min
+    a, b = a[keep], b[keep]
+    alpha, beta = J(a, b)
+    eps = 1e-7   # central differences: error O(eps²) plus round-off O(1e-16/eps) ≈ 1e-9
+    assert np.allclose(alpha, (C(a + eps, b) - C(a - eps, b)) / (2 * eps), atol=1e-6)
+    assert np.allclose(beta, (C(a, b + eps) - C(a, b - eps)) / (2 * eps), atol=1e-6)
+
+
+def test_fb_kink_choice_is_in_clarke_jacobian():
+    alpha, beta = cfunctions.jacobian_fb(np.zeros(1), np.zeros(1))
+    xi, zeta = alpha[0] + 1, beta[0] + 1
+    assert xi ** 2 + zeta ** 2 <= 1 + 1e-15
+    alpha_, beta_, B3 = cfunctions.linearise("fb", np.zeros(1), np.zeros(1))
+    assert B3[0] == 0.0
+
+
+def test_min_linearisation_has_no_constant_term():
+    a, b = RNG.uniform(-1, 1, 100), RNG.uniform(-1, 1, 100)
+    _, _, B3 = cfunctions.linearise("min", a, b)
+    assert np.all(B3 == 0)   # min is piecewise linear: the primal–dual active set method
+
+
+@pytest.mark.parametrize("name", ["disk", "square"])
+def test_min_and_fb_give_the_same_discrete_solution(name):
+    a, b = solved(name, 0.05, "min"), solved(name, 0.05, "fb")
+    assert a.converged and b.converged
+    n = a.disc.n
+    for xa, xb in zip(split(a.X, n), split(b.X, n)):
+        assert np.abs(xa - xb).max() <= 1e-8 * np.abs(xa).max()
+
+
+def _complementarity(run, bound):
+    d = run.disc
+    u1, u2, lam = split(run.X, d.n)
+    w = (u1 - u2)[d.interior]
+    lam = lam[d.interior]
+    u_scale, lam_scale = d.problem.g, np.abs(lam).max()
+    assert w.min() >= -bound * u_scale
+    assert lam.min() >= -bound * lam_scale
+    assert np.abs(w * lam).max() <= bound * u_scale * lam_scale
+    assert run.complementarity_violation() <= bound
+
+
+@pytest.mark.parametrize("name", ["disk", "square"])
+def test_min_complementarity_at_round_off(name):
+    """min is piecewise linear: at convergence the active set is exact, the rest round-off."""
+    _complementarity(solved(name, 0.05, "min"), 1e-12)
+
+
+@pytest.mark.parametrize("name", ["disk", "square"])
+def test_fb_complementarity(name):
+    """Fischer–Burmeister is smooth off the kink: at the stop its complementarity error is
+    bounded by the Newton tolerance (|C| ≤ tol ‖F‖, and |C(w, λ)| ≈ |λ| where w ≫ |λ|), so
+    ≤ 1e-10 at tol = 1e-10; one more (superlinear) step, tol = 1e-13, reaches round-off."""
+    _complementarity(solved(name, 0.05, "fb"), 1e-10)
+    _complementarity(solve(scene(name, 0.05), cfun="fb", tol=1e-13), 1e-12)
+
+
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_full_and_eliminated_systems_agree(cfun):
+    full, elim = solved("square", 0.1, cfun, "full"), solved("square", 0.1, cfun, "eliminated")
+    assert full.newton_iterations == elim.newton_iterations
+    assert np.abs(full.X - elim.X).max() <= 1e-10 * np.abs(full.X).max()
+    for rf, re in zip(full.history, elim.history):
+        assert abs(rf["residual"] - re["residual"]) <= 1e-8 * max(rf["residual"], 1e-6)
