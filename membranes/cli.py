@@ -14,6 +14,7 @@ EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 3
 
 DATA_OPTIONS = ("mu1", "mu2", "g", "f1", "f2", "mesh", "domain")
+VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--tol")
 
 
 class BadInput(ValueError):
@@ -85,9 +86,13 @@ def _scene_arguments(args):
     return scene, kwargs
 
 
-def _quiet_jit_logging():
-    # The JIT compiler (ffcx, via setuptools) logs every C compilation at INFO level on the
-    # root logger's handler; keep stderr for our progress lines and real warnings.
+def quiet_jit_logging():
+    """Keep stderr for progress lines and real warnings.
+
+    ffcx installs a root handler when imported, and setuptools (which compiles the JIT
+    kernels) lowers the root level to INFO: every compilation would be logged.
+    """
+    import ffcx  # noqa: F401  (installs its handler now, so that we can raise its level)
     for handler in logging.getLogger().handlers:
         handler.setLevel(logging.WARNING)
 
@@ -97,7 +102,7 @@ def _solve(args):
     from . import scenes
     from .driver import solve
     from .outputs import write_outputs
-    _quiet_jit_logging()
+    quiet_jit_logging()
     problem = scenes.make(scene, **kwargs)
     sol = solve(problem, newton=args.newton, cfun=args.cfun, system=args.system,
                 linear_solver=args.linear_solver, tol=args.tol, max_newton=args.max_newton,
@@ -122,9 +127,22 @@ def _scenes():
     return 0
 
 
+def _glue_values(argv):
+    """["--f1", "-1+y"] -> ["--f1=-1+y"]: a formula or number may start with '-'."""
+    out, it = [], iter(argv)
+    for a in it:
+        nxt = next(it, None) if a in VALUE_OPTIONS else None
+        if nxt is not None:
+            out.append(f"{a}={nxt}")
+        else:
+            out.append(a)
+    return out
+
+
 def main(argv=None):
     try:
-        args = _parser().parse_args(argv)
+        argv = sys.argv[1:] if argv is None else list(argv)
+        args = _parser().parse_args(_glue_values(argv))
         if args.command == "scenes":
             return _scenes()
         return _solve(args)

@@ -89,6 +89,16 @@ def over(measures, form_of):
     return total
 
 
+def _load(expr, mesh):
+    """Constant data as a dolfinx Constant: UFL would fold 0 * v * dx into an empty form, and a
+    Constant keeps one compiled kernel for every value."""
+    from dolfinx import fem
+    expr = ufl.as_ufl(expr)
+    if isinstance(expr, (ufl.constantvalue.Zero, ufl.constantvalue.ScalarValue)):
+        return fem.Constant(mesh, float(expr))
+    return expr
+
+
 def assemble_matrix_csr(a):
     """Assemble a bilinear UFL form (no boundary conditions) into scipy CSR."""
     from dolfinx import fem
@@ -102,7 +112,9 @@ def assemble_matrix_csr(a):
 
 
 def assemble_vector_array(L):
-    """Assemble a linear UFL form into a numpy array of the owned entries."""
+    """Assemble a linear UFL form into a numpy array of the owned entries.
+
+    """
     from dolfinx import fem
     from petsc4py import PETSc
     import dolfinx.fem.petsc  # noqa: F401
@@ -159,7 +171,7 @@ def discretise(problem):
     S2 = assemble_matrix_csr(membrane_bilinear(mu2, u, v))
     D = assemble_vector_array(contact_weight(v))
     dxd = data_measures(mesh, problem.interface)
-    f1, f2 = as_builder(problem.f1)(x), as_builder(problem.f2)(x)
+    f1, f2 = (_load(as_builder(f)(x), mesh) for f in (problem.f1, problem.f2))
     F1 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f1, v, dx)))
     F2 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f2, v, dx)))
     mesh.topology.create_connectivity(1, 2)

@@ -33,7 +33,11 @@ def refine_uniformly(mesh):
     fine, parent_cell, _ = cpp.refinement.plaza_refine_data(
         mesh._mesh, False, cpp.refinement.RefinementOptions.parent_cell_and_facet)
     domain = ufl.Mesh(mesh.ufl_domain().ufl_coordinate_element())
-    return dmesh.Mesh(fine, domain), np.asarray(parent_cell, dtype=np.int32)
+    fine = dmesh.Mesh(fine, domain)
+    # plaza's parent map is in the order cells were created; mesh creation then reorders the
+    # cells (for locality), and original_cell_index maps each cell back to that order
+    created = np.asarray(fine.topology.original_cell_index, dtype=np.int64)
+    return fine, np.asarray(parent_cell, dtype=np.int32)[created]
 
 
 def build_hierarchy(coarse, levels):

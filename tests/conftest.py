@@ -1,14 +1,13 @@
 """Shared fixtures: solves are cached per session so several tests can check one run."""
 
 import functools
-import logging
 
 import pytest
 
 from membranes import scenes, solve
+from membranes.cli import quiet_jit_logging
 
-for _handler in logging.getLogger().handlers:   # JIT compilation logs at INFO on root
-    _handler.setLevel(logging.WARNING)
+quiet_jit_logging()
 
 
 @functools.lru_cache(maxsize=None)

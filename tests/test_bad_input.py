@@ -1,0 +1,144 @@
+"""Bad input: one-line error and exit code 2 from the CLI, ValueError from the API, and nothing
+written to the output folder."""
+
+import subprocess
+import sys
+
+import pytest
+
+from membranes import Problem, scenes, solve
+from membranes.cli import main
+from membranes.expressions import Formula
+from membranes.hierarchy import build_hierarchy
+from membranes.meshes import read_msh, unit_disk
+
+from .conftest import scene, write_msh
+
+
+@pytest.fixture(scope="module")
+def bad_meshes(tmp_path_factory):
+    d = tmp_path_factory.mktemp("meshes")
+    garbage = d / "garbage.msh"
+    garbage.write_text("this is not a mesh\n")
+    return {"missing": str(d / "missing.msh"),
+            "directory": str(d),
+            "garbage": str(garbage),
+            "quads": str(write_msh(d / "quads.msh", "quads")),
+            "p2": str(write_msh(d / "p2.msh", "p2")),
+            "box": str(write_msh(d / "box.msh", "box"))}
+
+
+CLI_CASES = {
+    "mu1 zero": ["--mu1", "0"],
+    "mu2 negative": ["--mu2", "-2"],
+    "g zero": ["--g", "0"],
+    "g negative": ["--g", "-0.1"],
+    "mu1 nan": ["--mu1", "nan"],
+    "g inf": ["--g", "inf"],
+    "mu1 not a number": ["--mu1", "abc"],
+    "expr syntax": ["--f1", "sin(x"],
+    "expr unknown name": ["--f1", "z + 1"],
+    "expr unknown function": ["--f2", "tan(x)"],
+    "expr attribute": ["--f1", "x.real"],
+    "expr wrong arity": ["--f1", "sin(x, y)"],
+    "expr not finite": ["--f1", "1/(x - x)"],
+    "expr nan": ["--f2", "sqrt(x - 5)"],
+    "levels negative": ["--levels", "-1"],
+    "h zero": ["--h", "0"],
+    "h nan": ["--h", "nan"],
+    "unknown option": ["--bogus"],
+    "data with disk scene": ["--scene", "disk", "--f1", "1"],
+}
+MESH_CASES = ("missing", "directory", "garbage", "quads", "p2", "box")
+
+
+def _run_cli(args, out):
+    return main(["solve", "--quiet", "--h", "0.3", "--out", str(out)] + args
+                if "--mesh" not in args and "--h" not in args
+                else ["solve", "--quiet", "--out", str(out)] + args)
+
+
+@pytest.mark.parametrize("case", sorted(CLI_CASES))
+def test_cli_bad_values(case, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = _run_cli(CLI_CASES[case], out)
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert err.startswith("membranes: error: ") and "\n" not in err
+    assert "Traceback" not in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case", MESH_CASES)
+def test_cli_bad_meshes(case, bad_meshes, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = _run_cli(["--mesh", bad_meshes[case]], out)
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert err.startswith("membranes: error: ") and "\n" not in err
+    assert bad_meshes[case] in err
+    assert not out.exists()
+
+
+def test_cli_process_exit_code_and_clean_stderr(tmp_path):
+    """The installed entry point, as a user runs it: exit 2, one stderr line, no traceback."""
+    out = tmp_path / "out"
+    exe = [sys.executable, "-m", "membranes.cli"]
+    proc = subprocess.run(exe + ["solve", "--mu1", "-1", "--out", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "mu1" in proc.stderr
+    assert not out.exists()
+    proc = subprocess.run(exe + ["solve", "--f1", "exp(", "--out", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
+    assert not out.exists()
+
+
+# ## The same classes through the API: ValueError
+
+@pytest.mark.parametrize("kwargs", [
+    {"mu1": 0}, {"mu2": -1}, {"g": 0}, {"g": float("nan")}, {"mu1": float("inf")},
+    {"f1": "sin(x"}, {"f1": "q"}, {"f2": "log(x)"}, {"f1": "1/0"}, {"f2": "sqrt(-1 - x)"},
+    {"levels": -1}, {"h": -0.1}, {"h": float("nan")},
+])
+def test_api_user_scene(kwargs):
+    with pytest.raises(ValueError):
+        scenes.user(**{"h": 0.3, **kwargs})
+
+
+@pytest.mark.parametrize("case", MESH_CASES)
+def test_api_meshes(case, bad_meshes):
+    with pytest.raises(ValueError, match="mesh file"):
+        read_msh(bad_meshes[case])
+
+
+def test_api_problem_and_solve_options():
+    base = scene("disk", 0.1)
+    with pytest.raises(ValueError, match="mu1"):
+        Problem("p", base.hierarchy, -1.0, 1.0, 0.1, 0.0, 0.0)
+    with pytest.raises(ValueError, match="g"):
+        Problem("p", base.hierarchy, 1.0, 1.0, float("inf"), 0.0, 0.0)
+    with pytest.raises(ValueError, match="f1"):
+        Problem("p", base.hierarchy, 1.0, 1.0, 0.1, "1/(x*0)", 0.0)
+    with pytest.raises(ValueError, match="f2"):
+        Problem("p", base.hierarchy, 1.0, 1.0, 0.1, 0.0, float("nan"))
+    with pytest.raises(ValueError, match="levels"):
+        build_hierarchy(unit_disk(0.5), -2)
+    for kwargs in ({"cfun": "max"}, {"newton": "sloppy"}, {"system": "half"},
+                   {"linear_solver": "magic"}, {"tol": 0.0}, {"max_newton": 0}):
+        with pytest.raises(ValueError):
+            solve(base, **kwargs)
+    with pytest.raises(ValueError, match="scene"):
+        scenes.make("cube")
+
+
+def test_formula_accepts_the_documented_language():
+    f = Formula("-1 + 0.5*sin(pi*x)*cos(y) + exp(-x**2) - sqrt(abs(y)) + min(x, y, 0) "
+                "+ max(x, 2*y)", "f1")
+    import numpy as np
+    p = np.array([[0.3, -0.2], [0.1, 0.4]])
+    x, y = p
+    expected = (-1 + 0.5 * np.sin(np.pi * x) * np.cos(y) + np.exp(-x ** 2) - np.sqrt(np.abs(y))
+                + np.minimum(np.minimum(x, y), 0) + np.maximum(x, 2 * y))
+    assert np.allclose(f.numpy(p), expected, rtol=1e-15, atol=1e-15)

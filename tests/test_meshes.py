@@ -1,0 +1,51 @@
+"""Meshes and the refinement hierarchy (DESIGN §6, §9)."""
+
+import numpy as np
+import pytest
+
+from membranes.hierarchy import build_hierarchy
+from membranes.meshes import mesh_size, read_msh, unit_disk, unit_square
+
+from .conftest import write_msh
+
+
+def test_disk_and_square_sizes():
+    for make, area in ((unit_disk, np.pi), (unit_square, 1.0)):
+        m = make(0.1)
+        assert m.geometry.dim == 2
+        assert 0.05 < mesh_size(m) <= 0.16
+        x = m.geometry.x[:, :2]
+        c = m.geometry.dofmap.array.reshape(-1, 3)
+        e1, e2 = x[c[:, 1]] - x[c[:, 0]], x[c[:, 2]] - x[c[:, 0]]
+        polygon = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+        # the inscribed polygon misses O(h²) of the disk's area; the square is exact
+        assert abs(polygon - area) <= 0.02 * area
+
+
+def test_hierarchy_parent_maps():
+    h = build_hierarchy(unit_disk(0.3), 2)
+    assert h.levels == 2
+    for j in (1, 2):
+        coarse, fine = h.meshes[j - 1], h.meshes[j]
+        nc, nf = (m.topology.index_map(2).size_local for m in (coarse, fine))
+        assert nf == 4 * nc
+        parents = h.parent_cells[j - 1]
+        assert parents.shape == (nf,)
+        assert np.all(np.bincount(parents, minlength=nc) == 4)
+        # every fine cell's centroid lies in its parent
+        xf, xc = fine.geometry.x[:, :2], coarse.geometry.x[:, :2]
+        cf = fine.geometry.dofmap.array.reshape(-1, 3)
+        cc = coarse.geometry.dofmap.array.reshape(-1, 3)
+        centroid = xf[cf].mean(axis=1)
+        p = xc[cc[parents]]
+        v0, v1, v2 = p[:, 0], p[:, 1], p[:, 2]
+        m = np.stack([v1 - v0, v2 - v0], axis=2)
+        lam = np.linalg.solve(m, (centroid - v0)[..., None])[..., 0]
+        assert np.all(lam >= -1e-12) and np.all(lam.sum(axis=1) <= 1 + 1e-12)
+    assert mesh_size(h.finest) == pytest.approx(mesh_size(h.meshes[0]) / 4, rel=0.3)
+
+
+def test_read_msh(tmp_path):
+    m = read_msh(write_msh(tmp_path / "rect.msh", "triangles"))
+    assert m.geometry.dim == 2 and m.topology.index_map(2).size_local > 50
+    assert np.isclose(m.geometry.x[:, 0].max(), 2.0)
