@@ -41,32 +41,32 @@ def _to_dolfinx(gmsh, comm):
     return mesh
 
 
-def _mesh_surface(gmsh, h, comm):
-    gmsh.model.occ.synchronize()
-    surfaces = [tag for _, tag in gmsh.model.getEntities(2)]
-    gmsh.model.addPhysicalGroup(2, surfaces, 1)
-    gmsh.option.setNumber("Mesh.CharacteristicLengthMin", 0.0)
-    gmsh.option.setNumber("Mesh.CharacteristicLengthMax", h)
-    gmsh.model.mesh.generate(2)
-    return _to_dolfinx(gmsh, comm)
+def _mesh_shape(shape, h, comm):
+    """Mesh the unit disk or the unit square with gmsh, target cell size h."""
+    h = _check_size(h)
+    with _gmsh_session() as gmsh:
+        gmsh.model.add(shape)
+        if shape == "disk":
+            gmsh.model.occ.addDisk(0.0, 0.0, 0.0, 1.0, 1.0)
+        else:
+            gmsh.model.occ.addRectangle(0.0, 0.0, 0.0, 1.0, 1.0)
+        gmsh.model.occ.synchronize()
+        surfaces = [tag for _, tag in gmsh.model.getEntities(2)]
+        gmsh.model.addPhysicalGroup(2, surfaces, 1)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMin", 0.0)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", h)
+        gmsh.model.mesh.generate(2)
+        return _to_dolfinx(gmsh, comm)
 
 
 def unit_disk(h, comm=MPI.COMM_WORLD):
     """Unstructured mesh of the unit disk with target cell size h (DESIGN §9)."""
-    h = _check_size(h)
-    with _gmsh_session() as gmsh:
-        gmsh.model.add("disk")
-        gmsh.model.occ.addDisk(0.0, 0.0, 0.0, 1.0, 1.0)
-        return _mesh_surface(gmsh, h, comm)
+    return _mesh_shape("disk", h, comm)
 
 
 def unit_square(h, comm=MPI.COMM_WORLD):
     """Unstructured mesh of (0, 1)² with target cell size h."""
-    h = _check_size(h)
-    with _gmsh_session() as gmsh:
-        gmsh.model.add("square")
-        gmsh.model.occ.addRectangle(0.0, 0.0, 0.0, 1.0, 1.0)
-        return _mesh_surface(gmsh, h, comm)
+    return _mesh_shape("square", h, comm)
 
 
 def read_msh(path, comm=MPI.COMM_WORLD):
