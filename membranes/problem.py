@@ -68,6 +68,20 @@ class Problem:
     interface: Optional[Callable] = None   # numpy level set φ(points (2, n)); data jump at φ = 0
     description: str = ""
     domain: str = ""
+    poincare: Optional[float] = None       # C_PF h_Ω where the scene knows a sharper value
+
+    def poincare_constant(self):
+        """C_PF h_Ω ≥ 1/sqrt(λ_1(Ω)) (DESIGN §7): the scene's value, else the guaranteed bound
+        1/(π sqrt(1/a² + 1/b²)) of the bounding box a × b of the computational mesh."""
+        if self.poincare is not None:
+            return float(self.poincare)
+        from mpi4py import MPI
+        x = self.mesh.geometry.x[:, :2]
+        comm = self.mesh.comm
+        lo = comm.allreduce(x.min(axis=0), op=MPI.MIN)
+        hi = comm.allreduce(x.max(axis=0), op=MPI.MAX)
+        a, b = hi - lo
+        return float(1.0 / (np.pi * np.sqrt(1.0 / a ** 2 + 1.0 / b ** 2)))
 
     def __post_init__(self):
         self.mu1 = positive_number("mu1", self.mu1)

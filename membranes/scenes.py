@@ -47,6 +47,7 @@ def _check_levels(levels):
 # λ = 2g; outside, membrane 2 bends as c (1 - r)(2r² - 1), c = g √2/(√2 - 1).
 
 DISK_G = 0.05
+J01 = 2.404825557695773   # first zero of the Bessel function J_0
 
 
 def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
@@ -82,6 +83,8 @@ def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
     return Problem("disk", hierarchy, 1.0, 1.0, g, f1, f2,
                    exact=ExactSolution(u1, u2, lam),
                    interface=lambda p: p[0] ** 2 + p[1] ** 2 - 0.5,
+                   # the polygon lies inside the unit disk, whose λ_1 is j_{0,1}² (DESIGN §7)
+                   poincare=1.0 / J01,
                    description="unit disk, mu1 = mu2 = 1, g = 0.05, exact solution "
                                "(contact zone r <= 1/sqrt(2))",
                    domain="disk")

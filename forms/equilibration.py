@@ -1,0 +1,38 @@
+# # UFL forms of the patchwise flux equilibration and of the estimators (DESIGN §5, §7)
+#
+# UFL only. The driver assembles the global Raviart–Thomas forms once per mesh and restricts
+# them to each vertex patch; the estimator forms are tested with a piecewise-constant function
+# so that one assembly gives a value per cell.
+
+import ufl
+
+
+def rt_mass(sigma, tau, dx=ufl.dx):
+    """(σ, τ): the mass matrix of RT_1 (DESIGN §5, first equation)."""
+    return ufl.inner(sigma, tau) * dx
+
+
+def divergence(sigma, q, dx=ufl.dx):
+    """(∇·σ, q): the divergence constraint against discontinuous P1 (DESIGN §5)."""
+    return ufl.div(sigma) * q * dx
+
+
+def vector_moment(w, tau, dx=ufl.dx):
+    """(w, τ) for w in vector DG1: gives ∫_K ψ_a e_d · τ, the moments behind -(ψ_a μ ∇u_h, τ)."""
+    return ufl.inner(w, tau) * dx
+
+
+def weighted_mass(f, p, q, dx=ufl.dx):
+    """(f p, q) on DG1: gives (ψ_a f, q)_K, the load part of the patch right-hand side."""
+    return f * p * q * dx
+
+
+def flux_estimator_squared(mu, u, sigma, w, dx=ufl.dx):
+    """η_F,K² = ‖μ^{1/2} ∇u_h + μ^{-1/2} σ‖_K² per cell (w a DG0 test function; DESIGN §7)."""
+    e = ufl.sqrt(mu) * ufl.grad(u) + sigma / ufl.sqrt(mu)
+    return ufl.inner(e, e) * w * dx
+
+
+def cell_norm_squared(v, w, dx=ufl.dx):
+    """‖v‖_K² per cell (w a DG0 test function)."""
+    return ufl.inner(v, v) * w * dx

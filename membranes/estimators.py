@@ -1,0 +1,196 @@
+"""A posteriori estimators and the guaranteed bound (DESIGN §7).
+
+For an iterate X = (u1h, u2h, λh) with algebraic residual R (DESIGN §4), per cell K and
+membrane α:
+
+    η_F,K,α   = ‖μ_α^{1/2} ∇u_αh + μ_α^{-1/2} σ_α‖_K,   σ_α = σ_α,disc + σ_α,alg
+    η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K
+    η_C,K     = 2 (u1h - u2h, λ^pos)_K
+    η_lin1,K  = |||s_h - u_h|||_K
+    η_lin2,K  = 2 C_PF h_Ω (1/μ1 + 1/μ2)^{1/2} ‖λ^pos‖_Ω |||s_h - u_h|||_K
+    η_lin3,K  = C_PF h_Ω (1/μ1 + 1/μ2)^{1/2} ‖λ^neg‖_K
+    η_alg,K,α = ‖μ_α^{-1/2} σ_α,alg‖_K
+
+with s_h the nodal projection onto the constraint (s = u_h where u1h ≥ u2h, else both
+components (u1h + u2h)/2) and λ^pos, λ^neg the nodal positive and negative parts. Globally
+η_· = (Σ_K η_·,K²)^{1/2}, Σ_C = Σ_K η_C,K, η_1 = (Σ_K Σ_α (η_F,K,α + η_osc,K,α)²)^{1/2} and
+
+    |||u - u_h||| ≤ η = {(η_1 + η_lin1 + η_lin3)² + η_lin2 + max(0, Σ_C)}^{1/2}
+
+(the paper's Theorem 5.1), with the components η_disc, η_lin, η_alg of Corollary 5.6.
+
+The algebraic flux σ_alg (DESIGN §6) is not built yet. So:
+
+* where the algebraic residual vanishes to round-off (`R` None, or ‖R‖/‖B‖ ≤ ALG_ROUNDOFF:
+  exact solves), σ_alg = 0 and the unbalanced lifted residual r_h, however tiny, is bounded by
+  Poincaré–Friedrichs, |(r_α, φ_α)| ≤ C_PF h_Ω μ_α^{-1/2} ‖r_α‖ μ_α^{1/2} ‖∇φ_α‖; so
+  η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖r_αh‖²)^{1/2} joins η_1 (as the remainder of the
+  ν-construction does, DESIGN §6) and is reported as η_alg: the bound is guaranteed;
+* elsewhere (inexact iterates) η_alg, η_F and η are reported as missing (None), never as 0,
+  and no bound is claimed; η_disc and η_lin are still computed.
+
+Integrals of P1 products (η_C, η_lin1, η_lin3, ‖λ^pos‖) are exact cell formulas; η_F, η_alg
+and η_osc are assembled with dolfinx against a piecewise-constant test function, the data with
+the scene's data measures.
+"""
+
+import numpy as np
+import ufl
+
+from forms.equilibration import cell_norm_squared, flux_estimator_squared
+
+from .discretisation import assemble_vector_array, over
+from .equilibration import _MINV_REF, FluxEquilibration
+from .meshes import cell_diameters
+from .newton_system import split
+from .problem import as_builder
+
+ALG_ROUNDOFF = 1e-11   # ‖R_alg‖/‖B‖ below which σ_alg = 0 and η_rem carries the bound
+
+COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
+           "eta_lin1", "eta_lin2", "eta_lin3")
+
+
+def _p1_products(geo, p, q):
+    """(p, q)_K for nodal P1 values p, q: |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k)."""
+    pc, qc = p[geo.cells], q[geo.cells]
+    return geo.area / 12.0 * ((pc * qc).sum(axis=1) + pc.sum(axis=1) * qc.sum(axis=1))
+
+
+def constraint_projection(u1, u2):
+    """s_h (DESIGN §7): nodal, u_h where u1 ≥ u2, else both components the mean."""
+    s1, s2 = u1.copy(), u2.copy()
+    bad = u1 < u2
+    s1[bad] = s2[bad] = 0.5 * (u1[bad] + u2[bad])
+    return s1, s2
+
+
+class Estimators:
+    """Set-up once per discretisation; `evaluate(X, R)` at any iterate."""
+
+    def __init__(self, disc):
+        from dolfinx import fem
+        self.disc = disc
+        problem = disc.problem
+        mesh = problem.mesh
+        self.flux = FluxEquilibration(disc)
+        self.geo = geo = self.flux.geo
+        self.mu = (problem.mu1, problem.mu2)
+        self.cpf = problem.poincare_constant()
+        self.kappa = self.cpf * np.sqrt(1.0 / self.mu[0] + 1.0 / self.mu[1])
+        # per-cell assembly against DG0
+        self.DG0 = fem.FunctionSpace(mesh, ("DG", 0))
+        self.cell_dof = self.DG0.dofmap.list.array[:geo.ncells]
+        w = ufl.TestFunction(self.DG0)
+        self._u = fem.Function(disc.V)
+        self._sigma = fem.Function(self.flux.RT)
+        self._mu = fem.Constant(mesh, 1.0)
+        self._flux_form = fem.form(flux_estimator_squared(self._mu, self._u, self._sigma, w))
+        self._norm_form = fem.form(cell_norm_squared(self._sigma, w))
+        self.osc = self._oscillation(w)                       # (2, ncells)
+
+    def _per_cell(self, form):
+        from dolfinx import fem
+        import dolfinx.fem.petsc  # noqa: F401
+        return assemble_vector_array(form)[self.cell_dof]
+
+    def _oscillation(self, w):
+        """η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K (iterate-independent)."""
+        from dolfinx import fem
+        disc, geo = self.disc, self.geo
+        x = ufl.SpatialCoordinate(disc.problem.mesh)
+        DG1 = fem.FunctionSpace(disc.problem.mesh, ("DG", 1))
+        dg_cells = DG1.dofmap.list.array.reshape(geo.ncells, 3)
+        hK = cell_diameters(disc.problem.mesh)
+        out = []
+        for alpha, f in enumerate((disc.problem.f1, disc.problem.f2)):
+            b = self.flux.wf[alpha].sum(axis=2)                 # (f, φ_i)_K
+            proj = fem.Function(DG1)
+            proj.x.array[dg_cells] = (3.0 / geo.area)[:, None] * (b @ _MINV_REF.T)
+            e = as_builder(f)(x) - proj
+            sq = assemble_vector_array(over(disc.dx_data, lambda dx: e * e * w * dx))
+            out.append(hK / np.pi / np.sqrt(self.mu[alpha]) * np.sqrt(np.maximum(
+                sq[self.cell_dof], 0.0)))
+        return np.array(out)
+
+    def _flux_cells(self, alpha, u, sigma):
+        self._u.x.array[:] = u
+        self._sigma.x.array[:] = sigma
+        self._mu.value = self.mu[alpha]
+        return np.sqrt(np.maximum(self._per_cell(self._flux_form), 0.0))
+
+    def residual_lifting_norms(self, R):
+        """‖r_αh‖_Ω for α = 1, 2 (DESIGN §4)."""
+        n = self.disc.n
+        out = []
+        for Ra in (R[:n], R[n:2 * n]):
+            r = (self.flux.lift @ Ra).reshape(-1, 3)
+            # ∫_K r² = |K|/12 (Σ r_k² + (Σ r_k)²) for r ∈ P1(K)
+            out.append(np.sqrt(np.sum(self.geo.area / 12.0 * ((r * r).sum(axis=1)
+                                                              + r.sum(axis=1) ** 2))))
+        return np.array(out)
+
+    def evaluate(self, X, R=None, alg_residual=None, sigma_alg=None):
+        """All estimators at X (DESIGN §7). R: the algebraic residual (3N) or None for an exact
+        solve; alg_residual = ‖R‖/‖B‖; sigma_alg: (σ_1,alg, σ_2,alg) RT coefficients, if built.
+
+        Returns a dict with the global values of COLUMNS (None where missing), `bound`
+        (whether η is a guaranteed bound) and `eta_K` (the local distribution)."""
+        disc, geo = self.disc, self.geo
+        n = disc.n
+        u1, u2, lam = split(X, n)
+        Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
+        roundoff = R is None or (alg_residual is not None and alg_residual <= ALG_ROUNDOFF)
+        have_alg = sigma_alg is not None or roundoff
+        disc_cells, flux_cells, alg_cells = [], [], []
+        for alpha, (u, Ra) in enumerate(zip((u1, u2), Rs)):
+            s_disc = self.flux.sigma(alpha + 1, u, lam, Ra)
+            disc_cells.append(self._flux_cells(alpha, u, s_disc))
+            if sigma_alg is not None:
+                flux_cells.append(self._flux_cells(alpha, u, s_disc + sigma_alg[alpha]))
+                self._sigma.x.array[:] = sigma_alg[alpha]
+                alg_cells.append(np.sqrt(np.maximum(self._per_cell(self._norm_form), 0.0)
+                                         / self.mu[alpha]))
+            else:
+                flux_cells.append(disc_cells[-1])
+        disc_cells, flux_cells = np.array(disc_cells), np.array(flux_cells)
+        # constraint and linearisation parts (exact P1 integrals)
+        lam_pos, lam_neg = np.maximum(lam, 0.0), np.minimum(lam, 0.0)
+        eta_C_K = 2.0 * _p1_products(geo, u1 - u2, lam_pos)
+        s1, s2 = constraint_projection(u1, u2)
+        g1, g2 = geo.gradient(s1 - u1), geo.gradient(s2 - u2)
+        lin1_K = np.sqrt(geo.area * (self.mu[0] * (g1 * g1).sum(axis=1)
+                                     + self.mu[1] * (g2 * g2).sum(axis=1)))
+        lam_pos_norm = np.sqrt(max(_p1_products(geo, lam_pos, lam_pos).sum(), 0.0))
+        lin2_K = 2.0 * self.kappa * lam_pos_norm * lin1_K
+        lin3_K = self.kappa * np.sqrt(np.maximum(_p1_products(geo, lam_neg, lam_neg), 0.0))
+        sum_C = float(eta_C_K.sum())
+        eta_lin1, eta_lin2, eta_lin3 = (float(np.sqrt((v * v).sum()))
+                                        for v in (lin1_K, lin2_K, lin3_K))
+        osc = self.osc
+        out = {
+            "eta_osc": float(np.sqrt((osc * osc).sum())),
+            "eta_C": sum_C,
+            "eta_lin1": eta_lin1, "eta_lin2": eta_lin2, "eta_lin3": eta_lin3,
+            "eta_disc": float(np.sqrt(((disc_cells + osc) ** 2).sum()) + np.sqrt(abs(sum_C))),
+            "eta_lin": eta_lin1 + eta_lin3 + float(np.sqrt(eta_lin2)),
+        }
+        if not have_alg:
+            out.update(eta=None, eta_alg=None, eta_F=None, bound=False)
+            out["eta_K"] = None
+            return out
+        if sigma_alg is not None:
+            alg_cells = np.array(alg_cells)
+            eta_alg, eta_rem = float(np.sqrt((alg_cells * alg_cells).sum())), 0.0
+        else:
+            eta_rem = 0.0 if R is None else float(
+                self.cpf * np.sqrt(np.sum(self.residual_lifting_norms(R) ** 2
+                                          / np.array(self.mu))))
+            eta_alg = eta_rem
+        eta_1 = float(np.sqrt(((flux_cells + osc) ** 2).sum()))
+        eta = np.sqrt((eta_1 + eta_rem + eta_lin1 + eta_lin3) ** 2 + eta_lin2 + max(0.0, sum_C))
+        out.update(eta=float(eta), eta_alg=eta_alg,
+                   eta_F=float(np.sqrt((flux_cells * flux_cells).sum())), bound=True)
+        out["eta_K"] = np.sqrt(((flux_cells + osc) ** 2).sum(axis=0) + lin1_K ** 2
+                               + lin3_K ** 2 + np.abs(eta_C_K))
+        return out
