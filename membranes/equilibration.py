@@ -90,141 +90,258 @@ def lifting(geo):
     return sp.csr_matrix((scale.ravel(), (rows, cols)), shape=(3 * geo.ncells, geo.n))
 
 
-def _dense_block(A, rows, cols):
-    """A[rows][:, cols] as a dense array (rows, cols: index arrays; cols unique)."""
-    return A[rows][:, cols].toarray()
+def csr_lookup(A, rows, cols):
+    """Entries A[rows[i], cols[i]] of a CSR matrix (0 where not stored), vectorised."""
+    A = A.tocsr()
+    A.sort_indices()
+    ncols = np.int64(A.shape[1])
+    keys = np.repeat(np.arange(A.shape[0], dtype=np.int64), np.diff(A.indptr)) * ncols \
+        + A.indices
+    q = np.asarray(rows, dtype=np.int64) * ncols + np.asarray(cols, dtype=np.int64)
+    pos = np.minimum(np.searchsorted(keys, q), keys.size - 1)
+    return np.where(keys[pos] == q, A.data[pos], 0.0)
+
+
+def element_blocks(A, row_dofs, col_dofs):
+    """Blocks A[row_dofs[K]][:, col_dofs[K]] for every cell K, shape (ncells, r, c)."""
+    nc, r = row_dofs.shape
+    c = col_dofs.shape[1]
+    rows = np.broadcast_to(row_dofs[:, :, None], (nc, r, c)).ravel()
+    cols = np.broadcast_to(col_dofs[:, None, :], (nc, r, c)).ravel()
+    return csr_lookup(A, rows, cols).reshape(nc, r, c)
+
+
+def cell_colouring(mesh, ncells, seed=0):
+    """Colours of the cells such that cells sharing an edge differ (Jones–Plassmann, ≤ 4)."""
+    mesh.topology.create_connectivity(1, 2)
+    e2c = mesh.topology.connectivity(1, 2)
+    counts = np.diff(e2c.offsets)
+    pairs = e2c.array[np.repeat(counts == 2, counts)].reshape(-1, 2)
+    pairs = pairs[(pairs < ncells).all(axis=1)]
+    both = np.vstack([pairs, pairs[:, ::-1]])
+    both = both[np.argsort(both[:, 0], kind="stable")]
+    rank = np.arange(both.shape[0]) - np.searchsorted(both[:, 0], both[:, 0])
+    nb = np.full((ncells, 3), -1, dtype=np.int64)
+    nb[both[:, 0], rank] = both[:, 1]
+    has = nb >= 0
+    prio = np.random.default_rng(seed).permutation(ncells)
+    colour = np.full(ncells, -1)
+    while (colour < 0).any():
+        unc = colour < 0
+        rival = np.where(has & unc[nb], prio[nb], -1).max(axis=1)
+        pick = unc & (prio > rival)
+        used = np.where(has, colour[nb], -1)[pick]
+        choice = np.full(used.shape[0], -1)
+        for c in range(4):
+            free = (choice < 0) & ~(used == c).any(axis=1)
+            choice[free] = c
+        colour[pick] = choice
+    return colour
+
+
+def _row_unique(values, sentinel):
+    """Sorted distinct entries of each row (sentinel dropped); all rows must have as many."""
+    S = np.sort(values, axis=1)
+    new = np.ones_like(S, dtype=bool)
+    new[:, 1:] = S[:, 1:] != S[:, :-1]
+    new &= S != sentinel
+    count = new.sum(axis=1)
+    return S[new].reshape(values.shape[0], count[0]), count
+
+
+def _row_index(table, values):
+    """Position of each entry of `values` (P, L) in the sorted rows of `table` (P, k)."""
+    P, k = table.shape
+    big = np.int64(max(table.max(), values.max()) + 2)
+    off = np.arange(P, dtype=np.int64)[:, None] * big
+    idx = np.searchsorted((table + off).ravel(), (values + off).ravel()).reshape(values.shape)
+    return idx - np.arange(P)[:, None] * k
 
 
 class FluxEquilibration:
     """Set-up (once per mesh) and evaluation of σ_α,disc (DESIGN §5)."""
 
+    CHUNK = 8000     # patches solved at once (bounds the set-up's memory)
+
     def __init__(self, disc):
-        from dolfinx import fem
+        from dolfinx import fem, mesh as dmesh
+        from .problem import as_builder
         self.disc = disc
         mesh = disc.V.mesh
         geo = self.geo = Geometry(disc.V)
+        nc = geo.ncells
         self.RT = fem.FunctionSpace(mesh, ("RT", 2))
         DG = fem.FunctionSpace(mesh, ("DG", 1))
         W = fem.VectorFunctionSpace(mesh, ("DG", 1))
+        DG0 = fem.FunctionSpace(mesh, ("DG", 0))
         sig, tau = ufl.TrialFunction(self.RT), ufl.TestFunction(self.RT)
         p, q = ufl.TrialFunction(DG), ufl.TestFunction(DG)
-        M = assemble_matrix_csr(rt_mass(sig, tau))
-        B = assemble_matrix_csr(divergence(sig, q))                 # DG1 × RT
-        C = assemble_matrix_csr(vector_moment(ufl.TrialFunction(W), tau))   # RT × W
-        x = ufl.SpatialCoordinate(mesh)
-        from .problem import as_builder
-        problem = disc.problem
-        f_blocks = []
-        for f in (problem.f1, problem.f2):
-            fx = as_builder(f)(x)
-            Wf = assemble_matrix_csr(over(disc.dx_data, lambda dx: weighted_mass(fx, p, q, dx)))
-            f_blocks.append(Wf)
+        self.rt_cells = rt = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
+        dg = DG.dofmap.list.array.reshape(nc, -1).astype(np.int64)
+        wc = W.dofmap.list.array.reshape(nc, -1).astype(np.int64)
+        self._check_vertex_order(DG, dg, disc.V, geo.cells)
         self.lift = lifting(geo)
-        nc = geo.ncells
-        rt_cells = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        dg_cells = DG.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        w_cells = W.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        self._check_vertex_order(DG, dg_cells, disc.V, geo.cells)
+
+        # element matrices in the global (transformed) RT basis, shape (nc, 8, 8) etc.
+        # B and C have cell-owned rows/columns; M is assembled colour by colour (cells of
+        # one colour share no edge, so each entry of that assembly belongs to one cell).
+        # (the assembled matrices are temporaries: only the blocks are kept)
+        colour = cell_colouring(mesh, nc)
+        chi = fem.Function(DG0)
+        M_form = fem.form(rt_mass(chi * sig, tau))
+        Me = np.empty((nc, 8, 8))
+        dg0 = DG0.dofmap.list.array[:nc]
+        for c in range(colour.max() + 1):
+            cells = np.flatnonzero(colour == c)
+            chi.x.array[:] = 0.0
+            chi.x.array[dg0[cells]] = 1.0
+            Me[cells] = element_blocks(assemble_matrix_csr(M_form), rt[cells], rt[cells])
+        Be = element_blocks(assemble_matrix_csr(divergence(sig, q)), dg, rt)   # (∇·φ_j, q_i)
+        wcols = (2 * wc[:, :, None] + np.arange(2)).reshape(nc, 6)          # (k, d) -> 2k + d
+        Ce = element_blocks(assemble_matrix_csr(vector_moment(ufl.TrialFunction(W), tau)),
+                            rt, wcols)                                      # ∫_K φ_k e_d · τ_j
         # Wf_α[K][i, k] = (f_α φ_k, φ_i)_K
-        ii, kk = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-        wf = self.wf = [np.asarray(Wf[dg_cells[:, ii].ravel(), dg_cells[:, kk].ravel()]).reshape(nc, 3, 3)
-              for Wf in f_blocks]
+        x = ufl.SpatialCoordinate(mesh)
+        self.wf = [element_blocks(assemble_matrix_csr(over(
+            disc.dx_data, lambda dx: weighted_mass(as_builder(f)(x), p, q, dx))), dg, dg)
+            for f in (disc.problem.f1, disc.problem.f2)]
+
+        # which RT dofs of a cell a patch keeps: edge e is opposite vertex e (basix), so the
+        # edges through the patch vertex k are e ≠ k; the opposite edge only where it lies on
+        # ∂Ω and the patch vertex is on ∂Ω
         layout = self.RT.dofmap.dof_layout
-        edge_dofs = [np.array(layout.entity_dofs(1, e)) for e in range(3)]
-        interior_dofs = np.array(layout.entity_dofs(2, 0))
+        edge_of_dof = np.full(8, -1)
+        for e in range(3):
+            edge_of_dof[layout.entity_dofs(1, e)] = e
         mesh.topology.create_connectivity(2, 1)
-        mesh.topology.create_connectivity(1, 2)
         c2e = mesh.topology.connectivity(2, 1).array.reshape(nc, 3)
-        from dolfinx import mesh as dmesh
-        exterior = np.zeros(mesh.topology.index_map(1).size_local
-                            + mesh.topology.index_map(1).num_ghosts, dtype=bool)
+        nedges = mesh.topology.index_map(1).size_local + mesh.topology.index_map(1).num_ghosts
+        exterior = np.zeros(nedges, dtype=bool)
         exterior[dmesh.exterior_facet_indices(mesh.topology)] = True
         on_boundary = np.zeros(geo.n, dtype=bool)
         on_boundary[disc.boundary] = True
+        self._elements = dict(Me=Me, Be=Be, Ce=Ce, exterior_edge=exterior[c2e],
+                              edge_of_dof=edge_of_dof, on_boundary=on_boundary)
+        self._build_operators()
+        del self._elements
 
-        u_rows, u_cols, u_vals = [], [], []
-        r_rows, r_cols, r_vals = [], [], []
-        l_rows, l_vals = [], []
-        sigma_f = np.zeros((2, self.RT.dofmap.index_map.size_local))
-        lift = self.lift
-        for a in range(geo.n):
-            sl = slice(geo.vertex_ptr[a], geo.vertex_ptr[a + 1])
-            cs, ka = geo.vertex_cells[sl], geo.vertex_local[sl]
-            nK = cs.size
-            boundary_patch = on_boundary[a]
-            # retained RT dofs: the two edges through a, the cell interiors, and (boundary
-            # patch only) the opposite edge when it lies on ∂Ω
-            keep = [interior_dofs]
-            ret = []
-            for K, k in zip(cs, ka):
-                local = [edge_dofs[e] for e in range(3) if e != k]
-                if boundary_patch and exterior[c2e[K, k]]:
-                    local.append(edge_dofs[k])
-                ret.append(rt_cells[K, np.concatenate(local + keep)])
-            ret = np.unique(np.concatenate(ret))
-            dg = dg_cells[cs].ravel()
-            verts = np.unique(geo.cells[cs])
-            vloc = {v: i for i, v in enumerate(verts)}
-            m = verts.size
-            nr, nq = ret.size, 3 * nK
-            nmean = 0 if boundary_patch else 1
-            # local saddle-point matrix
-            A = np.zeros((nr + nq + nmean, nr + nq + nmean))
-            Bl = _dense_block(B, dg, ret)
-            A[:nr, :nr] = _dense_block(M, ret, ret)
-            A[:nr, nr:nr + nq] = -Bl.T
-            A[nr:nr + nq, :nr] = Bl
-            area = geo.area[cs]
-            if nmean:
-                c = np.repeat(area / 3.0, 3)
-                A[nr:nr + nq, -1] = c
-                A[-1, nr:nr + nq] = c
-            # local gradient (2nK × m) and lifting (3nK × m) operators
-            Gd = np.zeros((2 * nK, m))
-            Lr = np.zeros((3 * nK, m))
-            lift_rows = lift[(3 * cs[:, None] + np.arange(3)).ravel()]
-            lift_dense = lift_rows[:, verts].toarray()
-            Lr[:] = lift_dense
-            for j, K in enumerate(cs):
-                for k in range(3):
-                    Gd[2 * j:2 * j + 2, vloc[geo.cells[K, k]]] += geo.grad[K, k]
-            # right-hand side columns: u (m) | λ_a (1) | R (m) | f1 | f2
-            rhs = np.zeros((nr + nq + nmean, 2 * m + 3))
-            wcols = (2 * w_cells[cs, ka][:, None] + np.arange(2)).ravel()   # (K, k_a, d)
-            rhs[:nr, :m] = -_dense_block(C, ret, wcols) @ Gd
-            Qg = np.zeros((nq, 2 * nK))
-            Qr = np.zeros((nq, nq))
-            for j, (K, k) in enumerate(zip(cs, ka)):
-                rows = slice(3 * j, 3 * j + 3)
-                Qg[rows, 2 * j:2 * j + 2] = -(geo.area[K] / 3.0) * geo.grad[K, k]
-                Qr[rows, rows] = -geo.area[K] * _C3[k].T          # [i, l] = -|K| c3[k, l, i]
-                rhs[nr + 3 * j:nr + 3 * j + 3, m] = geo.area[K] / 12.0 * (1.0 + (np.arange(3) == k))
-                rhs[nr + 3 * j:nr + 3 * j + 3, 2 * m + 1] = wf[0][K][:, k]
-                rhs[nr + 3 * j:nr + 3 * j + 3, 2 * m + 2] = wf[1][K][:, k]
-            rhs[nr:nr + nq, :m] = Qg @ Gd
-            rhs[nr:nr + nq, m + 1:2 * m + 1] = Qr @ Lr
-            sol = np.linalg.solve(A, rhs)[:nr]
-            u_rows.append(np.repeat(ret, m))
-            u_cols.append(np.tile(verts, nr))
-            u_vals.append(sol[:, :m].ravel())
-            r_rows.append(np.repeat(ret, m))
-            r_cols.append(np.tile(verts, nr))
-            r_vals.append(sol[:, m + 1:2 * m + 1].ravel())
-            l_rows.append(ret)
-            l_vals.append(sol[:, m])
-            sigma_f[0, ret] += sol[:, 2 * m + 1]
-            sigma_f[1, ret] += sol[:, 2 * m + 2]
-        nrt = sigma_f.shape[1]
-        self.G_u = sp.csr_matrix((np.concatenate(u_vals),
-                                  (np.concatenate(u_rows), np.concatenate(u_cols))),
-                                 shape=(nrt, geo.n))
-        self.G_R = sp.csr_matrix((np.concatenate(r_vals),
-                                  (np.concatenate(r_rows), np.concatenate(r_cols))),
-                                 shape=(nrt, geo.n))
-        lam_cols = np.concatenate([np.full(len(r), a) for a, r in enumerate(l_rows)])
-        self.G_lam = sp.csr_matrix((np.concatenate(l_vals), (np.concatenate(l_rows), lam_cols)),
-                                   shape=(nrt, geo.n))
-        self.sigma_f = sigma_f
+    def _patch_groups(self):
+        """Vertices grouped by patch shape: (number of cells, boundary, retained RT dofs)."""
+        geo, el = self.geo, self._elements
+        groups = {}
+        for n in np.unique(geo.cells_per_vertex):
+            verts = np.flatnonzero(geo.cells_per_vertex == n)
+            idx = geo.vertex_ptr[verts][:, None] + np.arange(n)
+            CS, KA = geo.vertex_cells[idx], geo.vertex_local[idx]
+            bnd = el["on_boundary"][verts]
+            e = el["edge_of_dof"]
+            through = (e[None, None, :] != KA[:, :, None])                   # incl. interiors
+            opposite_free = (e[None, None, :] == KA[:, :, None]) \
+                & el["exterior_edge"][CS, KA][:, :, None] & bnd[:, None, None]
+            glob = np.where(through | opposite_free, self.rt_cells[CS], -1).reshape(len(verts), -1)
+            S = np.sort(np.where(glob < 0, np.iinfo(np.int64).max, glob), axis=1)
+            nr = ((S[:, 1:] != S[:, :-1]) & (S[:, 1:] != np.iinfo(np.int64).max)).sum(axis=1) + 1
+            for key in set(zip(bnd.tolist(), nr.tolist())):
+                sel = (bnd == key[0]) & (nr == key[1])
+                groups[(int(n),) + key] = (verts[sel], CS[sel], KA[sel], glob[sel])
+        return groups
+
+    def _build_operators(self):
+        geo = self.geo
+        nrt = self.RT.dofmap.index_map.size_local
+        shape = (nrt, geo.n)
+        self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
+        self.sigma_f = np.zeros((2, nrt))
+        for (n, boundary, nr), (verts, CS, KA, glob) in self._patch_groups().items():
+            for s in range(0, len(verts), self.CHUNK):
+                sl = slice(s, s + self.CHUNK)
+                self._solve_patches(n, boundary, verts[sl], CS[sl], KA[sl], glob[sl])
+
+    def _solve_patches(self, n, boundary, verts, CS, KA, glob):
+        """Solve the patch problems of P patches of one shape at once (batched LAPACK)."""
+        geo, el = self.geo, self._elements
+        P = len(verts)
+        sentinel = np.iinfo(np.int64).max
+        RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)    # (P, nr)
+        nr = RET.shape[1]
+        loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, n, 8)
+        VERTS, _ = _row_unique(geo.cells[CS].reshape(P, -1), -1)              # (P, m)
+        m = VERTS.shape[1]
+        vloc = _row_index(VERTS, geo.cells[CS].reshape(P, -1)).reshape(P, n, 3)
+        nq = 3 * n
+        nmean = 0 if boundary else 1
+        N = nr + nq + nmean
+        pp = np.arange(P)[:, None, None]
+        jj = np.arange(n)[None, :, None]
+        area = geo.area[CS]                                                   # (P, n)
+        # saddle-point matrices A (P, N, N)
+        A = np.zeros((P, N, N))
+        li, lj = loc[:, :, :, None], loc[:, :, None, :]
+        ok = (li >= 0) & (lj >= 0)
+        lin = (np.arange(P)[:, None, None, None] * N + li) * N + lj
+        A.ravel()[:] += np.bincount(lin[ok], weights=el["Me"][CS][ok], minlength=P * N * N)
+        qloc = 3 * jj + np.arange(3)[None, None, :]                           # (1, n, 3)
+        qrow = nr + qloc
+        Be = el["Be"][CS]                                                     # (P, n, 3, 8)
+        okb = np.broadcast_to(loc[:, :, None, :] >= 0, Be.shape)
+        pb = np.broadcast_to(pp[..., None], Be.shape)
+        rb = np.broadcast_to(qrow[..., None], Be.shape)
+        cb = np.broadcast_to(loc[:, :, None, :], Be.shape)
+        A[pb[okb], rb[okb], cb[okb]] = Be[okb]
+        A[pb[okb], cb[okb], rb[okb]] = -Be[okb]
+        if nmean:
+            c = np.repeat(area / 3.0, 3, axis=1)                              # (P, nq)
+            A[:, nr:nr + nq, -1] = c
+            A[:, -1, nr:nr + nq] = c
+        # local gradient (P, 2n, m) and lifting (P, 3n, m) operators
+        grad = geo.grad[CS]                                                   # (P, n, 3, 2)
+        Gd = np.zeros((P, 2 * n, m))
+        rows = 2 * jj[..., None] + np.arange(2)                               # (1, n, 1, 2)
+        Gd[pp[..., None], rows, vloc[..., None]] = grad
+        Lr = np.zeros((P, nq, m))
+        liftK = (3.0 / area)[..., None, None] * _MINV_REF \
+            / geo.cells_per_vertex[geo.cells[CS]][:, :, None, :]              # (P, n, 3, 3)
+        Lr[pp[..., None], qloc[..., None], vloc[:, :, None, :]] = liftK
+        # right-hand sides: columns u (m) | λ_a (1) | R (m) | f1 | f2
+        rhs = np.zeros((P, N, 2 * m + 3))
+        Ce = el["Ce"][CS][np.arange(P)[:, None], np.arange(n)[None, :], :, :]   # (P, n, 8, 6)
+        kcols = 2 * KA[..., None] + np.arange(2)                              # (P, n, 2)
+        Cka = np.take_along_axis(Ce, kcols[:, :, None, :], axis=3)            # (P, n, 8, 2)
+        Cl = np.zeros((P, nr, 2 * n))
+        okc = np.broadcast_to(loc[..., None] >= 0, Cka.shape)
+        pc = np.broadcast_to(pp[..., None], Cka.shape)
+        rc = np.broadcast_to(loc[..., None], Cka.shape)
+        cc = np.broadcast_to((2 * jj[..., None] + np.arange(2)), Cka.shape)
+        Cl[pc[okc], rc[okc], cc[okc]] = Cka[okc]
+        rhs[:, :nr, :m] = -Cl @ Gd
+        gka = np.take_along_axis(grad, KA[:, :, None, None], axis=2)[:, :, 0]  # ∇ψ_a (P, n, 2)
+        Qg = np.zeros((P, nq, 2 * n))
+        Qg[pp[..., None], qloc[..., None], rows[:, :, 0][:, :, None, :]] = \
+            -(area / 3.0)[..., None, None] * gka[:, :, None, :]
+        Qr = np.zeros((P, nq, nq))
+        Qr[pp[..., None], qloc[..., None], qloc[:, :, None, :]] = \
+            -area[..., None, None] * _C3[KA].transpose(0, 1, 3, 2)            # [i, l]
+        rhs[:, nr:nr + nq, :m] = Qg @ Gd
+        rhs[:, nr:nr + nq, m + 1:2 * m + 1] = Qr @ Lr
+        delta = (np.arange(3)[None, None, :] == KA[..., None])
+        rhs[:, nr:nr + nq, m] = (area[..., None] / 12.0 * (1.0 + delta)).reshape(P, nq)
+        for alpha in range(2):
+            wf = self.wf[alpha][CS]                                           # (P, n, 3, 3)
+            rhs[:, nr:nr + nq, 2 * m + 1 + alpha] = np.take_along_axis(
+                wf, KA[:, :, None, None], axis=3)[..., 0].reshape(P, nq)
+        sol = np.linalg.solve(A, rhs)[:, :nr]                                 # σ rows
+        # σ = Σ_a σ_a: add this chunk's operators (summed chunk by chunk to bound memory)
+        shape = self.G_u.shape
+        rows = np.broadcast_to(RET[:, :, None], (P, nr, m)).ravel().astype(np.int32)
+        cols = np.broadcast_to(VERTS[:, None, :], (P, nr, m)).ravel().astype(np.int32)
+        self.G_u = self.G_u + sp.csr_matrix((sol[:, :, :m].ravel(), (rows, cols)), shape=shape)
+        self.G_R = self.G_R + sp.csr_matrix((sol[:, :, m + 1:2 * m + 1].ravel(), (rows, cols)),
+                                            shape=shape)
+        self.G_lam = self.G_lam + sp.csr_matrix(
+            (sol[:, :, m].ravel(), (RET.ravel(), np.repeat(verts, nr))), shape=shape)
+        for alpha in range(2):
+            self.sigma_f[alpha] += np.bincount(RET.ravel(), sol[:, :, 2 * m + 1 + alpha].ravel(),
+                                               minlength=shape[0])
 
     @staticmethod
     def _check_vertex_order(DG, dg_cells, V, p1_cells):
