@@ -108,7 +108,18 @@ def assemble_matrix_csr(a):
     indptr, indices, data = A.getValuesCSR()
     out = sp.csr_matrix((data, indices, indptr), shape=A.getSize())
     A.destroy()
+    release_memory()
     return out
+
+
+def release_memory():
+    """Hand freed heap memory back to the system (glibc malloc_trim), so that the transient
+    PETSc and sparsity-pattern buffers of one assembly do not add to the next phase's peak."""
+    import ctypes
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def assemble_vector_array(L):

@@ -90,16 +90,20 @@ def lifting(geo):
     return sp.csr_matrix((scale.ravel(), (rows, cols)), shape=(3 * geo.ncells, geo.n))
 
 
-def csr_lookup(A, rows, cols):
-    """Entries A[rows[i], cols[i]] of a CSR matrix (0 where not stored), vectorised."""
+def csr_lookup(A, rows, cols, chunk=1 << 22):
+    """Entries A[rows[i], cols[i]] of a CSR matrix (0 where not stored), vectorised (queries
+    are processed in chunks to bound the temporaries)."""
     A = A.tocsr()
     A.sort_indices()
     ncols = np.int64(A.shape[1])
     keys = np.repeat(np.arange(A.shape[0], dtype=np.int64), np.diff(A.indptr)) * ncols \
         + A.indices
-    q = np.asarray(rows, dtype=np.int64) * ncols + np.asarray(cols, dtype=np.int64)
-    pos = np.minimum(np.searchsorted(keys, q), keys.size - 1)
-    return np.where(keys[pos] == q, A.data[pos], 0.0)
+    out = np.empty(len(rows))
+    for s in range(0, len(rows), chunk):
+        q = np.asarray(rows[s:s + chunk], dtype=np.int64) * ncols + cols[s:s + chunk]
+        pos = np.minimum(np.searchsorted(keys, q), keys.size - 1)
+        out[s:s + chunk] = np.where(keys[pos] == q, A.data[pos], 0.0)
+    return out
 
 
 def element_blocks(A, row_dofs, col_dofs):
