@@ -14,7 +14,8 @@ EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 3
 
 DATA_OPTIONS = ("mu1", "mu2", "g", "f1", "f2", "mesh", "domain")
-VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--tol")
+VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--tol",
+                 "--petsc-options")
 
 
 class BadInput(ValueError):
@@ -47,11 +48,20 @@ def _parser():
     s.add_argument("--f1", metavar="EXPR", help="load of membrane 1, formula in x, y "
                    "(pi sin cos exp sqrt abs min max; default 0)")
     s.add_argument("--f2", metavar="EXPR", help="load of membrane 2 (default 0)")
-    s.add_argument("--newton", choices=("exact",), default="exact")
+    s.add_argument("--newton", choices=("exact", "inexact"), default="exact",
+                   help="exact: linear solves to 2e-12; inexact: to the previous nonlinear "
+                        "residual (DESIGN §8)")
     s.add_argument("--cfun", choices=("min", "fb"), default="min")
     s.add_argument("--system", choices=("full", "eliminated"), default="full",
                    help="Newton system: full 3N or eliminated 2N (DESIGN §3)")
-    s.add_argument("--linear-solver", choices=("direct",), default="direct")
+    s.add_argument("--linear-solver", choices=("gmres", "direct"), default="gmres",
+                   help="gmres: PETSc KSP, GMRES + ILU(0) by default; direct: MUMPS (exact only)")
+    s.add_argument("--petsc-options", metavar="STRING",
+                   help='KSP/PC options for gmres, e.g. "-ksp_gmres_restart 50 -pc_type jacobi"')
+    s.add_argument("--nu", type=int, metavar="N",
+                   help="record the Krylov iterate every N steps (default 10)")
+    s.add_argument("--max-linear-its", type=int, metavar="N",
+                   help="Krylov iterations allowed per Newton step (default 10000)")
     s.add_argument("--tol", type=float, default=1e-10,
                    help="stop at ||R_lin|| / ||(F, 0)|| <= TOL (default 1e-10)")
     s.add_argument("--max-newton", type=int, default=100)
@@ -101,17 +111,22 @@ def _solve(args):
     scene, kwargs = _scene_arguments(args)
     from . import scenes
     from .driver import solve
+    from .krylov import parse_petsc_options
     from .outputs import write_outputs
     quiet_jit_logging()
+    petsc_options = None if args.petsc_options is None else \
+        parse_petsc_options(args.petsc_options)
     problem = scenes.make(scene, **kwargs)
     sol = solve(problem, newton=args.newton, cfun=args.cfun, system=args.system,
-                linear_solver=args.linear_solver, tol=args.tol, max_newton=args.max_newton,
+                linear_solver=args.linear_solver, petsc_options=petsc_options, nu=args.nu,
+                max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
                 progress=not args.quiet)
     if args.out is not None:
         write_outputs(sol, args.out)
     summary = sol.summary()
-    keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "converged",
-            "newton_iterations", "linear_iterations", "wall_time_s", "energy_error")
+    keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "system", "linear_solver",
+            "converged", "newton_iterations", "linear_iterations", "wall_time_s",
+            "energy_error")
     print(json.dumps({k: summary[k] for k in keys}))
     if not sol.converged:
         print(f"membranes: not converged: {sol.reason}", file=sys.stderr)

@@ -1,10 +1,10 @@
 """The API: `solve(problem, ...)` runs the discretisation and semismooth Newton on a problem.
 
     >>> from membranes import scenes, solve
-    >>> sol = solve(scenes.disk(h=0.05), cfun="fb")
+    >>> sol = solve(scenes.disk(h=0.05), cfun="fb")          # exact Newton, GMRES + ILU(0)
     >>> sol.converged, sol.newton_iterations, sol.energy_error
     >>> sol.u1, sol.u2, sol.lam          # dolfinx P1 Functions on the computational mesh
-    >>> sol.history                      # one dict per iterate (X^0 included)
+    >>> sol.history                      # one dict per recorded iterate (X^0 included)
 
 Only what the problem declares is computed: the energy error only where the scene knows the
 exact solution (its evaluation time is not counted in the wall times).
@@ -18,12 +18,12 @@ import numpy as np
 
 from . import cfunctions
 from .discretisation import EnergyError, discretise
+from .krylov import DEFAULT_MAX_ITS, DEFAULT_NU, Krylov
 from .meshes import mesh_size
-from .newton import SYSTEMS, semismooth_newton
+from .newton import DEFAULT_TOL, check_choice, check_method, semismooth_newton
 from .newton_system import linear_rows, split
 
-NEWTON_VARIANTS = ("exact",)
-LINEAR_SOLVERS = ("direct",)
+LINEAR_SOLVERS = ("gmres", "direct")
 
 
 @dataclass
@@ -52,6 +52,12 @@ class Solution:
     @property
     def lam(self):
         return self.functions[2]
+
+    @property
+    def final_record(self):
+        """The history record of X, the last Newton iterate (Krylov iterates may follow it
+        when a linear solve failed)."""
+        return next(rec for rec in reversed(self.history) if rec["kind"] != "krylov")
 
     def complementarity_violation(self):
         """Largest violation of w = u1 - u2 ≥ 0, λ ≥ 0, λ w = 0 at interior vertices, relative
@@ -85,39 +91,52 @@ class Solution:
             "cfun": self.options["cfun"],
             "system": self.options["system"],
             "linear_solver": self.options["linear_solver"],
+            "petsc_options": self.options["petsc_options"],
+            "nu": self.options["nu"],
             "converged": self.converged,
             "reason": self.reason,
             "newton_iterations": self.newton_iterations,
             "linear_iterations": self.linear_iterations,
             "wall_time_s": self.wall_time_s,
-            "final_residual": self.history[-1]["residual"],
+            "final_residual": self.final_record["residual"],
             "complementarity_violation": self.complementarity_violation(),
             "energy_error": self.energy_error,
         }
 
 
-def _check_choice(name, value, choices):
-    if value not in choices:
-        raise ValueError(f"unknown {name} {value!r} (choose from: {', '.join(choices)})")
+def _krylov(linear_solver, petsc_options, nu, max_linear_its):
+    """The Krylov solver of the run, None for MUMPS (exact Newton only)."""
+    if linear_solver == "gmres":
+        return Krylov(petsc_options, DEFAULT_NU if nu is None else nu,
+                      DEFAULT_MAX_ITS if max_linear_its is None else max_linear_its)
+    given = [k for k, v in (("petsc_options", petsc_options), ("nu", nu),
+                            ("max_linear_its", max_linear_its)) if v is not None]
+    if given:
+        raise ValueError(f"{given[0]} applies to linear_solver 'gmres' only")
+    return None
 
 
-def solve(problem, newton="exact", cfun="min", system="full", linear_solver="direct",
-          tol=1e-10, max_newton=100, progress=False):
+def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmres",
+          petsc_options=None, nu=None, max_linear_its=None, tol=DEFAULT_TOL, max_newton=100,
+          progress=False):
     """Solve the discrete contact problem of `problem` by semismooth Newton (DESIGN §3, §8).
 
-    newton: 'exact' (each Newton system solved exactly); cfun: 'min' or 'fb';
-    system: 'full' (3N) or 'eliminated' (2N); linear_solver: 'direct' (MUMPS);
-    tol: stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol; progress: True for one stderr line per Newton step,
-    or a callable taking the line.
+    newton: 'exact' (linear residual ≤ 2e-12) or 'inexact' (≤ the previous nonlinear residual,
+    DESIGN §8); cfun: 'min' or 'fb'; system: 'full' (3N) or 'eliminated' (2N);
+    linear_solver: 'gmres' (PETSc KSP, GMRES + ILU(0) unless `petsc_options`, a dict such as
+    {"pc_type": "jacobi"}, say otherwise; every ν = `nu` (10) Krylov steps the iterate is
+    recorded; at most `max_linear_its` (10000) iterations per step) or 'direct' (MUMPS, exact
+    only); tol: stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol; progress: True for one stderr line per Newton
+    step, or a callable taking the line.
     """
-    _check_choice("Newton variant", newton, NEWTON_VARIANTS)
     cfunctions.get(cfun)
-    _check_choice("Newton system", system, SYSTEMS)
-    _check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
+    check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
     if not (np.isfinite(tol) and tol > 0):
         raise ValueError(f"tol must be a positive finite number, got {tol}")
     if int(max_newton) < 1:
         raise ValueError(f"max_newton must be at least 1, got {max_newton}")
+    krylov = _krylov(linear_solver, petsc_options, nu, max_linear_its)
+    check_method(system, newton, krylov)
     say = progress if callable(progress) else \
         (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
 
@@ -127,23 +146,26 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="dir
     setup_time = time.perf_counter() - t0
     error = EnergyError(disc) if problem.exact is not None else None
 
-    def monitor(rec, X):
+    def monitor(rec, X, R):
         rec["wall_time_s"] += setup_time
         rec["energy_error"] = error(X) if error is not None else None
-        if say is not None:
+        if say is not None and rec["kind"] != "krylov":
             line = (f"newton {rec['newton_it']:3d}  residual {rec['residual']:.3e}  "
-                    f"linear its {rec['cumulative_linear_its']:5d}  "
+                    f"linear its {rec['linear_it']:5d}  total {rec['cumulative_linear_its']:6d}  "
                     f"time {rec['wall_time_s']:7.2f} s")
             if rec["energy_error"] is not None:
                 line += f"  energy error {rec['energy_error']:.4e}"
             say(line)
 
-    result = semismooth_newton(rows, problem.g, cfun=cfun, system=system, tol=tol,
-                               max_it=int(max_newton), monitor=monitor)
-    last = result.history[-1]
-    return Solution(problem, disc, result.X, result.converged, result.reason,
-                    result.newton_iterations, result.linear_iterations, last["wall_time_s"],
-                    result.history,
-                    {"newton": newton, "cfun": cfun, "system": system,
-                     "linear_solver": linear_solver},
-                    energy_error=last["energy_error"], functions=disc.functions(result.X))
+    result = semismooth_newton(rows, problem.g, cfun=cfun, system=system, variant=newton,
+                               krylov=krylov, tol=tol, max_it=int(max_newton), monitor=monitor)
+    sol = Solution(problem, disc, result.X, result.converged, result.reason,
+                   result.newton_iterations, result.linear_iterations,
+                   result.history[-1]["wall_time_s"], result.history,
+                   {"newton": newton, "cfun": cfun, "system": system,
+                    "linear_solver": linear_solver,
+                    "petsc_options": {} if krylov is None else krylov.options,
+                    "nu": None if krylov is None else krylov.nu},
+                   functions=disc.functions(result.X))
+    sol.energy_error = sol.final_record["energy_error"]
+    return sol

@@ -177,7 +177,6 @@ class FluxEquilibration:
         self.RT = fem.FunctionSpace(mesh, ("RT", 2))
         DG = fem.FunctionSpace(mesh, ("DG", 1))
         W = fem.VectorFunctionSpace(mesh, ("DG", 1))
-        DG0 = fem.FunctionSpace(mesh, ("DG", 0))
         sig, tau = ufl.TrialFunction(self.RT), ufl.TestFunction(self.RT)
         p, q = ufl.TrialFunction(DG), ufl.TestFunction(DG)
         self.rt_cells = rt = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
@@ -190,16 +189,15 @@ class FluxEquilibration:
         # B and C have cell-owned rows/columns; M is assembled colour by colour (cells of
         # one colour share no edge, so each entry of that assembly belongs to one cell).
         # (the assembled matrices are temporaries: only the blocks are kept)
+        # (integrating over one colour's cells only also keeps each sparsity pattern small)
         colour = cell_colouring(mesh, nc)
-        chi = fem.Function(DG0)
-        M_form = fem.form(rt_mass(chi * sig, tau))
         Me = np.empty((nc, 8, 8))
-        dg0 = DG0.dofmap.list.array[:nc]
         for c in range(colour.max() + 1):
-            cells = np.flatnonzero(colour == c)
-            chi.x.array[:] = 0.0
-            chi.x.array[dg0[cells]] = 1.0
-            Me[cells] = element_blocks(assemble_matrix_csr(M_form), rt[cells], rt[cells])
+            cells = np.flatnonzero(colour == c).astype(np.int32)
+            tags = dmesh.meshtags(mesh, 2, cells, np.ones_like(cells))
+            dxc = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
+            Me[cells] = element_blocks(assemble_matrix_csr(rt_mass(sig, tau, dxc)),
+                                       rt[cells], rt[cells])
         Be = element_blocks(assemble_matrix_csr(divergence(sig, q)), dg, rt)   # (∇·φ_j, q_i)
         wcols = (2 * wc[:, :, None] + np.arange(2)).reshape(nc, 6)          # (k, d) -> 2k + d
         Ce = element_blocks(assemble_matrix_csr(vector_moment(ufl.TrialFunction(W), tau)),

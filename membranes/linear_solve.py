@@ -1,8 +1,9 @@
-"""Linear solves of the Newton systems through petsc4py.
+"""Linear solves of the Newton systems through petsc4py: the PETSc matrix, the direct solver.
 
-For now the direct solver: LU factorisation with MUMPS (DESIGN §8, "exact" Newton solved
-exactly). A solve returns the solution and the number of linear iterations it counts as
-(1 for a direct solve, so that cumulative counts stay meaningful as "solver applications").
+The direct solver is LU factorisation with MUMPS (DESIGN §8, "exact" Newton solved exactly).
+A solve returns the solution and the number of linear iterations it counts as (1 for a direct
+solve, so that cumulative counts stay meaningful as "solver applications"). The Krylov solver
+is in `krylov`.
 """
 
 import numpy as np
@@ -20,7 +21,11 @@ def petsc_matrix(A):
 
 
 class LinearSolveError(RuntimeError):
-    pass
+    """A linear solve that failed; `its` counts the iterations it performed all the same."""
+
+    def __init__(self, message, its=0):
+        super().__init__(message)
+        self.its = its
 
 
 def _mumps_solve(M, rhs, workspace_percent):

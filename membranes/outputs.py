@@ -1,7 +1,9 @@
 """Files a run writes to its output folder.
 
 * ``summary.json`` — the keys of :meth:`membranes.driver.Solution.summary`;
-* ``history.csv``  — one row per recorded iterate (X^0 included), columns HISTORY_COLUMNS;
+* ``history.csv``  — one row per recorded iterate, columns HISTORY_COLUMNS: X^0 (kind
+  "initial"), every Newton iterate ("newton") and every ν-th Krylov iterate inside a Newton
+  step ("krylov");
 * ``solution.xdmf`` (+ ``solution.h5``) — P1 functions ``u1``, ``u2``, ``lambda`` on the
   computational mesh, readable by ParaView.
 
@@ -18,7 +20,7 @@ import tempfile
 
 OUTPUT_FILES = ("summary.json", "history.csv", "solution.xdmf", "solution.h5")
 HISTORY_COLUMNS = ("newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
-                   "residual", "energy_error")
+                   "residual", "alg_residual", "kind", "energy_error")
 
 
 def _json_safe(value):

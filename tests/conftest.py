@@ -20,6 +20,12 @@ def solved(name, h, cfun="min", system="full"):
     return solve(scene(name, h), cfun=cfun, system=system)
 
 
+@functools.lru_cache(maxsize=None)
+def solved_with(name, h, **options):
+    """A cached solve with any options of `membranes.solve` (e.g. linear_solver="direct")."""
+    return solve(scene(name, h), **options)
+
+
 @pytest.fixture
 def solved_scene():
     return solved
