@@ -18,7 +18,7 @@ import numpy as np
 
 from . import cfunctions
 from .discretisation import EnergyError, discretise
-from .krylov import DEFAULT_MAX_ITS, DEFAULT_NU, Krylov
+from .krylov import DEFAULT_MAX_LINEAR_ITS, DEFAULT_NU, Krylov
 from .meshes import mesh_size
 from .newton import DEFAULT_TOL, check_choice, check_method, semismooth_newton
 from .newton_system import linear_rows, split
@@ -108,7 +108,7 @@ def _krylov(linear_solver, petsc_options, nu, max_linear_its):
     """The Krylov solver of the run, None for MUMPS (exact Newton only)."""
     if linear_solver == "gmres":
         return Krylov(petsc_options, DEFAULT_NU if nu is None else nu,
-                      DEFAULT_MAX_ITS if max_linear_its is None else max_linear_its)
+                      DEFAULT_MAX_LINEAR_ITS if max_linear_its is None else max_linear_its)
     given = [k for k, v in (("petsc_options", petsc_options), ("nu", nu),
                             ("max_linear_its", max_linear_its)) if v is not None]
     if given:
