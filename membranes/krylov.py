@@ -1,0 +1,228 @@
+"""Krylov solves of the semismooth Newton systems through PETSc KSP (DESIGN §3, §4, §8).
+
+A Newton step solves A X = B, either the full 3N system or the eliminated 2N one
+(newton_system). `Krylov.solve` runs GMRES on it from the previous Newton iterate
+(X^{k,0} = X^{k-1}, DESIGN §8), and every ν iterations hands the current iterate X^{k,i} and
+its algebraic residual R^{k,i} = B - A X^{k,i} to a callback (DESIGN §4: what the estimators
+need). Iteration counts are PETSc's own: the Krylov steps performed.
+
+**Default set-up** (`DEFAULT_OPTIONS`), each entry overridable through `petsc_options`:
+GMRES (PETSc's restart, 30) with ILU(0), as in the paper, preconditioned on the right with the
+unpreconditioned norm, so that the residual GMRES minimises and reports is ‖B - A X‖ itself.
+
+**The stopping test** is ‖R_alg‖ ≤ tol ‖B‖ on the true residual, B the right-hand side of the
+3N system. PETSc's default test compares with rtol ‖b‖ — checked in 3.18: with a nonzero
+initial guess it is still ‖b‖, not the initial residual (GMRES stops after 0 iterations when
+‖b - A x0‖ ≤ rtol ‖b‖). It is replaced by our own test, for three reasons:
+
+1. the eliminated system's right-hand side F - E t is not B (Fischer–Burmeister, where t ≠ 0):
+   the test must measure both systems against the same ‖B‖;
+2. GMRES's recursive residual estimate drifts from the true residual near round-off (seen:
+   estimate 1.9e-12, true residual 3.4e-12, restart 100, disk h = 0.025). The estimate only
+   gates the test: where it says "converged", the iterate is built and B - A X computed, and
+   GMRES goes on while the true residual is above the tolerance (with a preconditioned norm,
+   set through the options, there is no gate: the true residual is computed at every test);
+3. the inexact variant's tolerance ‖R_lin(X^{k-1})‖/‖(F, 0)‖ is met by the initial guess
+   itself: B - A X^{k-1} = R_lin(X^{k-1}) (the linear rows are the same; the third block is
+   B3 - J_C X^{k-1} = -C(X^{k-1})) and ‖B‖ ≥ ‖(F, 0)‖. Tested after every iteration it would
+   stop GMRES after one step (or none). As in the paper, where estimators and stopping
+   criteria are evaluated every ν Krylov steps, that test is made at i = ν, 2ν, ...
+   (`test_every`), and GMRES, whose residual never grows, meets it at i = ν: the inexact
+   variant makes ν Krylov steps per Newton step (the paper's table shows the same, 10 per
+   step). The exact variant tests after every iteration.
+
+A zero residual (GMRES's happy breakdown) is always tested.
+
+**The zero diagonal of the full system.** The λ-block of the full system is diag(β), and
+β_l = 0 at vertices where the row is e1 - e2 (min, contact predicted) or where b = 0 < a (fb).
+scipy does not store those zeros, and PETSc 3.18's ILU(0) stops in its symbolic phase
+("Matrix is missing diagonal entry"), before any pivot is seen: -pc_factor_shift_type
+nonzero cannot help (it shifts numerical pivots), and -pc_factor_nonzeros_along_diagonal
+needs the entries as well; where they are stored, its row permutation leaves an ILU(0) that
+needs 609 GMRES iterations instead of 50 (disk, h = 0.05, second Newton step). What works is
+to store the diagonal, zeros included (`with_diagonal`). Natural-order ILU(0) then meets no
+zero pivot: the row α_l (u1 - u2)_l + β_l λ_l comes after the rows of u1_l and u2_l, whose
+only λ-entries are ∓D_l in column λ_l, and ILU(0) keeps no other fill in it, so its pivot is
+β_l + α_l D_l (1/p1_l + 1/p2_l), with p_α,l the ILU(0) pivots of the stiffness rows (positive:
+the P1 stiffness of a Delaunay mesh is an M-matrix). That is D_l (1/p1_l + 1/p2_l) > 0 for
+min (α = 1, β = 0) and < 0 for fb (α, β ≤ 0, not both zero). The eliminated system gets the
+same treatment (one PETSc matrix builder for both).
+
+**Options.** Each solve applies the options under a private prefix (``membranes_<n>_``) and
+removes them from PETSc's database right after `setFromOptions`, so nothing leaks from one
+solve to the next nor to other PETSc objects. The tolerances and the iteration limit belong to
+the Newton variant and to `max_linear_its`: `ksp_rtol`, `ksp_atol`, `ksp_max_it` are refused.
+"""
+
+import itertools
+import shlex
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from petsc4py import PETSc
+
+from .linear_solve import LinearSolveError, petsc_matrix
+
+DEFAULT_OPTIONS = {"ksp_type": "gmres", "pc_type": "ilu", "ksp_pc_side": "right",
+                   "ksp_norm_type": "unpreconditioned"}
+RESERVED_OPTIONS = {"ksp_rtol": "the Newton variant sets the linear tolerance",
+                    "ksp_atol": "the Newton variant sets the linear tolerance",
+                    "ksp_max_it": "use max_linear_its (--max-linear-its)"}
+DEFAULT_NU = 10
+DEFAULT_MAX_LINEAR_ITS = 10000
+
+_prefixes = itertools.count()
+_REASONS = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if k.isupper()}
+
+
+def parse_petsc_options(text):
+    """"-ksp_type gmres -pc_type ilu -ksp_monitor" -> {"ksp_type": "gmres", "pc_type": "ilu",
+    "ksp_monitor": None}: an option is '-' and a letter; a value is any other token (so -1e-3
+    is a value)."""
+    options, name = {}, None
+    try:
+        tokens = shlex.split(text)
+    except ValueError as e:
+        raise ValueError(f"PETSc options {text!r}: {e}") from None
+    for token in tokens:
+        if token[:1] == "-" and token[1:2].isalpha():
+            name = token[1:]
+            options[name] = None
+        elif name is not None and options[name] is None:
+            options[name] = token
+        else:
+            raise ValueError(f"PETSc options: value {token!r} follows no option")
+    return options
+
+
+def _petsc_message(error):
+    """The last line of a petsc4py error, without its '[0] ' prefix."""
+    return str(error).strip().splitlines()[-1].split("] ", 1)[-1]
+
+
+def _checked_options(petsc_options):
+    """DEFAULT_OPTIONS updated by the user's options, names without their leading '-'."""
+    options = dict(DEFAULT_OPTIONS)
+    for name, value in (petsc_options or {}).items():
+        name = str(name).lstrip("-")
+        if name in RESERVED_OPTIONS:
+            raise ValueError(f"PETSc option -{name} is not accepted: {RESERVED_OPTIONS[name]}")
+        if not (value is None or isinstance(value, (str, bool, int, float))):
+            raise ValueError(f"PETSc option -{name}: value {value!r} is not a string or number")
+        options[name] = value
+    return options
+
+
+def _configure(ksp, options):
+    """Apply `options` to `ksp` under a private prefix, then take them out of PETSc's database."""
+    prefix = f"membranes_{next(_prefixes)}_"
+    database = PETSc.Options()
+    for name, value in options.items():
+        database[prefix + name] = value
+    ksp.setOptionsPrefix(prefix)
+    try:
+        ksp.setFromOptions()
+    except PETSc.Error as e:
+        raise ValueError(f"PETSc options: {_petsc_message(e)}") from None
+    finally:
+        for name in options:
+            database.delValue(prefix + name)
+
+
+def with_diagonal(A):
+    """A with every diagonal entry stored, zeros included (see the module notes)."""
+    n = A.shape[0]
+    C, diagonal = A.tocoo(), np.arange(n)
+    return sp.csr_matrix((np.concatenate([C.data, np.zeros(n)]),
+                          (np.concatenate([C.row, diagonal]), np.concatenate([C.col, diagonal]))),
+                         shape=A.shape)
+
+
+@dataclass
+class Krylov:
+    """A PETSc Krylov solver: `options` (the user's `petsc_options` on top of DEFAULT_OPTIONS,
+    checked by configuring a KSP), ν (`nu`: iterates handed out every ν steps) and the
+    iteration limit of one solve."""
+    petsc_options: dict = None
+    nu: int = DEFAULT_NU
+    max_linear_its: int = DEFAULT_MAX_LINEAR_ITS
+    options: dict = field(init=False)
+
+    def __post_init__(self):
+        for name in ("nu", "max_linear_its"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not float(value).is_integer() or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value}")
+            setattr(self, name, int(value))
+        self.options = _checked_options(self.petsc_options)
+        ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+        try:
+            _configure(ksp, self.options)
+        finally:
+            ksp.destroy()
+
+    def solve(self, A, b, x0, tol, scale, test_every=1, on_iterate=None):
+        """Solve A x = b from x0 until ‖b - A x‖ ≤ tol · scale (tested after iterations
+        test_every, 2 test_every, ...). Every ν iterations before the last,
+        on_iterate(its, current) is called; current() returns (x, b - A x) at that iterate.
+        Returns (x, b - A x, its); raises LinearSolveError (with `its`) if the KSP stops
+        before the test is met."""
+        M = petsc_matrix(with_diagonal(A))
+        rhs = PETSc.Vec().createWithArray(np.array(b, dtype=float), comm=PETSc.COMM_SELF)
+        x = PETSc.Vec().createWithArray(np.array(x0, dtype=float), comm=PETSc.COMM_SELF)
+        work = x.duplicate()
+        ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+        try:
+            ksp.setOperators(M)
+            _configure(ksp, self.options)
+            ksp.setTolerances(max_it=self.max_linear_its)
+            ksp.setInitialGuessNonzero(True)
+            bound = tol * scale
+            ksp.setConvergenceTest(_StoppingTest(A, b, work, bound, test_every, self.nu,
+                                                  on_iterate))
+            try:
+                ksp.solve(rhs, x)
+            except PETSc.Error as e:
+                raise LinearSolveError(f"PETSc: {_petsc_message(e)}",
+                                       its=ksp.getIterationNumber()) from None
+            its, reason = ksp.getIterationNumber(), ksp.getConvergedReason()
+            xs = x.array.copy()
+            r = b - A @ xs
+            if reason > 0 and np.linalg.norm(r) <= bound:
+                return xs, r, its
+            raise LinearSolveError(
+                f"{ksp.getType()} stopped after {its} iterations ({_REASONS.get(reason, reason)})"
+                f" at ||R_alg||/||B|| = {np.linalg.norm(r) / scale:.2e} > {tol:.1e}", its=its)
+        finally:
+            for obj in (ksp, work, x, rhs, M):
+                obj.destroy()
+
+
+class _StoppingTest:
+    """The KSP convergence test of the module notes; it also hands out every ν-th iterate."""
+
+    def __init__(self, A, b, work, bound, test_every, nu, on_iterate):
+        self.A, self.b, self.work, self.bound = A, b, work, bound
+        self.test_every, self.nu, self.on_iterate = test_every, nu, on_iterate
+        self.its, self._current = 0, None
+
+    def current(self):
+        """(x, b - A x) at the iterate under test, built once."""
+        if self._current is None:
+            x = self.ksp.buildSolution(self.work).array.copy()
+            self._current = (x, self.b - self.A @ x)
+        return self._current
+
+    def __call__(self, ksp, its, rnorm):
+        if its <= self.its:     # the initial guess, or the same iterate again after a restart
+            return PETSc.KSP.ConvergedReason.ITERATING
+        self.ksp, self.its, self._current = ksp, its, None
+        estimate_is_residual = ksp.getNormType() == PETSc.KSP.NormType.UNPRECONDITIONED
+        if (its % self.test_every == 0 or rnorm == 0) and \
+                (rnorm <= self.bound or not estimate_is_residual) and \
+                np.linalg.norm(self.current()[1]) <= self.bound:
+            return PETSc.KSP.ConvergedReason.CONVERGED_ATOL
+        if self.on_iterate is not None and its % self.nu == 0:
+            self.on_iterate(its, self.current)
+        return PETSc.KSP.ConvergedReason.ITERATING
