@@ -31,7 +31,11 @@ initial guess it is still ‖b‖, not the initial residual (GMRES stops after 0
    variant makes ν Krylov steps per Newton step (the paper's table shows the same, 10 per
    step). The exact variant tests after every iteration.
 
-A zero residual (GMRES's happy breakdown) is always tested.
+A zero residual (GMRES's happy breakdown) is always tested. The same callback (the KSP
+convergence test, called once per iterate right after GMRES forms it) hands out the ν-th
+iterates: a KSP monitor would not do, since GMRES monitors iteration i at the top of
+iteration i + 1, or after a restart before the test, and cannot tell the last iterate (which
+is the Newton iterate, recorded as such) from the others.
 
 **The zero diagonal of the full system.** The λ-block of the full system is diag(β), and
 β_l = 0 at vertices where the row is e1 - e2 (min, contact predicted) or where b = 0 < a (fb).
