@@ -67,6 +67,8 @@ def _parser():
     s.add_argument("--max-newton", type=int, default=100)
     s.add_argument("--out", metavar="DIR", help="write summary.json, history.csv, "
                    "solution.xdmf there")
+    s.add_argument("--no-estimators", action="store_true",
+                   help="skip the a posteriori estimators (DESIGN §7) and their set-up")
     s.add_argument("--quiet", action="store_true", help="no progress lines")
     sub.add_parser("scenes", help="list the scenes")
     return p
@@ -120,13 +122,13 @@ def _solve(args):
     sol = solve(problem, newton=args.newton, cfun=args.cfun, system=args.system,
                 linear_solver=args.linear_solver, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
-                progress=not args.quiet)
+                estimators=not args.no_estimators, progress=not args.quiet)
     if args.out is not None:
         write_outputs(sol, args.out)
     summary = sol.summary()
     keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "system", "linear_solver",
             "converged", "newton_iterations", "linear_iterations", "wall_time_s",
-            "energy_error")
+            "energy_error", "eta", "effectivity")
     print(json.dumps({k: summary[k] for k in keys}))
     if not sol.converged:
         print(f"membranes: not converged: {sol.reason}", file=sys.stderr)

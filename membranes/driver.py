@@ -7,7 +7,9 @@
     >>> sol.history                      # one dict per recorded iterate (X^0 included)
 
 Only what the problem declares is computed: the energy error only where the scene knows the
-exact solution (its evaluation time is not counted in the wall times).
+exact solution; the estimators of DESIGN §7 unless `estimators=False`. Neither is counted in
+the wall times (the exact and inexact methods do not use them; their costs are reported apart:
+`estimator_setup_s`, `estimator_time_s`).
 """
 
 import sys
@@ -18,6 +20,8 @@ import numpy as np
 
 from . import cfunctions
 from .discretisation import EnergyError, discretise
+from .estimators import COLUMNS as ESTIMATOR_COLUMNS
+from .estimators import Estimators
 from .krylov import DEFAULT_MAX_LINEAR_ITS, DEFAULT_NU, Krylov
 from .meshes import mesh_size
 from .newton import DEFAULT_TOL, check_choice, check_method, semismooth_newton
@@ -40,6 +44,8 @@ class Solution:
     options: dict
     energy_error: float = None
     functions: list = field(default_factory=list)
+    eta_K: np.ndarray = None          # local distribution η_K at X (DESIGN §7), if estimated
+    estimator_times: tuple = (None, None)   # (set-up, all evaluations) in seconds
 
     @property
     def u1(self):
@@ -101,7 +107,17 @@ class Solution:
             "final_residual": self.final_record["residual"],
             "complementarity_violation": self.complementarity_violation(),
             "energy_error": self.energy_error,
+            **self._estimator_summary(),
         }
+
+    def _estimator_summary(self):
+        last = self.final_record
+        out = {k: last.get(k) for k in ESTIMATOR_COLUMNS}
+        out["bound_guaranteed"] = last.get("bound")
+        eta, err = out["eta"], self.energy_error
+        out["effectivity"] = eta / err if eta is not None and err else None
+        out["estimator_setup_s"], out["estimator_time_s"] = self.estimator_times
+        return out
 
 
 def _krylov(linear_solver, petsc_options, nu, max_linear_its):
@@ -118,7 +134,7 @@ def _krylov(linear_solver, petsc_options, nu, max_linear_its):
 
 def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmres",
           petsc_options=None, nu=None, max_linear_its=None, tol=DEFAULT_TOL, max_newton=100,
-          progress=False):
+          estimators=True, progress=False):
     """Solve the discrete contact problem of `problem` by semismooth Newton (DESIGN §3, §8).
 
     newton: 'exact' (linear residual ≤ 2e-12) or 'inexact' (≤ the previous nonlinear residual,
@@ -126,8 +142,10 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     linear_solver: 'gmres' (PETSc KSP, GMRES + ILU(0) unless `petsc_options`, a dict such as
     {"pc_type": "jacobi"}, say otherwise; every ν = `nu` (10) Krylov steps the iterate is
     recorded; at most `max_linear_its` (10000) iterations per step) or 'direct' (MUMPS, exact
-    only); tol: stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol; progress: True for one stderr line per Newton
-    step, or a callable taking the line.
+    only); tol: stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol; estimators: evaluate the a posteriori
+    estimators of DESIGN §7 at every recorded iterate (history columns eta, eta_disc, …; set
+    up once per mesh); progress: True for one stderr line per Newton step, or a callable taking
+    the line.
     """
     cfunctions.get(cfun)
     check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
@@ -145,16 +163,36 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     rows = linear_rows(disc)
     setup_time = time.perf_counter() - t0
     error = EnergyError(disc) if problem.exact is not None else None
+    t = time.perf_counter()
+    est = Estimators(disc) if estimators else None
+    est_times = [time.perf_counter() - t if estimators else None, 0.0 if estimators else None]
+    local = {}
+
+    def estimate(rec, X, R):
+        t = time.perf_counter()
+        alg = rec["alg_residual"]
+        if R is None:   # X^0 comes from no linear solve: its linear rows are out of balance
+            R = np.concatenate([rows.F - rows.E @ X, np.zeros(disc.n)])
+            alg = float(np.linalg.norm(R)) / rows.norm_F
+        values = est.evaluate(X, R, alg_residual=alg)
+        rec.update({k: values[k] for k in ESTIMATOR_COLUMNS}, bound=values["bound"])
+        if rec["kind"] != "krylov":
+            local["eta_K"] = values["eta_K"]
+        est_times[1] += time.perf_counter() - t
 
     def monitor(rec, X, R):
         rec["wall_time_s"] += setup_time
         rec["energy_error"] = error(X) if error is not None else None
+        if est is not None:
+            estimate(rec, X, R)
         if say is not None and rec["kind"] != "krylov":
             line = (f"newton {rec['newton_it']:3d}  residual {rec['residual']:.3e}  "
                     f"linear its {rec['linear_it']:5d}  total {rec['cumulative_linear_its']:6d}  "
                     f"time {rec['wall_time_s']:7.2f} s")
             if rec["energy_error"] is not None:
                 line += f"  energy error {rec['energy_error']:.4e}"
+            if rec.get("eta") is not None:
+                line += f"  eta {rec['eta']:.4e}"
             say(line)
 
     result = semismooth_newton(rows, problem.g, cfun=cfun, system=system, variant=newton,
@@ -166,6 +204,7 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
                     "linear_solver": linear_solver,
                     "petsc_options": {} if krylov is None else krylov.options,
                     "nu": None if krylov is None else krylov.nu},
-                   functions=disc.functions(result.X))
+                   functions=disc.functions(result.X), eta_K=local.get("eta_K"),
+                   estimator_times=tuple(est_times))
     sol.energy_error = sol.final_record["energy_error"]
     return sol

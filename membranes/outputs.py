@@ -4,7 +4,8 @@
 * ``history.csv``  — one row per recorded iterate, columns HISTORY_COLUMNS: X^0 (kind
   "initial"), every Newton iterate ("newton") and every ν-th Krylov iterate inside a Newton
   step ("krylov");
-* ``solution.xdmf`` (+ ``solution.h5``) — P1 functions ``u1``, ``u2``, ``lambda`` on the
+* ``solution.xdmf`` (+ ``solution.h5``) — P1 functions ``u1``, ``u2``, ``lambda`` (and the DG0
+  estimated error distribution ``eta`` where the estimators ran and bound the error) on the
   computational mesh, readable by ParaView.
 
 Everything is written into a fresh temporary folder beside the target and moved into place
@@ -18,9 +19,12 @@ import os
 import shutil
 import tempfile
 
+from .estimators import COLUMNS as ESTIMATOR_COLUMNS
+
 OUTPUT_FILES = ("summary.json", "history.csv", "solution.xdmf", "solution.h5")
 HISTORY_COLUMNS = ("newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
-                   "residual", "alg_residual", "kind", "energy_error")
+                   "residual", "alg_residual", "kind", "energy_error") + ESTIMATOR_COLUMNS \
+    + ("bound",)
 
 
 def _json_safe(value):
@@ -43,8 +47,17 @@ def write_history(path, history, columns=HISTORY_COLUMNS):
             writer.writerow(["" if rec.get(c) is None else rec[c] for c in columns])
 
 
-def write_solution(path, mesh, functions):
+def write_solution(path, mesh, functions, eta_K=None):
+    """u1, u2, lambda (P1) and, where estimated, the local distribution η_K (DG0 `eta`)."""
+    from dolfinx import fem
     from dolfinx.io import XDMFFile
+    if eta_K is not None:
+        DG0 = fem.FunctionSpace(mesh, ("DG", 0))
+        eta = fem.Function(DG0, name="eta")
+        ncells = mesh.topology.index_map(2).size_local
+        eta.x.array[DG0.dofmap.list.array[:ncells]] = eta_K
+        eta.x.scatter_forward()
+        functions = list(functions) + [eta]
     with XDMFFile(mesh.comm, path, "w") as xdmf:
         xdmf.write_mesh(mesh)
         for f in functions:
@@ -64,7 +77,7 @@ def write_outputs(solution, out_dir):
     summary = solution.summary()          # collective (global mesh sizes)
     try:
         write_solution(os.path.join(tmp, "solution.xdmf"), solution.problem.mesh,
-                       solution.functions)
+                       solution.functions, solution.eta_K)
         if comm.rank == 0:
             write_summary(os.path.join(tmp, "summary.json"), summary)
             write_history(os.path.join(tmp, "history.csv"), solution.history)

@@ -2,8 +2,6 @@
 
 import functools
 
-import pytest
-
 from membranes import scenes, solve
 from membranes.cli import quiet_jit_logging
 
@@ -17,18 +15,14 @@ def scene(name, h, **kwargs):
 
 @functools.lru_cache(maxsize=None)
 def solved(name, h, cfun="min", system="full"):
-    return solve(scene(name, h), cfun=cfun, system=system)
+    """A cached default solve without estimators (the tests of the discrete solution)."""
+    return solve(scene(name, h), cfun=cfun, system=system, estimators=False)
 
 
 @functools.lru_cache(maxsize=None)
 def solved_with(name, h, **options):
     """A cached solve with any options of `membranes.solve` (e.g. linear_solver="direct")."""
     return solve(scene(name, h), **options)
-
-
-@pytest.fixture
-def solved_scene():
-    return solved
 
 
 def write_msh(path, kind):
