@@ -19,7 +19,8 @@ components (u1h + u2h)/2) and λ^pos, λ^neg the nodal positive and negative par
 
 (the paper's Theorem 5.1), with the components η_disc, η_lin, η_alg of Corollary 5.6.
 
-The algebraic flux σ_alg (DESIGN §6) is not built yet. So:
+The algebraic flux σ_alg (DESIGN §6) is passed in by the caller (`evaluate(sigma_alg=...)`,
+the multilevel construction of `algebraic_flux`, or `nu_flux`). Without it:
 
 * where the algebraic residual vanishes to round-off (`R` None, or ‖R‖/‖B‖ ≤ ALG_ROUNDOFF:
   exact solves), σ_alg = 0 and the unbalanced lifted residual r_h, however tiny, is bounded by
@@ -28,6 +29,8 @@ The algebraic flux σ_alg (DESIGN §6) is not built yet. So:
   ν-construction does, DESIGN §6) and is reported as η_alg: the bound is guaranteed;
 * elsewhere (inexact iterates) η_alg, η_F and η are reported as missing (None), never as 0,
   and no bound is claimed; η_disc and η_lin are still computed.
+
+A remainder η_rem left by σ_alg (the ν-construction) joins η_1 in the bound and η_alg.
 
 Integrals of P1 products (η_C, η_lin1, η_lin3, ‖λ^pos‖) are exact cell formulas; η_F, η_alg
 and η_osc are assembled with dolfinx against a piecewise-constant test function, the data with
@@ -119,32 +122,61 @@ class Estimators:
         self._mu.value = self.mu[alpha]
         return np.sqrt(np.maximum(self._per_cell(self._flux_form), 0.0))
 
-    def residual_lifting_norms(self, R):
-        """‖r_αh‖_Ω for α = 1, 2 (DESIGN §4)."""
-        n = self.disc.n
-        out = []
-        for Ra in (R[:n], R[n:2 * n]):
-            r = (self.flux.lift @ Ra).reshape(-1, 3)
-            # ∫_K r² = |K|/12 (Σ r_k² + (Σ r_k)²) for r ∈ P1(K)
-            out.append(np.sqrt(np.sum(self.geo.area / 12.0 * ((r * r).sum(axis=1)
-                                                              + r.sum(axis=1) ** 2))))
-        return np.array(out)
+    def _p1_dg_norms(self, coeffs):
+        """‖v‖_Ω for v ∈ DG1 given by coefficients (ncells, 3) in cell-vertex order."""
+        # ∫_K v² = |K|/12 (Σ v_k² + (Σ v_k)²) for v ∈ P1(K)
+        return np.sqrt(np.sum(self.geo.area / 12.0 * ((coeffs * coeffs).sum(axis=1)
+                                                       + coeffs.sum(axis=1) ** 2)))
 
-    def evaluate(self, X, R=None, alg_residual=None, sigma_alg=None):
-        """All estimators at X (DESIGN §7). R: the algebraic residual (3N) or None for an exact
-        solve; alg_residual = ‖R‖/‖B‖; sigma_alg: (σ_1,alg, σ_2,alg) RT coefficients, if built.
+    def remainder(self, R, lam_shift=None):
+        """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_α = r_αh (DESIGN §4), or with
+        lam_shift = λ' - λ (nodal): ρ_α = r_αh ∓ (λ'_h - λ_h) (+ for α = 1). It bounds the part
+        of the residual that the flux leaves out of balance, by Poincaré–Friedrichs."""
+        n = self.disc.n
+        total = 0.0
+        for alpha, Ra in enumerate((R[:n], R[n:2 * n])):
+            rho = (self.flux.lift @ Ra).reshape(-1, 3)
+            if lam_shift is not None:
+                rho = rho + (1.0 if alpha == 0 else -1.0) * lam_shift[self.geo.cells]
+            total += self._p1_dg_norms(rho) ** 2 / self.mu[alpha]
+        return float(self.cpf * np.sqrt(total))
+
+    def sigma_disc(self, X, R=None):
+        """(σ_1,disc, σ_2,disc) at X with algebraic residual R (RT_1 coefficients)."""
+        n = self.disc.n
+        u1, u2, lam = split(X, n)
+        Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
+        return [self.flux.sigma(alpha + 1, u, lam, Ra)
+                for alpha, (u, Ra) in enumerate(zip((u1, u2), Rs))]
+
+    def nu_flux(self, X, R, X_later, R_later):
+        """The algebraic flux of ν extra iterations (DESIGN §6) at the iterate X (residual R),
+        from the iterate X_later = X^{k,i+ν} of the same linear solve: σ_alg = σ_disc(X_later)
+        - σ_disc(X), so that σ_disc + σ_alg = σ_disc(X_later), whose divergence is
+        Π_P1 f ± λ'_h - r'_h. The unbalanced part with respect to X is r'_h ∓ (λ'_h - λ_h):
+        DESIGN §6 writes r^{k,i} - r^{k,i+ν} for the divergence of σ_alg, which holds where λ
+        does not change between the two iterates; here λ changes, so its shift joins the
+        remainder. Returns (σ_alg pair, η_rem)."""
+        n = self.disc.n
+        now, later = self.sigma_disc(X, R), self.sigma_disc(X_later, R_later)
+        shift = X_later[2 * n:] - X[2 * n:]
+        return [b - a for a, b in zip(now, later)], self.remainder(R_later, shift)
+
+    def evaluate(self, X, R=None, alg_residual=None, sigma_alg=None, eta_rem=0.0):
+        """All estimators at X (DESIGN §7). R: the algebraic residual (3N), None where the
+        linear rows hold exactly; alg_residual = ‖R‖/‖B‖; sigma_alg: (σ_1,alg, σ_2,alg) RT
+        coefficients where an algebraic flux was built, with eta_rem the remainder it leaves
+        (0 for the multilevel flux, whose divergence is r_h exactly; `nu_flux` gives both).
 
         Returns a dict with the global values of COLUMNS (None where missing), `bound`
         (whether η is a guaranteed bound) and `eta_K` (the local distribution)."""
         disc, geo = self.disc, self.geo
         n = disc.n
         u1, u2, lam = split(X, n)
-        Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
         roundoff = R is None or (alg_residual is not None and alg_residual <= ALG_ROUNDOFF)
         have_alg = sigma_alg is not None or roundoff
         disc_cells, flux_cells, alg_cells = [], [], []
-        for alpha, (u, Ra) in enumerate(zip((u1, u2), Rs)):
-            s_disc = self.flux.sigma(alpha + 1, u, lam, Ra)
+        for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R))):
             disc_cells.append(self._flux_cells(alpha, u, s_disc))
             if sigma_alg is not None:
                 flux_cells.append(self._flux_cells(alpha, u, s_disc + sigma_alg[alpha]))
@@ -181,11 +213,10 @@ class Estimators:
             return out
         if sigma_alg is not None:
             alg_cells = np.array(alg_cells)
-            eta_alg, eta_rem = float(np.sqrt((alg_cells * alg_cells).sum())), 0.0
+            eta_rem = float(eta_rem)
+            eta_alg = float(np.sqrt((alg_cells * alg_cells).sum())) + eta_rem
         else:
-            eta_rem = 0.0 if R is None else float(
-                self.cpf * np.sqrt(np.sum(self.residual_lifting_norms(R) ** 2
-                                          / np.array(self.mu))))
+            eta_rem = 0.0 if R is None else self.remainder(R)
             eta_alg = eta_rem
         eta_1 = float(np.sqrt(((flux_cells + osc) ** 2).sum()))
         eta = np.sqrt((eta_1 + eta_rem + eta_lin1 + eta_lin3) ** 2 + eta_lin2 + max(0.0, sum_C))
