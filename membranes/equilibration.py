@@ -162,139 +162,179 @@ def _row_index(table, values):
     return idx - np.arange(P)[:, None] * k
 
 
+class PatchSpace:
+    """RT_1 × DG1 on one mesh, with the per-cell blocks that every patch problem is made of:
+    Me[K] = (φ_j, φ_i)_K (RT mass) and Be[K] = (∇·φ_j, q_i)_K, in the global RT basis (dof
+    transformations applied by dolfinx). B has cell-owned rows, so its blocks are entries of
+    one assembly; M is assembled colour by colour over cells that share no edge, so that each
+    entry of one colour's assembly belongs to one cell (integrating over one colour only also
+    keeps each sparsity pattern small). The assembled matrices are temporaries."""
+
+    def __init__(self, V):
+        from dolfinx import fem, mesh as dmesh
+        mesh = V.mesh
+        self.V = V
+        self.geo = geo = Geometry(V)
+        nc = geo.ncells
+        self.RT = fem.FunctionSpace(mesh, ("RT", 2))
+        self.DG = fem.FunctionSpace(mesh, ("DG", 1))
+        sig, tau = ufl.TrialFunction(self.RT), ufl.TestFunction(self.RT)
+        q = ufl.TestFunction(self.DG)
+        self.rt_cells = rt = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
+        self.dg_cells = dg = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int64)
+        _check_vertex_order(self.DG, dg, V, geo.cells)
+        colour = cell_colouring(mesh, nc)
+        self.Me = np.empty((nc, 8, 8))
+        for c in range(colour.max() + 1):
+            cells = np.flatnonzero(colour == c).astype(np.int32)
+            tags = dmesh.meshtags(mesh, 2, cells, np.ones_like(cells))
+            dxc = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
+            self.Me[cells] = element_blocks(assemble_matrix_csr(rt_mass(sig, tau, dxc)),
+                                            rt[cells], rt[cells])
+        self.Be = element_blocks(assemble_matrix_csr(divergence(sig, q)), dg, rt)
+        # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
+        layout = self.RT.dofmap.dof_layout
+        self.edge_of_dof = np.full(8, -1)
+        for e in range(3):
+            self.edge_of_dof[layout.entity_dofs(1, e)] = e
+        mesh.topology.create_connectivity(2, 1)
+        self.c2e = mesh.topology.connectivity(2, 1).array.reshape(nc, 3).astype(np.int64)
+        nedges = mesh.topology.index_map(1).size_local + mesh.topology.index_map(1).num_ghosts
+        exterior = np.zeros(nedges, dtype=bool)
+        exterior[dmesh.exterior_facet_indices(mesh.topology)] = True
+        self.exterior_edge = exterior[self.c2e]
+        self.nrt = self.RT.dofmap.index_map.size_local
+
+    def retained_dofs(self, CS, boundary):
+        """Global RT dofs of P patches of the cells CS (P, n) (-1 where dropped): V_h^a has zero
+        normal component on the patch boundary (edges in one patch cell only), except on ∂Ω
+        for a patch of a boundary vertex (DESIGN §5; `boundary` (P,) flags those)."""
+        P, n = CS.shape
+        edges = self.c2e[CS].reshape(P, -1)
+        big = np.int64(edges.max() + 1)
+        keys = edges + np.arange(P, dtype=np.int64)[:, None] * big
+        srt = np.sort(keys, axis=1)
+        twice = srt[:, 1:][srt[:, 1:] == srt[:, :-1]]
+        inside = np.isin(keys, twice).reshape(P, n, 3)
+        keep_edge = inside | (self.exterior_edge[CS] & boundary[:, None, None])
+        e = self.edge_of_dof
+        keep = np.where(e[None, None, :] >= 0, np.take(keep_edge, np.maximum(e, 0), axis=2),
+                        True)
+        return np.where(keep, self.rt_cells[CS], -1).reshape(P, -1)
+
+    def saddle_point_systems(self, CS, glob, boundary):
+        """Local numbering and matrices of P patch problems of one shape (DESIGN §5):
+        A = [[M, -Bᵀ, 0], [B, 0, c], [0, cᵀ, 0]] with the zero-mean multiplier row (c = (1, q))
+        for interior patches only. Returns RET (P, nr) the global RT dofs, loc (P, n, 8) their
+        local numbers (-1 dropped) and A (P, N, N), N = nr + 3n (+ 1)."""
+        geo = self.geo
+        P, n = CS.shape
+        sentinel = np.iinfo(np.int64).max
+        RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)    # (P, nr)
+        nr = RET.shape[1]
+        loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, n, 8)
+        nq = 3 * n
+        N = nr + nq + (0 if boundary else 1)
+        A = np.zeros((P, N, N))
+        li, lj = loc[:, :, :, None], loc[:, :, None, :]
+        ok = (li >= 0) & (lj >= 0)
+        lin = (np.arange(P)[:, None, None, None] * N + li) * N + lj
+        A.ravel()[:] += np.bincount(lin[ok], weights=self.Me[CS][ok], minlength=P * N * N)
+        qrow = nr + 3 * np.arange(n)[None, :, None] + np.arange(3)[None, None, :]
+        Be = self.Be[CS]                                                      # (P, n, 3, 8)
+        okb = np.broadcast_to(loc[:, :, None, :] >= 0, Be.shape)
+        pb = np.broadcast_to(np.arange(P)[:, None, None, None], Be.shape)
+        rb = np.broadcast_to(qrow[..., None], Be.shape)
+        cb = np.broadcast_to(loc[:, :, None, :], Be.shape)
+        A[pb[okb], rb[okb], cb[okb]] = Be[okb]
+        A[pb[okb], cb[okb], rb[okb]] = -Be[okb]
+        if not boundary:
+            c = np.repeat(geo.area[CS] / 3.0, 3, axis=1)                     # (P, nq)
+            A[:, nr:nr + nq, -1] = c
+            A[:, -1, nr:nr + nq] = c
+        return RET, loc, A
+
+    def patch_groups(self, CS, boundary, chunk):
+        """Patches (cells CS (P, n), boundary flags) in batches of one shape: yields
+        (indices into the P patches, RET, loc, A)."""
+        glob = self.retained_dofs(CS, boundary)
+        S = np.sort(np.where(glob < 0, np.iinfo(np.int64).max, glob), axis=1)
+        nr = ((S[:, 1:] != S[:, :-1]) & (S[:, 1:] != np.iinfo(np.int64).max)).sum(axis=1) + 1
+        for b, r in sorted(set(zip(boundary.tolist(), nr.tolist()))):
+            idx = np.flatnonzero((boundary == b) & (nr == r))
+            for s in range(0, len(idx), chunk):
+                sel = idx[s:s + chunk]
+                yield (sel,) + self.saddle_point_systems(CS[sel], glob[sel], b)
+
+
+def vertex_patches(geo):
+    """For every vertex a: its cells (grouped by count) and a's local index in each.
+    Yields (vertices (P,), CS (P, n), KA (P, n))."""
+    for n in np.unique(geo.cells_per_vertex):
+        verts = np.flatnonzero(geo.cells_per_vertex == n)
+        idx = geo.vertex_ptr[verts][:, None] + np.arange(n)
+        yield verts, geo.vertex_cells[idx], geo.vertex_local[idx]
+
+
+def _check_vertex_order(DG, dg_cells, V, p1_cells):
+    """The local formulas assume the DG1 and P1 dofs of a cell sit at its vertices in the same
+    order (basix's reference vertex order); check it rather than trust it."""
+    xd = DG.tabulate_dof_coordinates()[:, :2][dg_cells]
+    xp = V.tabulate_dof_coordinates()[:, :2][p1_cells]
+    if not np.allclose(xd, xp, rtol=0, atol=1e-12 * max(1.0, np.abs(xp).max())):
+        raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
+
+
 class FluxEquilibration:
     """Set-up (once per mesh) and evaluation of σ_α,disc (DESIGN §5)."""
 
     CHUNK = 8000     # patches solved at once (bounds the set-up's memory)
 
     def __init__(self, disc):
-        from dolfinx import fem, mesh as dmesh
+        from dolfinx import fem
         from .problem import as_builder
         self.disc = disc
         mesh = disc.V.mesh
-        geo = self.geo = Geometry(disc.V)
-        nc = geo.ncells
-        self.RT = fem.FunctionSpace(mesh, ("RT", 2))
-        DG = fem.FunctionSpace(mesh, ("DG", 1))
+        space = self.space = PatchSpace(disc.V)
+        self.geo, self.RT = space.geo, space.RT
+        nc = self.geo.ncells
+        self.lift = lifting(self.geo)
+        tau = ufl.TestFunction(self.RT)
         W = fem.VectorFunctionSpace(mesh, ("DG", 1))
-        sig, tau = ufl.TrialFunction(self.RT), ufl.TestFunction(self.RT)
-        p, q = ufl.TrialFunction(DG), ufl.TestFunction(DG)
-        self.rt_cells = rt = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        dg = DG.dofmap.list.array.reshape(nc, -1).astype(np.int64)
         wc = W.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        self._check_vertex_order(DG, dg, disc.V, geo.cells)
-        self.lift = lifting(geo)
-
-        # element matrices in the global (transformed) RT basis, shape (nc, 8, 8) etc.
-        # B and C have cell-owned rows/columns; M is assembled colour by colour (cells of
-        # one colour share no edge, so each entry of that assembly belongs to one cell).
-        # (the assembled matrices are temporaries: only the blocks are kept)
-        # (integrating over one colour's cells only also keeps each sparsity pattern small)
-        colour = cell_colouring(mesh, nc)
-        Me = np.empty((nc, 8, 8))
-        for c in range(colour.max() + 1):
-            cells = np.flatnonzero(colour == c).astype(np.int32)
-            tags = dmesh.meshtags(mesh, 2, cells, np.ones_like(cells))
-            dxc = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
-            Me[cells] = element_blocks(assemble_matrix_csr(rt_mass(sig, tau, dxc)),
-                                       rt[cells], rt[cells])
-        Be = element_blocks(assemble_matrix_csr(divergence(sig, q)), dg, rt)   # (∇·φ_j, q_i)
         wcols = (2 * wc[:, :, None] + np.arange(2)).reshape(nc, 6)          # (k, d) -> 2k + d
-        Ce = element_blocks(assemble_matrix_csr(vector_moment(ufl.TrialFunction(W), tau)),
-                            rt, wcols)                                      # ∫_K φ_k e_d · τ_j
+        self.Ce = element_blocks(assemble_matrix_csr(vector_moment(ufl.TrialFunction(W), tau)),
+                                 space.rt_cells, wcols)                     # ∫_K φ_k e_d · τ_j
         # Wf_α[K][i, k] = (f_α φ_k, φ_i)_K
         x = ufl.SpatialCoordinate(mesh)
+        p, q = ufl.TrialFunction(space.DG), ufl.TestFunction(space.DG)
         self.wf = [element_blocks(assemble_matrix_csr(over(
-            disc.dx_data, lambda dx: weighted_mass(as_builder(f)(x), p, q, dx))), dg, dg)
-            for f in (disc.problem.f1, disc.problem.f2)]
-
-        # which RT dofs of a cell a patch keeps: edge e is opposite vertex e (basix), so the
-        # edges through the patch vertex k are e ≠ k; the opposite edge only where it lies on
-        # ∂Ω and the patch vertex is on ∂Ω
-        layout = self.RT.dofmap.dof_layout
-        edge_of_dof = np.full(8, -1)
-        for e in range(3):
-            edge_of_dof[layout.entity_dofs(1, e)] = e
-        mesh.topology.create_connectivity(2, 1)
-        c2e = mesh.topology.connectivity(2, 1).array.reshape(nc, 3)
-        nedges = mesh.topology.index_map(1).size_local + mesh.topology.index_map(1).num_ghosts
-        exterior = np.zeros(nedges, dtype=bool)
-        exterior[dmesh.exterior_facet_indices(mesh.topology)] = True
-        on_boundary = np.zeros(geo.n, dtype=bool)
+            disc.dx_data, lambda dx: weighted_mass(as_builder(f)(x), p, q, dx))),
+            space.dg_cells, space.dg_cells) for f in (disc.problem.f1, disc.problem.f2)]
+        on_boundary = np.zeros(self.geo.n, dtype=bool)
         on_boundary[disc.boundary] = True
-        self._elements = dict(Me=Me, Be=Be, Ce=Ce, exterior_edge=exterior[c2e],
-                              edge_of_dof=edge_of_dof, on_boundary=on_boundary)
-        self._build_operators()
-        del self._elements
-
-    def _patch_groups(self):
-        """Vertices grouped by patch shape: (number of cells, boundary, retained RT dofs)."""
-        geo, el = self.geo, self._elements
-        groups = {}
-        for n in np.unique(geo.cells_per_vertex):
-            verts = np.flatnonzero(geo.cells_per_vertex == n)
-            idx = geo.vertex_ptr[verts][:, None] + np.arange(n)
-            CS, KA = geo.vertex_cells[idx], geo.vertex_local[idx]
-            bnd = el["on_boundary"][verts]
-            e = el["edge_of_dof"]
-            through = (e[None, None, :] != KA[:, :, None])                   # incl. interiors
-            opposite_free = (e[None, None, :] == KA[:, :, None]) \
-                & el["exterior_edge"][CS, KA][:, :, None] & bnd[:, None, None]
-            glob = np.where(through | opposite_free, self.rt_cells[CS], -1).reshape(len(verts), -1)
-            S = np.sort(np.where(glob < 0, np.iinfo(np.int64).max, glob), axis=1)
-            nr = ((S[:, 1:] != S[:, :-1]) & (S[:, 1:] != np.iinfo(np.int64).max)).sum(axis=1) + 1
-            for key in set(zip(bnd.tolist(), nr.tolist())):
-                sel = (bnd == key[0]) & (nr == key[1])
-                groups[(int(n),) + key] = (verts[sel], CS[sel], KA[sel], glob[sel])
-        return groups
-
-    def _build_operators(self):
-        geo = self.geo
-        nrt = self.RT.dofmap.index_map.size_local
-        shape = (nrt, geo.n)
+        shape = (space.nrt, self.geo.n)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
-        self.sigma_f = np.zeros((2, nrt))
-        for (n, boundary, nr), (verts, CS, KA, glob) in self._patch_groups().items():
-            for s in range(0, len(verts), self.CHUNK):
-                sl = slice(s, s + self.CHUNK)
-                self._solve_patches(n, boundary, verts[sl], CS[sl], KA[sl], glob[sl])
+        self.sigma_f = np.zeros((2, space.nrt))
+        for verts, CS, KA in vertex_patches(self.geo):
+            for sel, RET, loc, A in space.patch_groups(CS, on_boundary[verts], self.CHUNK):
+                self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A)
+        del self.Ce
 
-    def _solve_patches(self, n, boundary, verts, CS, KA, glob):
-        """Solve the patch problems of P patches of one shape at once (batched LAPACK)."""
-        geo, el = self.geo, self._elements
-        P = len(verts)
-        sentinel = np.iinfo(np.int64).max
-        RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)    # (P, nr)
-        nr = RET.shape[1]
-        loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, n, 8)
+    def _solve_patches(self, verts, CS, KA, RET, loc, A):
+        """The right-hand sides of P patch problems of one shape as linear maps of the data,
+        and their solution (batched LAPACK): adds the patches' σ_a to the operators."""
+        geo = self.geo
+        P, n = CS.shape
+        nr, N = RET.shape[1], A.shape[1]
         VERTS, _ = _row_unique(geo.cells[CS].reshape(P, -1), -1)              # (P, m)
         m = VERTS.shape[1]
         vloc = _row_index(VERTS, geo.cells[CS].reshape(P, -1)).reshape(P, n, 3)
         nq = 3 * n
-        nmean = 0 if boundary else 1
-        N = nr + nq + nmean
         pp = np.arange(P)[:, None, None]
         jj = np.arange(n)[None, :, None]
         area = geo.area[CS]                                                   # (P, n)
-        # saddle-point matrices A (P, N, N)
-        A = np.zeros((P, N, N))
-        li, lj = loc[:, :, :, None], loc[:, :, None, :]
-        ok = (li >= 0) & (lj >= 0)
-        lin = (np.arange(P)[:, None, None, None] * N + li) * N + lj
-        A.ravel()[:] += np.bincount(lin[ok], weights=el["Me"][CS][ok], minlength=P * N * N)
         qloc = 3 * jj + np.arange(3)[None, None, :]                           # (1, n, 3)
-        qrow = nr + qloc
-        Be = el["Be"][CS]                                                     # (P, n, 3, 8)
-        okb = np.broadcast_to(loc[:, :, None, :] >= 0, Be.shape)
-        pb = np.broadcast_to(pp[..., None], Be.shape)
-        rb = np.broadcast_to(qrow[..., None], Be.shape)
-        cb = np.broadcast_to(loc[:, :, None, :], Be.shape)
-        A[pb[okb], rb[okb], cb[okb]] = Be[okb]
-        A[pb[okb], cb[okb], rb[okb]] = -Be[okb]
-        if nmean:
-            c = np.repeat(area / 3.0, 3, axis=1)                              # (P, nq)
-            A[:, nr:nr + nq, -1] = c
-            A[:, -1, nr:nr + nq] = c
         # local gradient (P, 2n, m) and lifting (P, 3n, m) operators
         grad = geo.grad[CS]                                                   # (P, n, 3, 2)
         Gd = np.zeros((P, 2 * n, m))
@@ -306,9 +346,8 @@ class FluxEquilibration:
         Lr[pp[..., None], qloc[..., None], vloc[:, :, None, :]] = liftK
         # right-hand sides: columns u (m) | λ_a (1) | R (m) | f1 | f2
         rhs = np.zeros((P, N, 2 * m + 3))
-        Ce = el["Ce"][CS][np.arange(P)[:, None], np.arange(n)[None, :], :, :]   # (P, n, 8, 6)
         kcols = 2 * KA[..., None] + np.arange(2)                              # (P, n, 2)
-        Cka = np.take_along_axis(Ce, kcols[:, :, None, :], axis=3)            # (P, n, 8, 2)
+        Cka = np.take_along_axis(self.Ce[CS], kcols[:, :, None, :], axis=3)   # (P, n, 8, 2)
         Cl = np.zeros((P, nr, 2 * n))
         okc = np.broadcast_to(loc[..., None] >= 0, Cka.shape)
         pc = np.broadcast_to(pp[..., None], Cka.shape)
@@ -332,7 +371,7 @@ class FluxEquilibration:
             rhs[:, nr:nr + nq, 2 * m + 1 + alpha] = np.take_along_axis(
                 wf, KA[:, :, None, None], axis=3)[..., 0].reshape(P, nq)
         sol = np.linalg.solve(A, rhs)[:, :nr]                                 # σ rows
-        # σ = Σ_a σ_a: add this chunk's operators (summed chunk by chunk to bound memory)
+        # σ = Σ_a σ_a: add this batch's operators (summed batch by batch to bound memory)
         shape = self.G_u.shape
         rows = np.broadcast_to(RET[:, :, None], (P, nr, m)).ravel().astype(np.int32)
         cols = np.broadcast_to(VERTS[:, None, :], (P, nr, m)).ravel().astype(np.int32)
@@ -344,15 +383,6 @@ class FluxEquilibration:
         for alpha in range(2):
             self.sigma_f[alpha] += np.bincount(RET.ravel(), sol[:, :, 2 * m + 1 + alpha].ravel(),
                                                minlength=shape[0])
-
-    @staticmethod
-    def _check_vertex_order(DG, dg_cells, V, p1_cells):
-        """The local formulas assume the DG1 and P1 dofs of a cell sit at its vertices in the
-        same order (basix's reference vertex order); check it rather than trust it."""
-        xd = DG.tabulate_dof_coordinates()[:, :2][dg_cells]
-        xp = V.tabulate_dof_coordinates()[:, :2][p1_cells]
-        if not np.allclose(xd, xp, rtol=0, atol=1e-12 * max(1.0, np.abs(xp).max())):
-            raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
 
     def sigma(self, alpha, u, lam, R):
         """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5)."""
