@@ -56,6 +56,7 @@ class Geometry:
 
     def __init__(self, V):
         mesh = V.mesh
+        self.V = V
         self.ncells = mesh.topology.index_map(2).size_local
         self.cells = V.dofmap.list.array.reshape(-1, 3)[:self.ncells].astype(np.int64)
         self.n = V.dofmap.index_map.size_local
@@ -115,32 +116,40 @@ def element_blocks(A, row_dofs, col_dofs):
     return csr_lookup(A, rows, cols).reshape(nc, r, c)
 
 
-def cell_colouring(mesh, ncells, seed=0):
-    """Colours of the cells such that cells sharing an edge differ (Jones–Plassmann, ≤ 4)."""
-    mesh.topology.create_connectivity(1, 2)
-    e2c = mesh.topology.connectivity(1, 2)
-    counts = np.diff(e2c.offsets)
-    pairs = e2c.array[np.repeat(counts == 2, counts)].reshape(-1, 2)
-    pairs = pairs[(pairs < ncells).all(axis=1)]
+def graph_colouring(pairs, n, seed=0):
+    """Colours of n nodes such that the two ends of every pair (m, 2) differ (Jones–Plassmann:
+    in each round the nodes whose random priority beats their uncoloured neighbours take the
+    smallest colour their neighbours do not use; at most max degree + 1 colours)."""
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     both = np.vstack([pairs, pairs[:, ::-1]])
     both = both[np.argsort(both[:, 0], kind="stable")]
     rank = np.arange(both.shape[0]) - np.searchsorted(both[:, 0], both[:, 0])
-    nb = np.full((ncells, 3), -1, dtype=np.int64)
+    degree = int(rank.max()) + 1 if len(rank) else 0
+    nb = np.full((n, max(degree, 1)), -1, dtype=np.int64)
     nb[both[:, 0], rank] = both[:, 1]
     has = nb >= 0
-    prio = np.random.default_rng(seed).permutation(ncells)
-    colour = np.full(ncells, -1)
+    prio = np.random.default_rng(seed).permutation(n)
+    colour = np.full(n, -1)
     while (colour < 0).any():
         unc = colour < 0
         rival = np.where(has & unc[nb], prio[nb], -1).max(axis=1)
         pick = unc & (prio > rival)
         used = np.where(has, colour[nb], -1)[pick]
         choice = np.full(used.shape[0], -1)
-        for c in range(4):
+        for c in range(degree + 1):
             free = (choice < 0) & ~(used == c).any(axis=1)
             choice[free] = c
         colour[pick] = choice
     return colour
+
+
+def cell_colouring(mesh, ncells, seed=0):
+    """Colours of the cells such that cells sharing an edge differ (at most 4)."""
+    mesh.topology.create_connectivity(1, 2)
+    e2c = mesh.topology.connectivity(1, 2)
+    counts = np.diff(e2c.offsets)
+    pairs = e2c.array[np.repeat(counts == 2, counts)].reshape(-1, 2)
+    return graph_colouring(pairs[(pairs < ncells).all(axis=1)].astype(np.int64), ncells, seed)
 
 
 def _row_unique(values, sentinel):
