@@ -50,7 +50,7 @@ def _descendants(anc, size):
 class MultilevelFlux:
     """σ_alg of DESIGN §6 for the discretisation `disc` on `hierarchy` (levels ≥ 1)."""
 
-    CHUNK = 2000
+    CHUNK = 500      # patches solved at once (the local systems have ~180 unknowns)
 
     def __init__(self, disc, hierarchy):
         from dolfinx import fem
