@@ -15,7 +15,7 @@ EXIT_NOT_CONVERGED = 3
 
 DATA_OPTIONS = ("mu1", "mu2", "g", "f1", "f2", "mesh", "domain")
 VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--tol",
-                 "--petsc-options")
+                 "--petsc-options", "--gamma-lin", "--gamma-alg")
 
 
 class BadInput(ValueError):
@@ -48,9 +48,17 @@ def _parser():
     s.add_argument("--f1", metavar="EXPR", help="load of membrane 1, formula in x, y "
                    "(pi sin cos exp sqrt abs min max; default 0)")
     s.add_argument("--f2", metavar="EXPR", help="load of membrane 2 (default 0)")
-    s.add_argument("--newton", choices=("exact", "inexact"), default="exact",
+    s.add_argument("--newton", choices=("exact", "inexact", "adaptive"), default="exact",
                    help="exact: linear solves to 2e-12; inexact: to the previous nonlinear "
-                        "residual (DESIGN §8)")
+                        "residual; adaptive: stopped by the estimators (DESIGN §8)")
+    s.add_argument("--gamma-lin", type=float, metavar="G",
+                   help="adaptive: stop Newton at eta_lin <= G eta_disc (default 0.3)")
+    s.add_argument("--gamma-alg", type=float, metavar="G",
+                   help="adaptive: stop GMRES at eta_alg <= G max(eta_disc, eta_lin) "
+                        "(default 0.3)")
+    s.add_argument("--alg-flux", choices=("nu", "multilevel"),
+                   help="algebraic flux of the estimators (DESIGN §6): multilevel (default "
+                        "with --levels >= 1) or nu (nu extra iterations, default otherwise)")
     s.add_argument("--cfun", choices=("min", "fb"), default="min")
     s.add_argument("--system", choices=("full", "eliminated"), default="full",
                    help="Newton system: full 3N or eliminated 2N (DESIGN §3)")
@@ -59,11 +67,12 @@ def _parser():
     s.add_argument("--petsc-options", metavar="STRING",
                    help='KSP/PC options for gmres, e.g. "-ksp_gmres_restart 50 -pc_type jacobi"')
     s.add_argument("--nu", type=int, metavar="N",
-                   help="record the Krylov iterate every N steps (default 10)")
+                   help="record (and for adaptive, estimate) the Krylov iterate every N steps "
+                        "(default 10)")
     s.add_argument("--max-linear-its", type=int, metavar="N",
                    help="Krylov iterations allowed per Newton step (default 10000)")
-    s.add_argument("--tol", type=float, default=1e-10,
-                   help="stop at ||R_lin|| / ||(F, 0)|| <= TOL (default 1e-10)")
+    s.add_argument("--tol", type=float,
+                   help="exact, inexact: stop at ||R_lin|| / ||(F, 0)|| <= TOL (default 1e-10)")
     s.add_argument("--max-newton", type=int, default=100)
     s.add_argument("--out", metavar="DIR", help="write summary.json, history.csv, "
                    "solution.xdmf there")
@@ -122,7 +131,8 @@ def _solve(args):
     sol = solve(problem, newton=args.newton, cfun=args.cfun, system=args.system,
                 linear_solver=args.linear_solver, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
-                estimators=not args.no_estimators, progress=not args.quiet)
+                estimators=not args.no_estimators, progress=not args.quiet,
+                gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux)
     if args.out is not None:
         write_outputs(sol, args.out)
     summary = sol.summary()

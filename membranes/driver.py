@@ -7,9 +7,10 @@
     >>> sol.history                      # one dict per recorded iterate (X^0 included)
 
 Only what the problem declares is computed: the energy error only where the scene knows the
-exact solution; the estimators of DESIGN §7 unless `estimators=False`. Neither is counted in
-the wall times (the exact and inexact methods do not use them; their costs are reported apart:
-`estimator_setup_s`, `estimator_time_s`).
+exact solution; the estimators of DESIGN §7 unless `estimators=False`. The energy error never
+counts in the wall times; the estimators count for the adaptive method, which uses them (set-up
+and evaluations), and not for exact and inexact Newton, which do not (their costs are reported
+apart in any case: `estimator_setup_s`, `estimator_time_s`).
 """
 
 import sys
@@ -20,14 +21,17 @@ import numpy as np
 
 from . import cfunctions
 from .discretisation import EnergyError, discretise
+from .estimators import ALG_ROUNDOFF, Estimators
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
-from .estimators import Estimators
 from .krylov import DEFAULT_MAX_LINEAR_ITS, DEFAULT_NU, Krylov
 from .meshes import mesh_size
-from .newton import DEFAULT_TOL, check_choice, check_method, semismooth_newton
+from .newton import (DEFAULT_GAMMA, DEFAULT_TOL, check_choice, check_gamma, check_method,
+                     semismooth_newton)
 from .newton_system import linear_rows, split
 
 LINEAR_SOLVERS = ("gmres", "direct")
+ALG_FLUXES = ("nu", "multilevel")
+RECORD_KEYS = ESTIMATOR_COLUMNS + ("bound",)   # what the estimators add to a history record
 
 
 @dataclass
@@ -99,6 +103,9 @@ class Solution:
             "linear_solver": self.options["linear_solver"],
             "petsc_options": self.options["petsc_options"],
             "nu": self.options["nu"],
+            "gamma_lin": self.options["gamma_lin"],
+            "gamma_alg": self.options["gamma_alg"],
+            "alg_flux": self.options["alg_flux"],
             "converged": self.converged,
             "reason": self.reason,
             "newton_iterations": self.newton_iterations,
@@ -120,41 +127,187 @@ class Solution:
         return out
 
 
+def _reject(applies_to, **options):
+    """ValueError naming the first of `options` that was given (not None): it applies to
+    `applies_to` only."""
+    given = [name for name, value in options.items() if value is not None]
+    if given:
+        raise ValueError(f"{given[0]} applies to {applies_to} only")
+
+
 def _krylov(linear_solver, petsc_options, nu, max_linear_its):
     """The Krylov solver of the run, None for MUMPS (exact Newton only)."""
     if linear_solver == "gmres":
         return Krylov(petsc_options, DEFAULT_NU if nu is None else nu,
                       DEFAULT_MAX_LINEAR_ITS if max_linear_its is None else max_linear_its)
-    given = [k for k, v in (("petsc_options", petsc_options), ("nu", nu),
-                            ("max_linear_its", max_linear_its)) if v is not None]
-    if given:
-        raise ValueError(f"{given[0]} applies to linear_solver 'gmres' only")
+    _reject("linear_solver 'gmres'", petsc_options=petsc_options, nu=nu,
+            max_linear_its=max_linear_its)
     return None
 
 
+def _stopping(newton, tol, gamma_lin, gamma_alg):
+    """(tol, γ_lin, γ_alg) of the variant: tol for exact and inexact, the γ's for adaptive
+    (DESIGN §8); the others are None and must not be given."""
+    if newton != "adaptive":
+        _reject("newton 'adaptive'", gamma_lin=gamma_lin, gamma_alg=gamma_alg)
+        tol = DEFAULT_TOL if tol is None else tol
+        if not (np.isfinite(tol) and tol > 0):
+            raise ValueError(f"tol must be a positive finite number, got {tol}")
+        return tol, None, None
+    _reject("newton 'exact' and 'inexact' (adaptive stops by gamma_lin)", tol=tol)
+    gammas = [DEFAULT_GAMMA if g is None else g for g in (gamma_lin, gamma_alg)]
+    for name, g in zip(("gamma_lin", "gamma_alg"), gammas):
+        check_gamma(name, g)
+    return (None, *gammas)
+
+
+def multilevel_flux_class():
+    """membranes.algebraic_flux.MultilevelFlux (DESIGN §6), imported when asked for."""
+    try:
+        from .algebraic_flux import MultilevelFlux
+    except ModuleNotFoundError as e:
+        if e.name != f"{__package__}.algebraic_flux":
+            raise
+        raise ValueError("multilevel algebraic flux needs membranes.algebraic_flux, which is "
+                         "not available; use alg_flux 'nu'") from None
+    return MultilevelFlux
+
+
+def _algebraic_flux(problem, alg_flux, estimators, newton):
+    """The run's algebraic flux (DESIGN §6): the one asked for, else 'multilevel' where the
+    problem has a hierarchy (levels ≥ 1), else 'nu'; None without estimators."""
+    if not estimators:
+        if newton == "adaptive":
+            raise ValueError("the adaptive Newton variant needs the estimators")
+        _reject("runs with estimators", alg_flux=alg_flux)
+        return None
+    if alg_flux is None:
+        alg_flux = "multilevel" if problem.levels >= 1 else "nu"
+    check_choice("algebraic flux", alg_flux, ALG_FLUXES)
+    if alg_flux == "multilevel":
+        if problem.levels < 1:
+            raise ValueError("multilevel algebraic flux needs a mesh hierarchy: levels >= 1 "
+                             "(--levels J)")
+        multilevel_flux_class()     # a missing module fails now, before any computation
+    return alg_flux
+
+
+class IterateEstimates:
+    """The estimators (DESIGN §7) at the recorded iterates of a run, with its algebraic flux
+    σ_alg (DESIGN §6): the `estimate` callback of semismooth Newton (membranes.newton).
+
+    Every recorded iterate is some X^{k,i}, the i-th Krylov iterate of the linear solve of
+    Newton step k, whose initial guess X^{k,0} is the Newton iterate X^{k-1} (X^0 included).
+
+    * 'multilevel': σ_alg = MultilevelFlux.sigma(R), ∇·σ_alg = r_h exactly, no remainder:
+      every iterate is estimated when it is recorded.
+    * 'nu': an iterate whose algebraic residual is at round-off needs no flux (Estimators:
+      σ_alg = 0 and the Poincaré remainder) and is estimated when recorded. Any other X^{k,i}
+      waits for the next iterate of the same solve, X^{k,i+ν} (or the solve's last iterate,
+      fewer steps on), then gets σ_alg = σ_disc(X^{k,i+ν}) - σ_disc(X^{k,i}) and its remainder
+      (Estimators.nu_flux). A Newton iterate X^{k-1} = X^{k,0} is thus paired with the first
+      iterate of step k. Two kinds of iterates are followed by none: the last one of a run
+      (`finish` estimates it without flux: η is missing unless its residual is at round-off),
+      and in adaptive runs X^{k,i+ν} once X^{k,i} is accepted (not estimated at all: the
+      method does not use it).
+
+    An adaptive step's Newton record is the accepted Krylov iterate again (`same_as`): it
+    takes that record's values. Records get the COLUMNS of the estimators and `bound`
+    (RECORD_KEYS), None where not estimated.
+    """
+
+    def __init__(self, disc, rows, alg_flux):
+        t = time.perf_counter()
+        self.rows = rows
+        self.est = Estimators(disc)
+        self.multilevel = multilevel_flux_class()(disc, disc.problem.hierarchy) \
+            if alg_flux == "multilevel" else None
+        self.setup_time = time.perf_counter() - t
+        self.time = 0.0
+        self.pending = None        # ('nu') (record, X, R) waiting for its later iterate
+        self.latest_eta_K = None   # η_K of the iterate estimated last
+        self.eta_K = None          # η_K of the Newton iterate (or X^0) estimated last
+
+    def __call__(self, rec, X, R, same_as=None):
+        t = time.perf_counter()
+        if same_as is not None:
+            # the accepted iterate is the one estimated last (its estimate met the criterion);
+            # the later iterate of its solve (pending, 'nu') will have no successor
+            rec.update({k: same_as[k] for k in RECORD_KEYS})
+            if self.pending is not None:
+                self.pending[0].update(dict.fromkeys(RECORD_KEYS))
+            self.eta_K, self.pending, ready = self.latest_eta_K, None, []
+        else:
+            if R is None:   # X^0 comes from no linear solve: its linear rows are out of balance
+                R = np.concatenate([self.rows.F - self.rows.E @ X, np.zeros(self.rows.n)])
+            ready = [] if self.pending is None else [self._estimate(*self.pending, (X, R))]
+            self.pending = None
+            if self.multilevel is not None or self._alg(rec, R) <= ALG_ROUNDOFF:
+                ready.append(self._estimate(rec, X, R))
+            else:
+                self.pending = (rec, X, R)
+        self.time += time.perf_counter() - t
+        return ready
+
+    def finish(self):
+        """Estimate the iterate still waiting for a later one: none will come."""
+        t = time.perf_counter()
+        if self.pending is not None:
+            self._estimate(*self.pending)
+            self.pending = None
+        self.time += time.perf_counter() - t
+
+    def _alg(self, rec, R):
+        """‖R‖/‖B‖ (‖R‖/‖(F, 0)‖ for X^0)."""
+        alg = rec["alg_residual"]
+        return float(np.linalg.norm(R)) / self.rows.norm_F if alg is None else alg
+
+    def _estimate(self, rec, X, R, later=None):
+        """Fill in rec's estimates at X; `later` = (X', R') the next iterate for 'nu'."""
+        alg = self._alg(rec, R)
+        if self.multilevel is not None:
+            values = self.est.evaluate(X, R, alg, sigma_alg=self.multilevel.sigma(R))
+        elif later is not None:
+            sigma_alg, eta_rem = self.est.nu_flux(X, R, *later)
+            values = self.est.evaluate(X, R, alg, sigma_alg=sigma_alg, eta_rem=eta_rem)
+        else:
+            values = self.est.evaluate(X, R, alg)
+        rec.update({k: values[k] for k in RECORD_KEYS})
+        self.latest_eta_K = values["eta_K"]
+        if rec["kind"] != "krylov":
+            self.eta_K = values["eta_K"]
+        return rec, X, R
+
+
 def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmres",
-          petsc_options=None, nu=None, max_linear_its=None, tol=DEFAULT_TOL, max_newton=100,
-          estimators=True, progress=False):
+          petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
+          estimators=True, progress=False, gamma_lin=None, gamma_alg=None, alg_flux=None):
     """Solve the discrete contact problem of `problem` by semismooth Newton (DESIGN §3, §8).
 
-    newton: 'exact' (linear residual ≤ 2e-12) or 'inexact' (≤ the previous nonlinear residual,
-    DESIGN §8); cfun: 'min' or 'fb'; system: 'full' (3N) or 'eliminated' (2N);
+    newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
+    or 'adaptive' (Algorithm 1 of DESIGN §8: GMRES stops at η_alg ≤ γ_alg max(η_disc, η_lin),
+    Newton at η_lin ≤ γ_lin η_disc; γ = `gamma_lin`, `gamma_alg`, 0.3 by default; estimators
+    evaluated every ν Krylov steps; see membranes.newton for the accepted iterate);
+    cfun: 'min' or 'fb'; system: 'full' (3N) or 'eliminated' (2N);
     linear_solver: 'gmres' (PETSc KSP, GMRES + ILU(0) unless `petsc_options`, a dict such as
     {"pc_type": "jacobi"}, say otherwise; every ν = `nu` (10) Krylov steps the iterate is
     recorded; at most `max_linear_its` (10000) iterations per step) or 'direct' (MUMPS, exact
-    only); tol: stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol; estimators: evaluate the a posteriori
-    estimators of DESIGN §7 at every recorded iterate (history columns eta, eta_disc, …; set
-    up once per mesh); progress: True for one stderr line per Newton step, or a callable taking
-    the line.
+    only); tol: exact and inexact stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol (1e-10); estimators: evaluate
+    the a posteriori estimators of DESIGN §7 at every recorded iterate (history columns eta,
+    eta_disc, …; set up once per mesh; adaptive needs them); alg_flux: the algebraic flux of
+    DESIGN §6 for iterates whose residual is not at round-off, 'multilevel' (default where the
+    problem has levels ≥ 1) or 'nu' (ν extra iterations, default otherwise; see
+    IterateEstimates); progress: True for one stderr line per Newton step, or a callable
+    taking the line.
     """
     cfunctions.get(cfun)
     check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
-    if not (np.isfinite(tol) and tol > 0):
-        raise ValueError(f"tol must be a positive finite number, got {tol}")
     if int(max_newton) < 1:
         raise ValueError(f"max_newton must be at least 1, got {max_newton}")
     krylov = _krylov(linear_solver, petsc_options, nu, max_linear_its)
     check_method(system, newton, krylov)
+    tol, gamma_lin, gamma_alg = _stopping(newton, tol, gamma_lin, gamma_alg)
+    alg_flux = _algebraic_flux(problem, alg_flux, estimators, newton)
     say = progress if callable(progress) else \
         (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
 
@@ -163,28 +316,13 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     rows = linear_rows(disc)
     setup_time = time.perf_counter() - t0
     error = EnergyError(disc) if problem.exact is not None else None
-    t = time.perf_counter()
-    est = Estimators(disc) if estimators else None
-    est_times = [time.perf_counter() - t if estimators else None, 0.0 if estimators else None]
-    local = {}
-
-    def estimate(rec, X, R):
-        t = time.perf_counter()
-        alg = rec["alg_residual"]
-        if R is None:   # X^0 comes from no linear solve: its linear rows are out of balance
-            R = np.concatenate([rows.F - rows.E @ X, np.zeros(disc.n)])
-            alg = float(np.linalg.norm(R)) / rows.norm_F
-        values = est.evaluate(X, R, alg_residual=alg)
-        rec.update({k: values[k] for k in ESTIMATOR_COLUMNS}, bound=values["bound"])
-        if rec["kind"] != "krylov":
-            local["eta_K"] = values["eta_K"]
-        est_times[1] += time.perf_counter() - t
+    est = IterateEstimates(disc, rows, alg_flux) if alg_flux is not None else None
+    if newton == "adaptive":
+        setup_time += est.setup_time          # the adaptive method uses the estimators
 
     def monitor(rec, X, R):
         rec["wall_time_s"] += setup_time
         rec["energy_error"] = error(X) if error is not None else None
-        if est is not None:
-            estimate(rec, X, R)
         if say is not None and rec["kind"] != "krylov":
             line = (f"newton {rec['newton_it']:3d}  residual {rec['residual']:.3e}  "
                     f"linear its {rec['linear_it']:5d}  total {rec['cumulative_linear_its']:6d}  "
@@ -196,15 +334,21 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
             say(line)
 
     result = semismooth_newton(rows, problem.g, cfun=cfun, system=system, variant=newton,
-                               krylov=krylov, tol=tol, max_it=int(max_newton), monitor=monitor)
+                               krylov=krylov, tol=tol, max_it=int(max_newton),
+                               monitor=monitor, estimate=est, gamma_lin=gamma_lin,
+                               gamma_alg=gamma_alg)
+    if est is not None:
+        est.finish()
     sol = Solution(problem, disc, result.X, result.converged, result.reason,
                    result.newton_iterations, result.linear_iterations,
                    result.history[-1]["wall_time_s"], result.history,
                    {"newton": newton, "cfun": cfun, "system": system,
                     "linear_solver": linear_solver,
                     "petsc_options": {} if krylov is None else krylov.options,
-                    "nu": None if krylov is None else krylov.nu},
-                   functions=disc.functions(result.X), eta_K=local.get("eta_K"),
-                   estimator_times=tuple(est_times))
+                    "nu": None if krylov is None else krylov.nu,
+                    "gamma_lin": gamma_lin, "gamma_alg": gamma_alg, "alg_flux": alg_flux},
+                   functions=disc.functions(result.X),
+                   eta_K=None if est is None else est.eta_K,
+                   estimator_times=(None, None) if est is None else (est.setup_time, est.time))
     sol.energy_error = sol.final_record["energy_error"]
     return sol

@@ -130,14 +130,16 @@ class Estimators:
 
     def remainder(self, R, lam_shift=None):
         """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_α = r_αh (DESIGN §4), or with
-        lam_shift = λ' - λ (nodal): ρ_α = r_αh ∓ (λ'_h - λ_h) (+ for α = 1). It bounds the part
-        of the residual that the flux leaves out of balance, by Poincaré–Friedrichs."""
+        lam_shift = λ' - λ (nodal): ρ_α = r_αh ∓ (λ'_h - λ_h) (- for α = 1: the flux
+        σ_disc(X') balances Π_P1 f_1 + λ'_h - r'_1h = Π_P1 f_1 + λ_h - (r'_1h - (λ'_h - λ_h))).
+        It bounds the part of the residual that the flux leaves out of balance, by
+        Poincaré–Friedrichs."""
         n = self.disc.n
         total = 0.0
         for alpha, Ra in enumerate((R[:n], R[n:2 * n])):
             rho = (self.flux.lift @ Ra).reshape(-1, 3)
             if lam_shift is not None:
-                rho = rho + (1.0 if alpha == 0 else -1.0) * lam_shift[self.geo.cells]
+                rho = rho - (1.0 if alpha == 0 else -1.0) * lam_shift[self.geo.cells]
             total += self._p1_dg_norms(rho) ** 2 / self.mu[alpha]
         return float(self.cpf * np.sqrt(total))
 

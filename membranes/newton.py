@@ -1,30 +1,53 @@
-"""Semismooth Newton for the discrete contact problem, exact and inexact (DESIGN §3, §8).
+"""Semismooth Newton for the discrete contact problem: exact, inexact and adaptive inexact
+(DESIGN §3, §8).
 
     k = 0, X^0 = (g, 0, 0)
     repeat: linearise the C-function at X^{k-1}, solve A^{k-1} X^k = B^{k-1}
             (from X^{k,0} = X^{k-1} when the solver is iterative)
-    until ‖R_lin(X^k)‖ / ‖(F, 0)‖ ≤ tol  (1e-10 by default, DESIGN §8)
+    until the variant's stopping test holds at X^k
 
 The step is solved on the full 3N system or on the eliminated 2N system (newton_system), by
 MUMPS (`krylov=None`) or by a Krylov solver (`krylov.Krylov`). Variants (DESIGN §8):
 
 * exact: the linear residual ‖R_alg‖/‖B‖ ≤ EXACT_LINEAR_TOL = 2e-12 at every step (or tol/50
   when the Newton tolerance is tighter than 1e-10: the ratio of DESIGN §8, so that the linear
-  solves stay below what Newton asks for), tested after every Krylov iteration;
+  solves stay below what Newton asks for), tested after every Krylov iteration; Newton stops
+  at ‖R_lin(X^k)‖/‖(F, 0)‖ ≤ tol (1e-10 by default);
 * inexact: ‖R_alg‖/‖B‖ ≤ ‖R_lin(X^{k-1})‖/‖(F, 0)‖, tested every ν Krylov iterations (the
-  initial guess X^{k-1} meets it already: see `krylov`).
+  initial guess X^{k-1} meets it already: see `krylov`); Newton stops as for exact;
+* adaptive (DESIGN §8, Algorithm 1; Krylov only, needs `estimate`): every ν Krylov steps
+  (i = ν, 2ν, ...: the schedule, recorded in the history) the iterate X^{k,i} goes to the
+  estimators; GMRES stops as soon as an iterate X^{k,i} of the step (i ≥ 1) has
+  η_alg ≤ γ_alg max(η_disc, η_lin) (`linear_criterion`), and that iterate is X^k. An estimate
+  may become available only later (the ν-extra-iterations flux of X^{k,i} needs X^{k,i+ν},
+  DESIGN §6): then GMRES has run to i + ν, those iterations count, and X^k is still X^{k,i},
+  the iterate the criterion was verified on (with a guaranteed bound of its own). GMRES also
+  stops where the exact variant would (‖R_alg‖/‖B‖ ≤ 2e-12): nothing is left to gain, and the
+  iterate needs no algebraic flux. Newton stops at the first X^k (k ≥ 1) with
+  η_lin ≤ γ_lin η_disc (`newton_criterion`); `converged` means that this criterion was met.
 
 Non-convergence is reported, never hidden: the result carries `converged = False` and a
-reason, e.g. when the Krylov solver stops before its tolerance.
+reason, when max_it Newton steps do not meet the stopping test or when a Krylov solve stops
+(at max_linear_its) before its own test or criterion.
 
 History: one record per Newton iterate (X^0 included, kind "initial"/"newton") and per ν-th
 Krylov iterate inside a step (kind "krylov"), with `linear_it` the Krylov iterations done so
-far in the step (the step's total for a Newton iterate, 1 for a direct solve). A
-`monitor(record, X, R)` callback sees each recorded iterate X (3N) with the algebraic residual
-R = B - A X (3N; R3 = 0 on the eliminated system) of the linear system that produced it, None
-for X^0. Wall times count the method's own work: assembly, linear solves, the nonlinear
-residual of the Newton iterates (the stopping test). Recording a Krylov iterate (building it,
-its residuals) and the monitor are excluded.
+far in the step (the step's total for a Newton iterate, 1 for a direct solve). An adaptive
+step's Newton record repeats the accepted Krylov iterate (its X, residuals and estimates) with
+the step's total. Callbacks, in this order, for each recorded iterate X (3N) with the
+algebraic residual R = B - A X (3N; R3 = 0 on the eliminated system) of the linear system
+that produced it (None for X^0):
+
+* `estimate(record, X, R, same_as)` fills in the estimators (DESIGN §7) of this or of earlier
+  iterates and returns those it completed now, as (record, X, R) triples; same_as is the
+  accepted Krylov record when `record` is an adaptive step's Newton record (the same iterate);
+* `monitor(record, X, R)` sees the record (diagnostics: energy error, progress).
+
+Wall times count the method's own work: assembly, linear solves, and what the variant's tests
+use: the nonlinear residual of the Newton iterates (exact, inexact), or the Krylov iterates
+handed out and their estimates (adaptive; with each record's nonlinear residual, one sparse
+product). Everything else — recording Krylov iterates for exact and inexact, their
+estimates, the monitor — is excluded.
 """
 
 import time
@@ -37,9 +60,10 @@ from . import newton_system as ns
 from .linear_solve import LinearSolveError, solve_direct
 
 SYSTEMS = ("full", "eliminated")
-VARIANTS = ("exact", "inexact")
+VARIANTS = ("exact", "inexact", "adaptive")
 DEFAULT_TOL = 1e-10            # DESIGN §8: Newton stops at ‖R_lin‖/‖(F, 0)‖ ≤ 1e-10 ...
 EXACT_LINEAR_TOL = 2e-12       # ... and exact solves reach ‖R_alg‖/‖B‖ ≤ 2e-12
+DEFAULT_GAMMA = 0.3            # γ_lin = γ_alg = 0.3 in the seed (DESIGN §8)
 
 
 @dataclass
@@ -96,10 +120,23 @@ def linear_step(rows, cfun, system, X):
 
 
 def linear_tolerance(variant, tol, residual):
-    """‖R_alg‖/‖B‖ the step must reach; `residual` = ‖R_lin(X^{k-1})‖/‖(F, 0)‖."""
-    if variant == "exact":
-        return EXACT_LINEAR_TOL * min(1.0, tol / DEFAULT_TOL)
-    return residual
+    """‖R_alg‖/‖B‖ at which the step's solve stops; `residual` = ‖R_lin(X^{k-1})‖/‖(F, 0)‖.
+    For adaptive this is the floor of the module notes (its criterion usually stops first)."""
+    if variant == "inexact":
+        return residual
+    if variant == "adaptive":
+        return EXACT_LINEAR_TOL
+    return EXACT_LINEAR_TOL * min(1.0, tol / DEFAULT_TOL)
+
+
+def linear_criterion(record, gamma_alg):
+    """η_alg ≤ γ_alg max(η_disc, η_lin) at a recorded iterate (DESIGN §8)."""
+    return record["eta_alg"] <= gamma_alg * max(record["eta_disc"], record["eta_lin"])
+
+
+def newton_criterion(record, gamma_lin):
+    """η_lin ≤ γ_lin η_disc at a recorded iterate (DESIGN §8)."""
+    return record["eta_lin"] <= gamma_lin * record["eta_disc"]
 
 
 def solve_step(step, krylov, tol, test_every, on_iterate):
@@ -122,60 +159,111 @@ def check_method(system, variant, krylov):
     """ValueError unless the system and variant exist and the variant can use the solver."""
     check_choice("Newton system", system, SYSTEMS)
     check_choice("Newton variant", variant, VARIANTS)
-    if variant == "inexact" and krylov is None:
-        raise ValueError("the inexact Newton variant needs linear_solver 'gmres' (a direct "
+    if variant != "exact" and krylov is None:
+        raise ValueError(f"the {variant} Newton variant needs linear_solver 'gmres' (a direct "
                          "solve is exact)")
 
 
+def check_gamma(name, value):
+    """γ_lin, γ_alg: positive finite numbers (DESIGN §8)."""
+    try:
+        ok = np.isfinite(value) and value > 0 and not isinstance(value, bool)
+    except TypeError:
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+
+
 def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylov=None,
-                      tol=DEFAULT_TOL, max_it=100, X0=None, monitor=None):
-    """Semismooth Newton from X0 (default (g, 0, 0)); krylov=None: MUMPS (exact only)."""
+                      tol=DEFAULT_TOL, max_it=100, X0=None, monitor=None, estimate=None,
+                      gamma_lin=DEFAULT_GAMMA, gamma_alg=DEFAULT_GAMMA):
+    """Semismooth Newton from X0 (default (g, 0, 0)); krylov=None: MUMPS (exact only).
+    tol: the Newton tolerance of exact and inexact; gamma_lin, gamma_alg: the adaptive
+    criteria's; `estimate` and `monitor`: see the module notes (adaptive needs `estimate`)."""
     check_method(system, variant, krylov)
+    adaptive = variant == "adaptive"
+    if adaptive:
+        if estimate is None:
+            raise ValueError("the adaptive Newton variant needs the estimators")
+        check_gamma("gamma_lin", gamma_lin)
+        check_gamma("gamma_alg", gamma_alg)
     clock = Stopwatch()
     X = ns.initial_guess(rows, g) if X0 is None else np.array(X0, dtype=float)
     scale = rows.norm_F
     history = []
 
-    def record(kind, k, its, cumulative, X, R, norm_B):
-        residual = float(np.linalg.norm(ns.nonlinear_residual(rows, cfun, X))) / scale
+    def record(kind, k, its, cumulative, X, R, norm_B, same_as=None):
+        """Record X; returns its record and the iterates whose estimates are complete now."""
         rec = {"newton_it": k, "linear_it": its, "cumulative_linear_its": cumulative,
-               "wall_time_s": clock.pause(), "residual": residual,
+               "residual": float(np.linalg.norm(ns.nonlinear_residual(rows, cfun, X))) / scale,
                "alg_residual": None if R is None else float(np.linalg.norm(R)) / norm_B,
                "kind": kind}
+        if not adaptive:
+            clock.pause()
+        ready = [] if estimate is None else estimate(rec, X, R, same_as)
+        rec["wall_time_s"] = clock.pause()
         if monitor is not None:
             monitor(rec, X, R)
         history.append(rec)
         clock.resume()
-        return residual
+        return rec, ready
 
-    def krylov_recorder(k, step, done):
+    def hand_out(k, step, done, accepted):
+        """The Krylov callback of step k: record X^{k,i}; for adaptive, keep in `accepted` the
+        first iterate of this step that meets the linear criterion, and stop GMRES then."""
         def on_iterate(its, current):
-            clock.pause()
+            if not adaptive:
+                clock.pause()
             y, r = current()
-            record("krylov", k, its, done + its, step.expand(y), step.pad(r), step.norm_B)
+            _, ready = record("krylov", k, its, done + its, step.expand(y), step.pad(r),
+                              step.norm_B)
+            if adaptive:
+                accepted.extend(it for it in ready if it[0]["kind"] == "krylov"
+                                and it[0]["newton_it"] == k
+                                and linear_criterion(it[0], gamma_alg))
+            return bool(accepted)
         return on_iterate
 
-    residual, done = record("initial", 0, 0, 0, X, None, None), 0
+    def stopping(rec):
+        """The variant's Newton stopping test at rec: (met, description)."""
+        if adaptive:
+            if rec["kind"] == "initial":      # Algorithm 1 makes at least one step
+                return False, "no Newton step made"
+            met = newton_criterion(rec, gamma_lin)
+            return met, (f"adaptive criterion eta_lin {rec['eta_lin']:.2e} "
+                         f"{'<=' if met else '>'} gamma_lin eta_disc = "
+                         f"{gamma_lin * rec['eta_disc']:.2e} (relative residual "
+                         f"{rec['residual']:.2e})")
+        met = rec["residual"] <= tol
+        return met, f"relative residual {rec['residual']:.2e} {'<=' if met else '>'} {tol:.0e}"
+
+    rec, done = record("initial", 0, 0, 0, X, None, None)[0], 0
     for k in range(1, max_it + 1):
-        if residual <= tol:
+        if stopping(rec)[0]:
             break
         step = linear_step(rows, cfun, system, X)
+        accepted = []
         try:
-            X_new, R, its = solve_step(step, krylov, linear_tolerance(variant, tol, residual),
-                                       1 if variant == "exact" else krylov.nu,
-                                       krylov_recorder(k, step, done))
+            X_new, R, its = solve_step(step, krylov, linear_tolerance(variant, tol,
+                                                                      rec["residual"]),
+                                       1 if variant != "inexact" else krylov.nu,
+                                       hand_out(k, step, done, accepted))
         except LinearSolveError as e:
-            return NewtonResult(X, False, f"linear solver failed at Newton step {k}: {e}",
-                                k - 1, done + e.its, history)
+            unmet = " before the adaptive criterion was met" if adaptive else ""
+            return NewtonResult(X, False, f"linear solver failed at Newton step {k}{unmet}: "
+                                f"{e}", k - 1, done + e.its, history)
         done += its
+        same_as = None
+        if accepted:
+            same_as, X_new, R = accepted[0]
         if not np.all(np.isfinite(X_new)):
             return NewtonResult(X, False, f"non-finite iterate at Newton step {k}",
                                 k - 1, done, history)
         X = X_new
-        residual = record("newton", k, its, done, X, R, step.norm_B)
-    k = history[-1]["newton_it"]
-    if residual <= tol:
-        return NewtonResult(X, True, f"relative residual {residual:.2e} <= {tol:.0e}",
-                            k, done, history)
-    return NewtonResult(X, False, f"no convergence in {max_it} Newton steps "
-                        f"(relative residual {residual:.2e} > {tol:.0e})", k, done, history)
+        rec = record("newton", k, its, done, X, R, step.norm_B, same_as)[0]
+    met, description = stopping(rec)
+    k = rec["newton_it"]
+    if met:
+        return NewtonResult(X, True, description, k, done, history)
+    return NewtonResult(X, False, f"no convergence in {max_it} Newton steps ({description})",
+                        k, done, history)

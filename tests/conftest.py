@@ -51,3 +51,21 @@ def write_msh(path, kind):
     finally:
         gmsh.finalize()
     return path
+
+
+@functools.lru_cache(maxsize=None)
+def solved_on(name, h, levels, **options):
+    """A cached solve on a scene with a mesh hierarchy of `levels` uniform refinements."""
+    return solve(scene(name, h, levels=levels), **options)
+
+
+def cli_bad_input(args, out, capsys):
+    """`membranes solve --quiet --h 0.3 --out OUT ARGS` must reject its input: exit code 2, one
+    stderr line 'membranes: error: …', nothing written to OUT. Returns the line."""
+    from membranes.cli import main
+    code = main(["solve", "--quiet", "--h", "0.3", "--out", str(out)] + args)
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert err.startswith("membranes: error: ") and "\n" not in err
+    assert not out.exists()
+    return err
