@@ -26,7 +26,13 @@ def contact_weight(v, dx=ufl.dx):
     return v * dx
 
 
-def energy_norm_squared(mu1, mu2, e1, e2, dx=ufl.dx):
-    """|||(e1, e2)|||² = μ1 ‖∇e1‖² + μ2 ‖∇e2‖² (DESIGN §1)."""
+def energy_density(mu1, mu2, e1, e2):
+    """μ1 |∇e1|² + μ2 |∇e2|²: the integrand of the energy norm (DESIGN §1)."""
     return (mu1 * ufl.inner(ufl.grad(e1), ufl.grad(e1))
-            + mu2 * ufl.inner(ufl.grad(e2), ufl.grad(e2))) * dx
+            + mu2 * ufl.inner(ufl.grad(e2), ufl.grad(e2)))
+
+
+def energy_norm_squared(mu1, mu2, e1, e2, dx=ufl.dx, w=1.0):
+    """|||(e1, e2)|||² = μ1 ‖∇e1‖² + μ2 ‖∇e2‖² (DESIGN §1); with w a DG0 test function, the
+    squared energy norm on every cell."""
+    return w * energy_density(mu1, mu2, e1, e2) * dx

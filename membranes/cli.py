@@ -80,6 +80,8 @@ def _parser():
                    help="skip the a posteriori estimators (DESIGN §7) and their set-up")
     s.add_argument("--quiet", action="store_true", help="no progress lines")
     sub.add_parser("scenes", help="list the scenes")
+    from .report import add_parser as add_report_parser
+    add_report_parser(sub)
     return p
 
 
@@ -170,6 +172,10 @@ def main(argv=None):
     try:
         argv = sys.argv[1:] if argv is None else list(argv)
         args = _parser().parse_args(_glue_values(argv))
+        if args.command == "report":
+            from .report import main as report_main
+            quiet_jit_logging()
+            return report_main(args)
         if args.command == "scenes":
             return _scenes()
         return _solve(args)
