@@ -161,18 +161,6 @@ def _stopping(newton, tol, gamma_lin, gamma_alg):
     return (None, *gammas)
 
 
-def multilevel_flux_class():
-    """membranes.algebraic_flux.MultilevelFlux (DESIGN §6), imported when asked for."""
-    try:
-        from .algebraic_flux import MultilevelFlux
-    except ModuleNotFoundError as e:
-        if e.name != f"{__package__}.algebraic_flux":
-            raise
-        raise ValueError("multilevel algebraic flux needs membranes.algebraic_flux, which is "
-                         "not available; use alg_flux 'nu'") from None
-    return MultilevelFlux
-
-
 def _algebraic_flux(problem, alg_flux, estimators, newton):
     """The run's algebraic flux (DESIGN §6): the one asked for, else 'multilevel' where the
     problem has a hierarchy (levels ≥ 1), else 'nu'; None without estimators."""
@@ -188,7 +176,6 @@ def _algebraic_flux(problem, alg_flux, estimators, newton):
         if problem.levels < 1:
             raise ValueError("multilevel algebraic flux needs a mesh hierarchy: levels >= 1 "
                              "(--levels J)")
-        multilevel_flux_class()     # a missing module fails now, before any computation
     return alg_flux
 
 
@@ -220,8 +207,11 @@ class IterateEstimates:
         t = time.perf_counter()
         self.rows = rows
         self.est = Estimators(disc)
-        self.multilevel = multilevel_flux_class()(disc, disc.problem.hierarchy) \
-            if alg_flux == "multilevel" else None
+        if alg_flux == "multilevel":
+            from .algebraic_flux import MultilevelFlux   # only a run that uses it pays for it
+            self.multilevel = MultilevelFlux(disc, disc.problem.hierarchy)
+        else:
+            self.multilevel = None
         self.setup_time = time.perf_counter() - t
         self.time = 0.0
         self.pending = None        # ('nu') (record, X, R) waiting for its later iterate
