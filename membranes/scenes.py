@@ -136,6 +136,64 @@ def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
                    domain="square")
 
 
+# ## The radial family (stiff and extreme cases, DESIGN §11)
+#
+# On the unit disk, for any μ1, μ2 > 0, g > 0: membrane 2 is u2 = (g/2)(r² - 1); the gap
+# w = u1 - u2 vanishes on the contact disk r ≤ ρ and is g ((r² - ρ²)/(1 - ρ²))² outside (C¹,
+# = g on ∂Ω); λ = 4g on r < ρ, 0 outside. ρ = 0: w and λ vanish together at the origin only
+# (grazing contact, Fischer–Burmeister's kink); ρ close to 1: near-total contact;
+# contact=False: w = g (1 + r²)/2 > 0 and λ = 0 (no contact). The loads follow from the
+# equations (UFL differentiates), so every choice has its exact solution.
+
+
+def radial(h=DEFAULT_H, levels=0, rho=0.5, mu1=1.0, mu2=1.0, g=0.05, contact=True,
+           comm=MPI.COMM_WORLD):
+    """Unit disk, exact radial solution with contact disk r <= rho (any mu1, mu2, g)."""
+    levels = _check_levels(levels)
+    mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
+    rho = float(rho)
+    if not (0.0 <= rho < 1.0):
+        raise ValueError(f"rho must lie in [0, 1), got {rho}")
+
+    def r2(x):
+        return x[0] ** 2 + x[1] ** 2
+
+    def u2(x):
+        return 0.5 * g * (r2(x) - 1)
+
+    def gap(x):
+        if not contact:
+            return 0.5 * g * (1 + r2(x))
+        t = (r2(x) - rho ** 2) / (1 - rho ** 2)
+        return ufl.conditional(ufl.gt(r2(x), rho ** 2), g * t ** 2, 0.0)
+
+    def u1(x):
+        return u2(x) + gap(x)
+
+    def lam(x):
+        if not contact or rho == 0.0:
+            return 0.0 * r2(x)
+        return ufl.conditional(ufl.lt(r2(x), rho ** 2), 4 * g, 0.0)
+
+    def f1(x):
+        return -mu1 * ufl.div(ufl.grad(u1(x))) - lam(x)
+
+    def f2(x):
+        return -mu2 * ufl.div(ufl.grad(u2(x))) + lam(x)
+
+    jump = contact and rho > 0.0
+    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels)
+    kind = "no contact" if not contact else ("grazing contact at the origin" if rho == 0.0
+                                             else f"contact disk r <= {rho}")
+    return Problem("radial", hierarchy, mu1, mu2, g, f1, f2,
+                   exact=ExactSolution(u1, u2, lam),
+                   interface=(lambda p: p[0] ** 2 + p[1] ** 2 - rho ** 2) if jump else None,
+                   poincare=1.0 / J01,
+                   description=f"unit disk, mu1 = {mu1}, mu2 = {mu2}, g = {g}, exact radial "
+                               f"solution, {kind}",
+                   domain="disk")
+
+
 # ## User data
 
 USER_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "g": 0.05, "f1": "0", "f2": "0"}
@@ -155,10 +213,12 @@ def user(mu1=1.0, mu2=1.0, g=0.05, f1="0", f2="0", mesh=None, domain="disk", h=D
                    domain=str(mesh) if mesh is not None else domain)
 
 
-SCENES = {"disk": disk, "square": square, "user": user}
+SCENES = {"disk": disk, "square": square, "radial": radial, "user": user}
 
 NEEDS = {"disk": "exact solution -> energy error; data jump across r = 1/sqrt(2)",
          "square": "exact solution -> energy error; data jump across s = 1/2",
+         "radial": "exact solution -> energy error; parameters rho, mu1, mu2, g, contact "
+                   "(API only)",
          "user": "data only (no exact solution, no energy error)"}
 
 
