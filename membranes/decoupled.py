@@ -9,16 +9,17 @@ With z = μ1 u1 + μ2 u2 and w = u1 - u2 the discrete system of DESIGN §2 split
 S the unit stiffness matrix. The second line is the nonlinear complementarity problem
 Φ(w) = κ S w - G ⊥ w ≥ 0 (λ = D^{-1} Φ(w) at interior vertices), which PETSc's
 `vinewtonrsls` solves with bounds w ≥ 0. This is a second solver of the same discrete problem,
-independent of our Newton: used by the tests, and as the peer in benchmarks.
+independent of our Newton: used by the tests, and as the peer in benchmarks and in the report
+(which follows its iterates through `monitor`).
 """
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
 from petsc4py import PETSc
 
 from .linear_solve import petsc_matrix, solve_direct
+from .newton import Stopwatch
 
 DIRECT = {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}
 AMG = {"ksp_type": "cg", "pc_type": "hypre", "pc_hypre_type": "boomeramg", "ksp_rtol": 1e-12}
@@ -45,14 +46,16 @@ def _dirichlet_rows(S, boundary):
     return (sp.diags(1.0 - bmask) @ S + sp.diags(bmask)).tocsr()
 
 
-def solve_decoupled(disc, ksp_options=None, rtol=1e-14, atol=None, max_it=500):
+def solve_decoupled(disc, ksp_options=None, rtol=1e-14, atol=None, max_it=500, monitor=None):
     """Solve the decoupled problem of `disc` with SNES vinewtonrsls; returns u1, u2, λ nodal.
 
     ksp_options: PETSc options of the inner linear solves (default: MUMPS LU); AMG gives
     CG with hypre BoomerAMG. Convergence: ‖Φ‖ ≤ max(atol, rtol ‖Φ(w⁰)‖) on the VI-reduced
-    residual, atol defaulting to 1e-13 ‖G‖.
+    residual, atol defaulting to 1e-13 ‖G‖. monitor(its, seconds, u1, u2, λ), if given, sees
+    every SNES iterate (its = 0: the initial guess) with the wall time so far; building the
+    iterate's u1, u2, λ and the monitor itself are not counted, there nor in `wall_time_s`.
     """
-    t0 = time.perf_counter()
+    clock = Stopwatch()
     p = disc.problem
     mu1, mu2, g = p.mu1, p.mu2, p.g
     kappa = mu1 * mu2 / (mu1 + mu2)
@@ -98,6 +101,20 @@ def solve_decoupled(disc, ksp_options=None, rtol=1e-14, atol=None, max_it=500):
     atol = 1e-13 * float(np.linalg.norm(G)) if atol is None else atol
     snes.setTolerances(rtol=rtol, atol=atol, stol=0.0, max_it=max_it)
     snes.setFromOptions()
+
+    def fields(w):
+        """u1, u2, λ (nodal) from w and z."""
+        lam = np.zeros(n)
+        lam[interior] = (K @ w - G)[interior] / disc.D[interior]
+        return (z + mu2 * w) / (mu1 + mu2), (z - mu1 * w) / (mu1 + mu2), lam
+
+    def snes_monitor(snes, its, fnorm):
+        seconds = clock.pause()
+        monitor(its, seconds, *fields(snes.getSolution().array_r))
+        clock.resume()
+
+    if monitor is not None:
+        snes.setMonitor(snes_monitor)
     w = J.createVecRight()
     w.array[:] = g                       # the paper's start: u1 = g, u2 = 0
     try:
@@ -110,12 +127,9 @@ def solve_decoupled(disc, ksp_options=None, rtol=1e-14, atol=None, max_it=500):
             del opts[prefix + k]
         snes.destroy()
         J.destroy()
-    lam = np.zeros(n)
-    lam[interior] = (K @ wv - G)[interior] / disc.D[interior]
-    u1 = (z + mu2 * wv) / (mu1 + mu2)
-    u2 = (z - mu1 * wv) / (mu1 + mu2)
+    wall_time = clock.pause()
+    u1, u2, lam = fields(wv)
     converged = reason_code > 0
     reason = f"SNES converged reason {reason_code}" if converged else \
         f"SNES diverged (reason {reason_code})"
-    return DecoupledResult(u1, u2, lam, converged, reason, its, lin,
-                           time.perf_counter() - t0)
+    return DecoupledResult(u1, u2, lam, converged, reason, its, lin, wall_time)
