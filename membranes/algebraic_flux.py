@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .discretisation import boundary_dofs
 from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, graph_colouring, lifting,
                             vertex_patches)
 
@@ -97,14 +98,11 @@ class MultilevelFlux:
 
     def _coarse_solver(self, V0):
         import ufl
-        from dolfinx import fem, mesh as dmesh
         from forms.membrane import membrane_bilinear
-        from .discretisation import assemble_matrix_csr
+        from .discretisation import assemble_matrix_csr, boundary_dofs
         u, v = ufl.TrialFunction(V0), ufl.TestFunction(V0)
         S = assemble_matrix_csr(membrane_bilinear(1.0, u, v))
-        mesh = V0.mesh
-        mesh.topology.create_connectivity(1, 2)
-        bdofs = fem.locate_dofs_topological(V0, 1, dmesh.exterior_facet_indices(mesh.topology))
+        bdofs = boundary_dofs(V0)
         keep = np.ones(S.shape[0])
         keep[bdofs] = 0.0
         S = sp.diags(keep) @ S + sp.diags(1.0 - keep)
@@ -119,7 +117,7 @@ class MultilevelFlux:
         parents = hierarchy.parent_cells[j - 1]
         children = np.argsort(parents, kind="stable").reshape(-1, 4)          # (nc_{j-1}, 4)
         on_boundary = np.zeros(coarse.n, dtype=bool)
-        on_boundary[self._boundary_dofs(j - 1)] = True
+        on_boundary[boundary_dofs(coarse.V)] = True
         batches = []
         for verts, CS, KA in vertex_patches(coarse):
             CF = children[CS].reshape(len(verts), -1)                        # (P, 4n)
@@ -131,13 +129,6 @@ class MultilevelFlux:
                 S = np.linalg.solve(A, np.broadcast_to(E, (len(sel),) + E.shape))[:, :nr]
                 batches.append((RET, S, CF[sel], KF[sel]))
         return batches
-
-    def _boundary_dofs(self, j):
-        from dolfinx import fem, mesh as dmesh
-        V = self.geo[j].V
-        mesh = V.mesh
-        mesh.topology.create_connectivity(1, 2)
-        return fem.locate_dofs_topological(V, 1, dmesh.exterior_facet_indices(mesh.topology))
 
     def _moments(self, j, r, grad_rho0):
         """(d_a, q_i)_{K_j} for every cell K_j of T_j and every local vertex k of its parent

@@ -170,9 +170,17 @@ class Discretisation:
         return out
 
 
+def boundary_dofs(V):
+    """The dofs of the P1 space V on the boundary facets of its mesh (Dirichlet vertices)."""
+    from dolfinx import fem, mesh as dmesh
+    mesh = V.mesh
+    mesh.topology.create_connectivity(1, 2)
+    return fem.locate_dofs_topological(V, 1, dmesh.exterior_facet_indices(mesh.topology))
+
+
 def discretise(problem):
     """Assemble S1, S2, D, F1, F2 and the boundary vertices of `problem` (DESIGN §2)."""
-    from dolfinx import fem, mesh as dmesh
+    from dolfinx import fem
     mesh = problem.mesh
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
@@ -185,9 +193,7 @@ def discretise(problem):
     f1, f2 = (_load(as_builder(f)(x), mesh) for f in (problem.f1, problem.f2))
     F1 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f1, v, dx)))
     F2 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f2, v, dx)))
-    mesh.topology.create_connectivity(1, 2)
-    facets = dmesh.exterior_facet_indices(mesh.topology)
-    boundary = fem.locate_dofs_topological(V, 1, facets)
+    boundary = boundary_dofs(V)
     n = V.dofmap.index_map.size_local
     return Discretisation(problem, V, S1[:n], S2[:n], D[:n], F1[:n], F2[:n],
                           np.asarray(boundary[boundary < n], dtype=np.int32), dxd)

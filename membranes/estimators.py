@@ -54,10 +54,15 @@ COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
            "eta_lin1", "eta_lin2", "eta_lin3")
 
 
+def _cell_products(area, pc, qc):
+    """(p, q)_K = |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k) for p, q ∈ P1(K) given by their values
+    at the vertices of every cell, pc, qc of shape (ncells, 3)."""
+    return area / 12.0 * ((pc * qc).sum(axis=1) + pc.sum(axis=1) * qc.sum(axis=1))
+
+
 def _p1_products(geo, p, q):
-    """(p, q)_K for nodal P1 values p, q: |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k)."""
-    pc, qc = p[geo.cells], q[geo.cells]
-    return geo.area / 12.0 * ((pc * qc).sum(axis=1) + pc.sum(axis=1) * qc.sum(axis=1))
+    """(p, q)_K for nodal P1 values p, q."""
+    return _cell_products(geo.area, p[geo.cells], q[geo.cells])
 
 
 def constraint_projection(u1, u2):
@@ -93,8 +98,6 @@ class Estimators:
         self.osc = self._oscillation(w)                       # (2, ncells)
 
     def _per_cell(self, form):
-        from dolfinx import fem
-        import dolfinx.fem.petsc  # noqa: F401
         return assemble_vector_array(form)[self.cell_dof]
 
     def _oscillation(self, w):
@@ -102,8 +105,7 @@ class Estimators:
         from dolfinx import fem
         disc, geo = self.disc, self.geo
         x = ufl.SpatialCoordinate(disc.problem.mesh)
-        DG1 = fem.FunctionSpace(disc.problem.mesh, ("DG", 1))
-        dg_cells = DG1.dofmap.list.array.reshape(geo.ncells, 3)
+        DG1, dg_cells = self.flux.space.DG, self.flux.space.dg_cells
         hK = cell_diameters(disc.problem.mesh)
         out = []
         for alpha, f in enumerate((disc.problem.f1, disc.problem.f2)):
@@ -124,9 +126,7 @@ class Estimators:
 
     def _p1_dg_norms(self, coeffs):
         """‖v‖_Ω for v ∈ DG1 given by coefficients (ncells, 3) in cell-vertex order."""
-        # ∫_K v² = |K|/12 (Σ v_k² + (Σ v_k)²) for v ∈ P1(K)
-        return np.sqrt(np.sum(self.geo.area / 12.0 * ((coeffs * coeffs).sum(axis=1)
-                                                       + coeffs.sum(axis=1) ** 2)))
+        return np.sqrt(np.sum(_cell_products(self.geo.area, coeffs, coeffs)))
 
     def remainder(self, R, lam_shift=None):
         """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_α = r_αh (DESIGN §4), or with

@@ -7,12 +7,11 @@ import sys
 import pytest
 
 from membranes import Problem, scenes, solve
-from membranes.cli import main
 from membranes.expressions import Formula
 from membranes.hierarchy import build_hierarchy
 from membranes.meshes import read_msh, unit_disk
 
-from .conftest import scene, write_msh
+from .conftest import cli_bad_input, scene, write_msh
 
 
 @pytest.fixture(scope="module")
@@ -52,32 +51,16 @@ CLI_CASES = {
 MESH_CASES = ("missing", "directory", "garbage", "quads", "p2", "box")
 
 
-def _run_cli(args, out):
-    return main(["solve", "--quiet", "--h", "0.3", "--out", str(out)] + args
-                if "--mesh" not in args and "--h" not in args
-                else ["solve", "--quiet", "--out", str(out)] + args)
-
-
 @pytest.mark.parametrize("case", sorted(CLI_CASES))
 def test_cli_bad_values(case, tmp_path, capsys):
-    out = tmp_path / "out"
-    code = _run_cli(CLI_CASES[case], out)
-    err = capsys.readouterr().err.strip()
-    assert code == 2
-    assert err.startswith("membranes: error: ") and "\n" not in err
+    err = cli_bad_input(CLI_CASES[case], tmp_path / "out", capsys)
     assert "Traceback" not in err
-    assert not out.exists()
 
 
 @pytest.mark.parametrize("case", MESH_CASES)
 def test_cli_bad_meshes(case, bad_meshes, tmp_path, capsys):
-    out = tmp_path / "out"
-    code = _run_cli(["--mesh", bad_meshes[case]], out)
-    err = capsys.readouterr().err.strip()
-    assert code == 2, err
-    assert err.startswith("membranes: error: ") and "\n" not in err
+    err = cli_bad_input(["--mesh", bad_meshes[case]], tmp_path / "out", capsys)
     assert bad_meshes[case] in err
-    assert not out.exists()
 
 
 def test_cli_process_exit_code_and_clean_stderr(tmp_path):

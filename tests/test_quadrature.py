@@ -41,7 +41,6 @@ def test_disk_load_integral_against_exact_areas():
     # without the composite rule on cut cells the error is larger (a sanity check that the
     # composite rule is what makes the difference)
     import ufl
-    from dolfinx import fem
     from membranes.discretisation import assemble_vector_array, DATA_DEGREE
     x = ufl.SpatialCoordinate(problem.mesh)
     v = ufl.TestFunction(d.V)
