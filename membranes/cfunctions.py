@@ -52,8 +52,10 @@ def get(name):
             from None
 
 
-def linearise(name, a, b):
-    """α, β, B3 = α a + β b - C(a, b): the semismooth Newton rows at (a, b) (DESIGN §3)."""
+def linearise(name, a, b, kappa=1.0):
+    """α, β, B3 of the semismooth Newton rows α a + β b = B3 of C(a, κ b) at (a, b) (DESIGN
+    §3): by the chain rule β = κ ∂C/∂b, and B3 = α a + β b - C(a, κ b). κ > 0 leaves the
+    solutions of C = 0 unchanged; it sets the units (newton_system: κ λ is a displacement)."""
     C, J = get(name)
-    alpha, beta = J(a, b)
-    return alpha, beta, alpha * a + beta * b - C(a, b)
+    alpha, beta = J(a, kappa * b)
+    return alpha, kappa * beta, alpha * a + kappa * beta * b - C(a, kappa * b)

@@ -71,15 +71,20 @@ class Solution:
 
     def complementarity_violation(self):
         """Largest violation of w = u1 - u2 ≥ 0, λ ≥ 0, λ w = 0 at interior vertices, relative
-        to the data scale (u: max(g, |u|∞); λ: max(|λ|∞, max_a |F_α,a| / D_a))."""
-        d = self.disc
+        to the data scale (DESIGN §11): λ against λ_data = max(|λ|∞, max_a,α |F_α,a| / D_a),
+        w against u_data = max(g, |u|∞, (C_PF h_Ω)² max_a,α |F_α,a| / (μ_α D_a)), the
+        displacement the loads can make on their own (the size the relative residuals of
+        newton_system are measured against)."""
+        d, p = self.disc, self.disc.problem
         u1, u2, lam = split(self.X, d.n)
         inner = d.interior
         w, lam = (u1 - u2)[inner], lam[inner]
-        u_scale = max(d.problem.g, np.abs(u1).max(), np.abs(u2).max())
-        load = np.maximum(np.abs(d.F1), np.abs(d.F2))[inner] / d.D[inner]
-        lam_scale = max(np.abs(lam).max(initial=0.0), load.max(initial=0.0),
-                        np.finfo(float).tiny)
+        F1, F2 = (np.abs(F)[inner] / d.D[inner] for F in (d.F1, d.F2))
+        load_u = p.poincare_constant() ** 2 * max(F1.max(initial=0.0) / p.mu1,
+                                                  F2.max(initial=0.0) / p.mu2)
+        u_scale = max(p.g, np.abs(u1).max(), np.abs(u2).max(), load_u)
+        lam_scale = max(np.abs(lam).max(initial=0.0), F1.max(initial=0.0),
+                        F2.max(initial=0.0), np.finfo(float).tiny)
         return float(max(np.max(-w, initial=0.0) / u_scale,
                          np.max(-lam, initial=0.0) / lam_scale,
                          np.max(np.abs(w * lam), initial=0.0) / (u_scale * lam_scale)))
@@ -248,9 +253,11 @@ class IterateEstimates:
         self.time += time.perf_counter() - t
 
     def _alg(self, rec, R):
-        """‖R‖/‖B‖ (‖R‖/‖(F, 0)‖ for X^0)."""
+        """‖W R‖/‖W B‖ (‖W R‖/‖W F‖ for X^0; W: newton_system's row weights)."""
         alg = rec["alg_residual"]
-        return float(np.linalg.norm(R)) / self.rows.norm_F if alg is None else alg
+        if alg is None:
+            return float(np.linalg.norm(self.rows.weighted(R))) / self.rows.norm_F
+        return alg
 
     def _estimate(self, rec, X, R, later=None):
         """Fill in rec's estimates at X; `later` = (X', R') the next iterate for 'nu'."""

@@ -55,7 +55,9 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+import scipy.sparse as sp
 
+from . import cfunctions
 from . import newton_system as ns
 from .linear_solve import LinearSolveError, solve_direct
 
@@ -64,6 +66,11 @@ VARIANTS = ("exact", "inexact", "adaptive")
 DEFAULT_TOL = 1e-10            # DESIGN §8: Newton stops at ‖R_lin‖/‖(F, 0)‖ ≤ 1e-10 ...
 EXACT_LINEAR_TOL = 2e-12       # ... and exact solves reach ‖R_alg‖/‖B‖ ≤ 2e-12
 DEFAULT_GAMMA = 0.3            # γ_lin = γ_alg = 0.3 in the seed (DESIGN §8)
+LS_SIGMA = 1e-4                # Armijo constant of the Fischer–Burmeister line search
+LS_MIN_STEP = 2.0 ** -20       # smallest step length tried
+LS_MEMORY = 5                  # the nonmonotone reference: the last 5 Newton iterates
+CYCLE_PROGRESS = 0.999         # a repeated active set counts as a cycle unless the residual
+                               # fell below this fraction of its value at the earlier visit
 
 
 @dataclass
@@ -105,18 +112,22 @@ class LinearStep:
 
 
 def linear_step(rows, cfun, system, X):
-    """The Newton system at X (DESIGN §3), full or eliminated; the guess is X itself, or for the
-    eliminated system the unknowns of X it keeps (u1, and u2 or λ at each vertex)."""
+    """The Newton system at X (DESIGN §3), full or eliminated, with the membrane rows weighted
+    by W (newton_system: units); the guess is X itself, or for the eliminated system the
+    unknowns of X it keeps (u1, and u2 or λ at each vertex). `pad` maps the solver's residual
+    back to the unweighted 3N R of DESIGN §4, which the estimators read."""
     alpha, beta, B3 = ns.complementarity_rows(rows, cfun, X)
-    norm_B = float(np.linalg.norm(np.concatenate([rows.F, B3])))
+    norm_B = float(np.linalg.norm(np.concatenate([rows.weights * rows.F, B3])))
     if system == "full":
         A, B = ns.full_system(rows, alpha, beta, B3)
-        return LinearStep(A, B, X, norm_B, lambda y: y, lambda r: r)
+        W = sp.diags(np.concatenate([rows.weights, np.ones(rows.n)]))
+        return LinearStep((W @ A).tocsr(), W @ B, X, norm_B, lambda y: y, rows.unweighted)
     A, b, elim = ns.eliminated_system(rows, alpha, beta, B3)
     u1, u2, lam = ns.split(X, rows.n)
     guess = np.concatenate([u1, np.where(elim.eliminate_lambda, u2, lam)])
-    return LinearStep(A, b, guess, norm_B, elim.expand,
-                      lambda r: np.concatenate([r, np.zeros(rows.n)]))
+    W = sp.diags(rows.weights)
+    return LinearStep((W @ A).tocsr(), W @ b, guess, norm_B, elim.expand,
+                      lambda r: rows.unweighted(np.concatenate([r, np.zeros(rows.n)])))
 
 
 def linear_tolerance(variant, tol, residual):
@@ -174,6 +185,33 @@ def check_gamma(name, value):
         raise ValueError(f"{name} must be a positive finite number, got {value!r}")
 
 
+def active_set(rows, X):
+    """Newton-min's active set at X: the interior vertices whose row is e1 - e2 (contact
+    predicted), as a hashable signature."""
+    u1, u2, lam = ns.split(X, rows.n)
+    take_a = (u1 - u2) <= rows.kappa * lam
+    take_a[rows.boundary] = False
+    return np.packbits(take_a).tobytes()
+
+
+def line_search(rows, cfun, X, X_new, residual, reference):
+    """Nonmonotone Armijo backtracking on the merit θ = ½‖Φ‖², Φ = W R_lin (newton_system),
+    along d = X_new - X: the first t = 1, 1/2, 1/4, ... ≥ LS_MIN_STEP with
+    θ(X + t d) ≤ θ_ref - 2 LS_SIGMA t θ(X), θ_ref the largest θ of the last LS_MEMORY Newton
+    iterates (`reference`, relative residuals; ∇θ·d = -2θ for a Newton direction: θ is C¹
+    for Fischer–Burmeister). `residual` = ‖Φ(X)‖/‖W F‖. Returns (X + t d, t), or the full
+    step with t = None where no t qualifies (see the module notes)."""
+    d = X_new - X
+    t, ref = 1.0, max(reference) ** 2
+    while t >= LS_MIN_STEP:
+        trial = X + t * d
+        r = rows.relative_residual(cfun, trial)
+        if r * r <= ref - 2.0 * LS_SIGMA * t * residual * residual:
+            return trial, t
+        t *= 0.5
+    return X_new, None
+
+
 def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylov=None,
                       tol=DEFAULT_TOL, max_it=100, X0=None, monitor=None, estimate=None,
                       gamma_lin=DEFAULT_GAMMA, gamma_alg=DEFAULT_GAMMA):
@@ -181,6 +219,7 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
     tol: the Newton tolerance of exact and inexact; gamma_lin, gamma_alg: the adaptive
     criteria's; `estimate` and `monitor`: see the module notes (adaptive needs `estimate`)."""
     check_method(system, variant, krylov)
+    cfunctions.get(cfun)
     adaptive = variant == "adaptive"
     if adaptive:
         if estimate is None:
@@ -189,15 +228,18 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         check_gamma("gamma_alg", gamma_alg)
     clock = Stopwatch()
     X = ns.initial_guess(rows, g) if X0 is None else np.array(X0, dtype=float)
-    scale = rows.norm_F
+    if X.shape != (3 * rows.n,) or not np.all(np.isfinite(X)):
+        raise ValueError(f"the initial guess must be {3 * rows.n} finite values (u1, u2, lam)")
     history = []
+    state = {"cfun": cfun, "note": ""}     # the C-function in use (the guard may switch it)
 
-    def record(kind, k, its, cumulative, X, R, norm_B, same_as=None):
+    def record(kind, k, its, cumulative, X, R, norm_B, same_as=None, step_length=None):
         """Record X; returns its record and the iterates whose estimates are complete now."""
         rec = {"newton_it": k, "linear_it": its, "cumulative_linear_its": cumulative,
-               "residual": float(np.linalg.norm(ns.nonlinear_residual(rows, cfun, X))) / scale,
-               "alg_residual": None if R is None else float(np.linalg.norm(R)) / norm_B,
-               "kind": kind}
+               "residual": rows.relative_residual(state["cfun"], X),
+               "alg_residual": None if R is None
+               else float(np.linalg.norm(rows.weighted(R))) / norm_B,
+               "kind": kind, "cfun": state["cfun"], "step_length": step_length}
         if not adaptive:
             clock.pause()
         ready = [] if estimate is None else estimate(rec, X, R, same_as)
@@ -237,11 +279,26 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         met = rec["residual"] <= tol
         return met, f"relative residual {rec['residual']:.2e} {'<=' if met else '>'} {tol:.0e}"
 
+    def result(converged, reason, k, done):
+        return NewtonResult(X, converged, reason + state["note"], k, done, history)
+
+    seen = {}         # Newton-min's active sets: signature -> (step, residual at that step)
     rec, done = record("initial", 0, 0, 0, X, None, None)[0], 0
     for k in range(1, max_it + 1):
         if stopping(rec)[0]:
             break
-        step = linear_step(rows, cfun, system, X)
+        if state["cfun"] == "min" and not adaptive:
+            signature = active_set(rows, X)
+            earlier = seen.get(signature)
+            if earlier is not None and rec["residual"] >= CYCLE_PROGRESS * earlier[1]:
+                state["cfun"] = "fb"
+                state["note"] = (f"; Newton-min cycled (the active set of step {earlier[0]} came "
+                                 f"back at step {k - 1} without progress), continued from step "
+                                 f"{k} with Fischer-Burmeister and its line search")
+                rec["residual"] = rows.relative_residual("fb", X)
+            else:
+                seen[signature] = (k - 1, rec["residual"])
+        step = linear_step(rows, state["cfun"], system, X)
         accepted = []
         try:
             X_new, R, its = solve_step(step, krylov, linear_tolerance(variant, tol,
@@ -250,20 +307,26 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                                        hand_out(k, step, done, accepted))
         except LinearSolveError as e:
             unmet = " before the adaptive criterion was met" if adaptive else ""
-            return NewtonResult(X, False, f"linear solver failed at Newton step {k}{unmet}: "
-                                f"{e}", k - 1, done + e.its, history)
+            return result(False, f"linear solver failed at Newton step {k}{unmet}: {e}",
+                          k - 1, done + e.its)
         done += its
-        same_as = None
+        same_as, t = None, None
         if accepted:
             same_as, X_new, R = accepted[0]
         if not np.all(np.isfinite(X_new)):
-            return NewtonResult(X, False, f"non-finite iterate at Newton step {k}",
-                                k - 1, done, history)
+            return result(False, f"non-finite iterate at Newton step {k}", k - 1, done)
+        if state["cfun"] == "fb" and not adaptive:
+            merits = [r["residual"] for r in history if r["kind"] != "krylov"
+                      and r["cfun"] == "fb"][-LS_MEMORY:] or [rec["residual"]]
+            X_ls, t = line_search(rows, "fb", X, X_new, rec["residual"], merits)
+            if t is not None and t < 1.0:
+                # B - A X_t = (1 - t)(B - A X^{k-1}) + t R, and B - A X^{k-1} = R_lin(X^{k-1})
+                R = (1.0 - t) * ns.nonlinear_residual(rows, "fb", X) + t * R
+                X_new = X_ls
         X = X_new
-        rec = record("newton", k, its, done, X, R, step.norm_B, same_as)[0]
+        rec = record("newton", k, its, done, X, R, step.norm_B, same_as, t)[0]
     met, description = stopping(rec)
     k = rec["newton_it"]
     if met:
-        return NewtonResult(X, True, description, k, done, history)
-    return NewtonResult(X, False, f"no convergence in {max_it} Newton steps ({description})",
-                        k, done, history)
+        return result(True, description, k, done)
+    return result(False, f"no convergence in {max_it} Newton steps ({description})", k, done)

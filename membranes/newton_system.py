@@ -14,6 +14,28 @@ vertices l (cfunctions.linearise), λ_l = 0 at boundary vertices.
 
 R_lin(X) = (F - E X, -C(X)) is the nonlinear residual of DESIGN §8 (with -λ_l in the boundary
 rows of the third block).
+
+**Units (DESIGN §11: tolerances relative to the data scale).** The rows of membrane α are
+loads, of size μ_α times a displacement; λ is a pressure. Left as they are, a relative
+residual ‖R_lin‖/‖(F, 0)‖ is the residual of the stiffer membrane alone when μ1/μ2 is extreme
+(measured before this scaling: μ1/μ2 = 1e6, GMRES stopped at ‖R_alg‖/‖B‖ = 2e-12 with the
+constraint violated by 2e-7 of the data, and on other data Newton stalled at 1.3e-9), and the
+C-function compares a displacement with a pressure, so that its Newton path depends on the
+unit of λ. Two fixed, data-independent scalings put every row in units of displacement:
+
+* `weights` W: the rows of membrane α (interior vertices) are divided by μ_α, the Dirichlet
+  rows u_α = g, 0 keep weight 1 (μ_α S has entries μ_α times O(1) in 2D);
+* `kappa` κ = (1/μ1 + 1/μ2)/2 = 1/μ_H (μ_H the harmonic mean): the C-function acts on
+  (u1 - u2, κ λ), κ λ the gap change a pressure λ makes on membranes of unit size. Its rows
+  are α (X1 - X2) + β X3 with β = κ ∂C/∂b (cfunctions.linearise).
+
+Newton measures R_lin with the membrane rows weighted, relative to ‖W F‖ (`norm_F`), and the
+Krylov solver sees the weighted system W A, W B (`newton.linear_step`), which is the same
+linear system: iterates and solutions are unchanged, only the norm that GMRES minimises and
+that the tests read changes. For μ1 = μ2 = 1 both scalings are the identity (the paper's
+setting, DESIGN §3, §8). Scaling f1, f2, g by s scales X by s and leaves W and κ alone, so
+iteration counts do not change; scaling μ1, μ2, f1, f2 by t leaves u and W F, κ λ alone.
+Residuals R handed to the estimators are always the unweighted ones (DESIGN §4).
 """
 
 from dataclasses import dataclass
@@ -31,11 +53,30 @@ class LinearRows:
     F: np.ndarray
     n: int
     boundary: np.ndarray
+    weights: np.ndarray = None     # W: row weights of E (2N), see the module notes
+    kappa: float = 1.0             # κ: the C-function acts on (u1 - u2, κ λ)
 
-    @property
-    def norm_F(self):
-        """‖(F, 0)‖, the scale of the relative nonlinear residual."""
-        return float(np.linalg.norm(self.F))
+    def __post_init__(self):
+        if self.weights is None:
+            self.weights = np.ones(2 * self.n)
+        self.norm_F = float(np.linalg.norm(self.weights * self.F))
+
+    def weighted(self, R):
+        """R (2N or 3N) with its first 2N entries (the rows of E) multiplied by W."""
+        R = np.array(R, dtype=float)
+        R[:2 * self.n] *= self.weights
+        return R
+
+    def unweighted(self, R):
+        """The inverse of `weighted`."""
+        R = np.array(R, dtype=float)
+        R[:2 * self.n] /= self.weights
+        return R
+
+    def relative_residual(self, cfun, X):
+        """‖W R_lin(X)‖/‖W F‖: the nonlinear residual relative to the data scale."""
+        return float(np.linalg.norm(self.weighted(nonlinear_residual(self, cfun, X)))) \
+            / self.norm_F
 
 
 def linear_rows(disc):
@@ -53,7 +94,11 @@ def linear_rows(disc):
     F1, F2 = disc.F1.copy(), disc.F2.copy()
     F1[disc.boundary] = disc.problem.g
     F2[disc.boundary] = 0.0
-    return LinearRows(E, np.concatenate([F1, F2]), n, disc.boundary)
+    mu1, mu2 = disc.problem.mu1, disc.problem.mu2
+    weights = np.concatenate([np.where(bmask > 0, 1.0, 1.0 / mu1),
+                              np.where(bmask > 0, 1.0, 1.0 / mu2)])
+    return LinearRows(E, np.concatenate([F1, F2]), n, disc.boundary, weights,
+                      0.5 * (1.0 / mu1 + 1.0 / mu2))
 
 
 def initial_guess(rows, g):
@@ -68,18 +113,19 @@ def split(X, n):
 
 
 def complementarity_rows(rows, cfun, X):
-    """α, β, B3 at X; boundary vertices get the Dirichlet row λ_l = 0 (α = 0, β = 1)."""
+    """α, β, B3 of C(u1 - u2, κ λ) at X; boundary vertices get the Dirichlet row κ λ_l = 0
+    (α = 0, β = κ)."""
     u1, u2, lam = split(X, rows.n)
-    alpha, beta, B3 = cfunctions.linearise(cfun, u1 - u2, lam)
-    alpha[rows.boundary], beta[rows.boundary], B3[rows.boundary] = 0.0, 1.0, 0.0
+    alpha, beta, B3 = cfunctions.linearise(cfun, u1 - u2, lam, rows.kappa)
+    alpha[rows.boundary], beta[rows.boundary], B3[rows.boundary] = 0.0, rows.kappa, 0.0
     return alpha, beta, B3
 
 
 def nonlinear_residual(rows, cfun, X):
-    """R_lin = (F - E X, -C(X)) (DESIGN §8)."""
+    """R_lin = (F - E X, -C(u1 - u2, κ λ)) (DESIGN §8; κ of the module notes)."""
     u1, u2, lam = split(X, rows.n)
-    C = cfunctions.get(cfun)[0](u1 - u2, lam)
-    C[rows.boundary] = lam[rows.boundary]
+    C = cfunctions.get(cfun)[0](u1 - u2, rows.kappa * lam)
+    C[rows.boundary] = rows.kappa * lam[rows.boundary]
     return np.concatenate([rows.F - rows.E @ X, -C])
 
 
@@ -100,9 +146,10 @@ class Elimination:
         return self.T @ Y + self.t
 
 
-def eliminate(n, alpha, beta, B3):
-    """The substitution X = T Y + t that satisfies every complementarity row exactly."""
-    lam_out = np.abs(beta) >= np.abs(alpha)
+def eliminate(n, alpha, beta, B3, kappa=1.0):
+    """The substitution X = T Y + t that satisfies every complementarity row exactly; the
+    choice compares the C-function's own derivatives, |∂C/∂b| = |β|/κ against |α|."""
+    lam_out = np.abs(beta) >= kappa * np.abs(alpha)
     u2_out = ~lam_out
     a_safe = np.where(u2_out, alpha, 1.0)
     b_safe = np.where(lam_out, beta, 1.0)
@@ -120,7 +167,7 @@ def eliminate(n, alpha, beta, B3):
 
 def eliminated_system(rows, alpha, beta, B3):
     """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X."""
-    elim = eliminate(rows.n, alpha, beta, B3)
+    elim = eliminate(rows.n, alpha, beta, B3, rows.kappa)
     A = (rows.E @ elim.T).tocsr()
     A.eliminate_zeros()
     return A, rows.F - rows.E @ elim.t, elim

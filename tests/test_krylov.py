@@ -44,7 +44,10 @@ def test_exact_gmres_matches_mumps(cfun, system):
     assert run.newton_iterations == ref.newton_iterations
     assert max(_differences(run, ref)) <= 1e-9
     newton = [rec for rec in run.history if rec["kind"] == "newton"]
-    assert all(rec["alg_residual"] <= EXACT_LINEAR_TOL for rec in newton)
+    # a step the Fischer–Burmeister line search damped (step_length < 1) stops short of the
+    # linear solution on purpose; every full step is an exact solve
+    assert all(rec["alg_residual"] <= EXACT_LINEAR_TOL for rec in newton
+               if rec["step_length"] in (None, 1.0))
     assert run.linear_iterations == sum(rec["linear_it"] for rec in newton)
     assert run.linear_iterations > 10 * run.newton_iterations      # Krylov work is counted
 
@@ -89,8 +92,8 @@ def test_recorded_residuals_are_the_true_algebraic_residuals(cfun, system):
             scale = np.linalg.norm(B)
             assert np.linalg.norm(B - A @ X - R) <= 1e-12 * scale
             assert rec["alg_residual"] == pytest.approx(np.linalg.norm(R) / scale, rel=1e-12)
-            if system == "eliminated":
-                assert np.all(R[2 * rows.n:] == 0)
+            if system == "eliminated" and rec["step_length"] in (None, 1.0):
+                assert np.all(R[2 * rows.n:] == 0)   # damped: (1 - t) R_lin(previous)
         assert rec["residual"] == pytest.approx(
             np.linalg.norm(ns.nonlinear_residual(rows, cfun, X)) / rows.norm_F, rel=1e-12)
         if rec["kind"] != "krylov":
