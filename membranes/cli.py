@@ -1,4 +1,5 @@
-"""Command line: ``membranes solve ...`` and ``membranes scenes``.
+"""Command line: ``membranes solve ...``, ``membranes scenes``, ``membranes report`` and
+``membranes stability``.
 
 Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out),
 3 the solver did not converge (the outputs are written, with converged = false and a reason).
@@ -74,6 +75,8 @@ def _parser():
     s.add_argument("--tol", type=float,
                    help="exact, inexact: stop at ||R_lin|| / ||(F, 0)|| <= TOL (default 1e-10)")
     s.add_argument("--max-newton", type=int, default=100)
+    s.add_argument("--initial-guess", choices=("paper", "zero"), default="paper",
+                   help="X^0: paper (u1 = g, u2 = 0, lambda = 0; default) or zero")
     s.add_argument("--out", metavar="DIR", help="write summary.json, history.csv, "
                    "solution.xdmf there")
     s.add_argument("--no-estimators", action="store_true",
@@ -82,6 +85,8 @@ def _parser():
     sub.add_parser("scenes", help="list the scenes")
     from .report import add_parser as add_report_parser
     add_report_parser(sub)
+    from .stability import add_parser as add_stability_parser
+    add_stability_parser(sub)
     return p
 
 
@@ -134,7 +139,8 @@ def _solve(args):
                 linear_solver=args.linear_solver, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
                 estimators=not args.no_estimators, progress=not args.quiet,
-                gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux)
+                gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux,
+                initial_guess=args.initial_guess)
     if args.out is not None:
         write_outputs(sol, args.out)
     summary = sol.summary()
@@ -176,6 +182,10 @@ def main(argv=None):
             from .report import main as report_main
             quiet_jit_logging()
             return report_main(args)
+        if args.command == "stability":
+            from .stability import main as stability_main
+            quiet_jit_logging()
+            return stability_main(args)
         if args.command == "scenes":
             return _scenes()
         return _solve(args)

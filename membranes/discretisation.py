@@ -89,11 +89,12 @@ def over(measures, form_of):
     return total
 
 
-def _load(expr, mesh):
-    """Constant data as a dolfinx Constant: UFL would fold 0 * v * dx into an empty form, and a
-    Constant keeps one compiled kernel for every value."""
+def load(data, mesh):
+    """The UFL expression of a load f (a scene's builder or a Formula) on `mesh`; constant data
+    as a dolfinx Constant: UFL would fold 0 * v * dx into an empty form, and a Constant keeps
+    one compiled kernel for every value."""
     from dolfinx import fem
-    expr = ufl.as_ufl(expr)
+    expr = ufl.as_ufl(as_builder(data)(ufl.SpatialCoordinate(mesh)))
     if isinstance(expr, (ufl.constantvalue.Zero, ufl.constantvalue.ScalarValue)):
         return fem.Constant(mesh, float(expr))
     return expr
@@ -158,6 +159,18 @@ class Discretisation:
         mask[self.boundary] = False
         return mask
 
+    def data_scales(self):
+        """(u_data, λ_data): the sizes the data give a displacement and a pressure (DESIGN
+        §11, tolerances relative to the data): λ_data = max_a,α |F_α,a| / D_a over interior
+        vertices (a nodal load density), u_data = max(g, (C_PF h_Ω)² max_a,α |F_α,a| /
+        (μ_α D_a)), the displacement those loads can make on their own."""
+        p, inner = self.problem, self.interior
+        F1, F2 = (np.abs(F)[inner] / self.D[inner] for F in (self.F1, self.F2))
+        lam_data = max(F1.max(initial=0.0), F2.max(initial=0.0))
+        u_data = max(p.g, p.poincare_constant() ** 2 * max(F1.max(initial=0.0) / p.mu1,
+                                                           F2.max(initial=0.0) / p.mu2))
+        return u_data, lam_data
+
     def functions(self, X):
         """P1 functions u1, u2, lambda from X = (X1, X2, X3) ∈ R^{3N}."""
         from dolfinx import fem
@@ -184,13 +197,12 @@ def discretise(problem):
     mesh = problem.mesh
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-    x = ufl.SpatialCoordinate(mesh)
     mu1, mu2 = fem.Constant(mesh, problem.mu1), fem.Constant(mesh, problem.mu2)
     S1 = assemble_matrix_csr(membrane_bilinear(mu1, u, v))
     S2 = assemble_matrix_csr(membrane_bilinear(mu2, u, v))
     D = assemble_vector_array(contact_weight(v))
     dxd = data_measures(mesh, problem.interface)
-    f1, f2 = (_load(as_builder(f)(x), mesh) for f in (problem.f1, problem.f2))
+    f1, f2 = (load(f, mesh) for f in (problem.f1, problem.f2))
     F1 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f1, v, dx)))
     F2 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f2, v, dx)))
     boundary = boundary_dofs(V)

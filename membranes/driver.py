@@ -71,20 +71,16 @@ class Solution:
 
     def complementarity_violation(self):
         """Largest violation of w = u1 - u2 ≥ 0, λ ≥ 0, λ w = 0 at interior vertices, relative
-        to the data scale (DESIGN §11): λ against λ_data = max(|λ|∞, max_a,α |F_α,a| / D_a),
-        w against u_data = max(g, |u|∞, (C_PF h_Ω)² max_a,α |F_α,a| / (μ_α D_a)), the
-        displacement the loads can make on their own (the size the relative residuals of
-        newton_system are measured against)."""
-        d, p = self.disc, self.disc.problem
+        to the data scale (DESIGN §11): w against max(u_data, |u|∞), λ against
+        max(λ_data, |λ|∞) (Discretisation.data_scales: the displacement the loads make on
+        their own, the size against which newton_system measures residuals)."""
+        d = self.disc
         u1, u2, lam = split(self.X, d.n)
         inner = d.interior
         w, lam = (u1 - u2)[inner], lam[inner]
-        F1, F2 = (np.abs(F)[inner] / d.D[inner] for F in (d.F1, d.F2))
-        load_u = p.poincare_constant() ** 2 * max(F1.max(initial=0.0) / p.mu1,
-                                                  F2.max(initial=0.0) / p.mu2)
-        u_scale = max(p.g, np.abs(u1).max(), np.abs(u2).max(), load_u)
-        lam_scale = max(np.abs(lam).max(initial=0.0), F1.max(initial=0.0),
-                        F2.max(initial=0.0), np.finfo(float).tiny)
+        u_data, lam_data = d.data_scales()
+        u_scale = max(u_data, np.abs(u1).max(), np.abs(u2).max())
+        lam_scale = max(lam_data, np.abs(lam).max(initial=0.0), np.finfo(float).tiny)
         return float(max(np.max(-w, initial=0.0) / u_scale,
                          np.max(-lam, initial=0.0) / lam_scale,
                          np.max(np.abs(w * lam), initial=0.0) / (u_scale * lam_scale)))
@@ -111,6 +107,7 @@ class Solution:
             "gamma_lin": self.options["gamma_lin"],
             "gamma_alg": self.options["gamma_alg"],
             "alg_flux": self.options["alg_flux"],
+            "initial_guess": self.options.get("initial_guess", "paper"),
             "converged": self.converged,
             "reason": self.reason,
             "newton_iterations": self.newton_iterations,
@@ -164,6 +161,24 @@ def _stopping(newton, tol, gamma_lin, gamma_alg):
     for name, g in zip(("gamma_lin", "gamma_alg"), gammas):
         check_gamma(name, g)
     return (None, *gammas)
+
+
+INITIAL_GUESSES = ("paper", "zero")
+
+
+def _initial_guess(initial_guess, disc):
+    """X^0 of `solve` as 3N finite values, or None for the paper's (g, 0, 0)."""
+    if initial_guess is None or (isinstance(initial_guess, str) and initial_guess == "paper"):
+        return None
+    if isinstance(initial_guess, str):
+        check_choice("initial guess", initial_guess, INITIAL_GUESSES)
+        return np.zeros(3 * disc.n)
+    X0 = initial_guess(disc) if callable(initial_guess) else initial_guess
+    X0 = np.asarray(X0, dtype=float)
+    if X0.shape != (3 * disc.n,) or not np.all(np.isfinite(X0)):
+        raise ValueError(f"initial_guess must be {3 * disc.n} finite values (u1, u2, lam at "
+                         f"the {disc.n} vertices), got shape {X0.shape}")
+    return X0
 
 
 def _algebraic_flux(problem, alg_flux, estimators, newton):
@@ -278,7 +293,8 @@ class IterateEstimates:
 
 def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmres",
           petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
-          estimators=True, progress=False, gamma_lin=None, gamma_alg=None, alg_flux=None):
+          estimators=True, progress=False, gamma_lin=None, gamma_alg=None, alg_flux=None,
+          initial_guess=None):
     """Solve the discrete contact problem of `problem` by semismooth Newton (DESIGN §3, §8).
 
     newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
@@ -295,7 +311,9 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     DESIGN §6 for iterates whose residual is not at round-off, 'multilevel' (default where the
     problem has levels ≥ 1) or 'nu' (ν extra iterations, default otherwise; see
     IterateEstimates); progress: True for one stderr line per Newton step, or a callable
-    taking the line.
+    taking the line; initial_guess: X^0, 'paper' (default: (g, 0, 0), DESIGN §3), 'zero', or
+    the nodal values (u1, u2, λ) as one array of 3N values or a function of the
+    discretisation returning it.
     """
     cfunctions.get(cfun)
     check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
@@ -305,6 +323,10 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     check_method(system, newton, krylov)
     tol, gamma_lin, gamma_alg = _stopping(newton, tol, gamma_lin, gamma_alg)
     alg_flux = _algebraic_flux(problem, alg_flux, estimators, newton)
+    if isinstance(initial_guess, str):
+        check_choice("initial guess", initial_guess, INITIAL_GUESSES)
+    guess_name = initial_guess if isinstance(initial_guess, str) else \
+        "paper" if initial_guess is None else "given"
     say = progress if callable(progress) else \
         (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
 
@@ -330,8 +352,9 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
                 line += f"  eta {rec['eta']:.4e}"
             say(line)
 
+    X0 = _initial_guess(initial_guess, disc)
     result = semismooth_newton(rows, problem.g, cfun=cfun, system=system, variant=newton,
-                               krylov=krylov, tol=tol, max_it=int(max_newton),
+                               krylov=krylov, tol=tol, max_it=int(max_newton), X0=X0,
                                monitor=monitor, estimate=est, gamma_lin=gamma_lin,
                                gamma_alg=gamma_alg)
     if est is not None:
@@ -343,7 +366,8 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
                     "linear_solver": linear_solver,
                     "petsc_options": {} if krylov is None else krylov.options,
                     "nu": None if krylov is None else krylov.nu,
-                    "gamma_lin": gamma_lin, "gamma_alg": gamma_alg, "alg_flux": alg_flux},
+                    "gamma_lin": gamma_lin, "gamma_alg": gamma_alg, "alg_flux": alg_flux,
+                    "initial_guess": guess_name},
                    functions=disc.functions(result.X),
                    eta_K=None if est is None else est.eta_K,
                    estimator_times=(None, None) if est is None else (est.setup_time, est.time))

@@ -40,7 +40,7 @@ import ufl
 
 from forms.equilibration import divergence, rt_mass, vector_moment, weighted_mass
 
-from .discretisation import assemble_matrix_csr, over
+from .discretisation import assemble_matrix_csr, load, over
 
 # ∫_K φ_k φ_l φ_i / |K| for barycentric φ: 1/10 (k = l = i), 1/30 (two equal), 1/60 (distinct)
 _C3 = np.empty((3, 3, 3))
@@ -301,7 +301,6 @@ class FluxEquilibration:
 
     def __init__(self, disc):
         from dolfinx import fem
-        from .problem import as_builder
         self.disc = disc
         mesh = disc.V.mesh
         space = self.space = PatchSpace(disc.V)
@@ -315,10 +314,9 @@ class FluxEquilibration:
         self.Ce = element_blocks(assemble_matrix_csr(vector_moment(ufl.TrialFunction(W), tau)),
                                  space.rt_cells, wcols)                     # ∫_K φ_k e_d · τ_j
         # Wf_α[K][i, k] = (f_α φ_k, φ_i)_K
-        x = ufl.SpatialCoordinate(mesh)
         p, q = ufl.TrialFunction(space.DG), ufl.TestFunction(space.DG)
         self.wf = [element_blocks(assemble_matrix_csr(over(
-            disc.dx_data, lambda dx: weighted_mass(as_builder(f)(x), p, q, dx))),
+            disc.dx_data, lambda dx: weighted_mass(load(f, mesh), p, q, dx))),
             space.dg_cells, space.dg_cells) for f in (disc.problem.f1, disc.problem.f2)]
         on_boundary = np.zeros(self.geo.n, dtype=bool)
         on_boundary[disc.boundary] = True

@@ -69,6 +69,36 @@ def unit_square(h, comm=MPI.COMM_WORLD):
     return _mesh_shape("square", h, comm)
 
 
+def structured_square(nx, ny, grading=1.0, comm=MPI.COMM_WORLD):
+    """(0, 1)² cut into nx × ny rectangles, each split into two right triangles (dolfinx's
+    create_unit_square), then mapped by (x, y) -> (x^p, y^p), p = `grading` ≥ 1: cells shrink
+    towards the corner (0, 0) (the smallest and largest cell sizes differ by ~ p nx^(p-1)).
+    For stiff and extreme cases (DESIGN §11): nx ≠ ny gives anisotropic cells of aspect ratio
+    about max(nx, ny)/min(nx, ny), a small nx, ny a mesh of a handful of cells."""
+    from dolfinx import mesh as dmesh
+    for name, value in (("nx", nx), ("ny", ny)):
+        if int(value) != value or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value}")
+    grading = float(grading)
+    if not (np.isfinite(grading) and grading >= 1.0):
+        raise ValueError(f"grading must be a finite number >= 1, got {grading}")
+    m = dmesh.create_unit_square(comm, int(nx), int(ny), dmesh.CellType.triangle,
+                                 dmesh.GhostMode.none)
+    m.geometry.x[:, :2] = m.geometry.x[:, :2] ** grading
+    return m
+
+
+def aspect_ratios(mesh):
+    """Longest edge over smallest altitude, h_K² / (2 |K|), of every local cell (1.15 for an
+    equilateral triangle, a/b for a right triangle with legs a ≥ b)."""
+    x = mesh.geometry.x[:, :2]
+    cells = mesh.geometry.dofmap.array.reshape(-1, 3)
+    p = x[cells[:mesh.topology.index_map(2).size_local]]
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    return cell_diameters(mesh) ** 2 / (2.0 * area)
+
+
 def read_msh(path, comm=MPI.COMM_WORLD):
     """Read a 2D triangular gmsh `.msh` file; ValueError names what is wrong with it."""
     path = os.fspath(path)

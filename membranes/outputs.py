@@ -12,6 +12,7 @@ Everything is written into a fresh temporary folder beside the target and moved 
 at the end, so an interrupted or failed run leaves nothing half-written in the output folder.
 """
 
+import contextlib
 import csv
 import json
 import math
@@ -62,6 +63,26 @@ def write_solution(path, mesh, functions, eta_K=None):
         xdmf.write_mesh(mesh)
         for f in functions:
             xdmf.write_function(f)
+
+
+@contextlib.contextmanager
+def staged_folder(out):
+    """Yield a fresh temporary folder beside `out` (one process); when the block ends without
+    an error, every file in it moves into `out` (created if missing); the temporary folder
+    goes in any case. ValueError if `out` exists and is not a folder."""
+    out = os.path.abspath(out)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ValueError(f"--out {out} exists and is not a folder")
+    parent = os.path.dirname(out)
+    os.makedirs(parent, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=".membranes-", dir=parent)
+    try:
+        yield tmp
+        os.makedirs(out, exist_ok=True)
+        for name in os.listdir(tmp):
+            os.replace(os.path.join(tmp, name), os.path.join(out, name))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def write_outputs(solution, out_dir):

@@ -29,14 +29,12 @@ matplotlib and pyvista are imported here only, when a report is asked for.
 
 import json
 import os
-import shutil
 import sys
-import tempfile
 import time
 
 import numpy as np
 
-from .outputs import write_history
+from .outputs import staged_folder, write_history
 
 METHODS = ("exact", "inexact", "adaptive")
 PEER = "snes_vi"
@@ -300,10 +298,7 @@ def write_report(problem, out, say=lambda line: None):
         raise ValueError(f"--out {out} exists and is not a folder")
     runs = run_methods(problem, say)
     peer, peer_records = run_peer(problem, say)
-    parent = os.path.dirname(out)
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=".membranes-report-", dir=parent)
-    try:
+    with staged_folder(out) as tmp:
         curves = [dict(r, method=method) for method, sol in runs.items() for r in sol.history
                   if r["kind"] != "krylov"] + peer_records
         write_history(os.path.join(tmp, "error_vs_time.csv"), curves,
@@ -319,11 +314,6 @@ def write_report(problem, out, say=lambda line: None):
         contact_zone(runs["adaptive"], os.path.join(tmp, "contact"))
         with open(os.path.join(tmp, "report.md"), "w") as f:
             f.write(markdown(problem, runs, rows, cells))
-        os.makedirs(out, exist_ok=True)
-        for name in os.listdir(tmp):
-            os.replace(os.path.join(tmp, name), os.path.join(out, name))
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return runs, rows
 
 

@@ -101,9 +101,15 @@ def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
 SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
 
 
-def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
-    """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone."""
+def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, mesh=None):
+    """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
+    `mesh`: a dolfinx mesh of (0, 1)² to use instead of gmsh's at size h (API only: the
+    anisotropic, graded and tiny meshes of DESIGN §11, meshes.structured_square)."""
     levels = _check_levels(levels)
+    if mesh is not None:
+        x = mesh.geometry.x[:, :2]
+        if abs(x.min()) > 1e-12 or abs(x.max() - 1.0) > 1e-12:
+            raise ValueError("the square scene's mesh must cover the unit square (0, 1)^2")
     mu1, mu2, g, s0, lam0 = (SQUARE[k] for k in ("mu1", "mu2", "g", "s0", "lam0"))
 
     def s(x):
@@ -128,7 +134,8 @@ def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
     def interface(p):
         return 16 * p[0] * (1 - p[0]) * p[1] * (1 - p[1]) - s0
 
-    hierarchy = build_hierarchy(meshes.unit_square(h, comm), levels)
+    coarse = meshes.unit_square(h, comm) if mesh is None else mesh
+    hierarchy = build_hierarchy(coarse, levels)
     return Problem("square", hierarchy, mu1, mu2, g, f1, f2,
                    exact=ExactSolution(u1, u2, lam), interface=interface,
                    description="unit square, mu1 = 1, mu2 = 2, g = 0.1, manufactured solution "
