@@ -145,6 +145,28 @@ def with_diagonal(A):
                          shape=A.shape)
 
 
+SHELL_PCS = ("vertex_amg",)
+
+
+def _petsc_side(options):
+    options = {k: v for k, v in options.items() if not k.startswith("vamg_")}
+    if options.get("pc_type") in SHELL_PCS:
+        options["pc_type"] = "none"
+    return options
+
+
+def _shell(ksp, A, options):
+    if options.get("pc_type") not in SHELL_PCS:
+        return None
+    from .preconditioner import VertexAMG
+    amg = {k[5:]: v for k, v in options.items() if k.startswith("vamg_")} or None
+    ctx = VertexAMG(A.tocsr(), amg)
+    pc = ksp.getPC()
+    pc.setType("python")
+    pc.setPythonContext(ctx)
+    return ctx
+
+
 @dataclass
 class Krylov:
     """A PETSc Krylov solver: `options` (the user's `petsc_options` on top of DEFAULT_OPTIONS,
@@ -164,7 +186,7 @@ class Krylov:
         self.options = _checked_options(self.petsc_options)
         ksp = PETSc.KSP().create(PETSc.COMM_SELF)
         try:
-            _configure(ksp, self.options)
+            _configure(ksp, _petsc_side(self.options))
         finally:
             ksp.destroy()
 
@@ -182,7 +204,8 @@ class Krylov:
         ksp = PETSc.KSP().create(PETSc.COMM_SELF)
         try:
             ksp.setOperators(M)
-            _configure(ksp, self.options)
+            _configure(ksp, _petsc_side(self.options))
+            _shell(ksp, A, self.options)
             ksp.setTolerances(max_it=self.max_linear_its)
             ksp.setInitialGuessNonzero(True)
             bound = tol * scale
