@@ -69,6 +69,7 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from .linear_solve import LinearSolveError, petsc_matrix
+from .preconditioner import INNER_PREFIX, VertexAMG
 
 DEFAULT_OPTIONS = {"ksp_type": "gmres", "pc_type": "ilu", "ksp_pc_side": "right",
                    "ksp_norm_type": "unpreconditioned"}
@@ -145,26 +146,33 @@ def with_diagonal(A):
                          shape=A.shape)
 
 
-SHELL_PCS = ("vertex_amg",)
+def _split_options(options):
+    """(options for the KSP, options of the vertex-block AMG or None): `pc_type vertex_amg`
+    becomes `pc_type none` for PETSc (the Python PC is installed per solve, `_install`), and
+    the `vertex_amg_*` options go to its inner PC without their prefix."""
+    inner = {name[len(INNER_PREFIX):]: value for name, value in options.items()
+             if name.startswith(INNER_PREFIX)}
+    outer = {name: value for name, value in options.items() if not name.startswith(INNER_PREFIX)}
+    if outer.get("pc_type") != "vertex_amg":
+        if inner:
+            raise ValueError(f"PETSc option -{INNER_PREFIX}{next(iter(inner))} needs "
+                             "-pc_type vertex_amg")
+        return outer, None
+    outer["pc_type"] = "none"
+    return outer, inner
 
 
-def _petsc_side(options):
-    options = {k: v for k, v in options.items() if not k.startswith("vamg_")}
-    if options.get("pc_type") in SHELL_PCS:
-        options["pc_type"] = "none"
-    return options
-
-
-def _shell(ksp, A, options):
-    if options.get("pc_type") not in SHELL_PCS:
-        return None
-    from .preconditioner import VertexAMG
-    amg = {k[5:]: v for k, v in options.items() if k.startswith("vamg_")} or None
-    ctx = VertexAMG(A.tocsr(), amg)
+def _install(ksp, A, inner):
+    """The vertex-block AMG of A as the KSP's (Python) PC; PETSc frees it with the KSP."""
+    try:
+        context = VertexAMG(A, inner)
+    except PETSc.Error as e:
+        raise ValueError(f"PETSc options of vertex_amg: {_petsc_message(e)}") from None
+    except ValueError as e:        # not the eliminated system: the Newton run reports it
+        raise LinearSolveError(str(e)) from None
     pc = ksp.getPC()
-    pc.setType("python")
-    pc.setPythonContext(ctx)
-    return ctx
+    pc.setType(PETSc.PC.Type.PYTHON)
+    pc.setPythonContext(context)
 
 
 @dataclass
@@ -176,6 +184,8 @@ class Krylov:
     nu: int = DEFAULT_NU
     max_linear_its: int = DEFAULT_MAX_LINEAR_ITS
     options: dict = field(init=False)
+    _petsc: dict = field(init=False, repr=False)
+    _vertex_amg: dict = field(init=False, repr=False)
 
     def __post_init__(self):
         for name in ("nu", "max_linear_its"):
@@ -184,9 +194,12 @@ class Krylov:
                 raise ValueError(f"{name} must be a positive integer, got {value}")
             setattr(self, name, int(value))
         self.options = _checked_options(self.petsc_options)
+        self._petsc, self._vertex_amg = _split_options(self.options)
         ksp = PETSc.KSP().create(PETSc.COMM_SELF)
         try:
-            _configure(ksp, _petsc_side(self.options))
+            _configure(ksp, self._petsc)
+            if self._vertex_amg is not None:      # check the inner options on a 2 x 2 system
+                _install(ksp, sp.identity(2, format="csr"), self._vertex_amg)
         finally:
             ksp.destroy()
 
@@ -204,8 +217,9 @@ class Krylov:
         ksp = PETSc.KSP().create(PETSc.COMM_SELF)
         try:
             ksp.setOperators(M)
-            _configure(ksp, _petsc_side(self.options))
-            _shell(ksp, A, self.options)
+            _configure(ksp, self._petsc)
+            if self._vertex_amg is not None:
+                _install(ksp, A, self._vertex_amg)
             ksp.setTolerances(max_it=self.max_linear_its)
             ksp.setInitialGuessNonzero(True)
             bound = tol * scale
