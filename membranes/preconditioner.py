@@ -1,0 +1,163 @@
+"""Vertex-block AMG: a mesh-independent preconditioner for the eliminated 2N Newton system
+(DESIGN §3; `Krylov` option ``pc_type vertex_amg``).
+
+**The system.** The eliminated system Ã Y = b (newton_system) has unknowns Y = (u1, z), one
+pair per vertex l: z_l = u2_l where λ_l was eliminated (|β_l| ≥ |α_l|: "free" vertices),
+z_l = λ_l where u2_l was (|β_l| < |α_l|: "contact" vertices). Its rows are the two membrane
+rows of every vertex, r1_l = μ1 (S u1)_l - D_l λ_l and r2_l = μ2 (S u2)_l + D_l λ_l, with
+
+    free:     λ_l = c_l (u2 - u1)_l + const,   c_l = α_l/β_l   (0 for min, in [0, 1] for fb)
+    contact:  u2_l = u1_l + d_l λ_l + const,   d_l = β_l/α_l   (0 for min, in [0, 1) for fb).
+
+Written in (u1, u2) only, it is the SPD system of two membranes tied by a spring of stiffness
+p_l = c_l D_l (free) or D_l/d_l (contact; p = ∞ for min: u1 = u2 there). In the mean
+m = (μ1 u1 + μ2 u2)/(μ1 + μ2) and the gap δ = u2 - u1 it falls apart exactly (the cross terms
+of μ1|∇u1|² + μ2|∇u2|² cancel): (μ1 + μ2) S m = f1 + f2 and (μ̄ S + diag p) δ = ...,
+μ̄ = μ1μ2/(μ1 + μ2). Both are Laplacians plus a nonnegative reaction: AMG's home ground, for any
+p from 0 to ∞. ILU(0) on Ã, in contrast, needs O(1/h) GMRES iterations per Newton step (the
+paper's GMRES counts, DESIGN §8, grow the same way).
+
+**The preconditioner** gets that structure from Ã alone, without μ_α, c, d or the row scaling:
+
+1. Vertex blocks. B = the 2×2 blocks Ã[(l, N+l), (l, N+l)]; Â = B⁻¹ Ã. Any scaling or mixing of
+   the two rows of a vertex (e.g. block α scaled by 1/μ_α) cancels in B⁻¹ Ã: Â, and so the
+   preconditioner, does not depend on it. At a contact vertex, B⁻¹ sums the two rows (λ_l
+   drops out: the "mean" row of the glued membranes) and keeps one row that gives λ_l.
+2. Slaves. A z-column with entries only in its own vertex's rows (λ_l at a min contact vertex:
+   d_l = 0) is the identity column in Â: that λ_l appears in no other row, and
+   Â = [[K, 0], [X, I]] over (others, slaves). Solve K, then λ_slaves = rhs - X y.
+3. Gap scaling. At a contact vertex with d_l > 0 (fb), λ_l enters the neighbours' second rows
+   through u2 = u1 + d_l λ_l, and its row of Â has couplings of size 1/d_l (up to 570 times the
+   diagonal, measured: disk, 6k vertices, fb step 5): BoomerAMG broke down (GMRES on K alone,
+   step 3). With the gap d_l λ_l as unknown (a diagonal similarity K → Ds K Ds⁻¹, Ds = d on
+   those columns, 1 elsewhere) the row is the gap's reaction–diffusion row again, diagonally
+   dominant, and BoomerAMG converges (6–21 iterations on K alone at every step). d_l is read
+   off Ã: in any second-block row N+m of a neighbour m, the u1_l and z_l entries are
+   ρ μ2 S_ml and ρ μ2 d_l S_ml (ρ the row's scale), so d_l = their ratio, whatever ρ.
+4. One V-cycle of hypre BoomerAMG (PETSc defaults) on Ds K Ds⁻¹ per application.
+
+The preconditioner is M⁻¹ r = block-triangular solve of Â with AMG for K, applied to B⁻¹ r.
+The set-up is a few sparse products and one BoomerAMG set-up per Newton step.
+
+**Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
+bench_preconditioner.py; BENCHMARKS.md has the table): GMRES iterations per Newton step, mean
+over the steps, min | fb:
+
+    vertices          1.5k       6k         24k        (see BENCHMARKS.md for 1e4 … 6.6e5)
+    ILU(0)         51 | 40    103 | 79    255 | 179
+    vertex_amg    7.4 | 7.1   8.1 | 8.1   8.5 | 8.9
+
+Inner options: ``vertex_amg_<option>`` goes to the inner PC as ``<option>`` (e.g.
+``vertex_amg_pc_type gamg``, ``vertex_amg_pc_hypre_boomeramg_strong_threshold 0.5``); the
+default is ``pc_type hypre`` (BoomerAMG). GAMG and ML were tried on K: 2–20 times more
+iterations than BoomerAMG on the fb systems.
+
+Only the eliminated system has this pairing of rows and unknowns per vertex; on the full 3N
+system the vertex blocks are meaningless, and a singular one is refused (ValueError).
+"""
+
+import numpy as np
+import scipy.sparse as sp
+from petsc4py import PETSc
+
+from .linear_solve import petsc_matrix
+
+INNER_PREFIX = "vertex_amg_"
+DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg"}
+
+_prefixes = iter(range(1 << 62))
+
+
+def vertex_blocks_inverse(A):
+    """B⁻¹ as a sparse 2N × 2N matrix, B the 2×2 blocks of the vertices (rows and columns l and
+    N + l); ValueError if one is singular or A is not 2N × 2N."""
+    if A.shape[0] != A.shape[1] or A.shape[0] % 2:
+        raise ValueError(f"vertex_amg needs the eliminated 2N x 2N system, got {A.shape}")
+    n = A.shape[0] // 2
+    a, d = A.diagonal()[:n], A.diagonal()[n:]
+    b, c = A.diagonal(n), A.diagonal(-n)
+    det = a * d - b * c
+    scale = np.maximum(np.abs(a * d), np.abs(b * c))
+    if not np.all(np.abs(det) > 1e-12 * scale) or not np.all(np.isfinite(det)):
+        raise ValueError("vertex_amg: a singular 2x2 vertex block (it needs the eliminated "
+                         "system, system='eliminated')")
+    return sp.bmat([[sp.diags(d / det), sp.diags(-b / det)],
+                    [sp.diags(-c / det), sp.diags(a / det)]], format="csr")
+
+
+def slaves(A):
+    """z-unknowns (as a mask over the N vertices) whose column of A has entries only in the
+    two rows of their own vertex."""
+    n = A.shape[0] // 2
+    C = A[:, n:].tocoo()
+    foreign = (C.row % n != C.col) & (C.data != 0)
+    touched = np.zeros(n, dtype=bool)
+    touched[C.col[foreign]] = True
+    return ~touched
+
+
+def gap_scales(A):
+    """d_l where u2_l = u1_l + d_l z_l + const (z_l = λ_l), read off the second block's rows of
+    the neighbours (module notes, 3.); 1 where u2_l does not depend on u1_l (z_l = u2_l)."""
+    n = A.shape[0] // 2
+    B = A[n:].tocoo()
+    foreign = B.row != B.col % n
+    u1, z = foreign & (B.col < n), foreign & (B.col >= n)
+    on_u1 = np.bincount(B.col[u1], B.data[u1], minlength=n)
+    on_z = np.bincount(B.col[z] - n, B.data[z], minlength=n)
+    gap = on_u1 != 0
+    return np.where(gap, on_z / np.where(gap, on_u1, 1.0), 1.0)
+
+
+class VertexAMG:
+    """The preconditioner of the module notes for the 2N × 2N scipy matrix A, as a petsc4py
+    Python PC context (`apply`); `inner` are the options of the PC on K."""
+
+    def __init__(self, A, inner=None):
+        A = sp.csr_matrix(A)
+        n = A.shape[0] // 2
+        self.B_inv = vertex_blocks_inverse(A)
+        A_hat = (self.B_inv @ A).tocsr()
+        slave = np.zeros(2 * n, dtype=bool)
+        slave[n:] = slaves(A)
+        self.keep, self.slave = np.flatnonzero(~slave), np.flatnonzero(slave)
+        d = gap_scales(A)
+        scale = np.ones(2 * n)
+        scale[n:] = np.where(slave[n:] | (d == 0), 1.0, np.abs(d))
+        self.scale = scale[self.keep]
+        kept = A_hat[self.keep]
+        K = sp.diags(self.scale) @ kept[:, self.keep] @ sp.diags(1.0 / self.scale)
+        self.X = A_hat[self.slave][:, self.keep].tocsr()
+        self.K = petsc_matrix(K.tocsr())
+        self.pc = PETSc.PC().create(PETSc.COMM_SELF)
+        self.pc.setOperators(self.K)
+        options = dict(DEFAULT_INNER if inner is None or "pc_type" not in inner else {})
+        options.update(inner or {})
+        prefix = f"membranes_vamg_{next(_prefixes)}_"
+        database = PETSc.Options()
+        for name, value in options.items():
+            database[prefix + name] = value
+        self.pc.setOptionsPrefix(prefix)
+        try:
+            self.pc.setFromOptions()
+        finally:
+            for name in options:
+                database.delValue(prefix + name)
+        self.pc.setUp()
+        self.rhs, self.sol = self.K.createVecs()
+
+    def apply(self, pc, x, y):
+        """y = M⁻¹ x."""
+        s = self.B_inv @ x.array_r
+        self.rhs.array[:] = s[self.keep] * self.scale
+        self.pc.apply(self.rhs, self.sol)
+        kept = self.sol.array_r / self.scale
+        out = np.empty_like(s)
+        out[self.keep] = kept
+        out[self.slave] = s[self.slave] - self.X @ kept
+        y.array[:] = out
+
+    def destroy(self, pc=None):
+        """Free the PETSc objects (petsc4py calls this when the outer PC is destroyed)."""
+        for obj in (self.pc, self.K, self.rhs, self.sol):
+            obj.destroy()

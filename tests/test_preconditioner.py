@@ -1,0 +1,128 @@
+"""The vertex-block AMG preconditioner (membranes.preconditioner, `pc_type vertex_amg`) on the
+eliminated 2N system: the same discrete solution as the default ILU(0), GMRES iterations per
+Newton step that do not grow with the mesh, independence of the row scaling, and refusal of
+what it cannot precondition.
+
+"Same solution": both runs solve every Newton step to ‖R_alg‖/‖B‖ ≤ 2e-12 and stop Newton at
+‖R_lin‖/‖(F, 0)‖ ≤ 1e-10, so the two final iterates differ by what the two linear residuals
+leave, amplified by the condition of the Newton matrix (λ_l moves by about R_l / D_l,
+D_l ~ h²): 1e-9 relative, as for GMRES against MUMPS in test_krylov.
+"""
+
+import functools
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from membranes import newton_system as ns
+from membranes import solve
+from membranes.krylov import Krylov
+from membranes.linear_solve import solve_direct
+from membranes.newton import EXACT_LINEAR_TOL, linear_step
+from membranes.preconditioner import VertexAMG, gap_scales, slaves
+
+from .conftest import scene
+
+VAMG = (("pc_type", "vertex_amg"),)
+
+
+def _its(run):
+    return [rec["linear_it"] for rec in run.history if rec["kind"] == "newton"]
+
+
+@functools.lru_cache(maxsize=None)
+def _run(h, cfun, options=(), levels=0, system="eliminated"):
+    """A cached disk solve; options: PETSc options as a tuple of pairs (() for ILU(0))."""
+    return solve(scene("disk", h, levels=levels), cfun=cfun, system=system, estimators=False,
+                 petsc_options=dict(options) or None)
+
+
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_same_solution_as_ilu(cfun):
+    ref = _run(0.05, cfun)
+    run = _run(0.05, cfun, VAMG)
+    assert run.converged and ref.converged, run.reason
+    assert run.newton_iterations == ref.newton_iterations
+    assert np.linalg.norm(run.X - ref.X) <= 1e-9 * np.linalg.norm(ref.X)
+    assert all(rec["alg_residual"] <= EXACT_LINEAR_TOL
+               for rec in run.history if rec["kind"] == "newton")
+    assert max(_its(run)) < 30 and np.mean(_its(ref)) > 3 * np.mean(_its(run))
+
+
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_iterations_do_not_grow_with_the_mesh(cfun):
+    """Disk h = 0.1 refined 0 and 2 times (411 and ~6k vertices, h / 4). An AMG V-cycle
+    contracts at a rate independent of h on the glued Laplacians behind the system (module
+    notes), so GMRES needs a bounded number of iterations per Newton step; ILU(0)'s grow
+    like 1/h (×4 here: it is checked to grow at least ×2, so that the test can tell).
+    The bound is on the mean over the Newton steps: fb's worst step (the third or fourth,
+    where the gap scales d_l are of order 0.1 to 0.01 all over the contact zone) grows from
+    9 to 21 iterations here (23 at 1e4 vertices, BENCHMARKS.md), min's does not (9 and 9)."""
+    coarse, fine = (_run(0.1, cfun, VAMG, levels) for levels in (0, 2))
+    ilu = [_run(0.1, cfun, (), levels) for levels in (0, 2)]
+    assert coarse.converged and fine.converged and all(r.converged for r in ilu)
+    assert fine.disc.n > 12 * coarse.disc.n
+    assert np.mean(_its(fine)) <= 1.5 * np.mean(_its(coarse))
+    assert max(_its(fine)) <= (1.5 if cfun == "min" else 3) * max(_its(coarse))
+    assert np.mean(_its(ilu[1])) >= 2 * np.mean(_its(ilu[0]))
+
+
+@functools.lru_cache(maxsize=None)
+def _steps(cfun, count):
+    """The first `count` eliminated Newton systems of the disk, h = 0.05 (direct solves), each
+    with the vertices where u2 was eliminated (|β| < |α|) and β/α there."""
+    rows = ns.linear_rows(_run(0.05, cfun).disc)
+    X, steps = ns.initial_guess(rows, 0.05), []
+    for _ in range(count):
+        alpha, beta, _ = ns.complementarity_rows(rows, cfun, X)
+        contact = np.abs(beta) < np.abs(alpha)
+        step = linear_step(rows, cfun, "eliminated", X)
+        steps.append((step, contact, np.where(contact, beta / np.where(contact, alpha, 1), 0)))
+        X = step.expand(solve_direct(step.A, step.b)[0])
+    return steps
+
+
+def test_independent_of_row_scaling():
+    """Scaling the two rows of each vertex (here by random factors in [0.01, 100], more than
+    the 1/μ_α and κ scalings) leaves B⁻¹Ã, hence the preconditioned iteration, unchanged."""
+    krylov = Krylov(dict(VAMG))
+    rng = np.random.default_rng(0)
+    for step, _, _ in _steps("fb", 4)[1:]:
+        R = sp.diags(10.0 ** rng.uniform(-2, 2, step.A.shape[0]))
+        plain = krylov.solve(step.A, step.b, step.guess, 1e-10, np.linalg.norm(step.b))
+        scaled = krylov.solve((R @ step.A).tocsr(), R @ step.b, step.guess, 1e-10,
+                              np.linalg.norm(R @ step.b))
+        assert abs(plain[2] - scaled[2]) <= 1
+        assert np.linalg.norm(plain[0] - scaled[0]) <= 1e-8 * np.linalg.norm(plain[0])
+
+
+def test_slaves_and_gap_scales():
+    """min: the multipliers of contact vertices are slaves (u2 = u1 there, d = 0); fb: none
+    are, and d_l = β_l/α_l where u2 was eliminated, read off the matrix (1 elsewhere)."""
+    step, contact, _ = _steps("min", 3)[2]
+    assert contact.any() and np.array_equal(slaves(step.A), contact)
+    step, contact, ratio = _steps("fb", 4)[2]
+    assert contact.any() and not slaves(step.A).any()
+    d = gap_scales(step.A)
+    assert np.allclose(d[contact], ratio[contact], rtol=1e-10)
+    assert np.all(d[~contact] == 1.0)
+
+
+def test_refuses_what_is_not_the_eliminated_system():
+    with pytest.raises(ValueError, match="eliminated"):
+        VertexAMG(sp.identity(3, format="csr"))
+    singular = sp.csr_matrix(np.array([[1.0, 0, 1, 0], [0, 1, 0, 1], [1, 0, 1, 0], [0, 1, 0, 1]]))
+    with pytest.raises(ValueError, match="singular"):
+        VertexAMG(singular)
+    run = _run(0.1, "min", VAMG, system="full")
+    assert not run.converged and "eliminated" in run.reason
+
+
+def test_inner_options():
+    with pytest.raises(ValueError, match="needs -pc_type vertex_amg"):
+        Krylov({"vertex_amg_pc_type": "gamg"})
+    with pytest.raises(ValueError, match="vertex_amg"):
+        Krylov({**dict(VAMG), "vertex_amg_pc_type": "no_such_pc"})
+    run = _run(0.1, "min", VAMG + (("vertex_amg_pc_type", "gamg"),))
+    assert run.converged, run.reason
