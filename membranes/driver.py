@@ -321,6 +321,10 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
         raise ValueError(f"max_newton must be at least 1, got {max_newton}")
     krylov = _krylov(linear_solver, petsc_options, nu, max_linear_its)
     check_method(system, newton, krylov)
+    if krylov is not None and krylov.options.get("pc_type") == "vertex_amg" and \
+            system != "eliminated":
+        raise ValueError("pc_type vertex_amg preconditions the eliminated system only "
+                         "(system='eliminated', --system eliminated)")
     tol, gamma_lin, gamma_alg = _stopping(newton, tol, gamma_lin, gamma_alg)
     alg_flux = _algebraic_flux(problem, alg_flux, estimators, newton)
     if isinstance(initial_guess, str):

@@ -26,6 +26,34 @@ MUMPS (`krylov=None`) or by a Krylov solver (`krylov.Krylov`). Variants (DESIGN 
   iterate needs no algebraic flux. Newton stops at the first X^k (k ≥ 1) with
   η_lin ≤ γ_lin η_disc (`newton_criterion`); `converged` means that this criterion was met.
 
+**Robustness (DESIGN §11).** Residuals are measured in units of the data (newton_system:
+rows of membrane α weighted by 1/μ_α, the C-function on (u1 - u2, κ λ)), and so are the
+tolerances: ‖W R_lin‖/‖W F‖ ≤ tol, ‖W R_alg‖/‖W B‖ ≤ 2e-12 for exact solves.
+
+* Fischer–Burmeister (exact and inexact variants) takes the Newton step with a nonmonotone
+  Armijo line search on the merit θ = ½‖W R_lin‖² (continuously differentiable for FB, with
+  ∇θ·d = -2θ along an exact Newton direction d): t = 1, 1/2, ... until
+  θ(X + t d) ≤ max(θ of the last LS_MEMORY = 5 Newton iterates) - 2σ t θ(X), σ = 1e-4. The
+  nonmonotone reference keeps the full steps that make FB Newton fast (the monotone test
+  damped 5 of 16 steps on the radial scene and added 5 steps); if no t ≥ 2^-20 qualifies,
+  the full step is taken (the plain method is the fallback, not a stop). A damped iterate
+  X_t = X + t d is recorded with its residual in the step's system,
+  B - A X_t = (1 - t) R_lin(X) + t R (DESIGN §4), and its `step_length` t.
+* Newton-min has no merit function to descend (min is not differentiable), and with exact
+  solves it is the primal–dual active set method, which can cycle (active sets that repeat;
+  possible for P-matrices that are not M-matrices, e.g. obtuse meshes or a far-off start).
+  The guard: before each step the active set {u1 - u2 ≤ κ λ} is compared with those of the
+  earlier iterates; if it came back without the residual falling below 0.999 of its value
+  at the earlier visit (a cycle), or, for the inexact variant, if the residual exceeds 1e6
+  times the smallest so far (divergence: seen, up to 1e62, with 10 GMRES + ILU(0) steps per
+  Newton step on a 100:1 anisotropic mesh; with exact solves the iterates are determined by
+  the finitely many active sets and cannot diverge, while jumps of 1e3 are normal there, as
+  on that mesh), the run continues with
+  Fischer–Burmeister and its line search (same solution set: both C-functions vanish exactly
+  at the solutions). The switch is named in `reason` and in each record's `cfun`.
+* The adaptive variant takes the accepted Krylov iterate as it is (Algorithm 1): its
+  estimates certify that iterate, and a damped one would need estimates of its own.
+
 Non-convergence is reported, never hidden: the result carries `converged = False` and a
 reason, when max_it Newton steps do not meet the stopping test or when a Krylov solve stops
 (at max_linear_its) before its own test or criterion.
@@ -71,6 +99,8 @@ LS_MIN_STEP = 2.0 ** -20       # smallest step length tried
 LS_MEMORY = 5                  # the nonmonotone reference: the last 5 Newton iterates
 CYCLE_PROGRESS = 0.999         # a repeated active set counts as a cycle unless the residual
                                # fell below this fraction of its value at the earlier visit
+DIVERGENCE = 1e6               # ... and (inexact) a residual this many times its smallest
+                               # value so far as divergence
 
 
 @dataclass
@@ -290,11 +320,18 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         if state["cfun"] == "min" and not adaptive:
             signature = active_set(rows, X)
             earlier = seen.get(signature)
+            best = min(r for _, r in seen.values()) if seen else rec["residual"]
+            why = None
             if earlier is not None and rec["residual"] >= CYCLE_PROGRESS * earlier[1]:
+                why = (f"cycled (the active set of step {earlier[0]} came back at step {k - 1} "
+                       f"without progress)")
+            elif variant == "inexact" and rec["residual"] > DIVERGENCE * best:
+                why = (f"diverged (residual {rec['residual']:.1e} at step {k - 1}, "
+                       f"{DIVERGENCE:.0e} times its smallest value {best:.1e})")
+            if why is not None:
                 state["cfun"] = "fb"
-                state["note"] = (f"; Newton-min cycled (the active set of step {earlier[0]} came "
-                                 f"back at step {k - 1} without progress), continued from step "
-                                 f"{k} with Fischer-Burmeister and its line search")
+                state["note"] = (f"; Newton-min {why}, continued from step {k} with "
+                                 f"Fischer-Burmeister and its line search")
                 rec["residual"] = rows.relative_residual("fb", X)
             else:
                 seen[signature] = (k - 1, rec["residual"])

@@ -1,8 +1,11 @@
 """The stability matrix of DESIGN §11: `membranes stability --out DIR`.
 
-Every case class of DESIGN §11 is run with both C-functions and the three Newton variants
-(exact Newton with MUMPS and with GMRES + ILU(0), inexact and adaptive inexact Newton with
-GMRES), and one row per run goes to ``stability.csv`` and ``stability.md``: converged, Newton
+Every case class of DESIGN §11 is run with both C-functions and the three Newton variants:
+exact Newton with MUMPS on the full system; exact, inexact and adaptive inexact Newton with
+GMRES + ILU(0) on the full system (the paper's solver) and with GMRES + vertex_amg on the
+eliminated system (membranes.preconditioner), at most MAX_LINEAR_ITS = 2000 GMRES iterations
+per Newton step. Method names read C-function/variant/solver (mumps, ilu, amg). One row per
+run goes to ``stability.csv`` and ``stability.md``: converged, Newton
 and linear iterations, the final relative residual (newton_system: in units of the data),
 the complementarity violation relative to the data (Solution.complementarity_violation), the
 scale-invariance defect where the case is a scaled copy of another, the effectivity index
@@ -43,9 +46,17 @@ import numpy as np
 
 from .outputs import staged_folder
 
-METHODS = (("min", "exact", "direct"), ("min", "exact", "gmres"), ("min", "inexact", "gmres"),
-           ("min", "adaptive", "gmres"), ("fb", "exact", "direct"), ("fb", "exact", "gmres"),
-           ("fb", "inexact", "gmres"), ("fb", "adaptive", "gmres"))
+# linear solvers: MUMPS on the full system (exact Newton only), GMRES + ILU(0) on the full
+# system (the paper's), GMRES + vertex_amg on the eliminated system (membranes.preconditioner)
+SOLVERS = {"mumps": {"linear_solver": "direct", "system": "full"},
+           "ilu": {"linear_solver": "gmres", "system": "full"},
+           "amg": {"linear_solver": "gmres", "system": "eliminated",
+                   "petsc_options": {"pc_type": "vertex_amg"}}}
+METHODS = tuple((cfun, newton, solver) for cfun in ("min", "fb")
+                for newton, solver in (("exact", "mumps"), ("exact", "ilu"), ("inexact", "ilu"),
+                                       ("adaptive", "ilu"), ("exact", "amg"),
+                                       ("inexact", "amg"), ("adaptive", "amg")))
+MAX_LINEAR_ITS = 2000     # per Newton step: bounds the time a stagnating GMRES may take
 COLUMNS = ("case", "class", "method", "converged", "newton_iterations", "linear_iterations",
            "final_residual", "complementarity_violation", "scale_defect", "same_counts",
            "effectivity", "energy_error", "eta", "wall_time_s", "description", "reason")
@@ -155,8 +166,11 @@ def run_case(case, h=DEFAULT_H, methods=METHODS, say=lambda line: None):
     out = {}
     for cfun, newton, solver in methods:
         t = time.perf_counter()
-        sol = solve(problem, newton=newton, cfun=cfun, linear_solver=solver,
-                    initial_guess=case.initial_guess)
+        options = dict(SOLVERS[solver])
+        if options["linear_solver"] == "gmres":
+            options["max_linear_its"] = MAX_LINEAR_ITS
+        sol = solve(problem, newton=newton, cfun=cfun, initial_guess=case.initial_guess,
+                    **options)
         seconds = time.perf_counter() - t
         out[method_name(cfun, newton, solver)] = (sol, seconds)
         say(f"stability: {case.name:14s} {method_name(cfun, newton, solver):22s} "
