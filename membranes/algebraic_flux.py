@@ -190,10 +190,18 @@ class MultilevelFlux:
                 pi[bad] = np.arange(3)
             for r in np.unique(rep):
                 members = np.flatnonzero(rep == r)
-                groups.append(self._translates(space, CF[members], KF[members],
-                                               pi[members], on_boundary[verts[r]],
-                                               members == r))
-        return groups
+                groups.append((CF[members], KF[members], pi[members],
+                               on_boundary[verts[r]], members == r))
+        # the element blocks of the representatives' cells, in one pass over the level
+        reps = np.concatenate([g[0][g[4]][0] for g in groups])
+        cells, inverse = np.unique(reps, return_inverse=True)
+        Me, Be = space.element_blocks(cells)
+        out, start = [], 0
+        for g in groups:
+            idx = inverse[start:start + g[0].shape[1]]
+            start += g[0].shape[1]
+            out.append(self._translates(space, *g, blocks=(Me[idx], Be[idx])))
+        return out
 
     @staticmethod
     def _vertex_match(xv, xr, scale, tol=1e-9):
@@ -208,9 +216,10 @@ class MultilevelFlux:
         pi[~ok] = -1
         return pi
 
-    def _translates(self, space, CF, KF, pi, boundary, is_rep):
+    def _translates(self, space, CF, KF, pi, boundary, is_rep, blocks):
         """One group of patches (cells CF (P, m) in canonical order, the local index KF of a in
-        each cell's parent, vertex matches pi to the representative, is_rep marks it): the
+        each cell's parent, vertex matches pi to the representative, is_rep marks it, blocks
+        the element blocks (Me, Be) of its cells): the
         representative's solution operator and every patch's change of basis.
 
         With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
@@ -228,9 +237,8 @@ class MultilevelFlux:
         RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)    # (P, nr)
         nr = RET.shape[1]
         loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, m, 8)
-        Me, Be = space.element_blocks(CF[r])
         _, _, A = space.saddle_point_systems(CF[r:r + 1], glob[r:r + 1], boundary,
-                                             blocks=(Me[None], Be[None]))
+                                             blocks=(blocks[0][None], blocks[1][None]))
         nq = 3 * m
         E = np.zeros((A.shape[1], nq))
         E[nr:nr + nq] = np.eye(nq)

@@ -353,7 +353,11 @@ class FluxEquilibration:
         for verts, CS, KA in vertex_patches(self.geo):
             for sel, RET, loc, A in space.patch_groups(CS, on_boundary[verts], self.CHUNK):
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A)
-        del self.Ce
+        # what the evaluation does not need goes: the element blocks and the load moments
+        # (kept summed, (f_α, φ_i)_K, for the oscillation estimator)
+        self.load = [wf.sum(axis=2) for wf in self.wf]
+        del self.Ce, self.wf
+        space.Me = space.Be = None
 
     def _solve_patches(self, verts, CS, KA, RET, loc, A):
         """The right-hand sides of P patch problems of one shape as linear maps of the data,
