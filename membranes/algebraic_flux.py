@@ -250,7 +250,7 @@ class MultilevelFlux:
         # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
         # W[c, l, k] ≠ 0 (at most two: the dofs of one entity), at the rep's local numbers
         lr = loc[r]                                                           # (m, 8)
-        L = np.zeros((P, nr, 2), dtype=np.int32)
+        L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
         C = np.zeros((P, nr, 2), dtype=np.int8)
         top = np.argsort(-np.abs(W), axis=2, kind="stable")[:, :, :2, :]      # (P, m, 2, 8)
         coef = np.take_along_axis(W, top, axis=2)
@@ -269,7 +269,8 @@ class MultilevelFlux:
         # pi[c, i] = i', so the rep's moment i' is the patch's moment at i with pi[i] = i'
         inv = np.argsort(pi, axis=2)                                          # i for each i'
         G = ((CF[:, :, None] * 3 + KF[:, :, None]) * 3 + inv).reshape(P, nq)
-        return S, G.astype(np.int64), RET.astype(np.int32), L, C
+        return S, G.astype(np.int32 if G.max() < 2 ** 31 else np.int64), \
+            RET.astype(np.int32), L, C
     def _triple(self, r, a, b):
         """t[L, k, i] = (r φ^{T_a}_k, φ^{T_b}_i)_L on every cell L of T_J, for r ∈ DG1(T_J)
         (ncells, 3) and φ^{T_a}_k, φ^{T_b}_i the barycentric functions of the level-a and
@@ -313,13 +314,15 @@ class MultilevelFlux:
         for j in range(1, self.J + 1):
             space = self.spaces[j]
             m = self._moments(j, r, grad_rho0)
-            sigma = np.zeros(space.nrt)
             flat = m.ravel()
+            dofs, values = [], []
             for S, G, RET, L, C in self.levels[j]:
                 sr = flat[G] @ S.T                                            # (P, nr)
                 rows = np.arange(len(G))[:, None, None]
-                local = (sr[rows, L] * C).sum(axis=2)
-                sigma += np.bincount(RET.ravel(), local.ravel(), minlength=space.nrt)
+                dofs.append(RET.ravel())
+                values.append((sr[rows, L] * C).sum(axis=2).ravel())
+            sigma = np.bincount(np.concatenate(dofs), np.concatenate(values),
+                                minlength=space.nrt)
             if total is not None:
                 sigma += self.prolong[j] @ total
             total = sigma
