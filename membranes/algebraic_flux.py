@@ -37,10 +37,52 @@ def _barycentric(points, corners):
     return np.concatenate([1.0 - xi.sum(axis=2, keepdims=True), xi], axis=2)
 
 
-def _triple(area, left, right):
-    """t[L, l, k, i] = ∫_L φ_l^L ψ_k q_i for P1 functions given by their values at the
-    vertices of L: left (L, 3, k), right (L, 3, i); φ^L the barycentric basis of L."""
-    return area[:, None, None, None] * np.einsum("lmn,Lmk,Lni->Llki", _C3, left, right)
+def _reference_tables():
+    """_W_TABLE[(ρ' * 6 + π) * 8 + ρ] = R_ρ' M_π R_ρ (8 × 8, entries 0, ±1): R_ρ the product of
+    basix's base transformations of RT_1 (degree 2) for the edges whose bit is set in ρ (each
+    swaps an edge's two dofs and flips their signs), M_π the reference basis pushed forward by
+    the affine map P_π with P_π(ê_i) = ê_π(i) (contravariant Piola), written in the reference
+    basis: P_π*ψ̂_k = Σ_l M_π[k, l] ψ̂_l. Permutations are numbered as itertools lists them."""
+    import itertools
+    import basix
+    # the element of dolfinx's ("RT", 2): basix's Legendre variant (tests/test_algebraic_flux
+    # checks the whole construction against patch problems assembled by dolfinx)
+    e = basix.create_element(basix.ElementFamily.RT, basix.CellType.triangle, 2,
+                             basix.LagrangeVariant.legendre)
+    X = basix.make_quadrature(basix.CellType.triangle, 4)[0]
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    base = e.tabulate(0, X)[0].transpose(1, 0, 2).reshape(8, -1)          # (8, npts * 2)
+    M = []
+    for perm in itertools.permutations(range(3)):
+        o = corners[perm[0]]
+        Jp = np.stack([corners[perm[1]] - o, corners[perm[2]] - o], axis=1)
+        pulled = np.linalg.solve(Jp, (X - o).T).T
+        vals = np.einsum("ij,pkj->kpi", Jp, e.tabulate(0, pulled)[0]) / np.linalg.det(Jp)
+        Mp = np.linalg.lstsq(base.T, vals.reshape(8, -1).T, rcond=None)[0].T
+        M.append(np.round(Mp))
+        if np.abs(Mp - M[-1]).max() > 1e-10:
+            raise RuntimeError("RT_1 reference basis not mapped to itself by a permutation")
+    T = e.base_transformations()
+    R = []
+    for rho in range(8):
+        Rr = np.eye(8)
+        for edge in range(3):
+            if rho >> edge & 1:
+                Rr = Rr @ T[edge]
+        R.append(np.round(Rr))
+    table = np.array([R[a] @ M[p] @ R[b] for a in range(8) for p in range(6) for b in range(8)])
+    return table.astype(np.int8)
+
+
+_W_TABLE = _reference_tables()
+
+
+def _perm_code(pi):
+    """The number of the permutation P_π with P_π(ê_i') = ê_π(i') that maps the
+    representative's vertex order onto the patch cell's (pi: patch vertex i -> rep vertex
+    pi[i]; so π = pi⁻¹), for pi of shape (..., 3)."""
+    inv = np.argsort(pi, axis=-1)
+    return (inv[..., 0] * 2 + (inv[..., 1] > inv[..., 2])).astype(np.int64)
 
 
 def _descendants(anc, size):
@@ -51,7 +93,7 @@ def _descendants(anc, size):
 class MultilevelFlux:
     """σ_alg of DESIGN §6 for the discretisation `disc` on `hierarchy` (levels ≥ 1)."""
 
-    CHUNK = 500      # patches solved at once (the local systems have ~180 unknowns)
+    TRANSLATES = True   # False: every patch its own representative (for comparisons)
 
     def __init__(self, disc, hierarchy):
         from dolfinx import fem
@@ -73,21 +115,17 @@ class MultilevelFlux:
         self.anc = anc
         self.below = [_descendants(anc[j], self.geo[j].ncells) for j in range(J + 1)]
         xJ = self._corners(J)
-        bary = [_barycentric(xJ, self._corners(j)[anc[j]]) for j in range(J + 1)]
-        # data tensors: level j moments (r ψ_{j-1,k}, q_i)_{K_j} and, for j ≥ 2, the moments
-        # (r ψ_{j-1,k}, φ_m)_{K_{j-1}} behind Π_{j-1}; (r, φ_k)_{K_0} for the coarse solve
-        self.T = [None] + [_triple(fine.area, bary[j - 1], bary[j]) for j in range(1, J + 1)]
-        self.Tproj = [None, None] + [_triple(fine.area, bary[j - 1], bary[j - 1])
-                                     for j in range(2, J + 1)]
-        mass_ref = (np.ones((3, 3)) + np.eye(3)) / 12.0
-        self.T0 = fine.area[:, None, None] * np.einsum("lm,Lmk->Llk", mass_ref, bary[0])
+        # barycentric coordinates of the T_J vertices in their level-j ancestor: dyadic
+        # (multiples of 2^{j-J}), snapped to them so that they are exact
+        self.bary = [np.round(_barycentric(xJ, self._corners(j)[anc[j]]) * 2.0 ** (J - j))
+                     / 2.0 ** (J - j) for j in range(J + 1)]
         # vertices of each T_j cell in its parent's barycentric basis (for Π_{j-1} on K_j)
-        self.Bp = [None] + [_barycentric(self._corners(j),
-                                         self._corners(j - 1)[hierarchy.parent_cells[j - 1]])
-                            for j in range(1, J + 1)]
+        self.Bp = [None] + [np.round(2.0 * _barycentric(
+            self._corners(j), self._corners(j - 1)[hierarchy.parent_cells[j - 1]])) / 2.0
+            for j in range(1, J + 1)]
         self._parents = [None] + list(hierarchy.parent_cells)   # T_j cell -> T_{j-1} cell
         self._coarse_solver(V[0])
-        self.spaces = [None] + [PatchSpace(V[j]) for j in range(1, J + 1)]
+        self.spaces = [None] + [PatchSpace(V[j], blocks=False) for j in range(1, J + 1)]
         self.levels = [None] + [self._level(j, hierarchy) for j in range(1, J + 1)]
         self.prolong = [None, None] + [self._prolongation(j) for j in range(2, J + 1)]
 
@@ -111,29 +149,139 @@ class MultilevelFlux:
 
     def _level(self, j, hierarchy):
         """The patch problems of level j: one per vertex of T_{j-1}, on the T_j cells of its
-        patch; returns the batches (RET, S, fine cells, local index of a in their parent)."""
+        patch. Patches that are translates of one another (all but a few, on a uniform
+        refinement) share one solution operator, computed for a representative; see
+        `_translates`. Returns a list of groups (S, G, RET, L, C): S (nr, nq) the
+        representative's operator from data moments to σ (its local numbering), G (P, nq) where
+        each patch's data moments sit in the flat moment array of the level, RET (P, nr) the
+        patches' global RT dofs, and L, C (P, nr, 2) the two representative dofs and the
+        integer coefficients that give each of a patch's dofs (the change of basis)."""
         space = self.spaces[j]
         coarse = self.geo[j - 1]
         parents = hierarchy.parent_cells[j - 1]
         children = np.argsort(parents, kind="stable").reshape(-1, 4)          # (nc_{j-1}, 4)
         on_boundary = np.zeros(coarse.n, dtype=bool)
         on_boundary[boundary_dofs(coarse.V)] = True
-        batches = []
+        cent = self._corners(j).mean(axis=1)                                  # (nc_j, 2)
+        scale = np.sqrt(space.geo.area.mean())
+        groups = []
         for verts, CS, KA in vertex_patches(coarse):
-            CF = children[CS].reshape(len(verts), -1)                        # (P, 4n)
+            P = len(verts)
+            CF = children[CS].reshape(P, -1)                                 # (P, 4n)
             KF = np.repeat(KA, 4, axis=1)
-            for sel, RET, loc, A in space.patch_groups(CF, on_boundary[verts], self.CHUNK):
-                nr, nq = RET.shape[1], 3 * CF.shape[1]
-                E = np.zeros((A.shape[1], nq))
-                E[nr:nr + nq] = np.eye(nq)
-                S = np.linalg.solve(A, np.broadcast_to(E, (len(sel),) + E.shape))[:, :nr]
-                batches.append((RET, S, CF[sel], KF[sel]))
-        return batches
+            # canonical cell order: by the offset of the cell centroid from the vertex a
+            off = (cent[CF] - self.geo[j - 1].x[verts][:, None, :]) / scale
+            key = np.round(off * 1e6).astype(np.int64)                         # (P, 4n, 2)
+            order = np.lexsort((key[:, :, 1], key[:, :, 0]), axis=1)
+            CF = np.take_along_axis(CF, order, axis=1)
+            KF = np.take_along_axis(KF, order, axis=1)
+            key = np.take_along_axis(key, order[:, :, None], axis=1).reshape(P, -1)
+            sig = np.concatenate([on_boundary[verts][:, None].astype(np.int64), key], axis=1)
+            _, first, gid = np.unique(sig, axis=0, return_index=True, return_inverse=True)
+            gid = gid.ravel()
+            # translates to round-off only: a representative whose vertices do not match
+            # (a coincidence of the rounded keys) makes the patch its own representative
+            xv = space.geo.x[space.geo.cells[CF]] - self.geo[j - 1].x[verts][:, None, None, :]
+            rep = first[gid] if self.TRANSLATES else np.arange(P)
+            pi = self._vertex_match(xv, xv[rep], scale)
+            bad = np.flatnonzero(pi[:, 0, 0] < 0)
+            if len(bad):
+                rep[bad] = bad
+                pi[bad] = np.arange(3)
+            for r in np.unique(rep):
+                members = np.flatnonzero(rep == r)
+                groups.append((CF[members], KF[members], pi[members],
+                               on_boundary[verts[r]], members == r))
+        # the element blocks of the representatives' cells, in one pass over the level
+        reps = np.concatenate([g[0][g[4]][0] for g in groups])
+        cells, inverse = np.unique(reps, return_inverse=True)
+        Me, Be = space.element_blocks(cells)
+        out, start = [], 0
+        for g in groups:
+            idx = inverse[start:start + g[0].shape[1]]
+            start += g[0].shape[1]
+            out.append(self._translates(space, *g, blocks=(Me[idx], Be[idx])))
+        return out
+
+    @staticmethod
+    def _vertex_match(xv, xr, scale, tol=1e-9):
+        """pi (P, m, 3): vertex pi[p, c, i] of the representative's cell c sits where vertex
+        i of the patch's cell c does (relative to a); -1 everywhere in a patch where any
+        vertex has no match within tol * scale."""
+        d = np.abs(xv[:, :, :, None, :] - xr[:, :, None, :, :]).max(axis=4)   # (P, m, 3, 3)
+        pi = d.argmin(axis=3)
+        ok = (np.take_along_axis(d, pi[..., None], axis=3)[..., 0] <= tol * scale).all(
+            axis=(1, 2))
+        ok &= (np.sort(pi, axis=2) == np.arange(3)).all(axis=(1, 2))
+        pi[~ok] = -1
+        return pi
+
+    def _translates(self, space, CF, KF, pi, boundary, is_rep, blocks):
+        """One group of patches (cells CF (P, m) in canonical order, the local index KF of a in
+        each cell's parent, vertex matches pi to the representative, is_rep marks it, blocks
+        the element blocks (Me, Be) of its cells): the
+        representative's solution operator and every patch's change of basis.
+
+        With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
+        reflections (basix base transformations), the local RT basis is R_K F_K*ψ̂. The
+        representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π (P_π the reference
+        map that permutes the vertices), hence its basis is W_K = R_K' M_π R_K times K's, with
+        M_π the reference basis expressed through its pull-back (entries 0, ±1). The patch
+        systems are then related by the congruence Q A_p Qᵀ = A_r, and σ_p = Tᵀ σ_r for T the
+        σ block of Q; the DG1 data moments are permuted by π."""
+        P, m = CF.shape
+        r = int(np.flatnonzero(is_rep)[0])
+        glob = space.retained_dofs(CF, np.full(P, boundary))
+        sentinel = np.iinfo(np.int64).max
+        from .equilibration import _row_index, _row_unique
+        RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)    # (P, nr)
+        nr = RET.shape[1]
+        loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, m, 8)
+        _, _, A = space.saddle_point_systems(CF[r:r + 1], glob[r:r + 1], boundary,
+                                             blocks=(blocks[0][None], blocks[1][None]))
+        nq = 3 * m
+        E = np.zeros((A.shape[1], nq))
+        E[nr:nr + nq] = np.eye(nq)
+        S = np.linalg.solve(A[0], E)[:nr]                                     # (nr, nq)
+        # change of basis: W (P, m, 8, 8) from the reflection codes and the permutations
+        refl = space.reflections[CF]                                          # (P, m)
+        code = (refl[r][None, :] * 6 + _perm_code(pi)) * 8 + refl
+        W = _W_TABLE[code]                                                    # [l, k]
+        # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
+        # W[c, l, k] ≠ 0 (at most two: the dofs of one entity), at the rep's local numbers
+        lr = loc[r]                                                           # (m, 8)
+        L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+        C = np.zeros((P, nr, 2), dtype=np.int8)
+        top = np.argsort(-np.abs(W), axis=2, kind="stable")[:, :, :2, :]      # (P, m, 2, 8)
+        coef = np.take_along_axis(W, top, axis=2)
+        if np.abs(W).sum(axis=2).max() > 2 or not np.array_equal(
+                np.abs(coef).sum(axis=2), np.abs(W).sum(axis=2)):
+            raise RuntimeError("RT change of basis with more than two entries per column")
+        ok = loc >= 0
+        pp = np.broadcast_to(np.arange(P)[:, None, None], loc.shape)
+        tgt = lr[np.arange(m)[None, :, None, None], top]                      # (P, m, 2, 8)
+        if (tgt[np.broadcast_to(ok[:, :, None, :], tgt.shape)
+                & (coef != 0)] < 0).any():
+            raise RuntimeError("a retained dof of a translate maps to a dropped one")
+        L[pp[ok], loc[ok]] = np.maximum(tgt.transpose(0, 1, 3, 2)[ok], 0)
+        C[pp[ok], loc[ok]] = coef.transpose(0, 1, 3, 2)[ok]
+        # data: (d, q^{K'}_{i'}) = (d, q^K_{π⁻¹... }): vertex i' of K' is vertex i of K with
+        # pi[c, i] = i', so the rep's moment i' is the patch's moment at i with pi[i] = i'
+        inv = np.argsort(pi, axis=2)                                          # i for each i'
+        G = ((CF[:, :, None] * 3 + KF[:, :, None]) * 3 + inv).reshape(P, nq)
+        return S, G.astype(np.int32 if G.max() < 2 ** 31 else np.int64), \
+            RET.astype(np.int32), L, C
+    def _triple(self, r, a, b):
+        """t[L, k, i] = (r φ^{T_a}_k, φ^{T_b}_i)_L on every cell L of T_J, for r ∈ DG1(T_J)
+        (ncells, 3) and φ^{T_a}_k, φ^{T_b}_i the barycentric functions of the level-a and
+        level-b ancestors of L (exact P1 triple products, computed on the fly)."""
+        w = np.einsum("lmn,Ll->Lmn", _C3, r) * self.geo[self.J].area[:, None, None]
+        return np.einsum("Lmk,Lmn,Lni->Lki", self.bary[a], w, self.bary[b], optimize=True)
 
     def _moments(self, j, r, grad_rho0):
         """(d_a, q_i)_{K_j} for every cell K_j of T_j and every local vertex k of its parent
         (the vertex a): shape (nc_j, 3 (k), 3 (i))."""
-        m = np.einsum("Ll,Llki->Lki", r, self.T[j])[self.below[j]].sum(axis=1)
+        m = self._triple(r, j - 1, j)[self.below[j]].sum(axis=1)
         parent = self._parents[j]
         area = self.geo[j].area
         if j == 1:   # - ∇ρ_0·∇ψ_{0,k} (constant on K_0) times (1, q_i)_{K_1} = |K_1|/3
@@ -141,7 +289,7 @@ class MultilevelFlux:
             dot = np.einsum("cd,ckd->ck", grad_rho0, g0.grad)[parent]         # (nc_1, 3)
             m -= (area / 3.0)[:, None, None] * dot[:, :, None]
         else:        # - (Π_{j-1}(r ψ_k), q_i)_{K_j}
-            mp = np.einsum("Ll,Llkm->Lkm", r, self.Tproj[j])[self.below[j - 1]].sum(axis=1)
+            mp = self._triple(r, j - 1, j - 1)[self.below[j - 1]].sum(axis=1)
             coef = (3.0 / self.geo[j - 1].area)[:, None, None] * (mp @ _MINV_REF.T)
             p = np.einsum("ckm,cvm->ckv", coef[parent], self.Bp[j])           # at K_j vertices
             m -= (area / 12.0)[:, None, None] * (p + p.sum(axis=2, keepdims=True))
@@ -156,19 +304,25 @@ class MultilevelFlux:
     def flux_of_lifting(self, r):
         """σ_alg with ∇·σ_alg = r for r ∈ DG1(T_J) given per cell (ncells, 3)."""
         g0 = self.geo[0]
-        b = np.zeros(g0.n)
-        np.add.at(b, g0.cells, np.einsum("Ll,Llk->Lk", r, self.T0)[self.below[0]].sum(axis=1))
+        mass_ref = (np.ones((3, 3)) + np.eye(3)) / 12.0
+        t0 = np.einsum("L,Ll,lm,Lmk->Lk", self.geo[self.J].area, r, mass_ref, self.bary[0])
+        b = np.bincount(g0.cells.ravel(), t0[self.below[0]].sum(axis=1).ravel(),
+                        minlength=g0.n)
         b[self._coarse_boundary] = 0.0
         grad_rho0 = g0.gradient(self._coarse.solve(b))
         total = None
         for j in range(1, self.J + 1):
             space = self.spaces[j]
             m = self._moments(j, r, grad_rho0)
-            sigma = np.zeros(space.nrt)
-            for RET, S, CF, KF in self.levels[j]:
-                rhs = np.take_along_axis(m[CF], KF[:, :, None, None], axis=2)[:, :, 0]
-                local = np.einsum("prq,pq->pr", S, rhs.reshape(len(CF), -1))
-                sigma += np.bincount(RET.ravel(), local.ravel(), minlength=space.nrt)
+            flat = m.ravel()
+            dofs, values = [], []
+            for S, G, RET, L, C in self.levels[j]:
+                sr = flat[G] @ S.T                                            # (P, nr)
+                rows = np.arange(len(G))[:, None, None]
+                dofs.append(RET.ravel())
+                values.append((sr[rows, L] * C).sum(axis=2).ravel())
+            sigma = np.bincount(np.concatenate(dofs), np.concatenate(values),
+                                minlength=space.nrt)
             if total is not None:
                 sigma += self.prolong[j] @ total
             total = sigma

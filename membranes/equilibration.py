@@ -60,7 +60,7 @@ class Geometry:
         self.ncells = mesh.topology.index_map(2).size_local
         self.cells = V.dofmap.list.array.reshape(-1, 3)[:self.ncells].astype(np.int64)
         self.n = V.dofmap.index_map.size_local
-        x = V.tabulate_dof_coordinates()[:, :2]
+        self.x = x = V.tabulate_dof_coordinates()[:, :2]
         p = x[self.cells]                                     # (ncells, 3, 2)
         e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
         det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
@@ -179,7 +179,7 @@ class PatchSpace:
     entry of one colour's assembly belongs to one cell (integrating over one colour only also
     keeps each sparsity pattern small). The assembled matrices are temporaries."""
 
-    def __init__(self, V):
+    def __init__(self, V, blocks=True):
         from dolfinx import fem, mesh as dmesh
         mesh = V.mesh
         self.V = V
@@ -187,20 +187,11 @@ class PatchSpace:
         nc = geo.ncells
         self.RT = fem.FunctionSpace(mesh, ("RT", 2))
         self.DG = fem.FunctionSpace(mesh, ("DG", 1))
-        sig, tau = ufl.TrialFunction(self.RT), ufl.TestFunction(self.RT)
-        q = ufl.TestFunction(self.DG)
-        self.rt_cells = rt = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
+        self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
         self.dg_cells = dg = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int64)
         _check_vertex_order(self.DG, dg, V, geo.cells)
-        colour = cell_colouring(mesh, nc)
-        self.Me = np.empty((nc, 8, 8))
-        for c in range(colour.max() + 1):
-            cells = np.flatnonzero(colour == c).astype(np.int32)
-            tags = dmesh.meshtags(mesh, 2, cells, np.ones_like(cells))
-            dxc = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
-            self.Me[cells] = element_blocks(assemble_matrix_csr(rt_mass(sig, tau, dxc)),
-                                            rt[cells], rt[cells])
-        self.Be = element_blocks(assemble_matrix_csr(divergence(sig, q)), dg, rt)
+        if blocks:
+            self.Me, self.Be = self.element_blocks(np.arange(nc))
         # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
         layout = self.RT.dofmap.dof_layout
         self.edge_of_dof = np.full(8, -1)
@@ -213,6 +204,39 @@ class PatchSpace:
         exterior[dmesh.exterior_facet_indices(mesh.topology)] = True
         self.exterior_edge = exterior[self.c2e]
         self.nrt = self.RT.dofmap.index_map.size_local
+        # the edge reflections of every cell (bit e: edge e), which the RT basis carries
+        mesh.topology.create_entity_permutations()
+        self.reflections = (np.asarray(mesh.topology.get_cell_permutation_info())[:nc]
+                            & 7).astype(np.int64)
+
+    def element_blocks(self, cells):
+        """(Me, Be) of the given cells (distinct indices): Me (c, 8, 8), Be (c, 3, 8). Only
+        these cells are integrated (a cell tag per colour of cells sharing no edge), so a
+        subset costs in proportion to its size."""
+        from dolfinx import mesh as dmesh
+        mesh = self.V.mesh
+        cells = np.asarray(cells, dtype=np.int64)
+        sig, tau = ufl.TrialFunction(self.RT), ufl.TestFunction(self.RT)
+        q = ufl.TestFunction(self.DG)
+        Me, Be = np.empty((len(cells), 8, 8)), np.empty((len(cells), 3, 8))
+        if len(cells) == 0:
+            return Me, Be
+        colour = self._colour()[cells]
+        for c in np.unique(colour):
+            sel = np.flatnonzero(colour == c)
+            tagged = cells[sel].astype(np.int32)
+            order = np.argsort(tagged)
+            tags = dmesh.meshtags(mesh, 2, tagged[order], np.ones_like(tagged))
+            dxc = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
+            rt, dg = self.rt_cells[cells[sel]], self.dg_cells[cells[sel]]
+            Me[sel] = element_blocks(assemble_matrix_csr(rt_mass(sig, tau, dxc)), rt, rt)
+            Be[sel] = element_blocks(assemble_matrix_csr(divergence(sig, q, dxc)), dg, rt)
+        return Me, Be
+
+    def _colour(self):
+        if getattr(self, "_cell_colour", None) is None:
+            self._cell_colour = cell_colouring(self.V.mesh, self.geo.ncells)
+        return self._cell_colour
 
     def retained_dofs(self, CS, boundary):
         """Global RT dofs of P patches of the cells CS (P, n) (-1 where dropped): V_h^a has zero
@@ -231,11 +255,12 @@ class PatchSpace:
                         True)
         return np.where(keep, self.rt_cells[CS], -1).reshape(P, -1)
 
-    def saddle_point_systems(self, CS, glob, boundary):
+    def saddle_point_systems(self, CS, glob, boundary, blocks=None):
         """Local numbering and matrices of P patch problems of one shape (DESIGN §5):
         A = [[M, -Bᵀ, 0], [B, 0, c], [0, cᵀ, 0]] with the zero-mean multiplier row (c = (1, q))
         for interior patches only. Returns RET (P, nr) the global RT dofs, loc (P, n, 8) their
-        local numbers (-1 dropped) and A (P, N, N), N = nr + 3n (+ 1)."""
+        local numbers (-1 dropped) and A (P, N, N), N = nr + 3n (+ 1). `blocks`: (Me, Be) of
+        the cells CS, shapes (P, n, 8, 8) and (P, n, 3, 8), where the space keeps none."""
         geo = self.geo
         P, n = CS.shape
         sentinel = np.iinfo(np.int64).max
@@ -248,9 +273,9 @@ class PatchSpace:
         li, lj = loc[:, :, :, None], loc[:, :, None, :]
         ok = (li >= 0) & (lj >= 0)
         lin = (np.arange(P)[:, None, None, None] * N + li) * N + lj
-        A.ravel()[:] += np.bincount(lin[ok], weights=self.Me[CS][ok], minlength=P * N * N)
+        Me, Be = (self.Me[CS], self.Be[CS]) if blocks is None else blocks
+        A.ravel()[:] += np.bincount(lin[ok], weights=Me[ok], minlength=P * N * N)
         qrow = nr + 3 * np.arange(n)[None, :, None] + np.arange(3)[None, None, :]
-        Be = self.Be[CS]                                                      # (P, n, 3, 8)
         okb = np.broadcast_to(loc[:, :, None, :] >= 0, Be.shape)
         pb = np.broadcast_to(np.arange(P)[:, None, None, None], Be.shape)
         rb = np.broadcast_to(qrow[..., None], Be.shape)
@@ -326,7 +351,11 @@ class FluxEquilibration:
         for verts, CS, KA in vertex_patches(self.geo):
             for sel, RET, loc, A in space.patch_groups(CS, on_boundary[verts], self.CHUNK):
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A)
-        del self.Ce
+        # what the evaluation does not need goes: the element blocks and the load moments
+        # (kept summed, (f_α, φ_i)_K, for the oscillation estimator)
+        self.load = [wf.sum(axis=2) for wf in self.wf]
+        del self.Ce, self.wf
+        space.Me = space.Be = None
 
     def _solve_patches(self, verts, CS, KA, RET, loc, A):
         """The right-hand sides of P patch problems of one shape as linear maps of the data,

@@ -109,7 +109,7 @@ class Estimators:
         hK = cell_diameters(disc.problem.mesh)
         out = []
         for alpha, f in enumerate((disc.problem.f1, disc.problem.f2)):
-            b = self.flux.wf[alpha].sum(axis=2)                 # (f, φ_i)_K
+            b = self.flux.load[alpha]                           # (f, φ_i)_K
             proj = fem.Function(DG1)
             proj.x.array[dg_cells] = (3.0 / geo.area)[:, None] * (b @ _MINV_REF.T)
             e = as_builder(f)(x) - proj
