@@ -30,15 +30,24 @@ MUMPS (`krylov=None`) or by a Krylov solver (`krylov.Krylov`). Variants (DESIGN 
 rows of membrane α weighted by 1/μ_α, the C-function on (u1 - u2, κ λ)), and so are the
 tolerances: ‖W R_lin‖/‖W F‖ ≤ tol, ‖W R_alg‖/‖W B‖ ≤ 2e-12 for exact solves.
 
-* Fischer–Burmeister (exact and inexact variants) takes the Newton step with a nonmonotone
-  Armijo line search on the merit θ = ½‖W R_lin‖² (continuously differentiable for FB, with
-  ∇θ·d = -2θ along an exact Newton direction d): t = 1, 1/2, ... until
-  θ(X + t d) ≤ max(θ of the last LS_MEMORY = 5 Newton iterates) - 2σ t θ(X), σ = 1e-4. The
-  nonmonotone reference keeps the full steps that make FB Newton fast (the monotone test
-  damped 5 of 16 steps on the radial scene and added 5 steps); if no t ≥ 2^-20 qualifies,
-  the full step is taken (the plain method is the fallback, not a stop). A damped iterate
-  X_t = X + t d is recorded with its residual in the step's system,
-  B - A X_t = (1 - t) R_lin(X) + t R (DESIGN §4), and its `step_length` t.
+* Fischer–Burmeister (exact and inexact variants) globalises Newton with a watchdog line
+  search (Chamberlain–Powell) on the merit θ = ½‖W R_lin‖², continuously differentiable
+  for FB, with ∇θ·d = -2θ along a Newton direction d. The iterate X_c where a run of full
+  steps starts is the checkpoint; full steps are taken as long as, within WATCHDOG_STEPS =
+  10 of them, one reaches θ ≤ (1 - 2σ) θ(X_c), σ = 1e-4 (the next checkpoint is then the
+  new iterate). Otherwise the run goes back to X_c and takes the Armijo step there,
+  X_c + t d_c with the first t = 1/2, 1/4, ... ≥ 2^-20 such that θ ≤ (1 - 2σ t) θ(X_c), and
+  from then on every step is an Armijo step (t = 1, 1/2, ...) against the largest θ of the
+  last LS_MEMORY = 5 Newton iterates (nonmonotone): full steps from the damped iterate
+  would retrace the path that failed (seen on the 100:1 anisotropic mesh). With no such t
+  the run stops (converged = false, the reason says
+  so). Why a watchdog: FB Newton's merit rises on the way (disk, plain steps: 1 → 10 → 20 →
+  6 → 1 → 0.08 → ... → 4e-11 in 12 steps, the same 11–12 steps at 411, 1.5k and 6k
+  vertices), and a line search at every step (monotone or nonmonotone over the last 5
+  merits) crept along with step lengths 2^-10 to 2^-3: 14, 18 and 32 Newton steps on those
+  meshes. A damped iterate X_t is recorded with its residual in the step's system,
+  B - A X_t = (1 - t) R_lin(X_c) + t R_c (DESIGN §4), and its `step_length` t (1 for full
+  steps); the iterates abandoned by the return stay in the history and count.
 * Newton-min has no merit function to descend (min is not differentiable), and with exact
   solves it is the primal–dual active set method, which can cycle (active sets that repeat;
   possible for P-matrices that are not M-matrices, e.g. obtuse meshes or a far-off start).
@@ -96,7 +105,8 @@ EXACT_LINEAR_TOL = 2e-12       # ... and exact solves reach ‖R_alg‖/‖B‖ 
 DEFAULT_GAMMA = 0.3            # γ_lin = γ_alg = 0.3 in the seed (DESIGN §8)
 LS_SIGMA = 1e-4                # Armijo constant of the Fischer–Burmeister line search
 LS_MIN_STEP = 2.0 ** -20       # smallest step length tried
-LS_MEMORY = 5                  # the nonmonotone reference: the last 5 Newton iterates
+WATCHDOG_STEPS = 10            # full FB steps allowed without sufficient decrease
+LS_MEMORY = 5                  # after a return: nonmonotone reference over 5 Newton iterates
 CYCLE_PROGRESS = 0.999         # a repeated active set counts as a cycle unless the residual
                                # fell below this fraction of its value at the earlier visit
 DIVERGENCE = 1e6               # ... and (inexact) a residual this many times its smallest
@@ -224,22 +234,20 @@ def active_set(rows, X):
     return np.packbits(take_a).tobytes()
 
 
-def line_search(rows, cfun, X, X_new, residual, reference):
-    """Nonmonotone Armijo backtracking on the merit θ = ½‖Φ‖², Φ = W R_lin (newton_system),
-    along d = X_new - X: the first t = 1, 1/2, 1/4, ... ≥ LS_MIN_STEP with
-    θ(X + t d) ≤ θ_ref - 2 LS_SIGMA t θ(X), θ_ref the largest θ of the last LS_MEMORY Newton
-    iterates (`reference`, relative residuals; ∇θ·d = -2θ for a Newton direction: θ is C¹
-    for Fischer–Burmeister). `residual` = ‖Φ(X)‖/‖W F‖. Returns (X + t d, t), or the full
-    step with t = None where no t qualifies (see the module notes)."""
-    d = X_new - X
-    t, ref = 1.0, max(reference) ** 2
+def line_search(rows, cfun, X, X_full, residual, reference, t=1.0):
+    """Armijo backtracking on the merit θ = ½‖Φ‖², Φ = W R_lin (newton_system), along
+    d = X_full - X: the first of t, t/2, t/4, ... ≥ LS_MIN_STEP with
+    θ(X + t d) ≤ θ_ref - 2 LS_SIGMA t θ(X) (∇θ·d = -2θ along a Newton direction; θ is C¹
+    for Fischer–Burmeister), θ_ref = ½ reference². `residual`, `reference`: relative
+    residuals ‖Φ‖/‖W F‖. Returns (X + t d, t), or (None, None) where no t qualifies."""
+    d = X_full - X
     while t >= LS_MIN_STEP:
         trial = X + t * d
         r = rows.relative_residual(cfun, trial)
-        if r * r <= ref - 2.0 * LS_SIGMA * t * residual * residual:
+        if r * r <= reference * reference - 2.0 * LS_SIGMA * t * residual * residual:
             return trial, t
         t *= 0.5
-    return X_new, None
+    return None, None
 
 
 def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylov=None,
@@ -313,6 +321,8 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         return NewtonResult(X, converged, reason + state["note"], k, done, history)
 
     seen = {}         # Newton-min's active sets: signature -> (step, residual at that step)
+    watch = None      # FB watchdog: (step, X, residual, full step, its R) at the checkpoint
+    damped = False    # FB: True once the watchdog returned to a checkpoint
     rec, done = record("initial", 0, 0, 0, X, None, None)[0], 0
     for k in range(1, max_it + 1):
         if stopping(rec)[0]:
@@ -353,13 +363,30 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         if not np.all(np.isfinite(X_new)):
             return result(False, f"non-finite iterate at Newton step {k}", k - 1, done)
         if state["cfun"] == "fb" and not adaptive:
-            merits = [r["residual"] for r in history if r["kind"] != "krylov"
-                      and r["cfun"] == "fb"][-LS_MEMORY:] or [rec["residual"]]
-            X_ls, t = line_search(rows, "fb", X, X_new, rec["residual"], merits)
-            if t is not None and t < 1.0:
-                # B - A X_t = (1 - t)(B - A X^{k-1}) + t R, and B - A X^{k-1} = R_lin(X^{k-1})
-                R = (1.0 - t) * ns.nonlinear_residual(rows, "fb", X) + t * R
-                X_new = X_ls
+            # the watchdog line search of the module notes
+            if watch is None:
+                watch = (k, X, rec["residual"], X_new, R)
+            k_c, X_c, r_c, X_full_c, R_c = watch
+            r_new = rows.relative_residual("fb", X_new)
+            t, X_from, R_from = 1.0, X, R
+            if damped:          # after a return: a nonmonotone Armijo step at every step
+                merits = [r["residual"] for r in history if r["kind"] != "krylov"][-LS_MEMORY:]
+                X_t, t = line_search(rows, "fb", X, X_new, rec["residual"], max(merits))
+                watch = None
+            elif r_new * r_new <= (1.0 - 2.0 * LS_SIGMA) * r_c * r_c:
+                watch = None
+            elif k - k_c + 1 >= WATCHDOG_STEPS:   # back to the checkpoint, Armijo there
+                X_from, R_from = X_c, R_c
+                X_t, t = line_search(rows, "fb", X_c, X_full_c, r_c, r_c, 0.5)
+                watch, damped = None, True
+            if t is None:
+                return result(False, f"line search failed at Newton step {k}: no step length "
+                              f">= {LS_MIN_STEP:.0e} decreases the merit enough", k - 1, done)
+            if t < 1.0:
+                # B - A X_t = (1 - t)(B - A X_from) + t R_from in the system that gave the
+                # direction, where B - A X_from = R_lin(X_from)
+                R = (1.0 - t) * ns.nonlinear_residual(rows, "fb", X_from) + t * R_from
+                X_new = X_t
         X = X_new
         rec = record("newton", k, its, done, X, R, step.norm_B, same_as, t)[0]
     met, description = stopping(rec)

@@ -45,8 +45,10 @@ def test_same_solution_as_ilu(cfun):
     assert run.converged and ref.converged, run.reason
     assert run.newton_iterations == ref.newton_iterations
     assert np.linalg.norm(run.X - ref.X) <= 1e-9 * np.linalg.norm(ref.X)
-    assert all(rec["alg_residual"] <= EXACT_LINEAR_TOL
-               for rec in run.history if rec["kind"] == "newton")
+    # steps the Fischer–Burmeister line search damped stop short of the linear solution on
+    # purpose (newton: B - A X_t = (1 - t) R_lin + t R); every full step is an exact solve
+    assert all(rec["alg_residual"] <= EXACT_LINEAR_TOL for rec in run.history
+               if rec["kind"] == "newton" and rec["step_length"] in (None, 1.0))
     assert max(_its(run)) < 30 and np.mean(_its(ref)) > 3 * np.mean(_its(run))
 
 
@@ -115,8 +117,8 @@ def test_refuses_what_is_not_the_eliminated_system():
     singular = sp.csr_matrix(np.array([[1.0, 0, 1, 0], [0, 1, 0, 1], [1, 0, 1, 0], [0, 1, 0, 1]]))
     with pytest.raises(ValueError, match="singular"):
         VertexAMG(singular)
-    run = _run(0.1, "min", VAMG, system="full")
-    assert not run.converged and "eliminated" in run.reason
+    with pytest.raises(ValueError, match="eliminated system only"):   # driver: before work
+        _run(0.1, "min", VAMG, system="full")
 
 
 def test_inner_options():
