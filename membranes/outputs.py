@@ -25,7 +25,7 @@ from .estimators import COLUMNS as ESTIMATOR_COLUMNS
 OUTPUT_FILES = ("summary.json", "history.csv", "solution.xdmf", "solution.h5")
 HISTORY_COLUMNS = ("newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
                    "residual", "alg_residual", "kind", "energy_error") + ESTIMATOR_COLUMNS \
-    + ("bound",)
+    + ("bound", "cfun", "step_length")
 
 
 def _json_safe(value):
