@@ -1,0 +1,121 @@
+"""Benchmark (issue 6): our adaptive inexact semismooth Newton against PETSc's SNES VI peer,
+from about 1e4 to 1e6 vertices, side by side in one run.
+
+Disk scene (DESIGN §9) on the hierarchy of a gmsh mesh of size H0 = 0.2 refined J times
+(J = 3, 5, 7: 6.9e3, 1.1e5, 1.7e6 vertices), computed on the finest mesh. For each size, two
+fresh processes (so that each peak memory is its own):
+
+* ours: `solve(newton="adaptive", cfun="min", system="eliminated", pc_type vertex_amg,
+  alg_flux multilevel)` with nested iteration where the driver has it (its default on a
+  hierarchy), estimators on (the method uses them);
+* peer: `vinewtonrsls` on the decoupled problem (DESIGN §10), CG + BoomerAMG
+  (membranes.decoupled.AMG), on the same mesh, to its own convergence (rtol 1e-14).
+
+Printed per size: Newton (SNES) iterations, linear iterations (GMRES, CG) and per Newton
+step, wall time of the method (discretisation included; ours: estimator set-up and
+evaluations included, shown apart), time of the whole process (mesh hierarchy included),
+peak resident memory, final energy error; then the ratios the issue asks for: our time /
+peer time, energy error ours / peer, GMRES per Newton step at the largest size / at the
+smallest, the growth exponent of the whole-run time in N.
+
+Usage: `.venv/bin/python benchmarks/bench_scaling.py [J ...]` (default 3 5 7).
+"""
+
+import json
+import math
+import resource
+import subprocess
+import sys
+import time
+
+H0 = 0.2
+DEFAULT_LEVELS = (3, 5, 7)
+
+
+def child(which, levels):
+    """One measurement in this process; prints one JSON line."""
+    t0 = time.perf_counter()
+    from membranes import scenes
+    from membranes.cli import quiet_jit_logging
+    quiet_jit_logging()
+    problem = scenes.disk(h=H0, levels=levels)
+    t_mesh = time.perf_counter() - t0
+    n = problem.mesh.topology.index_map(0).size_global
+    if which == "ours":
+        from membranes import solve
+        sol = solve(problem, newton="adaptive", cfun="min", system="eliminated",
+                    petsc_options={"pc_type": "vertex_amg"}, alg_flux="multilevel",
+                    progress=lambda line: print(line, file=sys.stderr, flush=True))
+        out = {"converged": sol.converged, "newton": sol.newton_iterations,
+               "linear": sol.linear_iterations, "time": sol.wall_time_s,
+               "estimator_setup": sol.estimator_times[0],
+               "estimator_time": sol.estimator_times[1],
+               "energy_error": sol.energy_error, "eta": sol.summary()["eta"],
+               "per_level": sol.summary().get("levels_history")}
+    else:
+        from membranes.report import run_peer
+        peer, records = run_peer(problem, lambda line: print(line, file=sys.stderr))
+        out = {"converged": peer.converged, "newton": peer.newton_iterations,
+               "linear": peer.linear_iterations, "time": peer.wall_time_s,
+               "energy_error": records[-1]["energy_error"]}
+    out.update({"which": which, "levels": levels, "vertices": n, "mesh_time": t_mesh,
+                "process_time": time.perf_counter() - t0,
+                "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20})
+    print(json.dumps(out), flush=True)
+
+
+def measure(which, levels):
+    proc = subprocess.run([sys.executable, __file__, "--child", which, str(levels)],
+                          capture_output=True, text=True)
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        tail = proc.stderr.strip().splitlines()[-3:]
+        return {"which": which, "levels": levels, "failed": " | ".join(tail)}
+    return json.loads(lines[-1])
+
+
+def main(levels_list):
+    results = []
+    for levels in levels_list:
+        for which in ("ours", "peer"):
+            r = measure(which, levels)
+            results.append(r)
+            print(json.dumps(r), flush=True)
+    print()
+    print("| J | vertices | method | Newton | linear | linear/Newton | method s | estimators "
+          "(set-up + evals) s | process s | peak GiB | energy error |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in results:
+        if "failed" in r:
+            print(f"| {r['levels']} | | {r['which']} | failed: {r['failed']} |||||||")
+            continue
+        est = (f"{r['estimator_setup']:.1f} + {r['estimator_time']:.1f}"
+               if r.get("estimator_setup") is not None else "—")
+        print(f"| {r['levels']} | {r['vertices']} | {r['which']} | {r['newton']} | "
+              f"{r['linear']} | {r['linear'] / max(r['newton'], 1):.1f} | {r['time']:.1f} | "
+              f"{est} | {r['process_time']:.1f} | {r['peak_gib']:.2f} | "
+              f"{r['energy_error']:.4e} |")
+    print()
+    ok = {(r["which"], r["levels"]): r for r in results if "failed" not in r}
+    for levels in levels_list:
+        a, b = ok.get(("ours", levels)), ok.get(("peer", levels))
+        if a and b:
+            print(f"J = {levels} ({a['vertices']} vertices): time ours / peer = "
+                  f"{a['time'] / b['time']:.3f}; energy error ours / peer = "
+                  f"{a['energy_error'] / b['energy_error']:.4f}")
+    ours = [ok[("ours", j)] for j in levels_list if ("ours", j) in ok]
+    if len(ours) >= 2:
+        first, last = ours[0], ours[-1]
+        per = [r["linear"] / max(r["newton"], 1) for r in (first, last)]
+        print(f"GMRES per Newton step: {per[0]:.1f} at {first['vertices']} vertices, "
+              f"{per[1]:.1f} at {last['vertices']}: ratio {per[1] / per[0]:.2f}")
+        for key in ("time", "process_time"):
+            p = math.log(last[key] / first[key]) / math.log(last["vertices"] / first["vertices"])
+            print(f"{key} grows like N^{p:.2f} from {first['vertices']} to {last['vertices']}")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        child(sys.argv[2], int(sys.argv[3]))
+    else:
+        main([int(a) for a in sys.argv[1:]] or list(DEFAULT_LEVELS))
