@@ -11,12 +11,14 @@ On the hierarchy T_0 ⊂ … ⊂ T_J = T_h, with Π_j the L² projection onto di
    ∇ρ_0·∇ψ_{j-1,a} is piecewise constant on T_{j-1}, which I - Π_{j-1} removes for j ≥ 2);
 3. σ_alg = Σ_j Σ_a σ^a_j ∈ RT_1(T_J): the divergences telescope to Π_J r_αh = r_αh.
 
-Set-up (once per hierarchy): the element blocks of every level (PatchSpace), the patch problems
-factorised into their solution operators S_a = (σ rows of A_a⁻¹ on the divergence data), and
-the tensors of exact P1 triple products that turn r_αh into the data moments (d_a, q)_K for
-every cell K of T_j. One evaluation is a coarse solve, a few tensor contractions, one small
-dense product per patch, and the prolongations RT_1(T_j) → RT_1(T_{j+1}) (interpolation of the
-coarse function, exact since the spaces are nested): about one V-cycle.
+Set-up (once per hierarchy): the patch problems of every level, factorised into solution
+operators S = (σ rows of A⁻¹ on the divergence data), one per class of translated patches (a
+patch maps to its class representative by a change of RT basis with entries 0, ±1), stacked
+by shape and class size. One evaluation: the exact P1 triple products (r, φ_a φ_b)_K on T_J,
+restricted level by level to the coarser cells (O(N) in all); a coarse solve; per level, the
+data moments of every patch (a gather), one batched product per stack of operators, each
+patch's change of basis, one scatter; and the prolongations RT_1(T_j) → RT_1(T_{j+1})
+(interpolation of the coarse function, exact since the spaces are nested): about one V-cycle.
 """
 
 import numpy as np
@@ -85,9 +87,43 @@ def _perm_code(pi):
     return (inv[..., 0] * 2 + (inv[..., 1] > inv[..., 2])).astype(np.int64)
 
 
-def _descendants(anc, size):
-    """The cells of T_J below each of the `size` cells of T_j: (size, 4^{J-j}) indices."""
-    return np.argsort(anc, kind="stable").reshape(size, -1)
+def _buckets(groups):
+    """Stack the groups (S, G, RET, L, C) of one level (see MultilevelFlux._level) by
+    (S.shape, number of patches): one batched product per bucket in an evaluation. Returns
+    (buckets, RET): each bucket (S (g, nr, nq), G (g P, nq), L (g P, nr, 2), C (g P, nr, 2)),
+    RET the global RT dofs of all buckets' patches in bucket order, flat."""
+    keys = {}
+    for k, g in enumerate(groups):
+        keys.setdefault((g[0].shape, len(g[1])), []).append(k)
+    buckets, ret = [], []
+    for key in sorted(keys):
+        members = [groups[k] for k in keys[key]]
+        L = np.concatenate([g[3] for g in members])
+        buckets.append((np.stack([g[0] for g in members]),
+                        np.concatenate([g[1] for g in members]),
+                        L.astype(np.int16 if L.shape[1] < 2 ** 15 else np.int32),
+                        np.concatenate([g[4] for g in members])))
+        ret.append(np.concatenate([g[2].ravel() for g in members]))
+    return buckets, np.concatenate(ret)
+
+
+def _apply_buckets(level, flat, size):
+    """Σ_a σ^a of one level (global RT coefficients, length `size`) from the flat array of the
+    level's data moments: per bucket, the data of every patch (a gather), one batched product
+    with the representatives' operators, and each patch's change of basis (a gather of at most
+    two representative dofs times 0, ±1); then one scatter for the level."""
+    buckets, ret = level
+    values = []
+    for S, G, L, C in buckets:
+        g, nr, nq = S.shape
+        D = flat[G].reshape(g, -1, nq)                                       # (g, P, nq)
+        SR = np.matmul(D, S.transpose(0, 2, 1)).reshape(-1)                   # (g P nr)
+        off = (np.arange(L.shape[0], dtype=np.int64) * nr)[:, None]
+        v = SR[L[:, :, 0] + off] * C[:, :, 0]
+        second = C[:, :, 1] != 0
+        v[second] += SR[(L[:, :, 1] + off)[second]] * C[:, :, 1][second]
+        values.append(v.ravel())
+    return np.bincount(ret, np.concatenate(values), minlength=size)
 
 
 class MultilevelFlux:
@@ -106,28 +142,24 @@ class MultilevelFlux:
         self.geo = [Geometry(v) for v in V]
         fine = self.geo[J]
         self.lift = lifting(fine)
-        # ancestors of the cells of T_J on every level, and the coordinates of their
-        # vertices in the ancestor's barycentric basis
-        anc = [None] * (J + 1)
-        anc[J] = np.arange(fine.ncells)
-        for j in range(J, 0, -1):
-            anc[j - 1] = hierarchy.parent_cells[j - 1][anc[j]]
-        self.anc = anc
-        self.below = [_descendants(anc[j], self.geo[j].ncells) for j in range(J + 1)]
-        xJ = self._corners(J)
-        # barycentric coordinates of the T_J vertices in their level-j ancestor: dyadic
-        # (multiples of 2^{j-J}), snapped to them so that they are exact
-        self.bary = [np.round(_barycentric(xJ, self._corners(j)[anc[j]]) * 2.0 ** (J - j))
-                     / 2.0 ** (J - j) for j in range(J + 1)]
-        # vertices of each T_j cell in its parent's barycentric basis (for Π_{j-1} on K_j)
-        self.Bp = [None] + [np.round(2.0 * _barycentric(
-            self._corners(j), self._corners(j - 1)[hierarchy.parent_cells[j - 1]])) / 2.0
-            for j in range(1, J + 1)]
-        self._parents = [None] + list(hierarchy.parent_cells)   # T_j cell -> T_{j-1} cell
+        # vertices of each T_j cell in its parent's barycentric basis (multiples of 1/2, kept
+        # as 2 Bp in int8: exact), and the four children of each T_{j-1} cell
+        self.Bp2 = [None] + [np.round(2.0 * _barycentric(
+            self._corners(j), self._corners(j - 1)[hierarchy.parent_cells[j - 1]])).astype(
+            np.int8) for j in range(1, J + 1)]
+        self._parents = [None] + [np.asarray(p, dtype=np.int32)
+                                  for p in hierarchy.parent_cells]   # T_j cell -> T_{j-1} cell
+        self.children = [None] + [np.argsort(p, kind="stable").reshape(-1, 4).astype(np.int32)
+                                  for p in hierarchy.parent_cells]
         self._coarse_solver(V[0])
-        self.spaces = [None] + [PatchSpace(V[j], blocks=False) for j in range(1, J + 1)]
-        self.levels = [None] + [self._level(j, hierarchy) for j in range(1, J + 1)]
-        self.prolong = [None, None] + [self._prolongation(j) for j in range(2, J + 1)]
+        spaces = [None] + [PatchSpace(V[j], blocks=False) for j in range(1, J + 1)]
+        self.levels = [None] + [self._level(j, spaces) for j in range(1, J + 1)]
+        self.prolong = [None, None] + [self._prolongation(j, spaces) for j in range(2, J + 1)]
+        # what an evaluation needs: the coarse geometry, the fine areas, the RT dimensions
+        self.nrt = [None] + [spaces[j].nrt for j in range(1, J + 1)]
+        self.RT = spaces[J].RT
+        self.areas = [g.area for g in self.geo]
+        self.geo = [self.geo[0]]
 
     def _corners(self, j):
         """Vertex coordinates of the cells of T_j, (nc_j, 3, 2), in the cells' vertex order."""
@@ -147,7 +179,7 @@ class MultilevelFlux:
         self._coarse = spla.splu(S.tocsc())
         self._coarse_boundary = bdofs
 
-    def _level(self, j, hierarchy):
+    def _level(self, j, spaces):
         """The patch problems of level j: one per vertex of T_{j-1}, on the T_j cells of its
         patch. Patches that are translates of one another (all but a few, on a uniform
         refinement) share one solution operator, computed for a representative; see
@@ -155,11 +187,11 @@ class MultilevelFlux:
         representative's operator from data moments to σ (its local numbering), G (P, nq) where
         each patch's data moments sit in the flat moment array of the level, RET (P, nr) the
         patches' global RT dofs, and L, C (P, nr, 2) the two representative dofs and the
-        integer coefficients that give each of a patch's dofs (the change of basis)."""
-        space = self.spaces[j]
+        integer coefficients that give each of a patch's dofs (the change of basis). The groups
+        are then stacked by shape and size (`_buckets`)."""
+        space = spaces[j]
         coarse = self.geo[j - 1]
-        parents = hierarchy.parent_cells[j - 1]
-        children = np.argsort(parents, kind="stable").reshape(-1, 4)          # (nc_{j-1}, 4)
+        children = self.children[j]                                           # (nc_{j-1}, 4)
         on_boundary = np.zeros(coarse.n, dtype=bool)
         on_boundary[boundary_dofs(coarse.V)] = True
         cent = self._corners(j).mean(axis=1)                                  # (nc_j, 2)
@@ -201,7 +233,7 @@ class MultilevelFlux:
             idx = inverse[start:start + g[0].shape[1]]
             start += g[0].shape[1]
             out.append(self._translates(space, *g, blocks=(Me[idx], Be[idx])))
-        return out
+        return _buckets(out)
 
     @staticmethod
     def _vertex_match(xv, xr, scale, tol=1e-9):
@@ -271,27 +303,33 @@ class MultilevelFlux:
         G = ((CF[:, :, None] * 3 + KF[:, :, None]) * 3 + inv).reshape(P, nq)
         return S, G.astype(np.int32 if G.max() < 2 ** 31 else np.int64), \
             RET.astype(np.int32), L, C
-    def _triple(self, r, a, b):
-        """t[L, k, i] = (r φ^{T_a}_k, φ^{T_b}_i)_L on every cell L of T_J, for r ∈ DG1(T_J)
-        (ncells, 3) and φ^{T_a}_k, φ^{T_b}_i the barycentric functions of the level-a and
-        level-b ancestors of L (exact P1 triple products, computed on the fly)."""
-        w = np.einsum("lmn,Ll->Lmn", _C3, r) * self.geo[self.J].area[:, None, None]
-        return np.einsum("Lmk,Lmn,Lni->Lki", self.bary[a], w, self.bary[b], optimize=True)
+    def _products(self, r):
+        """Mom[j][K, a, b] = (r φ^K_a, φ^K_b)_K for every cell K of every level T_j, r ∈ DG1(T_J)
+        (ncells, 3): exact P1 triple products on T_J, then restricted level by level with the
+        children's vertices in their parent's barycentric basis (φ^{K'}_{a'} = Σ_v Bp[K, v, a']
+        φ^K_v on a child K of K'), O(N) in all."""
+        J = self.J
+        mom = [None] * (J + 1)
+        mom[J] = ((r @ _C3.reshape(3, 9)) * self.areas[J][:, None]).reshape(-1, 3, 3)
+        for j in range(J, 0, -1):
+            Bp = self.Bp2[j] * 0.5
+            t = np.matmul(np.matmul(Bp.transpose(0, 2, 1), mom[j]), Bp)
+            mom[j - 1] = t[self.children[j]].sum(axis=1)
+        return mom
 
-    def _moments(self, j, r, grad_rho0):
+    def _moments(self, j, mom, grad_rho0):
         """(d_a, q_i)_{K_j} for every cell K_j of T_j and every local vertex k of its parent
         (the vertex a): shape (nc_j, 3 (k), 3 (i))."""
-        m = self._triple(r, j - 1, j)[self.below[j]].sum(axis=1)
+        m = np.matmul((self.Bp2[j] * 0.5).transpose(0, 2, 1), mom[j])
         parent = self._parents[j]
-        area = self.geo[j].area
+        area = self.areas[j]
         if j == 1:   # - ∇ρ_0·∇ψ_{0,k} (constant on K_0) times (1, q_i)_{K_1} = |K_1|/3
             g0 = self.geo[0]
             dot = np.einsum("cd,ckd->ck", grad_rho0, g0.grad)[parent]         # (nc_1, 3)
             m -= (area / 3.0)[:, None, None] * dot[:, :, None]
         else:        # - (Π_{j-1}(r ψ_k), q_i)_{K_j}
-            mp = self._triple(r, j - 1, j - 1)[self.below[j - 1]].sum(axis=1)
-            coef = (3.0 / self.geo[j - 1].area)[:, None, None] * (mp @ _MINV_REF.T)
-            p = np.einsum("ckm,cvm->ckv", coef[parent], self.Bp[j])           # at K_j vertices
+            coef = (3.0 / self.areas[j - 1])[:, None, None] * (mom[j - 1] @ _MINV_REF.T)
+            p = np.matmul(coef[parent], self.Bp2[j].transpose(0, 2, 1) * 0.5)  # at K_j vertices
             m -= (area / 12.0)[:, None, None] * (p + p.sum(axis=2, keepdims=True))
         return m
 
@@ -304,31 +342,21 @@ class MultilevelFlux:
     def flux_of_lifting(self, r):
         """σ_alg with ∇·σ_alg = r for r ∈ DG1(T_J) given per cell (ncells, 3)."""
         g0 = self.geo[0]
-        mass_ref = (np.ones((3, 3)) + np.eye(3)) / 12.0
-        t0 = np.einsum("L,Ll,lm,Lmk->Lk", self.geo[self.J].area, r, mass_ref, self.bary[0])
-        b = np.bincount(g0.cells.ravel(), t0[self.below[0]].sum(axis=1).ravel(),
-                        minlength=g0.n)
+        mom = self._products(r)
+        b = np.bincount(g0.cells.ravel(), mom[0].sum(axis=1).ravel(), minlength=g0.n)
         b[self._coarse_boundary] = 0.0
         grad_rho0 = g0.gradient(self._coarse.solve(b))
         total = None
         for j in range(1, self.J + 1):
-            space = self.spaces[j]
-            m = self._moments(j, r, grad_rho0)
-            flat = m.ravel()
-            dofs, values = [], []
-            for S, G, RET, L, C in self.levels[j]:
-                sr = flat[G] @ S.T                                            # (P, nr)
-                rows = np.arange(len(G))[:, None, None]
-                dofs.append(RET.ravel())
-                values.append((sr[rows, L] * C).sum(axis=2).ravel())
-            sigma = np.bincount(np.concatenate(dofs), np.concatenate(values),
-                                minlength=space.nrt)
+            flat = self._moments(j, mom, grad_rho0).ravel()
+            mom[j - 1] = None
+            sigma = _apply_buckets(self.levels[j], flat, self.nrt[j])
             if total is not None:
                 sigma += self.prolong[j] @ total
             total = sigma
         return total
 
-    def _prolongation(self, j):
+    def _prolongation(self, j, spaces):
         """The matrix of RT_1(T_{j-1}) → RT_1(T_j), interpolation of the coarse function (exact:
         the spaces are nested). Built by interpolating sums of coarse basis functions, one sum
         per colour of coarse dofs that share no cell: a fine dof then sees at most one basis
@@ -336,7 +364,7 @@ class MultilevelFlux:
         the only ones with a normal component on it), so each pass gives one column entry per
         fine dof."""
         from dolfinx import fem
-        coarse, fine = self.spaces[j - 1], self.spaces[j]
+        coarse, fine = spaces[j - 1], spaces[j]
         parent = self._parents[j]
         iu = np.triu_indices(8, 1)
         pairs = np.unique(np.stack([coarse.rt_cells[:, iu[0]].ravel(),
