@@ -126,6 +126,98 @@ def _apply_buckets(level, flat, size):
     return np.bincount(ret, np.concatenate(values), minlength=size)
 
 
+def change_of_basis(space, CF, pi, r, boundary):
+    """The patches of cells CF (P, m) (canonical order, vertex matches pi to the
+    representative r, see `translation_classes`) as translates of r: returns glob (P, 8 m)
+    their retained global RT dofs per cell (-1 dropped), RET (P, nr) the sorted retained
+    dofs, loc (P, m, 8) their local numbers, and L, C (P, nr, 2): σ_p[i] = Σ_t C[p, i, t]
+    σ_r[L[p, i, t]] (the representative's local numbering).
+
+    With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
+    reflections (basix base transformations), the local RT basis is R_K F_K*ψ̂. The
+    representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π (P_π the reference map
+    that permutes the vertices), hence its basis is W_K = R_K' M_π R_K times K's, with M_π the
+    reference basis expressed through its pull-back (entries 0, ±1). The patch systems are
+    then related by the congruence Q A_p Qᵀ = A_r, and σ_p = Tᵀ σ_r for T the σ block of Q."""
+    from .equilibration import _row_index, _row_unique
+    P, m = CF.shape
+    glob = space.retained_dofs(CF, np.full(P, boundary))
+    sentinel = np.iinfo(np.int64).max
+    RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)        # (P, nr)
+    nr = RET.shape[1]
+    loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, m, 8)
+    # change of basis: W (P, m, 8, 8) from the reflection codes and the permutations
+    refl = space.reflections[CF]                                          # (P, m)
+    code = (refl[r][None, :] * 6 + _perm_code(pi)) * 8 + refl
+    W = _W_TABLE[code]                                                    # [l, k]
+    # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
+    # W[c, l, k] ≠ 0 (at most two: the dofs of one entity), at the rep's local numbers
+    lr = loc[r]                                                           # (m, 8)
+    L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+    C = np.zeros((P, nr, 2), dtype=np.int8)
+    top = np.argsort(-np.abs(W), axis=2, kind="stable")[:, :, :2, :]      # (P, m, 2, 8)
+    coef = np.take_along_axis(W, top, axis=2)
+    if np.abs(W).sum(axis=2).max() > 2 or not np.array_equal(
+            np.abs(coef).sum(axis=2), np.abs(W).sum(axis=2)):
+        raise RuntimeError("RT change of basis with more than two entries per column")
+    ok = loc >= 0
+    pp = np.broadcast_to(np.arange(P)[:, None, None], loc.shape)
+    tgt = lr[np.arange(m)[None, :, None, None], top]                      # (P, m, 2, 8)
+    if (tgt[np.broadcast_to(ok[:, :, None, :], tgt.shape)
+            & (coef != 0)] < 0).any():
+        raise RuntimeError("a retained dof of a translate maps to a dropped one")
+    L[pp[ok], loc[ok]] = np.maximum(tgt.transpose(0, 1, 3, 2)[ok], 0)
+    C[pp[ok], loc[ok]] = coef.transpose(0, 1, 3, 2)[ok]
+    return glob, RET, loc, L, C
+
+
+def class_members(rep):
+    """The patches of each class of `rep` (one index array per class, ascending)."""
+    order = np.argsort(rep, kind="stable")
+    cuts = np.flatnonzero(np.diff(rep[order])) + 1
+    return np.split(order, cuts)
+
+
+def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True):
+    """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
+    CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
+    boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
+    centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
+    pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
+    (relative to xa). Translates to round-off only (tolerance 1e-9 scale): a representative
+    whose vertices do not match (a coincidence of the rounded keys) makes the patch its own."""
+    P = len(xa)
+    off = (cent[CF] - xa[:, None, :]) / scale
+    key = np.round(off * 1e6).astype(np.int64)                                 # (P, m, 2)
+    order = np.lexsort((key[:, :, 1], key[:, :, 0]), axis=1)
+    CF = np.take_along_axis(CF, order, axis=1)
+    KF = np.take_along_axis(KF, order, axis=1)
+    key = np.take_along_axis(key, order[:, :, None], axis=1).reshape(P, -1)
+    sig = np.concatenate([np.asarray(boundary)[:, None].astype(np.int64), key], axis=1)
+    _, first, gid = np.unique(sig, axis=0, return_index=True, return_inverse=True)
+    xv = geo.x[geo.cells[CF]] - xa[:, None, None, :]
+    rep = first[gid.ravel()] if translates else np.arange(P)
+    pi = _vertex_match(xv, xv[rep], scale)
+    bad = np.flatnonzero(pi[:, 0, 0] < 0)
+    if len(bad):
+        rep[bad] = bad
+        pi[bad] = np.arange(3)
+    return CF, KF, rep, pi
+
+
+def _vertex_match(xv, xr, scale, tol=1e-9):
+    """pi (P, m, 3): vertex pi[p, c, i] of the representative's cell c sits where vertex
+    i of the patch's cell c does (relative to a); -1 everywhere in a patch where any
+    vertex has no match within tol * scale."""
+    d = np.abs(xv[:, :, :, None, :] - xr[:, :, None, :, :]).max(axis=4)   # (P, m, 3, 3)
+    pi = d.argmin(axis=3)
+    ok = (np.take_along_axis(d, pi[..., None], axis=3)[..., 0] <= tol * scale).all(
+        axis=(1, 2))
+    ok &= (np.sort(pi, axis=2) == np.arange(3)).all(axis=(1, 2))
+    pi[~ok] = -1
+    return pi
+
+
 class MultilevelFlux:
     """σ_alg of DESIGN §6 for the discretisation `disc` on `hierarchy` (levels ≥ 1)."""
 
@@ -201,29 +293,12 @@ class MultilevelFlux:
             P = len(verts)
             CF = children[CS].reshape(P, -1)                                 # (P, 4n)
             KF = np.repeat(KA, 4, axis=1)
-            # canonical cell order: by the offset of the cell centroid from the vertex a
-            off = (cent[CF] - self.geo[j - 1].x[verts][:, None, :]) / scale
-            key = np.round(off * 1e6).astype(np.int64)                         # (P, 4n, 2)
-            order = np.lexsort((key[:, :, 1], key[:, :, 0]), axis=1)
-            CF = np.take_along_axis(CF, order, axis=1)
-            KF = np.take_along_axis(KF, order, axis=1)
-            key = np.take_along_axis(key, order[:, :, None], axis=1).reshape(P, -1)
-            sig = np.concatenate([on_boundary[verts][:, None].astype(np.int64), key], axis=1)
-            _, first, gid = np.unique(sig, axis=0, return_index=True, return_inverse=True)
-            gid = gid.ravel()
-            # translates to round-off only: a representative whose vertices do not match
-            # (a coincidence of the rounded keys) makes the patch its own representative
-            xv = space.geo.x[space.geo.cells[CF]] - self.geo[j - 1].x[verts][:, None, None, :]
-            rep = first[gid] if self.TRANSLATES else np.arange(P)
-            pi = self._vertex_match(xv, xv[rep], scale)
-            bad = np.flatnonzero(pi[:, 0, 0] < 0)
-            if len(bad):
-                rep[bad] = bad
-                pi[bad] = np.arange(3)
-            for r in np.unique(rep):
-                members = np.flatnonzero(rep == r)
+            CF, KF, rep, pi = translation_classes(
+                self.geo[j - 1].x[verts], CF, KF, on_boundary[verts], space.geo, cent, scale,
+                self.TRANSLATES)
+            for members in class_members(rep):
                 groups.append((CF[members], KF[members], pi[members],
-                               on_boundary[verts[r]], members == r))
+                               on_boundary[verts[members[0]]], rep[members] == members))
         # the element blocks of the representatives' cells, in one pass over the level
         reps = np.concatenate([g[0][g[4]][0] for g in groups])
         cells, inverse = np.unique(reps, return_inverse=True)
@@ -235,74 +310,29 @@ class MultilevelFlux:
             out.append(self._translates(space, *g, blocks=(Me[idx], Be[idx])))
         return _buckets(out)
 
-    @staticmethod
-    def _vertex_match(xv, xr, scale, tol=1e-9):
-        """pi (P, m, 3): vertex pi[p, c, i] of the representative's cell c sits where vertex
-        i of the patch's cell c does (relative to a); -1 everywhere in a patch where any
-        vertex has no match within tol * scale."""
-        d = np.abs(xv[:, :, :, None, :] - xr[:, :, None, :, :]).max(axis=4)   # (P, m, 3, 3)
-        pi = d.argmin(axis=3)
-        ok = (np.take_along_axis(d, pi[..., None], axis=3)[..., 0] <= tol * scale).all(
-            axis=(1, 2))
-        ok &= (np.sort(pi, axis=2) == np.arange(3)).all(axis=(1, 2))
-        pi[~ok] = -1
-        return pi
-
     def _translates(self, space, CF, KF, pi, boundary, is_rep, blocks):
         """One group of patches (cells CF (P, m) in canonical order, the local index KF of a in
         each cell's parent, vertex matches pi to the representative, is_rep marks it, blocks
         the element blocks (Me, Be) of its cells): the
-        representative's solution operator and every patch's change of basis.
-
-        With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
-        reflections (basix base transformations), the local RT basis is R_K F_K*ψ̂. The
-        representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π (P_π the reference
-        map that permutes the vertices), hence its basis is W_K = R_K' M_π R_K times K's, with
-        M_π the reference basis expressed through its pull-back (entries 0, ±1). The patch
-        systems are then related by the congruence Q A_p Qᵀ = A_r, and σ_p = Tᵀ σ_r for T the
-        σ block of Q; the DG1 data moments are permuted by π."""
+        representative's solution operator and every patch's change of basis
+        (`change_of_basis`); the DG1 data moments are permuted by π."""
         P, m = CF.shape
         r = int(np.flatnonzero(is_rep)[0])
-        glob = space.retained_dofs(CF, np.full(P, boundary))
-        sentinel = np.iinfo(np.int64).max
-        from .equilibration import _row_index, _row_unique
-        RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)    # (P, nr)
+        glob, RET, loc, L, C = change_of_basis(space, CF, pi, r, boundary)
         nr = RET.shape[1]
-        loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, m, 8)
         _, _, A = space.saddle_point_systems(CF[r:r + 1], glob[r:r + 1], boundary,
                                              blocks=(blocks[0][None], blocks[1][None]))
         nq = 3 * m
         E = np.zeros((A.shape[1], nq))
         E[nr:nr + nq] = np.eye(nq)
         S = np.linalg.solve(A[0], E)[:nr]                                     # (nr, nq)
-        # change of basis: W (P, m, 8, 8) from the reflection codes and the permutations
-        refl = space.reflections[CF]                                          # (P, m)
-        code = (refl[r][None, :] * 6 + _perm_code(pi)) * 8 + refl
-        W = _W_TABLE[code]                                                    # [l, k]
-        # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
-        # W[c, l, k] ≠ 0 (at most two: the dofs of one entity), at the rep's local numbers
-        lr = loc[r]                                                           # (m, 8)
-        L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
-        C = np.zeros((P, nr, 2), dtype=np.int8)
-        top = np.argsort(-np.abs(W), axis=2, kind="stable")[:, :, :2, :]      # (P, m, 2, 8)
-        coef = np.take_along_axis(W, top, axis=2)
-        if np.abs(W).sum(axis=2).max() > 2 or not np.array_equal(
-                np.abs(coef).sum(axis=2), np.abs(W).sum(axis=2)):
-            raise RuntimeError("RT change of basis with more than two entries per column")
-        ok = loc >= 0
-        pp = np.broadcast_to(np.arange(P)[:, None, None], loc.shape)
-        tgt = lr[np.arange(m)[None, :, None, None], top]                      # (P, m, 2, 8)
-        if (tgt[np.broadcast_to(ok[:, :, None, :], tgt.shape)
-                & (coef != 0)] < 0).any():
-            raise RuntimeError("a retained dof of a translate maps to a dropped one")
-        L[pp[ok], loc[ok]] = np.maximum(tgt.transpose(0, 1, 3, 2)[ok], 0)
-        C[pp[ok], loc[ok]] = coef.transpose(0, 1, 3, 2)[ok]
         # data: (d, q^{K'}_{i'}) = (d, q^K_{π⁻¹... }): vertex i' of K' is vertex i of K with
         # pi[c, i] = i', so the rep's moment i' is the patch's moment at i with pi[i] = i'
         inv = np.argsort(pi, axis=2)                                          # i for each i'
         G = ((CF[:, :, None] * 3 + KF[:, :, None]) * 3 + inv).reshape(P, nq)
         return S, G.astype(np.int32 if G.max() < 2 ** 31 else np.int64), \
             RET.astype(np.int32), L, C
+
     def _products(self, r):
         """Mom[j][K, a, b] = (r φ^K_a, φ^K_b)_K for every cell K of every level T_j, r ∈ DG1(T_J)
         (ncells, 3): exact P1 triple products on T_J, then restricted level by level with the
