@@ -36,7 +36,13 @@ def kept_bytes(obj, seen=None):
         return 0
     seen.add(id(obj))
     if isinstance(obj, np.ndarray):
-        return obj.nbytes if obj.base is None else 0
+        if isinstance(obj.base, np.ndarray):      # a view: count the array it views, once
+            while isinstance(obj.base, np.ndarray):
+                obj = obj.base
+            if id(obj) in seen:
+                return 0
+            seen.add(id(obj))
+        return obj.nbytes
     if sp.issparse(obj):
         return sum(getattr(obj, a).nbytes for a in ("data", "indices", "indptr", "row", "col",
                                                      "offsets") if hasattr(obj, a))

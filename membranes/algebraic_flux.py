@@ -11,12 +11,14 @@ On the hierarchy T_0 ⊂ … ⊂ T_J = T_h, with Π_j the L² projection onto di
    ∇ρ_0·∇ψ_{j-1,a} is piecewise constant on T_{j-1}, which I - Π_{j-1} removes for j ≥ 2);
 3. σ_alg = Σ_j Σ_a σ^a_j ∈ RT_1(T_J): the divergences telescope to Π_J r_αh = r_αh.
 
-Set-up (once per hierarchy): the element blocks of every level (PatchSpace), the patch problems
-factorised into their solution operators S_a = (σ rows of A_a⁻¹ on the divergence data), and
-the tensors of exact P1 triple products that turn r_αh into the data moments (d_a, q)_K for
-every cell K of T_j. One evaluation is a coarse solve, a few tensor contractions, one small
-dense product per patch, and the prolongations RT_1(T_j) → RT_1(T_{j+1}) (interpolation of the
-coarse function, exact since the spaces are nested): about one V-cycle.
+Set-up (once per hierarchy): the patch problems of every level, factorised into solution
+operators S = (σ rows of A⁻¹ on the divergence data), one per class of translated patches (a
+patch maps to its class representative by a change of RT basis with entries 0, ±1), stacked
+by shape and class size. One evaluation: the exact P1 triple products (r, φ_a φ_b)_K on T_J,
+restricted level by level to the coarser cells (O(N) in all); a coarse solve; per level, the
+data moments of every patch (a gather), one batched product per stack of operators, each
+patch's change of basis, one scatter; and the prolongations RT_1(T_j) → RT_1(T_{j+1})
+(interpolation of the coarse function, exact since the spaces are nested): about one V-cycle.
 """
 
 import numpy as np
@@ -85,9 +87,135 @@ def _perm_code(pi):
     return (inv[..., 0] * 2 + (inv[..., 1] > inv[..., 2])).astype(np.int64)
 
 
-def _descendants(anc, size):
-    """The cells of T_J below each of the `size` cells of T_j: (size, 4^{J-j}) indices."""
-    return np.argsort(anc, kind="stable").reshape(size, -1)
+def _buckets(groups):
+    """Stack the groups (S, G, RET, L, C) of one level (see MultilevelFlux._level) by
+    (S.shape, number of patches): one batched product per bucket in an evaluation. Returns
+    (buckets, RET): each bucket (S (g, nr, nq), G (g P, nq), L (g P, nr, 2), C (g P, nr, 2)),
+    RET the global RT dofs of all buckets' patches in bucket order, flat."""
+    keys = {}
+    for k, g in enumerate(groups):
+        keys.setdefault((g[0].shape, len(g[1])), []).append(k)
+    buckets, ret = [], []
+    for key in sorted(keys):
+        members = [groups[k] for k in keys[key]]
+        L = np.concatenate([g[3] for g in members])
+        buckets.append((np.stack([g[0] for g in members]),
+                        np.concatenate([g[1] for g in members]),
+                        L.astype(np.int16 if L.shape[1] < 2 ** 15 else np.int32),
+                        np.concatenate([g[4] for g in members])))
+        ret.append(np.concatenate([g[2].ravel() for g in members]))
+    return buckets, np.concatenate(ret)
+
+
+def _apply_buckets(level, flat, size):
+    """Σ_a σ^a of one level (global RT coefficients, length `size`) from the flat array of the
+    level's data moments: per bucket, the data of every patch (a gather), one batched product
+    with the representatives' operators, and each patch's change of basis (a gather of at most
+    two representative dofs times 0, ±1); then one scatter for the level."""
+    buckets, ret = level
+    values = []
+    for S, G, L, C in buckets:
+        g, nr, nq = S.shape
+        D = flat[G].reshape(g, -1, nq)                                       # (g, P, nq)
+        SR = np.matmul(D, S.transpose(0, 2, 1)).reshape(-1)                   # (g P nr)
+        off = (np.arange(L.shape[0], dtype=np.int64) * nr)[:, None]
+        v = SR[L[:, :, 0] + off] * C[:, :, 0]
+        second = C[:, :, 1] != 0
+        v[second] += SR[(L[:, :, 1] + off)[second]] * C[:, :, 1][second]
+        values.append(v.ravel())
+    return np.bincount(ret, np.concatenate(values), minlength=size)
+
+
+def change_of_basis(space, CF, pi, r, boundary):
+    """The patches of cells CF (P, m) (canonical order, vertex matches pi to the
+    representative r, see `translation_classes`) as translates of r: returns glob (P, 8 m)
+    their retained global RT dofs per cell (-1 dropped), RET (P, nr) the sorted retained
+    dofs, loc (P, m, 8) their local numbers, and L, C (P, nr, 2): σ_p[i] = Σ_t C[p, i, t]
+    σ_r[L[p, i, t]] (the representative's local numbering).
+
+    With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
+    reflections (basix base transformations), the local RT basis is R_K F_K*ψ̂. The
+    representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π (P_π the reference map
+    that permutes the vertices), hence its basis is W_K = R_K' M_π R_K times K's, with M_π the
+    reference basis expressed through its pull-back (entries 0, ±1). The patch systems are
+    then related by the congruence Q A_p Qᵀ = A_r, and σ_p = Tᵀ σ_r for T the σ block of Q."""
+    from .equilibration import _row_index, _row_unique
+    P, m = CF.shape
+    glob = space.retained_dofs(CF, np.full(P, boundary))
+    sentinel = np.iinfo(np.int64).max
+    RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)        # (P, nr)
+    nr = RET.shape[1]
+    loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, m, 8)
+    # change of basis: W (P, m, 8, 8) from the reflection codes and the permutations
+    refl = space.reflections[CF]                                          # (P, m)
+    code = (refl[r][None, :] * 6 + _perm_code(pi)) * 8 + refl
+    W = _W_TABLE[code]                                                    # [l, k]
+    # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
+    # W[c, l, k] ≠ 0 (at most two: the dofs of one entity), at the rep's local numbers
+    lr = loc[r]                                                           # (m, 8)
+    L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+    C = np.zeros((P, nr, 2), dtype=np.int8)
+    top = np.argsort(-np.abs(W), axis=2, kind="stable")[:, :, :2, :]      # (P, m, 2, 8)
+    coef = np.take_along_axis(W, top, axis=2)
+    if np.abs(W).sum(axis=2).max() > 2 or not np.array_equal(
+            np.abs(coef).sum(axis=2), np.abs(W).sum(axis=2)):
+        raise RuntimeError("RT change of basis with more than two entries per column")
+    ok = loc >= 0
+    pp = np.broadcast_to(np.arange(P)[:, None, None], loc.shape)
+    tgt = lr[np.arange(m)[None, :, None, None], top]                      # (P, m, 2, 8)
+    if (tgt[np.broadcast_to(ok[:, :, None, :], tgt.shape)
+            & (coef != 0)] < 0).any():
+        raise RuntimeError("a retained dof of a translate maps to a dropped one")
+    L[pp[ok], loc[ok]] = np.maximum(tgt.transpose(0, 1, 3, 2)[ok], 0)
+    C[pp[ok], loc[ok]] = coef.transpose(0, 1, 3, 2)[ok]
+    return glob, RET, loc, L, C
+
+
+def class_members(rep):
+    """The patches of each class of `rep` (one index array per class, ascending)."""
+    order = np.argsort(rep, kind="stable")
+    cuts = np.flatnonzero(np.diff(rep[order])) + 1
+    return np.split(order, cuts)
+
+
+def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True):
+    """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
+    CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
+    boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
+    centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
+    pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
+    (relative to xa). Translates to round-off only (tolerance 1e-9 scale): a representative
+    whose vertices do not match (a coincidence of the rounded keys) makes the patch its own."""
+    P = len(xa)
+    off = (cent[CF] - xa[:, None, :]) / scale
+    key = np.round(off * 1e6).astype(np.int64)                                 # (P, m, 2)
+    order = np.lexsort((key[:, :, 1], key[:, :, 0]), axis=1)
+    CF = np.take_along_axis(CF, order, axis=1)
+    KF = np.take_along_axis(KF, order, axis=1)
+    key = np.take_along_axis(key, order[:, :, None], axis=1).reshape(P, -1)
+    sig = np.concatenate([np.asarray(boundary)[:, None].astype(np.int64), key], axis=1)
+    _, first, gid = np.unique(sig, axis=0, return_index=True, return_inverse=True)
+    xv = geo.x[geo.cells[CF]] - xa[:, None, None, :]
+    rep = first[gid.ravel()] if translates else np.arange(P)
+    pi = _vertex_match(xv, xv[rep], scale)
+    bad = np.flatnonzero(pi[:, 0, 0] < 0)
+    if len(bad):
+        rep[bad] = bad
+        pi[bad] = np.arange(3)
+    return CF, KF, rep, pi
+
+
+def _vertex_match(xv, xr, scale, tol=1e-9):
+    """pi (P, m, 3): vertex pi[p, c, i] of the representative's cell c sits where vertex
+    i of the patch's cell c does (relative to a); -1 everywhere in a patch where any
+    vertex has no match within tol * scale."""
+    d = np.abs(xv[:, :, :, None, :] - xr[:, :, None, :, :]).max(axis=4)   # (P, m, 3, 3)
+    pi = d.argmin(axis=3)
+    ok = (np.take_along_axis(d, pi[..., None], axis=3)[..., 0] <= tol * scale).all(
+        axis=(1, 2))
+    ok &= (np.sort(pi, axis=2) == np.arange(3)).all(axis=(1, 2))
+    pi[~ok] = -1
+    return pi
 
 
 class MultilevelFlux:
@@ -106,28 +234,24 @@ class MultilevelFlux:
         self.geo = [Geometry(v) for v in V]
         fine = self.geo[J]
         self.lift = lifting(fine)
-        # ancestors of the cells of T_J on every level, and the coordinates of their
-        # vertices in the ancestor's barycentric basis
-        anc = [None] * (J + 1)
-        anc[J] = np.arange(fine.ncells)
-        for j in range(J, 0, -1):
-            anc[j - 1] = hierarchy.parent_cells[j - 1][anc[j]]
-        self.anc = anc
-        self.below = [_descendants(anc[j], self.geo[j].ncells) for j in range(J + 1)]
-        xJ = self._corners(J)
-        # barycentric coordinates of the T_J vertices in their level-j ancestor: dyadic
-        # (multiples of 2^{j-J}), snapped to them so that they are exact
-        self.bary = [np.round(_barycentric(xJ, self._corners(j)[anc[j]]) * 2.0 ** (J - j))
-                     / 2.0 ** (J - j) for j in range(J + 1)]
-        # vertices of each T_j cell in its parent's barycentric basis (for Π_{j-1} on K_j)
-        self.Bp = [None] + [np.round(2.0 * _barycentric(
-            self._corners(j), self._corners(j - 1)[hierarchy.parent_cells[j - 1]])) / 2.0
-            for j in range(1, J + 1)]
-        self._parents = [None] + list(hierarchy.parent_cells)   # T_j cell -> T_{j-1} cell
+        # vertices of each T_j cell in its parent's barycentric basis (multiples of 1/2, kept
+        # as 2 Bp in int8: exact), and the four children of each T_{j-1} cell
+        self.Bp2 = [None] + [np.round(2.0 * _barycentric(
+            self._corners(j), self._corners(j - 1)[hierarchy.parent_cells[j - 1]])).astype(
+            np.int8) for j in range(1, J + 1)]
+        self._parents = [None] + [np.asarray(p, dtype=np.int32)
+                                  for p in hierarchy.parent_cells]   # T_j cell -> T_{j-1} cell
+        self.children = [None] + [np.argsort(p, kind="stable").reshape(-1, 4).astype(np.int32)
+                                  for p in hierarchy.parent_cells]
         self._coarse_solver(V[0])
-        self.spaces = [None] + [PatchSpace(V[j], blocks=False) for j in range(1, J + 1)]
-        self.levels = [None] + [self._level(j, hierarchy) for j in range(1, J + 1)]
-        self.prolong = [None, None] + [self._prolongation(j) for j in range(2, J + 1)]
+        spaces = [None] + [PatchSpace(V[j], blocks=False) for j in range(1, J + 1)]
+        self.levels = [None] + [self._level(j, spaces) for j in range(1, J + 1)]
+        self.prolong = [None, None] + [self._prolongation(j, spaces) for j in range(2, J + 1)]
+        # what an evaluation needs: the coarse geometry, the fine areas, the RT dimensions
+        self.nrt = [None] + [spaces[j].nrt for j in range(1, J + 1)]
+        self.RT = spaces[J].RT
+        self.areas = [g.area for g in self.geo]
+        self.geo = [self.geo[0]]
 
     def _corners(self, j):
         """Vertex coordinates of the cells of T_j, (nc_j, 3, 2), in the cells' vertex order."""
@@ -147,7 +271,7 @@ class MultilevelFlux:
         self._coarse = spla.splu(S.tocsc())
         self._coarse_boundary = bdofs
 
-    def _level(self, j, hierarchy):
+    def _level(self, j, spaces):
         """The patch problems of level j: one per vertex of T_{j-1}, on the T_j cells of its
         patch. Patches that are translates of one another (all but a few, on a uniform
         refinement) share one solution operator, computed for a representative; see
@@ -155,11 +279,11 @@ class MultilevelFlux:
         representative's operator from data moments to σ (its local numbering), G (P, nq) where
         each patch's data moments sit in the flat moment array of the level, RET (P, nr) the
         patches' global RT dofs, and L, C (P, nr, 2) the two representative dofs and the
-        integer coefficients that give each of a patch's dofs (the change of basis)."""
-        space = self.spaces[j]
+        integer coefficients that give each of a patch's dofs (the change of basis). The groups
+        are then stacked by shape and size (`_buckets`)."""
+        space = spaces[j]
         coarse = self.geo[j - 1]
-        parents = hierarchy.parent_cells[j - 1]
-        children = np.argsort(parents, kind="stable").reshape(-1, 4)          # (nc_{j-1}, 4)
+        children = self.children[j]                                           # (nc_{j-1}, 4)
         on_boundary = np.zeros(coarse.n, dtype=bool)
         on_boundary[boundary_dofs(coarse.V)] = True
         cent = self._corners(j).mean(axis=1)                                  # (nc_j, 2)
@@ -169,29 +293,12 @@ class MultilevelFlux:
             P = len(verts)
             CF = children[CS].reshape(P, -1)                                 # (P, 4n)
             KF = np.repeat(KA, 4, axis=1)
-            # canonical cell order: by the offset of the cell centroid from the vertex a
-            off = (cent[CF] - self.geo[j - 1].x[verts][:, None, :]) / scale
-            key = np.round(off * 1e6).astype(np.int64)                         # (P, 4n, 2)
-            order = np.lexsort((key[:, :, 1], key[:, :, 0]), axis=1)
-            CF = np.take_along_axis(CF, order, axis=1)
-            KF = np.take_along_axis(KF, order, axis=1)
-            key = np.take_along_axis(key, order[:, :, None], axis=1).reshape(P, -1)
-            sig = np.concatenate([on_boundary[verts][:, None].astype(np.int64), key], axis=1)
-            _, first, gid = np.unique(sig, axis=0, return_index=True, return_inverse=True)
-            gid = gid.ravel()
-            # translates to round-off only: a representative whose vertices do not match
-            # (a coincidence of the rounded keys) makes the patch its own representative
-            xv = space.geo.x[space.geo.cells[CF]] - self.geo[j - 1].x[verts][:, None, None, :]
-            rep = first[gid] if self.TRANSLATES else np.arange(P)
-            pi = self._vertex_match(xv, xv[rep], scale)
-            bad = np.flatnonzero(pi[:, 0, 0] < 0)
-            if len(bad):
-                rep[bad] = bad
-                pi[bad] = np.arange(3)
-            for r in np.unique(rep):
-                members = np.flatnonzero(rep == r)
+            CF, KF, rep, pi = translation_classes(
+                self.geo[j - 1].x[verts], CF, KF, on_boundary[verts], space.geo, cent, scale,
+                self.TRANSLATES)
+            for members in class_members(rep):
                 groups.append((CF[members], KF[members], pi[members],
-                               on_boundary[verts[r]], members == r))
+                               on_boundary[verts[members[0]]], rep[members] == members))
         # the element blocks of the representatives' cells, in one pass over the level
         reps = np.concatenate([g[0][g[4]][0] for g in groups])
         cells, inverse = np.unique(reps, return_inverse=True)
@@ -201,97 +308,58 @@ class MultilevelFlux:
             idx = inverse[start:start + g[0].shape[1]]
             start += g[0].shape[1]
             out.append(self._translates(space, *g, blocks=(Me[idx], Be[idx])))
-        return out
-
-    @staticmethod
-    def _vertex_match(xv, xr, scale, tol=1e-9):
-        """pi (P, m, 3): vertex pi[p, c, i] of the representative's cell c sits where vertex
-        i of the patch's cell c does (relative to a); -1 everywhere in a patch where any
-        vertex has no match within tol * scale."""
-        d = np.abs(xv[:, :, :, None, :] - xr[:, :, None, :, :]).max(axis=4)   # (P, m, 3, 3)
-        pi = d.argmin(axis=3)
-        ok = (np.take_along_axis(d, pi[..., None], axis=3)[..., 0] <= tol * scale).all(
-            axis=(1, 2))
-        ok &= (np.sort(pi, axis=2) == np.arange(3)).all(axis=(1, 2))
-        pi[~ok] = -1
-        return pi
+        return _buckets(out)
 
     def _translates(self, space, CF, KF, pi, boundary, is_rep, blocks):
         """One group of patches (cells CF (P, m) in canonical order, the local index KF of a in
         each cell's parent, vertex matches pi to the representative, is_rep marks it, blocks
         the element blocks (Me, Be) of its cells): the
-        representative's solution operator and every patch's change of basis.
-
-        With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
-        reflections (basix base transformations), the local RT basis is R_K F_K*ψ̂. The
-        representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π (P_π the reference
-        map that permutes the vertices), hence its basis is W_K = R_K' M_π R_K times K's, with
-        M_π the reference basis expressed through its pull-back (entries 0, ±1). The patch
-        systems are then related by the congruence Q A_p Qᵀ = A_r, and σ_p = Tᵀ σ_r for T the
-        σ block of Q; the DG1 data moments are permuted by π."""
+        representative's solution operator and every patch's change of basis
+        (`change_of_basis`); the DG1 data moments are permuted by π."""
         P, m = CF.shape
         r = int(np.flatnonzero(is_rep)[0])
-        glob = space.retained_dofs(CF, np.full(P, boundary))
-        sentinel = np.iinfo(np.int64).max
-        from .equilibration import _row_index, _row_unique
-        RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)    # (P, nr)
+        glob, RET, loc, L, C = change_of_basis(space, CF, pi, r, boundary)
         nr = RET.shape[1]
-        loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, m, 8)
         _, _, A = space.saddle_point_systems(CF[r:r + 1], glob[r:r + 1], boundary,
                                              blocks=(blocks[0][None], blocks[1][None]))
         nq = 3 * m
         E = np.zeros((A.shape[1], nq))
         E[nr:nr + nq] = np.eye(nq)
         S = np.linalg.solve(A[0], E)[:nr]                                     # (nr, nq)
-        # change of basis: W (P, m, 8, 8) from the reflection codes and the permutations
-        refl = space.reflections[CF]                                          # (P, m)
-        code = (refl[r][None, :] * 6 + _perm_code(pi)) * 8 + refl
-        W = _W_TABLE[code]                                                    # [l, k]
-        # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
-        # W[c, l, k] ≠ 0 (at most two: the dofs of one entity), at the rep's local numbers
-        lr = loc[r]                                                           # (m, 8)
-        L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
-        C = np.zeros((P, nr, 2), dtype=np.int8)
-        top = np.argsort(-np.abs(W), axis=2, kind="stable")[:, :, :2, :]      # (P, m, 2, 8)
-        coef = np.take_along_axis(W, top, axis=2)
-        if np.abs(W).sum(axis=2).max() > 2 or not np.array_equal(
-                np.abs(coef).sum(axis=2), np.abs(W).sum(axis=2)):
-            raise RuntimeError("RT change of basis with more than two entries per column")
-        ok = loc >= 0
-        pp = np.broadcast_to(np.arange(P)[:, None, None], loc.shape)
-        tgt = lr[np.arange(m)[None, :, None, None], top]                      # (P, m, 2, 8)
-        if (tgt[np.broadcast_to(ok[:, :, None, :], tgt.shape)
-                & (coef != 0)] < 0).any():
-            raise RuntimeError("a retained dof of a translate maps to a dropped one")
-        L[pp[ok], loc[ok]] = np.maximum(tgt.transpose(0, 1, 3, 2)[ok], 0)
-        C[pp[ok], loc[ok]] = coef.transpose(0, 1, 3, 2)[ok]
         # data: (d, q^{K'}_{i'}) = (d, q^K_{π⁻¹... }): vertex i' of K' is vertex i of K with
         # pi[c, i] = i', so the rep's moment i' is the patch's moment at i with pi[i] = i'
         inv = np.argsort(pi, axis=2)                                          # i for each i'
         G = ((CF[:, :, None] * 3 + KF[:, :, None]) * 3 + inv).reshape(P, nq)
         return S, G.astype(np.int32 if G.max() < 2 ** 31 else np.int64), \
             RET.astype(np.int32), L, C
-    def _triple(self, r, a, b):
-        """t[L, k, i] = (r φ^{T_a}_k, φ^{T_b}_i)_L on every cell L of T_J, for r ∈ DG1(T_J)
-        (ncells, 3) and φ^{T_a}_k, φ^{T_b}_i the barycentric functions of the level-a and
-        level-b ancestors of L (exact P1 triple products, computed on the fly)."""
-        w = np.einsum("lmn,Ll->Lmn", _C3, r) * self.geo[self.J].area[:, None, None]
-        return np.einsum("Lmk,Lmn,Lni->Lki", self.bary[a], w, self.bary[b], optimize=True)
 
-    def _moments(self, j, r, grad_rho0):
+    def _products(self, r):
+        """Mom[j][K, a, b] = (r φ^K_a, φ^K_b)_K for every cell K of every level T_j, r ∈ DG1(T_J)
+        (ncells, 3): exact P1 triple products on T_J, then restricted level by level with the
+        children's vertices in their parent's barycentric basis (φ^{K'}_{a'} = Σ_v Bp[K, v, a']
+        φ^K_v on a child K of K'), O(N) in all."""
+        J = self.J
+        mom = [None] * (J + 1)
+        mom[J] = ((r @ _C3.reshape(3, 9)) * self.areas[J][:, None]).reshape(-1, 3, 3)
+        for j in range(J, 0, -1):
+            Bp = self.Bp2[j] * 0.5
+            t = np.matmul(np.matmul(Bp.transpose(0, 2, 1), mom[j]), Bp)
+            mom[j - 1] = t[self.children[j]].sum(axis=1)
+        return mom
+
+    def _moments(self, j, mom, grad_rho0):
         """(d_a, q_i)_{K_j} for every cell K_j of T_j and every local vertex k of its parent
         (the vertex a): shape (nc_j, 3 (k), 3 (i))."""
-        m = self._triple(r, j - 1, j)[self.below[j]].sum(axis=1)
+        m = np.matmul((self.Bp2[j] * 0.5).transpose(0, 2, 1), mom[j])
         parent = self._parents[j]
-        area = self.geo[j].area
+        area = self.areas[j]
         if j == 1:   # - ∇ρ_0·∇ψ_{0,k} (constant on K_0) times (1, q_i)_{K_1} = |K_1|/3
             g0 = self.geo[0]
             dot = np.einsum("cd,ckd->ck", grad_rho0, g0.grad)[parent]         # (nc_1, 3)
             m -= (area / 3.0)[:, None, None] * dot[:, :, None]
         else:        # - (Π_{j-1}(r ψ_k), q_i)_{K_j}
-            mp = self._triple(r, j - 1, j - 1)[self.below[j - 1]].sum(axis=1)
-            coef = (3.0 / self.geo[j - 1].area)[:, None, None] * (mp @ _MINV_REF.T)
-            p = np.einsum("ckm,cvm->ckv", coef[parent], self.Bp[j])           # at K_j vertices
+            coef = (3.0 / self.areas[j - 1])[:, None, None] * (mom[j - 1] @ _MINV_REF.T)
+            p = np.matmul(coef[parent], self.Bp2[j].transpose(0, 2, 1) * 0.5)  # at K_j vertices
             m -= (area / 12.0)[:, None, None] * (p + p.sum(axis=2, keepdims=True))
         return m
 
@@ -304,31 +372,21 @@ class MultilevelFlux:
     def flux_of_lifting(self, r):
         """σ_alg with ∇·σ_alg = r for r ∈ DG1(T_J) given per cell (ncells, 3)."""
         g0 = self.geo[0]
-        mass_ref = (np.ones((3, 3)) + np.eye(3)) / 12.0
-        t0 = np.einsum("L,Ll,lm,Lmk->Lk", self.geo[self.J].area, r, mass_ref, self.bary[0])
-        b = np.bincount(g0.cells.ravel(), t0[self.below[0]].sum(axis=1).ravel(),
-                        minlength=g0.n)
+        mom = self._products(r)
+        b = np.bincount(g0.cells.ravel(), mom[0].sum(axis=1).ravel(), minlength=g0.n)
         b[self._coarse_boundary] = 0.0
         grad_rho0 = g0.gradient(self._coarse.solve(b))
         total = None
         for j in range(1, self.J + 1):
-            space = self.spaces[j]
-            m = self._moments(j, r, grad_rho0)
-            flat = m.ravel()
-            dofs, values = [], []
-            for S, G, RET, L, C in self.levels[j]:
-                sr = flat[G] @ S.T                                            # (P, nr)
-                rows = np.arange(len(G))[:, None, None]
-                dofs.append(RET.ravel())
-                values.append((sr[rows, L] * C).sum(axis=2).ravel())
-            sigma = np.bincount(np.concatenate(dofs), np.concatenate(values),
-                                minlength=space.nrt)
+            flat = self._moments(j, mom, grad_rho0).ravel()
+            mom[j - 1] = None
+            sigma = _apply_buckets(self.levels[j], flat, self.nrt[j])
             if total is not None:
                 sigma += self.prolong[j] @ total
             total = sigma
         return total
 
-    def _prolongation(self, j):
+    def _prolongation(self, j, spaces):
         """The matrix of RT_1(T_{j-1}) → RT_1(T_j), interpolation of the coarse function (exact:
         the spaces are nested). Built by interpolating sums of coarse basis functions, one sum
         per colour of coarse dofs that share no cell: a fine dof then sees at most one basis
@@ -336,7 +394,7 @@ class MultilevelFlux:
         the only ones with a normal component on it), so each pass gives one column entry per
         fine dof."""
         from dolfinx import fem
-        coarse, fine = self.spaces[j - 1], self.spaces[j]
+        coarse, fine = spaces[j - 1], spaces[j]
         parent = self._parents[j]
         iu = np.triu_indices(8, 1)
         pairs = np.unique(np.stack([coarse.rt_cells[:, iu[0]].ravel(),

@@ -30,6 +30,12 @@ the data, the set-up solves every patch problem once for the *operators*
     σ_α,disc = μ_α G_u u_α ± G_λ λ + G_R R_α + σ_f,α
 
 (G_u, G_λ, G_R sparse, σ_f,α a fixed vector): one evaluation is three sparse products, O(N).
+Where many patches are translates of one another (a uniform refinement: all but a few, in about
+#vertices + #edges + #cells of T_0 classes) the operators are not assembled: each class keeps
+one dense operator from cell data (∇u_h, r_h, λ_a) to σ_a, computed for a representative, and
+each patch its data indices and change of RT basis (entries 0, ±1; algebraic_flux); one
+evaluation is then a gather, one batched product per stack of classes and one scatter. The other
+patches keep the sparse operators.
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures).
 """
@@ -323,6 +329,8 @@ class FluxEquilibration:
     """Set-up (once per mesh) and evaluation of σ_α,disc (DESIGN §5)."""
 
     CHUNK = 8000     # patches solved at once (bounds the set-up's memory)
+    MIN_CLASS = 3    # translated patches sharing one operator (fewer: each its own, sparse)
+    TRANSLATES = True
 
     def __init__(self, disc):
         from dolfinx import fem
@@ -348,14 +356,89 @@ class FluxEquilibration:
         shape = (space.nrt, self.geo.n)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
+        groups = []
         for verts, CS, KA in vertex_patches(self.geo):
+            own = self._classes(verts, CS, KA, on_boundary[verts], groups)
+            if len(own) == 0:
+                continue
+            verts, CS, KA = verts[own], CS[own], KA[own]
             for sel, RET, loc, A in space.patch_groups(CS, on_boundary[verts], self.CHUNK):
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A)
+        from .algebraic_flux import _buckets
+        self.classes = _buckets(groups) if groups else None
         # what the evaluation does not need goes: the element blocks and the load moments
         # (kept summed, (f_α, φ_i)_K, for the oscillation estimator)
         self.load = [wf.sum(axis=2) for wf in self.wf]
         del self.Ce, self.wf
         space.Me = space.Be = None
+
+    def _classes(self, verts, CS, KA, boundary, groups):
+        """The patches of P vertices (cells CS (P, n), a's local index KA) that are translates
+        of one another in classes of at least MIN_CLASS (as on a uniform refinement: all but a
+        few): one operator per class, from the representative's patch problem, appended to
+        `groups` as (S, G, RET, L, C) (see algebraic_flux._buckets), their σ_f added. Returns
+        the indices of the other patches (each solved on its own into G_u, G_R, G_lam).
+
+        The representative's right-hand side is a linear map of cell data that a translation
+        carries over: ∇u_h per cell (2), r_h per cell (3, its vertices permuted by π), λ_a, and
+        (set-up only) the load moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map)
+        and σ_p = Tᵀ S d_p for the patch's data d_p (change_of_basis)."""
+        from .algebraic_flux import change_of_basis, class_members, translation_classes
+        geo, space = self.geo, self.space
+        P, n = CS.shape
+        cent = geo.x[geo.cells].mean(axis=1)
+        scale = np.sqrt(geo.area.mean())
+        CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, cent, scale,
+                                              self.TRANSLATES)
+        own = []
+        nc = geo.ncells
+        for members in class_members(rep):
+            if len(members) < self.MIN_CLASS:
+                own.append(members)
+                continue
+            cf, kf, pc = CF[members], KF[members], pi[members]
+            b = bool(boundary[members[0]])
+            r = int(np.flatnonzero(rep[members] == members)[0])
+            glob, RET, loc, L, C = change_of_basis(space, cf, pc, r, b)
+            nr, nq = RET.shape[1], 3 * n
+            _, _, A = space.saddle_point_systems(cf[r:r + 1], glob[r:r + 1], b)
+            # the representative's right-hand side: columns ∇u (2n) | r (3n) | λ_a | f (3n)
+            cr, ka, lr = cf[r], kf[r], loc[r]
+            area = geo.area[cr]
+            rhs = np.zeros((A.shape[1], 8 * n + 1))
+            cols = 2 * np.arange(n)[:, None] + np.arange(2)                   # (n, 2)
+            Cka = np.take_along_axis(self.Ce[cr], (2 * ka[:, None] + np.arange(2))[:, None, :],
+                                     axis=2)                                  # (n, 8, 2)
+            ok = lr >= 0
+            cc = np.broadcast_to(cols[:, None, :], Cka.shape)
+            rr = np.broadcast_to(lr[:, :, None], Cka.shape)
+            okc = np.broadcast_to(ok[:, :, None], Cka.shape)
+            rhs[rr[okc], cc[okc]] = -Cka[okc]
+            qrow = nr + 3 * np.arange(n)[:, None] + np.arange(3)              # (n, 3)
+            gka = geo.grad[cr, ka]                                            # ∇ψ_a (n, 2)
+            rhs[qrow[:, :, None], cols[:, None, :]] = \
+                -(area / 3.0)[:, None, None] * gka[:, None, :]
+            rcols = 2 * n + 3 * np.arange(n)[:, None] + np.arange(3)          # (n, 3)
+            rhs[qrow[:, :, None], rcols[:, None, :]] = \
+                -area[:, None, None] * _C3[ka].transpose(0, 2, 1)             # [i, l]
+            rhs[qrow, 5 * n] = area[:, None] / 12.0 * (1.0 + (np.arange(3) == ka[:, None]))
+            rhs[qrow, 5 * n + 1 + qrow - nr] = 1.0
+            S = np.linalg.solve(A[0], rhs)[:nr]
+            # data of every patch, in the representative's cell and vertex order
+            inv = np.argsort(pc, axis=2)                                      # i for each i'
+            pm = len(members)
+            G = np.concatenate([(2 * cf[:, :, None] + np.arange(2)).reshape(pm, -1),
+                                2 * nc + (3 * cf[:, :, None] + inv).reshape(pm, -1),
+                                5 * nc + verts[members][:, None]], axis=1)
+            G = G.astype(np.int32 if G.max() < 2 ** 31 else np.int64)
+            for alpha in range(2):
+                wf = self.wf[alpha][cf[:, :, None], inv, kf[:, :, None]]      # (pm, n, 3)
+                level = ([(S[None, :, 5 * n + 1:], np.arange(pm * nq).reshape(pm, nq), L,
+                           C)], RET.ravel())
+                self.sigma_f[alpha] += _apply_class(level, wf.ravel(), space.nrt)
+            groups.append((np.ascontiguousarray(S[:, :5 * n + 1]), G, RET.astype(np.int32),
+                           L, C))
+        return np.concatenate(own) if own else np.zeros(0, dtype=np.int64)
 
     def _solve_patches(self, verts, CS, KA, RET, loc, A):
         """The right-hand sides of P patch problems of one shape as linear maps of the data,
@@ -427,4 +510,13 @@ class FluxEquilibration:
         out = mu * (self.G_u @ u) + sign * (self.G_lam @ lam) + self.sigma_f[alpha - 1]
         if R is not None:
             out += self.G_R @ R
+        if self.classes is not None:
+            r = np.zeros(3 * self.geo.ncells) if R is None else self.lift @ R
+            data = np.concatenate([mu * self.geo.gradient(u).ravel(), r, sign * lam])
+            out += _apply_class(self.classes, data, len(out))
         return out
+
+
+def _apply_class(level, data, size):
+    from .algebraic_flux import _apply_buckets
+    return _apply_buckets(level, data, size)

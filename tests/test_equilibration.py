@@ -17,15 +17,16 @@ from membranes.equilibration import FluxEquilibration, Geometry, lifting
 from membranes.newton_system import linear_rows, split
 from membranes.problem import as_builder
 
-from .conftest import solved
+from .conftest import solved, solved_on
 
 RNG = np.random.default_rng(1)
 
 
-@pytest.fixture(scope="module", params=[("disk", 0.1), ("square", 0.1)],
-                ids=["disk", "square"])
+@pytest.fixture(scope="module", params=[("disk", 0.1, 0), ("square", 0.1, 0), ("disk", 0.3, 3)],
+                ids=["disk", "square", "disk-refined"])
 def setup(request):
-    run = solved(*request.param)
+    name, h, levels = request.param
+    run = solved(name, h) if levels == 0 else solved_on(name, h, levels, estimators=False)
     return run, FluxEquilibration(run.disc)
 
 
@@ -113,3 +114,27 @@ def test_operators_are_linear_in_the_data(setup):
     s_a, s_b = eq.sigma(1, a, lam, R), eq.sigma(1, b, lam, R)
     assert np.allclose(s_ab - eq.sigma_f[0], s_a + s_b - 2 * eq.sigma_f[0],
                        atol=1e-12 * np.abs(s_ab).max())
+
+
+def test_translated_patches_share_operators():
+    """On a uniform refinement most vertex patches are translates of a few: their σ_a come
+    from one operator per class (change of basis with entries 0, ±1); the result is the σ of
+    every patch solved on its own, to round-off."""
+    run = solved_on("disk", 0.3, 3, estimators=False)
+    d = run.disc
+    shared = FluxEquilibration(d)
+    assert shared.classes is not None
+    per_class = sum(len(G) for _, G, _, _ in shared.classes[0])
+    assert per_class > 0.8 * d.n
+    FluxEquilibration.TRANSLATES = False
+    try:
+        alone = FluxEquilibration(d)
+    finally:
+        FluxEquilibration.TRANSLATES = True
+    assert alone.classes is None
+    u, lam, R = (RNG.standard_normal(d.n) for _ in range(3))
+    R[d.boundary] = 0.0
+    for alpha in (1, 2):
+        for Ra in (R, None):
+            a, b = shared.sigma(alpha, u, lam, Ra), alone.sigma(alpha, u, lam, Ra)
+            assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
