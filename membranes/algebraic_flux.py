@@ -178,14 +178,20 @@ def class_members(rep):
     return np.split(order, cuts)
 
 
-def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True):
+def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
+                        exterior=None):
     """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
     CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
     boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
     centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
     pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
     (relative to xa). Translates to round-off only (tolerance 1e-9 scale): a representative
-    whose vertices do not match (a coincidence of the rounded keys) makes the patch its own."""
+    whose vertices do not match (a coincidence of the rounded keys) makes the patch its own.
+    `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary
+    patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets, per
+    cell): two patches of boundary vertices with the same cells keep different RT dofs when
+    one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of a
+    structured square)."""
     P = len(xa)
     off = (cent[CF] - xa[:, None, :]) / scale
     key = np.round(off * 1e6).astype(np.int64)                                 # (P, m, 2)
@@ -194,6 +200,13 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True)
     KF = np.take_along_axis(KF, order, axis=1)
     key = np.take_along_axis(key, order[:, :, None], axis=1).reshape(P, -1)
     sig = np.concatenate([np.asarray(boundary)[:, None].astype(np.int64), key], axis=1)
+    if exterior is not None:
+        vx = geo.x[geo.cells[CF]] - xa[:, None, None, :]                     # (P, m, 3, 2)
+        mids = 0.5 * (np.roll(vx, -1, axis=2) + np.roll(vx, -2, axis=2))     # edge e: opposite e
+        on = exterior[CF] & np.asarray(boundary, dtype=bool)[:, None, None]
+        where = (mids * on[..., None]).sum(axis=2) / scale                    # (P, m, 2)
+        sig = np.concatenate([sig, np.round(where * 1e6).astype(np.int64).reshape(P, -1)],
+                             axis=1)
     _, first, gid = np.unique(sig, axis=0, return_index=True, return_inverse=True)
     xv = geo.x[geo.cells[CF]] - xa[:, None, None, :]
     rep = first[gid.ravel()] if translates else np.arange(P)
@@ -295,7 +308,7 @@ class MultilevelFlux:
             KF = np.repeat(KA, 4, axis=1)
             CF, KF, rep, pi = translation_classes(
                 self.geo[j - 1].x[verts], CF, KF, on_boundary[verts], space.geo, cent, scale,
-                self.TRANSLATES)
+                self.TRANSLATES, space.exterior_edge)
             for members in class_members(rep):
                 groups.append((CF[members], KF[members], pi[members],
                                on_boundary[verts[members[0]]], rep[members] == members))
