@@ -461,7 +461,7 @@ def _solve_nested(problem, method, alg_flux, estimators, initial_guess):
     own stopping test. Estimators run on the levels below J only where the method uses them
     (adaptive); there the multilevel flux uses the hierarchy up to the level, and T_0, which
     has none, takes the ν flux. Returns the _LevelRuns."""
-    from .nested import initial_guess as prolonged, level_problem, prolongation
+    from .nested import level_problem, prolong, prolongation
     runs, offset, its = [], 0.0, 0
     J = problem.levels
     for j in range(J + 1):
@@ -480,7 +480,7 @@ def _solve_nested(problem, method, alg_flux, estimators, initial_guess):
 
             def guess(disc, below=below, j=j):
                 P = prolongation(below.disc.V, disc.V, problem.hierarchy.parent_cells[j - 1])
-                return prolonged(P, below.result.X)
+                return prolong(P, below.result.X)
         before = time.perf_counter() - t       # the level's problem: counts for the level
         run = _solve_on(pj, method, flux, guess, level=j, offset=offset + before,
                         its_offset=its, timed_guess=j > 0, tag=f"level {j}  ")

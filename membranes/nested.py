@@ -15,9 +15,15 @@ weights of the vertex in the parent, 1 at an old vertex and (1/2, 1/2) at an edg
 The weights are computed from the geometry and snapped to these exact values (ValueError if a
 mesh is not such a refinement), so that the prolongation reproduces linear functions, and the
 boundary values u1 = g, u2 = λ = 0, exactly. λ is nodal (DESIGN §2) and is prolonged the same
-way, and then set to 0 where the membranes are apart (`initial_guess`). One sparse matrix
-per level (scipy CSR, n_j × n_{j-1}, in the P1 dof order of the levels' spaces); the three
-fields are prolonged by it in turn. Serial, as the driver is.
+way. One sparse matrix per level (scipy CSR, n_j × n_{j-1}, in the P1 dof order of the levels'
+spaces); the three fields are prolonged by it in turn. Serial, as the driver is.
+
+The prolonged pair is not complementary where a coarse edge crosses the free boundary: at its
+midpoint both w = u1 - u2 and λ are positive. Setting λ = 0 there (the membranes are apart) was
+tried and not kept: on the disk (h0 = 0.2, J = 3, Newton steps on T_0..T_3) it saved a step
+per level for exact Newton-min (4, 3, 3, 4 against 4, 4, 4, 5) and for Fischer–Burmeister on
+T_3 (14 against 21), but cost steps where it counts more: adaptive 3, 3, 4, 6 against
+3, 2, 3, 3, inexact 6, 8, 17, 42 against 6, 7, 16, 33.
 
 **Levels.** The problem of level j is the problem itself with its hierarchy truncated to
 T_0..T_j (`level_problem`): same data, same scene declarations (exact solution, interface,
@@ -32,7 +38,6 @@ import scipy.sparse as sp
 from .hierarchy import Hierarchy
 
 SNAP = 1e-8      # barycentric weights farther than this from {0, 1/2, 1}: not a Plaza refinement
-APART = 1e-8     # the guess drops λ where w > APART max|u| (`initial_guess`)
 
 
 def level_problem(problem, j):
@@ -91,23 +96,3 @@ def prolong(P, X):
     if X.shape != (3 * n,):
         raise ValueError(f"expected {3 * n} values (u1, u2, lam), got shape {X.shape}")
     return np.concatenate([P @ X[k * n:(k + 1) * n] for k in range(3)])
-
-
-def initial_guess(P, X):
-    """The initial guess on T_j from the solution X on T_{j-1}: X prolonged by P, with λ set to
-    0 where the prolonged gap w = u1 - u2 is positive (above APART times the largest
-    displacement: the coarse solution's own contact vertices have w at round-off).
-
-    P1 interpolation of a complementary pair is not complementary: at the midpoint of a coarse
-    edge from a contact vertex (w = 0, λ > 0) to a free one (w > 0, λ = 0) both w and λ are
-    positive. The guess keeps the displacements (the membranes are apart there) and drops λ,
-    so that w ≥ 0, λ ≥ 0, w λ = 0 hold at the guess as at the coarse solution. Measured on
-    the disk (h0 = 0.2, J = 3, exact MUMPS, Newton steps on T_0..T_3): Newton-min 4, 4, 4, 5
-    with λ interpolated, 4, 3, 3, 4 with this guess; Fischer–Burmeister 11, 8, 11, 21 and
-    11, 9, 12, 14 (its line search damps the first steps: see README)."""
-    Y = prolong(P, X)
-    n = P.shape[0]
-    u1, u2, lam = Y[:n], Y[n:2 * n], Y[2 * n:]
-    scale = max(np.abs(u1).max(initial=0.0), np.abs(u2).max(initial=0.0))
-    lam[(u1 - u2) > APART * scale] = 0.0
-    return Y

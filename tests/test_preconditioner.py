@@ -35,7 +35,7 @@ def _its(run):
 def _run(h, cfun, options=(), levels=0, system="eliminated"):
     """A cached disk solve; options: PETSc options as a tuple of pairs (() for ILU(0))."""
     return solve(scene("disk", h, levels=levels), cfun=cfun, system=system, estimators=False,
-                 petsc_options=dict(options) or None)
+                 petsc_options=dict(options) or None, nested=False)
 
 
 @pytest.mark.parametrize("cfun", ["min", "fb"])
@@ -45,8 +45,10 @@ def test_same_solution_as_ilu(cfun):
     assert run.converged and ref.converged, run.reason
     assert run.newton_iterations == ref.newton_iterations
     assert np.linalg.norm(run.X - ref.X) <= 1e-9 * np.linalg.norm(ref.X)
-    assert all(rec["alg_residual"] <= EXACT_LINEAR_TOL
-               for rec in run.history if rec["kind"] == "newton")
+    # a damped Fischer-Burmeister iterate carries the residual of the damped step
+    # ((1 - t) R_lin + t R, membranes.newton), not the linear solve's
+    assert all(rec["alg_residual"] <= EXACT_LINEAR_TOL for rec in run.history
+               if rec["kind"] == "newton" and rec["step_length"] in (None, 1.0))
     assert max(_its(run)) < 30 and np.mean(_its(ref)) > 3 * np.mean(_its(run))
 
 
