@@ -77,6 +77,10 @@ def _parser():
     s.add_argument("--max-newton", type=int, default=100)
     s.add_argument("--initial-guess", choices=("paper", "zero"), default="paper",
                    help="X^0: paper (u1 = g, u2 = 0, lambda = 0; default) or zero")
+    s.add_argument("--nested", action=argparse.BooleanOptionalAction, default=None,
+                   help="nested iteration: solve on T_0, prolong the solution to T_1 as its "
+                        "initial guess, ..., up to T_J, each level with the variant's stopping "
+                        "test (default with --levels >= 1; --no-nested: from X^0 on T_J only)")
     s.add_argument("--out", metavar="DIR", help="write summary.json, history.csv, "
                    "solution.xdmf there")
     s.add_argument("--no-estimators", action="store_true",
@@ -140,14 +144,16 @@ def _solve(args):
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
                 estimators=not args.no_estimators, progress=not args.quiet,
                 gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux,
-                initial_guess=args.initial_guess)
+                initial_guess=args.initial_guess, nested=args.nested)
     if args.out is not None:
         write_outputs(sol, args.out)
     summary = sol.summary()
     keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "system", "linear_solver",
             "converged", "newton_iterations", "linear_iterations", "wall_time_s",
-            "energy_error", "eta", "effectivity")
-    print(json.dumps({k: summary[k] for k in keys}))
+            "energy_error", "eta", "effectivity", "nested")
+    line = {k: summary[k] for k in keys}
+    line["newton_per_level"] = [r["newton_iterations"] for r in summary["per_level"]]
+    print(json.dumps(line))
     if not sol.converged:
         print(f"membranes: not converged: {sol.reason}", file=sys.stderr)
         return EXIT_NOT_CONVERGED

@@ -50,6 +50,7 @@ class Solution:
     functions: list = field(default_factory=list)
     eta_K: np.ndarray = None          # local distribution η_K at X (DESIGN §7), if estimated
     estimator_times: tuple = (None, None)   # (set-up, all evaluations) in seconds
+    per_level: list = field(default_factory=list)   # one dict per level solved (_LevelRun)
 
     @property
     def u1(self):
@@ -108,6 +109,8 @@ class Solution:
             "gamma_alg": self.options["gamma_alg"],
             "alg_flux": self.options["alg_flux"],
             "initial_guess": self.options.get("initial_guess", "paper"),
+            "nested": self.options.get("nested", False),
+            "per_level": self.per_level,
             "converged": self.converged,
             "reason": self.reason,
             "newton_iterations": self.newton_iterations,
@@ -164,6 +167,17 @@ def _stopping(newton, tol, gamma_lin, gamma_alg):
 
 
 INITIAL_GUESSES = ("paper", "zero")
+
+
+def _nested(problem, nested):
+    """Nested iteration or not: the default (None) where the problem has a hierarchy."""
+    if nested is None:
+        return problem.levels >= 1
+    if not isinstance(nested, (bool, np.bool_)):
+        raise ValueError(f"nested must be True, False or None, got {nested!r}")
+    if nested and problem.levels < 1:
+        raise ValueError("nested iteration needs a mesh hierarchy: levels >= 1 (--levels J)")
+    return bool(nested)
 
 
 def _initial_guess(initial_guess, disc):
@@ -294,7 +308,7 @@ class IterateEstimates:
 def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmres",
           petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
           estimators=True, progress=False, gamma_lin=None, gamma_alg=None, alg_flux=None,
-          initial_guess=None):
+          initial_guess=None, nested=None):
     """Solve the discrete contact problem of `problem` by semismooth Newton (DESIGN §3, §8).
 
     newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
@@ -313,7 +327,12 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     IterateEstimates); progress: True for one stderr line per Newton step, or a callable
     taking the line; initial_guess: X^0, 'paper' (default: (g, 0, 0), DESIGN §3), 'zero', or
     the nodal values (u1, u2, λ) as one array of 3N values or a function of the
-    discretisation returning it.
+    discretisation returning it (nested runs: X^0 on T_0, so not an array);
+    nested: nested iteration on the hierarchy (membranes.nested, `_solve_nested`): solve on
+    T_0, prolong the solution to T_1 as its initial guess, ..., up to T_J, every level with
+    the variant's stopping test; default True where the problem has levels ≥ 1. Iteration
+    counts and the wall time are those of all levels (per level: `Solution.per_level`); the
+    iterate, estimates and energy error those of T_J.
     """
     cfunctions.get(cfun)
     check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
@@ -329,25 +348,96 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     alg_flux = _algebraic_flux(problem, alg_flux, estimators, newton)
     if isinstance(initial_guess, str):
         check_choice("initial guess", initial_guess, INITIAL_GUESSES)
+    nested = _nested(problem, nested)
     guess_name = initial_guess if isinstance(initial_guess, str) else \
         "paper" if initial_guess is None else "given"
     say = progress if callable(progress) else \
         (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
 
+    method = _Method(newton, cfun, system, krylov, tol, int(max_newton), gamma_lin,
+                     gamma_alg, say)
+    options = {"newton": newton, "cfun": cfun, "system": system,
+               "linear_solver": linear_solver,
+               "petsc_options": {} if krylov is None else krylov.options,
+               "nu": None if krylov is None else krylov.nu,
+               "gamma_lin": gamma_lin, "gamma_alg": gamma_alg, "alg_flux": alg_flux,
+               "initial_guess": guess_name, "nested": nested}
+    if not nested:
+        run = _solve_on(problem, method, alg_flux, initial_guess, level=problem.levels)
+        return _solution(problem, [run], options)
+    if not (initial_guess is None or isinstance(initial_guess, str) or
+            callable(initial_guess)):
+        raise ValueError("with nested iteration the initial guess is that of the coarse mesh "
+                         "T_0: give 'paper', 'zero' or a function of the discretisation, or "
+                         "nested=False for nodal values on the computational mesh")
+    return _solution(problem, _solve_nested(problem, method, alg_flux, estimators,
+                                            initial_guess), options)
+
+
+@dataclass
+class _Method:
+    """The Newton method of a run, as `solve` checked it (one level solves with it)."""
+    newton: str
+    cfun: str
+    system: str
+    krylov: object
+    tol: float
+    max_newton: int
+    gamma_lin: float
+    gamma_alg: float
+    say: object
+
+
+@dataclass
+class _LevelRun:
+    """One semismooth Newton solve on one mesh (a level of a nested run, or the whole run)."""
+    level: int
+    disc: object
+    result: object
+    est: object
+    wall_time_s: float      # this level's own: set-up, prolongation (nested) and Newton
+
+    def record(self):
+        """The level's figures (Solution.per_level)."""
+        r, last = self.result, next(rec for rec in reversed(self.result.history)
+                                    if rec["kind"] != "krylov")
+        return {"level": self.level, "n_vertices": int(self.disc.n),
+                "converged": r.converged, "reason": r.reason,
+                "newton_iterations": r.newton_iterations,
+                "linear_iterations": r.linear_iterations,
+                "wall_time_s": self.wall_time_s, "final_residual": last["residual"],
+                "energy_error": last.get("energy_error"), "eta": last.get("eta"),
+                "alg_flux": None if self.est is None else
+                ("multilevel" if self.est.multilevel is not None else "nu")}
+
+
+def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_offset=0,
+              timed_guess=False, tag=""):
+    """Semismooth Newton on problem.mesh (the finest mesh of its hierarchy). The records get
+    `level`; their wall times and cumulative linear iterations start at `offset` and
+    `its_offset` (the earlier levels of a nested run). `timed_guess`: the initial guess is part
+    of the method (a nested run's prolongation) and its time counts."""
     t0 = time.perf_counter()
     disc = discretise(problem)
     rows = linear_rows(disc)
     setup_time = time.perf_counter() - t0
     error = EnergyError(disc) if problem.exact is not None else None
     est = IterateEstimates(disc, rows, alg_flux) if alg_flux is not None else None
-    if newton == "adaptive":
+    if method.newton == "adaptive":
         setup_time += est.setup_time          # the adaptive method uses the estimators
+    t = time.perf_counter()
+    X0 = _initial_guess(initial_guess, disc)
+    if timed_guess:
+        setup_time += time.perf_counter() - t
+    say = method.say
 
     def monitor(rec, X, R):
-        rec["wall_time_s"] += setup_time
+        rec["wall_time_s"] += setup_time + offset
+        rec["cumulative_linear_its"] += its_offset
+        rec["level"] = level
         rec["energy_error"] = error(X) if error is not None else None
         if say is not None and rec["kind"] != "krylov":
-            line = (f"newton {rec['newton_it']:3d}  residual {rec['residual']:.3e}  "
+            line = (f"{tag}newton {rec['newton_it']:3d}  residual {rec['residual']:.3e}  "
                     f"linear its {rec['linear_it']:5d}  total {rec['cumulative_linear_its']:6d}  "
                     f"time {rec['wall_time_s']:7.2f} s")
             if rec["energy_error"] is not None:
@@ -356,24 +446,72 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
                 line += f"  eta {rec['eta']:.4e}"
             say(line)
 
-    X0 = _initial_guess(initial_guess, disc)
-    result = semismooth_newton(rows, problem.g, cfun=cfun, system=system, variant=newton,
-                               krylov=krylov, tol=tol, max_it=int(max_newton), X0=X0,
-                               monitor=monitor, estimate=est, gamma_lin=gamma_lin,
-                               gamma_alg=gamma_alg)
+    result = semismooth_newton(rows, problem.g, cfun=method.cfun, system=method.system,
+                               variant=method.newton, krylov=method.krylov, tol=method.tol,
+                               max_it=method.max_newton, X0=X0, monitor=monitor, estimate=est,
+                               gamma_lin=method.gamma_lin, gamma_alg=method.gamma_alg)
     if est is not None:
         est.finish()
-    sol = Solution(problem, disc, result.X, result.converged, result.reason,
-                   result.newton_iterations, result.linear_iterations,
-                   result.history[-1]["wall_time_s"], result.history,
-                   {"newton": newton, "cfun": cfun, "system": system,
-                    "linear_solver": linear_solver,
-                    "petsc_options": {} if krylov is None else krylov.options,
-                    "nu": None if krylov is None else krylov.nu,
-                    "gamma_lin": gamma_lin, "gamma_alg": gamma_alg, "alg_flux": alg_flux,
-                    "initial_guess": guess_name},
-                   functions=disc.functions(result.X),
-                   eta_K=None if est is None else est.eta_K,
-                   estimator_times=(None, None) if est is None else (est.setup_time, est.time))
+    return _LevelRun(level, disc, result, est, result.history[-1]["wall_time_s"] - offset)
+
+
+def _solve_nested(problem, method, alg_flux, estimators, initial_guess):
+    """Nested iteration (membranes.nested): solve on T_0, ..., T_J in turn, each level from the
+    prolonged solution of the one below (level 0 from `initial_guess`), each with the variant's
+    own stopping test. Estimators run on the levels below J only where the method uses them
+    (adaptive); there the multilevel flux uses the hierarchy up to the level, and T_0, which
+    has none, takes the ν flux. Returns the _LevelRuns."""
+    from .nested import level_problem, prolong, prolongation
+    runs, offset, its = [], 0.0, 0
+    J = problem.levels
+    for j in range(J + 1):
+        t = time.perf_counter()
+        pj = level_problem(problem, j)
+        if j < J and method.newton != "adaptive":
+            flux = None
+        elif j == 0 and alg_flux == "multilevel":
+            flux = "nu"
+        else:
+            flux = alg_flux
+        if j == 0:
+            guess = initial_guess
+        else:
+            below = runs[-1]
+
+            def guess(disc, below=below, j=j):
+                P = prolongation(below.disc.V, disc.V, problem.hierarchy.parent_cells[j - 1])
+                return prolong(P, below.result.X)
+        before = time.perf_counter() - t       # the level's problem: counts for the level
+        run = _solve_on(pj, method, flux, guess, level=j, offset=offset + before,
+                        its_offset=its, timed_guess=j > 0, tag=f"level {j}  ")
+        run.wall_time_s += before
+        runs.append(run)
+        offset += run.wall_time_s
+        its += run.result.linear_iterations
+    return runs
+
+
+def _solution(problem, runs, options):
+    """The Solution of a run on the levels `runs` (one for a single-mesh run): the finest
+    level's iterate, functions, estimates and energy error; iterations summed over the levels,
+    the wall time of them all, the history of every level (records carry `level`)."""
+    fine = runs[-1]
+    result = fine.result
+    reason = result.reason
+    failed = [r.level for r in runs[:-1] if not r.result.converged]
+    if failed:
+        reason += "; not converged on level(s) " + ", ".join(map(str, failed)) + \
+            " (per_level)"
+    history = [rec for r in runs for rec in r.result.history]
+    estimated = [r.est for r in runs if r.est is not None]
+    sol = Solution(problem, fine.disc, result.X, result.converged, reason,
+                   sum(r.result.newton_iterations for r in runs),
+                   sum(r.result.linear_iterations for r in runs),
+                   history[-1]["wall_time_s"], history, options,
+                   functions=fine.disc.functions(result.X),
+                   eta_K=None if fine.est is None else fine.est.eta_K,
+                   estimator_times=(None, None) if not estimated else
+                   (sum(e.setup_time for e in estimated), sum(e.time for e in estimated)),
+                   per_level=[r.record() for r in runs])
     sol.energy_error = sol.final_record["energy_error"]
     return sol

@@ -23,7 +23,7 @@ import tempfile
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
 
 OUTPUT_FILES = ("summary.json", "history.csv", "solution.xdmf", "solution.h5")
-HISTORY_COLUMNS = ("newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
+HISTORY_COLUMNS = ("level", "newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
                    "residual", "alg_residual", "kind", "energy_error") + ESTIMATOR_COLUMNS \
     + ("bound", "cfun", "step_length")
 

@@ -138,8 +138,9 @@ def test_seed_claim_with_the_nu_flux():
 
 def test_seed_claim_with_the_multilevel_flux():
     pytest.importorskip("membranes.algebraic_flux")
-    exact = solved_on("disk", 0.2, 2, estimators=False)
-    run = solved_on("disk", 0.2, 2, newton="adaptive")
+    # the single-mesh method of the seed (nested iteration: tests/test_nested.py)
+    exact = solved_on("disk", 0.2, 2, estimators=False, nested=False)
+    run = solved_on("disk", 0.2, 2, newton="adaptive", nested=False)
     assert run.options["alg_flux"] == "multilevel"            # the default with levels ≥ 1
     assert run.converged and exact.converged
     print(f"disk h0 = 0.2, J = 2: exact {exact.newton_iterations} Newton, "
@@ -155,7 +156,8 @@ def test_multilevel_flux_bounds_every_iterate_at_once():
     hand-out is the accepted iterate, and every record claims the bound (the square: its
     polygon is the domain, unlike the refined disk's, DESIGN §9)."""
     pytest.importorskip("membranes.algebraic_flux")
-    run = solved_on("square", 0.25, 1, newton="adaptive", system="eliminated", cfun="fb")
+    run = solved_on("square", 0.25, 1, newton="adaptive", system="eliminated", cfun="fb",
+                    nested=False)
     assert run.converged, run.reason
     assert _check_bounds(run) == []
     for krylov, newton in _steps(run):

@@ -35,7 +35,7 @@ def _its(run):
 def _run(h, cfun, options=(), levels=0, system="eliminated"):
     """A cached disk solve; options: PETSc options as a tuple of pairs (() for ILU(0))."""
     return solve(scene("disk", h, levels=levels), cfun=cfun, system=system, estimators=False,
-                 petsc_options=dict(options) or None)
+                 petsc_options=dict(options) or None, nested=False)
 
 
 @pytest.mark.parametrize("cfun", ["min", "fb"])

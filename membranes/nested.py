@@ -1,0 +1,98 @@
+"""Nested iteration on the mesh hierarchy T_0 ⊂ T_1 ⊂ … ⊂ T_J (issue 6, item 1).
+
+Solve on T_0, prolong the solution (u1, u2, λ) to T_1 as the initial guess there, solve, and so
+on up to T_J, every level with the variant's own stopping test (exact, inexact: the relative
+residual ≤ tol; adaptive: η_lin ≤ γ_lin η_disc, DESIGN §8). The initial guess of level j is
+then within O(h_j) of its solution (the discretisation error of T_{j-1}), and the semismooth
+Newton steps per level stay bounded as h → 0, where from the paper's X^0 = (g, 0, 0) they grow
+(DESIGN §8's table: 8 to 28 steps).
+
+**Prolongation.** P1 interpolation T_{j-1} → T_j. Plaza's uniform refinement keeps the
+vertices of T_{j-1} and adds the edge midpoints, and every cell of T_j lies in its parent
+cell of T_{j-1} (`Hierarchy.parent_cells`), so each fine vertex is found in the parent of any
+fine cell that contains it, and its value is the P1 interpolant there: the barycentric
+weights of the vertex in the parent, 1 at an old vertex and (1/2, 1/2) at an edge midpoint.
+The weights are computed from the geometry and snapped to these exact values (ValueError if a
+mesh is not such a refinement), so that the prolongation reproduces linear functions, and the
+boundary values u1 = g, u2 = λ = 0, exactly. λ is nodal (DESIGN §2) and is prolonged the same
+way. One sparse matrix per level (scipy CSR, n_j × n_{j-1}, in the P1 dof order of the levels'
+spaces); the three fields are prolonged by it in turn. Serial, as the driver is.
+
+The prolonged pair is not complementary where a coarse edge crosses the free boundary: at its
+midpoint both w = u1 - u2 and λ are positive. Setting λ = 0 there (the membranes are apart) was
+tried and not kept: on the disk (h0 = 0.2, J = 3, Newton steps on T_0..T_3) it saved a step
+per level for exact Newton-min (4, 3, 3, 4 against 4, 4, 4, 5) and for Fischer–Burmeister on
+T_3 (14 against 21), but cost steps where it counts more: adaptive 3, 3, 4, 6 against
+3, 2, 3, 3, inexact 6, 8, 17, 42 against 6, 7, 16, 33.
+
+**Levels.** The problem of level j is the problem itself with its hierarchy truncated to
+T_0..T_j (`level_problem`): same data, same scene declarations (exact solution, interface,
+Poincaré constant of the domain).
+"""
+
+import dataclasses
+
+import numpy as np
+import scipy.sparse as sp
+
+from .hierarchy import Hierarchy
+
+SNAP = 1e-8      # barycentric weights farther than this from {0, 1/2, 1}: not a Plaza refinement
+
+
+def level_problem(problem, j):
+    """The problem on T_j: the same data with the hierarchy T_0..T_j (the problem itself for
+    j = J)."""
+    h = problem.hierarchy
+    if not 0 <= j <= h.levels:
+        raise ValueError(f"level {j} is not in 0..{h.levels}")
+    if j == h.levels:
+        return problem
+    return dataclasses.replace(problem, hierarchy=Hierarchy(list(h.meshes[:j + 1]),
+                                                            list(h.parent_cells[:j])))
+
+
+def _cells(V):
+    """The dofs of every local cell of the P1 space V, shape (cells, 3)."""
+    ncells = V.mesh.topology.index_map(2).size_local
+    return V.dofmap.list.array.reshape(-1, 3)[:ncells]
+
+
+def prolongation(V_coarse, V_fine, parent_cells):
+    """The P1 interpolation matrix T_{j-1} → T_j (scipy CSR, n_fine × n_coarse) of the P1
+    spaces V_coarse on T_{j-1} and V_fine on T_j; parent_cells[c] is the cell of T_{j-1} that
+    holds the cell c of T_j (Hierarchy.parent_cells[j-1])."""
+    n_c = V_coarse.dofmap.index_map.size_local
+    n_f = V_fine.dofmap.index_map.size_local
+    xc = V_coarse.tabulate_dof_coordinates()[:, :2]
+    xf = V_fine.tabulate_dof_coordinates()[:n_f, :2]
+    fine_cells, coarse_cells = _cells(V_fine), _cells(V_coarse)
+    parent_cells = np.asarray(parent_cells)
+    if parent_cells.shape != (len(fine_cells),):
+        raise ValueError(f"{len(parent_cells)} parent cells for {len(fine_cells)} fine cells")
+    # every fine vertex in one fine cell that contains it, and so in that cell's parent
+    holder = np.empty(n_f, dtype=np.int64)
+    holder[fine_cells.ravel()] = np.repeat(np.arange(len(fine_cells)), 3)
+    dofs = coarse_cells[parent_cells[holder]]             # (n_f, 3) coarse dofs
+    corners = xc[dofs]                                    # (n_f, 3, 2)
+    T = np.stack([corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]], axis=2)
+    st = np.linalg.solve(T, (xf - corners[:, 0])[:, :, None])[:, :, 0]
+    weights = np.column_stack([1.0 - st.sum(axis=1), st])
+    snapped = np.round(2.0 * weights) / 2.0
+    if np.abs(weights - snapped).max(initial=0.0) > SNAP or np.any(snapped < 0) or \
+            not np.all(snapped.sum(axis=1) == 1.0):
+        raise ValueError("the fine mesh is not a uniform refinement of the coarse one (a fine "
+                         "vertex is neither a coarse vertex nor an edge midpoint)")
+    keep = snapped != 0.0
+    rows = np.repeat(np.arange(n_f), 3)[keep.ravel()]
+    P = sp.csr_matrix((snapped[keep], (rows, dofs[keep])), shape=(n_f, n_c))
+    return P
+
+
+def prolong(P, X):
+    """(u1, u2, λ) of X ∈ R^{3 n_coarse} prolonged to R^{3 n_fine} by P."""
+    n = P.shape[1]
+    X = np.asarray(X, dtype=float)
+    if X.shape != (3 * n,):
+        raise ValueError(f"expected {3 * n} values (u1, u2, lam), got shape {X.shape}")
+    return np.concatenate([P @ X[k * n:(k + 1) * n] for k in range(3)])
