@@ -51,7 +51,7 @@ def child(which, levels):
                "estimator_setup": sol.estimator_times[0],
                "estimator_time": sol.estimator_times[1],
                "energy_error": sol.energy_error, "eta": sol.summary()["eta"],
-               "per_level": sol.summary().get("levels_history")}
+               "per_level": [lvl["newton_iterations"] for lvl in (sol.per_level or [])]}
     else:
         from membranes.report import run_peer
         peer, records = run_peer(problem, lambda line: print(line, file=sys.stderr))
@@ -82,8 +82,8 @@ def main(levels_list):
             results.append(r)
             print(json.dumps(r), flush=True)
     print()
-    print("| J | vertices | method | Newton | linear | linear/Newton | method s | estimators "
-          "(set-up + evals) s | process s | peak GiB | energy error |")
+    print("| J | vertices | method | Newton (per level) | linear | linear/Newton | method s | "
+          "estimators (set-up + evals) s | process s | peak GiB | energy error |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         if "failed" in r:
@@ -91,7 +91,8 @@ def main(levels_list):
             continue
         est = (f"{r['estimator_setup']:.1f} + {r['estimator_time']:.1f}"
                if r.get("estimator_setup") is not None else "—")
-        print(f"| {r['levels']} | {r['vertices']} | {r['which']} | {r['newton']} | "
+        levels = f" ({', '.join(map(str, r['per_level']))})" if r.get("per_level") else ""
+        print(f"| {r['levels']} | {r['vertices']} | {r['which']} | {r['newton']}{levels} | "
               f"{r['linear']} | {r['linear'] / max(r['newton'], 1):.1f} | {r['time']:.1f} | "
               f"{est} | {r['process_time']:.1f} | {r['peak_gib']:.2f} | "
               f"{r['energy_error']:.4e} |")
