@@ -40,14 +40,15 @@ tolerances: ‖W R_lin‖/‖W F‖ ≤ tol, ‖W R_alg‖/‖W B‖ ≤ 2e-12 f
   from then on every step is an Armijo step (t = 1, 1/2, ...) against the largest θ of the
   last LS_MEMORY = 5 Newton iterates (nonmonotone): full steps from the damped iterate
   would retrace the path that failed (seen on the 100:1 anisotropic mesh). With no such t
-  the run stops (converged = false, the reason says
-  so). Why a watchdog: FB Newton's merit rises on the way (disk, plain steps: 1 → 10 → 20 →
+  the run stops (converged = false, the reason says so). Why a watchdog: FB Newton's merit rises on the way (disk, plain steps: 1 → 10 → 20 →
   6 → 1 → 0.08 → ... → 4e-11 in 12 steps, the same 11–12 steps at 411, 1.5k and 6k
   vertices), and a line search at every step (monotone or nonmonotone over the last 5
   merits) crept along with step lengths 2^-10 to 2^-3: 14, 18 and 32 Newton steps on those
-  meshes. A damped iterate X_t is recorded with its residual in the step's system,
-  B - A X_t = (1 - t) R_lin(X_c) + t R_c (DESIGN §4), and its `step_length` t (1 for full
-  steps); the iterates abandoned by the return stay in the history and count.
+  meshes. A damped iterate X_t = X_0 + t (X_1 - X_0) (X_0 the checkpoint or the current
+  iterate, X_1 the full step from it with residual R_1) is recorded with its residual in
+  the system of that step, B - A X_t = (1 - t) R_lin(X_0) + t R_1 (DESIGN §4), and its
+  `step_length` t (1 for full steps); the iterates abandoned by a return stay in the
+  history and count.
 * Newton-min has no merit function to descend (min is not differentiable), and with exact
   solves it is the primal–dual active set method, which can cycle (active sets that repeat;
   possible for P-matrices that are not M-matrices, e.g. obtuse meshes or a far-off start).
@@ -57,9 +58,8 @@ tolerances: ‖W R_lin‖/‖W F‖ ≤ tol, ‖W R_alg‖/‖W B‖ ≤ 2e-12 f
   times the smallest so far (divergence: seen, up to 1e62, with 10 GMRES + ILU(0) steps per
   Newton step on a 100:1 anisotropic mesh; with exact solves the iterates are determined by
   the finitely many active sets and cannot diverge, while jumps of 1e3 are normal there, as
-  on that mesh), the run continues with
-  Fischer–Burmeister and its line search (same solution set: both C-functions vanish exactly
-  at the solutions). The switch is named in `reason` and in each record's `cfun`.
+  on that mesh), the run continues with Fischer–Burmeister and its line search (same
+  solution set: both C-functions vanish exactly at the solutions). The switch is named in `reason` and in each record's `cfun`.
 * The adaptive variant takes the accepted Krylov iterate as it is (Algorithm 1): its
   estimates certify that iterate, and a damped one would need estimates of its own.
 
