@@ -183,6 +183,10 @@ def _glue_values(argv):
 def main(argv=None):
     try:
         argv = sys.argv[1:] if argv is None else list(argv)
+        from mpi4py import MPI
+        if MPI.COMM_WORLD.size > 1:
+            raise BadInput(f"membranes runs on one process, not {MPI.COMM_WORLD.size} (MPI is "
+                           f"not implemented yet; run without mpirun)")
         args = _parser().parse_args(_glue_values(argv))
         if args.command == "report":
             from .report import main as report_main

@@ -334,6 +334,10 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     counts and the wall time are those of all levels (per level: `Solution.per_level`); the
     iterate, estimates and energy error those of T_J.
     """
+    if problem.mesh.comm.size > 1:
+        raise ValueError(f"membranes runs on one process: the mesh is distributed over "
+                         f"{problem.mesh.comm.size} (MPI is not implemented yet; run without "
+                         f"mpirun)")
     cfunctions.get(cfun)
     check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
     if int(max_newton) < 1:
