@@ -399,14 +399,7 @@ class FluxEquilibration:
             cf, kf, pc = CF[members], KF[members], pi[members]
             b = bool(boundary[members[0]])
             r = int(np.flatnonzero(rep[members] == members)[0])
-            try:
-                glob, RET, loc, L, C = change_of_basis(space, cf, pc, r, b)
-            except ValueError:
-                # members whose retained RT dofs differ in number: not translates after all
-                # (translation_classes tells boundary patches apart by their ∂Ω edges; this is
-                # the safety net), each is solved on its own
-                own.append(members)
-                continue
+            glob, RET, loc, L, C = change_of_basis(space, cf, pc, r, b)
             nr, nq = RET.shape[1], 3 * n
             _, _, A = space.saddle_point_systems(cf[r:r + 1], glob[r:r + 1], b)
             # the representative's right-hand side: columns ∇u (2n) | r (3n) | λ_a | f (3n)

@@ -91,9 +91,7 @@ def structured_square(nx, ny, grading=1.0, comm=MPI.COMM_WORLD):
 def aspect_ratios(mesh):
     """Longest edge over smallest altitude, h_K² / (2 |K|), of every local cell (1.15 for an
     equilateral triangle, a/b for a right triangle with legs a ≥ b)."""
-    x = mesh.geometry.x[:, :2]
-    cells = mesh.geometry.dofmap.array.reshape(-1, 3)
-    p = x[cells[:mesh.topology.index_map(2).size_local]]
+    p = _cell_vertices(mesh)
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     return cell_diameters(mesh) ** 2 / (2.0 * area)
@@ -137,12 +135,16 @@ def read_msh(path, comm=MPI.COMM_WORLD):
             raise ValueError(f"cannot convert mesh file {path!r}: {e}") from None
 
 
-def cell_diameters(mesh):
-    """Diameter of every local cell (the longest edge of the triangle)."""
+def _cell_vertices(mesh):
+    """(ncells, 3, 2): the vertex coordinates of every local cell."""
     x = mesh.geometry.x[:, :2]
     cells = mesh.geometry.dofmap.array.reshape(-1, 3)
-    ncells = mesh.topology.index_map(2).size_local
-    p = x[cells[:ncells]]
+    return x[cells[:mesh.topology.index_map(2).size_local]]
+
+
+def cell_diameters(mesh):
+    """Diameter of every local cell (the longest edge of the triangle)."""
+    p = _cell_vertices(mesh)
     edges = [np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in ((0, 1), (1, 2), (2, 0))]
     return np.max(edges, axis=0)
 

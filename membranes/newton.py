@@ -267,14 +267,19 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
     clock = Stopwatch()
     X = ns.initial_guess(rows, g) if X0 is None else np.array(X0, dtype=float)
     if X.shape != (3 * rows.n,) or not np.all(np.isfinite(X)):
-        raise ValueError(f"the initial guess must be {3 * rows.n} finite values (u1, u2, lam)")
+        raise ValueError(f"the initial guess must be {3 * rows.n} finite values (u1, u2, lam at "
+                         f"the {rows.n} vertices), got shape {X.shape}"
+                         + ("" if X.shape != (3 * rows.n,) else " with non-finite values"))
     history = []
     state = {"cfun": cfun, "note": ""}     # the C-function in use (the guard may switch it)
 
-    def record(kind, k, its, cumulative, X, R, norm_B, same_as=None, step_length=None):
-        """Record X; returns its record and the iterates whose estimates are complete now."""
+    def record(kind, k, its, cumulative, X, R, norm_B, same_as=None, step_length=None,
+               residual=None):
+        """Record X (`residual`: its relative residual if known); returns its record and the
+        iterates whose estimates are complete now."""
         rec = {"newton_it": k, "linear_it": its, "cumulative_linear_its": cumulative,
-               "residual": rows.relative_residual(state["cfun"], X),
+               "residual": rows.relative_residual(state["cfun"], X) if residual is None
+               else residual,
                "alg_residual": None if R is None
                else float(np.linalg.norm(rows.weighted(R))) / norm_B,
                "kind": kind, "cfun": state["cfun"], "step_length": step_length}
@@ -362,23 +367,24 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
             same_as, X_new, R = accepted[0]
         if not np.all(np.isfinite(X_new)):
             return result(False, f"non-finite iterate at Newton step {k}", k - 1, done)
+        r_new = None
         if state["cfun"] == "fb" and not adaptive:
             # the watchdog line search of the module notes
-            if watch is None:
-                watch = (k, X, rec["residual"], X_new, R)
-            k_c, X_c, r_c, X_full_c, R_c = watch
-            r_new = rows.relative_residual("fb", X_new)
-            t, X_from, R_from = 1.0, X, R
+            t, X_t, X_from, R_from = 1.0, None, X, R
             if damped:          # after a return: a nonmonotone Armijo step at every step
                 merits = [r["residual"] for r in history if r["kind"] != "krylov"][-LS_MEMORY:]
                 X_t, t = line_search(rows, "fb", X, X_new, rec["residual"], max(merits))
-                watch = None
-            elif r_new * r_new <= (1.0 - 2.0 * LS_SIGMA) * r_c * r_c:
-                watch = None
-            elif k - k_c + 1 >= WATCHDOG_STEPS:   # back to the checkpoint, Armijo there
-                X_from, R_from = X_c, R_c
-                X_t, t = line_search(rows, "fb", X_c, X_full_c, r_c, r_c, 0.5)
-                watch, damped = None, True
+            else:
+                if watch is None:
+                    watch = (k, X, rec["residual"], X_new, R)
+                k_c, X_c, r_c, X_full_c, R_c = watch
+                r_new = rows.relative_residual("fb", X_new)
+                if r_new * r_new <= (1.0 - 2.0 * LS_SIGMA) * r_c * r_c:
+                    watch = None
+                elif k - k_c + 1 >= WATCHDOG_STEPS:   # back to the checkpoint, Armijo there
+                    X_from, R_from = X_c, R_c
+                    X_t, t = line_search(rows, "fb", X_c, X_full_c, r_c, r_c, 0.5)
+                    watch, damped, r_new = None, True, None
             if t is None:
                 return result(False, f"line search failed at Newton step {k}: no step length "
                               f">= {LS_MIN_STEP:.0e} decreases the merit enough", k - 1, done)
@@ -388,7 +394,7 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                 R = (1.0 - t) * ns.nonlinear_residual(rows, "fb", X_from) + t * R_from
                 X_new = X_t
         X = X_new
-        rec = record("newton", k, its, done, X, R, step.norm_B, same_as, t)[0]
+        rec = record("newton", k, its, done, X, R, step.norm_B, same_as, t, r_new)[0]
     met, description = stopping(rec)
     k = rec["newton_it"]
     if met:

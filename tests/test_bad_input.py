@@ -4,6 +4,7 @@ written to the output folder."""
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from membranes import Problem, scenes, solve
@@ -147,3 +148,14 @@ def test_mpirun_is_refused_with_a_clear_message(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert "runs on one process" in proc.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize("guess,message", [
+    ("warm", "unknown initial guess"),
+    (np.zeros(5), "got shape"),
+    (lambda disc: np.full(3 * disc.n, np.nan), "non-finite"),
+])
+def test_bad_initial_guess(guess, message):
+    """A named guess that does not exist, an array of the wrong size, NaN: ValueError."""
+    with pytest.raises(ValueError, match=message):
+        solve(scenes.disk(h=0.3), initial_guess=guess, estimators=False)
