@@ -42,9 +42,10 @@ tolerances: ‖W R_lin‖/‖W F‖ ≤ tol, ‖W R_alg‖/‖W B‖ ≤ 2e-12 f
   would retrace the path that failed (seen on the 100:1 anisotropic mesh). With no such t
   the run stops (converged = false, the reason says so). Why a watchdog: FB Newton's merit rises on the way (disk, plain steps: 1 → 10 → 20 →
   6 → 1 → 0.08 → ... → 4e-11 in 12 steps, the same 11–12 steps at 411, 1.5k and 6k
-  vertices), and a line search at every step (monotone or nonmonotone over the last 5
-  merits) crept along with step lengths 2^-10 to 2^-3: 14, 18 and 32 Newton steps on those
-  meshes. A damped iterate X_t = X_0 + t (X_1 - X_0) (X_0 the checkpoint or the current
+  vertices, eliminated system with vertex_amg), and a nonmonotone line search at every
+  step crept along with step lengths 2^-10 to 2^-3: 14 and 34 Newton steps at 411 and 6k
+  vertices against the last 5 merits, 14, 18 and 32 at 411, 1.5k and 6k against the last
+  10 (a monotone one took 16 steps instead of 11 on the radial scene). A damped iterate X_t = X_0 + t (X_1 - X_0) (X_0 the checkpoint or the current
   iterate, X_1 the full step from it with residual R_1) is recorded with its residual in
   the system of that step, B - A X_t = (1 - t) R_lin(X_0) + t R_1 (DESIGN §4), and its
   `step_length` t (1 for full steps); the iterates abandoned by a return stay in the
