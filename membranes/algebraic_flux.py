@@ -26,8 +26,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .discretisation import boundary_dofs
-from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, graph_colouring, lifting,
-                            vertex_patches)
+from .equilibration import _C3, _MINV_REF, Geometry, PatchSpace, lifting, vertex_patches
 
 
 def _barycentric(points, corners):
@@ -39,6 +38,13 @@ def _barycentric(points, corners):
     return np.concatenate([1.0 - xi.sum(axis=2, keepdims=True), xi], axis=2)
 
 
+def _rt_element():
+    """basix's element of dolfinx's ("RT", 2): RT_1, Legendre variant."""
+    import basix
+    return basix.create_element(basix.ElementFamily.RT, basix.CellType.triangle, 2,
+                                basix.LagrangeVariant.legendre)
+
+
 def _reference_tables():
     """_W_TABLE[(ρ' * 6 + π) * 8 + ρ] = R_ρ' M_π R_ρ (8 × 8, entries 0, ±1): R_ρ the product of
     basix's base transformations of RT_1 (degree 2) for the edges whose bit is set in ρ (each
@@ -47,10 +53,9 @@ def _reference_tables():
     basis: P_π*ψ̂_k = Σ_l M_π[k, l] ψ̂_l. Permutations are numbered as itertools lists them."""
     import itertools
     import basix
-    # the element of dolfinx's ("RT", 2): basix's Legendre variant (tests/test_algebraic_flux
-    # checks the whole construction against patch problems assembled by dolfinx)
-    e = basix.create_element(basix.ElementFamily.RT, basix.CellType.triangle, 2,
-                             basix.LagrangeVariant.legendre)
+    # tests/test_algebraic_flux checks the whole construction against patch problems assembled
+    # by dolfinx
+    e = _rt_element()
     X = basix.make_quadrature(basix.CellType.triangle, 4)[0]
     corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     base = e.tabulate(0, X)[0].transpose(1, 0, 2).reshape(8, -1)          # (8, npts * 2)
@@ -259,7 +264,9 @@ class MultilevelFlux:
         self._coarse_solver(V[0])
         spaces = [None] + [PatchSpace(V[j], blocks=False) for j in range(1, J + 1)]
         self.levels = [None] + [self._level(j, spaces) for j in range(1, J + 1)]
-        self.prolong = [None, None] + [self._prolongation(j, spaces) for j in range(2, J + 1)]
+        self.prolong = [None, None] + [
+            Prolongation(spaces[j - 1], spaces[j], self._parents[j], self.Bp2[j])
+            for j in range(2, J + 1)]
         # what an evaluation needs: the coarse geometry, the fine areas, the RT dimensions
         self.nrt = [None] + [spaces[j].nrt for j in range(1, J + 1)]
         self.RT = spaces[J].RT
@@ -399,41 +406,68 @@ class MultilevelFlux:
             total = sigma
         return total
 
-    def _prolongation(self, j, spaces):
-        """The matrix of RT_1(T_{j-1}) → RT_1(T_j), interpolation of the coarse function (exact:
-        the spaces are nested). Built by interpolating sums of coarse basis functions, one sum
-        per colour of coarse dofs that share no cell: a fine dof then sees at most one basis
-        function of the colour (a coarse dof of its parent cell; the dofs of a coarse edge are
-        the only ones with a normal component on it), so each pass gives one column entry per
-        fine dof."""
-        from dolfinx import fem
-        coarse, fine = spaces[j - 1], spaces[j]
-        parent = self._parents[j]
-        iu = np.triu_indices(8, 1)
-        pairs = np.unique(np.stack([coarse.rt_cells[:, iu[0]].ravel(),
-                                    coarse.rt_cells[:, iu[1]].ravel()], axis=1), axis=0)
-        colour = graph_colouring(pairs, coarse.nrt)
-        fc, ff = fem.Function(coarse.RT), fem.Function(fine.RT)
 
-        def values(x):   # the interpolation points come cell by cell, for all cells of T_j
-            cells = np.repeat(parent, x.shape[1] // len(parent)).astype(np.int32)
-            return fc.eval(np.ascontiguousarray(x.T), cells).T
+def _edge_signs():
+    """(8, 8) ±1: row ρ the diagonal of the product of RT_1's base transformations for the edges
+    whose bit is set in ρ (basix: each reverses the sign of its edge's first dof, the
+    Legendre moment of degree 0; checked to be diagonal)."""
+    T = _rt_element().base_transformations()
+    d = np.round(np.diagonal(T, axis1=1, axis2=2))                           # (3, 8)
+    if np.abs(T - d[:, None, :] * np.eye(8)).max() > 1e-12:
+        raise RuntimeError("RT_1 base transformations are not diagonal ±1")
+    return np.array([np.prod([d[e] for e in range(3) if rho >> e & 1], axis=0)
+                     if rho else np.ones(8) for rho in range(8)]).astype(np.int8)
 
-        rows, cols, vals = [], [], []
-        for c in range(colour.max() + 1):
-            fc.x.array[:] = (colour == c)
-            ff.interpolate(values)
-            # the coarse dof of colour c in each fine cell's parent, for each fine dof
-            source = np.where(colour[coarse.rt_cells[parent]] == c,
-                              coarse.rt_cells[parent], -1).max(axis=1)        # (nc_j,)
-            f_dofs = fine.rt_cells.ravel()
-            src = np.repeat(source, fine.rt_cells.shape[1])
-            ok = (src >= 0) & (ff.x.array[f_dofs] != 0.0)
-            rows.append(f_dofs[ok])
-            cols.append(src[ok])
-            vals.append(ff.x.array[f_dofs][ok])
-        rows, cols, vals = (np.concatenate(z) for z in (rows, cols, vals))
-        # each fine dof sits in one or two fine cells: keep one entry per (row, col)
-        key = np.unique(rows.astype(np.int64) * coarse.nrt + cols, return_index=True)[1]
-        return sp.csr_matrix((vals[key], (rows[key], cols[key])),
-                             shape=(fine.nrt, coarse.nrt))
+
+def _child_block(beta):
+    """B̂ (8, 8): the reference RT_1 dofs of a child cell K applied to the reference basis
+    functions of its parent P, for the child's vertices l at barycentric coordinates beta[l]
+    in P (both bases unreflected). With G = F_P⁻¹ ∘ F_K: X ↦ X_0 + A X (A = F_P⁻¹ F_K' exact
+    in multiples of 1/2), a function pushed forward from P by the contravariant Piola map
+    pulls back to K as adj(A) ψ̂ ∘ G (det J_K / det J_P = det A); B̂ = its interpolation by the
+    element's interpolation matrix (exact: RT_1(K) ⊃ RT_1(P)|_K)."""
+    e = _rt_element()
+    Xl = np.asarray(beta, dtype=float)[:, 1:]                                 # (3, 2) in P
+    A = np.stack([Xl[1] - Xl[0], Xl[2] - Xl[0]], axis=1)
+    adj = np.array([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]])
+    X = e.points                                                             # (npts, 2)
+    psi = e.tabulate(0, Xl[0] + X @ A.T)[0]                                  # (npts, 8, 2)
+    pulled = np.einsum("cd,pkd->cpk", adj, psi).reshape(-1, 8)               # (2 npts, 8)
+    return e.interpolation_matrix @ pulled
+
+
+class Prolongation:
+    """RT_1(T_{j-1}) → RT_1(T_j), the interpolation of a coarse function (exact: the spaces are
+    nested), cell by cell: on a child K of P, the global dofs of K are s_K ⊙ B̂ (s_P ⊙ c_P),
+    with c_P the global coefficients on P's dofs, s the edge signs of each cell's reflections
+    (dolfinx's dof transformations: diagonal ±1 for RT_1, so their inverse transpose is
+    themselves) and B̂ (`_child_block`) one of the few reference blocks given by how the
+    child sits in its parent (the children's vertices in the parent's barycentric basis:
+    six kinds on a Plaza refinement). A fine dof shared by two cells gets the same value from
+    both (to round-off). Apply with `P @ c` (c of shape (n_{j-1},) or (n_{j-1}, k)).
+    Kept: both levels' cell dofs and signs, the parent map and the cells of each kind."""
+
+    def __init__(self, coarse, fine, parent, Bp2):
+        signs = _edge_signs()
+        self.shape = (fine.nrt, coarse.nrt)
+        self.rt_c = coarse.rt_cells.astype(np.int32)
+        self.s_c = signs[coarse.reflections]                                 # (nc_{j-1}, 8)
+        self.rt_f = fine.rt_cells.astype(np.int32)
+        self.s_f = signs[fine.reflections]
+        self.parent = np.asarray(parent, dtype=np.int32)
+        kinds, kind = np.unique(Bp2.reshape(len(Bp2), 9), axis=0, return_inverse=True)
+        blocks = [_child_block(k.reshape(3, 3) * 0.5) for k in kinds]
+        # exact zeros where the block is zero to round-off (its entries are O(1))
+        self.blocks = [np.where(np.abs(b) < 1e-12, 0.0, b) for b in blocks]
+        self.cells = class_members(kind.ravel())
+
+    def __matmul__(self, c):
+        c = np.asarray(c)
+        tail = c.shape[1:]
+        ct = c[self.rt_c] * self.s_c.reshape(self.s_c.shape + (1,) * len(tail))
+        out = np.zeros((self.shape[0],) + tail)
+        for B, cells in zip(self.blocks, self.cells):
+            v = np.einsum("ik,ck...->ci...", B, ct[self.parent[cells]])
+            s = self.s_f[cells]
+            out[self.rt_f[cells]] = v * s.reshape(s.shape + (1,) * len(tail))
+        return out

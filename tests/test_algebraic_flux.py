@@ -4,6 +4,8 @@
 * ν extra iterations: σ_alg = σ_disc(X^{k,i+ν}) - σ_disc(X^{k,i}), whose divergence is
   r - r' ± (λ'_h - λ_h) (DESIGN §6 writes r - r'; the λ shift between the two iterates is
   there too and goes to the remainder, see Estimators.nu_flux).
+* The RT_1 prolongation T_{j-1} → T_j (reference blocks per kind of child, signs of the edge
+  reflections) is dolfinx's interpolation of the coarse basis functions, to round-off.
 * Sharpness of the multilevel η_alg = (Σ_α μ_α^{-1} ‖σ_α,alg‖²)^{1/2} against the true
   algebraic error |||u_h^{k,exact} - u_h^{k,i}||| (the same Newton system solved by MUMPS) at
   GMRES iterates of the disk scene: between 1 and 3 (measured figures are printed).
@@ -105,6 +107,65 @@ def test_nu_flux_divergence(pair):
         defect, jump = _divergence_defect(disc, est, sigma, target, scale)
         assert defect <= 1e-11 and jump <= 1e-24
     assert eta_rem > 0
+
+
+def interpolated_prolongation(coarse, fine, parent):
+    """Reference: the matrix of RT_1(T_{j-1}) → RT_1(T_j) by dolfinx's interpolation of sums of
+    coarse basis functions, one sum per colour of coarse dofs that share no cell (a fine dof
+    then sees at most one basis function of the colour: a coarse dof of its parent cell)."""
+    import scipy.sparse as sp
+    from dolfinx import fem
+    from membranes.equilibration import graph_colouring
+    iu = np.triu_indices(8, 1)
+    pairs = np.unique(np.stack([coarse.rt_cells[:, iu[0]].ravel(),
+                                coarse.rt_cells[:, iu[1]].ravel()], axis=1), axis=0)
+    colour = graph_colouring(pairs, coarse.nrt)
+    fc, ff = fem.Function(coarse.RT), fem.Function(fine.RT)
+
+    def values(x):   # the interpolation points come cell by cell, for all cells of T_j
+        cells = np.repeat(parent, x.shape[1] // len(parent)).astype(np.int32)
+        return fc.eval(np.ascontiguousarray(x.T), cells).T
+
+    rows, cols, vals = [], [], []
+    for c in range(colour.max() + 1):
+        fc.x.array[:] = (colour == c)
+        ff.interpolate(values)
+        source = np.where(colour[coarse.rt_cells[parent]] == c,
+                          coarse.rt_cells[parent], -1).max(axis=1)            # (nc_j,)
+        f_dofs = fine.rt_cells.ravel()
+        src = np.repeat(source, fine.rt_cells.shape[1])
+        ok = src >= 0
+        rows.append(f_dofs[ok])
+        cols.append(src[ok])
+        vals.append(ff.x.array[f_dofs][ok])
+    rows, cols, vals = (np.concatenate(z) for z in (rows, cols, vals))
+    key = np.unique(rows.astype(np.int64) * coarse.nrt + cols, return_index=True)[1]
+    return sp.csr_matrix((vals[key], (rows[key], cols[key])), shape=(fine.nrt, coarse.nrt))
+
+
+@pytest.mark.parametrize("name,h,levels", [("disk", 0.3, 2), ("square", 0.25, 3)])
+def test_prolongation_is_the_interpolation(name, h, levels):
+    """On random coarse coefficients (a difference of the two operators would show): the
+    entries are O(1) (moments of basis functions of comparable cells) and each fine dof sums
+    at most 8 of them, so 1e-12 of max |X| · max row sum |P| is round-off."""
+    from membranes.algebraic_flux import Prolongation
+    from membranes.equilibration import PatchSpace
+    from dolfinx import fem
+    problem, disc, rows, est, ml = setup(name, h, levels)
+    H = problem.hierarchy
+    spaces = [PatchSpace(fem.FunctionSpace(m, ("Lagrange", 1)), blocks=False)
+              for m in H.meshes]
+    rng = np.random.default_rng(0)
+    for j in range(2, levels + 1):
+        ref = interpolated_prolongation(spaces[j - 1], spaces[j], H.parent_cells[j - 1])
+        scale = abs(ref).sum(axis=1).max()
+        assert 0.5 < abs(ref).max() and scale < 10
+        X = rng.standard_normal((spaces[j - 1].nrt, 8))
+        P = Prolongation(spaces[j - 1], spaces[j], H.parent_cells[j - 1], ml.Bp2[j])
+        for op in (P, ml.prolong[j]):
+            assert np.abs(op @ X - ref @ X).max() <= 1e-12 * np.abs(X).max() * scale
+        assert np.abs(ml.prolong[j] @ X[:, 0] - ref @ X[:, 0]).max() \
+            <= 1e-12 * np.abs(X).max() * scale
 
 
 def test_sharpness_of_the_multilevel_estimate():
