@@ -131,6 +131,63 @@ def _apply_buckets(level, flat, size):
     return np.bincount(ret, np.concatenate(values), minlength=size)
 
 
+def _top_tables():
+    """For every code of _W_TABLE: the rows l with W[l, k] ≠ 0 of each column k (at most two:
+    the dofs of one entity) and their entries, (codes, 2, 8) each (entry 0: no second row)."""
+    W = _W_TABLE.astype(np.int64)
+    top = np.argsort(-np.abs(W), axis=1, kind="stable")[:, :2, :]
+    coef = np.take_along_axis(W, top, axis=1)
+    if np.abs(W).sum(axis=1).max() > 2 or not np.array_equal(
+            np.abs(coef).sum(axis=1), np.abs(W).sum(axis=1)):
+        raise RuntimeError("RT change of basis with more than two entries per column")
+    return top.astype(np.int8), coef.astype(np.int8)
+
+
+_W_TOP, _W_COEF = _top_tables()
+
+
+def local_numbering(space, CF, boundary):
+    """The retained RT dofs of patches of cells CF (P, m) (boundary flags (P,) or one):
+    glob (P, 8 m) per cell (-1 dropped), RET (P, nr) the sorted retained dofs of each patch
+    (padded with -1 where a patch retains fewer than the most, nr), loc (P, m, 8) their local
+    numbers (-1 dropped) and count (P,) the number each patch retains."""
+    from .equilibration import _row_index
+    P, m = CF.shape
+    glob = space.retained_dofs(CF, np.broadcast_to(np.asarray(boundary, dtype=bool), (P,)))
+    pad = np.int64(glob.max() + 1)
+    S = np.sort(np.where(glob < 0, pad, glob), axis=1)
+    new = np.ones_like(S, dtype=bool)
+    new[:, 1:] = S[:, 1:] != S[:, :-1]
+    new &= S != pad
+    count = new.sum(axis=1)
+    RET = np.sort(np.where(new, S, pad), axis=1)[:, :count.max()]
+    loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, m, 8)
+    return glob, np.where(RET == pad, -1, RET), loc, count
+
+
+def basis_change(refl, loc, pi, rep_refl, rep_loc, nr):
+    """L, C (P, nr, 2) of patches (reflection codes refl (P, m), local numbers loc (P, m, 8),
+    vertex matches pi (P, m, 3)) as translates of their representatives (rep_refl, rep_loc of
+    the same shapes, or one row for all): σ_p[i] = Σ_t C[p, i, t] σ_r[L[p, i, t]] in the
+    representative's local numbering (see `change_of_basis`)."""
+    P, m = refl.shape
+    code = (rep_refl.astype(np.int64) * 6 + _perm_code(pi)) * 8 + refl
+    top, coef = _W_TOP[code], _W_COEF[code]                               # (P, m, 2, 8)
+    # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
+    # W[c, l, k] ≠ 0, at the representative's local numbers
+    rl = np.broadcast_to(rep_loc, (P, m, 8))
+    tgt = rl[np.arange(P)[:, None, None, None], np.arange(m)[None, :, None, None], top]
+    ok = loc >= 0
+    if (tgt[np.broadcast_to(ok[:, :, None, :], tgt.shape) & (coef != 0)] < 0).any():
+        raise RuntimeError("a retained dof of a translate maps to a dropped one")
+    L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+    C = np.zeros((P, nr, 2), dtype=np.int8)
+    pp = np.broadcast_to(np.arange(P)[:, None, None], loc.shape)
+    L[pp[ok], loc[ok]] = np.maximum(tgt.transpose(0, 1, 3, 2)[ok], 0)
+    C[pp[ok], loc[ok]] = coef.transpose(0, 1, 3, 2)[ok]
+    return L, C
+
+
 def change_of_basis(space, CF, pi, r, boundary):
     """The patches of cells CF (P, m) (canonical order, vertex matches pi to the
     representative r, see `translation_classes`) as translates of r: returns glob (P, 8 m)
@@ -143,36 +200,14 @@ def change_of_basis(space, CF, pi, r, boundary):
     representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π (P_π the reference map
     that permutes the vertices), hence its basis is W_K = R_K' M_π R_K times K's, with M_π the
     reference basis expressed through its pull-back (entries 0, ±1). The patch systems are
-    then related by the congruence Q A_p Qᵀ = A_r, and σ_p = Tᵀ σ_r for T the σ block of Q."""
-    from .equilibration import _row_index, _row_unique
-    P, m = CF.shape
-    glob = space.retained_dofs(CF, np.full(P, boundary))
-    sentinel = np.iinfo(np.int64).max
-    RET, _ = _row_unique(np.where(glob < 0, sentinel, glob), sentinel)        # (P, nr)
-    nr = RET.shape[1]
-    loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, m, 8)
-    # change of basis: W (P, m, 8, 8) from the reflection codes and the permutations
+    then related by the congruence Q A_p Qᵀ = A_r, and σ_p = Tᵀ σ_r for T the σ block of Q.
+    (The same holds for K' = shift + t K, a homothety: the RT mass and divergence blocks of
+    the contravariant Piola basis do not change under it; MultilevelFlux uses that.)"""
+    glob, RET, loc, count = local_numbering(space, CF, boundary)
+    if (count != RET.shape[1]).any():
+        raise RuntimeError("translates that retain different numbers of RT dofs")
     refl = space.reflections[CF]                                          # (P, m)
-    code = (refl[r][None, :] * 6 + _perm_code(pi)) * 8 + refl
-    W = _W_TABLE[code]                                                    # [l, k]
-    # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
-    # W[c, l, k] ≠ 0 (at most two: the dofs of one entity), at the rep's local numbers
-    lr = loc[r]                                                           # (m, 8)
-    L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
-    C = np.zeros((P, nr, 2), dtype=np.int8)
-    top = np.argsort(-np.abs(W), axis=2, kind="stable")[:, :, :2, :]      # (P, m, 2, 8)
-    coef = np.take_along_axis(W, top, axis=2)
-    if np.abs(W).sum(axis=2).max() > 2 or not np.array_equal(
-            np.abs(coef).sum(axis=2), np.abs(W).sum(axis=2)):
-        raise RuntimeError("RT change of basis with more than two entries per column")
-    ok = loc >= 0
-    pp = np.broadcast_to(np.arange(P)[:, None, None], loc.shape)
-    tgt = lr[np.arange(m)[None, :, None, None], top]                      # (P, m, 2, 8)
-    if (tgt[np.broadcast_to(ok[:, :, None, :], tgt.shape)
-            & (coef != 0)] < 0).any():
-        raise RuntimeError("a retained dof of a translate maps to a dropped one")
-    L[pp[ok], loc[ok]] = np.maximum(tgt.transpose(0, 1, 3, 2)[ok], 0)
-    C[pp[ok], loc[ok]] = coef.transpose(0, 1, 3, 2)[ok]
+    L, C = basis_change(refl, loc, pi, refl[r][None], loc[r][None], RET.shape[1])
     return glob, RET, loc, L, C
 
 
@@ -237,11 +272,26 @@ def _vertex_match(xv, xr, scale, tol=1e-9):
 
 
 class MultilevelFlux:
-    """σ_alg of DESIGN §6 for the discretisation `disc` on `hierarchy` (levels ≥ 1)."""
+    """σ_alg of DESIGN §6 for the discretisation `disc` on `hierarchy` (levels ≥ 1).
+
+    Classes of patches are shared across the levels: a patch of level j whose cells, scaled
+    by 2^j about its vertex, are a translate of another level's scaled patch has the same
+    RT mass and divergence blocks (contravariant Piola), hence the same solution operator
+    from data moments to σ (the zero-mean row only scales). On a uniform refinement of T_0
+    that leaves about one class per vertex, edge and cell of T_0 for all levels together.
+
+    `owned` (optional, for "owner computes" across processes that each hold the whole
+    hierarchy): a list of J boolean arrays, owned[j - 1] over the vertices of T_{j-1}; only
+    those vertices' patches of level j are set up and evaluated. The σ_alg of complementary
+    ownerships sum to the full σ_alg (to round-off: the classes' representatives may differ):
+    every patch's data are local (products of r on its cells, ρ_0 replicated), so the only
+    reduction is the sum of the partial σ_alg (an Allreduce by the caller)."""
 
     TRANSLATES = True   # False: every patch its own representative (for comparisons)
+    CHUNK = 16384       # patches numbered at once in the set-up (bounds its temporaries)
+    SOLVE_CHUNK = 256   # representatives' systems solved at once
 
-    def __init__(self, disc, hierarchy):
+    def __init__(self, disc, hierarchy, owned=None):
         from dolfinx import fem
         J = hierarchy.levels
         if J < 1:
@@ -250,33 +300,35 @@ class MultilevelFlux:
         self.disc, self.J = disc, J
         V = [fem.FunctionSpace(m, ("Lagrange", 1)) for m in hierarchy.meshes[:-1]] + [disc.V]
         self.geo = [Geometry(v) for v in V]
-        fine = self.geo[J]
-        self.lift = lifting(fine)
+        self.lift = lifting(self.geo[J])
         # vertices of each T_j cell in its parent's barycentric basis (multiples of 1/2, kept
         # as 2 Bp in int8: exact), and the four children of each T_{j-1} cell
+        corners = [g.x[g.cells] for g in self.geo]
         self.Bp2 = [None] + [np.round(2.0 * _barycentric(
-            self._corners(j), self._corners(j - 1)[hierarchy.parent_cells[j - 1]])).astype(
-            np.int8) for j in range(1, J + 1)]
+            corners[j], corners[j - 1][hierarchy.parent_cells[j - 1]])).astype(np.int8)
+            for j in range(1, J + 1)]
+        del corners
         self._parents = [None] + [np.asarray(p, dtype=np.int32)
                                   for p in hierarchy.parent_cells]   # T_j cell -> T_{j-1} cell
         self.children = [None] + [np.argsort(p, kind="stable").reshape(-1, 4).astype(np.int32)
                                   for p in hierarchy.parent_cells]
         self._coarse_solver(V[0])
         spaces = [None] + [PatchSpace(V[j], blocks=False) for j in range(1, J + 1)]
-        self.levels = [None] + [self._level(j, spaces) for j in range(1, J + 1)]
+        # every level's RT coefficients and data moments in one flat array each: level j at
+        # rt_offset[j - 1], flat_offset[j - 1]
+        self.nrt = [None] + [spaces[j].nrt for j in range(1, J + 1)]
+        self.rt_offset = np.concatenate([[0], np.cumsum(self.nrt[1:])]).astype(np.int64)
+        self.flat_offset = np.concatenate(
+            [[0], np.cumsum([9 * spaces[j].geo.ncells for j in range(1, J + 1)])]).astype(
+            np.int64)
+        self.classes = self._classes(spaces, owned)
         self.prolong = [None, None] + [
             Prolongation(spaces[j - 1], spaces[j], self._parents[j], self.Bp2[j])
             for j in range(2, J + 1)]
         # what an evaluation needs: the coarse geometry, the fine areas, the RT dimensions
-        self.nrt = [None] + [spaces[j].nrt for j in range(1, J + 1)]
         self.RT = spaces[J].RT
         self.areas = [g.area for g in self.geo]
         self.geo = [self.geo[0]]
-
-    def _corners(self, j):
-        """Vertex coordinates of the cells of T_j, (nc_j, 3, 2), in the cells' vertex order."""
-        geo = self.geo[j]
-        return geo.V.tabulate_dof_coordinates()[:, :2][geo.cells]
 
     def _coarse_solver(self, V0):
         import ufl
@@ -291,67 +343,122 @@ class MultilevelFlux:
         self._coarse = spla.splu(S.tocsc())
         self._coarse_boundary = bdofs
 
-    def _level(self, j, spaces):
-        """The patch problems of level j: one per vertex of T_{j-1}, on the T_j cells of its
-        patch. Patches that are translates of one another (all but a few, on a uniform
-        refinement) share one solution operator, computed for a representative; see
-        `_translates`. Returns a list of groups (S, G, RET, L, C): S (nr, nq) the
-        representative's operator from data moments to σ (its local numbering), G (P, nq) where
-        each patch's data moments sit in the flat moment array of the level, RET (P, nr) the
-        patches' global RT dofs, and L, C (P, nr, 2) the two representative dofs and the
-        integer coefficients that give each of a patch's dofs (the change of basis). The groups
-        are then stacked by shape and size (`_buckets`)."""
-        space = spaces[j]
-        coarse = self.geo[j - 1]
-        children = self.children[j]                                           # (nc_{j-1}, 4)
-        on_boundary = np.zeros(coarse.n, dtype=bool)
-        on_boundary[boundary_dofs(coarse.V)] = True
-        cent = self._corners(j).mean(axis=1)                                  # (nc_j, 2)
-        scale = np.sqrt(space.geo.area.mean())
+    def _classes(self, spaces, owned):
+        """The patch problems of all levels: level j has one per vertex of T_{j-1}, on the T_j
+        cells of its patch. The patches of every level, in coordinates scaled by 2^j / h_0
+        (h_0² the mean area of T_0: T_j's cells are T_0's halved j times), are sorted into
+        classes of translates (`translation_classes` on one virtual mesh of all levels' cells);
+        each class shares the solution operator of its representative (`_translates`).
+        Returns the buckets of all levels' patches (`_buckets`; None if there are none)."""
+        from types import SimpleNamespace
+        J = self.J
+        scale = [np.sqrt(self.geo[0].area.mean()) / 2.0 ** j for j in range(J + 1)]
+        fine = [spaces[j].geo for j in range(1, J + 1)]
+        cell_off = np.concatenate([[0], np.cumsum([g.ncells for g in fine])])
+        vert_off = np.concatenate([[0], np.cumsum([g.n for g in fine])])
+        virtual = SimpleNamespace(
+            x=np.concatenate([g.x / scale[j + 1] for j, g in enumerate(fine)]),
+            cells=np.concatenate([g.cells + vert_off[j] for j, g in enumerate(fine)]))
+        exterior = np.concatenate([spaces[j].exterior_edge for j in range(1, J + 1)])
+        cent = virtual.x[virtual.cells].mean(axis=1)
+        parts = {}   # number of cells m -> the patches (level, CF, KF, boundary, vertex)
+        for j in range(1, J + 1):
+            coarse = self.geo[j - 1]
+            on_boundary = np.zeros(coarse.n, dtype=bool)
+            on_boundary[boundary_dofs(coarse.V)] = True
+            for verts, CS, KA in vertex_patches(coarse):
+                if owned is not None:
+                    keep = np.asarray(owned[j - 1], dtype=bool)[verts]
+                    verts, CS, KA = verts[keep], CS[keep], KA[keep]
+                P = len(verts)
+                if P == 0:
+                    continue
+                CF = self.children[j][CS].reshape(P, -1) + cell_off[j - 1]
+                parts.setdefault(CF.shape[1], []).append(
+                    (np.full(P, j, dtype=np.int8), CF, np.repeat(KA, 4, axis=1),
+                     on_boundary[verts], coarse.x[verts] / scale[j]))
         groups = []
-        for verts, CS, KA in vertex_patches(coarse):
-            P = len(verts)
-            CF = children[CS].reshape(P, -1)                                 # (P, 4n)
-            KF = np.repeat(KA, 4, axis=1)
-            CF, KF, rep, pi = translation_classes(
-                self.geo[j - 1].x[verts], CF, KF, on_boundary[verts], space.geo, cent, scale,
-                self.TRANSLATES, space.exterior_edge)
-            for members in class_members(rep):
-                groups.append((CF[members], KF[members], pi[members],
-                               on_boundary[verts[members[0]]], rep[members] == members))
-        # the element blocks of the representatives' cells, in one pass over the level
-        reps = np.concatenate([g[0][g[4]][0] for g in groups])
-        cells, inverse = np.unique(reps, return_inverse=True)
-        Me, Be = space.element_blocks(cells)
-        out, start = [], 0
-        for g in groups:
-            idx = inverse[start:start + g[0].shape[1]]
-            start += g[0].shape[1]
-            out.append(self._translates(space, *g, blocks=(Me[idx], Be[idx])))
-        return _buckets(out)
+        for m in sorted(parts):
+            lev, CF, KF, bnd, xa = (np.concatenate(z) for z in zip(*parts.pop(m)))
+            CF, KF, rep, pi = translation_classes(xa, CF, KF, bnd, virtual, cent, 1.0,
+                                                  self.TRANSLATES, exterior)
+            groups += self._translates(spaces, lev, CF - cell_off[lev - 1][:, None], KF, bnd,
+                                       rep, pi)
+        return _buckets(groups) if groups else None
 
-    def _translates(self, space, CF, KF, pi, boundary, is_rep, blocks):
-        """One group of patches (cells CF (P, m) in canonical order, the local index KF of a in
-        each cell's parent, vertex matches pi to the representative, is_rep marks it, blocks
-        the element blocks (Me, Be) of its cells): the
-        representative's solution operator and every patch's change of basis
-        (`change_of_basis`); the DG1 data moments are permuted by π."""
+    def _translates(self, spaces, lev, CF, KF, bnd, rep, pi):
+        """Patches of m cells from any levels (level lev (P,), cells CF (P, m) of their level
+        in canonical order, the local index KF of a in each cell's parent, boundary flags,
+        representatives rep and vertex matches pi to them): the local numbering of every
+        patch, its change of basis to its representative (`basis_change`), the
+        representatives' solution operators S (σ rows of A⁻¹ on the data moments; batched
+        solves by shape), and the data indices (the DG1 moments permuted by π). Returns
+        the groups (S, G, RET, L, C) of `_buckets`, one per class, G and RET in the flat
+        arrays of all levels."""
         P, m = CF.shape
-        r = int(np.flatnonzero(is_rep)[0])
-        glob, RET, loc, L, C = change_of_basis(space, CF, pi, r, boundary)
-        nr = RET.shape[1]
-        _, _, A = space.saddle_point_systems(CF[r:r + 1], glob[r:r + 1], boundary,
-                                             blocks=(blocks[0][None], blocks[1][None]))
         nq = 3 * m
-        E = np.zeros((A.shape[1], nq))
-        E[nr:nr + nq] = np.eye(nq)
-        S = np.linalg.solve(A[0], E)[:nr]                                     # (nr, nq)
-        # data: (d, q^{K'}_{i'}) = (d, q^K_{π⁻¹... }): vertex i' of K' is vertex i of K with
-        # pi[c, i] = i', so the rep's moment i' is the patch's moment at i with pi[i] = i'
-        inv = np.argsort(pi, axis=2)                                          # i for each i'
-        G = ((CF[:, :, None] * 3 + KF[:, :, None]) * 3 + inv).reshape(P, nq)
-        return S, G.astype(np.int32 if G.max() < 2 ** 31 else np.int64), \
-            RET.astype(np.int32), L, C
+        loc = np.empty((P, m, 8), dtype=np.int16)
+        count = np.empty(P, dtype=np.int64)
+        refl = np.empty((P, m), dtype=np.int8)
+        chunks = []
+        for j in np.unique(lev):
+            at = np.flatnonzero(lev == j)
+            for s in range(0, len(at), self.CHUNK):
+                idx = at[s:s + self.CHUNK]
+                _, R, loc[idx], count[idx] = local_numbering(spaces[j], CF[idx], bnd[idx])
+                chunks.append((idx, (R + self.rt_offset[j - 1]).astype(np.int32)))
+                refl[idx] = spaces[j].reflections[CF[idx]]
+        nr = int(count.max())
+        RET = np.empty((P, nr), dtype=np.int32)      # the global RT dofs, padded
+        for idx, R in chunks:
+            RET[idx, :R.shape[1]] = R
+        del chunks
+        L = np.empty((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+        C = np.empty((P, nr, 2), dtype=np.int8)
+        for s in range(0, P, self.CHUNK):
+            sl = slice(s, s + self.CHUNK)
+            r = rep[sl]
+            L[sl], C[sl] = basis_change(refl[sl], loc[sl], pi[sl], refl[r], loc[r], nr)
+        # data: the rep's moment i' of cell c is the patch's moment at i with pi[c, i] = i'
+        inv = np.argsort(pi, axis=2)
+        G = self.flat_offset[lev - 1][:, None, None] + (CF[:, :, None] * 3 + KF[:, :, None]) \
+            * 3 + inv
+        G = G.reshape(P, nq).astype(np.int32 if self.flat_offset[-1] < 2 ** 31 else np.int64)
+        del inv
+        S = self._operators(spaces, lev, CF, bnd, count, np.unique(rep))
+        groups = []
+        for members in class_members(rep):
+            r = rep[members[0]]
+            n = count[r]
+            groups.append((S[r], G[members], RET[members, :n],
+                           L[members, :n], C[members, :n]))
+        return groups
+
+    def _operators(self, spaces, lev, CF, bnd, count, reps):
+        """{rep: S (nr, nq)}: the solution operators of the representatives' patch problems
+        (DESIGN §5 with target 0), batched by level and shape; the element blocks of each
+        level's representatives' cells in one pass."""
+        nq = 3 * CF.shape[1]
+        out = {}
+        for j in np.unique(lev[reps]):
+            rj = reps[lev[reps] == j]
+            cells, inverse = np.unique(CF[rj], return_inverse=True)
+            Me, Be = spaces[j].element_blocks(cells)
+            inverse = inverse.reshape(len(rj), -1)
+            for b in (False, True):
+                for n in np.unique(count[rj]):
+                    sel = np.flatnonzero((bnd[rj] == b) & (count[rj] == n))
+                    for s in range(0, len(sel), self.SOLVE_CHUNK):
+                        k = sel[s:s + self.SOLVE_CHUNK]
+                        cs = CF[rj[k]]
+                        glob = spaces[j].retained_dofs(cs, np.full(len(k), b))
+                        _, _, A = spaces[j].saddle_point_systems(
+                            cs, glob, b, blocks=(Me[inverse[k]], Be[inverse[k]]))
+                        E = np.zeros((A.shape[1], nq))
+                        E[n:n + nq] = np.eye(nq)
+                        Sk = np.linalg.solve(A, np.broadcast_to(E, (len(k),) + E.shape))[:, :n]
+                        out.update(zip(rj[k].tolist(), Sk))
+        return out
 
     def _products(self, r):
         """Mom[j][K, a, b] = (r φ^K_a, φ^K_b)_K for every cell K of every level T_j, r ∈ DG1(T_J)
@@ -396,14 +503,17 @@ class MultilevelFlux:
         b = np.bincount(g0.cells.ravel(), mom[0].sum(axis=1).ravel(), minlength=g0.n)
         b[self._coarse_boundary] = 0.0
         grad_rho0 = g0.gradient(self._coarse.solve(b))
-        total = None
-        for j in range(1, self.J + 1):
-            flat = self._moments(j, mom, grad_rho0).ravel()
-            mom[j - 1] = None
-            sigma = _apply_buckets(self.levels[j], flat, self.nrt[j])
-            if total is not None:
-                sigma += self.prolong[j] @ total
-            total = sigma
+        flat = np.concatenate([self._moments(j, mom, grad_rho0).ravel()
+                               for j in range(1, self.J + 1)])
+        del mom
+        off = self.rt_offset
+        if self.classes is None:
+            sigma = np.zeros(off[-1])
+        else:
+            sigma = _apply_buckets(self.classes, flat, off[-1])
+        total = sigma[off[0]:off[1]]
+        for j in range(2, self.J + 1):
+            total = sigma[off[j - 1]:off[j]] + self.prolong[j] @ total
         return total
 
 
