@@ -247,9 +247,19 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
         where = (mids * on[..., None]).sum(axis=2) / scale                    # (P, m, 2)
         sig = np.concatenate([sig, np.round(where * 1e6).astype(np.int64).reshape(P, -1)],
                              axis=1)
-    _, first, gid = np.unique(sig, axis=0, return_index=True, return_inverse=True)
+    if translates:
+        # equal rows by a 64-bit hash (wrapping products with random odd multipliers), then
+        # checked: a patch whose row differs from its first match's is its own representative
+        mult = np.random.default_rng(0).integers(1, 2 ** 62, sig.shape[1], dtype=np.uint64)
+        h = (sig.astype(np.uint64) * (2 * mult + 1)).sum(axis=1, dtype=np.uint64)
+        _, first, gid = np.unique(h, return_index=True, return_inverse=True)
+        rep = first[gid.ravel()]
+        same = (sig == sig[rep]).all(axis=1)
+        rep[~same] = np.flatnonzero(~same)
+    else:
+        rep = np.arange(P)
+    del sig
     xv = geo.x[geo.cells[CF]] - xa[:, None, None, :]
-    rep = first[gid.ravel()] if translates else np.arange(P)
     pi = _vertex_match(xv, xv[rep], scale)
     bad = np.flatnonzero(pi[:, 0, 0] < 0)
     if len(bad):
@@ -262,10 +272,14 @@ def _vertex_match(xv, xr, scale, tol=1e-9):
     """pi (P, m, 3): vertex pi[p, c, i] of the representative's cell c sits where vertex
     i of the patch's cell c does (relative to a); -1 everywhere in a patch where any
     vertex has no match within tol * scale."""
-    d = np.abs(xv[:, :, :, None, :] - xr[:, :, None, :, :]).max(axis=4)   # (P, m, 3, 3)
-    pi = d.argmin(axis=3)
-    ok = (np.take_along_axis(d, pi[..., None], axis=3)[..., 0] <= tol * scale).all(
-        axis=(1, 2))
+    best = np.full(xv.shape[:3], np.inf)
+    pi = np.zeros(xv.shape[:3], dtype=np.int64)
+    for k in range(3):        # the rep's vertex k against every vertex i of the patch's cell
+        d = np.abs(xv - xr[:, :, k:k + 1, :]).max(axis=3)                  # (P, m, 3)
+        closer = d < best
+        best[closer] = d[closer]
+        pi[closer] = k
+    ok = (best <= tol * scale).all(axis=(1, 2))
     ok &= (np.sort(pi, axis=2) == np.arange(3)).all(axis=(1, 2))
     pi[~ok] = -1
     return pi
@@ -565,8 +579,9 @@ class Prolongation:
         self.rt_f = fine.rt_cells.astype(np.int32)
         self.s_f = signs[fine.reflections]
         self.parent = np.asarray(parent, dtype=np.int32)
-        kinds, kind = np.unique(Bp2.reshape(len(Bp2), 9), axis=0, return_inverse=True)
-        blocks = [_child_block(k.reshape(3, 3) * 0.5) for k in kinds]
+        code = Bp2.reshape(len(Bp2), 9).astype(np.int64) @ 3 ** np.arange(9)   # digits 0, 1, 2
+        _, first, kind = np.unique(code, return_index=True, return_inverse=True)
+        blocks = [_child_block(Bp2[f] * 0.5) for f in first]
         # exact zeros where the block is zero to round-off (its entries are O(1))
         self.blocks = [np.where(np.abs(b) < 1e-12, 0.0, b) for b in blocks]
         self.cells = class_members(kind.ravel())
