@@ -235,18 +235,19 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     P = len(xa)
     off = (cent[CF] - xa[:, None, :]) / scale
     key = np.round(off * 1e6).astype(np.int64)                                 # (P, m, 2)
-    order = np.lexsort((key[:, :, 1], key[:, :, 0]), axis=1)
+    order = np.argsort(key[:, :, 0] * 2 ** 32 + key[:, :, 1], axis=1)           # |key| < 2^31
     CF = np.take_along_axis(CF, order, axis=1)
     KF = np.take_along_axis(KF, order, axis=1)
     key = np.take_along_axis(key, order[:, :, None], axis=1).reshape(P, -1)
     sig = np.concatenate([np.asarray(boundary)[:, None].astype(np.int64), key], axis=1)
     if exterior is not None:
-        vx = geo.x[geo.cells[CF]] - xa[:, None, None, :]                     # (P, m, 3, 2)
+        b = np.flatnonzero(boundary)
+        vx = geo.x[geo.cells[CF[b]]] - xa[b, None, None, :]                  # (Pb, m, 3, 2)
         mids = 0.5 * (np.roll(vx, -1, axis=2) + np.roll(vx, -2, axis=2))     # edge e: opposite e
-        on = exterior[CF] & np.asarray(boundary, dtype=bool)[:, None, None]
-        where = (mids * on[..., None]).sum(axis=2) / scale                    # (P, m, 2)
-        sig = np.concatenate([sig, np.round(where * 1e6).astype(np.int64).reshape(P, -1)],
-                             axis=1)
+        where = (mids * exterior[CF[b]][..., None]).sum(axis=2) / scale       # (Pb, m, 2)
+        ext = np.zeros((P, 2 * CF.shape[1]), dtype=np.int64)
+        ext[b] = np.round(where * 1e6).astype(np.int64).reshape(len(b), 2 * CF.shape[1])
+        sig = np.concatenate([sig, ext], axis=1)
     if translates:
         # equal rows by a 64-bit hash (wrapping products with random odd multipliers), then
         # checked: a patch whose row differs from its first match's is its own representative

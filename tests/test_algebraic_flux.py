@@ -6,6 +6,7 @@
   there too and goes to the remainder, see Estimators.nu_flux).
 * The RT_1 prolongation T_{j-1} → T_j (reference blocks per kind of child, signs of the edge
   reflections) is dolfinx's interpolation of the coarse basis functions, to round-off.
+* Owner computes: σ_alg set up on two complementary ownerships of the patches sums to σ_alg.
 * Sharpness of the multilevel η_alg = (Σ_α μ_α^{-1} ‖σ_α,alg‖²)^{1/2} against the true
   algebraic error |||u_h^{k,exact} - u_h^{k,i}||| (the same Newton system solved by MUMPS) at
   GMRES iterates of the disk scene: between 1 and 3 (measured figures are printed).
@@ -166,6 +167,26 @@ def test_prolongation_is_the_interpolation(name, h, levels):
             assert np.abs(op @ X - ref @ X).max() <= 1e-12 * np.abs(X).max() * scale
         assert np.abs(ml.prolong[j] @ X[:, 0] - ref @ X[:, 0]).max() \
             <= 1e-12 * np.abs(X).max() * scale
+
+
+@pytest.mark.parametrize("name,h,levels", [("disk", 0.3, 2), ("square", 0.25, 3)])
+def test_complementary_ownerships_sum_to_the_flux(name, h, levels):
+    """Each patch is set up and evaluated by its owner only; the classes' representatives
+    then differ between the runs, so the sum agrees to round-off (relative 1e-12: the
+    operators are solutions of the same O(1)-conditioned patch problems)."""
+    problem, disc, rows, est, ml = setup(name, h, levels)
+    rng = np.random.default_rng(3)
+    owned = [rng.random(len(m.geometry.x)) < 0.5 for m in problem.hierarchy.meshes[:-1]]
+    parts = [MultilevelFlux(disc, problem.hierarchy, owned=own)
+             for own in (owned, [~o for o in owned])]
+    R = rng.standard_normal(3 * disc.n)
+    for k in range(2):
+        R[k * disc.n + disc.boundary] = 0.0
+    full = ml.sigma(R)
+    split = [a + b for a, b in zip(parts[0].sigma(R), parts[1].sigma(R))]
+    for s, f in zip(split, full):
+        assert np.abs(parts[0].sigma(R)[0]).max() > 0.1 * np.abs(f).max()
+        assert np.abs(s - f).max() <= 1e-12 * np.abs(f).max()
 
 
 def test_sharpness_of_the_multilevel_estimate():
