@@ -33,9 +33,12 @@ def _barycentric(points, corners):
     """Barycentric coordinates of points (c, m, 2) in triangles with corners (c, 3, 2):
     shape (c, m, 3)."""
     v0 = corners[:, 0]
-    T = np.stack([corners[:, 1] - v0, corners[:, 2] - v0], axis=2)          # (c, 2, 2)
-    xi = np.linalg.solve(T[:, None], (points - v0[:, None])[..., None])[..., 0]
-    return np.concatenate([1.0 - xi.sum(axis=2, keepdims=True), xi], axis=2)
+    e1, e2 = corners[:, 1] - v0, corners[:, 2] - v0                          # (c, 2)
+    det = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])[:, None]
+    d = points - v0[:, None]                                                 # (c, m, 2)
+    xi1 = (d[..., 0] * e2[:, None, 1] - d[..., 1] * e2[:, None, 0]) / det   # Cramer's rule
+    xi2 = (e1[:, None, 0] * d[..., 1] - e1[:, None, 1] * d[..., 0]) / det
+    return np.stack([1.0 - xi1 - xi2, xi1, xi2], axis=2)
 
 
 def _rt_element():
@@ -286,6 +289,23 @@ def _vertex_match(xv, xr, scale, tol=1e-9):
     return pi
 
 
+def _solution_operators(A, nr, nq):
+    """S (g, nr, nq): the σ rows of A⁻¹ on the divergence rows, for patch systems A (g, N, N)
+    = [[M, -Bᵀ, 0], [B, 0, c], [0, cᵀ, 0]] (the last row and column for interior patches only,
+    N = nr + nq (+ 1)), by the Schur complement: σ = M⁻¹Bᵀγ, and with K = B M⁻¹ Bᵀ,
+    K γ + c λ = d, cᵀγ = 0; so S = M⁻¹Bᵀ Γ, Γ the γ rows of [[K, c], [cᵀ, 0]]⁻¹ on d."""
+    g, N = A.shape[:2]
+    M, B = A[:, :nr, :nr], A[:, nr:nr + nq, :nr]
+    X = np.linalg.solve(M, B.transpose(0, 2, 1))                              # (g, nr, nq)
+    K = np.zeros((g, N - nr, N - nr))
+    K[:, :nq, :nq] = B @ X
+    K[:, :nq, nq:] = A[:, nr:nr + nq, nr + nq:]
+    K[:, nq:, :nq] = A[:, nr + nq:, nr:nr + nq]
+    E = np.zeros((N - nr, nq))
+    E[:nq] = np.eye(nq)
+    return X @ np.linalg.solve(K, np.broadcast_to(E, (g,) + E.shape))[:, :nq]
+
+
 class MultilevelFlux:
     """σ_alg of DESIGN §6 for the discretisation `disc` on `hierarchy` (levels ≥ 1).
 
@@ -327,6 +347,11 @@ class MultilevelFlux:
                                   for p in hierarchy.parent_cells]   # T_j cell -> T_{j-1} cell
         self.children = [None] + [np.argsort(p, kind="stable").reshape(-1, 4).astype(np.int32)
                                   for p in hierarchy.parent_cells]
+        self.kinds = [None]
+        for j in range(1, J + 1):
+            cells, Bp = child_kinds(self.Bp2[j])
+            self.kinds.append(([c.astype(np.int32) for c in cells],
+                               [_kind_matrices(b) for b in Bp]))
         self._coarse_solver(V[0])
         spaces = [None] + [PatchSpace(V[j], blocks=False) for j in range(1, J + 1)]
         # every level's RT coefficients and data moments in one flat array each: level j at
@@ -469,30 +494,34 @@ class MultilevelFlux:
                         glob = spaces[j].retained_dofs(cs, np.full(len(k), b))
                         _, _, A = spaces[j].saddle_point_systems(
                             cs, glob, b, blocks=(Me[inverse[k]], Be[inverse[k]]))
-                        E = np.zeros((A.shape[1], nq))
-                        E[n:n + nq] = np.eye(nq)
-                        Sk = np.linalg.solve(A, np.broadcast_to(E, (len(k),) + E.shape))[:, :n]
-                        out.update(zip(rj[k].tolist(), Sk))
+                        out.update(zip(rj[k].tolist(), _solution_operators(A, n, nq)))
         return out
+
+    def _by_kind(self, j, X, which):
+        """Y (nc_j, 3, 3) with Y[K] = X[K] (flattened) times the 9 × 9 matrix `which` of K's
+        kind of child (see `_kind_matrices`): one product per kind."""
+        Y = np.empty((len(X), 9))
+        X = X.reshape(len(X), 9)
+        for cells, mats in zip(*self.kinds[j]):
+            Y[cells] = X[cells] @ mats[which]
+        return Y.reshape(-1, 3, 3)
 
     def _products(self, r):
         """Mom[j][K, a, b] = (r φ^K_a, φ^K_b)_K for every cell K of every level T_j, r ∈ DG1(T_J)
         (ncells, 3): exact P1 triple products on T_J, then restricted level by level with the
         children's vertices in their parent's barycentric basis (φ^{K'}_{a'} = Σ_v Bp[K, v, a']
-        φ^K_v on a child K of K'), O(N) in all."""
+        φ^K_v on a child K of K': Bpᵀ Mom Bp), O(N) in all."""
         J = self.J
         mom = [None] * (J + 1)
         mom[J] = ((r @ _C3.reshape(3, 9)) * self.areas[J][:, None]).reshape(-1, 3, 3)
         for j in range(J, 0, -1):
-            Bp = self.Bp2[j] * 0.5
-            t = np.matmul(np.matmul(Bp.transpose(0, 2, 1), mom[j]), Bp)
-            mom[j - 1] = t[self.children[j]].sum(axis=1)
+            mom[j - 1] = self._by_kind(j, mom[j], 0)[self.children[j]].sum(axis=1)
         return mom
 
     def _moments(self, j, mom, grad_rho0):
         """(d_a, q_i)_{K_j} for every cell K_j of T_j and every local vertex k of its parent
         (the vertex a): shape (nc_j, 3 (k), 3 (i))."""
-        m = np.matmul((self.Bp2[j] * 0.5).transpose(0, 2, 1), mom[j])
+        m = self._by_kind(j, mom[j], 1)                                       # Bpᵀ Mom
         parent = self._parents[j]
         area = self.areas[j]
         if j == 1:   # - ∇ρ_0·∇ψ_{0,k} (constant on K_0) times (1, q_i)_{K_1} = |K_1|/3
@@ -501,7 +530,7 @@ class MultilevelFlux:
             m -= (area / 3.0)[:, None, None] * dot[:, :, None]
         else:        # - (Π_{j-1}(r ψ_k), q_i)_{K_j}
             coef = (3.0 / self.areas[j - 1])[:, None, None] * (mom[j - 1] @ _MINV_REF.T)
-            p = np.matmul(coef[parent], self.Bp2[j].transpose(0, 2, 1) * 0.5)  # at K_j vertices
+            p = self._by_kind(j, coef[parent], 2)                # coef Bpᵀ: at K_j's vertices
             m -= (area / 12.0)[:, None, None] * (p + p.sum(axis=2, keepdims=True))
         return m
 
@@ -561,6 +590,21 @@ def _child_block(beta):
     return e.interpolation_matrix @ pulled
 
 
+def child_kinds(Bp2):
+    """The kinds of children on a level (how a cell's vertices sit in its parent: 2 Bp2 (nc, 3,
+    3), barycentric coordinates in {0, 1/2, 1}; six kinds on a Plaza refinement): the cells of
+    each kind and its Bp (3, 3)."""
+    code = Bp2.reshape(len(Bp2), 9).astype(np.int64) @ 3 ** np.arange(9)   # digits 0, 1, 2
+    _, first, kind = np.unique(code, return_index=True, return_inverse=True)
+    return class_members(kind.ravel()), [Bp2[f] * 0.5 for f in first]
+
+
+def _kind_matrices(Bp):
+    """The 9 × 9 matrices, acting on row-major flattened 3 × 3 rows, of X ↦ Bpᵀ X Bp,
+    X ↦ Bpᵀ X and X ↦ X Bpᵀ."""
+    return np.kron(Bp, Bp), np.kron(Bp, np.eye(3)), np.kron(np.eye(3), Bp.T)
+
+
 class Prolongation:
     """RT_1(T_{j-1}) → RT_1(T_j), the interpolation of a coarse function (exact: the spaces are
     nested), cell by cell: on a child K of P, the global dofs of K are s_K ⊙ B̂ (s_P ⊙ c_P),
@@ -580,12 +624,9 @@ class Prolongation:
         self.rt_f = fine.rt_cells.astype(np.int32)
         self.s_f = signs[fine.reflections]
         self.parent = np.asarray(parent, dtype=np.int32)
-        code = Bp2.reshape(len(Bp2), 9).astype(np.int64) @ 3 ** np.arange(9)   # digits 0, 1, 2
-        _, first, kind = np.unique(code, return_index=True, return_inverse=True)
-        blocks = [_child_block(Bp2[f] * 0.5) for f in first]
+        self.cells, Bp = child_kinds(Bp2)
         # exact zeros where the block is zero to round-off (its entries are O(1))
-        self.blocks = [np.where(np.abs(b) < 1e-12, 0.0, b) for b in blocks]
-        self.cells = class_members(kind.ravel())
+        self.blocks = [np.where(np.abs(b) < 1e-12, 0.0, b) for b in map(_child_block, Bp)]
 
     def __matmul__(self, c):
         c = np.asarray(c)
