@@ -12,13 +12,23 @@ On the hierarchy T_0 ⊂ … ⊂ T_J = T_h, with Π_j the L² projection onto di
 3. σ_alg = Σ_j Σ_a σ^a_j ∈ RT_1(T_J): the divergences telescope to Π_J r_αh = r_αh.
 
 Set-up (once per hierarchy): the patch problems of every level, factorised into solution
-operators S = (σ rows of A⁻¹ on the divergence data), one per class of translated patches (a
-patch maps to its class representative by a change of RT basis with entries 0, ±1), stacked
-by shape and class size. One evaluation: the exact P1 triple products (r, φ_a φ_b)_K on T_J,
-restricted level by level to the coarser cells (O(N) in all); a coarse solve; per level, the
-data moments of every patch (a gather), one batched product per stack of operators, each
-patch's change of basis, one scatter; and the prolongations RT_1(T_j) → RT_1(T_{j+1})
-(interpolation of the coarse function, exact since the spaces are nested): about one V-cycle.
+operators S = (σ rows of A⁻¹ on the divergence data, by the Schur complement), one per class
+of translated patches (a patch maps to its class representative by a change of RT basis with
+entries 0, ±1), the classes shared across levels (a patch scaled by 2^j is a translate of
+another level's: on a uniform refinement about one class per vertex, edge and cell of T_0 in
+all), stacked by shape and class size. One evaluation: the exact P1 triple products
+(r, φ_a φ_b)_K on T_J, restricted level by level to the coarser cells (O(N) in all); a coarse
+solve; the data moments of every patch of every level (a gather), one batched product per
+stack of operators, each patch's change of basis, one scatter; and the prolongations
+RT_1(T_j) → RT_1(T_{j+1}) (interpolation of the coarse function, exact since the spaces are
+nested; cell by cell with one reference block per kind of child): about one V-cycle.
+
+Owner computes (several processes, each with the whole hierarchy): MultilevelFlux(...,
+owned=...) sets up and evaluates the patches of the owned vertices only; every patch's data
+are local given r_αh (replicated: its products on the patch's cells and the replicated coarse
+solve), so the partial σ_alg of complementary ownerships sum to σ_alg, one Allreduce of the
+RT_1(T_J) vector. (With r_αh distributed instead, the products restricted to T_0 and to the
+coarse cells of patches that straddle owners would need a reduction first.)
 """
 
 import numpy as np
@@ -316,11 +326,12 @@ class MultilevelFlux:
     that leaves about one class per vertex, edge and cell of T_0 for all levels together.
 
     `owned` (optional, for "owner computes" across processes that each hold the whole
-    hierarchy): a list of J boolean arrays, owned[j - 1] over the vertices of T_{j-1}; only
-    those vertices' patches of level j are set up and evaluated. The σ_alg of complementary
-    ownerships sum to the full σ_alg (to round-off: the classes' representatives may differ):
-    every patch's data are local (products of r on its cells, ρ_0 replicated), so the only
-    reduction is the sum of the partial σ_alg (an Allreduce by the caller)."""
+    hierarchy): a list of J boolean arrays, owned[j - 1] over the vertices of T_{j-1} (its P1
+    dofs, the numbering of Geometry); only those vertices' patches of level j are set up and
+    evaluated. The σ_alg of complementary ownerships sum to the full σ_alg (to round-off: the
+    classes' representatives may differ): every patch's data are local (products of r on its
+    cells, ρ_0 replicated), so the only reduction is the sum of the partial σ_alg (an
+    Allreduce by the caller)."""
 
     TRANSLATES = True   # False: every patch its own representative (for comparisons)
     CHUNK = 16384       # patches numbered at once in the set-up (bounds its temporaries)
