@@ -299,6 +299,18 @@ def _vertex_match(xv, xr, scale, tol=1e-9):
     return pi
 
 
+def _one_blas_thread():
+    """A context with BLAS on one thread (threadpoolctl, where installed): the patch systems
+    are small (N ≈ 200), and a threaded BLAS spends more on synchronising than it gains (5x
+    slower measured with OpenBLAS on 2 cores)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        import contextlib
+        return contextlib.nullcontext()
+    return threadpool_limits(1, user_api="blas")
+
+
 def _solution_operators(A, nr, nq):
     """S (g, nr, nq): the σ rows of A⁻¹ on the divergence rows, for patch systems A (g, N, N)
     = [[M, -Bᵀ, 0], [B, 0, c], [0, cᵀ, 0]] (the last row and column for interior patches only,
@@ -488,7 +500,8 @@ class MultilevelFlux:
     def _operators(self, spaces, lev, CF, bnd, count, reps):
         """{rep: S (nr, nq)}: the solution operators of the representatives' patch problems
         (DESIGN §5 with target 0), batched by level and shape; the element blocks of each
-        level's representatives' cells in one pass."""
+        level's representatives' cells in one pass (the lowest level where a class occurs:
+        the patches are listed level by level, the first member represents)."""
         nq = 3 * CF.shape[1]
         out = {}
         for j in np.unique(lev[reps]):
@@ -496,15 +509,15 @@ class MultilevelFlux:
             cells, inverse = np.unique(CF[rj], return_inverse=True)
             Me, Be = spaces[j].element_blocks(cells)
             inverse = inverse.reshape(len(rj), -1)
-            for b in (False, True):
-                for n in np.unique(count[rj]):
-                    sel = np.flatnonzero((bnd[rj] == b) & (count[rj] == n))
-                    for s in range(0, len(sel), self.SOLVE_CHUNK):
-                        k = sel[s:s + self.SOLVE_CHUNK]
-                        cs = CF[rj[k]]
-                        glob = spaces[j].retained_dofs(cs, np.full(len(k), b))
-                        _, _, A = spaces[j].saddle_point_systems(
-                            cs, glob, b, blocks=(Me[inverse[k]], Be[inverse[k]]))
+            for b, n in sorted(set(zip(bnd[rj].tolist(), count[rj].tolist()))):
+                sel = np.flatnonzero((bnd[rj] == b) & (count[rj] == n))
+                for s in range(0, len(sel), self.SOLVE_CHUNK):
+                    k = sel[s:s + self.SOLVE_CHUNK]
+                    cs = CF[rj[k]]
+                    glob = spaces[j].retained_dofs(cs, np.full(len(k), b))
+                    _, _, A = spaces[j].saddle_point_systems(
+                        cs, glob, b, blocks=(Me[inverse[k]], Be[inverse[k]]))
+                    with _one_blas_thread():
                         out.update(zip(rj[k].tolist(), _solution_operators(A, n, nq)))
         return out
 
