@@ -101,8 +101,16 @@ def _perm_code(pi):
     """The number of the permutation P_π with P_π(ê_i') = ê_π(i') that maps the
     representative's vertex order onto the patch cell's (pi: patch vertex i -> rep vertex
     pi[i]; so π = pi⁻¹), for pi of shape (..., 3)."""
-    inv = np.argsort(pi, axis=-1)
+    inv = _inverse_permutation(pi)
     return (inv[..., 0] * 2 + (inv[..., 1] > inv[..., 2])).astype(np.int64)
+
+
+def _inverse_permutation(pi):
+    """inv (..., 3) with inv[..., pi[..., i]] = i, for permutations pi of (0, 1, 2)."""
+    inv = np.empty(pi.shape, dtype=np.int64)
+    for v in range(3):
+        inv[..., v] = (pi[..., 1] == v) + 2 * (pi[..., 2] == v)
+    return inv
 
 
 def _buckets(groups):
@@ -146,14 +154,15 @@ def _apply_buckets(level, flat, size):
 
 def _top_tables():
     """For every code of _W_TABLE: the rows l with W[l, k] ≠ 0 of each column k (at most two:
-    the dofs of one entity) and their entries, (codes, 2, 8) each (entry 0: no second row)."""
+    the dofs of one entity) and their entries, (codes, 8 (k), 2) each (entry 0: no second
+    row)."""
     W = _W_TABLE.astype(np.int64)
     top = np.argsort(-np.abs(W), axis=1, kind="stable")[:, :2, :]
     coef = np.take_along_axis(W, top, axis=1)
     if np.abs(W).sum(axis=1).max() > 2 or not np.array_equal(
             np.abs(coef).sum(axis=1), np.abs(W).sum(axis=1)):
         raise RuntimeError("RT change of basis with more than two entries per column")
-    return top.astype(np.int8), coef.astype(np.int8)
+    return (np.ascontiguousarray(t.transpose(0, 2, 1)).astype(np.int8) for t in (top, coef))
 
 
 _W_TOP, _W_COEF = _top_tables()
@@ -184,21 +193,23 @@ def basis_change(refl, loc, pi, rep_refl, rep_loc, nr):
     the same shapes, or one row for all): σ_p[i] = Σ_t C[p, i, t] σ_r[L[p, i, t]] in the
     representative's local numbering (see `change_of_basis`)."""
     P, m = refl.shape
-    code = (rep_refl.astype(np.int64) * 6 + _perm_code(pi)) * 8 + refl
-    top, coef = _W_TOP[code], _W_COEF[code]                               # (P, m, 2, 8)
+    code = ((rep_refl.astype(np.int64) * 6 + _perm_code(pi)) * 8 + refl).ravel()  # per cell
     # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
-    # W[c, l, k] ≠ 0, at the representative's local numbers
-    rl = np.broadcast_to(rep_loc, (P, m, 8))
-    tgt = rl[np.arange(P)[:, None, None, None], np.arange(m)[None, :, None, None], top]
-    ok = loc >= 0
-    if (tgt[np.broadcast_to(ok[:, :, None, :], tgt.shape) & (coef != 0)] < 0).any():
+    # W[c, l, k] ≠ 0, at the representative's local numbers; retained dofs only
+    ok = np.flatnonzero(loc.reshape(-1) >= 0)                            # (p m + c) 8 + k
+    cell, k = ok >> 3, ok & 7
+    top = _W_TOP[code[cell], k]                                         # (n, 2)
+    coef = _W_COEF[code[cell], k]
+    base = cell if rep_loc.shape[0] == P else cell % m                    # one rep for all
+    tgt = np.ascontiguousarray(rep_loc).reshape(-1)[(base * 8)[:, None] + top]
+    if (tgt[coef != 0] < 0).any():
         raise RuntimeError("a retained dof of a translate maps to a dropped one")
-    L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
-    C = np.zeros((P, nr, 2), dtype=np.int8)
-    pp = np.broadcast_to(np.arange(P)[:, None, None], loc.shape)
-    L[pp[ok], loc[ok]] = np.maximum(tgt.transpose(0, 1, 3, 2)[ok], 0)
-    C[pp[ok], loc[ok]] = coef.transpose(0, 1, 3, 2)[ok]
-    return L, C
+    rows = (cell // m) * nr + loc.reshape(-1)[ok]
+    L = np.zeros((P * nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+    C = np.zeros((P * nr, 2), dtype=np.int8)
+    L[rows] = np.maximum(tgt, 0)
+    C[rows] = coef
+    return L.reshape(P, nr, 2), C.reshape(P, nr, 2)
 
 
 def change_of_basis(space, CF, pi, r, boundary):
@@ -483,7 +494,7 @@ class MultilevelFlux:
             r = rep[sl]
             L[sl], C[sl] = basis_change(refl[sl], loc[sl], pi[sl], refl[r], loc[r], nr)
         # data: the rep's moment i' of cell c is the patch's moment at i with pi[c, i] = i'
-        inv = np.argsort(pi, axis=2)
+        inv = _inverse_permutation(pi)
         G = self.flat_offset[lev - 1][:, None, None] + (CF[:, :, None] * 3 + KF[:, :, None]) \
             * 3 + inv
         G = G.reshape(P, nq).astype(np.int32 if self.flat_offset[-1] < 2 ** 31 else np.int64)
