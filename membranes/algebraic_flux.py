@@ -295,17 +295,19 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
 
 def _vertex_match(xv, xr, scale, tol=1e-9):
     """pi (P, m, 3): vertex pi[p, c, i] of the representative's cell c sits where vertex
-    i of the patch's cell c does (relative to a); -1 everywhere in a patch where any
-    vertex has no match within tol * scale."""
-    best = np.full(xv.shape[:3], np.inf)
-    pi = np.zeros(xv.shape[:3], dtype=np.int64)
+    i of the patch's cell c does (relative to a); -1 everywhere in a patch where a vertex
+    has no match within tol * scale, or more than one, or two vertices match one."""
+    t = tol * scale
+    X, Y = xv[..., 0], xv[..., 1]                                             # (P, m, 3)
+    pi = np.zeros(X.shape, dtype=np.int64)
+    hits = np.zeros(X.shape, dtype=np.int8)
+    ok = np.ones(len(xv), dtype=bool)
     for k in range(3):        # the rep's vertex k against every vertex i of the patch's cell
-        d = np.abs(xv - xr[:, :, k:k + 1, :]).max(axis=3)                  # (P, m, 3)
-        closer = d < best
-        best[closer] = d[closer]
-        pi[closer] = k
-    ok = (best <= tol * scale).all(axis=(1, 2))
-    ok &= (np.sort(pi, axis=2) == np.arange(3)).all(axis=(1, 2))
+        match = (np.abs(X - xr[:, :, k:k + 1, 0]) <= t) & (np.abs(Y - xr[:, :, k:k + 1, 1]) <= t)
+        pi += k * match
+        hits += match
+        ok &= ((match[..., 0] + match[..., 1] + match[..., 2]) == 1).all(axis=1)
+    ok &= (hits == 1).reshape(len(xv), -1).all(axis=1)   # a permutation in every cell
     pi[~ok] = -1
     return pi
 
