@@ -173,18 +173,22 @@ def local_numbering(space, CF, boundary):
     glob (P, 8 m) per cell (-1 dropped), RET (P, nr) the sorted retained dofs of each patch
     (padded with -1 where a patch retains fewer than the most, nr), loc (P, m, 8) their local
     numbers (-1 dropped) and count (P,) the number each patch retains."""
-    from .equilibration import _row_index
     P, m = CF.shape
     glob = space.retained_dofs(CF, np.broadcast_to(np.asarray(boundary, dtype=bool), (P,)))
     pad = np.int64(glob.max() + 1)
-    S = np.sort(np.where(glob < 0, pad, glob), axis=1)
+    key = np.where(glob < 0, pad, glob)
+    order = np.argsort(key, axis=1)
+    S = np.take_along_axis(key, order, axis=1)
     new = np.ones_like(S, dtype=bool)
     new[:, 1:] = S[:, 1:] != S[:, :-1]
     new &= S != pad
-    count = new.sum(axis=1)
-    RET = np.sort(np.where(new, S, pad), axis=1)[:, :count.max()]
-    loc = np.where(glob < 0, -1, _row_index(RET, np.maximum(glob, 0))).reshape(P, m, 8)
-    return glob, np.where(RET == pad, -1, RET), loc, count
+    rank = np.cumsum(new, axis=1) - 1                # local number of each sorted entry
+    count = rank[:, -1] + 1
+    loc = np.empty_like(rank)
+    np.put_along_axis(loc, order, np.where(S == pad, -1, rank), axis=1)
+    RET = np.full((P, count.max()), -1, dtype=np.int64)
+    RET[np.nonzero(new)[0], rank[new]] = S[new]
+    return glob, RET, loc.reshape(P, m, 8), count
 
 
 def basis_change(refl, loc, pi, rep_refl, rep_loc, nr):
@@ -453,16 +457,27 @@ class MultilevelFlux:
                 parts.setdefault(CF.shape[1], []).append(
                     (np.full(P, j, dtype=np.int8), CF, np.repeat(KA, 4, axis=1),
                      on_boundary[verts], coarse.x[verts] / scale[j]))
-        groups = []
+        found = []
         for m in sorted(parts):
             lev, CF, KF, bnd, xa = (np.concatenate(z) for z in zip(*parts.pop(m)))
             CF, KF, rep, pi = translation_classes(xa, CF, KF, bnd, virtual, cent, 1.0,
                                                   self.TRANSLATES, exterior)
-            groups += self._translates(spaces, lev, CF - cell_off[lev - 1][:, None], KF, bnd,
-                                       rep, pi)
+            found.append((lev, CF - cell_off[lev - 1][:, None], KF, bnd, rep, pi))
+        del virtual, cent, exterior
+        # the element blocks of all representatives' cells, one pass per level
+        blocks = {}
+        reps = [np.unique(f[4]) for f in found]
+        for j in range(1, J + 1):
+            cells = np.unique(np.concatenate([f[1][r[f[0][r] == j]].ravel()
+                                              for f, r in zip(found, reps)]))
+            if len(cells):
+                blocks[j] = (cells,) + spaces[j].element_blocks(cells)
+        groups = []
+        while found:
+            groups += self._translates(spaces, *found.pop(0), blocks)
         return _buckets(groups) if groups else None
 
-    def _translates(self, spaces, lev, CF, KF, bnd, rep, pi):
+    def _translates(self, spaces, lev, CF, KF, bnd, rep, pi, blocks):
         """Patches of m cells from any levels (level lev (P,), cells CF (P, m) of their level
         in canonical order, the local index KF of a in each cell's parent, boundary flags,
         representatives rep and vertex matches pi to them): the local numbering of every
@@ -501,7 +516,7 @@ class MultilevelFlux:
             * 3 + inv
         G = G.reshape(P, nq).astype(np.int32 if self.flat_offset[-1] < 2 ** 31 else np.int64)
         del inv
-        S = self._operators(spaces, lev, CF, bnd, count, np.unique(rep))
+        S = self._operators(spaces, lev, CF, bnd, count, np.unique(rep), blocks)
         groups = []
         for members in class_members(rep):
             r = rep[members[0]]
@@ -510,18 +525,17 @@ class MultilevelFlux:
                            L[members, :n], C[members, :n]))
         return groups
 
-    def _operators(self, spaces, lev, CF, bnd, count, reps):
+    def _operators(self, spaces, lev, CF, bnd, count, reps, blocks):
         """{rep: S (nr, nq)}: the solution operators of the representatives' patch problems
-        (DESIGN §5 with target 0), batched by level and shape; the element blocks of each
-        level's representatives' cells in one pass (the lowest level where a class occurs:
-        the patches are listed level by level, the first member represents)."""
+        (DESIGN §5 with target 0), batched by level and shape; blocks[j] = (cells, Me, Be):
+        the element blocks of level j's representatives' cells (the lowest level where a
+        class occurs: the patches are listed level by level, the first member represents)."""
         nq = 3 * CF.shape[1]
         out = {}
         for j in np.unique(lev[reps]):
             rj = reps[lev[reps] == j]
-            cells, inverse = np.unique(CF[rj], return_inverse=True)
-            Me, Be = spaces[j].element_blocks(cells)
-            inverse = inverse.reshape(len(rj), -1)
+            cells, Me, Be = blocks[j]
+            inverse = np.searchsorted(cells, CF[rj])
             for b, n in sorted(set(zip(bnd[rj].tolist(), count[rj].tolist()))):
                 sel = np.flatnonzero((bnd[rj] == b) & (count[rj] == n))
                 for s in range(0, len(sel), self.SOLVE_CHUNK):
