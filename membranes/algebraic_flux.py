@@ -288,8 +288,12 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     else:
         rep = np.arange(P)
     del sig
-    xv = geo.x[geo.cells[CF]] - xa[:, None, None, :]
-    pi = _vertex_match(xv, xv[rep], scale)
+    pi = np.empty(CF.shape + (3,), dtype=np.int64)
+    for s in range(0, P, 8192):   # in chunks: (P, m, 3, 2) coordinates twice
+        sl = slice(s, s + 8192)
+        r = rep[sl]
+        pi[sl] = _vertex_match(geo.x[geo.cells[CF[sl]]] - xa[sl, None, None, :],
+                               geo.x[geo.cells[CF[r]]] - xa[r, None, None, :], scale)
     bad = np.flatnonzero(pi[:, 0, 0] < 0)
     if len(bad):
         rep[bad] = bad
@@ -363,7 +367,7 @@ class MultilevelFlux:
     Allreduce by the caller)."""
 
     TRANSLATES = True   # False: every patch its own representative (for comparisons)
-    CHUNK = 16384       # patches numbered at once in the set-up (bounds its temporaries)
+    CHUNK = 4096        # patches numbered at once in the set-up (bounds its temporaries)
     SOLVE_CHUNK = 256   # representatives' systems solved at once
 
     def __init__(self, disc, hierarchy, owned=None):
@@ -510,19 +514,23 @@ class MultilevelFlux:
             sl = slice(s, s + self.CHUNK)
             r = rep[sl]
             L[sl], C[sl] = basis_change(refl[sl], loc[sl], pi[sl], refl[r], loc[r], nr)
-        # data: the rep's moment i' of cell c is the patch's moment at i with pi[c, i] = i'
-        inv = _inverse_permutation(pi)
-        G = self.flat_offset[lev - 1][:, None, None] + (CF[:, :, None] * 3 + KF[:, :, None]) \
-            * 3 + inv
-        G = G.reshape(P, nq).astype(np.int32 if self.flat_offset[-1] < 2 ** 31 else np.int64)
-        del inv
         S = self._operators(spaces, lev, CF, bnd, count, np.unique(rep), blocks)
+        # the patches in class order (each class a slice); data: the rep's moment i' of cell
+        # c is the patch's moment at i with pi[c, i] = i'
+        order = np.argsort(rep, kind="stable")
+        RET, L, C = RET[order], L[order], C[order]
+        G = np.empty((P, nq), dtype=np.int32 if self.flat_offset[-1] < 2 ** 31 else np.int64)
+        for s in range(0, P, self.CHUNK):
+            o = order[s:s + self.CHUNK]
+            G[s:s + self.CHUNK] = (self.flat_offset[lev[o] - 1][:, None, None] + (
+                CF[o][:, :, None] * 3 + KF[o][:, :, None]) * 3
+                + _inverse_permutation(pi[o])).reshape(len(o), nq)
+        cuts = np.flatnonzero(np.diff(rep[order])) + 1
         groups = []
-        for members in class_members(rep):
-            r = rep[members[0]]
+        for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [P]])):
+            r = rep[order[a]]
             n = count[r]
-            groups.append((S[r], G[members], RET[members, :n],
-                           L[members, :n], C[members, :n]))
+            groups.append((S[r], G[a:b], RET[a:b, :n], L[a:b, :n], C[a:b, :n]))
         return groups
 
     def _operators(self, spaces, lev, CF, bnd, count, reps, blocks):
