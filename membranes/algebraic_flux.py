@@ -114,8 +114,9 @@ def _inverse_permutation(pi):
 
 
 def _buckets(groups):
-    """Stack the groups (S, G, RET, L, C) of one level (see MultilevelFlux._level) by
-    (S.shape, number of patches): one batched product per bucket in an evaluation. Returns
+    """Stack the groups (S, G, RET, L, C) of classes of patches (one per class, see
+    MultilevelFlux._translates) by (S.shape, number of patches): one batched product per
+    bucket in an evaluation. Returns
     (buckets, RET): each bucket (S (g, nr, nq), G (g P, nq), L (g P, nr, 2), C (g P, nr, 2)),
     RET the global RT dofs of all buckets' patches in bucket order, flat."""
     keys = {}
@@ -134,10 +135,11 @@ def _buckets(groups):
 
 
 def _apply_buckets(level, flat, size):
-    """Σ_a σ^a of one level (global RT coefficients, length `size`) from the flat array of the
-    level's data moments: per bucket, the data of every patch (a gather), one batched product
+    """Σ_a σ^a over the patches of `level` (global RT coefficients, length `size`; for
+    MultilevelFlux all levels' RT spaces one after the other) from the flat array of their
+    data moments: per bucket, the data of every patch (a gather), one batched product
     with the representatives' operators, and each patch's change of basis (a gather of at most
-    two representative dofs times 0, ±1); then one scatter for the level."""
+    two representative dofs times 0, ±1); then one scatter."""
     buckets, ret = level
     values = []
     for S, G, L, C in buckets:
