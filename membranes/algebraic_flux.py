@@ -680,27 +680,30 @@ class Prolongation:
     child sits in its parent (the children's vertices in the parent's barycentric basis:
     six kinds on a Plaza refinement). A fine dof shared by two cells gets the same value from
     both (to round-off). Apply with `P @ c` (c of shape (n_{j-1},) or (n_{j-1}, k)).
-    Kept: both levels' cell dofs and signs, the parent map and the cells of each kind."""
+    Kept: both levels' cell dofs and signs and the parent map, the fine cells in kind order
+    (one product with a block per kind)."""
 
     def __init__(self, coarse, fine, parent, Bp2):
         signs = _edge_signs()
         self.shape = (fine.nrt, coarse.nrt)
         self.rt_c = coarse.rt_cells.astype(np.int32)
         self.s_c = signs[coarse.reflections]                                 # (nc_{j-1}, 8)
-        self.rt_f = fine.rt_cells.astype(np.int32)
-        self.s_f = signs[fine.reflections]
-        self.parent = np.asarray(parent, dtype=np.int32)
-        self.cells, Bp = child_kinds(Bp2)
+        # the fine cells in kind order, each kind a slice
+        cells, Bp = child_kinds(Bp2)
+        order = np.concatenate(cells)
+        self.cuts = np.cumsum([0] + [len(c) for c in cells])
+        self.rt_f = fine.rt_cells[order].astype(np.int32)
+        self.s_f = signs[fine.reflections[order]]
+        self.parent = np.asarray(parent, dtype=np.int32)[order]
         # exact zeros where the block is zero to round-off (its entries are O(1))
-        self.blocks = [np.where(np.abs(b) < 1e-12, 0.0, b) for b in map(_child_block, Bp)]
+        self.blocks = [np.where(np.abs(b) < 1e-12, 0.0, b).T for b in map(_child_block, Bp)]
 
     def __matmul__(self, c):
         c = np.asarray(c)
-        tail = c.shape[1:]
-        ct = c[self.rt_c] * self.s_c.reshape(self.s_c.shape + (1,) * len(tail))
-        out = np.zeros((self.shape[0],) + tail)
-        for B, cells in zip(self.blocks, self.cells):
-            v = np.einsum("ik,ck...->ci...", B, ct[self.parent[cells]])
-            s = self.s_f[cells]
-            out[self.rt_f[cells]] = v * s.reshape(s.shape + (1,) * len(tail))
+        if c.ndim == 2:
+            return np.stack([self @ c[:, i] for i in range(c.shape[1])], axis=1)
+        ct = c[self.rt_c] * self.s_c
+        out = np.zeros(self.shape[0])
+        for Bt, a, b in zip(self.blocks, self.cuts[:-1], self.cuts[1:]):
+            out[self.rt_f[a:b]] = (ct[self.parent[a:b]] @ Bt) * self.s_f[a:b]
         return out
