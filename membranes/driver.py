@@ -239,12 +239,13 @@ class IterateEstimates:
         t = time.perf_counter()
         self.comm = comm
         self.rows = rows
-        self.est = Estimators(disc)
-        if alg_flux == "multilevel":
-            from .algebraic_flux import MultilevelFlux   # only a run that uses it pays for it
-            self.multilevel = MultilevelFlux(disc, disc.problem.hierarchy)
-        else:
-            self.multilevel = None
+        with parallel.one_blas_thread():
+            self.est = Estimators(disc)
+            if alg_flux == "multilevel":
+                from .algebraic_flux import MultilevelFlux   # only a run that uses it pays
+                self.multilevel = MultilevelFlux(disc, disc.problem.hierarchy)
+            else:
+                self.multilevel = None
         self.setup_time = time.perf_counter() - t
         self.time = 0.0
         self.pending = None        # ('nu') (record, X, R) waiting for its later iterate
@@ -252,6 +253,10 @@ class IterateEstimates:
         self.eta_K = None          # η_K of the Newton iterate (or X^0) estimated last
 
     def __call__(self, rec, X, R, same_as=None):
+        with parallel.one_blas_thread():
+            return self._call(rec, X, R, same_as)
+
+    def _call(self, rec, X, R, same_as):
         t = time.perf_counter()
         if same_as is not None:
             # the accepted iterate is the one estimated last (its estimate met the criterion);
