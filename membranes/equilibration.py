@@ -355,6 +355,70 @@ def vertex_patches(geo, owned=None):
         yield verts, idx // 3, idx % 3
 
 
+def _grid_keys(v, scale):
+    """One int64 per point of v (..., 2): its coordinates in units of 1e-6 scale, rounded and
+    combined (None if they do not fit)."""
+    k = np.round(v * (1e6 / scale)).astype(np.int64)
+    big = int(np.abs(k).max()) + 1 if k.size else 1
+    if big >= 2 ** 30:
+        return None
+    return (k[..., 0] + big) * (2 * big + 1) + (k[..., 1] + big)
+
+
+def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
+                        exterior=None):
+    """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
+    CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
+    boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
+    centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
+    pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
+    (relative to xa). Patches are classed by their offsets rounded to 1e-6 scale (through a
+    64-bit hash of the rounded signature, checked entry by entry against the
+    representative's), and are translates to round-off only: a patch whose vertices do not
+    match its representative's within 1e-9 scale (a coincidence of the rounded keys) is made
+    its own. `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e);
+    boundary patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets,
+    per cell): two patches of boundary vertices with the same cells keep different RT dofs
+    when one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of
+    a structured square). Each step is a pass over arrays of P m entries (no row sorting)."""
+    P, m = CF.shape
+    boundary = np.asarray(boundary, dtype=bool)
+    key = _grid_keys(cent[CF] - xa[:, None, :], scale)                       # (P, m)
+    xv = geo.x[geo.cells[CF]] - xa[:, None, None, :]                         # (P, m, 3, 2)
+    vkey = _grid_keys(xv, scale)
+    if not translates or key is None or vkey is None or P == 0:
+        return CF, KF, np.arange(P), np.broadcast_to(np.arange(3), (P, m, 3)).copy()
+    order = np.argsort(key, axis=1, kind="stable")
+    CF, KF = np.take_along_axis(CF, order, axis=1), np.take_along_axis(KF, order, axis=1)
+    key = np.take_along_axis(key, order, axis=1)
+    xv = np.take_along_axis(xv, order[:, :, None, None], axis=1)
+    vkey = np.take_along_axis(vkey, order[:, :, None], axis=1)
+    sig = [boundary[:, None].astype(np.int64), key]
+    if exterior is not None:
+        where = np.zeros((P, m, 2))
+        b = np.flatnonzero(boundary)
+        mids = 0.5 * (np.roll(xv[b], -1, axis=2) + np.roll(xv[b], -2, axis=2))  # opposite e
+        where[b] = (mids * exterior[CF[b]][..., None]).sum(axis=2)
+        sig.append(_grid_keys(where, scale))
+    sig = np.concatenate(sig, axis=1)
+    mult = np.random.default_rng(0).integers(1, 2 ** 62, size=sig.shape[1]) | 1
+    with np.errstate(over="ignore"):
+        h = (sig * mult).sum(axis=1)
+    _, first, gid = np.unique(h, return_index=True, return_inverse=True)
+    rep = first[gid.ravel()]
+    # vertex matches: the vertices of each cell sorted by their keys, patch against rep
+    vorder = np.argsort(vkey, axis=2)
+    pi = np.empty_like(vorder)
+    np.put_along_axis(pi, vorder, vorder[rep], axis=2)
+    xr = np.take_along_axis(xv[rep], pi[..., None], axis=2)
+    ok = (sig == sig[rep]).all(axis=1) & \
+        (np.abs(xv - xr).max(axis=(1, 2, 3)) <= 1e-9 * scale)
+    bad = np.flatnonzero(~ok)
+    rep[bad] = bad
+    pi[bad] = np.arange(3)
+    return CF, KF, rep, pi
+
+
 def _check_vertex_order(DG, dg_cells, V, p1_cells):
     """The local formulas assume the DG1 and P1 dofs of a cell sit at its vertices in the same
     order (basix's reference vertex order); check it rather than trust it."""
@@ -461,7 +525,6 @@ class FluxEquilibration:
         carries over: ∇u_h per cell (2), r_h per cell (3, its vertices permuted by π), λ_a, and
         (set-up only) the load moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map)
         and σ_p = Tᵀ S d_p for the patch's data d_p (the change of basis)."""
-        from .algebraic_flux import translation_classes
         geo, space = self.geo, self.space
         P, n = CS.shape
         CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, self._cent,
@@ -546,15 +609,14 @@ class FluxEquilibration:
         from .algebraic_flux import _apply_buckets, _buckets
         buckets, ret = _buckets(groups)
         groups.clear()
+        q = [5 * (S.shape[2] - 1) // 8 + 1 for S, _, _, _ in buckets]
+        load = [(S[:, :, k:], G[:, k:], L, C) for k, (S, G, L, C) in zip(q, buckets)]
         head = np.zeros(5 * self.geo.ncells + self.geo.n)
         for alpha in range(2):
-            self.sigma_f[alpha] += _apply_buckets((buckets, ret), np.concatenate(
+            self.sigma_f[alpha] += _apply_buckets((load, ret), np.concatenate(
                 [head, wf[alpha].ravel()]), self.sigma_f.shape[1])
-        kept = []
-        for S, G, L, C in buckets:
-            q = 5 * (S.shape[2] - 1) // 8 + 1
-            kept.append((np.ascontiguousarray(S[:, :, :q]), np.ascontiguousarray(G[:, :q]),
-                         L, C))
+        kept = [(np.ascontiguousarray(S[:, :, :k]), np.ascontiguousarray(G[:, :k]), L, C)
+                for k, (S, G, L, C) in zip(q, buckets)]
         return kept, ret
 
     def _right_hand_sides(self, CS, KA, nr, loc, N):
