@@ -567,27 +567,31 @@ class FluxEquilibration:
         space = self.space
         TOP, COEF, ANCHOR = _class_tables(tuple(map(tuple, space.slots)))
         P, n = CF.shape
-        glob = space.retained_dofs(CF, boundary, KF).reshape(P, n, 8)
-        perm = _perm_code(pi)
-        lp = np.take_along_axis(lr, ANCHOR[perm], axis=2)
-        ok = glob >= 0
-        if not np.array_equal(ok, lp >= 0):
+        glob = space.retained_dofs(CF, boundary, KF).ravel()
+        perm = _perm_code(pi).ravel()
+        code = (space.reflections[CR].ravel() * 6 + perm) * 8 + space.reflections[CF].ravel()
+        # one entry per retained dof position (patch p, cell c, dof k): row = p n + c
+        pos = np.flatnonzero(glob >= 0)
+        row, k = pos // 8, pos % 8
+        lr = lr.ravel()
+        li = lr[pos - k + ANCHOR[perm[row], k]]
+        if (li < 0).any() or (lr >= 0).sum() != len(pos):
             raise RuntimeError("a translate keeps other RT dofs than its representative")
-        pp = np.broadcast_to(np.arange(P)[:, None, None], ok.shape)[ok]
-        li = lp[ok]
+        pp = row // n
         RET = np.full((P, nr), -1, dtype=np.int32)
-        RET[pp, li] = glob[ok]
+        RET[pp, li] = glob[pos]
         if (RET < 0).any():
             raise RuntimeError("a translate's RT dofs do not match its representative's")
-        code = (space.reflections[CR] * 6 + perm) * 8 + space.reflections[CF]     # (P, n)
-        tgt = np.take_along_axis(lr, TOP[code].reshape(P, n, 16), axis=2)[ok.repeat(2, axis=2)]
-        coef = COEF[code][ok].ravel()
-        if (tgt[coef != 0] < 0).any():
-            raise RuntimeError("a retained dof of a translate maps to a dropped one")
+        ck = code[row] * 8 + k
         L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
         C = np.zeros((P, nr, 2), dtype=np.int8)
-        L[pp, li] = np.maximum(tgt, 0).reshape(-1, 2)
-        C[pp, li] = coef.reshape(-1, 2)
+        for t in range(2):
+            coef = COEF[:, :, t].ravel()[ck]
+            tgt = lr[pos - k + TOP[:, :, t].ravel()[ck]]
+            if (tgt[coef != 0] < 0).any():
+                raise RuntimeError("a retained dof of a translate maps to a dropped one")
+            L[pp, li, t] = np.maximum(tgt, 0)
+            C[pp, li, t] = coef
         return RET, L, C
 
     def _data_indices(self, verts, CF, KF, pi):
