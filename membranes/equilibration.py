@@ -357,16 +357,15 @@ def vertex_patches(geo, owned=None):
 
 def _grid_keys(v, scale):
     """One int64 per point of v (..., 2): its coordinates in units of 1e-6 scale, rounded and
-    combined (None if they do not fit)."""
+    combined (None if they exceed 2^30 units, a patch larger than 1000 scale)."""
     k = np.round(v * (1e6 / scale)).astype(np.int64)
-    big = int(np.abs(k).max()) + 1 if k.size else 1
-    if big >= 2 ** 30:
+    if k.size and np.abs(k).max() >= 2 ** 30:
         return None
-    return (k[..., 0] + big) * (2 * big + 1) + (k[..., 1] + big)
+    return (k[..., 0] + 2 ** 30) * 2 ** 31 + (k[..., 1] + 2 ** 30)
 
 
 def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
-                        exterior=None):
+                        exterior=None, chunk=1 << 14):
     """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
     CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
     boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
@@ -380,39 +379,48 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     boundary patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets,
     per cell): two patches of boundary vertices with the same cells keep different RT dofs
     when one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of
-    a structured square). Each step is a pass over arrays of P m entries (no row sorting)."""
+    a structured square). Each step is a pass over arrays of P m entries (no row sorting), the
+    vertex matches `chunk` patches at a time."""
     P, m = CF.shape
     boundary = np.asarray(boundary, dtype=bool)
+    identity = np.broadcast_to(np.arange(3, dtype=np.int8), (P, m, 3)).copy()
     key = _grid_keys(cent[CF] - xa[:, None, :], scale)                       # (P, m)
-    xv = geo.x[geo.cells[CF]] - xa[:, None, None, :]                         # (P, m, 3, 2)
-    vkey = _grid_keys(xv, scale)
-    if not translates or key is None or vkey is None or P == 0:
-        return CF, KF, np.arange(P), np.broadcast_to(np.arange(3), (P, m, 3)).copy()
+    if not translates or key is None or P == 0:
+        return CF, KF, np.arange(P), identity
     order = np.argsort(key, axis=1, kind="stable")
     CF, KF = np.take_along_axis(CF, order, axis=1), np.take_along_axis(KF, order, axis=1)
-    key = np.take_along_axis(key, order, axis=1)
-    xv = np.take_along_axis(xv, order[:, :, None, None], axis=1)
-    vkey = np.take_along_axis(vkey, order[:, :, None], axis=1)
-    sig = [boundary[:, None].astype(np.int64), key]
+    sig = [boundary[:, None].astype(np.int64), np.take_along_axis(key, order, axis=1)]
     if exterior is not None:
         where = np.zeros((P, m, 2))
         b = np.flatnonzero(boundary)
-        mids = 0.5 * (np.roll(xv[b], -1, axis=2) + np.roll(xv[b], -2, axis=2))  # opposite e
+        xv = geo.x[geo.cells[CF[b]]] - xa[b][:, None, None, :]
+        mids = 0.5 * (np.roll(xv, -1, axis=2) + np.roll(xv, -2, axis=2))   # edge e: opposite e
         where[b] = (mids * exterior[CF[b]][..., None]).sum(axis=2)
         sig.append(_grid_keys(where, scale))
+        if sig[-1] is None:
+            return CF, KF, np.arange(P), identity
     sig = np.concatenate(sig, axis=1)
     mult = np.random.default_rng(0).integers(1, 2 ** 62, size=sig.shape[1]) | 1
     with np.errstate(over="ignore"):
         h = (sig * mult).sum(axis=1)
     _, first, gid = np.unique(h, return_index=True, return_inverse=True)
     rep = first[gid.ravel()]
+    ok = (sig == sig[rep]).all(axis=1)
+    del sig
     # vertex matches: the vertices of each cell sorted by their keys, patch against rep
-    vorder = np.argsort(vkey, axis=2)
-    pi = np.empty_like(vorder)
-    np.put_along_axis(pi, vorder, vorder[rep], axis=2)
-    xr = np.take_along_axis(xv[rep], pi[..., None], axis=2)
-    ok = (sig == sig[rep]).all(axis=1) & \
-        (np.abs(xv - xr).max(axis=(1, 2, 3)) <= 1e-9 * scale)
+    pi = identity
+    for s in range(0, P, chunk):
+        c = slice(s, s + chunk)
+        xv = np.stack([geo.x[geo.cells[CF[c]]] - xa[c, None, None, :],
+                       geo.x[geo.cells[CF[rep[c]]]] - xa[rep[c], None, None, :]])
+        vkey = _grid_keys(xv, scale)
+        if vkey is None:
+            ok[c] = False
+            continue
+        vorder = np.argsort(vkey, axis=3)
+        np.put_along_axis(pi[c], vorder[0], vorder[1].astype(np.int8), axis=2)
+        match = np.take_along_axis(xv[1], pi[c, :, :, None].astype(np.int64), axis=2)
+        ok[c] &= np.abs(xv[0] - match).max(axis=(1, 2, 3)) <= 1e-9 * scale
     bad = np.flatnonzero(~ok)
     rep[bad] = bad
     pi[bad] = np.arange(3)
@@ -477,7 +485,7 @@ class FluxEquilibration:
     """Set-up (once per mesh) and evaluation of σ_α,disc (DESIGN §5); with `owned` (a boolean
     mask over the vertices), of the part of σ_α,disc from the owned vertices' patches."""
 
-    CHUNK = 4000     # patches solved at once (bounds the set-up's memory)
+    CHUNK = 2000     # patches solved or mapped at once (bounds the set-up's memory)
     MIN_CLASS = 3    # translated patches sharing one operator (fewer: each its own, sparse)
     TRANSLATES = True
 
@@ -496,60 +504,75 @@ class FluxEquilibration:
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
         self._cent = geo.x[geo.cells].mean(axis=1)
-        groups = []
+        level = []
         for verts, CS, KA in vertex_patches(geo, owned):
             b = on_boundary[verts]
-            CS, KA, own = self._classes(verts, CS, KA, b, groups)
+            CS, KA, own = self._classes(verts, CS, KA, b, level)
             if len(own) == 0:
                 continue
             verts, CS, KA, b = verts[own], CS[own], KA[own], b[own]
             glob = space.retained_dofs(CS, b, KA)
             for sel, RET, loc, A in space.patch_groups(CS, b, self.CHUNK, glob):
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A, wf)
-        self.classes = self._class_operators(groups, wf) if groups else None
+        self.classes = self._class_load(level, wf) if level else None
         # what the evaluation does not need goes
         del self._cent
         space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
 
-    def _classes(self, verts, CS, KA, boundary, groups):
+    def _classes(self, verts, CS, KA, boundary, level):
         """The patches of P vertices (cells CS (P, n), a's local index KA) that are translates
         of one another in classes of at least MIN_CLASS (as on a uniform refinement: all but a
         few): one operator per class from the representative's patch problem (the
         representatives of one shape in one batch), and every member's data indices and
-        change of basis (all members at once), appended to `groups` as (S, G, RET, L, C) (see
-        algebraic_flux._buckets; S and G still with the load columns). Returns CS, KA in the
-        classes' canonical cell order and the indices of the other patches (each solved on
-        its own into G_u, G_R, G_lam).
+        change of basis, appended to `level` as buckets of classes of one shape and size
+        (bucket, its patches' RT dofs, its load part; see algebraic_flux._apply_buckets).
+        Returns CS, KA in the classes' canonical cell order and the indices of the other
+        patches (each solved on its own into G_u, G_R, G_lam).
 
         The representative's right-hand side is a linear map of cell data that a translation
         carries over: ∇u_h per cell (2), r_h per cell (3, its vertices permuted by π), λ_a, and
         (set-up only) the load moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map)
-        and σ_p = Tᵀ S d_p for the patch's data d_p (the change of basis)."""
+        and σ_p = Tᵀ S d_p for the patch's data d_p (the change of basis). The members are
+        ordered by class size and class, so that a bucket is a slice of each array."""
         geo, space = self.geo, self.space
         P, n = CS.shape
         CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, self._cent,
                                               np.sqrt(geo.area.mean()), self.TRANSLATES,
                                               space.exterior_edge)
-        member = np.bincount(rep, minlength=P)[rep] >= self.MIN_CLASS
+        size = np.bincount(rep, minlength=P)
+        member = size[rep] >= self.MIN_CLASS
         own = np.flatnonzero(~member)
         reps = np.flatnonzero(member & (rep == np.arange(P)))
         if len(reps) == 0:
             return CF, KF, own
         glob = space.retained_dofs(CF[reps], boundary[reps], KF[reps])
+        q = 5 * n + 1
         for sel, RET, loc, A in space.patch_groups(CF[reps], boundary[reps], len(reps), glob):
-            S = np.linalg.solve(A, self._right_hand_sides(CF[reps[sel]], KF[reps[sel]],
-                                                          RET.shape[1], loc, A.shape[1]))
+            nr = RET.shape[1]
+            S = np.linalg.solve(A, self._right_hand_sides(CF[reps[sel]], KF[reps[sel]], nr,
+                                                          loc, A.shape[1]))[:, :nr]
             batch = np.full(P, -1)
             batch[reps[sel]] = np.arange(len(sel))
             mem = np.flatnonzero(member & (batch[rep] >= 0))
-            mem = mem[np.argsort(rep[mem], kind="stable")]
-            RETm, L, C = self._translates(CF[mem], KF[mem], pi[mem], CF[rep[mem]],
-                                          loc[batch[rep[mem]]], boundary[mem], RET.shape[1])
-            G = self._data_indices(verts[mem], CF[mem], KF[mem], pi[mem])
-            cuts = np.concatenate([[0], np.flatnonzero(np.diff(rep[mem])) + 1, [len(mem)]])
+            mem = mem[np.lexsort((rep[mem], size[rep[mem]]))]
+            Pm = len(mem)
+            RETm = np.empty((Pm, nr), dtype=np.int32)
+            L = np.empty((Pm, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+            C = np.empty((Pm, nr, 2), dtype=np.int8)
+            G = np.empty((Pm, 8 * n + 1), dtype=self._index_type())
+            for s in range(0, Pm, 8 * self.CHUNK):
+                c = mem[s:s + 8 * self.CHUNK]
+                part = slice(s, s + 8 * self.CHUNK)
+                RETm[part], L[part], C[part] = self._translates(
+                    CF[c], KF[c], pi[c], CF[rep[c]], loc[batch[rep[c]]], boundary[c], nr)
+                G[part] = self._data_indices(verts[c], CF[c], KF[c], pi[c])
+            # buckets: the classes of one size, each its members in a row
+            csize = size[rep[mem]]
+            cuts = np.concatenate([[0], np.flatnonzero(np.diff(csize)) + 1, [Pm]])
             for s, e in zip(cuts[:-1], cuts[1:]):
-                groups.append((S[batch[rep[mem[s]]], :RET.shape[1]], G[s:e], RETm[s:e],
-                               L[s:e], C[s:e]))
+                Sb = S[batch[rep[mem[s:e:csize[s]]]]]                          # (g, nr, 8n+1)
+                level.append(((np.ascontiguousarray(Sb[:, :, :q]), G[s:e, :q], L[s:e],
+                               C[s:e]), RETm[s:e].ravel(), (Sb[:, :, q:], G[s:e, q:], L[s:e], C[s:e])))
         return CF, KF, own
 
     def _translates(self, CF, KF, pi, CR, lr, boundary, nr):
@@ -594,6 +617,9 @@ class FluxEquilibration:
             C[pp, li, t] = coef
         return RET, L, C
 
+    def _index_type(self):
+        return np.int32 if 14 * self.geo.ncells + self.geo.n < 2 ** 31 else np.int64
+
     def _data_indices(self, verts, CF, KF, pi):
         """G (P, 8n + 1): where the data of P patches (in their representative's cell and
         vertex order) sit in the flat array [∇u_h (2 per cell) | r_h (3 per cell) | λ (per
@@ -602,26 +628,20 @@ class FluxEquilibration:
         nc, nv = self.geo.ncells, self.geo.n
         P, n = CF.shape
         cv = 3 * CF[:, :, None] + np.argsort(pi, axis=2)                        # (P, n, 3)
-        G = np.concatenate([(2 * CF[:, :, None] + np.arange(2)).reshape(P, -1),
-                            2 * nc + cv.reshape(P, -1), 5 * nc + verts[:, None],
-                            5 * nc + nv + (3 * cv + KF[:, :, None]).reshape(P, -1)], axis=1)
-        return G.astype(np.int32 if 14 * nc + nv < 2 ** 31 else np.int64)
+        return np.concatenate([(2 * CF[:, :, None] + np.arange(2)).reshape(P, -1),
+                               2 * nc + cv.reshape(P, -1), 5 * nc + verts[:, None],
+                               5 * nc + nv + (3 * cv + KF[:, :, None]).reshape(P, -1)], axis=1)
 
-    def _class_operators(self, groups, wf):
-        """Stack the classes (algebraic_flux._buckets), add their σ_f, and drop the load
-        columns, which the evaluation does not use."""
-        from .algebraic_flux import _apply_buckets, _buckets
-        buckets, ret = _buckets(groups)
-        groups.clear()
-        q = [5 * (S.shape[2] - 1) // 8 + 1 for S, _, _, _ in buckets]
-        load = [(S[:, :, k:], G[:, k:], L, C) for k, (S, G, L, C) in zip(q, buckets)]
+    def _class_load(self, level, wf):
+        """The classes' operators as the evaluation takes them (buckets, RT dofs), after
+        adding their σ_f from the load columns, which are then dropped."""
+        from .algebraic_flux import _apply_buckets
+        ret = np.concatenate([r for _, r, _ in level])
         head = np.zeros(5 * self.geo.ncells + self.geo.n)
         for alpha in range(2):
-            self.sigma_f[alpha] += _apply_buckets((load, ret), np.concatenate(
+            self.sigma_f[alpha] += _apply_buckets(([f for _, _, f in level], ret), np.concatenate(
                 [head, wf[alpha].ravel()]), self.sigma_f.shape[1])
-        kept = [(np.ascontiguousarray(S[:, :, :k]), np.ascontiguousarray(G[:, :k]), L, C)
-                for k, (S, G, L, C) in zip(q, buckets)]
-        return kept, ret
+        return [b for b, _, _ in level], ret
 
     def _right_hand_sides(self, CS, KA, nr, loc, N):
         """The right-hand sides of P patch problems of one shape (cells CS (P, n), a's local
