@@ -212,7 +212,7 @@ class PatchSpace:
         self.RT = fem.FunctionSpace(mesh, ("RT", 2))
         self.DG = fem.FunctionSpace(mesh, ("DG", 1))
         self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        self.dg_cells = dg = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int64)
+        self.dg_cells = dg = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int32)
         _check_vertex_order(self.DG, dg, V, geo.cells)
         # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
         layout = self.RT.dofmap.dof_layout
@@ -559,20 +559,22 @@ class FluxEquilibration:
             RETm = np.empty((Pm, nr), dtype=np.int32)
             L = np.empty((Pm, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
             C = np.empty((Pm, nr, 2), dtype=np.int8)
-            G = np.empty((Pm, 8 * n + 1), dtype=self._index_type())
+            G = np.empty((Pm, q), dtype=self._index_type())
+            GF = np.empty((Pm, 3 * n), dtype=G.dtype)
             for s in range(0, Pm, 8 * self.CHUNK):
                 c = mem[s:s + 8 * self.CHUNK]
                 part = slice(s, s + 8 * self.CHUNK)
                 RETm[part], L[part], C[part] = self._translates(
                     CF[c], KF[c], pi[c], CF[rep[c]], loc[batch[rep[c]]], boundary[c], nr)
-                G[part] = self._data_indices(verts[c], CF[c], KF[c], pi[c])
+                G[part], GF[part] = np.split(
+                    self._data_indices(verts[c], CF[c], KF[c], pi[c]), [q], axis=1)
             # buckets: the classes of one size, each its members in a row
             csize = size[rep[mem]]
             cuts = np.concatenate([[0], np.flatnonzero(np.diff(csize)) + 1, [Pm]])
             for s, e in zip(cuts[:-1], cuts[1:]):
                 Sb = S[batch[rep[mem[s:e:csize[s]]]]]                          # (g, nr, 8n+1)
-                level.append(((np.ascontiguousarray(Sb[:, :, :q]), G[s:e, :q], L[s:e],
-                               C[s:e]), RETm[s:e].ravel(), (Sb[:, :, q:], G[s:e, q:], L[s:e], C[s:e])))
+                level.append(((np.ascontiguousarray(Sb[:, :, :q]), G[s:e], L[s:e], C[s:e]),
+                              RETm[s:e].ravel(), (Sb[:, :, q:], GF[s:e], L[s:e], C[s:e])))
         return CF, KF, own
 
     def _translates(self, CF, KF, pi, CR, lr, boundary, nr):

@@ -96,6 +96,7 @@ class Estimators:
         self._flux_form = fem.form(flux_estimator_squared(self._mu, self._u, self._sigma, w))
         self._norm_form = fem.form(cell_norm_squared(self._sigma, w))
         self.osc = self._oscillation(w)                       # (2, ncells)
+        self.flux.load = None                                 # only the oscillation uses it
 
     def _per_cell(self, form):
         return assemble_vector_array(form)[self.cell_dof]
