@@ -438,20 +438,21 @@ def _check_vertex_order(DG, dg_cells, V, p1_cells):
 
 def load_moments(disc, space):
     """Wf_α (ncells, 3, 3) with Wf_α[K, i, k] = (f_α φ_k, φ_i)_K, with the scene's data
-    measures: three assemblies of (f_α w, q) against DG1, w the DG1 function equal to the hat
-    of local vertex k on every cell."""
+    measures: one assembly of (f_α w, v) per load against (DG1)³, w the (DG1)³ function whose
+    component k is the hat of local vertex k on every cell (the nine moments of a cell from
+    one evaluation of f_α at each quadrature point)."""
     from dolfinx import fem
     mesh = disc.V.mesh
-    q, w = ufl.TestFunction(space.DG), fem.Function(space.DG)
+    W = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=3)
+    nodes = W.dofmap.list.array.reshape(space.geo.ncells, 3).astype(np.int64)   # local vertex i
+    v, w = ufl.TestFunction(W), fem.Function(W)
+    w.x.array[3 * nodes + np.arange(3)] = 1.0
     out = []
     for f in (disc.problem.f1, disc.problem.f2):
-        form = fem.form(over(disc.dx_data, lambda dx: weighted_mass(load(f, mesh), w, q, dx)))
-        wf = np.empty((space.geo.ncells, 3, 3))
-        for k in range(3):
-            w.x.array[:] = 0.0
-            w.x.array[space.dg_cells[:, k]] = 1.0
-            wf[:, :, k] = fem.assemble_vector(form).array[space.dg_cells]
-        out.append(wf)
+        form = fem.form(over(disc.dx_data, lambda dx: weighted_mass(load(f, mesh), 1.0,
+                                                                    ufl.inner(w, v), dx)))
+        b = fem.assemble_vector(form).array
+        out.append(b[3 * nodes[:, :, None] + np.arange(3)])                   # [K, i, k]
     return out
 
 
@@ -561,9 +562,9 @@ class FluxEquilibration:
             C = np.empty((Pm, nr, 2), dtype=np.int8)
             G = np.empty((Pm, q), dtype=self._index_type())
             GF = np.empty((Pm, 3 * n), dtype=G.dtype)
-            for s in range(0, Pm, 8 * self.CHUNK):
-                c = mem[s:s + 8 * self.CHUNK]
-                part = slice(s, s + 8 * self.CHUNK)
+            for s in range(0, Pm, 2 * self.CHUNK):
+                c = mem[s:s + 2 * self.CHUNK]
+                part = slice(s, s + 2 * self.CHUNK)
                 RETm[part], L[part], C[part] = self._translates(
                     CF[c], KF[c], pi[c], CF[rep[c]], loc[batch[rep[c]]], boundary[c], nr)
                 G[part], GF[part] = np.split(
@@ -595,55 +596,64 @@ class FluxEquilibration:
         glob = space.retained_dofs(CF, boundary, KF).ravel()
         perm = _perm_code(pi).ravel()
         code = (space.reflections[CR].ravel() * 6 + perm) * 8 + space.reflections[CF].ravel()
-        # one entry per retained dof position (patch p, cell c, dof k): row = p n + c
+        # one entry per retained dof position (patch p, cell c, dof k): row = p n + c; flat
+        # indices throughout (tables and outputs)
         pos = np.flatnonzero(glob >= 0)
         row, k = pos // 8, pos % 8
+        base = pos - k
         lr = lr.ravel()
-        li = lr[pos - k + ANCHOR[perm[row], k]]
+        li = lr[base + ANCHOR.ravel()[perm[row] * 8 + k]]
         if (li < 0).any() or (lr >= 0).sum() != len(pos):
             raise RuntimeError("a translate keeps other RT dofs than its representative")
-        pp = row // n
+        dest = (row // n) * nr + li
         RET = np.full((P, nr), -1, dtype=np.int32)
-        RET[pp, li] = glob[pos]
+        RET.reshape(-1)[dest] = glob[pos]
         if (RET < 0).any():
             raise RuntimeError("a translate's RT dofs do not match its representative's")
-        ck = code[row] * 8 + k
+        ck = (code[row] * 8 + k) * 2
         L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
         C = np.zeros((P, nr, 2), dtype=np.int8)
         for t in range(2):
-            coef = COEF[:, :, t].ravel()[ck]
-            tgt = lr[pos - k + TOP[:, :, t].ravel()[ck]]
+            coef = COEF.reshape(-1)[ck + t]
+            tgt = lr[base + TOP.reshape(-1)[ck + t]]
             if (tgt[coef != 0] < 0).any():
                 raise RuntimeError("a retained dof of a translate maps to a dropped one")
-            L[pp, li, t] = np.maximum(tgt, 0)
-            C[pp, li, t] = coef
+            L.reshape(-1)[2 * dest + t] = np.maximum(tgt, 0)
+            C.reshape(-1)[2 * dest + t] = coef
         return RET, L, C
 
     def _index_type(self):
         return np.int32 if 14 * self.geo.ncells + self.geo.n < 2 ** 31 else np.int64
 
     def _data_indices(self, verts, CF, KF, pi):
-        """G (P, 8n + 1): where the data of P patches (in their representative's cell and
+        """(P, 8n + 1): where the data of P patches (in their representative's cell and
         vertex order) sit in the flat array [∇u_h (2 per cell) | r_h (3 per cell) | λ (per
-        vertex) | (f φ_k, φ_i)_K (9 per cell)]: vertex i' of the representative's cell is
-        vertex i of the patch's with pi[c, i] = i'."""
-        nc, nv = self.geo.ncells, self.geo.n
+        vertex)] (5n + 1 columns), then in the flat array of (f φ_k, φ_i)_K (9 per cell, 3n
+        columns): vertex i' of the representative's cell is vertex i of the patch's with
+        pi[c, i] = i'."""
+        nc = self.geo.ncells
         P, n = CF.shape
         cv = 3 * CF[:, :, None] + np.argsort(pi, axis=2)                        # (P, n, 3)
         return np.concatenate([(2 * CF[:, :, None] + np.arange(2)).reshape(P, -1),
                                2 * nc + cv.reshape(P, -1), 5 * nc + verts[:, None],
-                               5 * nc + nv + (3 * cv + KF[:, :, None]).reshape(P, -1)], axis=1)
+                               (3 * cv + KF[:, :, None]).reshape(P, -1)], axis=1)
 
     def _class_load(self, level, wf):
         """The classes' operators as the evaluation takes them (buckets, RT dofs), after
         adding their σ_f from the load columns, which are then dropped."""
         from .algebraic_flux import _apply_buckets
-        ret = np.concatenate([r for _, r, _ in level])
-        head = np.zeros(5 * self.geo.ncells + self.geo.n)
-        for alpha in range(2):
-            self.sigma_f[alpha] += _apply_buckets(([f for _, _, f in level], ret), np.concatenate(
-                [head, wf[alpha].ravel()]), self.sigma_f.shape[1])
-        return [b for b, _, _ in level], ret
+        for _, ret, (S, G, L, C) in level:
+            g, nr, _ = S.shape
+            per = G.shape[0] // g                             # patches per class
+            step = max(1, self.CHUNK // per)                  # a few classes at a time
+            for s in range(0, g, step):
+                part = slice(s * per, (s + step) * per)
+                piece = ([(S[s:s + step], G[part], L[part], C[part])], ret[part.start * nr:
+                                                                          part.stop * nr])
+                for alpha in range(2):
+                    self.sigma_f[alpha] += _apply_buckets(piece, wf[alpha].ravel(),
+                                                          self.sigma_f.shape[1])
+        return [b for b, _, _ in level], np.concatenate([r for _, r, _ in level])
 
     def _right_hand_sides(self, CS, KA, nr, loc, N):
         """The right-hand sides of P patch problems of one shape (cells CS (P, n), a's local
