@@ -645,7 +645,7 @@ class FluxEquilibration:
         for _, ret, (S, G, L, C) in level:
             g, nr, _ = S.shape
             per = G.shape[0] // g                             # patches per class
-            step = max(1, self.CHUNK // per)                  # a few classes at a time
+            step = max(1, 8 * self.CHUNK // per)              # some classes at a time
             for s in range(0, g, step):
                 part = slice(s * per, (s + step) * per)
                 piece = ([(S[s:s + step], G[part], L[part], C[part])], ret[part.start * nr:
