@@ -213,7 +213,7 @@ class PatchSpace:
         self.DG = fem.FunctionSpace(mesh, ("DG", 1))
         self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
         self.dg_cells = dg = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int32)
-        _check_vertex_order(self.DG, dg, V, geo.cells)
+        _check_vertex_order(self.DG, dg, geo)
         # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
         layout = self.RT.dofmap.dof_layout
         self.edge_of_dof = np.full(8, -1)
@@ -427,13 +427,14 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     return CF, KF, rep, pi
 
 
-def _check_vertex_order(DG, dg_cells, V, p1_cells):
+def _check_vertex_order(DG, dg_cells, geo):
     """The local formulas assume the DG1 and P1 dofs of a cell sit at its vertices in the same
     order (basix's reference vertex order); check it rather than trust it."""
-    xd = DG.tabulate_dof_coordinates()[:, :2][dg_cells]
-    xp = V.tabulate_dof_coordinates()[:, :2][p1_cells]
-    if not np.allclose(xd, xp, rtol=0, atol=1e-12 * max(1.0, np.abs(xp).max())):
-        raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
+    xd = DG.tabulate_dof_coordinates()
+    scale = max(1.0, np.abs(geo.x).max())
+    for k in range(3):
+        if np.abs(xd[dg_cells[:, k], :2] - geo.x[geo.cells[:, k]]).max() > 1e-12 * scale:
+            raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
 
 
 def load_moments(disc, space):
@@ -505,6 +506,7 @@ class FluxEquilibration:
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
         self._cent = geo.x[geo.cells].mean(axis=1)
+        self._pending = []
         level = []
         for verts, CS, KA in vertex_patches(geo, owned):
             b = on_boundary[verts]
@@ -515,9 +517,10 @@ class FluxEquilibration:
             glob = space.retained_dofs(CS, b, KA)
             for sel, RET, loc, A in space.patch_groups(CS, b, self.CHUNK, glob):
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A, wf)
+        self._add_operators()
         self.classes = self._class_load(level, wf) if level else None
         # what the evaluation does not need goes
-        del self._cent
+        del self._cent, self._pending
         space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
 
     def _classes(self, verts, CS, KA, boundary, level):
@@ -642,17 +645,29 @@ class FluxEquilibration:
         """The classes' operators as the evaluation takes them (buckets, RT dofs), after
         adding their σ_f from the load columns, which are then dropped."""
         from .algebraic_flux import _apply_buckets
+        pieces, rets, count = [], [], 0
+
+        def add():                                        # σ_f of the pieces gathered so far
+            for alpha in range(2):
+                self.sigma_f[alpha] += _apply_buckets((pieces, np.concatenate(rets)),
+                                                      wf[alpha].ravel(), self.sigma_f.shape[1])
+            pieces.clear()
+            rets.clear()
+
         for _, ret, (S, G, L, C) in level:
             g, nr, _ = S.shape
             per = G.shape[0] // g                             # patches per class
             step = max(1, 8 * self.CHUNK // per)              # some classes at a time
             for s in range(0, g, step):
                 part = slice(s * per, (s + step) * per)
-                piece = ([(S[s:s + step], G[part], L[part], C[part])], ret[part.start * nr:
-                                                                          part.stop * nr])
-                for alpha in range(2):
-                    self.sigma_f[alpha] += _apply_buckets(piece, wf[alpha].ravel(),
-                                                          self.sigma_f.shape[1])
+                pieces.append((S[s:s + step], G[part], L[part], C[part]))
+                rets.append(ret[part.start * nr:part.stop * nr])
+                count += len(G[part])
+                if count >= 32 * self.CHUNK:
+                    add()
+                    count = 0
+        if pieces:
+            add()
         return [b for b, _, _ in level], np.concatenate([r for _, r, _ in level])
 
     def _right_hand_sides(self, CS, KA, nr, loc, N):
@@ -718,18 +733,29 @@ class FluxEquilibration:
                              + [cell[:, :, 5 * n + 1:] @ w for w in load], axis=2)
         del cell
         sol = np.linalg.solve(A, rhs)[:, :nr]                                 # σ rows
-        # σ = Σ_a σ_a: add this batch's operators (summed batch by batch to bound memory)
-        shape = self.G_u.shape
+        # σ = Σ_a σ_a: this batch's operator entries, added to G_u, G_R, G_λ a few batches
+        # at a time (`_add_operators`: few sparse sums, bounded memory)
         rows = np.broadcast_to(RET[:, :, None], (P, nr, m)).ravel().astype(np.int32)
         cols = np.broadcast_to(VERTS[:, None, :], (P, nr, m)).ravel().astype(np.int32)
-        self.G_u = self.G_u + sp.csr_matrix((sol[:, :, :m].ravel(), (rows, cols)), shape=shape)
-        self.G_R = self.G_R + sp.csr_matrix((sol[:, :, m + 1:2 * m + 1].ravel(), (rows, cols)),
-                                            shape=shape)
-        self.G_lam = self.G_lam + sp.csr_matrix(
-            (sol[:, :, m].ravel(), (RET.ravel(), np.repeat(verts, nr))), shape=shape)
+        self._pending.append((rows, cols, sol[:, :, :m].ravel(),
+                              sol[:, :, m + 1:2 * m + 1].ravel(), RET.ravel().astype(np.int32),
+                              np.repeat(verts, nr).astype(np.int32), sol[:, :, m].ravel()))
+        if sum(len(z[0]) for z in self._pending) > 1 << 22:
+            self._add_operators()
         for alpha in range(2):
             self.sigma_f[alpha] += np.bincount(RET.ravel(), sol[:, :, 2 * m + 1 + alpha].ravel(),
-                                               minlength=shape[0])
+                                               minlength=self.sigma_f.shape[1])
+
+    def _add_operators(self):
+        if not self._pending:
+            return
+        rows, cols, u, R, rows_lam, cols_lam, lam = (np.concatenate(z)
+                                                     for z in zip(*self._pending))
+        self._pending.clear()
+        shape = self.G_u.shape
+        self.G_u = self.G_u + sp.csr_matrix((u, (rows, cols)), shape=shape)
+        self.G_R = self.G_R + sp.csr_matrix((R, (rows, cols)), shape=shape)
+        self.G_lam = self.G_lam + sp.csr_matrix((lam, (rows_lam, cols_lam)), shape=shape)
 
     def sigma(self, alpha, u, lam, R):
         """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5)."""
