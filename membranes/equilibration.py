@@ -6,7 +6,8 @@ An algebraic residual R_α (nodal, zero at Dirichlet vertices) is lifted to r_α
 P1: on each cell K with vertices a_l, (r_αh, ψ_{a_l})_K = R_{α,l} / N_l, N_l the number of cells
 sharing a_l. With the P1 mass matrix M_K = |K|/12 [[2,1,1],[1,2,1],[1,1,2]] this is
 r_K = M_K⁻¹ (R_l / N_l)_l = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l, the sparse
-operator `lifting` below (DG1 coefficients, in the cell's vertex order).
+operator `lifting` below (DG1 coefficients, in the cell's vertex order), which `Lifting`
+applies without storing it.
 
 ## Patchwise equilibration
 
@@ -36,7 +37,7 @@ data, the set-up solves every patch problem once for the *operators*
 Where many patches are translates of one another (a uniform refinement: all but a few, in about
 #vertices + #edges + #cells of T_0 classes) the operators are not assembled: each class keeps
 one dense operator from cell data (∇u_h, r_h, λ_a) to σ_a, computed for a representative, and
-each patch its data indices and change of RT basis (entries 0, ±1; algebraic_flux); one
+each patch its data indices and change of RT basis (entries 0, ±1; `_translates`); one
 evaluation is then a gather, one batched product per stack of classes and one scatter. The other
 patches keep the sparse operators. The set-up handles all the patches of one size at once
 (classes, changes of basis, the representatives' systems in batches of one shape), so that its
