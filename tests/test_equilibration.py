@@ -325,3 +325,26 @@ def test_translated_patches_on_a_structured_square():
     for alpha in (1, 2):
         a, b = shared.sigma(alpha, u, lam, R), alone.sigma(alpha, u, lam, R)
         assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
+
+
+def test_estimators_from_parts_summed_over_processes():
+    """Estimators set up for one part of the vertices, whose σ_disc parts are added by
+    `sum_parts` (here the other part's σ, as a sum over two processes would give), evaluate as
+    the estimators of the whole, to round-off."""
+    from membranes.estimators import Estimators
+    from membranes.newton_system import split
+    d = _discretisation("structured")
+    owned = np.random.default_rng(4).random(d.n) < 0.5
+    other = FluxEquilibration(d, owned=~owned)
+    rng = np.random.default_rng(5)
+    X = rng.standard_normal(3 * d.n) * np.tile(d.interior, 3)
+
+    def add_other(part):
+        u1, u2, lam = split(X, d.n)
+        return part + np.concatenate([other.sigma(1, u1, lam, None),
+                                      other.sigma(2, u2, lam, None)])
+    whole = Estimators(d).evaluate(X)
+    parts = Estimators(d, owned=owned, sum_parts=add_other).evaluate(X)
+    for key in ("eta", "eta_disc", "eta_F"):
+        assert parts[key] == pytest.approx(whole[key], rel=1e-12, abs=0)
+    assert np.abs(parts["eta_K"] - whole["eta_K"]).max() <= 1e-12 * whole["eta_K"].max()
