@@ -408,20 +408,26 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     rep = first[gid.ravel()]
     ok = (sig == sig[rep]).all(axis=1)
     del sig
-    # vertex matches: the vertices of each cell sorted by their keys, patch against rep
+    # vertex matches: the vertices of each cell in the order of their keys (offsets from the
+    # cell's centroid), patch against rep; checked in floating point (the offsets of the cell
+    # centroids and of the vertices from them, each to half the tolerance)
+    uc, inv = np.unique(CF, return_inverse=True)
+    inv = inv.reshape(P, m)
+    rel = geo.x[geo.cells[uc]] - cent[uc][:, None, :]                       # (U, 3, 2)
+    rkey = _grid_keys(rel, scale)
+    if rkey is None:
+        return CF, KF, np.arange(P), identity
+    vorder = np.argsort(rkey, axis=1)                                        # (U, 3)
     pi = identity
+    tol = 0.5e-9 * scale
     for s in range(0, P, chunk):
         c = slice(s, s + chunk)
-        xv = np.stack([geo.x[geo.cells[CF[c]]] - xa[c, None, None, :],
-                       geo.x[geo.cells[CF[rep[c]]]] - xa[rep[c], None, None, :]])
-        vkey = _grid_keys(xv, scale)
-        if vkey is None:
-            ok[c] = False
-            continue
-        vorder = np.argsort(vkey, axis=3)
-        np.put_along_axis(pi[c], vorder[0], vorder[1].astype(np.int8), axis=2)
-        match = np.take_along_axis(xv[1], pi[c, :, :, None].astype(np.int64), axis=2)
-        ok[c] &= np.abs(xv[0] - match).max(axis=(1, 2, 3)) <= 1e-9 * scale
+        vo, vr = vorder[inv[c]], vorder[inv[rep[c]]]
+        np.put_along_axis(pi[c], vo, vr.astype(np.int8), axis=2)
+        match = np.take_along_axis(rel[inv[rep[c]]], pi[c, :, :, None].astype(np.int64), axis=2)
+        ok[c] &= np.abs(rel[inv[c]] - match).max(axis=(1, 2, 3)) <= tol
+        off = cent[CF[c]] - xa[c, None, :]
+        ok[c] &= np.abs(off - (cent[CF[rep[c]]] - xa[rep[c], None, :])).max(axis=(1, 2)) <= tol
     bad = np.flatnonzero(~ok)
     rep[bad] = bad
     pi[bad] = np.arange(3)
