@@ -504,9 +504,6 @@ class FluxEquilibration:
         self.geo = geo = space.geo
         self.RT = space.RT
         self.lift = Lifting(geo)
-        wf = load_moments(disc, space)
-        # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
-        self.load = [w.sum(axis=2) for w in wf]
         on_boundary = np.zeros(geo.n, dtype=bool)
         on_boundary[disc.boundary] = True
         shape = (space.nrt, geo.n)
@@ -514,13 +511,18 @@ class FluxEquilibration:
         self.sigma_f = np.zeros((2, space.nrt))
         self._cent = geo.x[geo.cells].mean(axis=1)
         self._pending = []
-        level = []
+        # the classes first, then the load moments and the other patches (the moments and
+        # the classes' temporaries are not held at once)
+        level, alone = [], []
         for verts, CS, KA in vertex_patches(geo, owned):
             b = on_boundary[verts]
             CS, KA, own = self._classes(verts, CS, KA, b, level)
-            if len(own) == 0:
-                continue
-            verts, CS, KA, b = verts[own], CS[own], KA[own], b[own]
+            if len(own):
+                alone.append((verts[own], CS[own], KA[own], b[own]))
+        wf = load_moments(disc, space)
+        # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
+        self.load = [w.sum(axis=2) for w in wf]
+        for verts, CS, KA, b in alone:
             glob = space.retained_dofs(CS, b, KA)
             for sel, RET, loc, A in space.patch_groups(CS, b, self.CHUNK, glob):
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A, wf)
@@ -664,13 +666,13 @@ class FluxEquilibration:
         for _, ret, (S, G, L, C) in level:
             g, nr, _ = S.shape
             per = G.shape[0] // g                             # patches per class
-            step = max(1, 8 * self.CHUNK // per)              # some classes at a time
+            step = max(1, 4 * self.CHUNK // per)              # some classes at a time
             for s in range(0, g, step):
                 part = slice(s * per, (s + step) * per)
                 pieces.append((S[s:s + step], G[part], L[part], C[part]))
                 rets.append(ret[part.start * nr:part.stop * nr])
                 count += len(G[part])
-                if count >= 32 * self.CHUNK:
+                if count >= 8 * self.CHUNK:
                     add()
                     count = 0
         if pieces:
