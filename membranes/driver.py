@@ -240,7 +240,9 @@ class IterateEstimates:
         self.comm = comm
         self.rows = rows
         with parallel.one_blas_thread():
-            self.est = Estimators(disc)
+            # with several processes each sets up its own vertices' patches (parallel)
+            self.est = Estimators(disc, owned=parallel.owned_vertices(disc.n, comm),
+                                  sum_parts=None if comm is None else parallel.Summation(comm))
             if alg_flux == "multilevel":
                 from .algebraic_flux import MultilevelFlux   # only a run that uses it pays
                 self.multilevel = MultilevelFlux(disc, disc.problem.hierarchy)
