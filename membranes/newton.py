@@ -152,12 +152,14 @@ class LinearStep:
     pad: Callable
 
 
-def linear_step(rows, cfun, system, X):
+def linear_step(rows, cfun, system, X, at_projection=False):
     """The Newton system at X (DESIGN §3), full or eliminated, with the membrane rows weighted
     by W (newton_system: units); the guess is X itself, or for the eliminated system the
     unknowns of X it keeps (u1, and u2 or λ at each vertex). `pad` maps the solver's residual
-    back to the unweighted 3N R of DESIGN §4, which the estimators read."""
-    alpha, beta, B3 = ns.complementarity_rows(rows, cfun, X)
+    back to the unweighted 3N R of DESIGN §4, which the estimators read. at_projection:
+    Fischer–Burmeister linearised at the projection of X (the active-set step of the module
+    notes)."""
+    alpha, beta, B3 = ns.complementarity_rows(rows, cfun, X, at_projection)
     norm_B = float(np.linalg.norm(np.concatenate([rows.weights * rows.F, B3])))
     if system == "full":
         A, B = ns.full_system(rows, alpha, beta, B3)
@@ -272,7 +274,9 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                          f"the {rows.n} vertices), got shape {X.shape}"
                          + ("" if X.shape != (3 * rows.n,) else " with non-finite values"))
     history = []
-    state = {"cfun": cfun, "note": ""}     # the C-function in use (the guard may switch it)
+    # the C-function in use (the guard may switch it), where the step linearised it, and
+    # whether the last step decreased the merit enough (FB: the next step tries active-set)
+    state = {"cfun": cfun, "note": "", "at": "iterate", "decreased": False}
 
     def record(kind, k, its, cumulative, X, R, norm_B, same_as=None, step_length=None,
                residual=None):
@@ -283,7 +287,8 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                else residual,
                "alg_residual": None if R is None
                else float(np.linalg.norm(rows.weighted(R))) / norm_B,
-               "kind": kind, "cfun": state["cfun"], "step_length": step_length}
+               "kind": kind, "cfun": state["cfun"], "step_length": step_length,
+               "linearised_at": None if kind == "initial" else state["at"]}
         if not adaptive:
             clock.pause()
         ready = [] if estimate is None else estimate(rec, X, R, same_as)
@@ -294,15 +299,17 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         clock.resume()
         return rec, ready
 
-    def hand_out(k, step, done, accepted):
-        """The Krylov callback of step k: record X^{k,i}; for adaptive, keep in `accepted` the
-        first iterate of this step that meets the linear criterion, and stop GMRES then."""
+    def hand_out(k, step, done, accepted, before=0):
+        """The Krylov callback of step k (`done`: the linear iterations of the steps before,
+        `before`: those of this step's rejected active-set solve): record X^{k,i}; for
+        adaptive, keep in `accepted` the first iterate of this step that meets the linear
+        criterion, and stop GMRES then."""
         def on_iterate(its, current):
             if not adaptive:
                 clock.pause()
             y, r = current()
-            _, ready = record("krylov", k, its, done + its, step.expand(y), step.pad(r),
-                              step.norm_B)
+            _, ready = record("krylov", k, before + its, done + before + its, step.expand(y),
+                              step.pad(r), step.norm_B)
             if adaptive:
                 accepted.extend(it for it in ready if it[0]["kind"] == "krylov"
                                 and it[0]["newton_it"] == k
@@ -349,27 +356,45 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                 state["note"] = (f"; Newton-min {why}, continued from step {k} with "
                                  f"Fischer-Burmeister and its line search")
                 rec["residual"] = rows.relative_residual("fb", X)
+                state["decreased"] = False
             else:
                 seen[signature] = (k - 1, rec["residual"])
-        step = linear_step(rows, state["cfun"], system, X)
-        accepted = []
+        lin_tol = linear_tolerance(variant, tol, rec["residual"])
+        test_every = 1 if variant != "inexact" else krylov.nu
+        fb_steps = state["cfun"] == "fb" and not adaptive
+        before, r_new, t, same_as, accepted = 0, None, None, None, []
         try:
-            X_new, R, its = solve_step(step, krylov, linear_tolerance(variant, tol,
-                                                                      rec["residual"]),
-                                       1 if variant != "inexact" else krylov.nu,
-                                       hand_out(k, step, done, accepted))
+            if fb_steps and state["decreased"]:
+                # the active-set step of the module notes, kept if it decreases the merit
+                state["at"] = "projection"
+                step = linear_step(rows, "fb", system, X, at_projection=True)
+                X_new, R, its = solve_step(step, krylov, lin_tol, test_every,
+                                           hand_out(k, step, done, accepted))
+                r_new = rows.relative_residual("fb", X_new) \
+                    if np.all(np.isfinite(X_new)) else np.inf
+                if r_new * r_new <= (1.0 - 2.0 * LS_SIGMA) * rec["residual"] ** 2:
+                    t = 1.0
+                    if watch is not None and r_new * r_new <= \
+                            (1.0 - 2.0 * LS_SIGMA) * watch[2] * watch[2]:
+                        watch = None
+                else:
+                    before, r_new = its, None
+            if t is None:
+                state["at"] = "iterate"
+                step = linear_step(rows, state["cfun"], system, X)
+                X_new, R, its = solve_step(step, krylov, lin_tol, test_every,
+                                           hand_out(k, step, done, accepted, before))
         except LinearSolveError as e:
             unmet = " before the adaptive criterion was met" if adaptive else ""
             return result(False, f"linear solver failed at Newton step {k}{unmet}: {e}",
-                          k - 1, done + e.its)
+                          k - 1, done + before + e.its)
+        its += before
         done += its
-        same_as, t = None, None
         if accepted:
             same_as, X_new, R = accepted[0]
         if not np.all(np.isfinite(X_new)):
             return result(False, f"non-finite iterate at Newton step {k}", k - 1, done)
-        r_new = None
-        if state["cfun"] == "fb" and not adaptive:
+        if fb_steps and t is None:
             # the watchdog line search of the module notes
             t, X_t, X_from, R_from = 1.0, None, X, R
             if damped:          # after a return: a nonmonotone Armijo step at every step
@@ -394,8 +419,9 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                 # direction, where B - A X_from = R_lin(X_from)
                 R = (1.0 - t) * ns.nonlinear_residual(rows, "fb", X_from) + t * R_from
                 X_new = X_t
-        X = X_new
+        previous, X = rec["residual"], X_new
         rec = record("newton", k, its, done, X, R, step.norm_B, same_as, t, r_new)[0]
+        state["decreased"] = rec["residual"] ** 2 <= (1.0 - 2.0 * LS_SIGMA) * previous ** 2
     met, description = stopping(rec)
     k = rec["newton_it"]
     if met:
