@@ -67,14 +67,19 @@ tolerances: ‖W R_lin‖/‖W F‖ ≤ tol, ‖W R_alg‖/‖W B‖ ≤ 2e-12 f
   next step first linearises FB at the projection P(X) of every pair (a, b) onto the
   complementarity set (cfunctions.project, `linear_step(at_projection=True)`), where FB
   vanishes and its Jacobian is (-1, 0) or (0, -1): the Newton system of min, the
-  primal–dual active set step. It is kept if θ(X_P) ≤ (1 - 2σ) θ(X) (Armijo at t = 1);
-  otherwise the FB step at X is solved as well (both solves count in the step's linear
-  iterations) and the watchdog above goes on. Once the active set is right the active-set
-  step lands on the discrete solution: on the same disk 6, 3, 3, 4, 4 steps. The C-function,
-  the merit, the stopping test, the line search and the solution are FB's; the steps before
-  the first decrease of each run (at least one) are FB's own, and records say which
-  linearisation each step used (`linearised_at`: 'iterate' or 'projection'). The adaptive
-  variant takes no active-set steps (it takes GMRES iterates as they are: see below).
+  primal–dual active set step. It is kept if θ(X_P) ≤ (1 - 2σ) θ(X) (Armijo at t = 1;
+  a kept step that also meets the checkpoint's test ends the watchdog's run); otherwise
+  the FB step at X is solved as well (both solves count in the step's linear iterations)
+  and the watchdog above goes on. Once the active set is right the active-set step lands
+  on the discrete solution: on the same disk 6, 3, 3, 4, 4 steps. The C-function, the
+  merit, the stopping test, the line search and the solution are FB's; the steps of a run
+  up to its first sufficient decrease (at least one; also after Newton-min's guard switched
+  to FB) are FB's own, and records say which linearisation each step used
+  (`linearised_at`: 'iterate' or 'projection'). The adaptive variant takes no active-set
+  steps (it takes GMRES iterates as they are: see below). Inexact steps with GMRES +
+  ILU(0) are 10 GMRES iterations each on fine meshes, far from either Newton step, and
+  there active-set steps do not pay (disk T_4: 123 Newton steps against 73; with
+  vertex_amg on the eliminated system they do: 6, 3, 3, 4, 4 against 10, 7, 7, 7, 7).
 * Newton-min has no merit function to descend (min is not differentiable), and with exact
   solves it is the primal–dual active set method, which can cycle (active sets that repeat;
   possible for P-matrices that are not M-matrices, e.g. obtuse meshes or a far-off start).
