@@ -68,9 +68,9 @@ tolerances: ‖W R_lin‖/‖W F‖ ≤ tol, ‖W R_alg‖/‖W B‖ ≤ 2e-12 f
   complementarity set (cfunctions.project, `linear_step(at_projection=True)`), where FB
   vanishes and its Jacobian is (-1, 0) or (0, -1): the Newton system of min, the
   primal–dual active set step. It is kept if θ(X_P) ≤ (1 - 2σ) θ(X) (Armijo at t = 1;
-  a kept step that also meets the checkpoint's test ends the watchdog's run); otherwise
-  the FB step at X is solved as well (both solves count in the step's linear iterations)
-  and the watchdog above goes on. Once the active set is right the active-set step lands
+  a kept step that also meets the checkpoint's test ends the watchdog's run); otherwise,
+  or where its linear solve fails, the FB step at X is solved as well (both solves count in
+  the step's linear iterations) and the watchdog above goes on. Once the active set is right the active-set step lands
   on the discrete solution: on the same disk 6, 3, 3, 4, 4 steps. The C-function, the
   merit, the stopping test, the line search and the solution are FB's; the steps of a run
   up to its first sufficient decrease (at least one; also after Newton-min's guard switched
@@ -395,22 +395,26 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         test_every = 1 if variant != "inexact" else krylov.nu
         fb_steps = state["cfun"] == "fb" and not adaptive
         before, r_new, t, same_as, accepted = 0, None, None, None, []
-        try:
-            if fb_steps and state["decreased"]:
-                # the active-set step of the module notes, kept if it decreases the merit
-                state["at"] = "projection"
-                step = linear_step(rows, "fb", system, X, at_projection=True)
+        if fb_steps and state["decreased"]:
+            # the active-set step of the module notes, kept if it decreases the merit (a
+            # solve that fails is rejected as well: the FB step may still be solved)
+            state["at"] = "projection"
+            step = linear_step(rows, "fb", system, X, at_projection=True)
+            try:
                 X_new, R, its = solve_step(step, krylov, lin_tol, test_every,
                                            hand_out(k, step, done, accepted))
                 r_new = rows.relative_residual("fb", X_new) \
                     if np.all(np.isfinite(X_new)) else np.inf
-                if r_new * r_new <= (1.0 - 2.0 * LS_SIGMA) * rec["residual"] ** 2:
-                    t = 1.0
-                    if watch is not None and r_new * r_new <= \
-                            (1.0 - 2.0 * LS_SIGMA) * watch[2] * watch[2]:
-                        watch = None
-                else:
-                    before, r_new = its, None
+            except LinearSolveError as e:
+                its, r_new = e.its, np.inf
+            if r_new * r_new <= (1.0 - 2.0 * LS_SIGMA) * rec["residual"] ** 2:
+                t = 1.0
+                if watch is not None and r_new * r_new <= \
+                        (1.0 - 2.0 * LS_SIGMA) * watch[2] * watch[2]:
+                    watch = None
+            else:
+                before, r_new = its, None
+        try:
             if t is None:
                 state["at"] = "iterate"
                 step = linear_step(rows, state["cfun"], system, X)
