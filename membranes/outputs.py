@@ -24,7 +24,7 @@ from .estimators import COLUMNS as ESTIMATOR_COLUMNS
 
 HISTORY_COLUMNS = ("level", "newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
                    "residual", "alg_residual", "kind", "energy_error") + ESTIMATOR_COLUMNS \
-    + ("bound", "cfun", "step_length")
+    + ("bound", "cfun", "step_length", "linearised_at")
 
 
 def _json_safe(value):
