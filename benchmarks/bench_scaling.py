@@ -8,6 +8,8 @@ fresh processes (so that each peak memory is its own):
 * ours: `solve(newton="adaptive", cfun="min", system="eliminated", pc_type vertex_amg,
   alg_flux multilevel)` with nested iteration where the driver has it (its default on a
   hierarchy), estimators on (the method uses them);
+* ours on 2 processes: the same under `mpirun -n 2`, the estimators' patches shared between
+  the processes (membranes.parallel; the mesh is replicated, Newton and GMRES run on both);
 * peer: `vinewtonrsls` on the decoupled problem (DESIGN §10), CG + BoomerAMG
   (membranes.decoupled.AMG), on the same mesh, to its own convergence (rtol 1e-14).
 
@@ -15,7 +17,8 @@ Printed per size: Newton (SNES) iterations, linear iterations (GMRES, CG) and pe
 step, wall time of the method (discretisation included; ours: estimator set-up and
 evaluations included, shown apart), time of the whole process (mesh hierarchy included),
 peak resident memory, final energy error; then the ratios the issue asks for: our time /
-peer time, energy error ours / peer, GMRES per Newton step at the largest size / at the
+peer time, energy error ours / peer, the speed-up of 2 processes (and whether they found the
+same iterate: largest difference relative to one process), GMRES per Newton step at the largest size / at the
 smallest, the growth exponent of the whole-run time in N.
 
 Usage: `.venv/bin/python benchmarks/bench_scaling.py [J ...]` (default 3 5 7).
@@ -35,17 +38,22 @@ DEFAULT_LEVELS = (3, 5, 7)
 def child(which, levels):
     """One measurement in this process; prints one JSON line."""
     t0 = time.perf_counter()
+    from mpi4py import MPI
     from membranes import scenes
     from membranes.cli import quiet_jit_logging
     quiet_jit_logging()
     problem = scenes.disk(h=H0, levels=levels)
     t_mesh = time.perf_counter() - t0
     n = problem.mesh.topology.index_map(0).size_global
-    if which == "ours":
+    world = MPI.COMM_WORLD
+    if which in ("ours", "ours-2"):
         from membranes import solve
         sol = solve(problem, newton="adaptive", cfun="min", system="eliminated",
                     petsc_options={"pc_type": "vertex_amg"}, alg_flux="multilevel",
-                    progress=lambda line: print(line, file=sys.stderr, flush=True))
+                    progress=lambda line: print(line, file=sys.stderr, flush=True),
+                    comm=world)
+        import numpy as np
+        np.save(f"/tmp/bench_scaling_{which}_{levels}.npy", sol.X)
         out = {"converged": sol.converged, "newton": sol.newton_iterations,
                "linear": sol.linear_iterations, "time": sol.wall_time_s,
                "estimator_setup": sol.estimator_times[0],
@@ -58,15 +66,24 @@ def child(which, levels):
         out = {"converged": peer.converged, "newton": peer.newton_iterations,
                "linear": peer.linear_iterations, "time": peer.wall_time_s,
                "energy_error": records[-1]["energy_error"]}
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+    peaks = world.gather(peak, root=0)
+    if world.rank > 0:
+        return
     out.update({"which": which, "levels": levels, "vertices": n, "mesh_time": t_mesh,
                 "process_time": time.perf_counter() - t0,
-                "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20})
+                "peak_gib": max(peaks), "peak_total_gib": sum(peaks)})
     print(json.dumps(out), flush=True)
 
 
 def measure(which, levels):
-    proc = subprocess.run([sys.executable, __file__, "--child", which, str(levels)],
-                          capture_output=True, text=True)
+    command = [sys.executable, __file__, "--child", which, str(levels)]
+    env = None
+    if which == "ours-2":
+        import os
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+        command = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "2"] + command
+    proc = subprocess.run(command, capture_output=True, text=True, env=env)
     lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
     if proc.returncode != 0 or not lines:
         tail = proc.stderr.strip().splitlines()[-3:]
@@ -77,7 +94,7 @@ def measure(which, levels):
 def main(levels_list):
     results = []
     for levels in levels_list:
-        for which in ("ours", "peer"):
+        for which in ("ours", "ours-2", "peer"):
             r = measure(which, levels)
             results.append(r)
             print(json.dumps(r), flush=True)
@@ -104,6 +121,16 @@ def main(levels_list):
             print(f"J = {levels} ({a['vertices']} vertices): time ours / peer = "
                   f"{a['time'] / b['time']:.3f}; energy error ours / peer = "
                   f"{a['energy_error'] / b['energy_error']:.4f}")
+    for levels in levels_list:
+        a, b = ok.get(("ours", levels)), ok.get(("ours-2", levels))
+        if a and b:
+            import numpy as np
+            X1, X2 = (np.load(f"/tmp/bench_scaling_{w}_{levels}.npy") for w in ("ours", "ours-2"))
+            print(f"J = {levels}: speed-up of 2 processes = {a['time'] / b['time']:.2f} "
+                  f"(whole process {a['process_time'] / b['process_time']:.2f}); peak "
+                  f"{b['peak_gib']:.2f} GiB per process, {b['peak_total_gib']:.2f} together; "
+                  f"iterate differs from one process by "
+                  f"{np.abs(X2 - X1).max() / np.abs(X1).max():.1e} (relative)")
     ours = [ok[("ours", j)] for j in levels_list if ("ours", j) in ok]
     if len(ours) >= 2:
         first, last = ours[0], ours[-1]

@@ -4,6 +4,8 @@
 Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out),
 3 the solver did not converge (the outputs are written, with converged = false and a reason).
 Progress: one line per Newton step on stderr (``--quiet`` silences it).
+``mpirun -n P membranes solve ...`` shares the estimators' patch problems between P processes
+(membranes.parallel); process 0 prints and writes.
 """
 
 import argparse
@@ -138,15 +140,21 @@ def _solve(args):
     quiet_jit_logging()
     petsc_options = None if args.petsc_options is None else \
         parse_petsc_options(args.petsc_options)
-    problem = scenes.make(scene, **kwargs)
+    from mpi4py import MPI
+    world = MPI.COMM_WORLD
+    # several processes (mpirun): each builds the whole problem, they share the patches
+    # (membranes.parallel)
+    problem = scenes.make(scene, comm=MPI.COMM_SELF, **kwargs)
     sol = solve(problem, newton=args.newton, cfun=args.cfun, system=args.system,
                 linear_solver=args.linear_solver, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
                 estimators=not args.no_estimators, progress=not args.quiet,
                 gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux,
-                initial_guess=args.initial_guess, nested=args.nested)
+                initial_guess=args.initial_guess, nested=args.nested, comm=world)
     if args.out is not None:
         write_outputs(sol, args.out)
+    if world.rank > 0:
+        return 0 if sol.converged else EXIT_NOT_CONVERGED
     summary = sol.summary()
     keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "system", "linear_solver",
             "converged", "newton_iterations", "linear_iterations", "wall_time_s",
@@ -183,11 +191,11 @@ def _glue_values(argv):
 def main(argv=None):
     try:
         argv = sys.argv[1:] if argv is None else list(argv)
-        from mpi4py import MPI
-        if MPI.COMM_WORLD.size > 1:
-            raise BadInput(f"membranes runs on one process, not {MPI.COMM_WORLD.size} (MPI is "
-                           f"not implemented yet; run without mpirun)")
         args = _parser().parse_args(_glue_values(argv))
+        from mpi4py import MPI
+        if MPI.COMM_WORLD.size > 1 and args.command != "solve":
+            raise BadInput(f"only `membranes solve` runs on several processes; run "
+                           f"`membranes {args.command}` without mpirun")
         if args.command == "report":
             from .report import main as report_main
             quiet_jit_logging()
@@ -201,7 +209,9 @@ def main(argv=None):
         return _solve(args)
     except ValueError as e:   # BadInput and every data/mesh error of the API
         message = " ".join(str(e).split())
-        print(f"membranes: error: {message}", file=sys.stderr)
+        from mpi4py import MPI
+        if MPI.COMM_WORLD.rank == 0:     # every process meets the same error: say it once
+            print(f"membranes: error: {message}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import cfunctions
+from . import cfunctions, parallel
 from .discretisation import EnergyError, discretise
 from .estimators import ALG_ROUNDOFF, Estimators
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
@@ -51,6 +51,7 @@ class Solution:
     eta_K: np.ndarray = None          # local distribution η_K at X (DESIGN §7), if estimated
     estimator_times: tuple = (None, None)   # (set-up, all evaluations) in seconds
     per_level: list = field(default_factory=list)   # one dict per level solved (_LevelRun)
+    comm: object = None   # the processes that shared the patches (membranes.parallel), or None
 
     @property
     def u1(self):
@@ -110,6 +111,7 @@ class Solution:
             "alg_flux": self.options["alg_flux"],
             "initial_guess": self.options.get("initial_guess", "paper"),
             "nested": self.options.get("nested", False),
+            "processes": 1 if self.comm is None else self.comm.size,
             "per_level": self.per_level,
             "converged": self.converged,
             "reason": self.reason,
@@ -233,15 +235,19 @@ class IterateEstimates:
     (RECORD_KEYS), None where not estimated.
     """
 
-    def __init__(self, disc, rows, alg_flux):
+    def __init__(self, disc, rows, alg_flux, comm=None):
         t = time.perf_counter()
+        self.comm = comm
         self.rows = rows
-        self.est = Estimators(disc)
-        if alg_flux == "multilevel":
-            from .algebraic_flux import MultilevelFlux   # only a run that uses it pays for it
-            self.multilevel = MultilevelFlux(disc, disc.problem.hierarchy)
-        else:
-            self.multilevel = None
+        with parallel.one_blas_thread():
+            # with several processes each sets up its own vertices' patches (parallel)
+            self.est = Estimators(disc, owned=parallel.owned_vertices(disc.n, comm),
+                                  sum_parts=None if comm is None else parallel.Summation(comm))
+            if alg_flux == "multilevel":
+                from .algebraic_flux import MultilevelFlux   # only a run that uses it pays
+                self.multilevel = MultilevelFlux(disc, disc.problem.hierarchy)
+            else:
+                self.multilevel = None
         self.setup_time = time.perf_counter() - t
         self.time = 0.0
         self.pending = None        # ('nu') (record, X, R) waiting for its later iterate
@@ -249,6 +255,10 @@ class IterateEstimates:
         self.eta_K = None          # η_K of the Newton iterate (or X^0) estimated last
 
     def __call__(self, rec, X, R, same_as=None):
+        with parallel.one_blas_thread():
+            return self._call(rec, X, R, same_as)
+
+    def _call(self, rec, X, R, same_as):
         t = time.perf_counter()
         if same_as is not None:
             # the accepted iterate is the one estimated last (its estimate met the criterion);
@@ -304,7 +314,7 @@ class IterateEstimates:
 def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmres",
           petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
           estimators=True, progress=False, gamma_lin=None, gamma_alg=None, alg_flux=None,
-          initial_guess=None, nested=None):
+          initial_guess=None, nested=None, comm=None):
     """Solve the discrete contact problem of `problem` by semismooth Newton (DESIGN §3, §8).
 
     newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
@@ -328,12 +338,13 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     T_0, prolong the solution to T_1 as its initial guess, ..., up to T_J, every level with
     the variant's stopping test; default True where the problem has levels ≥ 1. Iteration
     counts and the wall time are those of all levels (per level: `Solution.per_level`); the
-    iterate, estimates and energy error those of T_J.
+    iterate, estimates and energy error those of T_J;
+    comm: an MPI communicator whose processes share the patch problems of the estimators
+    (membranes.parallel: each process builds the same problem on MPI.COMM_SELF; Newton and
+    GMRES run on each, identically; progress lines come from process 0 only); None: one process.
     """
-    if problem.mesh.comm.size > 1:
-        raise ValueError(f"membranes runs on one process: the mesh is distributed over "
-                         f"{problem.mesh.comm.size} (MPI is not implemented yet; run without "
-                         f"mpirun)")
+    parallel.check_replicated(problem.mesh, comm)
+    comm = comm if comm is not None and comm.size > 1 else None
     cfunctions.get(cfun)
     check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
     if int(max_newton) < 1:
@@ -353,9 +364,11 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
         "paper" if initial_guess is None else "given"
     say = progress if callable(progress) else \
         (lambda line: print(line, file=sys.stderr, flush=True)) if progress else None
+    if comm is not None and comm.rank > 0:
+        say = None
 
     method = _Method(newton, cfun, system, krylov, tol, int(max_newton), gamma_lin,
-                     gamma_alg, say)
+                     gamma_alg, say, comm)
     options = {"newton": newton, "cfun": cfun, "system": system,
                "linear_solver": linear_solver,
                "petsc_options": {} if krylov is None else krylov.options,
@@ -363,15 +376,18 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
                "gamma_lin": gamma_lin, "gamma_alg": gamma_alg, "alg_flux": alg_flux,
                "initial_guess": guess_name, "nested": nested}
     if not nested:
-        run = _solve_on(problem, method, alg_flux, initial_guess, level=problem.levels)
-        return _solution(problem, [run], options)
-    if not (initial_guess is None or isinstance(initial_guess, str) or
-            callable(initial_guess)):
-        raise ValueError("with nested iteration the initial guess is that of the coarse mesh "
-                         "T_0: give 'paper', 'zero' or a function of the discretisation, or "
-                         "nested=False for nodal values on the computational mesh")
-    return _solution(problem, _solve_nested(problem, method, alg_flux, estimators,
-                                            initial_guess), options)
+        runs = [_solve_on(problem, method, alg_flux, initial_guess, level=problem.levels)]
+    else:
+        if not (initial_guess is None or isinstance(initial_guess, str) or
+                callable(initial_guess)):
+            raise ValueError("with nested iteration the initial guess is that of the coarse "
+                             "mesh T_0: give 'paper', 'zero' or a function of the "
+                             "discretisation, or nested=False for nodal values on the "
+                             "computational mesh")
+        runs = _solve_nested(problem, method, alg_flux, estimators, initial_guess)
+    sol = _solution(problem, runs, options)
+    sol.comm = comm
+    return sol
 
 
 @dataclass
@@ -386,6 +402,7 @@ class _Method:
     gamma_lin: float
     gamma_alg: float
     say: object
+    comm: object = None      # processes sharing the patches (membranes.parallel), or None
 
 
 @dataclass
@@ -422,7 +439,7 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     rows = linear_rows(disc)
     setup_time = time.perf_counter() - t0
     error = EnergyError(disc) if problem.exact is not None else None
-    est = IterateEstimates(disc, rows, alg_flux) if alg_flux is not None else None
+    est = IterateEstimates(disc, rows, alg_flux, method.comm) if alg_flux is not None else None
     if method.newton == "adaptive":
         setup_time += est.setup_time          # the adaptive method uses the estimators
     t = time.perf_counter()

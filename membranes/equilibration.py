@@ -6,7 +6,8 @@ An algebraic residual R_α (nodal, zero at Dirichlet vertices) is lifted to r_α
 P1: on each cell K with vertices a_l, (r_αh, ψ_{a_l})_K = R_{α,l} / N_l, N_l the number of cells
 sharing a_l. With the P1 mass matrix M_K = |K|/12 [[2,1,1],[1,2,1],[1,1,2]] this is
 r_K = M_K⁻¹ (R_l / N_l)_l = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l, the sparse
-operator `lifting` below (DG1 coefficients, in the cell's vertex order).
+operator `lifting` below (DG1 coefficients, in the cell's vertex order), which `Lifting`
+applies without storing it.
 
 ## Patchwise equilibration
 
@@ -22,10 +23,13 @@ patch edges that lie on ∂Ω; for an interior vertex the normal component vanis
 (ψ_a vanishes there; Ern & Vohralík's choice) and Q_h^a has zero mean, imposed by a Lagrange
 multiplier. σ_α,disc = Σ_a σ_a lies in H(div) and ∇·σ_α,disc = Π_P1 f_α ± λ_h - r_αh.
 
-The patch matrices depend on the mesh only. They are the global RT_1 × DG1 matrices assembled
-by dolfinx (forms.equilibration) restricted to each patch's dofs: every cell that touches a
-retained dof of the patch lies in the patch, so the restriction is exact. Since σ_a is linear in
-the data, the set-up solves every patch problem once for the *operators*
+The patch matrices depend on the mesh only. They are made of per-cell blocks of the RT_1 × DG1
+mass, divergence and moment forms in dolfinx's global RT basis: reference integrals of basix's
+RT_1 basis (exact quadrature), mapped to each cell by the contravariant Piola map, times the
+edge reflections that dolfinx applies (for RT_1, a sign per edge); tests/test_equilibration
+checks them against matrices assembled by dolfinx. A patch keeps the dofs of its cells except
+those its boundary drops, so its matrices are sums of these blocks. Since σ_a is linear in the
+data, the set-up solves every patch problem once for the *operators*
 
     σ_α,disc = μ_α G_u u_α ± G_λ λ + G_R R_α + σ_f,α
 
@@ -33,20 +37,29 @@ the data, the set-up solves every patch problem once for the *operators*
 Where many patches are translates of one another (a uniform refinement: all but a few, in about
 #vertices + #edges + #cells of T_0 classes) the operators are not assembled: each class keeps
 one dense operator from cell data (∇u_h, r_h, λ_a) to σ_a, computed for a representative, and
-each patch its data indices and change of RT basis (entries 0, ±1; algebraic_flux); one
+each patch its data indices and change of RT basis (entries 0, ±1; `_translates`); one
 evaluation is then a gather, one batched product per stack of classes and one scatter. The other
-patches keep the sparse operators.
+patches keep the sparse operators. The set-up handles all the patches of one size at once
+(classes, changes of basis, the representatives' systems in batches of one shape), so that its
+cost is a few passes over arrays of O(N) entries.
+
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures).
+
+With a mask `owned` over the vertices, only the patches of the owned vertices are set up: σ is
+then their part of the sum, and the parts of a partition of the vertices add up to σ_α,disc
+(each process of a distributed run sets up its own vertices and the parts are summed).
 """
+
+import functools
 
 import numpy as np
 import scipy.sparse as sp
 import ufl
 
-from forms.equilibration import divergence, rt_mass, vector_moment, weighted_mass
+from forms.equilibration import weighted_mass
 
-from .discretisation import assemble_matrix_csr, load, over
+from .discretisation import load, over
 
 # ∫_K φ_k φ_l φ_i / |K| for barycentric φ: 1/10 (k = l = i), 1/30 (two equal), 1/60 (distinct)
 _C3 = np.empty((3, 3, 3))
@@ -58,7 +71,8 @@ _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
 
 
 class Geometry:
-    """Cells as P1 dof triples, areas, barycentric gradients, and vertex-to-cell incidence."""
+    """Cells as P1 dof triples, areas, barycentric gradients, and the number of cells at each
+    vertex."""
 
     def __init__(self, V):
         mesh = V.mesh
@@ -66,7 +80,7 @@ class Geometry:
         self.ncells = mesh.topology.index_map(2).size_local
         self.cells = V.dofmap.list.array.reshape(-1, 3)[:self.ncells].astype(np.int64)
         self.n = V.dofmap.index_map.size_local
-        self.x = x = V.tabulate_dof_coordinates()[:, :2]
+        self.x = x = np.ascontiguousarray(V.tabulate_dof_coordinates()[:, :2])
         p = x[self.cells]                                     # (ncells, 3, 2)
         e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
         det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
@@ -78,14 +92,16 @@ class Geometry:
         ref = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
         self.grad = np.einsum("kr,crd->ckd", ref, jinv)       # (ncells, 3, 2)
         self.cells_per_vertex = np.bincount(self.cells.ravel(), minlength=self.n)
-        order = np.argsort(self.cells.ravel(), kind="stable")
-        self.vertex_cells = order // 3                         # cells sorted by vertex
-        self.vertex_local = order % 3                          # local index of the vertex
-        self.vertex_ptr = np.concatenate([[0], np.cumsum(self.cells_per_vertex)])
 
     def gradient(self, u):
         """∇u_h per cell, shape (ncells, 2), for nodal P1 values u."""
         return np.einsum("ck,ckd->cd", u[self.cells], self.grad)
+
+    def jacobians(self, cells):
+        """J = [x_1 - x_0, x_2 - x_0] (columns) of the affine maps of the given cells from the
+        reference triangle, shape (c, 2, 2)."""
+        p = self.x[self.cells[cells]]
+        return np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)
 
 
 def lifting(geo):
@@ -97,29 +113,43 @@ def lifting(geo):
     return sp.csr_matrix((scale.ravel(), (rows, cols)), shape=(3 * geo.ncells, geo.n))
 
 
-def csr_lookup(A, rows, cols, chunk=1 << 22):
-    """Entries A[rows[i], cols[i]] of a CSR matrix (0 where not stored), vectorised (queries
-    are processed in chunks to bound the temporaries)."""
-    A = A.tocsr()
-    A.sort_indices()
-    ncols = np.int64(A.shape[1])
-    keys = np.repeat(np.arange(A.shape[0], dtype=np.int64), np.diff(A.indptr)) * ncols \
-        + A.indices
-    out = np.empty(len(rows))
-    for s in range(0, len(rows), chunk):
-        q = np.asarray(rows[s:s + chunk], dtype=np.int64) * ncols + cols[s:s + chunk]
-        pos = np.minimum(np.searchsorted(keys, q), keys.size - 1)
-        out[s:s + chunk] = np.where(keys[pos] == q, A.data[pos], 0.0)
-    return out
+class Lifting:
+    """`Lifting(geo) @ R` = `lifting(geo) @ R` without storing the matrix: per cell
+    r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l (DESIGN §4)."""
+
+    def __init__(self, geo):
+        self.geo = geo
+
+    def __matmul__(self, R):
+        geo = self.geo
+        v = R[geo.cells] / geo.cells_per_vertex[geo.cells]
+        return ((3.0 / geo.area)[:, None] * (v @ _MINV_REF.T)).ravel()
 
 
-def element_blocks(A, row_dofs, col_dofs):
-    """Blocks A[row_dofs[K]][:, col_dofs[K]] for every cell K, shape (ncells, r, c)."""
-    nc, r = row_dofs.shape
-    c = col_dofs.shape[1]
-    rows = np.broadcast_to(row_dofs[:, :, None], (nc, r, c)).ravel()
-    cols = np.broadcast_to(col_dofs[:, None, :], (nc, r, c)).ravel()
-    return csr_lookup(A, rows, cols).reshape(nc, r, c)
+@functools.lru_cache(maxsize=None)
+def _rt_reference():
+    """Integrals over the reference triangle of dolfinx's ("RT", 2) basis ψ̂ (basix's RT of
+    degree 2, Legendre variant), with an exact quadrature (degree 4): mass[a, b, i, j] =
+    ∫ ψ̂_i^a ψ̂_j^b, div[i, j] = ∫ φ̂_i ∇̂·ψ̂_j and moment[a, j, k] = ∫ ψ̂_j^a φ̂_k (φ̂ the P1 hats),
+    and sign[ρ] (8, 8): the dof transformation of a cell whose edges with a bit set in ρ are
+    reflected (basix's base transformations; for this element a sign on one dof per edge)."""
+    import basix
+    e = basix.create_element(basix.ElementFamily.RT, basix.CellType.triangle, 2,
+                             basix.LagrangeVariant.legendre)
+    X, w = basix.make_quadrature(basix.CellType.triangle, 4)
+    tab = e.tabulate(1, X)                                    # (3, npts, 8, 2)
+    psi, div = tab[0], tab[1][:, :, 0] + tab[2][:, :, 1]
+    hat = np.stack([1.0 - X[:, 0] - X[:, 1], X[:, 0], X[:, 1]], axis=1)
+    mass = np.einsum("q,qia,qjb->abij", w, psi, psi)
+    div = np.einsum("q,qi,qj->ij", w, hat, div)
+    moment = np.einsum("q,qja,qk->ajk", w, psi, hat)
+    T = e.base_transformations()                  # exact to round-off: ±1 on the diagonal
+    sign = np.ones((8, 8))
+    for edge in range(3):
+        if np.abs(np.abs(T[edge]) - np.eye(8)).max() > 1e-12:
+            raise RuntimeError("RT_1 edge transformations are not sign changes")
+        sign[[rho for rho in range(8) if rho >> edge & 1]] *= np.round(np.diag(T[edge]))
+    return mass, div, moment, sign
 
 
 def graph_colouring(pairs, n, seed=0):
@@ -149,15 +179,6 @@ def graph_colouring(pairs, n, seed=0):
     return colour
 
 
-def cell_colouring(mesh, ncells, seed=0):
-    """Colours of the cells such that cells sharing an edge differ (at most 4)."""
-    mesh.topology.create_connectivity(1, 2)
-    e2c = mesh.topology.connectivity(1, 2)
-    counts = np.diff(e2c.offsets)
-    pairs = e2c.array[np.repeat(counts == 2, counts)].reshape(-1, 2)
-    return graph_colouring(pairs[(pairs < ncells).all(axis=1)].astype(np.int64), ncells, seed)
-
-
 def _row_unique(values, sentinel):
     """Sorted distinct entries of each row (sentinel dropped); all rows must have as many."""
     S = np.sort(values, axis=1)
@@ -179,11 +200,9 @@ def _row_index(table, values):
 
 class PatchSpace:
     """RT_1 × DG1 on one mesh, with the per-cell blocks that every patch problem is made of:
-    Me[K] = (φ_j, φ_i)_K (RT mass) and Be[K] = (∇·φ_j, q_i)_K, in the global RT basis (dof
-    transformations applied by dolfinx). B has cell-owned rows, so its blocks are entries of
-    one assembly; M is assembled colour by colour over cells that share no edge, so that each
-    entry of one colour's assembly belongs to one cell (integrating over one colour only also
-    keeps each sparsity pattern small). The assembled matrices are temporaries."""
+    Me[K] = (φ_j, φ_i)_K (RT mass), Be[K] = (∇·φ_j, q_i)_K and Ce[K] = (φ_k e_d, φ_j)_K, in
+    the global RT basis (dof transformations applied as dolfinx does), computed from the
+    cells' geometry (`element_blocks`, `vector_moments`) for the cells asked for."""
 
     def __init__(self, V, blocks=True):
         from dolfinx import fem, mesh as dmesh
@@ -194,15 +213,18 @@ class PatchSpace:
         self.RT = fem.FunctionSpace(mesh, ("RT", 2))
         self.DG = fem.FunctionSpace(mesh, ("DG", 1))
         self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        self.dg_cells = dg = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        _check_vertex_order(self.DG, dg, V, geo.cells)
-        if blocks:
-            self.Me, self.Be = self.element_blocks(np.arange(nc))
+        self.dg_cells = dg = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int32)
+        _check_vertex_order(self.DG, dg, geo)
         # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
         layout = self.RT.dofmap.dof_layout
         self.edge_of_dof = np.full(8, -1)
         for e in range(3):
             self.edge_of_dof[layout.entity_dofs(1, e)] = e
+        # slot[e] (3 edges, then the interior): the entity's dofs in their order; a dof's
+        # slot is the same in every cell that has the entity (dolfinx numbers the dofs of an
+        # entity once and carries orientations in the dof transformations)
+        self.slots = np.array([layout.entity_dofs(1, e) for e in range(3)]
+                              + [layout.entity_dofs(2, 0)])
         mesh.topology.create_connectivity(2, 1)
         self.c2e = mesh.topology.connectivity(2, 1).array.reshape(nc, 3).astype(np.int64)
         nedges = mesh.topology.index_map(1).size_local + mesh.topology.index_map(1).num_ghosts
@@ -214,48 +236,55 @@ class PatchSpace:
         mesh.topology.create_entity_permutations()
         self.reflections = (np.asarray(mesh.topology.get_cell_permutation_info())[:nc]
                             & 7).astype(np.int64)
+        self.Me = self.Be = None
+        if blocks:
+            self.Me, self.Be = self.element_blocks(np.arange(nc))
+
+    def _mapped(self, cells):
+        """Jacobians, sign of det J, and the dof signs of the given cells."""
+        cells = np.asarray(cells, dtype=np.int64)
+        J = self.geo.jacobians(cells)
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        return J, det, _rt_reference()[3][self.reflections[cells]]
 
     def element_blocks(self, cells):
-        """(Me, Be) of the given cells (distinct indices): Me (c, 8, 8), Be (c, 3, 8). Only
-        these cells are integrated (a cell tag per colour of cells sharing no edge), so a
-        subset costs in proportion to its size."""
-        from dolfinx import mesh as dmesh
-        mesh = self.V.mesh
-        cells = np.asarray(cells, dtype=np.int64)
-        sig, tau = ufl.TrialFunction(self.RT), ufl.TestFunction(self.RT)
-        q = ufl.TestFunction(self.DG)
-        Me, Be = np.empty((len(cells), 8, 8)), np.empty((len(cells), 3, 8))
-        if len(cells) == 0:
-            return Me, Be
-        colour = self._colour()[cells]
-        for c in np.unique(colour):
-            sel = np.flatnonzero(colour == c)
-            tagged = cells[sel].astype(np.int32)
-            order = np.argsort(tagged)
-            tags = dmesh.meshtags(mesh, 2, tagged[order], np.ones_like(tagged))
-            dxc = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
-            rt, dg = self.rt_cells[cells[sel]], self.dg_cells[cells[sel]]
-            Me[sel] = element_blocks(assemble_matrix_csr(rt_mass(sig, tau, dxc)), rt, rt)
-            Be[sel] = element_blocks(assemble_matrix_csr(divergence(sig, q, dxc)), dg, rt)
+        """(Me, Be) of the given cells: Me (c, 8, 8), Be (c, 3, 8). With the contravariant
+        Piola map φ = J ψ̂ / det J and dx = |det J| dx̂: Me = s sᵀ ⊙ Σ_ab (JᵀJ)_ab mass_ab /
+        |det J| and Be = sign(det J) div ⊙ sᵀ (s the cell's dof signs)."""
+        mass, div, _, _ = _rt_reference()
+        J, det, s = self._mapped(cells)
+        JtJ = np.einsum("cda,cdb->cab", J, J).reshape(-1, 4) / np.abs(det)[:, None]
+        Me = (JtJ @ mass.reshape(4, 64)).reshape(-1, 8, 8) * s[:, :, None] * s[:, None, :]
+        Be = np.sign(det)[:, None, None] * div[None] * s[:, None, :]
         return Me, Be
 
-    def _colour(self):
-        if getattr(self, "_cell_colour", None) is None:
-            self._cell_colour = cell_colouring(self.V.mesh, self.geo.ncells)
-        return self._cell_colour
+    def vector_moments(self, cells):
+        """Ce (c, 8, 6) of the given cells: Ce[K][j, 2k + d] = (φ_k e_d, φ_j)_K (φ_k the P1 hat
+        of vertex k) = sign(det J) s_j Σ_a J_da moment[a, j, k]."""
+        _, _, moment, _ = _rt_reference()
+        J, det, s = self._mapped(cells)
+        Ce = np.einsum("cda,ajk->cjkd", J, moment) * (np.sign(det)[:, None] * s)[:, :, None,
+                                                                                   None]
+        return Ce.reshape(-1, 8, 6)
 
-    def retained_dofs(self, CS, boundary):
+    def retained_dofs(self, CS, boundary, vertex_local=None):
         """Global RT dofs of P patches of the cells CS (P, n) (-1 where dropped): V_h^a has zero
         normal component on the patch boundary (edges in one patch cell only), except on ∂Ω
-        for a patch of a boundary vertex (DESIGN §5; `boundary` (P,) flags those)."""
+        for a patch of a boundary vertex (DESIGN §5; `boundary` (P,) flags those). For vertex
+        patches, `vertex_local` (P, n) the vertex's local index in each cell: an edge is then
+        in two patch cells iff it contains the vertex (is not opposite it) and is not on ∂Ω."""
         P, n = CS.shape
-        edges = self.c2e[CS].reshape(P, -1)
-        big = np.int64(edges.max() + 1)
-        keys = edges + np.arange(P, dtype=np.int64)[:, None] * big
-        srt = np.sort(keys, axis=1)
-        twice = srt[:, 1:][srt[:, 1:] == srt[:, :-1]]
-        inside = np.isin(keys, twice).reshape(P, n, 3)
-        keep_edge = inside | (self.exterior_edge[CS] & boundary[:, None, None])
+        exterior = self.exterior_edge[CS]
+        if vertex_local is None:
+            edges = self.c2e[CS].reshape(P, -1)
+            big = np.int64(edges.max() + 1)
+            keys = edges + np.arange(P, dtype=np.int64)[:, None] * big
+            srt = np.sort(keys, axis=1)
+            twice = srt[:, 1:][srt[:, 1:] == srt[:, :-1]]
+            inside = np.isin(keys, twice).reshape(P, n, 3)
+        else:
+            inside = (np.arange(3) != vertex_local[:, :, None]) & ~exterior
+        keep_edge = inside | (exterior & np.asarray(boundary, dtype=bool)[:, None, None])
         e = self.edge_of_dof
         keep = np.where(e[None, None, :] >= 0, np.take(keep_edge, np.maximum(e, 0), axis=2),
                         True)
@@ -266,7 +295,8 @@ class PatchSpace:
         A = [[M, -Bᵀ, 0], [B, 0, c], [0, cᵀ, 0]] with the zero-mean multiplier row (c = (1, q))
         for interior patches only. Returns RET (P, nr) the global RT dofs, loc (P, n, 8) their
         local numbers (-1 dropped) and A (P, N, N), N = nr + 3n (+ 1). `blocks`: (Me, Be) of
-        the cells CS, shapes (P, n, 8, 8) and (P, n, 3, 8), where the space keeps none."""
+        the cells CS, shapes (P, n, 8, 8) and (P, n, 3, 8); by default those the space keeps,
+        or else computed from the geometry."""
         geo = self.geo
         P, n = CS.shape
         sentinel = np.iinfo(np.int64).max
@@ -279,7 +309,13 @@ class PatchSpace:
         li, lj = loc[:, :, :, None], loc[:, :, None, :]
         ok = (li >= 0) & (lj >= 0)
         lin = (np.arange(P)[:, None, None, None] * N + li) * N + lj
-        Me, Be = (self.Me[CS], self.Be[CS]) if blocks is None else blocks
+        if blocks is not None:
+            Me, Be = blocks
+        elif self.Me is not None:
+            Me, Be = self.Me[CS], self.Be[CS]
+        else:
+            Me, Be = self.element_blocks(CS.ravel())
+            Me, Be = Me.reshape(P, n, 8, 8), Be.reshape(P, n, 3, 8)
         A.ravel()[:] += np.bincount(lin[ok], weights=Me[ok], minlength=P * N * N)
         qrow = nr + 3 * np.arange(n)[None, :, None] + np.arange(3)[None, None, :]
         okb = np.broadcast_to(loc[:, :, None, :] >= 0, Be.shape)
@@ -294,12 +330,13 @@ class PatchSpace:
             A[:, -1, nr:nr + nq] = c
         return RET, loc, A
 
-    def patch_groups(self, CS, boundary, chunk):
-        """Patches (cells CS (P, n), boundary flags) in batches of one shape: yields
-        (indices into the P patches, RET, loc, A)."""
-        glob = self.retained_dofs(CS, boundary)
+    def patch_groups(self, CS, boundary, chunk, glob=None):
+        """Patches (cells CS (P, n), boundary flags, their retained dofs glob if known) in
+        batches of one shape: yields (indices into the P patches, RET, loc, A)."""
+        glob = self.retained_dofs(CS, boundary) if glob is None else glob
         S = np.sort(np.where(glob < 0, np.iinfo(np.int64).max, glob), axis=1)
         nr = ((S[:, 1:] != S[:, :-1]) & (S[:, 1:] != np.iinfo(np.int64).max)).sum(axis=1) + 1
+        del S
         for b, r in sorted(set(zip(boundary.tolist(), nr.tolist()))):
             idx = np.flatnonzero((boundary == b) & (nr == r))
             for s in range(0, len(idx), chunk):
@@ -307,142 +344,378 @@ class PatchSpace:
                 yield (sel,) + self.saddle_point_systems(CS[sel], glob[sel], b)
 
 
-def vertex_patches(geo):
-    """For every vertex a: its cells (grouped by count) and a's local index in each.
-    Yields (vertices (P,), CS (P, n), KA (P, n))."""
-    for n in np.unique(geo.cells_per_vertex):
-        verts = np.flatnonzero(geo.cells_per_vertex == n)
-        idx = geo.vertex_ptr[verts][:, None] + np.arange(n)
-        yield verts, geo.vertex_cells[idx], geo.vertex_local[idx]
+def vertex_patches(geo, owned=None):
+    """For every vertex a (or every vertex of the mask `owned`): its cells (grouped by count)
+    and a's local index in each. Yields (vertices (P,), CS (P, n), KA (P, n))."""
+    order = np.argsort(geo.cells.ravel(), kind="stable")
+    ptr = np.concatenate([[0], np.cumsum(geo.cells_per_vertex)])
+    count = geo.cells_per_vertex if owned is None else np.where(owned, geo.cells_per_vertex, 0)
+    for n in np.unique(count[count > 0]):
+        verts = np.flatnonzero(count == n)
+        idx = order[ptr[verts][:, None] + np.arange(n)]
+        yield verts, idx // 3, idx % 3
 
 
-def _check_vertex_order(DG, dg_cells, V, p1_cells):
+def _grid_keys(v, scale):
+    """One int64 per point of v (..., 2): its coordinates in units of 1e-6 scale, rounded and
+    combined (None if they exceed 2^30 units, a patch larger than 1000 scale)."""
+    k = np.round(v * (1e6 / scale)).astype(np.int64)
+    if k.size and np.abs(k).max() >= 2 ** 30:
+        return None
+    return (k[..., 0] + 2 ** 30) * 2 ** 31 + (k[..., 1] + 2 ** 30)
+
+
+def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
+                        exterior=None, chunk=1 << 14):
+    """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
+    CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
+    boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
+    centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
+    pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
+    (relative to xa). Patches are classed by their offsets rounded to 1e-6 scale (through a
+    64-bit hash of the rounded signature, checked entry by entry against the
+    representative's), and are translates to round-off only: a patch whose vertices do not
+    match its representative's within 1e-9 scale (a coincidence of the rounded keys) is made
+    its own. `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e);
+    boundary patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets,
+    per cell): two patches of boundary vertices with the same cells keep different RT dofs
+    when one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of
+    a structured square). Each step is a pass over arrays of P m entries (no row sorting), the
+    vertex matches `chunk` patches at a time."""
+    P, m = CF.shape
+    boundary = np.asarray(boundary, dtype=bool)
+    identity = np.broadcast_to(np.arange(3, dtype=np.int8), (P, m, 3)).copy()
+    key = _grid_keys(cent[CF] - xa[:, None, :], scale)                       # (P, m)
+    if not translates or key is None or P == 0:
+        return CF, KF, np.arange(P), identity
+    order = np.argsort(key, axis=1, kind="stable")
+    CF, KF = np.take_along_axis(CF, order, axis=1), np.take_along_axis(KF, order, axis=1)
+    sig = [boundary[:, None].astype(np.int64), np.take_along_axis(key, order, axis=1)]
+    if exterior is not None:
+        where = np.zeros((P, m, 2))
+        b = np.flatnonzero(boundary)
+        xv = geo.x[geo.cells[CF[b]]] - xa[b][:, None, None, :]
+        mids = 0.5 * (np.roll(xv, -1, axis=2) + np.roll(xv, -2, axis=2))   # edge e: opposite e
+        where[b] = (mids * exterior[CF[b]][..., None]).sum(axis=2)
+        sig.append(_grid_keys(where, scale))
+        if sig[-1] is None:
+            return CF, KF, np.arange(P), identity
+    sig = np.concatenate(sig, axis=1)
+    mult = np.random.default_rng(0).integers(1, 2 ** 62, size=sig.shape[1]) | 1
+    with np.errstate(over="ignore"):
+        h = (sig * mult).sum(axis=1)
+    _, first, gid = np.unique(h, return_index=True, return_inverse=True)
+    rep = first[gid.ravel()]
+    ok = (sig == sig[rep]).all(axis=1)
+    del sig
+    # vertex matches: the vertices of each cell in the order of their keys (offsets from the
+    # cell's centroid), patch against rep; checked in floating point (the offsets of the cell
+    # centroids and of the vertices from them, each to half the tolerance)
+    uc, inv = np.unique(CF, return_inverse=True)
+    inv = inv.reshape(P, m)
+    rel = geo.x[geo.cells[uc]] - cent[uc][:, None, :]                       # (U, 3, 2)
+    rkey = _grid_keys(rel, scale)
+    if rkey is None:
+        return CF, KF, np.arange(P), identity
+    vorder = np.argsort(rkey, axis=1)                                        # (U, 3)
+    pi = identity
+    tol = 0.5e-9 * scale
+    for s in range(0, P, chunk):
+        c = slice(s, s + chunk)
+        vo, vr = vorder[inv[c]], vorder[inv[rep[c]]]
+        np.put_along_axis(pi[c], vo, vr.astype(np.int8), axis=2)
+        match = np.take_along_axis(rel[inv[rep[c]]], pi[c, :, :, None].astype(np.int64), axis=2)
+        ok[c] &= np.abs(rel[inv[c]] - match).max(axis=(1, 2, 3)) <= tol
+        off = cent[CF[c]] - xa[c, None, :]
+        ok[c] &= np.abs(off - (cent[CF[rep[c]]] - xa[rep[c], None, :])).max(axis=(1, 2)) <= tol
+    bad = np.flatnonzero(~ok)
+    rep[bad] = bad
+    pi[bad] = np.arange(3)
+    return CF, KF, rep, pi
+
+
+def _check_vertex_order(DG, dg_cells, geo):
     """The local formulas assume the DG1 and P1 dofs of a cell sit at its vertices in the same
     order (basix's reference vertex order); check it rather than trust it."""
-    xd = DG.tabulate_dof_coordinates()[:, :2][dg_cells]
-    xp = V.tabulate_dof_coordinates()[:, :2][p1_cells]
-    if not np.allclose(xd, xp, rtol=0, atol=1e-12 * max(1.0, np.abs(xp).max())):
-        raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
+    xd = DG.tabulate_dof_coordinates()
+    scale = max(1.0, np.abs(geo.x).max())
+    for k in range(3):
+        if np.abs(xd[dg_cells[:, k], :2] - geo.x[geo.cells[:, k]]).max() > 1e-12 * scale:
+            raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
+
+
+def load_moments(disc, space):
+    """Wf_α (ncells, 3, 3) with Wf_α[K, i, k] = (f_α φ_k, φ_i)_K, with the scene's data
+    measures: one assembly of (f_α w, v) per load against (DG1)³, w the (DG1)³ function whose
+    component k is the hat of local vertex k on every cell (the nine moments of a cell from
+    one evaluation of f_α at each quadrature point)."""
+    from dolfinx import fem
+    mesh = disc.V.mesh
+    W = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=3)
+    nodes = W.dofmap.list.array.reshape(space.geo.ncells, 3).astype(np.int64)   # local vertex i
+    v, w = ufl.TestFunction(W), fem.Function(W)
+    w.x.array[3 * nodes + np.arange(3)] = 1.0
+    out = []
+    for f in (disc.problem.f1, disc.problem.f2):
+        form = fem.form(over(disc.dx_data, lambda dx: weighted_mass(load(f, mesh), 1.0,
+                                                                    ufl.inner(w, v), dx)))
+        b = fem.assemble_vector(form).array
+        out.append(b[3 * nodes[:, :, None] + np.arange(3)])                   # [K, i, k]
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _class_tables(slots):
+    """For the change of RT basis from a class representative to a translate (algebraic_flux:
+    `_W_TABLE`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2), the (at most
+    two) representative dofs l of the cell with W[l, k] ≠ 0 for each patch dof k, and their
+    coefficients; and ANCHOR (6, 8): the representative dof on the entity that corresponds to
+    patch dof k's entity (edge e ↦ edge pi[e]) in the same slot (`slots` as in PatchSpace)."""
+    import itertools
+    from .algebraic_flux import _W_TABLE
+    W = _W_TABLE.astype(np.int64)                                         # [code, l, k]
+    top = np.argsort(-np.abs(W), axis=1, kind="stable")[:, :2, :]
+    coef = np.take_along_axis(W, top, axis=1)
+    if np.abs(W).sum(axis=1).max() > 2 or not np.array_equal(
+            np.abs(coef).sum(axis=1), np.abs(W).sum(axis=1)):
+        raise RuntimeError("RT change of basis with more than two entries per column")
+    slots = np.array(slots)
+    anchor = np.empty((6, 8), dtype=np.int64)
+    for code, perm in enumerate(itertools.permutations(range(3))):        # perm = π, pi = π⁻¹
+        pi = np.argsort(perm)
+        for e in range(3):
+            anchor[code, slots[e]] = slots[pi[e]]
+        anchor[code, slots[3]] = slots[3]
+    return (top.transpose(0, 2, 1).copy(), coef.transpose(0, 2, 1).astype(np.int8).copy(),
+            anchor)
 
 
 class FluxEquilibration:
-    """Set-up (once per mesh) and evaluation of σ_α,disc (DESIGN §5)."""
+    """Set-up (once per mesh) and evaluation of σ_α,disc (DESIGN §5); with `owned` (a boolean
+    mask over the vertices), of the part of σ_α,disc from the owned vertices' patches."""
 
-    CHUNK = 8000     # patches solved at once (bounds the set-up's memory)
+    CHUNK = 2000     # patches solved or mapped at once (bounds the set-up's memory)
     MIN_CLASS = 3    # translated patches sharing one operator (fewer: each its own, sparse)
     TRANSLATES = True
 
-    def __init__(self, disc):
-        from dolfinx import fem
+    def __init__(self, disc, owned=None):
         self.disc = disc
-        mesh = disc.V.mesh
-        space = self.space = PatchSpace(disc.V)
-        self.geo, self.RT = space.geo, space.RT
-        nc = self.geo.ncells
-        self.lift = lifting(self.geo)
-        tau = ufl.TestFunction(self.RT)
-        W = fem.VectorFunctionSpace(mesh, ("DG", 1))
-        wc = W.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        wcols = (2 * wc[:, :, None] + np.arange(2)).reshape(nc, 6)          # (k, d) -> 2k + d
-        self.Ce = element_blocks(assemble_matrix_csr(vector_moment(ufl.TrialFunction(W), tau)),
-                                 space.rt_cells, wcols)                     # ∫_K φ_k e_d · τ_j
-        # Wf_α[K][i, k] = (f_α φ_k, φ_i)_K
-        p, q = ufl.TrialFunction(space.DG), ufl.TestFunction(space.DG)
-        self.wf = [element_blocks(assemble_matrix_csr(over(
-            disc.dx_data, lambda dx: weighted_mass(load(f, mesh), p, q, dx))),
-            space.dg_cells, space.dg_cells) for f in (disc.problem.f1, disc.problem.f2)]
-        on_boundary = np.zeros(self.geo.n, dtype=bool)
+        space = self.space = PatchSpace(disc.V, blocks=False)
+        self.geo = geo = space.geo
+        self.RT = space.RT
+        self.lift = Lifting(geo)
+        on_boundary = np.zeros(geo.n, dtype=bool)
         on_boundary[disc.boundary] = True
-        shape = (space.nrt, self.geo.n)
+        shape = (space.nrt, geo.n)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
-        groups = []
-        for verts, CS, KA in vertex_patches(self.geo):
-            own = self._classes(verts, CS, KA, on_boundary[verts], groups)
-            if len(own) == 0:
-                continue
-            verts, CS, KA = verts[own], CS[own], KA[own]
-            for sel, RET, loc, A in space.patch_groups(CS, on_boundary[verts], self.CHUNK):
-                self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A)
-        from .algebraic_flux import _buckets
-        self.classes = _buckets(groups) if groups else None
-        # what the evaluation does not need goes: the element blocks and the load moments
-        # (kept summed, (f_α, φ_i)_K, for the oscillation estimator)
-        self.load = [wf.sum(axis=2) for wf in self.wf]
-        del self.Ce, self.wf
-        space.Me = space.Be = None
+        self._cent = geo.x[geo.cells].mean(axis=1)
+        self._pending = []
+        # the classes first, then the load moments and the other patches (the moments and
+        # the classes' temporaries are not held at once)
+        level, alone = [], []
+        for verts, CS, KA in vertex_patches(geo, owned):
+            b = on_boundary[verts]
+            CS, KA, own = self._classes(verts, CS, KA, b, level)
+            if len(own):
+                alone.append((verts[own], CS[own], KA[own], b[own]))
+        wf = load_moments(disc, space)
+        # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
+        self.load = [w.sum(axis=2) for w in wf]
+        for verts, CS, KA, b in alone:
+            glob = space.retained_dofs(CS, b, KA)
+            for sel, RET, loc, A in space.patch_groups(CS, b, self.CHUNK, glob):
+                self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A, wf)
+        self._add_operators()
+        self.classes = self._class_load(level, wf) if level else None
+        # what the evaluation does not need goes
+        del self._cent, self._pending
+        space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
 
-    def _classes(self, verts, CS, KA, boundary, groups):
+    def _classes(self, verts, CS, KA, boundary, level):
         """The patches of P vertices (cells CS (P, n), a's local index KA) that are translates
         of one another in classes of at least MIN_CLASS (as on a uniform refinement: all but a
-        few): one operator per class, from the representative's patch problem, appended to
-        `groups` as (S, G, RET, L, C) (see algebraic_flux._buckets), their σ_f added. Returns
-        the indices of the other patches (each solved on its own into G_u, G_R, G_lam).
+        few): one operator per class from the representative's patch problem (the
+        representatives of one shape in one batch), and every member's data indices and
+        change of basis, appended to `level` as buckets of classes of one shape and size
+        (bucket, its patches' RT dofs, its load part; see algebraic_flux._apply_buckets).
+        Returns CS, KA in the classes' canonical cell order and the indices of the other
+        patches (each solved on its own into G_u, G_R, G_lam).
 
         The representative's right-hand side is a linear map of cell data that a translation
         carries over: ∇u_h per cell (2), r_h per cell (3, its vertices permuted by π), λ_a, and
         (set-up only) the load moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map)
-        and σ_p = Tᵀ S d_p for the patch's data d_p (change_of_basis)."""
-        from .algebraic_flux import change_of_basis, class_members, translation_classes
+        and σ_p = Tᵀ S d_p for the patch's data d_p (the change of basis). The members are
+        ordered by class size and class, so that a bucket is a slice of each array."""
         geo, space = self.geo, self.space
         P, n = CS.shape
-        cent = geo.x[geo.cells].mean(axis=1)
-        scale = np.sqrt(geo.area.mean())
-        CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, cent, scale,
-                                              self.TRANSLATES, space.exterior_edge)
-        own = []
-        nc = geo.ncells
-        for members in class_members(rep):
-            if len(members) < self.MIN_CLASS:
-                own.append(members)
-                continue
-            cf, kf, pc = CF[members], KF[members], pi[members]
-            b = bool(boundary[members[0]])
-            r = int(np.flatnonzero(rep[members] == members)[0])
-            glob, RET, loc, L, C = change_of_basis(space, cf, pc, r, b)
-            nr, nq = RET.shape[1], 3 * n
-            _, _, A = space.saddle_point_systems(cf[r:r + 1], glob[r:r + 1], b)
-            # the representative's right-hand side: columns ∇u (2n) | r (3n) | λ_a | f (3n)
-            cr, ka, lr = cf[r], kf[r], loc[r]
-            area = geo.area[cr]
-            rhs = np.zeros((A.shape[1], 8 * n + 1))
-            cols = 2 * np.arange(n)[:, None] + np.arange(2)                   # (n, 2)
-            Cka = np.take_along_axis(self.Ce[cr], (2 * ka[:, None] + np.arange(2))[:, None, :],
-                                     axis=2)                                  # (n, 8, 2)
-            ok = lr >= 0
-            cc = np.broadcast_to(cols[:, None, :], Cka.shape)
-            rr = np.broadcast_to(lr[:, :, None], Cka.shape)
-            okc = np.broadcast_to(ok[:, :, None], Cka.shape)
-            rhs[rr[okc], cc[okc]] = -Cka[okc]
-            qrow = nr + 3 * np.arange(n)[:, None] + np.arange(3)              # (n, 3)
-            gka = geo.grad[cr, ka]                                            # ∇ψ_a (n, 2)
-            rhs[qrow[:, :, None], cols[:, None, :]] = \
-                -(area / 3.0)[:, None, None] * gka[:, None, :]
-            rcols = 2 * n + 3 * np.arange(n)[:, None] + np.arange(3)          # (n, 3)
-            rhs[qrow[:, :, None], rcols[:, None, :]] = \
-                -area[:, None, None] * _C3[ka].transpose(0, 2, 1)             # [i, l]
-            rhs[qrow, 5 * n] = area[:, None] / 12.0 * (1.0 + (np.arange(3) == ka[:, None]))
-            rhs[qrow, 5 * n + 1 + qrow - nr] = 1.0
-            S = np.linalg.solve(A[0], rhs)[:nr]
-            # data of every patch, in the representative's cell and vertex order
-            inv = np.argsort(pc, axis=2)                                      # i for each i'
-            pm = len(members)
-            G = np.concatenate([(2 * cf[:, :, None] + np.arange(2)).reshape(pm, -1),
-                                2 * nc + (3 * cf[:, :, None] + inv).reshape(pm, -1),
-                                5 * nc + verts[members][:, None]], axis=1)
-            G = G.astype(np.int32 if G.max() < 2 ** 31 else np.int64)
-            for alpha in range(2):
-                wf = self.wf[alpha][cf[:, :, None], inv, kf[:, :, None]]      # (pm, n, 3)
-                level = ([(S[None, :, 5 * n + 1:], np.arange(pm * nq).reshape(pm, nq), L,
-                           C)], RET.ravel())
-                self.sigma_f[alpha] += _apply_class(level, wf.ravel(), space.nrt)
-            groups.append((np.ascontiguousarray(S[:, :5 * n + 1]), G, RET.astype(np.int32),
-                           L, C))
-        return np.concatenate(own) if own else np.zeros(0, dtype=np.int64)
+        CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, self._cent,
+                                              np.sqrt(geo.area.mean()), self.TRANSLATES,
+                                              space.exterior_edge)
+        size = np.bincount(rep, minlength=P)
+        member = size[rep] >= self.MIN_CLASS
+        own = np.flatnonzero(~member)
+        reps = np.flatnonzero(member & (rep == np.arange(P)))
+        if len(reps) == 0:
+            return CF, KF, own
+        glob = space.retained_dofs(CF[reps], boundary[reps], KF[reps])
+        q = 5 * n + 1
+        for sel, RET, loc, A in space.patch_groups(CF[reps], boundary[reps], len(reps), glob):
+            nr = RET.shape[1]
+            S = np.linalg.solve(A, self._right_hand_sides(CF[reps[sel]], KF[reps[sel]], nr,
+                                                          loc, A.shape[1]))[:, :nr]
+            batch = np.full(P, -1)
+            batch[reps[sel]] = np.arange(len(sel))
+            mem = np.flatnonzero(member & (batch[rep] >= 0))
+            mem = mem[np.lexsort((rep[mem], size[rep[mem]]))]
+            Pm = len(mem)
+            RETm = np.empty((Pm, nr), dtype=np.int32)
+            L = np.empty((Pm, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+            C = np.empty((Pm, nr, 2), dtype=np.int8)
+            G = np.empty((Pm, q), dtype=self._index_type())
+            GF = np.empty((Pm, 3 * n), dtype=G.dtype)
+            for s in range(0, Pm, 2 * self.CHUNK):
+                c = mem[s:s + 2 * self.CHUNK]
+                part = slice(s, s + 2 * self.CHUNK)
+                RETm[part], L[part], C[part] = self._translates(
+                    CF[c], KF[c], pi[c], CF[rep[c]], loc[batch[rep[c]]], boundary[c], nr)
+                G[part], GF[part] = np.split(
+                    self._data_indices(verts[c], CF[c], KF[c], pi[c]), [q], axis=1)
+            # buckets: the classes of one size, each its members in a row
+            csize = size[rep[mem]]
+            cuts = np.concatenate([[0], np.flatnonzero(np.diff(csize)) + 1, [Pm]])
+            for s, e in zip(cuts[:-1], cuts[1:]):
+                Sb = S[batch[rep[mem[s:e:csize[s]]]]]                          # (g, nr, 8n+1)
+                level.append(((np.ascontiguousarray(Sb[:, :, :q]), G[s:e], L[s:e], C[s:e]),
+                              RETm[s:e].ravel(), (Sb[:, :, q:], GF[s:e], L[s:e], C[s:e])))
+        return CF, KF, own
 
-    def _solve_patches(self, verts, CS, KA, RET, loc, A):
-        """The right-hand sides of P patch problems of one shape as linear maps of the data,
-        and their solution (batched LAPACK): adds the patches' σ_a to the operators."""
+    def _translates(self, CF, KF, pi, CR, lr, boundary, nr):
+        """Retained global dofs RET (P, nr) of P translates (cells CF, vertex matches pi) of
+        representatives (cells CR, local numbers of their dofs lr (P, n, 8)), in the
+        representatives' local order, and their change of basis L, C (P, nr, 2): σ_p[i] =
+        Σ_t C[p, i, t] σ_r[L[p, i, t]]. With F_K the affine map of a cell K in its dolfinx
+        vertex order and R_K its edge reflections, the local RT basis is R_K F_K*ψ̂; the
+        representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π, hence its basis is
+        W = R_K' M_π R_K times K's (algebraic_flux._W_TABLE, entries 0, ±1, at most two per
+        column: the dofs of one entity). A patch dof is numbered as the representative's dof
+        in the same slot of the corresponding entity (one number per global dof: a dof has
+        one slot in every cell that has its entity)."""
+        from .algebraic_flux import _perm_code
+        space = self.space
+        TOP, COEF, ANCHOR = _class_tables(tuple(map(tuple, space.slots)))
+        P, n = CF.shape
+        glob = space.retained_dofs(CF, boundary, KF).ravel()
+        perm = _perm_code(pi).ravel()
+        code = (space.reflections[CR].ravel() * 6 + perm) * 8 + space.reflections[CF].ravel()
+        # one entry per retained dof position (patch p, cell c, dof k): row = p n + c; flat
+        # indices throughout (tables and outputs)
+        pos = np.flatnonzero(glob >= 0)
+        row, k = pos // 8, pos % 8
+        base = pos - k
+        lr = lr.ravel()
+        li = lr[base + ANCHOR.ravel()[perm[row] * 8 + k]]
+        if (li < 0).any() or (lr >= 0).sum() != len(pos):
+            raise RuntimeError("a translate keeps other RT dofs than its representative")
+        dest = (row // n) * nr + li
+        RET = np.full((P, nr), -1, dtype=np.int32)
+        RET.reshape(-1)[dest] = glob[pos]
+        if (RET < 0).any():
+            raise RuntimeError("a translate's RT dofs do not match its representative's")
+        ck = (code[row] * 8 + k) * 2
+        L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+        C = np.zeros((P, nr, 2), dtype=np.int8)
+        for t in range(2):
+            coef = COEF.reshape(-1)[ck + t]
+            tgt = lr[base + TOP.reshape(-1)[ck + t]]
+            if (tgt[coef != 0] < 0).any():
+                raise RuntimeError("a retained dof of a translate maps to a dropped one")
+            L.reshape(-1)[2 * dest + t] = np.maximum(tgt, 0)
+            C.reshape(-1)[2 * dest + t] = coef
+        return RET, L, C
+
+    def _index_type(self):
+        return np.int32 if 14 * self.geo.ncells + self.geo.n < 2 ** 31 else np.int64
+
+    def _data_indices(self, verts, CF, KF, pi):
+        """(P, 8n + 1): where the data of P patches (in their representative's cell and
+        vertex order) sit in the flat array [∇u_h (2 per cell) | r_h (3 per cell) | λ (per
+        vertex)] (5n + 1 columns), then in the flat array of (f φ_k, φ_i)_K (9 per cell, 3n
+        columns): vertex i' of the representative's cell is vertex i of the patch's with
+        pi[c, i] = i'."""
+        nc = self.geo.ncells
+        P, n = CF.shape
+        cv = 3 * CF[:, :, None] + np.argsort(pi, axis=2)                        # (P, n, 3)
+        return np.concatenate([(2 * CF[:, :, None] + np.arange(2)).reshape(P, -1),
+                               2 * nc + cv.reshape(P, -1), 5 * nc + verts[:, None],
+                               (3 * cv + KF[:, :, None]).reshape(P, -1)], axis=1)
+
+    def _class_load(self, level, wf):
+        """The classes' operators as the evaluation takes them (buckets, RT dofs), after
+        adding their σ_f from the load columns, which are then dropped."""
+        from .algebraic_flux import _apply_buckets
+        pieces, rets, count = [], [], 0
+
+        def add():                                        # σ_f of the pieces gathered so far
+            for alpha in range(2):
+                self.sigma_f[alpha] += _apply_buckets((pieces, np.concatenate(rets)),
+                                                      wf[alpha].ravel(), self.sigma_f.shape[1])
+            pieces.clear()
+            rets.clear()
+
+        for _, ret, (S, G, L, C) in level:
+            g, nr, _ = S.shape
+            per = G.shape[0] // g                             # patches per class
+            step = max(1, 4 * self.CHUNK // per)              # some classes at a time
+            for s in range(0, g, step):
+                part = slice(s * per, (s + step) * per)
+                pieces.append((S[s:s + step], G[part], L[part], C[part]))
+                rets.append(ret[part.start * nr:part.stop * nr])
+                count += len(G[part])
+                if count >= 8 * self.CHUNK:
+                    add()
+                    count = 0
+        if pieces:
+            add()
+        return [b for b, _, _ in level], np.concatenate([r for _, r, _ in level])
+
+    def _right_hand_sides(self, CS, KA, nr, loc, N):
+        """The right-hand sides of P patch problems of one shape (cells CS (P, n), a's local
+        index KA, local numbers loc of the retained dofs, nr of them, N unknowns) as linear
+        maps of cell data, (P, N, 8n + 1): columns ∇u_h on each cell (2n) | r_h on each cell
+        (3n, in the cell's vertex order) | λ_a | (ψ_a f, q_i)_K (3n). Rows: -(ψ_a ∇u_h, τ)
+        for the retained τ, then (g̃_a, q_i)_K = (ψ_a (f ± λ_a - r_h), q_i)_K
+        - (∇u_h·∇ψ_a, q_i)_K with exact P1 products; μ_α and ± are applied to the data."""
+        geo = self.geo
+        P, n = CS.shape
+        nq = 3 * n
+        rhs = np.zeros((P, N, 8 * n + 1))
+        pp = np.arange(P)[:, None, None]
+        jj = np.arange(n)[None, :, None]
+        area = geo.area[CS]                                                   # (P, n)
+        dcols = 2 * jj[..., None] + np.arange(2)                              # (1, n, 1, 2)
+        Ce = self.space.vector_moments(CS.ravel()).reshape(P, n, 8, 3, 2)
+        Cka = np.take_along_axis(Ce, KA[:, :, None, None, None], axis=3)[:, :, :, 0]
+        ok = np.broadcast_to(loc[..., None] >= 0, Cka.shape)
+        rhs[np.broadcast_to(pp[..., None], Cka.shape)[ok],
+            np.broadcast_to(loc[..., None], Cka.shape)[ok],
+            np.broadcast_to(dcols, Cka.shape)[ok]] = -Cka[ok]
+        qrow = nr + 3 * jj + np.arange(3)                                     # (1, n, 3)
+        gka = geo.grad[CS, KA]                                                # ∇ψ_a (P, n, 2)
+        rhs[pp[..., None], qrow[..., None], dcols] = \
+            -(area / 3.0)[..., None, None] * gka[:, :, None, :]
+        rcols = 2 * n + 3 * jj + np.arange(3)                                 # (1, n, 3)
+        rhs[pp[..., None], qrow[..., None], rcols[:, :, None, :]] = \
+            -area[..., None, None] * _C3[KA].transpose(0, 1, 3, 2)            # [i, l]
+        delta = np.arange(3) == KA[..., None]
+        rhs[pp, qrow, 5 * n] = area[..., None] / 12.0 * (1.0 + delta)
+        rhs[:, nr:nr + nq, 5 * n + 1:] = np.eye(nq)
+        return rhs
+
+    def _solve_patches(self, verts, CS, KA, RET, loc, A, wf):
+        """P patch problems of one shape, with their right-hand sides composed with the local
+        gradient and lifting operators (vertex data), solved by batched LAPACK: adds the
+        patches' σ_a to the operators."""
         geo = self.geo
         P, n = CS.shape
         nr, N = RET.shape[1], A.shape[1]
@@ -451,57 +724,47 @@ class FluxEquilibration:
         vloc = _row_index(VERTS, geo.cells[CS].reshape(P, -1)).reshape(P, n, 3)
         nq = 3 * n
         pp = np.arange(P)[:, None, None]
-        jj = np.arange(n)[None, :, None]
-        area = geo.area[CS]                                                   # (P, n)
-        qloc = 3 * jj + np.arange(3)[None, None, :]                           # (1, n, 3)
+        qloc = 3 * np.arange(n)[None, :, None] + np.arange(3)[None, None, :]  # (1, n, 3)
         # local gradient (P, 2n, m) and lifting (P, 3n, m) operators
-        grad = geo.grad[CS]                                                   # (P, n, 3, 2)
         Gd = np.zeros((P, 2 * n, m))
-        rows = 2 * jj[..., None] + np.arange(2)                               # (1, n, 1, 2)
-        Gd[pp[..., None], rows, vloc[..., None]] = grad
+        rows = 2 * np.arange(n)[None, :, None, None] + np.arange(2)           # (1, n, 1, 2)
+        Gd[pp[..., None], rows, vloc[..., None]] = geo.grad[CS]
         Lr = np.zeros((P, nq, m))
-        liftK = (3.0 / area)[..., None, None] * _MINV_REF \
+        liftK = (3.0 / geo.area[CS])[..., None, None] * _MINV_REF \
             / geo.cells_per_vertex[geo.cells[CS]][:, :, None, :]              # (P, n, 3, 3)
         Lr[pp[..., None], qloc[..., None], vloc[:, :, None, :]] = liftK
-        # right-hand sides: columns u (m) | λ_a (1) | R (m) | f1 | f2
-        rhs = np.zeros((P, N, 2 * m + 3))
-        kcols = 2 * KA[..., None] + np.arange(2)                              # (P, n, 2)
-        Cka = np.take_along_axis(self.Ce[CS], kcols[:, :, None, :], axis=3)   # (P, n, 8, 2)
-        Cl = np.zeros((P, nr, 2 * n))
-        okc = np.broadcast_to(loc[..., None] >= 0, Cka.shape)
-        pc = np.broadcast_to(pp[..., None], Cka.shape)
-        rc = np.broadcast_to(loc[..., None], Cka.shape)
-        cc = np.broadcast_to((2 * jj[..., None] + np.arange(2)), Cka.shape)
-        Cl[pc[okc], rc[okc], cc[okc]] = Cka[okc]
-        rhs[:, :nr, :m] = -Cl @ Gd
-        gka = np.take_along_axis(grad, KA[:, :, None, None], axis=2)[:, :, 0]  # ∇ψ_a (P, n, 2)
-        Qg = np.zeros((P, nq, 2 * n))
-        Qg[pp[..., None], qloc[..., None], rows[:, :, 0][:, :, None, :]] = \
-            -(area / 3.0)[..., None, None] * gka[:, :, None, :]
-        Qr = np.zeros((P, nq, nq))
-        Qr[pp[..., None], qloc[..., None], qloc[:, :, None, :]] = \
-            -area[..., None, None] * _C3[KA].transpose(0, 1, 3, 2)            # [i, l]
-        rhs[:, nr:nr + nq, :m] = Qg @ Gd
-        rhs[:, nr:nr + nq, m + 1:2 * m + 1] = Qr @ Lr
-        delta = (np.arange(3)[None, None, :] == KA[..., None])
-        rhs[:, nr:nr + nq, m] = (area[..., None] / 12.0 * (1.0 + delta)).reshape(P, nq)
-        for alpha in range(2):
-            wf = self.wf[alpha][CS]                                           # (P, n, 3, 3)
-            rhs[:, nr:nr + nq, 2 * m + 1 + alpha] = np.take_along_axis(
-                wf, KA[:, :, None, None], axis=3)[..., 0].reshape(P, nq)
+        cell = self._right_hand_sides(CS, KA, nr, loc, N)
+        # columns u (m) | λ_a (1) | R (m) | f1 | f2
+        load = [np.take_along_axis(w[CS], KA[:, :, None, None], axis=3).reshape(P, nq, 1)
+                for w in wf]
+        rhs = np.concatenate([cell[:, :, :2 * n] @ Gd, cell[:, :, 5 * n:5 * n + 1],
+                              cell[:, :, 2 * n:5 * n] @ Lr]
+                             + [cell[:, :, 5 * n + 1:] @ w for w in load], axis=2)
+        del cell
         sol = np.linalg.solve(A, rhs)[:, :nr]                                 # σ rows
-        # σ = Σ_a σ_a: add this batch's operators (summed batch by batch to bound memory)
-        shape = self.G_u.shape
+        # σ = Σ_a σ_a: this batch's operator entries, added to G_u, G_R, G_λ a few batches
+        # at a time (`_add_operators`: few sparse sums, bounded memory)
         rows = np.broadcast_to(RET[:, :, None], (P, nr, m)).ravel().astype(np.int32)
         cols = np.broadcast_to(VERTS[:, None, :], (P, nr, m)).ravel().astype(np.int32)
-        self.G_u = self.G_u + sp.csr_matrix((sol[:, :, :m].ravel(), (rows, cols)), shape=shape)
-        self.G_R = self.G_R + sp.csr_matrix((sol[:, :, m + 1:2 * m + 1].ravel(), (rows, cols)),
-                                            shape=shape)
-        self.G_lam = self.G_lam + sp.csr_matrix(
-            (sol[:, :, m].ravel(), (RET.ravel(), np.repeat(verts, nr))), shape=shape)
+        self._pending.append((rows, cols, sol[:, :, :m].ravel(),
+                              sol[:, :, m + 1:2 * m + 1].ravel(), RET.ravel().astype(np.int32),
+                              np.repeat(verts, nr).astype(np.int32), sol[:, :, m].ravel()))
+        if sum(len(z[0]) for z in self._pending) > 1 << 22:
+            self._add_operators()
         for alpha in range(2):
             self.sigma_f[alpha] += np.bincount(RET.ravel(), sol[:, :, 2 * m + 1 + alpha].ravel(),
-                                               minlength=shape[0])
+                                               minlength=self.sigma_f.shape[1])
+
+    def _add_operators(self):
+        if not self._pending:
+            return
+        rows, cols, u, R, rows_lam, cols_lam, lam = (np.concatenate(z)
+                                                     for z in zip(*self._pending))
+        self._pending.clear()
+        shape = self.G_u.shape
+        self.G_u = self.G_u + sp.csr_matrix((u, (rows, cols)), shape=shape)
+        self.G_R = self.G_R + sp.csr_matrix((R, (rows, cols)), shape=shape)
+        self.G_lam = self.G_lam + sp.csr_matrix((lam, (rows_lam, cols_lam)), shape=shape)
 
     def sigma(self, alpha, u, lam, R):
         """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5)."""

@@ -74,14 +74,20 @@ def constraint_projection(u1, u2):
 
 
 class Estimators:
-    """Set-up once per discretisation; `evaluate(X, R)` at any iterate."""
+    """Set-up once per discretisation; `evaluate(X, R)` at any iterate.
 
-    def __init__(self, disc):
+    With `owned` (a boolean mask over the vertices) only the patches of the owned vertices
+    are set up (FluxEquilibration): σ_disc is then this process's part, and `sum_parts` (a
+    callable, e.g. parallel.Summation) adds the parts of all processes into σ_disc before
+    anything uses it; the rest of the evaluation is the same on every process."""
+
+    def __init__(self, disc, owned=None, sum_parts=None):
         from dolfinx import fem
         self.disc = disc
         problem = disc.problem
         mesh = problem.mesh
-        self.flux = FluxEquilibration(disc)
+        self.flux = FluxEquilibration(disc, owned)
+        self.sum_parts = sum_parts
         self.geo = geo = self.flux.geo
         self.mu = (problem.mu1, problem.mu2)
         self.cpf = problem.poincare_constant()
@@ -96,6 +102,7 @@ class Estimators:
         self._flux_form = fem.form(flux_estimator_squared(self._mu, self._u, self._sigma, w))
         self._norm_form = fem.form(cell_norm_squared(self._sigma, w))
         self.osc = self._oscillation(w)                       # (2, ncells)
+        self.flux.load = None                                 # only the oscillation uses it
 
     def _per_cell(self, form):
         return assemble_vector_array(form)[self.cell_dof]
@@ -148,8 +155,12 @@ class Estimators:
         n = self.disc.n
         u1, u2, lam = split(X, n)
         Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
-        return [self.flux.sigma(alpha + 1, u, lam, Ra)
-                for alpha, (u, Ra) in enumerate(zip((u1, u2), Rs))]
+        sigma = [self.flux.sigma(alpha + 1, u, lam, Ra)
+                 for alpha, (u, Ra) in enumerate(zip((u1, u2), Rs))]
+        if self.sum_parts is not None:
+            both = self.sum_parts(np.concatenate(sigma))
+            sigma = [both[:len(sigma[0])], both[len(sigma[0]):]]
+        return sigma
 
     def nu_flux(self, X, R, X_later, R_later):
         """The algebraic flux of ν extra iterations (DESIGN §6) at the iterate X (residual R),

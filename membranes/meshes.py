@@ -59,17 +59,17 @@ def _mesh_shape(shape, h, comm):
         return _to_dolfinx(gmsh, comm)
 
 
-def unit_disk(h, comm=MPI.COMM_WORLD):
+def unit_disk(h, comm=MPI.COMM_SELF):
     """Unstructured mesh of the unit disk with target cell size h (DESIGN §9)."""
     return _mesh_shape("disk", h, comm)
 
 
-def unit_square(h, comm=MPI.COMM_WORLD):
+def unit_square(h, comm=MPI.COMM_SELF):
     """Unstructured mesh of (0, 1)² with target cell size h."""
     return _mesh_shape("square", h, comm)
 
 
-def structured_square(nx, ny, grading=1.0, comm=MPI.COMM_WORLD):
+def structured_square(nx, ny, grading=1.0, comm=MPI.COMM_SELF):
     """(0, 1)² cut into nx × ny rectangles, each split into two right triangles (dolfinx's
     create_unit_square), then mapped by (x, y) -> (x^p, y^p), p = `grading` ≥ 1: cells shrink
     towards the corner (0, 0) (the smallest and largest cell sizes differ by ~ p nx^(p-1)).
@@ -97,7 +97,7 @@ def aspect_ratios(mesh):
     return cell_diameters(mesh) ** 2 / (2.0 * area)
 
 
-def read_msh(path, comm=MPI.COMM_WORLD):
+def read_msh(path, comm=MPI.COMM_SELF):
     """Read a 2D triangular gmsh `.msh` file; ValueError names what is wrong with it."""
     path = os.fspath(path)
     if not os.path.exists(path):

@@ -23,7 +23,11 @@ midpoint both w = u1 - u2 and λ are positive. Setting λ = 0 there (the membran
 tried and not kept: on the disk (h0 = 0.2, J = 3, Newton steps on T_0..T_3) it saved a step
 per level for exact Newton-min (4, 3, 3, 4 against 4, 4, 4, 5) and for Fischer–Burmeister on
 T_3 (14 against 21), but cost steps where it counts more: adaptive 3, 3, 4, 6 against
-3, 2, 3, 3, inexact 6, 8, 17, 42 against 6, 7, 16, 33.
+3, 2, 3, 3, inexact 6, 8, 17, 42 against 6, 7, 16, 33. Projecting every prolonged pair onto
+the complementarity set (λ = 0 where w ≥ κ λ, else u1 = u2 = their mean) did not help
+Fischer–Burmeister either (exact, MUMPS, full steps: 10, 7, 8, 8 against 10, 7, 7, 7 on
+T_0..T_3): the first step from it is the active set step, and FB's own steps then take
+as long as before. FB meets the bound by its active-set steps instead (newton).
 
 **Levels.** The problem of level j is the problem itself with its hierarchy truncated to
 T_0..T_j (`level_problem`): same data, same scene declarations (exact solution, interface,

@@ -50,6 +50,36 @@ tolerances: ‖W R_lin‖/‖W F‖ ≤ tol, ‖W R_alg‖/‖W B‖ ≤ 2e-12 f
   the system of that step, B - A X_t = (1 - t) R_lin(X_0) + t R_1 (DESIGN §4), and its
   `step_length` t (1 for full steps); the iterates abandoned by a return stay in the
   history and count.
+* **Active-set steps (Fischer–Burmeister, exact and inexact).** FB is positively homogeneous:
+  its Newton row at a vertex, (cos φ - 1)(X1 - X2) + (sin φ - 1) κ X3 = 0 (B3 = 0, Euler),
+  depends only on the angle φ of (a, b) = (u1 - u2, κ λ). Off the axes it is a mixed
+  condition, gap and pressure of opposite signs; a vertex on the wrong side comes back to
+  its axis only like φ → φ²/2 per step, and near the free boundary the tail is quadratic
+  with the constant 1/(2 w*), w* the small gap of the solution there. Measured on the disk
+  (h0 = 0.2, MUMPS, nested): from the prolonged guess the first step forces contact at the
+  edge midpoints where w and λ are both positive (residual 4e-2 → 3 on T_3), the next steps
+  bring such vertices back (angle -90°, -27°, -4°, ...), and the tail falls only ~30× per
+  step (w* = 7e-6 against g = 0.05): 10, 7, 7, 7, 7 steps on T_0..T_4, min 4, 4, 4, 5, 4.
+  Neither the element chosen at the kink (no iterate has a = b = 0 there), nor a local κ
+  (D_a (1/S1_aa + 1/S2_aa), the gap a nodal pressure makes), nor a projection of the
+  prolonged guess changed that much (measured: 10 on T_0, 6-8 on T_1..T_3).
+  Hence, after a step that decreased the merit enough, θ(X^k) ≤ (1 - 2σ) θ(X^{k-1}), the
+  next step first linearises FB at the projection P(X) of every pair (a, b) onto the
+  complementarity set (cfunctions.project, `linear_step(at_projection=True)`), where FB
+  vanishes and its Jacobian is (-1, 0) or (0, -1): the Newton system of min, the
+  primal–dual active set step. It is kept if θ(X_P) ≤ (1 - 2σ) θ(X) (Armijo at t = 1;
+  a kept step that also meets the checkpoint's test ends the watchdog's run); otherwise,
+  or where its linear solve fails, the FB step at X is solved as well (both solves count in
+  the step's linear iterations) and the watchdog above goes on. Once the active set is right the active-set step lands
+  on the discrete solution: on the same disk 6, 3, 3, 4, 4 steps. The C-function, the
+  merit, the stopping test, the line search and the solution are FB's; the steps of a run
+  up to its first sufficient decrease (at least one; also after Newton-min's guard switched
+  to FB) are FB's own, and records say which linearisation each step used
+  (`linearised_at`: 'iterate' or 'projection'). The adaptive variant takes no active-set
+  steps (it takes GMRES iterates as they are: see below). Inexact steps with GMRES +
+  ILU(0) are 10 GMRES iterations each on fine meshes, far from either Newton step, and
+  there active-set steps do not pay (disk T_4: 123 Newton steps against 73; with
+  vertex_amg on the eliminated system they do: 6, 3, 3, 4, 4 against 10, 7, 7, 7, 7).
 * Newton-min has no merit function to descend (min is not differentiable), and with exact
   solves it is the primal–dual active set method, which can cycle (active sets that repeat;
   possible for P-matrices that are not M-matrices, e.g. obtuse meshes or a far-off start).
@@ -70,7 +100,9 @@ reason, when max_it Newton steps do not meet the stopping test or when a Krylov 
 
 History: one record per Newton iterate (X^0 included, kind "initial"/"newton") and per ν-th
 Krylov iterate inside a step (kind "krylov"), with `linear_it` the Krylov iterations done so
-far in the step (the step's total for a Newton iterate, 1 for a direct solve). An adaptive
+far in the step (the step's total for a Newton iterate, 1 for a direct solve per solve: 2
+where an active-set step was rejected) and `linearised_at` the point where the step
+linearised the C-function ('iterate', or 'projection' for an active-set step). An adaptive
 step's Newton record repeats the accepted Krylov iterate (its X, residuals and estimates) with
 the step's total. Callbacks, in this order, for each recorded iterate X (3N) with the
 algebraic residual R = B - A X (3N; R3 = 0 on the eliminated system) of the linear system
@@ -152,12 +184,14 @@ class LinearStep:
     pad: Callable
 
 
-def linear_step(rows, cfun, system, X):
+def linear_step(rows, cfun, system, X, at_projection=False):
     """The Newton system at X (DESIGN §3), full or eliminated, with the membrane rows weighted
     by W (newton_system: units); the guess is X itself, or for the eliminated system the
     unknowns of X it keeps (u1, and u2 or λ at each vertex). `pad` maps the solver's residual
-    back to the unweighted 3N R of DESIGN §4, which the estimators read."""
-    alpha, beta, B3 = ns.complementarity_rows(rows, cfun, X)
+    back to the unweighted 3N R of DESIGN §4, which the estimators read. at_projection:
+    Fischer–Burmeister linearised at the projection of X (the active-set step of the module
+    notes)."""
+    alpha, beta, B3 = ns.complementarity_rows(rows, cfun, X, at_projection)
     norm_B = float(np.linalg.norm(np.concatenate([rows.weights * rows.F, B3])))
     if system == "full":
         A, B = ns.full_system(rows, alpha, beta, B3)
@@ -272,7 +306,9 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                          f"the {rows.n} vertices), got shape {X.shape}"
                          + ("" if X.shape != (3 * rows.n,) else " with non-finite values"))
     history = []
-    state = {"cfun": cfun, "note": ""}     # the C-function in use (the guard may switch it)
+    # the C-function in use (the guard may switch it), where the step linearised it, and
+    # whether the last step decreased the merit enough (FB: the next step tries active-set)
+    state = {"cfun": cfun, "note": "", "at": "iterate", "decreased": False}
 
     def record(kind, k, its, cumulative, X, R, norm_B, same_as=None, step_length=None,
                residual=None):
@@ -283,7 +319,8 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                else residual,
                "alg_residual": None if R is None
                else float(np.linalg.norm(rows.weighted(R))) / norm_B,
-               "kind": kind, "cfun": state["cfun"], "step_length": step_length}
+               "kind": kind, "cfun": state["cfun"], "step_length": step_length,
+               "linearised_at": None if kind == "initial" else state["at"]}
         if not adaptive:
             clock.pause()
         ready = [] if estimate is None else estimate(rec, X, R, same_as)
@@ -294,15 +331,17 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         clock.resume()
         return rec, ready
 
-    def hand_out(k, step, done, accepted):
-        """The Krylov callback of step k: record X^{k,i}; for adaptive, keep in `accepted` the
-        first iterate of this step that meets the linear criterion, and stop GMRES then."""
+    def hand_out(k, step, done, accepted, before=0):
+        """The Krylov callback of step k (`done`: the linear iterations of the steps before,
+        `before`: those of this step's rejected active-set solve): record X^{k,i}; for
+        adaptive, keep in `accepted` the first iterate of this step that meets the linear
+        criterion, and stop GMRES then."""
         def on_iterate(its, current):
             if not adaptive:
                 clock.pause()
             y, r = current()
-            _, ready = record("krylov", k, its, done + its, step.expand(y), step.pad(r),
-                              step.norm_B)
+            _, ready = record("krylov", k, before + its, done + before + its, step.expand(y),
+                              step.pad(r), step.norm_B)
             if adaptive:
                 accepted.extend(it for it in ready if it[0]["kind"] == "krylov"
                                 and it[0]["newton_it"] == k
@@ -349,27 +388,49 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                 state["note"] = (f"; Newton-min {why}, continued from step {k} with "
                                  f"Fischer-Burmeister and its line search")
                 rec["residual"] = rows.relative_residual("fb", X)
+                state["decreased"] = False
             else:
                 seen[signature] = (k - 1, rec["residual"])
-        step = linear_step(rows, state["cfun"], system, X)
-        accepted = []
+        lin_tol = linear_tolerance(variant, tol, rec["residual"])
+        test_every = 1 if variant != "inexact" else krylov.nu
+        fb_steps = state["cfun"] == "fb" and not adaptive
+        before, r_new, t, same_as, accepted = 0, None, None, None, []
+        if fb_steps and state["decreased"]:
+            # the active-set step of the module notes, kept if it decreases the merit (a
+            # solve that fails is rejected as well: the FB step may still be solved)
+            state["at"] = "projection"
+            step = linear_step(rows, "fb", system, X, at_projection=True)
+            try:
+                X_new, R, its = solve_step(step, krylov, lin_tol, test_every,
+                                           hand_out(k, step, done, accepted))
+                r_new = rows.relative_residual("fb", X_new) \
+                    if np.all(np.isfinite(X_new)) else np.inf
+            except LinearSolveError as e:
+                its, r_new = e.its, np.inf
+            if r_new * r_new <= (1.0 - 2.0 * LS_SIGMA) * rec["residual"] ** 2:
+                t = 1.0
+                if watch is not None and r_new * r_new <= \
+                        (1.0 - 2.0 * LS_SIGMA) * watch[2] * watch[2]:
+                    watch = None
+            else:
+                before, r_new = its, None
         try:
-            X_new, R, its = solve_step(step, krylov, linear_tolerance(variant, tol,
-                                                                      rec["residual"]),
-                                       1 if variant != "inexact" else krylov.nu,
-                                       hand_out(k, step, done, accepted))
+            if t is None:
+                state["at"] = "iterate"
+                step = linear_step(rows, state["cfun"], system, X)
+                X_new, R, its = solve_step(step, krylov, lin_tol, test_every,
+                                           hand_out(k, step, done, accepted, before))
         except LinearSolveError as e:
             unmet = " before the adaptive criterion was met" if adaptive else ""
             return result(False, f"linear solver failed at Newton step {k}{unmet}: {e}",
-                          k - 1, done + e.its)
+                          k - 1, done + before + e.its)
+        its += before
         done += its
-        same_as, t = None, None
         if accepted:
             same_as, X_new, R = accepted[0]
         if not np.all(np.isfinite(X_new)):
             return result(False, f"non-finite iterate at Newton step {k}", k - 1, done)
-        r_new = None
-        if state["cfun"] == "fb" and not adaptive:
+        if fb_steps and t is None:
             # the watchdog line search of the module notes
             t, X_t, X_from, R_from = 1.0, None, X, R
             if damped:          # after a return: a nonmonotone Armijo step at every step
@@ -394,8 +455,9 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                 # direction, where B - A X_from = R_lin(X_from)
                 R = (1.0 - t) * ns.nonlinear_residual(rows, "fb", X_from) + t * R_from
                 X_new = X_t
-        X = X_new
+        previous, X = rec["residual"], X_new
         rec = record("newton", k, its, done, X, R, step.norm_B, same_as, t, r_new)[0]
+        state["decreased"] = rec["residual"] ** 2 <= (1.0 - 2.0 * LS_SIGMA) * previous ** 2
     met, description = stopping(rec)
     k = rec["newton_it"]
     if met:

@@ -112,11 +112,12 @@ def split(X, n):
     return X[:n], X[n:2 * n], X[2 * n:]
 
 
-def complementarity_rows(rows, cfun, X):
-    """α, β, B3 of C(u1 - u2, κ λ) at X; boundary vertices get the Dirichlet row κ λ_l = 0
-    (α = 0, β = κ)."""
+def complementarity_rows(rows, cfun, X, at_projection=False):
+    """α, β, B3 of C(u1 - u2, κ λ) at X (or, for Fischer–Burmeister, at_projection: at the
+    projection of (u1 - u2, κ λ) onto the complementarity set, cfunctions.linearise);
+    boundary vertices get the Dirichlet row κ λ_l = 0 (α = 0, β = κ)."""
     u1, u2, lam = split(X, rows.n)
-    alpha, beta, B3 = cfunctions.linearise(cfun, u1 - u2, lam, rows.kappa)
+    alpha, beta, B3 = cfunctions.linearise(cfun, u1 - u2, lam, rows.kappa, at_projection)
     alpha[rows.boundary], beta[rows.boundary], B3[rows.boundary] = 0.0, rows.kappa, 0.0
     return alpha, beta, B3
 

@@ -22,10 +22,9 @@ import tempfile
 
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
 
-OUTPUT_FILES = ("summary.json", "history.csv", "solution.xdmf", "solution.h5")
 HISTORY_COLUMNS = ("level", "newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
                    "residual", "alg_residual", "kind", "energy_error") + ESTIMATOR_COLUMNS \
-    + ("bound", "cfun", "step_length")
+    + ("bound", "cfun", "step_length", "linearised_at")
 
 
 def _json_safe(value):
@@ -86,27 +85,22 @@ def staged_folder(out):
 
 
 def write_outputs(solution, out_dir):
-    """Write the three outputs of `solution` into `out_dir` (created if missing)."""
-    comm = solution.problem.mesh.comm
-    out_dir = os.path.abspath(out_dir)
-    parent = os.path.dirname(out_dir)
-    tmp = None
-    if comm.rank == 0:
-        os.makedirs(parent, exist_ok=True)
-        tmp = tempfile.mkdtemp(prefix=".membranes-", dir=parent)
-    tmp = comm.bcast(tmp, root=0)
-    summary = solution.summary()          # collective (global mesh sizes)
-    try:
-        write_solution(os.path.join(tmp, "solution.xdmf"), solution.problem.mesh,
-                       solution.functions, solution.eta_K)
-        if comm.rank == 0:
-            write_summary(os.path.join(tmp, "summary.json"), summary)
-            write_history(os.path.join(tmp, "history.csv"), solution.history)
-            os.makedirs(out_dir, exist_ok=True)
-            for name in OUTPUT_FILES:
-                os.replace(os.path.join(tmp, name), os.path.join(out_dir, name))
-        comm.barrier()
-    finally:
-        if comm.rank == 0:
-            shutil.rmtree(tmp, ignore_errors=True)
-    return out_dir
+    """Write the three outputs of `solution` into `out_dir` (created if missing). With several
+    processes (membranes.parallel: each holds the whole solution) process 0 writes them; every
+    process returns once they are in place, or raises the error process 0 met."""
+    comm = solution.comm
+    error = None
+    if comm is None or comm.rank == 0:
+        try:
+            with staged_folder(out_dir) as tmp:
+                write_solution(os.path.join(tmp, "solution.xdmf"), solution.problem.mesh,
+                               solution.functions, solution.eta_K)
+                write_summary(os.path.join(tmp, "summary.json"), solution.summary())
+                write_history(os.path.join(tmp, "history.csv"), solution.history)
+        except Exception as e:     # noqa: BLE001  (handed to every process below)
+            error = e
+    if comm is not None:
+        error = comm.bcast(error, root=0)
+    if error is not None:
+        raise error
+    return os.path.abspath(out_dir)

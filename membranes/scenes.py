@@ -50,7 +50,7 @@ DISK_G = 0.05
 J01 = 2.404825557695773   # first zero of the Bessel function J_0
 
 
-def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
+def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_SELF):
     """The paper's test case on the unit disk, with its exact solution (DESIGN §9)."""
     levels = _check_levels(levels)
     g = DISK_G
@@ -101,7 +101,7 @@ def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
 SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
 
 
-def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, mesh=None):
+def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_SELF, mesh=None):
     """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
     `mesh`: a dolfinx mesh of (0, 1)² to use instead of gmsh's at size h (API only: the
     anisotropic, graded and tiny meshes of DESIGN §11, meshes.structured_square)."""
@@ -154,7 +154,7 @@ def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, mesh=None):
 
 
 def radial(h=DEFAULT_H, levels=0, rho=0.5, mu1=1.0, mu2=1.0, g=0.05, contact=True,
-           comm=MPI.COMM_WORLD):
+           comm=MPI.COMM_SELF):
     """Unit disk, exact radial solution with contact disk r <= rho (any mu1, mu2, g)."""
     levels = _check_levels(levels)
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
@@ -207,7 +207,7 @@ USER_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "g": 0.05, "f1": "0", "f2": "0"}
 
 
 def user(mu1=1.0, mu2=1.0, g=0.05, f1="0", f2="0", mesh=None, domain="disk", h=DEFAULT_H,
-         levels=0, comm=MPI.COMM_WORLD):
+         levels=0, comm=MPI.COMM_SELF):
     """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square."""
     levels = _check_levels(levels)
     f1, f2 = Formula(f1, "f1"), Formula(f2, "f2")   # fail on bad input before any meshing

@@ -128,28 +128,6 @@ def test_formula_accepts_the_documented_language():
     assert np.allclose(f.numpy(p), expected, rtol=1e-15, atol=1e-15)
 
 
-def test_mpirun_is_refused_with_a_clear_message(tmp_path):
-    """MPI is not implemented (issue 6): under mpirun the CLI says so on one line per process
-    and exits with 2, writing nothing."""
-    import shutil
-    import subprocess
-    import sys
-    mpirun = shutil.which("mpirun")
-    assert mpirun is not None          # python3-dolfinx depends on Open MPI
-    import os
-    out = tmp_path / "run"
-    # this process initialised MPI as a singleton: its OMPI_/PMIX_ variables would confuse
-    # the new mpirun
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    proc = subprocess.run([mpirun, "--allow-run-as-root", "--oversubscribe", "-n", "2",
-                           sys.executable, "-m", "membranes.cli", "solve", "--h", "0.3",
-                           "--out", str(out)], capture_output=True, text=True, timeout=300,
-                          env=env)
-    assert proc.returncode == 2, proc.stderr
-    assert "runs on one process" in proc.stderr
-    assert not out.exists()
-
-
 @pytest.mark.parametrize("guess,message", [
     ("warm", "unknown initial guess"),
     (np.zeros(5), "got shape"),

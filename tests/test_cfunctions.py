@@ -98,3 +98,43 @@ def test_full_and_eliminated_systems_agree(cfun):
     assert np.abs(full.X - elim.X).max() <= 1e-10 * np.abs(full.X).max()
     for rf, re in zip(full.history, elim.history):
         assert abs(rf["residual"] - re["residual"]) <= 1e-8 * max(rf["residual"], 1e-6)
+
+
+# ## Fischer–Burmeister at the projection (newton: active-set steps)
+
+def test_projection_is_the_nearest_point_of_the_complementarity_set():
+    """The set is the two half-axes {a ≥ 0, b = 0} ∪ {a = 0, b ≥ 0}: compare with the nearest
+    point on each (exact arithmetic: maxima and zeros only)."""
+    a, b = RNG.uniform(-1, 1, 400), RNG.uniform(-1, 1, 400)
+    a[:20], b[:20] = 0.0, 0.0                        # the kink
+    a[20:40] = b[20:40]                              # ties: min's rule picks contact
+    p, q = cfunctions.project(a, b)
+    assert np.all((p >= 0) & (q >= 0) & (p * q == 0))
+    assert np.all(cfunctions.c_fb(p, q) == 0)
+    to_a_axis = (a - np.maximum(a, 0)) ** 2 + b ** 2
+    to_b_axis = a ** 2 + (b - np.maximum(b, 0)) ** 2
+    assert np.allclose((a - p) ** 2 + (b - q) ** 2, np.minimum(to_a_axis, to_b_axis),
+                       rtol=0, atol=1e-15)
+    contact = a <= b
+    assert np.all(p[contact] == 0) and np.all(q[~contact] == 0)
+
+
+def test_jacobian_at_projection_is_the_gradient_there():
+    """Off the origin FB is differentiable at the projection (p, q) and the row is its gradient
+    there; at the origin the row is (ξ - 1, ζ - 1) with ξ² + ζ² = 1, in the Clarke Jacobian
+    (DESIGN §3). The linearisation at the projection has B3 = 0 and is min's row up to sign
+    (the primal–dual active set step)."""
+    a, b = RNG.uniform(-1, 1, 400), RNG.uniform(-1, 1, 400)
+    alpha, beta = cfunctions.jacobian_fb_at_projection(a, b)
+    p, q = cfunctions.project(a, b)
+    off = np.hypot(p, q) > 1e-3
+    ga, gb = cfunctions.jacobian_fb(p[off], q[off])
+    assert np.array_equal(alpha[off], ga) and np.array_equal(beta[off], gb)
+    assert np.all((alpha + 1) ** 2 + (beta + 1) ** 2 == 1)
+    kappa = 0.3
+    al, be, B3 = cfunctions.linearise("fb", a, b, kappa, at_projection=True)
+    assert np.all(B3 == 0)
+    am, bm, _ = cfunctions.linearise("min", a, b, kappa)
+    assert np.array_equal(al, -am) and np.array_equal(be, -bm)
+    with pytest.raises(ValueError, match="Fischer"):
+        cfunctions.linearise("min", a, b, at_projection=True)

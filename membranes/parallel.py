@@ -1,0 +1,98 @@
+"""Several MPI processes: a replicated mesh, and the vertex patches shared out (issue 6).
+
+Under ``mpirun -n P membranes solve ...`` every process builds the whole problem on
+``MPI.COMM_SELF``: the mesh and its hierarchy are *replicated*, not distributed. What the
+processes share is the work that dominates a run with estimators, the patch problems:
+
+* the flux equilibration (DESIGN §5) solves one mixed problem per vertex patch ω_a, and
+  σ_α,disc = Σ_a σ_a;
+* the multilevel algebraic flux (DESIGN §6) solves one per vertex patch of every level, and
+  σ_alg is again a sum over them (and the coarse solve).
+
+Process p sets up and solves the patches of the vertices it owns (`owned_vertices`: P
+contiguous blocks of the vertex numbering), and the partial sums are added over the processes
+(`Summation`). Newton and GMRES are not shared: every process runs the same serial linear
+algebra on the same data, so every variant takes the steps one process takes (the adaptive
+stopping decisions included) and the results agree with a serial run up to the order of
+summation of the patch contributions. The price is memory (each process holds the whole
+discretisation) and no speed-up of the Newton and Krylov part; BENCHMARKS.md gives the
+speed-up measured.
+
+To use it from Python, build the problem on ``MPI.COMM_SELF`` on every process and pass
+``comm=MPI.COMM_WORLD`` to `membranes.solve`; the meshes must be the same on every process
+(`check_replicated`; gmsh with the same options makes the same mesh).
+"""
+
+import contextlib
+import hashlib
+
+import numpy as np
+
+
+@contextlib.contextmanager
+def one_blas_thread():
+    """BLAS on one thread inside the block. The patch problems are thousands of small dense
+    solves and products (tens of unknowns), where BLAS threads cost more than they save, and
+    with several processes on the machine they would oversubscribe its cores (measured on the
+    disk, h0 = 0.2, J = 2, 2 cores: multilevel flux set-up 4.4 s with two OpenBLAS threads
+    against 1.1 s with one, while other processes ran)."""
+    from threadpoolctl import threadpool_limits
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+def owned_vertices(n, comm):
+    """Boolean mask over n vertices: those whose patches this process sets up and solves
+    (block `comm.rank` of `comm.size` contiguous blocks of nearly equal size). All vertices
+    without a communicator or on one process."""
+    mask = np.zeros(n, dtype=bool)
+    if comm is None or comm.size == 1:
+        mask[:] = True
+        return mask
+    bounds = np.linspace(0, n, comm.size + 1).round().astype(np.int64)
+    mask[bounds[comm.rank]:bounds[comm.rank + 1]] = True
+    return mask
+
+
+class Summation:
+    """Adds partial sums over the processes of `comm` (None: nothing to add).
+
+    The sum is formed on process 0 and broadcast, so every process gets the same bits: the
+    processes take identical decisions from it (Newton and GMRES stopping tests), which an
+    Allreduce whose reduction order differs between processes would not guarantee."""
+
+    def __init__(self, comm):
+        self.comm = comm if comm is not None and comm.size > 1 else None
+
+    def __call__(self, partial):
+        if self.comm is None:
+            return partial
+        from mpi4py import MPI
+        partial = np.ascontiguousarray(partial, dtype=np.float64)
+        total = np.empty_like(partial)
+        self.comm.Reduce(partial, total, op=MPI.SUM, root=0)
+        self.comm.Bcast(total, root=0)
+        return total
+
+
+def _mesh_digest(mesh):
+    """A digest of the mesh's vertex coordinates and cells, in their local numbering."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(mesh.geometry.x).tobytes())
+    h.update(np.ascontiguousarray(mesh.geometry.dofmap.array).tobytes())
+    return h.hexdigest()
+
+
+def check_replicated(mesh, comm):
+    """ValueError unless `mesh` is a serial mesh (MPI.COMM_SELF) that is the same, bit for bit,
+    on every process of `comm`."""
+    if mesh.comm.size > 1:
+        raise ValueError(f"the mesh is distributed over {mesh.comm.size} processes; membranes "
+                         f"replicates it: build the problem with comm=MPI.COMM_SELF on every "
+                         f"process and pass comm=MPI.COMM_WORLD to solve")
+    if comm is None or comm.size == 1:
+        return
+    digests = comm.allgather(_mesh_digest(mesh))
+    if len(set(digests)) > 1:
+        raise ValueError(f"the mesh differs between the {comm.size} processes; every process "
+                         f"must build the same mesh")
