@@ -36,7 +36,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .discretisation import boundary_dofs
-from .equilibration import _C3, _MINV_REF, Geometry, PatchSpace, lifting, vertex_patches
+from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, _rt_reference, lifting,
+                            translation_classes, vertex_patches)
 
 
 def _barycentric(points, corners):
@@ -202,7 +203,16 @@ def basis_change(refl, loc, pi, rep_refl, rep_loc, nr):
     """L, C (P, nr, 2) of patches (reflection codes refl (P, m), local numbers loc (P, m, 8),
     vertex matches pi (P, m, 3)) as translates of their representatives (rep_refl, rep_loc of
     the same shapes, or one row for all): σ_p[i] = Σ_t C[p, i, t] σ_r[L[p, i, t]] in the
-    representative's local numbering (see `change_of_basis`)."""
+    representative's local numbering.
+
+    With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
+    reflections (basix base transformations), the local RT basis is R_K F_K*ψ̂. The
+    representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π (P_π the reference map
+    that permutes the vertices), hence its basis is W_K = R_K' M_π R_K times K's, with M_π the
+    reference basis expressed through its pull-back (entries 0, ±1). The patch systems are
+    then related by the congruence Q A_p Qᵀ = A_r, and σ_p = Tᵀ σ_r for T the σ block of Q.
+    (The same holds for K' = shift + t K, a homothety: the RT mass and divergence blocks of
+    the contravariant Piola basis do not change under it; MultilevelFlux uses that.)"""
     P, m = refl.shape
     code = ((rep_refl.astype(np.int64) * 6 + _perm_code(pi)) * 8 + refl).ravel()  # per cell
     # σ_p[i] = Σ_k T[k, i] σ_r[k]: for the patch dof i at (c, k) the rows l with
@@ -223,108 +233,11 @@ def basis_change(refl, loc, pi, rep_refl, rep_loc, nr):
     return L.reshape(P, nr, 2), C.reshape(P, nr, 2)
 
 
-def change_of_basis(space, CF, pi, r, boundary):
-    """The patches of cells CF (P, m) (canonical order, vertex matches pi to the
-    representative r, see `translation_classes`) as translates of r: returns glob (P, 8 m)
-    their retained global RT dofs per cell (-1 dropped), RET (P, nr) the sorted retained
-    dofs, loc (P, m, 8) their local numbers, and L, C (P, nr, 2): σ_p[i] = Σ_t C[p, i, t]
-    σ_r[L[p, i, t]] (the representative's local numbering).
-
-    With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
-    reflections (basix base transformations), the local RT basis is R_K F_K*ψ̂. The
-    representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π (P_π the reference map
-    that permutes the vertices), hence its basis is W_K = R_K' M_π R_K times K's, with M_π the
-    reference basis expressed through its pull-back (entries 0, ±1). The patch systems are
-    then related by the congruence Q A_p Qᵀ = A_r, and σ_p = Tᵀ σ_r for T the σ block of Q.
-    (The same holds for K' = shift + t K, a homothety: the RT mass and divergence blocks of
-    the contravariant Piola basis do not change under it; MultilevelFlux uses that.)"""
-    glob, RET, loc, count = local_numbering(space, CF, boundary)
-    if (count != RET.shape[1]).any():
-        raise RuntimeError("translates that retain different numbers of RT dofs")
-    refl = space.reflections[CF]                                          # (P, m)
-    L, C = basis_change(refl, loc, pi, refl[r][None], loc[r][None], RET.shape[1])
-    return glob, RET, loc, L, C
-
-
 def class_members(rep):
     """The patches of each class of `rep` (one index array per class, ascending)."""
     order = np.argsort(rep, kind="stable")
     cuts = np.flatnonzero(np.diff(rep[order])) + 1
     return np.split(order, cuts)
-
-
-def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
-                        exterior=None):
-    """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
-    CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
-    boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
-    centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
-    pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
-    (relative to xa). Translates to round-off only (tolerance 1e-9 scale): a representative
-    whose vertices do not match (a coincidence of the rounded keys) makes the patch its own.
-    `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary
-    patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets, per
-    cell): two patches of boundary vertices with the same cells keep different RT dofs when
-    one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of a
-    structured square)."""
-    P = len(xa)
-    off = (cent[CF] - xa[:, None, :]) / scale
-    key = np.round(off * 1e6).astype(np.int64)                                 # (P, m, 2)
-    order = np.argsort(key[:, :, 0] * 2 ** 32 + key[:, :, 1], axis=1)           # |key| < 2^31
-    CF = np.take_along_axis(CF, order, axis=1)
-    KF = np.take_along_axis(KF, order, axis=1)
-    key = np.take_along_axis(key, order[:, :, None], axis=1).reshape(P, -1)
-    sig = np.concatenate([np.asarray(boundary)[:, None].astype(np.int64), key], axis=1)
-    if exterior is not None:
-        b = np.flatnonzero(boundary)
-        vx = geo.x[geo.cells[CF[b]]] - xa[b, None, None, :]                  # (Pb, m, 3, 2)
-        mids = 0.5 * (np.roll(vx, -1, axis=2) + np.roll(vx, -2, axis=2))     # edge e: opposite e
-        where = (mids * exterior[CF[b]][..., None]).sum(axis=2) / scale       # (Pb, m, 2)
-        ext = np.zeros((P, 2 * CF.shape[1]), dtype=np.int64)
-        ext[b] = np.round(where * 1e6).astype(np.int64).reshape(len(b), 2 * CF.shape[1])
-        sig = np.concatenate([sig, ext], axis=1)
-    if translates:
-        # equal rows by a 64-bit hash (wrapping products with random odd multipliers), then
-        # checked: a patch whose row differs from its first match's is its own representative
-        mult = np.random.default_rng(0).integers(1, 2 ** 62, sig.shape[1], dtype=np.uint64)
-        h = (sig.astype(np.uint64) * (2 * mult + 1)).sum(axis=1, dtype=np.uint64)
-        _, first, gid = np.unique(h, return_index=True, return_inverse=True)
-        rep = first[gid.ravel()]
-        same = (sig == sig[rep]).all(axis=1)
-        rep[~same] = np.flatnonzero(~same)
-    else:
-        rep = np.arange(P)
-    del sig
-    pi = np.empty(CF.shape + (3,), dtype=np.int64)
-    for s in range(0, P, 8192):   # in chunks: (P, m, 3, 2) coordinates twice
-        sl = slice(s, s + 8192)
-        r = rep[sl]
-        pi[sl] = _vertex_match(geo.x[geo.cells[CF[sl]]] - xa[sl, None, None, :],
-                               geo.x[geo.cells[CF[r]]] - xa[r, None, None, :], scale)
-    bad = np.flatnonzero(pi[:, 0, 0] < 0)
-    if len(bad):
-        rep[bad] = bad
-        pi[bad] = np.arange(3)
-    return CF, KF, rep, pi
-
-
-def _vertex_match(xv, xr, scale, tol=1e-9):
-    """pi (P, m, 3): vertex pi[p, c, i] of the representative's cell c sits where vertex
-    i of the patch's cell c does (relative to a); -1 everywhere in a patch where a vertex
-    has no match within tol * scale, or more than one, or two vertices match one."""
-    t = tol * scale
-    X, Y = xv[..., 0], xv[..., 1]                                             # (P, m, 3)
-    pi = np.zeros(X.shape, dtype=np.int64)
-    hits = np.zeros(X.shape, dtype=np.int8)
-    ok = np.ones(len(xv), dtype=bool)
-    for k in range(3):        # the rep's vertex k against every vertex i of the patch's cell
-        match = (np.abs(X - xr[:, :, k:k + 1, 0]) <= t) & (np.abs(Y - xr[:, :, k:k + 1, 1]) <= t)
-        pi += k * match
-        hits += match
-        ok &= ((match[..., 0] + match[..., 1] + match[..., 2]) == 1).all(axis=1)
-    ok &= (hits == 1).reshape(len(xv), -1).all(axis=1)   # a permutation in every cell
-    pi[~ok] = -1
-    return pi
 
 
 def _one_blas_thread():
@@ -627,18 +540,6 @@ class MultilevelFlux:
         return total
 
 
-def _edge_signs():
-    """(8, 8) ±1: row ρ the diagonal of the product of RT_1's base transformations for the edges
-    whose bit is set in ρ (basix: each reverses the sign of its edge's first dof, the
-    Legendre moment of degree 0; checked to be diagonal)."""
-    T = _rt_element().base_transformations()
-    d = np.round(np.diagonal(T, axis1=1, axis2=2))                           # (3, 8)
-    if np.abs(T - d[:, None, :] * np.eye(8)).max() > 1e-12:
-        raise RuntimeError("RT_1 base transformations are not diagonal ±1")
-    return np.array([np.prod([d[e] for e in range(3) if rho >> e & 1], axis=0)
-                     if rho else np.ones(8) for rho in range(8)]).astype(np.int8)
-
-
 def _child_block(beta):
     """B̂ (8, 8): the reference RT_1 dofs of a child cell K applied to the reference basis
     functions of its parent P, for the child's vertices l at barycentric coordinates beta[l]
@@ -684,7 +585,7 @@ class Prolongation:
     (one product with a block per kind)."""
 
     def __init__(self, coarse, fine, parent, Bp2):
-        signs = _edge_signs()
+        signs = _rt_reference()[3].astype(np.int8)        # [ρ]: the edge reflections' signs
         self.shape = (fine.nrt, coarse.nrt)
         self.rt_c = coarse.rt_cells.astype(np.int32)
         self.s_c = signs[coarse.reflections]                                 # (nc_{j-1}, 8)
