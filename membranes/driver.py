@@ -245,7 +245,11 @@ class IterateEstimates:
                                   sum_parts=None if comm is None else parallel.Summation(comm))
             if alg_flux == "multilevel":
                 from .algebraic_flux import MultilevelFlux   # only a run that uses it pays
-                self.multilevel = MultilevelFlux(disc, disc.problem.hierarchy)
+                hierarchy = disc.problem.hierarchy
+                owned = None if comm is None else \
+                    [parallel.owned_vertices(m.topology.index_map(0).size_local, comm)
+                     for m in hierarchy.meshes[:-1]]
+                self.multilevel = MultilevelFlux(disc, hierarchy, owned=owned)
             else:
                 self.multilevel = None
         self.setup_time = time.perf_counter() - t
@@ -298,7 +302,12 @@ class IterateEstimates:
         """Fill in rec's estimates at X; `later` = (X', R') the next iterate for 'nu'."""
         alg = self._alg(rec, R)
         if self.multilevel is not None:
-            values = self.est.evaluate(X, R, alg, sigma_alg=self.multilevel.sigma(R))
+            sigma_alg = self.multilevel.sigma(R)
+            if self.comm is not None:        # this process's patches: add the others'
+                n_rt = len(sigma_alg[0])
+                both = parallel.Summation(self.comm)(np.concatenate(sigma_alg))
+                sigma_alg = [both[:n_rt], both[n_rt:]]
+            values = self.est.evaluate(X, R, alg, sigma_alg=sigma_alg)
         elif later is not None:
             sigma_alg, eta_rem = self.est.nu_flux(X, R, *later)
             values = self.est.evaluate(X, R, alg, sigma_alg=sigma_alg, eta_rem=eta_rem)
