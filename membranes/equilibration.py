@@ -472,13 +472,7 @@ def _class_tables(slots):
     coefficients; and ANCHOR (6, 8): the representative dof on the entity that corresponds to
     patch dof k's entity (edge e ↦ edge pi[e]) in the same slot (`slots` as in PatchSpace)."""
     import itertools
-    from .algebraic_flux import _W_TABLE
-    W = _W_TABLE.astype(np.int64)                                         # [code, l, k]
-    top = np.argsort(-np.abs(W), axis=1, kind="stable")[:, :2, :]
-    coef = np.take_along_axis(W, top, axis=1)
-    if np.abs(W).sum(axis=1).max() > 2 or not np.array_equal(
-            np.abs(coef).sum(axis=1), np.abs(W).sum(axis=1)):
-        raise RuntimeError("RT change of basis with more than two entries per column")
+    from .algebraic_flux import _W_COEF, _W_TOP
     slots = np.array(slots)
     anchor = np.empty((6, 8), dtype=np.int64)
     for code, perm in enumerate(itertools.permutations(range(3))):        # perm = π, pi = π⁻¹
@@ -486,8 +480,7 @@ def _class_tables(slots):
         for e in range(3):
             anchor[code, slots[e]] = slots[pi[e]]
         anchor[code, slots[3]] = slots[3]
-    return (top.transpose(0, 2, 1).copy(), coef.transpose(0, 2, 1).astype(np.int8).copy(),
-            anchor)
+    return _W_TOP.astype(np.int64), _W_COEF, anchor
 
 
 class FluxEquilibration:
