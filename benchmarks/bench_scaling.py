@@ -21,7 +21,8 @@ peer time, energy error ours / peer, the speed-up of 2 processes (and whether th
 same iterate: largest difference relative to one process), GMRES per Newton step at the largest size / at the
 smallest, the growth exponent of the whole-run time in N.
 
-Usage: `.venv/bin/python benchmarks/bench_scaling.py [J ...]` (default 3 5 7).
+Usage: `.venv/bin/python benchmarks/bench_scaling.py [J[:H0] ...]` (default 3 5 7; `6:0.132`:
+J = 6 on a coarse mesh of size 0.132, about 1.0e6 vertices).
 """
 
 import json
@@ -35,14 +36,21 @@ H0 = 0.2
 DEFAULT_LEVELS = (3, 5, 7)
 
 
-def child(which, levels):
+def _size(arg):
+    """'J' or 'J:H0' -> (J, H0)."""
+    j, _, h0 = str(arg).partition(":")
+    return int(j), float(h0) if h0 else H0
+
+
+def child(which, size):
     """One measurement in this process; prints one JSON line."""
+    levels, h0 = _size(size)
     t0 = time.perf_counter()
     from mpi4py import MPI
     from membranes import scenes
     from membranes.cli import quiet_jit_logging
     quiet_jit_logging()
-    problem = scenes.disk(h=H0, levels=levels)
+    problem = scenes.disk(h=h0, levels=levels)
     t_mesh = time.perf_counter() - t0
     n = problem.mesh.topology.index_map(0).size_global
     world = MPI.COMM_WORLD
@@ -53,7 +61,7 @@ def child(which, levels):
                     progress=lambda line: print(line, file=sys.stderr, flush=True),
                     comm=world)
         import numpy as np
-        np.save(f"/tmp/bench_scaling_{which}_{levels}.npy", sol.X)
+        np.save(f"/tmp/bench_scaling_{which}_{size}.npy", sol.X)
         out = {"converged": sol.converged, "newton": sol.newton_iterations,
                "linear": sol.linear_iterations, "time": sol.wall_time_s,
                "estimator_setup": sol.estimator_times[0],
@@ -70,7 +78,7 @@ def child(which, levels):
     peaks = world.gather(peak, root=0)
     if world.rank > 0:
         return
-    out.update({"which": which, "levels": levels, "vertices": n, "mesh_time": t_mesh,
+    out.update({"which": which, "levels": size, "vertices": n, "mesh_time": t_mesh,
                 "process_time": time.perf_counter() - t0,
                 "peak_gib": max(peaks), "peak_total_gib": sum(peaks)})
     print(json.dumps(out), flush=True)
@@ -144,6 +152,6 @@ def main(levels_list):
 
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
-        child(sys.argv[2], int(sys.argv[3]))
+        child(sys.argv[2], sys.argv[3])
     else:
-        main([int(a) for a in sys.argv[1:]] or list(DEFAULT_LEVELS))
+        main(sys.argv[1:] or [str(j) for j in DEFAULT_LEVELS])
