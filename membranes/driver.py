@@ -415,6 +415,13 @@ class _Method:
 
 
 @dataclass
+class _EstimatorTimes:
+    """What a released level keeps of its IterateEstimates."""
+    setup_time: float
+    time: float
+
+
+@dataclass
 class _LevelRun:
     """One semismooth Newton solve on one mesh (a level of a nested run, or the whole run)."""
     level: int
@@ -422,9 +429,21 @@ class _LevelRun:
     result: object
     est: object
     wall_time_s: float      # this level's own: set-up, prolongation (nested) and Newton
+    _record: dict = None    # the figures, once `release` dropped what they come from
+
+    def release(self):
+        """Drop the level's discretisation and estimators (a nested run, once the next level
+        has its initial guess), keeping its figures, iterate and history."""
+        if self._record is None:
+            self._record = self.record()
+        if self.est is not None:
+            self.est = _EstimatorTimes(self.est.setup_time, self.est.time)
+        self.disc = None
 
     def record(self):
         """The level's figures (Solution.per_level)."""
+        if self._record is not None:
+            return self._record
         r, last = self.result, next(rec for rec in reversed(self.result.history)
                                     if rec["kind"] != "krylov")
         return {"level": self.level, "n_vertices": int(self.disc.n),
@@ -447,14 +466,14 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     disc = discretise(problem)
     rows = linear_rows(disc)
     setup_time = time.perf_counter() - t0
+    t = time.perf_counter()
+    X0 = _initial_guess(initial_guess, disc)   # first: a nested run then frees the level below
+    if timed_guess:
+        setup_time += time.perf_counter() - t
     error = EnergyError(disc) if problem.exact is not None else None
     est = IterateEstimates(disc, rows, alg_flux, method.comm) if alg_flux is not None else None
     if method.newton == "adaptive":
         setup_time += est.setup_time          # the adaptive method uses the estimators
-    t = time.perf_counter()
-    X0 = _initial_guess(initial_guess, disc)
-    if timed_guess:
-        setup_time += time.perf_counter() - t
     say = method.say
 
     def monitor(rec, X, R):
@@ -508,7 +527,9 @@ def _solve_nested(problem, method, alg_flux, estimators, initial_guess):
 
             def guess(disc, below=below, j=j):
                 P = prolongation(below.disc.V, disc.V, problem.hierarchy.parent_cells[j - 1])
-                return prolong(P, below.result.X)
+                X0 = prolong(P, below.result.X)
+                below.release()       # its discretisation and estimators are not needed again
+                return X0
         before = time.perf_counter() - t       # the level's problem: counts for the level
         run = _solve_on(pj, method, flux, guess, level=j, offset=offset + before,
                         its_offset=its, timed_guess=j > 0, tag=f"level {j}  ")
