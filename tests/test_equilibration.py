@@ -348,3 +348,46 @@ def test_estimators_from_parts_summed_over_processes():
     for key in ("eta", "eta_disc", "eta_F"):
         assert parts[key] == pytest.approx(whole[key], rel=1e-12, abs=0)
     assert np.abs(parts["eta_K"] - whole["eta_K"]).max() <= 1e-12 * whole["eta_K"].max()
+
+
+def test_translation_classes_regroup_near_translates():
+    """Patches whose rounded offsets coincide but which are not translates to round-off (a
+    gmsh mesh has such near-translates, equal to 1e-8 of their size) must not share an
+    operator, and must still be classed with their own exact translates: copies of a fan of
+    six triangles A (exact translates by multiples of 2^k: no round-off) and of its
+    near-translate B (one vertex moved by 1e-8) give the classes {A...} and {B...}, in
+    whatever order they come. Before the regrouping, every B was made its own class."""
+    from types import SimpleNamespace
+    from membranes.equilibration import translation_classes
+    rng = np.random.default_rng(1)
+    angles = np.sort(rng.uniform(0, 2 * np.pi, 6))
+    ring = np.stack([np.cos(angles), np.sin(angles)], axis=1) * rng.uniform(0.8, 1.2, (6, 1))
+    fan = np.vstack([[0.0, 0.0], ring])                      # centre, then the ring
+    near = fan.copy()
+    near[3] += 1e-8
+    cells = np.array([[0, 1 + i, 1 + (i + 1) % 6] for i in range(6)])
+    shifts = [(0.0, 0.0), (8.0, 0.0), (0.0, 16.0), (8.0, 8.0), (16.0, 0.0), (16.0, 16.0)]
+    kinds = ["A", "B", "A", "B", "B", "A"]
+    xs, cs, xa = [], [], []
+    for k, (kind, shift) in enumerate(zip(kinds, shifts)):
+        pts = (fan if kind == "A" else near) + np.array(shift)
+        xs.append(pts)
+        cs.append(cells + 7 * k)
+        xa.append(pts[0])
+    geo = SimpleNamespace(x=np.vstack(xs), cells=np.vstack(cs))
+    cent = geo.x[geo.cells].mean(axis=1)
+    P = len(kinds)
+    CF = np.arange(6 * P).reshape(P, 6)
+    CF, KF, rep, pi = translation_classes(np.array(xa), CF, np.zeros_like(CF),
+                                          np.zeros(P, dtype=bool), geo, cent, 1.0)
+    classes = {}
+    for p in range(P):
+        classes.setdefault(rep[p], set()).add(kinds[p])
+    assert sorted(map(sorted, classes.values())) == [["A"], ["B"]]
+    assert len(classes) == 2
+    # the vertex matches put every patch vertex on its representative's
+    for p in range(P):
+        mine = geo.x[geo.cells[CF[p]]] - np.array(xa[p])
+        theirs = geo.x[geo.cells[CF[rep[p]]]] - np.array(xa[rep[p]])
+        matched = np.take_along_axis(theirs, pi[p][..., None].astype(int), axis=1)
+        assert np.abs(mine - matched).max() <= 1e-13
