@@ -38,18 +38,7 @@ import scipy.sparse.linalg as spla
 from .discretisation import boundary_dofs
 from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, _rt_reference, lifting,
                             translation_classes, vertex_patches)
-
-
-def _barycentric(points, corners):
-    """Barycentric coordinates of points (c, m, 2) in triangles with corners (c, 3, 2):
-    shape (c, m, 3)."""
-    v0 = corners[:, 0]
-    e1, e2 = corners[:, 1] - v0, corners[:, 2] - v0                          # (c, 2)
-    det = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])[:, None]
-    d = points - v0[:, None]                                                 # (c, m, 2)
-    xi1 = (d[..., 0] * e2[:, None, 1] - d[..., 1] * e2[:, None, 0]) / det   # Cramer's rule
-    xi2 = (e1[:, None, 0] * d[..., 1] - e1[:, None, 1] * d[..., 0]) / det
-    return np.stack([1.0 - xi1 - xi2, xi1, xi2], axis=2)
+from .hierarchy import barycentric
 
 
 def _rt_element():
@@ -303,7 +292,7 @@ class MultilevelFlux:
         # vertices of each T_j cell in its parent's barycentric basis (multiples of 1/2, kept
         # as 2 Bp in int8: exact), and the four children of each T_{j-1} cell
         corners = [g.x[g.cells] for g in self.geo]
-        self.Bp2 = [None] + [np.round(2.0 * _barycentric(
+        self.Bp2 = [None] + [np.round(2.0 * barycentric(
             corners[j], corners[j - 1][hierarchy.parent_cells[j - 1]])).astype(np.int8)
             for j in range(1, J + 1)]
         del corners

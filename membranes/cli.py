@@ -153,19 +153,17 @@ def _solve(args):
                 initial_guess=args.initial_guess, nested=args.nested, comm=world)
     if args.out is not None:
         write_outputs(sol, args.out)
-    if world.rank > 0:
-        return 0 if sol.converged else EXIT_NOT_CONVERGED
-    summary = sol.summary()
-    keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "system", "linear_solver",
-            "converged", "newton_iterations", "linear_iterations", "wall_time_s",
-            "energy_error", "eta", "effectivity", "nested")
-    line = {k: summary[k] for k in keys}
-    line["newton_per_level"] = [r["newton_iterations"] for r in summary["per_level"]]
-    print(json.dumps(line))
-    if not sol.converged:
-        print(f"membranes: not converged: {sol.reason}", file=sys.stderr)
-        return EXIT_NOT_CONVERGED
-    return 0
+    if world.rank == 0:                  # process 0 speaks for all
+        summary = sol.summary()
+        keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "system",
+                "linear_solver", "converged", "newton_iterations", "linear_iterations",
+                "wall_time_s", "energy_error", "eta", "effectivity", "nested")
+        line = {k: summary[k] for k in keys}
+        line["newton_per_level"] = [r["newton_iterations"] for r in summary["per_level"]]
+        print(json.dumps(line))
+        if not sol.converged:
+            print(f"membranes: not converged: {sol.reason}", file=sys.stderr)
+    return 0 if sol.converged else EXIT_NOT_CONVERGED
 
 
 def _scenes():

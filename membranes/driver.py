@@ -237,12 +237,12 @@ class IterateEstimates:
 
     def __init__(self, disc, rows, alg_flux, comm=None):
         t = time.perf_counter()
-        self.comm = comm
         self.rows = rows
         with parallel.one_blas_thread():
             # with several processes each sets up its own vertices' patches (parallel)
+            self.sum_parts = None if comm is None else parallel.Summation(comm)
             self.est = Estimators(disc, owned=parallel.owned_vertices(disc.n, comm),
-                                  sum_parts=None if comm is None else parallel.Summation(comm))
+                                  sum_parts=self.sum_parts)
             if alg_flux == "multilevel":
                 from .algebraic_flux import MultilevelFlux   # only a run that uses it pays
                 hierarchy = disc.problem.hierarchy
@@ -303,10 +303,8 @@ class IterateEstimates:
         alg = self._alg(rec, R)
         if self.multilevel is not None:
             sigma_alg = self.multilevel.sigma(R)
-            if self.comm is not None:        # this process's patches: add the others'
-                n_rt = len(sigma_alg[0])
-                both = parallel.Summation(self.comm)(np.concatenate(sigma_alg))
-                sigma_alg = [both[:n_rt], both[n_rt:]]
+            if self.sum_parts is not None:   # this process's patches: add the others'
+                sigma_alg = self.sum_parts(sigma_alg)
             values = self.est.evaluate(X, R, alg, sigma_alg=sigma_alg)
         elif later is not None:
             sigma_alg, eta_rem = self.est.nu_flux(X, R, *later)

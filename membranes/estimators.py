@@ -78,8 +78,9 @@ class Estimators:
 
     With `owned` (a boolean mask over the vertices) only the patches of the owned vertices
     are set up (FluxEquilibration): σ_disc is then this process's part, and `sum_parts` (a
-    callable, e.g. parallel.Summation) adds the parts of all processes into σ_disc before
-    anything uses it; the rest of the evaluation is the same on every process."""
+    callable, e.g. parallel.Summation) takes the pair (σ_1, σ_2) of parts and returns their
+    sums over all processes before anything uses them; the rest of the evaluation is the
+    same on every process."""
 
     def __init__(self, disc, owned=None, sum_parts=None):
         from dolfinx import fem
@@ -157,10 +158,7 @@ class Estimators:
         Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
         sigma = [self.flux.sigma(alpha + 1, u, lam, Ra)
                  for alpha, (u, Ra) in enumerate(zip((u1, u2), Rs))]
-        if self.sum_parts is not None:
-            both = self.sum_parts(np.concatenate(sigma))
-            sigma = [both[:len(sigma[0])], both[len(sigma[0]):]]
-        return sigma
+        return sigma if self.sum_parts is None else self.sum_parts(sigma)
 
     def nu_flux(self, X, R, X_later, R_later):
         """The algebraic flux of ν extra iterations (DESIGN §6) at the iterate X (residual R),

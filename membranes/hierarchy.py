@@ -51,3 +51,15 @@ def build_hierarchy(coarse, levels):
         h.meshes.append(fine)
         h.parent_cells.append(parents)
     return h
+
+
+def barycentric(points, corners):
+    """Barycentric coordinates of points (c, m, 2) in triangles with corners (c, 3, 2):
+    shape (c, m, 3) (in a parent cell: the vertices of its children, multiples of 1/2)."""
+    v0 = corners[:, 0]
+    e1, e2 = corners[:, 1] - v0, corners[:, 2] - v0                          # (c, 2)
+    det = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])[:, None]
+    d = points - v0[:, None]                                                 # (c, m, 2)
+    xi1 = (d[..., 0] * e2[:, None, 1] - d[..., 1] * e2[:, None, 0]) / det   # Cramer's rule
+    xi2 = (e1[:, None, 0] * d[..., 1] - e1[:, None, 1] * d[..., 0]) / det
+    return np.stack([1.0 - xi1 - xi2, xi1, xi2], axis=2)

@@ -39,7 +39,7 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 
-from .hierarchy import Hierarchy
+from .hierarchy import Hierarchy, barycentric
 
 SNAP = 1e-8      # barycentric weights farther than this from {0, 1/2, 1}: not a Plaza refinement
 
@@ -78,10 +78,7 @@ def prolongation(V_coarse, V_fine, parent_cells):
     holder = np.empty(n_f, dtype=np.int64)
     holder[fine_cells.ravel()] = np.repeat(np.arange(len(fine_cells)), 3)
     dofs = coarse_cells[parent_cells[holder]]             # (n_f, 3) coarse dofs
-    corners = xc[dofs]                                    # (n_f, 3, 2)
-    T = np.stack([corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]], axis=2)
-    st = np.linalg.solve(T, (xf - corners[:, 0])[:, :, None])[:, :, 0]
-    weights = np.column_stack([1.0 - st.sum(axis=1), st])
+    weights = barycentric(xf[:, None, :], xc[dofs])[:, 0]   # (n_f, 3)
     snapped = np.round(2.0 * weights) / 2.0
     if np.abs(weights - snapped).max(initial=0.0) > SNAP or np.any(snapped < 0) or \
             not np.all(snapped.sum(axis=1) == 1.0):

@@ -64,15 +64,17 @@ class Summation:
     def __init__(self, comm):
         self.comm = comm if comm is not None and comm.size > 1 else None
 
-    def __call__(self, partial):
+    def __call__(self, parts):
+        """The sums of the arrays `parts` (e.g. the pair (σ_1, σ_2)) over the processes, in one
+        reduction."""
         if self.comm is None:
-            return partial
+            return parts
         from mpi4py import MPI
-        partial = np.ascontiguousarray(partial, dtype=np.float64)
+        partial = np.concatenate([np.asarray(a, dtype=np.float64) for a in parts])
         total = np.empty_like(partial)
         self.comm.Reduce(partial, total, op=MPI.SUM, root=0)
         self.comm.Bcast(total, root=0)
-        return total
+        return np.split(total, np.cumsum([len(a) for a in parts])[:-1])
 
 
 def _mesh_digest(mesh):

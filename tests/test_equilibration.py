@@ -339,10 +339,10 @@ def test_estimators_from_parts_summed_over_processes():
     rng = np.random.default_rng(5)
     X = rng.standard_normal(3 * d.n) * np.tile(d.interior, 3)
 
-    def add_other(part):
+    def add_other(parts):
         u1, u2, lam = split(X, d.n)
-        return part + np.concatenate([other.sigma(1, u1, lam, None),
-                                      other.sigma(2, u2, lam, None)])
+        return [parts[0] + other.sigma(1, u1, lam, None),
+                parts[1] + other.sigma(2, u2, lam, None)]
     whole = Estimators(d).evaluate(X)
     parts = Estimators(d, owned=owned, sum_parts=add_other).evaluate(X)
     for key in ("eta", "eta_disc", "eta_F"):
