@@ -365,6 +365,15 @@ def _grid_keys(v, scale):
     return (k[..., 0] + 2 ** 30) * 2 ** 31 + (k[..., 1] + 2 ** 30)
 
 
+def _row_hash(keys, seed):
+    """One int64 per row of the integer array `keys` (n, k): Σ_i keys[:, i] c_i mod 2^64 with
+    fixed random odd c_i (equal rows, equal hashes; different rows collide with probability
+    about 2^-63, and every class is checked entry by entry anyway)."""
+    mult = np.random.default_rng(seed).integers(1, 2 ** 62, size=keys.shape[1]) | 1
+    with np.errstate(over="ignore"):
+        return (keys * mult).sum(axis=1)
+
+
 def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
                         exterior=None, chunk=1 << 14):
     """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
@@ -401,9 +410,7 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
         if sig[-1] is None:
             return CF, KF, np.arange(P), identity
     sig = np.concatenate(sig, axis=1)
-    mult = np.random.default_rng(0).integers(1, 2 ** 62, size=sig.shape[1]) | 1
-    with np.errstate(over="ignore"):
-        h = (sig * mult).sum(axis=1)
+    h = _row_hash(sig, seed=0)
     # vertex matches: the vertices of each cell in the order of their keys (offsets from the
     # cell's centroid), patch against representative; checked in floating point (the offsets
     # of the cell centroids and of the vertices from them, each to tol)
@@ -424,7 +431,7 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
         """Whether patches p are translates of patches r (same signature, vertices within
         tol), and the vertex matches pi (len(p), m, 3)."""
         ok = (sig[p] == sig[r]).all(axis=1)
-        pi = np.broadcast_to(np.arange(3, dtype=np.int8), (len(p), m, 3)).copy()
+        pi = np.empty((len(p), m, 3), dtype=np.int8)          # every entry set below
         for s in range(0, len(p), chunk):
             c, cp, cr = slice(s, s + chunk), p[s:s + chunk], r[s:s + chunk]
             np.put_along_axis(pi[c], vorder[inv[cp]], vorder[inv[cr]].astype(np.int8), axis=2)
@@ -439,10 +446,7 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
         signature): near-translates differ there, translates rarely (round-off straddling a
         grid line only sends a patch to one more round)."""
         k = np.round((cent[CF[p]] - xa[p, None, :]) * (1e10 / scale)).astype(np.int64)
-        k = k.reshape(len(p), 2 * m)
-        mult2 = np.random.default_rng(1).integers(1, 2 ** 62, size=k.shape[1]) | 1
-        with np.errstate(over="ignore"):
-            return (k * mult2).sum(axis=1) + h[p] * np.int64(1000003)
+        return _row_hash(np.column_stack([k.reshape(len(p), 2 * m), h[p]]), seed=1)
 
     # classes by the hash of the rounded signature, each represented by its first patch; the
     # patches that fail the check against it (near-translates: rounded keys that coincide)
