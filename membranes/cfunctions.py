@@ -56,8 +56,8 @@ def jacobian_fb_at_projection(a, b):
     element (ξ - 1, ζ - 1) with (ξ, ζ) = (0, 1) or (1, 0), on the unit circle (DESIGN §3): the
     limit of the gradient along the side picked. These are min's rows up to sign: the
     Newton step with them is the primal–dual active set step (newton: active-set steps)."""
-    contact = a <= b
-    return -contact.astype(float), -(~contact).astype(float)
+    alpha, beta = jacobian_min(a, b)
+    return -alpha, -beta
 
 
 CFUNCTIONS = {"min": (c_min, jacobian_min), "fb": (c_fb, jacobian_fb)}
