@@ -18,8 +18,8 @@ step, wall time of the method (discretisation included; ours: estimator set-up a
 evaluations included, shown apart), time of the whole process (mesh hierarchy included),
 peak resident memory, final energy error; then the ratios the issue asks for: our time /
 peer time, energy error ours / peer, the speed-up of 2 processes (and whether they found the
-same iterate: largest difference relative to one process), GMRES per Newton step at the largest size / at the
-smallest, the growth exponent of the whole-run time in N.
+same iterate: largest difference relative to one process), GMRES per Newton step at the
+largest size / at the smallest, the growth exponent of the whole-run time in N.
 
 Usage: `.venv/bin/python benchmarks/bench_scaling.py [J[:H0] ...]` (default 3 5 7; `6:0.132`:
 J = 6 on a coarse mesh of size 0.132, about 1.0e6 vertices).

@@ -385,8 +385,8 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     64-bit hash of the rounded signature, checked entry by entry against the
     representative's), and are translates to round-off only: a patch whose vertices do not
     match its representative's within 1e-13 of the largest coordinate (a coincidence of the
-    rounded keys: a near-translate) is classed again among such patches. `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e);
-    boundary patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets,
+    rounded keys: a near-translate) is classed again among such patches. `exterior`
+    (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets,
     per cell): two patches of boundary vertices with the same cells keep different RT dofs
     when one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of
     a structured square). Each step is a pass over arrays of P m entries (no row sorting), the

@@ -70,8 +70,9 @@ tolerances: ‖W R_lin‖/‖W F‖ ≤ tol, ‖W R_alg‖/‖W B‖ ≤ 2e-12 f
   primal–dual active set step. It is kept if θ(X_P) ≤ (1 - 2σ) θ(X) (Armijo at t = 1;
   a kept step that also meets the checkpoint's test ends the watchdog's run); otherwise,
   or where its linear solve fails, the FB step at X is solved as well (both solves count in
-  the step's linear iterations) and the watchdog above goes on. Once the active set is right the active-set step lands
-  on the discrete solution: on the same disk 6, 3, 3, 4, 4 steps. The C-function, the
+  the step's linear iterations) and the watchdog above goes on. Once the active set is
+  right the active-set step lands on the discrete solution: on the same disk 6, 3, 3, 4, 4
+  steps. The C-function, the
   merit, the stopping test, the line search and the solution are FB's; the steps of a run
   up to its first sufficient decrease (at least one; also after Newton-min's guard switched
   to FB) are FB's own, and records say which linearisation each step used
