@@ -61,7 +61,8 @@ COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
 def _cell_products(area, pc, qc):
     """(p, q)_K = |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k) for p, q ∈ P1(K) given by their values
     at the vertices of every cell, pc, qc of shape (ncells, 3)."""
-    return area / 12.0 * ((pc * qc).sum(axis=1) + pc.sum(axis=1) * qc.sum(axis=1))
+    one = np.ones(3)
+    return area / 12.0 * (np.einsum("ck,ck->c", pc, qc) + (pc @ one) * (qc @ one))
 
 
 def _p1_products(geo, p, q):
@@ -76,12 +77,12 @@ class CellFluxNorms:
     basix's reference basis ψ̂ (RT_1, Legendre variant) with the cell's dof signs s (its edge
     reflections), as in PatchSpace.element_blocks. Its components are polynomials of degree 2
     (RT_1 = P_1² + x P̃_1), so |a + σ|² has degree 4 and basix's degree-4 rule (weights w_q,
-    points x̂_q) integrates it exactly: ‖a + σ‖_K² = |det J| Σ_q w_q |a + σ(F_K(x̂_q))|².
+    points x̂_q) integrates it exactly: ‖a + σ‖_K² = |det J| Σ_q w_q |a + σ(F_K(x̂_q))|², with
+    a added to the values of σ before squaring, as an assembly does (no cancellation between
+    the terms of an expanded square). The cells are taken CHUNK at a time (the temporaries
+    stay in cache)."""
 
-    `at_points(σ)` gives the values σ(F_K(x̂_q)), shape (2, ncells, q), `squared(v)` the cell
-    integrals of |v|² for such values; the field a is added to the values in between
-    (pointwise, before squaring, as an assembly does: no cancellation between the terms of
-    an expanded square)."""
+    CHUNK = 4096
 
     def __init__(self, space):
         import basix
@@ -101,16 +102,33 @@ class CellFluxNorms:
         self.piola = (J / det[:, None, None]).reshape(nc, 4, 1)             # J / det J
         self.abs_det = np.abs(det)
 
-    def at_points(self, sigma):
-        """σ at the quadrature points of every cell, (2, ncells, q)."""
-        v = ((sigma[self.rt_cells] * self.signs) @ self.psi).reshape(len(self.signs), 2, -1)
-        F = self.piola
+    def squared(self, a, sigma, tau=None):
+        """∫_K |a + σ|² for every cell K (a (ncells, 2)); with τ ∈ RT_1 also ∫_K |a + σ + τ|²
+        and ∫_K |τ|²: shape (ncells,), or (3, ncells) with τ."""
+        nc = len(self.abs_det)
+        out = np.empty((1 if tau is None else 3, nc))
+        for s in range(0, nc, self.CHUNK):
+            cells = slice(s, s + self.CHUNK)
+            e = self._values(sigma, cells)
+            e += a[cells].T[:, :, None]
+            out[0, cells] = self._integral(e, cells)
+            if tau is not None:
+                t = self._values(tau, cells)
+                out[2, cells] = self._integral(t, cells)
+                e += t
+                out[1, cells] = self._integral(e, cells)
+        return out[0] if tau is None else out
+
+    def _values(self, sigma, cells):
+        """σ at the quadrature points of the cells, (2, cells, q)."""
+        v = ((sigma[self.rt_cells[cells]] * self.signs[cells]) @ self.psi)
+        v = v.reshape(len(v), 2, -1)
+        F = self.piola[cells]
         return np.stack([F[:, 0] * v[:, 0] + F[:, 1] * v[:, 1],
                          F[:, 2] * v[:, 0] + F[:, 3] * v[:, 1]])
 
-    def squared(self, v):
-        """∫_K |v|² for every cell K, v given at the quadrature points (2, ncells, q)."""
-        return ((v[0] * v[0] + v[1] * v[1]) @ self.w) * self.abs_det
+    def _integral(self, v, cells):
+        return ((v[0] * v[0] + v[1] * v[1]) @ self.w) * self.abs_det[cells]
 
 
 def constraint_projection(u1, u2):
@@ -233,19 +251,19 @@ class Estimators:
         roundoff = R is None or (alg_residual is not None and alg_residual <= ALG_ROUNDOFF)
         have_alg = sigma_alg is not None or roundoff
         # η_F,K,α = ‖μ^{1/2} ∇u_h + μ^{-1/2} σ‖_K, η_alg,K,α = ‖μ^{-1/2} σ_alg‖_K
-        norms = self.norms
         disc_cells, flux_cells, alg_cells = [], [], []
         for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R))):
             root = np.sqrt(self.mu[alpha])
-            e = norms.at_points(s_disc) / root
-            e += root * geo.gradient(u).T[:, :, None]
-            disc_cells.append(np.sqrt(norms.squared(e)))
-            if sigma_alg is not None:
-                a = norms.at_points(sigma_alg[alpha]) / root
-                flux_cells.append(np.sqrt(norms.squared(e + a)))
-                alg_cells.append(np.sqrt(norms.squared(a)))
-            else:
+            if sigma_alg is None:
+                disc_cells.append(np.sqrt(self.norms.squared(root * geo.gradient(u),
+                                                             s_disc / root)))
                 flux_cells.append(disc_cells[-1])
+            else:
+                d, f, a = np.sqrt(self.norms.squared(root * geo.gradient(u), s_disc / root,
+                                                     sigma_alg[alpha] / root))
+                disc_cells.append(d)
+                flux_cells.append(f)
+                alg_cells.append(a)
         disc_cells, flux_cells = np.array(disc_cells), np.array(flux_cells)
         # constraint and linearisation parts (exact P1 integrals)
         lam_pos, lam_neg = np.maximum(lam, 0.0), np.minimum(lam, 0.0)
