@@ -37,10 +37,9 @@ and η_alg (`CellFluxNorms`: σ_α is a quadratic vector polynomial on each cell
 an exact rule); η_osc is assembled once with dolfinx against a piecewise-constant test
 function, with the scene's data measures.
 
-One evaluation costs about two σ_disc (nu_flux: the iterate and the later one) or none:
-`sigma_disc` keeps the last two, and the driver asks for σ_disc of an iterate in `nu_flux`,
-in `evaluate`, and again as the later iterate of the one before (membranes.driver,
-IterateEstimates).
+σ_disc is computed once per iterate: the driver (membranes.driver, IterateEstimates) asks
+for the σ_disc of an iterate in `nu_flux`, in `evaluate`, and in the next `nu_flux` when it
+is the later iterate of the one before; `sigma_disc` keeps the last two.
 """
 
 import numpy as np
