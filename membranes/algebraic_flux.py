@@ -129,24 +129,52 @@ def _buckets(groups):
     return buckets, np.concatenate(ret)
 
 
-def _apply_buckets(level, flat, size):
+def _apply_buckets(level, flat, size, scatter=None):
     """Σ_a σ^a over the patches of `level` (global RT coefficients, length `size`; for
     MultilevelFlux all levels' RT spaces one after the other) from the flat array of their
-    data moments: per bucket, the data of every patch (a gather), one batched product
-    with the representatives' operators, and each patch's change of basis (a gather of at most
-    two representative dofs times 0, ±1); then one scatter."""
+    data moments: per bucket, the data of every patch (a gather) and one batched product
+    with the representatives' operators; then each patch's change of basis (at most two
+    representative dofs times 0, ±1) and one scatter, either by `scatter` (the sparse matrix
+    `_bucket_scatter(level, size)` that does both, for a level applied many times) or
+    directly (a gather and a bincount)."""
     buckets, ret = level
-    values = []
-    for S, G, L, C in buckets:
-        g, nr, nq = S.shape
-        D = flat[G].reshape(g, -1, nq)                                       # (g, P, nq)
-        SR = np.matmul(D, S.transpose(0, 2, 1)).reshape(-1)                   # (g P nr)
-        off = (np.arange(L.shape[0], dtype=np.int64) * nr)[:, None]
-        v = SR[L[:, :, 0] + off] * C[:, :, 0]
-        second = C[:, :, 1] != 0
-        v[second] += SR[(L[:, :, 1] + off)[second]] * C[:, :, 1][second]
-        values.append(v.ravel())
-    return np.bincount(ret, np.concatenate(values), minlength=size)
+    SR = np.concatenate([np.matmul(flat[G].reshape(S.shape[0], -1, S.shape[2]),
+                                   S.transpose(0, 2, 1)).ravel() for S, G, _, _ in buckets])
+    if scatter is not None:
+        return scatter @ SR
+    cols, coef, second = _basis_terms(buckets)
+    v = SR[cols[:, 0]] * coef[:, 0]
+    v[second] += SR[cols[second, 1]] * coef[second, 1]
+    return np.bincount(ret, v, minlength=size)
+
+
+def _basis_terms(buckets):
+    """The change of basis of every patch dof of the buckets (in the order of their RT dofs
+    RET): cols (n, 2), its terms' positions in the products of all buckets (each (g P, nr),
+    row-major, one after the other), their coefficients coef (n, 2) (0, ±1), and the dofs
+    with a second term (coef[:, 1] ≠ 0)."""
+    total = sum(L.shape[0] * L.shape[1] for _, _, L, _ in buckets)
+    index = np.int32 if total < 2 ** 31 else np.int64
+    cols, coef, first = [], [], 0
+    for _, _, L, C in buckets:
+        Pn, nr = L.shape[:2]
+        start = np.arange(first, first + Pn * nr, nr, dtype=index)[:, None, None]
+        cols.append((L + start).reshape(-1, 2))
+        coef.append(C.reshape(-1, 2))
+        first += Pn * nr
+    cols, coef = np.concatenate(cols), np.concatenate(coef)
+    return cols, coef, np.flatnonzero(coef[:, 1])
+
+
+def _bucket_scatter(level, size):
+    """The change of basis and the scatter of `_apply_buckets` as one sparse matrix (size ×
+    the products' length; one or two entries ±1 per patch dof)."""
+    buckets, ret = level
+    cols, coef, second = _basis_terms(buckets)
+    return sp.csr_matrix((np.concatenate([coef[:, 0], coef[second, 1]]).astype(float),
+                          (np.concatenate([ret, ret[second]]),
+                           np.concatenate([cols[:, 0], cols[second, 1]]))),
+                         shape=(size, cols.shape[0]))
 
 
 def _top_tables():

@@ -802,10 +802,14 @@ class FluxEquilibration:
         if self.classes is not None:
             r = np.zeros(3 * self.geo.ncells) if R is None else self.lift @ R
             data = np.concatenate([mu * self.geo.gradient(u).ravel(), r, sign * lam])
-            out += _apply_class(self.classes, data, len(out))
+            out += _apply_class(self, data, len(out))
         return out
 
 
-def _apply_class(level, data, size):
-    from .algebraic_flux import _apply_buckets
-    return _apply_buckets(level, data, size)
+def _apply_class(flux, data, size):
+    """The classes' part of σ (`algebraic_flux._apply_buckets`), with their change of basis
+    and scatter as one sparse matrix, built at the first evaluation and kept."""
+    from .algebraic_flux import _apply_buckets, _bucket_scatter
+    if getattr(flux, "_class_scatter", None) is None:
+        flux._class_scatter = _bucket_scatter(flux.classes, size)
+    return _apply_buckets(flux.classes, data, size, flux._class_scatter)

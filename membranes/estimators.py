@@ -32,18 +32,21 @@ the multilevel construction of `algebraic_flux`, or `nu_flux`). Without it:
 
 A remainder η_rem left by σ_alg (the ν-construction) joins η_1 in the bound and η_alg.
 
-Integrals of P1 products (η_C, η_lin1, η_lin3, ‖λ^pos‖) are exact cell formulas; η_F, η_alg
-and η_osc are assembled with dolfinx against a piecewise-constant test function, the data with
-the scene's data measures.
+Integrals of P1 products (η_C, η_lin1, η_lin3, ‖λ^pos‖) are exact cell formulas; so are η_F
+and η_alg (`CellFluxNorms`: σ_α is a quadratic vector polynomial on each cell, integrated by
+an exact rule); η_osc is assembled once with dolfinx against a piecewise-constant test
+function, with the scene's data measures.
+
+σ_disc is computed once per iterate: the driver (membranes.driver, IterateEstimates) asks
+for the σ_disc of an iterate in `nu_flux`, in `evaluate`, and in the next `nu_flux` when it
+is the later iterate of the one before; `sigma_disc` keeps the last two.
 """
 
 import numpy as np
 import ufl
 
-from forms.equilibration import cell_norm_squared, flux_estimator_squared
-
 from .discretisation import assemble_vector_array, over
-from .equilibration import _MINV_REF, FluxEquilibration
+from .equilibration import _MINV_REF, FluxEquilibration, _rt_reference
 from .meshes import cell_diameters
 from .newton_system import split
 from .problem import as_builder
@@ -57,12 +60,74 @@ COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
 def _cell_products(area, pc, qc):
     """(p, q)_K = |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k) for p, q ∈ P1(K) given by their values
     at the vertices of every cell, pc, qc of shape (ncells, 3)."""
-    return area / 12.0 * ((pc * qc).sum(axis=1) + pc.sum(axis=1) * qc.sum(axis=1))
+    one = np.ones(3)
+    return area / 12.0 * (np.einsum("ck,ck->c", pc, qc) + (pc @ one) * (qc @ one))
 
 
 def _p1_products(geo, p, q):
     """(p, q)_K for nodal P1 values p, q."""
     return _cell_products(geo.area, p[geo.cells], q[geo.cells])
+
+
+class CellFluxNorms:
+    """‖a + σ‖_K² on every cell K at once, for a piecewise-constant vector field a and σ ∈ RT_1
+    given by its global coefficients (dolfinx's ("RT", 2) on `space`, a PatchSpace), without
+    assembly. On K, σ = (1/det J) J Σ_j s_j c_j ψ̂_j ∘ F_K⁻¹: the contravariant Piola map of
+    basix's reference basis ψ̂ (RT_1, Legendre variant) with the cell's dof signs s (its edge
+    reflections), as in PatchSpace.element_blocks. Its components are polynomials of degree 2
+    (RT_1 = P_1² + x P̃_1), so |a + σ|² has degree 4 and basix's degree-4 rule (weights w_q,
+    points x̂_q) integrates it exactly: ‖a + σ‖_K² = |det J| Σ_q w_q |a + σ(F_K(x̂_q))|², with
+    a added to the values of σ before squaring, as an assembly does (no cancellation between
+    the terms of an expanded square). The cells are taken CHUNK at a time (the temporaries
+    stay in cache)."""
+
+    CHUNK = 4096
+
+    def __init__(self, space):
+        import basix
+        from .algebraic_flux import _rt_element
+        geo = space.geo
+        mesh = space.RT.mesh
+        nc = geo.ncells
+        self.rt_cells = space.RT.dofmap.list.array.reshape(-1, 8)[:nc].astype(np.int32)
+        mesh.topology.create_entity_permutations()
+        refl = np.asarray(mesh.topology.get_cell_permutation_info())[:nc] & 7
+        self.signs = _rt_reference()[3][refl]                               # (nc, 8)
+        X, self.w = basix.make_quadrature(basix.CellType.triangle, 4)
+        psi = _rt_element().tabulate(0, X)[0]                             # (q, 8, 2)
+        self.psi = np.ascontiguousarray(psi.transpose(1, 2, 0).reshape(8, -1))  # (8, 2 q)
+        J = geo.jacobians(np.arange(nc))
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        self.piola = (J / det[:, None, None]).reshape(nc, 4, 1)             # J / det J
+        self.abs_det = np.abs(det)
+
+    def squared(self, a, sigma, tau=None):
+        """∫_K |a + σ|² for every cell K (a (ncells, 2)); with τ ∈ RT_1 also ∫_K |a + σ + τ|²
+        and ∫_K |τ|²: shape (ncells,), or (3, ncells) with τ."""
+        nc = len(self.abs_det)
+        out = np.empty((1 if tau is None else 3, nc))
+        for s in range(0, nc, self.CHUNK):
+            cells = slice(s, s + self.CHUNK)
+            e = self._values(sigma, cells)
+            e += a[cells].T[:, :, None]
+            out[0, cells] = self._integral(e, cells)
+            if tau is not None:
+                t = self._values(tau, cells)
+                out[2, cells] = self._integral(t, cells)
+                e += t
+                out[1, cells] = self._integral(e, cells)
+        return out[0] if tau is None else out
+
+    def _values(self, sigma, cells):
+        """σ at the quadrature points of the cells, (2, cells, q)."""
+        v = ((sigma[self.rt_cells[cells]] * self.signs[cells]) @ self.psi)
+        v = v.reshape(len(v), 2, -1)
+        F = self.piola[cells]
+        return np.stack([F[:, 0] * v[:, 0] + F[:, 1] * v[:, 1],
+                         F[:, 2] * v[:, 0] + F[:, 3] * v[:, 1]])
+
+    def _integral(self, v, cells):
+        return ((v[0] * v[0] + v[1] * v[1]) @ self.w) * self.abs_det[cells]
 
 
 def constraint_projection(u1, u2):
@@ -83,35 +148,27 @@ class Estimators:
     same on every process."""
 
     def __init__(self, disc, owned=None, sum_parts=None):
-        from dolfinx import fem
         self.disc = disc
         problem = disc.problem
-        mesh = problem.mesh
         self.flux = FluxEquilibration(disc, owned)
         self.sum_parts = sum_parts
-        self.geo = geo = self.flux.geo
+        self.geo = self.flux.geo
         self.mu = (problem.mu1, problem.mu2)
         self.cpf = problem.poincare_constant()
         self.kappa = self.cpf * np.sqrt(1.0 / self.mu[0] + 1.0 / self.mu[1])
-        # per-cell assembly against DG0
-        self.DG0 = fem.FunctionSpace(mesh, ("DG", 0))
-        self.cell_dof = self.DG0.dofmap.list.array[:geo.ncells]
-        w = ufl.TestFunction(self.DG0)
-        self._u = fem.Function(disc.V)
-        self._sigma = fem.Function(self.flux.RT)
-        self._mu = fem.Constant(mesh, 1.0)
-        self._flux_form = fem.form(flux_estimator_squared(self._mu, self._u, self._sigma, w))
-        self._norm_form = fem.form(cell_norm_squared(self._sigma, w))
-        self.osc = self._oscillation(w)                       # (2, ncells)
+        self.norms = CellFluxNorms(self.flux.space)
+        self.osc = self._oscillation()                        # (2, ncells)
         self.flux.load = None                                 # only the oscillation uses it
+        self._recent = []                                     # sigma_disc's last two
 
-    def _per_cell(self, form):
-        return assemble_vector_array(form)[self.cell_dof]
-
-    def _oscillation(self, w):
-        """η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K (iterate-independent)."""
+    def _oscillation(self):
+        """η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K (iterate-independent), assembled
+        against a piecewise-constant test function w."""
         from dolfinx import fem
         disc, geo = self.disc, self.geo
+        DG0 = fem.FunctionSpace(disc.problem.mesh, ("DG", 0))
+        w = ufl.TestFunction(DG0)
+        cell_dof = DG0.dofmap.list.array[:geo.ncells]
         x = ufl.SpatialCoordinate(disc.problem.mesh)
         DG1, dg_cells = self.flux.space.DG, self.flux.space.dg_cells
         hK = cell_diameters(disc.problem.mesh)
@@ -123,14 +180,8 @@ class Estimators:
             e = as_builder(f)(x) - proj
             sq = assemble_vector_array(over(disc.dx_data, lambda dx: e * e * w * dx))
             out.append(hK / np.pi / np.sqrt(self.mu[alpha]) * np.sqrt(np.maximum(
-                sq[self.cell_dof], 0.0)))
+                sq[cell_dof], 0.0)))
         return np.array(out)
-
-    def _flux_cells(self, alpha, u, sigma):
-        self._u.x.array[:] = u
-        self._sigma.x.array[:] = sigma
-        self._mu.value = self.mu[alpha]
-        return np.sqrt(np.maximum(self._per_cell(self._flux_form), 0.0))
 
     def _p1_dg_norms(self, coeffs):
         """‖v‖_Ω for v ∈ DG1 given by coefficients (ncells, 3) in cell-vertex order."""
@@ -152,13 +203,25 @@ class Estimators:
         return float(self.cpf * np.sqrt(total))
 
     def sigma_disc(self, X, R=None):
-        """(σ_1,disc, σ_2,disc) at X with algebraic residual R (RT_1 coefficients)."""
+        """(σ_1,disc, σ_2,disc) at X with algebraic residual R (RT_1 coefficients, read-only).
+        The last two are kept and given again for the same X and R (equal entries; every
+        process of a run has the same iterates, so all of them compute or none)."""
+        for (Xk, Rk), sigma in self._recent:
+            if np.array_equal(Xk, X) and (Rk is None if R is None else
+                                          Rk is not None and np.array_equal(Rk, R)):
+                return sigma
         n = self.disc.n
         u1, u2, lam = split(X, n)
         Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
         sigma = [self.flux.sigma(alpha + 1, u, lam, Ra)
                  for alpha, (u, Ra) in enumerate(zip((u1, u2), Rs))]
-        return sigma if self.sum_parts is None else self.sum_parts(sigma)
+        if self.sum_parts is not None:
+            sigma = self.sum_parts(sigma)
+        for s in sigma:
+            s.flags.writeable = False
+        key = (X.copy(), None if R is None else R.copy())
+        self._recent = [(key, sigma)] + self._recent[:1]
+        return sigma
 
     def nu_flux(self, X, R, X_later, R_later):
         """The algebraic flux of ν extra iterations (DESIGN §6) at the iterate X (residual R),
@@ -186,16 +249,20 @@ class Estimators:
         u1, u2, lam = split(X, n)
         roundoff = R is None or (alg_residual is not None and alg_residual <= ALG_ROUNDOFF)
         have_alg = sigma_alg is not None or roundoff
+        # η_F,K,α = ‖μ^{1/2} ∇u_h + μ^{-1/2} σ‖_K, η_alg,K,α = ‖μ^{-1/2} σ_alg‖_K
         disc_cells, flux_cells, alg_cells = [], [], []
         for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R))):
-            disc_cells.append(self._flux_cells(alpha, u, s_disc))
-            if sigma_alg is not None:
-                flux_cells.append(self._flux_cells(alpha, u, s_disc + sigma_alg[alpha]))
-                self._sigma.x.array[:] = sigma_alg[alpha]
-                alg_cells.append(np.sqrt(np.maximum(self._per_cell(self._norm_form), 0.0)
-                                         / self.mu[alpha]))
-            else:
+            root = np.sqrt(self.mu[alpha])
+            if sigma_alg is None:
+                disc_cells.append(np.sqrt(self.norms.squared(root * geo.gradient(u),
+                                                             s_disc / root)))
                 flux_cells.append(disc_cells[-1])
+            else:
+                d, f, a = np.sqrt(self.norms.squared(root * geo.gradient(u), s_disc / root,
+                                                     sigma_alg[alpha] / root))
+                disc_cells.append(d)
+                flux_cells.append(f)
+                alg_cells.append(a)
         disc_cells, flux_cells = np.array(disc_cells), np.array(flux_cells)
         # constraint and linearisation parts (exact P1 integrals)
         lam_pos, lam_neg = np.maximum(lam, 0.0), np.minimum(lam, 0.0)

@@ -13,6 +13,7 @@ does not know.
 
 import numpy as np
 import pytest
+import ufl
 
 from membranes import solve
 from membranes.estimators import ALG_ROUNDOFF
@@ -93,3 +94,81 @@ def test_local_distribution_in_solution(tmp_path):
     # η_K² sums to η² up to the cross terms of the global formula: same order of magnitude
     final = run.history[-1]
     assert 0.5 * final["eta"] <= np.sqrt((eta_K ** 2).sum()) <= 2.0 * final["eta"]
+
+
+@pytest.mark.parametrize("name,h,levels", [("disk", 0.1, 0), ("square", 0.1, 0), ("disk", 0.3, 2)])
+def test_cell_flux_norms_match_assembly(name, h, levels):
+    """The per-cell norms of the evaluation in closed form (CellFluxNorms: σ ∈ RT_1 mapped cell
+    by cell, an exact degree-4 rule) against dolfinx's assembly of the same integrals against
+    a piecewise-constant test function (forms.equilibration), for random P1 u and RT_1 σ, τ
+    (every edge reflection and cell shape of the mesh occurs): ‖μ^{1/2}∇u + μ^{-1/2}σ‖_K²,
+    the same with σ + τ, and ‖μ^{-1/2}τ‖_K². Both integrate the same polynomials exactly, so
+    they differ by round-off only: each value at a quadrature point is a sum of some twenty
+    products of O(1) factors, computed in different orders, so the difference per cell is
+    within about 100 ε (2e-14) of the cell's ‖|a| + |σ| + |τ|‖_K² ≤ 3 (‖a‖_K² + ‖σ‖_K² +
+    ‖τ‖_K²) (a = μ^{1/2}∇u, σ and τ scaled by μ^{-1/2}); 10 ε measured."""
+    from dolfinx import fem
+
+    from forms.equilibration import cell_norm_squared, flux_estimator_squared
+    from membranes.discretisation import assemble_vector_array, discretise
+    from membranes.equilibration import Geometry, PatchSpace
+    from membranes.estimators import CellFluxNorms
+
+    rng = np.random.default_rng(7)
+    disc = discretise(scene(name, h, levels=levels) if levels else scene(name, h))
+    space = PatchSpace(disc.V, blocks=False)
+    norms = CellFluxNorms(space)
+    mesh = disc.problem.mesh
+    DG0 = fem.FunctionSpace(mesh, ("DG", 0))
+    w = ufl.TestFunction(DG0)
+    cell_dof = DG0.dofmap.list.array[:space.geo.ncells]
+    u, sigma, mu = fem.Function(disc.V), fem.Function(space.RT), fem.Constant(mesh, 2.5)
+    flux_form = fem.form(flux_estimator_squared(mu, u, sigma, w))
+    norm_form = fem.form(cell_norm_squared(sigma, w))
+
+    def assembled(form):
+        return assemble_vector_array(form)[cell_dof]
+
+    u.x.array[:] = rng.standard_normal(disc.n)
+    s, t = rng.standard_normal((2, space.nrt))
+    root = np.sqrt(2.5)
+    a = root * Geometry(disc.V).gradient(u.x.array)
+    got = norms.squared(a, s / root, t / root)
+    assert np.allclose(norms.squared(a, s / root), got[0], rtol=0, atol=0)
+    want = []
+    for coefficients, form in ((s, flux_form), (s + t, flux_form), (t, norm_form)):
+        sigma.x.array[:] = coefficients
+        want.append(assembled(form) / (2.5 if form is norm_form else 1.0))
+    scale = []
+    for coefficients in (s, t):
+        sigma.x.array[:] = coefficients
+        scale.append(assembled(norm_form) / 2.5)
+    bound = 3.0 * ((a * a).sum(axis=1) * space.geo.area + scale[0] + scale[1])
+    for g, wnt in zip(got, want):
+        assert np.all(np.abs(g - wnt) <= 2e-14 * bound), np.max(np.abs(g - wnt) / bound)
+
+
+def test_sigma_disc_kept_for_the_same_iterate():
+    """Estimators.sigma_disc gives the σ_disc it computed last for equal (X, R) (the driver asks
+    for it again in nu_flux and evaluate), read-only, and computes it afresh otherwise."""
+    from membranes.estimators import Estimators
+    from membranes.newton_system import split
+
+    run = solved_with("disk", 0.1)
+    est = Estimators(run.disc)
+    n = run.disc.n
+    X = run.X.copy()
+    R = np.random.default_rng(3).standard_normal(3 * n) * 1e-6
+    R[np.r_[run.disc.boundary, n + run.disc.boundary]] = 0.0
+    first = est.sigma_disc(X, R)
+    assert est.sigma_disc(X.copy(), R.copy()) is first
+    assert not first[0].flags.writeable
+    u1, u2, lam = split(X, n)
+    fresh = est.flux.sigma(1, u1, lam, R[:n])
+    assert np.array_equal(first[0], fresh)
+    X[0] += 1e-3
+    other = est.sigma_disc(X, R)
+    assert other is not first
+    assert np.array_equal(other[0], est.flux.sigma(1, X[:n], lam, R[:n]))
+    assert est.sigma_disc(run.X, R) is first          # the last two are kept
+    assert est.sigma_disc(X, None) is not other
