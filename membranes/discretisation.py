@@ -137,7 +137,7 @@ def composite_rule(n=CUT_SUBDIVISIONS, degree=CUT_DEGREE):
 
 def cut_cells(mesh, interface, samples=4):
     """Local cells on which the level set `interface` changes sign (sampled on a grid: the
-    points v0 + s (v1 - v0) + t (v2 - v0), s, t ∈ {0, 1/samples, …}, s + t ≤ 1)."""
+    points (v0 + s (v1 - v0)) + t (v2 - v0), s, t ∈ {0, 1/samples, …}, s + t ≤ 1)."""
     x = mesh.geometry.x[:, :2].T.copy()                          # (2, vertices)
     ncells = mesh.topology.index_map(2).size_local
     cells = mesh.geometry.dofmap.array.reshape(-1, 3)[:ncells]
@@ -145,9 +145,11 @@ def cut_cells(mesh, interface, samples=4):
     e1, e2 = x[:, cells[:, 1]] - v0, x[:, cells[:, 2]] - v0
     lo = np.full(ncells, np.inf)
     hi = np.full(ncells, -np.inf)
+    row, q = np.empty_like(v0), np.empty_like(v0)
     for i in range(samples + 1):
+        np.add(v0, np.multiply(i / samples, e1, out=row), out=row)
         for j in range(samples + 1 - i):
-            phi = interface(v0 + (i / samples) * e1 + (j / samples) * e2)
+            phi = interface(np.add(row, np.multiply(j / samples, e2, out=q), out=q))
             np.minimum(lo, phi, out=lo)
             np.maximum(hi, phi, out=hi)
     return np.flatnonzero((lo < 0) & (hi > 0)).astype(np.int32)
