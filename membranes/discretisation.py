@@ -199,23 +199,31 @@ def load(data, mesh):
 
 def assemble_matrix_csr(a):
     """Assemble a bilinear form (UFL, or a dolfinx Form) without boundary conditions into
-    scipy CSR: the owned rows, global column numbers (dolfinx's own CSR matrix, no PETSc)."""
+    scipy CSR: the owned rows, global column numbers. Scalar spaces go through dolfinx's own
+    CSR matrix, blocked spaces (which it does not take in dolfinx 0.5.2) through PETSc's:
+    the same entries, PETSc's matrix costs a second sparsity pass (twice the time)."""
     from dolfinx import fem, la
     a = form(a) if isinstance(a, ufl.Form) else a
     if any(V.dofmap.index_map_bs != 1 for V in a.function_spaces):
-        raise ValueError("assemble_matrix_csr: scalar (block size 1) spaces only")
-    pattern = fem.create_sparsity_pattern(a)
-    pattern.assemble()
-    A = la.matrix_csr(pattern)
-    fem.assemble_matrix(A, a)
-    A.finalize()
-    rows, cols = (V.dofmap.index_map for V in a.function_spaces)
-    m = rows.size_local
-    indptr = np.array(A.indptr[:m + 1])
-    indices = cols.local_to_global(np.asarray(A.indices[:indptr[-1]], dtype=np.int32))
-    out = sp.csr_matrix((np.array(A.data[:indptr[-1]]), indices, indptr),
-                        shape=(m, cols.size_global))
-    del A, pattern
+        from dolfinx.fem.petsc import assemble_matrix
+        A = assemble_matrix(a)
+        A.assemble()
+        indptr, indices, data = A.getValuesCSR()
+        out = sp.csr_matrix((data, indices, indptr), shape=A.getSize())
+        A.destroy()
+    else:
+        pattern = fem.create_sparsity_pattern(a)
+        pattern.assemble()
+        A = la.matrix_csr(pattern)
+        fem.assemble_matrix(A, a)
+        A.finalize()
+        rows, cols = (V.dofmap.index_map for V in a.function_spaces)
+        m = rows.size_local
+        indptr = np.array(A.indptr[:m + 1])
+        indices = cols.local_to_global(np.asarray(A.indices[:indptr[-1]], dtype=np.int32))
+        out = sp.csr_matrix((np.array(A.data[:indptr[-1]]), indices, indptr),
+                            shape=(m, cols.size_global))
+        del A, pattern
     release_memory()
     return out
 
