@@ -135,24 +135,29 @@ def composite_rule(n=CUT_SUBDIVISIONS, degree=CUT_DEGREE):
     return pts, wts
 
 
-def cut_cells(mesh, interface, samples=4):
+def cut_cells(mesh, interface, samples=4, chunk=16384):
     """Local cells on which the level set `interface` changes sign (sampled on a grid: the
-    points (v0 + s (v1 - v0)) + t (v2 - v0), s, t ∈ {0, 1/samples, …}, s + t ≤ 1)."""
+    points (v0 + s (v1 - v0)) + t (v2 - v0), s, t ∈ {0, 1/samples, …}, s + t ≤ 1), `chunk`
+    cells at a time (their samples stay in cache)."""
     x = mesh.geometry.x[:, :2].T.copy()                          # (2, vertices)
     ncells = mesh.topology.index_map(2).size_local
     cells = mesh.geometry.dofmap.array.reshape(-1, 3)[:ncells]
-    v0 = x[:, cells[:, 0]]
-    e1, e2 = x[:, cells[:, 1]] - v0, x[:, cells[:, 2]] - v0
-    lo = np.full(ncells, np.inf)
-    hi = np.full(ncells, -np.inf)
-    row, q = np.empty_like(v0), np.empty_like(v0)
-    for i in range(samples + 1):
-        np.add(v0, np.multiply(i / samples, e1, out=row), out=row)
-        for j in range(samples + 1 - i):
-            phi = interface(np.add(row, np.multiply(j / samples, e2, out=q), out=q))
-            np.minimum(lo, phi, out=lo)
-            np.maximum(hi, phi, out=hi)
-    return np.flatnonzero((lo < 0) & (hi > 0)).astype(np.int32)
+    cut = np.zeros(ncells, dtype=bool)
+    for start in range(0, ncells, chunk):
+        c = cells[start:start + chunk]
+        v0 = x[:, c[:, 0]]
+        e1, e2 = x[:, c[:, 1]] - v0, x[:, c[:, 2]] - v0
+        lo = np.full(len(c), np.inf)
+        hi = np.full(len(c), -np.inf)
+        row, q = np.empty_like(v0), np.empty_like(v0)
+        for i in range(samples + 1):
+            np.add(v0, np.multiply(i / samples, e1, out=row), out=row)
+            for j in range(samples + 1 - i):
+                phi = interface(np.add(row, np.multiply(j / samples, e2, out=q), out=q))
+                np.minimum(lo, phi, out=lo)
+                np.maximum(hi, phi, out=hi)
+        cut[start:start + chunk] = (lo < 0) & (hi > 0)
+    return np.flatnonzero(cut).astype(np.int32)
 
 
 @functools.lru_cache(maxsize=None)
