@@ -16,8 +16,8 @@ energy error.
 compiled (or found in the JIT cache) once per process, and every later form of the same
 structure, on any mesh, gets a dolfinx Form of that kernel at the cost of a cheap signature
 (`form_signature`). dolfinx 0.5.2's fem.form computes UFL's signature on every call, which
-turns every number of a custom quadrature rule into a string: 20 ms for a form on the data
-measures, on every level, for every form.
+turns every number of a custom quadrature rule into a string: a load on the data measures
+took 9 ms in fem.form, 0.8 ms in `form` (disk, T_0). Other modules' forms may use it too.
 
 Serial: the matrices are handed to the driver as scipy CSR (owned rows = all rows).
 """
