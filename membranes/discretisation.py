@@ -363,8 +363,9 @@ class EnergyError:
     set-up interpolates u and assembles b1, b2, c once (one vector, one pass of quadrature);
     an evaluation is two products with the stiffness matrices. Expanded about I_h u, not
     about 0, the terms are of the size of the error, not of |||u|||, and so is their
-    round-off. Serial, as the Discretisation. `per_cell` integrates |∇(u - u_h)|² cell by cell directly (DG0 test
-    functions), a check of the expansion and the actual error distribution.
+    round-off. Serial, as the Discretisation. `per_cell` integrates |∇(u - u_h)|² cell by
+    cell directly (DG0 test functions): a check of the expansion, and the actual error
+    distribution.
     """
 
     def __init__(self, disc):
