@@ -84,9 +84,11 @@ def prolongation(V_coarse, V_fine, parent_cells):
             not np.all(snapped.sum(axis=1) == 1.0):
         raise ValueError("the fine mesh is not a uniform refinement of the coarse one (a fine "
                          "vertex is neither a coarse vertex nor an edge midpoint)")
-    keep = snapped != 0.0
-    rows = np.repeat(np.arange(n_f), 3)[keep.ravel()]
-    P = sp.csr_matrix((snapped[keep], (rows, dofs[keep])), shape=(n_f, n_c))
+    keep = snapped != 0.0                  # one weight 1 or two weights 1/2 in every row
+    indptr = np.zeros(n_f + 1, dtype=np.int64)
+    np.cumsum(keep.sum(axis=1), out=indptr[1:])
+    P = sp.csr_matrix((snapped[keep], dofs[keep], indptr), shape=(n_f, n_c))
+    P.sort_indices()
     return P
 
 

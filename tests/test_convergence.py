@@ -43,3 +43,20 @@ def test_history_energy_error_is_final(name):
     run = solved(name, 0.1)
     assert run.energy_error == run.history[-1]["energy_error"]
     assert run.energy_error < run.history[0]["energy_error"]
+
+
+def test_energy_error_expansion_is_the_integral():
+    """EnergyError's total (expanded about the interpolant of the exact solution, two
+    stiffness products per call) is the data measures' integral of |∇(u - u_h)|², which
+    per_cell integrates cell by cell: the same quadrature, so the two agree to round-off,
+    relative to the error, far from the solution and at it."""
+    import numpy as np
+    from membranes.discretisation import EnergyError
+    for name in ("disk", "square"):
+        run = solved(name, 0.1)
+        error = EnergyError(run.disc)
+        rng = np.random.default_rng(0)
+        for X in (run.X, run.X + 1e-3 * rng.normal(size=run.X.size), np.zeros(run.X.size)):
+            direct = np.sqrt((error.per_cell(X) ** 2).sum())
+            assert abs(error(X) - direct) <= 1e-12 * direct
+        assert error(run.X) == run.energy_error
