@@ -52,6 +52,7 @@ then their part of the sum, and the parts of a partition of the vertices add up 
 """
 
 import functools
+import itertools
 
 import numpy as np
 import scipy.sparse as sp
@@ -359,9 +360,11 @@ def vertex_patches(geo, owned=None):
 def _grid_keys(v, scale):
     """One int64 per point of v (..., 2): its coordinates in units of 1e-6 scale, rounded and
     combined (None if they exceed 2^30 units, a patch larger than 1000 scale)."""
-    k = np.round(v * (1e6 / scale)).astype(np.int64)
-    if k.size and np.abs(k).max() >= 2 ** 30:
+    k = v * (1e6 / scale)
+    np.rint(k, out=k)
+    if k.size and max(k.max(), -k.min()) >= 2 ** 30:
         return None
+    k = k.astype(np.int64)
     return (k[..., 0] + 2 ** 30) * 2 ** 31 + (k[..., 1] + 2 ** 30)
 
 
@@ -371,7 +374,28 @@ def _row_hash(keys, seed):
     about 2^-63, and every class is checked entry by entry anyway)."""
     mult = np.random.default_rng(seed).integers(1, 2 ** 62, size=keys.shape[1]) | 1
     with np.errstate(over="ignore"):
-        return (keys * mult).sum(axis=1)
+        return keys @ mult
+
+
+# the permutations of (0, 1, 2) as itertools lists them; s is number 2 s[0] + (s[1] > s[2])
+_PERMS = np.array(list(itertools.permutations(range(3))), dtype=np.int8)
+# _MATCH[a, b] = t ∘ s⁻¹ for s = _PERMS[a], t = _PERMS[b]: the vertex i of a cell whose
+# canonical order is s sits where vertex (t ∘ s⁻¹)[i] of a cell with canonical order t does
+_MATCH = np.array([[t[np.argsort(s)] for t in _PERMS] for s in _PERMS], dtype=np.int8)
+
+
+def _canonical_vertices(geo, cent, cells, scale):
+    """The vertices of the given cells in a canonical order (by their offsets from the cell's
+    centroid, rounded as `_grid_keys`: the same order in translated cells) and the number of
+    that order among _PERMS: (len(cells), 3) vertex numbers, (len(cells),) codes (None if
+    the keys overflow)."""
+    verts = geo.cells[cells]
+    key = _grid_keys(geo.x[verts] - cent[cells][:, None, :], scale)
+    if key is None:
+        return None, None
+    order = np.argsort(key, axis=1, kind="stable")
+    code = (2 * order[:, 0] + (order[:, 1] > order[:, 2])).astype(np.int8)
+    return np.take_along_axis(verts, order, axis=1), code
 
 
 def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
@@ -383,63 +407,78 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
     (relative to xa). Patches are classed by their offsets rounded to 1e-6 scale (through a
     64-bit hash of the rounded signature, checked entry by entry against the
-    representative's), and are translates to round-off only: a patch whose vertices do not
-    match its representative's within 1e-13 of the largest coordinate (a coincidence of the
-    rounded keys: a near-translate) is classed again among such patches. `exterior`
-    (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets,
-    per cell): two patches of boundary vertices with the same cells keep different RT dofs
-    when one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of
-    a structured square). Each step is a pass over arrays of P m entries (no row sorting), the
-    vertex matches `chunk` patches at a time."""
+    representative's), and are translates to round-off only: a patch whose vertices (relative
+    to xa) do not match its representative's within 1e-13 of the largest coordinate (a
+    coincidence of the rounded keys: a near-translate) is classed again among such patches.
+    `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary
+    patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets, per
+    cell): two patches of boundary vertices with the same cells keep different RT dofs when
+    one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of a
+    structured square).
+
+    Each step is a pass over arrays of P m entries (no row sorting but the m keys of each
+    patch): the cells' vertices are put in a canonical order once per cell
+    (`_canonical_vertices`), so that a vertex match is a table entry per cell (_MATCH) and
+    the check compares the vertices in that order, `chunk` patches at a time."""
     P, m = CF.shape
     boundary = np.asarray(boundary, dtype=bool)
-    identity = np.broadcast_to(np.arange(3, dtype=np.int8), (P, m, 3)).copy()
+
+    def identity():
+        return np.broadcast_to(np.arange(3, dtype=np.int8), (P, m, 3)).copy()
+
     key = _grid_keys(cent[CF] - xa[:, None, :], scale)                       # (P, m)
     if not translates or key is None or P == 0:
-        return CF, KF, np.arange(P), identity
+        return CF, KF, np.arange(P), identity()
     order = np.argsort(key, axis=1, kind="stable")
     CF, KF = np.take_along_axis(CF, order, axis=1), np.take_along_axis(KF, order, axis=1)
     sig = [boundary[:, None].astype(np.int64), np.take_along_axis(key, order, axis=1)]
+    del key, order
     if exterior is not None:
-        where = np.zeros((P, m, 2))
         b = np.flatnonzero(boundary)
         xv = geo.x[geo.cells[CF[b]]] - xa[b][:, None, None, :]
         mids = 0.5 * (np.roll(xv, -1, axis=2) + np.roll(xv, -2, axis=2))   # edge e: opposite e
-        where[b] = (mids * exterior[CF[b]][..., None]).sum(axis=2)
-        sig.append(_grid_keys(where, scale))
-        if sig[-1] is None:
-            return CF, KF, np.arange(P), identity
+        where = _grid_keys((mids * exterior[CF[b]][..., None]).sum(axis=2), scale)
+        if where is None:
+            return CF, KF, np.arange(P), identity()
+        sig.append(np.full((P, m), _grid_keys(np.zeros(2), scale)))
+        sig[-1][b] = where
     sig = np.concatenate(sig, axis=1)
     h = _row_hash(sig, seed=0)
-    # vertex matches: the vertices of each cell in the order of their keys (offsets from the
-    # cell's centroid), patch against representative; checked in floating point (the offsets
-    # of the cell centroids and of the vertices from them, each to tol)
-    uc, inv = np.unique(CF, return_inverse=True)
-    inv = inv.reshape(P, m)
-    rel = geo.x[geo.cells[uc]] - cent[uc][:, None, :]                       # (U, 3, 2)
-    rkey = _grid_keys(rel, scale)
-    if rkey is None:
-        return CF, KF, np.arange(P), identity
-    vorder = np.argsort(rkey, axis=1)                                        # (U, 3)
-    del rkey
+    # the cells' vertices in canonical order, once per cell (inv: the cells' numbers among
+    # those of the patches)
+    used = np.zeros(len(geo.cells), dtype=bool)
+    used[CF] = True
+    uc = np.flatnonzero(used)
+    del used
+    lookup = np.empty(len(geo.cells), dtype=np.int64)
+    lookup[uc] = np.arange(len(uc))
+    inv = lookup[CF]
+    del lookup
+    verts, code = _canonical_vertices(geo, cent, uc, scale)
+    if verts is None:
+        return CF, KF, np.arange(P), identity()
+    code = code[inv]                                                          # (P, m)
     # round-off: the offsets are differences of coordinates of size up to |x|max, a few ulps
     # of it; 1e-13 |x|max leaves a margin of several hundred, and near-translates (a gmsh mesh
     # has patches equal to 1e-8 of their size) do not pass
     tol = 1e-13 * max(np.abs(geo.x).max(), scale)
 
-    def match(p, r):
-        """Whether patches p are translates of patches r (same signature, vertices within
-        tol), and the vertex matches pi (len(p), m, 3)."""
-        ok = (sig[p] == sig[r]).all(axis=1)
-        pi = np.empty((len(p), m, 3), dtype=np.int8)          # every entry set below
+    def vertices(p):
+        """The vertices of patches p relative to their xa, in canonical order, (len(p), 6 m)."""
+        return (geo.x[verts[inv[p]]] - xa[p, None, None, :]).reshape(len(p), -1)
+
+    def match(p, first, gid):
+        """Whether patches p are translates of the representatives p[first][gid] (same
+        signature, vertices within tol), and the vertex matches pi (len(p), m, 3)."""
+        r = p[first][gid]
+        few = len(first) <= chunk
+        theirs = vertices(p[first]) if few else None
+        ok = np.empty(len(p), dtype=bool)
         for s in range(0, len(p), chunk):
-            c, cp, cr = slice(s, s + chunk), p[s:s + chunk], r[s:s + chunk]
-            np.put_along_axis(pi[c], vorder[inv[cp]], vorder[inv[cr]].astype(np.int8), axis=2)
-            theirs = np.take_along_axis(rel[inv[cr]], pi[c, :, :, None].astype(np.int64), axis=2)
-            ok[c] &= np.abs(rel[inv[cp]] - theirs).max(axis=(1, 2, 3)) <= tol
-            off = cent[CF[cp]] - xa[cp, None, :]
-            ok[c] &= np.abs(off - (cent[CF[cr]] - xa[cr, None, :])).max(axis=(1, 2)) <= tol
-        return ok, pi
+            c = slice(s, s + chunk)
+            mine = vertices(p[c]) - (theirs[gid[c]] if few else vertices(r[c]))
+            ok[c] = (np.abs(mine).max(axis=1) <= tol) & (sig[p[c]] == sig[r[c]]).all(axis=1)
+        return ok, _MATCH[code[p], code[r]]
 
     def fine_hash(p):
         """A hash of the centroid offsets of patches p on a grid of 1e-10 scale (and of the
@@ -456,12 +495,13 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     # the levels of the multilevel flux: 1618 classes at J = 3 and 2741 at J = 4 on the disk,
     # h0 = 0.132, where 1419 do for every J.
     rep = np.empty(P, dtype=np.int64)
-    pi = identity
+    pi = np.empty((P, m, 3), dtype=np.int8)
     pending, key = np.arange(P), h
     while pending.size:
         _, first, gid = np.unique(key, return_index=True, return_inverse=True)
-        rep[pending] = pending[first[gid.ravel()]]
-        ok, pi[pending] = match(pending, rep[pending])
+        gid = gid.ravel()
+        rep[pending] = pending[first[gid]]
+        ok, pi[pending] = match(pending, first, gid)
         pending = pending[~ok]
         key = fine_hash(pending)
     return CF, KF, rep, pi
