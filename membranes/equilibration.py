@@ -542,18 +542,21 @@ def _class_tables(slots):
     """For the change of RT basis from a class representative to a translate (algebraic_flux:
     `_W_TABLE`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2), the (at most
     two) representative dofs l of the cell with W[l, k] ≠ 0 for each patch dof k, and their
-    coefficients; and ANCHOR (6, 8): the representative dof on the entity that corresponds to
-    patch dof k's entity (edge e ↦ edge pi[e]) in the same slot (`slots` as in PatchSpace)."""
-    import itertools
+    coefficients; PATCH_DOF (6, 8): the patch dof in the slot of the entity that corresponds
+    to the representative dof l's entity (edge e of the patch ↦ edge pi[e] of the
+    representative; `slots` as in PatchSpace); and EDGE_BITS (6, 8): a set of patch cell edges
+    (bit e: edge e) as the set of the corresponding representative's edges."""
     from .algebraic_flux import _W_COEF, _W_TOP
     slots = np.array(slots)
     anchor = np.empty((6, 8), dtype=np.int64)
-    for code, perm in enumerate(itertools.permutations(range(3))):        # perm = π, pi = π⁻¹
+    bits = np.zeros((6, 8), dtype=np.int8)
+    for code, perm in enumerate(_PERMS):                                  # perm = π, pi = π⁻¹
         pi = np.argsort(perm)
         for e in range(3):
             anchor[code, slots[e]] = slots[pi[e]]
+            bits[code] += (np.arange(8) >> e & 1) << pi[e]
         anchor[code, slots[3]] = slots[3]
-    return _W_TOP.astype(np.int64), _W_COEF, anchor
+    return _W_TOP.astype(np.int64), _W_COEF, np.argsort(anchor, axis=1), bits
 
 
 class FluxEquilibration:
@@ -613,6 +616,7 @@ class FluxEquilibration:
         (set-up only) the load moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map)
         and σ_p = Tᵀ S d_p for the patch's data d_p (the change of basis). The members are
         ordered by class size and class, so that a bucket is a slice of each array."""
+        from .algebraic_flux import _perm_code
         geo, space = self.geo, self.space
         P, n = CS.shape
         CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, self._cent,
@@ -640,13 +644,14 @@ class FluxEquilibration:
             C = np.empty((Pm, nr, 2), dtype=np.int8)
             G = np.empty((Pm, q), dtype=self._index_type())
             GF = np.empty((Pm, 3 * n), dtype=G.dtype)
-            for s in range(0, Pm, 2 * self.CHUNK):
-                c = mem[s:s + 2 * self.CHUNK]
-                part = slice(s, s + 2 * self.CHUNK)
+            tables = self._representatives(CF[reps[sel]], loc)
+            for s in range(0, Pm, 4 * self.CHUNK):
+                c = mem[s:s + 4 * self.CHUNK]
+                part = slice(s, s + 4 * self.CHUNK)
+                perm = _perm_code(pi[c])
                 RETm[part], L[part], C[part] = self._translates(
-                    CF[c], KF[c], pi[c], CF[rep[c]], loc[batch[rep[c]]], boundary[c], nr)
-                G[part], GF[part] = np.split(
-                    self._data_indices(verts[c], CF[c], KF[c], pi[c]), [q], axis=1)
+                    CF[c], KF[c], perm, boundary[c], tables, batch[rep[c]])
+                self._data_indices(verts[c], CF[c], KF[c], perm, G[part], GF[part])
             # buckets: the classes of one size, each its members in a row
             csize = size[rep[mem]]
             cuts = np.concatenate([[0], np.flatnonzero(np.diff(csize)) + 1, [Pm]])
@@ -656,65 +661,79 @@ class FluxEquilibration:
                               RETm[s:e].ravel(), (Sb[:, :, q:], GF[s:e], L[s:e], C[s:e])))
         return CF, KF, own
 
-    def _translates(self, CF, KF, pi, CR, lr, boundary, nr):
-        """Retained global dofs RET (P, nr) of P translates (cells CF, vertex matches pi) of
-        representatives (cells CR, local numbers of their dofs lr (P, n, 8)), in the
-        representatives' local order, and their change of basis L, C (P, nr, 2): σ_p[i] =
-        Σ_t C[p, i, t] σ_r[L[p, i, t]]. With F_K the affine map of a cell K in its dolfinx
-        vertex order and R_K its edge reflections, the local RT basis is R_K F_K*ψ̂; the
-        representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π, hence its basis is
-        W = R_K' M_π R_K times K's (algebraic_flux._W_TABLE, entries 0, ±1, at most two per
-        column: the dofs of one entity). A patch dof is numbered as the representative's dof
-        in the same slot of the corresponding entity (one number per global dof: a dof has
-        one slot in every cell that has its entity)."""
-        from .algebraic_flux import _perm_code
+    def _representatives(self, CR, loc):
+        """What the members' changes of basis take from g representatives (cells CR (g, n),
+        local numbers of their RT dofs loc (g, n, 8), -1 dropped): for each local dof i the
+        (last) cell and slot that hold it, where (g, nr) each, the edge reflections of that
+        cell (g, nr), the kept edges of each cell as bits (g, n), and loc."""
+        g, n = CR.shape
+        flat = loc.reshape(g, -1)
+        nr = int(flat.max()) + 1
+        at = np.full((g, nr), -1, dtype=np.int64)
+        rows, cols = np.nonzero(flat >= 0)
+        np.maximum.at(at, (rows, flat[rows, cols]), cols)
+        cell = at // 8
+        edges = sum((loc[:, :, self.space.slots[e][0]] >= 0).astype(np.int8) << e
+                    for e in range(3))
+        return (cell, at % 8, self.space.reflections[np.take_along_axis(CR, cell, axis=1)],
+                edges, loc)
+
+    def _translates(self, CF, KF, perm, boundary, tables, bi):
+        """Retained global dofs RET (P, nr) of P translates (cells CF, KF a's local index, perm
+        the vertex matches as `_perm_code`) of representatives (their `_representatives`
+        tables, number bi (P,) in them), in the representatives' local order, and their
+        change of basis L, C (P, nr, 2): σ_p[i] = Σ_t C[p, i, t] σ_r[L[p, i, t]]. With F_K the
+        affine map of a cell K in its dolfinx vertex order and R_K its edge reflections, the
+        local RT basis is R_K F_K*ψ̂; the representative's cell K' = K + shift has F_K' =
+        shift ∘ F_K ∘ P_π, hence its basis is W = R_K' M_π R_K times K's
+        (algebraic_flux._W_TABLE, entries 0, ±1, at most two per column: the dofs of one
+        entity). The representative's local dof i, in slot l of its cell c, is the patch's dof
+        in the same slot of the corresponding entity of cell c (one number per global dof: a dof
+        has one slot in every cell that has its entity); each cell's kept edges are checked
+        against the representative's (the rule of `PatchSpace.retained_dofs`)."""
         space = self.space
-        TOP, COEF, ANCHOR = _class_tables(tuple(map(tuple, space.slots)))
+        TOP, COEF, PATCH_DOF, EDGE_BITS = _class_tables(tuple(map(tuple, space.slots)))
+        cell, slot, rrefl, redges, lr = tables
         P, n = CF.shape
-        glob = space.retained_dofs(CF, boundary, KF).ravel()
-        perm = _perm_code(pi).ravel()
-        code = (space.reflections[CR].ravel() * 6 + perm) * 8 + space.reflections[CF].ravel()
-        # one entry per retained dof position (patch p, cell c, dof k): row = p n + c; flat
-        # indices throughout (tables and outputs)
-        pos = np.flatnonzero(glob >= 0)
-        row, k = pos // 8, pos % 8
-        base = pos - k
-        lr = lr.ravel()
-        li = lr[base + ANCHOR.ravel()[perm[row] * 8 + k]]
-        if (li < 0).any() or (lr >= 0).sum() != len(pos):
+        nr = cell.shape[1]
+        ext = space.exterior_edge[CF]
+        keep = ((np.arange(3) != KF[:, :, None]) & ~ext) | (ext & boundary[:, None, None])
+        bits = (keep[:, :, 0] + 2 * keep[:, :, 1] + 4 * keep[:, :, 2]).astype(np.int64)
+        if (EDGE_BITS[perm, bits] != redges[bi]).any():
             raise RuntimeError("a translate keeps other RT dofs than its representative")
-        dest = (row // n) * nr + li
-        RET = np.full((P, nr), -1, dtype=np.int32)
-        RET.reshape(-1)[dest] = glob[pos]
-        if (RET < 0).any():
-            raise RuntimeError("a translate's RT dofs do not match its representative's")
-        ck = (code[row] * 8 + k) * 2
-        L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
-        C = np.zeros((P, nr, 2), dtype=np.int8)
+        ci = cell[bi]                                                        # (P, nr)
+        pc = np.take_along_axis(perm, ci, axis=1)
+        k = PATCH_DOF[pc, slot[bi]]
+        cf = np.take_along_axis(CF, ci, axis=1)
+        RET = space.rt_cells.reshape(-1)[8 * cf + k].astype(np.int32)
+        ck = (((rrefl[bi] * 6 + pc) * 8 + space.reflections[cf]) * 8 + k) * 2
+        base = (bi[:, None] * n + ci) * 8
+        L = np.empty((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+        C = np.empty((P, nr, 2), dtype=np.int8)
         for t in range(2):
-            coef = COEF.reshape(-1)[ck + t]
-            tgt = lr[base + TOP.reshape(-1)[ck + t]]
+            C[:, :, t] = coef = COEF.reshape(-1)[ck + t]
+            tgt = lr.reshape(-1)[base + TOP.reshape(-1)[ck + t]]
             if (tgt[coef != 0] < 0).any():
                 raise RuntimeError("a retained dof of a translate maps to a dropped one")
-            L.reshape(-1)[2 * dest + t] = np.maximum(tgt, 0)
-            C.reshape(-1)[2 * dest + t] = coef
+            L[:, :, t] = np.maximum(tgt, 0)
         return RET, L, C
 
     def _index_type(self):
         return np.int32 if 14 * self.geo.ncells + self.geo.n < 2 ** 31 else np.int64
 
-    def _data_indices(self, verts, CF, KF, pi):
-        """(P, 8n + 1): where the data of P patches (in their representative's cell and
-        vertex order) sit in the flat array [∇u_h (2 per cell) | r_h (3 per cell) | λ (per
-        vertex)] (5n + 1 columns), then in the flat array of (f φ_k, φ_i)_K (9 per cell, 3n
-        columns): vertex i' of the representative's cell is vertex i of the patch's with
-        pi[c, i] = i'."""
+    def _data_indices(self, verts, CF, KF, perm, G, GF):
+        """Into G (P, 5n + 1) and GF (P, 3n): where the data of P patches (in their
+        representative's cell and vertex order; perm the vertex matches as `_perm_code`) sit
+        in the flat array [∇u_h (2 per cell) | r_h (3 per cell) | λ (per vertex)], then in
+        the flat array of (f φ_k, φ_i)_K (9 per cell): vertex i' of the representative's cell
+        is vertex i of the patch's with pi[c, i] = i', i = _PERMS[perm][c, i']."""
         nc = self.geo.ncells
         P, n = CF.shape
-        cv = 3 * CF[:, :, None] + np.argsort(pi, axis=2)                        # (P, n, 3)
-        return np.concatenate([(2 * CF[:, :, None] + np.arange(2)).reshape(P, -1),
-                               2 * nc + cv.reshape(P, -1), 5 * nc + verts[:, None],
-                               (3 * cv + KF[:, :, None]).reshape(P, -1)], axis=1)
+        cv = 3 * CF[:, :, None] + _PERMS[perm]                                 # (P, n, 3)
+        G[:, :2 * n].reshape(P, n, 2)[:] = 2 * CF[:, :, None] + np.arange(2)
+        G[:, 2 * n:5 * n].reshape(P, n, 3)[:] = 2 * nc + cv
+        G[:, 5 * n] = 5 * nc + verts
+        GF.reshape(P, n, 3)[:] = 3 * cv + KF[:, :, None]
 
     def _class_load(self, level, wf):
         """The classes' operators as the evaluation takes them (buckets, RT dofs), after
