@@ -90,8 +90,11 @@ class Geometry:
         jinv = np.empty((self.ncells, 2, 2))
         jinv[:, 0, 0], jinv[:, 0, 1] = e2[:, 1] / det, -e2[:, 0] / det
         jinv[:, 1, 0], jinv[:, 1, 1] = -e1[:, 1] / det, e1[:, 0] / det
-        ref = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
-        self.grad = np.einsum("kr,crd->ckd", ref, jinv)       # (ncells, 3, 2)
+        # reference gradients (-1, -1), (1, 0), (0, 1): ∇φ_0 = -(J⁻ᵀ rows 0 + 1)
+        self.grad = np.empty((self.ncells, 3, 2))              # (ncells, 3, 2)
+        self.grad[:, 1:] = jinv
+        np.add(jinv[:, 0], jinv[:, 1], out=self.grad[:, 0])
+        np.negative(self.grad[:, 0], out=self.grad[:, 0])
         self.cells_per_vertex = np.bincount(self.cells.ravel(), minlength=self.n)
 
     def gradient(self, u):
@@ -214,8 +217,8 @@ class PatchSpace:
         self.RT = fem.FunctionSpace(mesh, ("RT", 2))
         self.DG = fem.FunctionSpace(mesh, ("DG", 1))
         self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        self.dg_cells = dg = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int32)
-        _check_vertex_order(self.DG, dg, geo)
+        self.dg_cells = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int32)
+        _check_vertex_order(V, self.DG)
         # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
         layout = self.RT.dofmap.dof_layout
         self.edge_of_dof = np.full(8, -1)
@@ -348,7 +351,11 @@ class PatchSpace:
 def vertex_patches(geo, owned=None):
     """For every vertex a (or every vertex of the mask `owned`): its cells (grouped by count)
     and a's local index in each. Yields (vertices (P,), CS (P, n), KA (P, n))."""
-    order = np.argsort(geo.cells.ravel(), kind="stable")
+    # the positions in geo.cells grouped by vertex, ascending (a stable counting sort: the
+    # CSR matrix of position -> vertex, transposed)
+    N = geo.cells.size
+    order = sp.csr_matrix((np.ones(N, dtype=np.int8), geo.cells.ravel(), np.arange(N + 1)),
+                          shape=(N, geo.n)).tocsc().indices
     ptr = np.concatenate([[0], np.cumsum(geo.cells_per_vertex)])
     count = geo.cells_per_vertex if owned is None else np.where(owned, geo.cells_per_vertex, 0)
     for n in np.unique(count[count > 0]):
@@ -399,7 +406,7 @@ def _canonical_vertices(geo, cent, cells, scale):
 
 
 def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
-                        exterior=None, chunk=1 << 14):
+                        exterior=None, chunk=1 << 14, frames=None):
     """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
     CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
     boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
@@ -418,8 +425,9 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
 
     Each step is a pass over arrays of P m entries (no row sorting but the m keys of each
     patch): the cells' vertices are put in a canonical order once per cell
-    (`_canonical_vertices`), so that a vertex match is a table entry per cell (_MATCH) and
-    the check compares the vertices in that order, `chunk` patches at a time."""
+    (`_canonical_vertices`; `frames`: that of all of geo's cells, if computed beforehand), so
+    that a vertex match is a table entry per cell (_MATCH) and the check compares the
+    vertices in that order, `chunk` patches at a time."""
     P, m = CF.shape
     boundary = np.asarray(boundary, dtype=bool)
 
@@ -446,15 +454,18 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     h = _row_hash(sig, seed=0)
     # the cells' vertices in canonical order, once per cell (inv: the cells' numbers among
     # those of the patches)
-    used = np.zeros(len(geo.cells), dtype=bool)
-    used[CF] = True
-    uc = np.flatnonzero(used)
-    del used
-    lookup = np.empty(len(geo.cells), dtype=np.int64)
-    lookup[uc] = np.arange(len(uc))
-    inv = lookup[CF]
-    del lookup
-    verts, code = _canonical_vertices(geo, cent, uc, scale)
+    if frames is None:
+        used = np.zeros(len(geo.cells), dtype=bool)
+        used[CF] = True
+        uc = np.flatnonzero(used)
+        del used
+        lookup = np.empty(len(geo.cells), dtype=np.int64)
+        lookup[uc] = np.arange(len(uc))
+        inv = lookup[CF]
+        del lookup
+        verts, code = _canonical_vertices(geo, cent, uc, scale)
+    else:
+        inv, (verts, code) = CF, frames
     if verts is None:
         return CF, KF, np.arange(P), identity()
     code = code[inv]                                                          # (P, m)
@@ -507,14 +518,16 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     return CF, KF, rep, pi
 
 
-def _check_vertex_order(DG, dg_cells, geo):
+def _check_vertex_order(V, DG):
     """The local formulas assume the DG1 and P1 dofs of a cell sit at its vertices in the same
-    order (basix's reference vertex order); check it rather than trust it."""
-    xd = DG.tabulate_dof_coordinates()
-    scale = max(1.0, np.abs(geo.x).max())
-    for k in range(3):
-        if np.abs(xd[dg_cells[:, k], :2] - geo.x[geo.cells[:, k]]).max() > 1e-12 * scale:
-            raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
+    order (basix's reference vertex order); check it rather than trust it: both elements have
+    their dofs at the same reference points in the same order and no dof transformations, and
+    the cells' one geometry map takes them to the same points of every cell."""
+    for e in (V.element, DG.element):
+        if e.needs_dof_transformations or not e.interpolation_ident:
+            raise RuntimeError("P1 or DG1 dofs are not point values at fixed reference points")
+    if not np.array_equal(V.element.interpolation_points(), DG.element.interpolation_points()):
+        raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
 
 
 def load_moments(disc, space):
@@ -578,7 +591,13 @@ class FluxEquilibration:
         shape = (space.nrt, geo.n)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
-        self._cent = geo.x[geo.cells].mean(axis=1)
+        # the cells' centroids and canonical vertex orders (translation_classes)
+        x = geo.x
+        self._cent = (x[geo.cells[:, 0]] + x[geo.cells[:, 1]] + x[geo.cells[:, 2]]) / 3.0
+        self._scale = np.sqrt(geo.area.mean())
+        self._frames = _canonical_vertices(geo, self._cent, np.arange(geo.ncells), self._scale)
+        if self._frames[0] is None:
+            self._frames = None
         self._pending = []
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
@@ -598,7 +617,7 @@ class FluxEquilibration:
         self._add_operators()
         self.classes = self._class_load(level, wf) if level else None
         # what the evaluation does not need goes
-        del self._cent, self._pending
+        del self._cent, self._frames, self._pending
         space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
 
     def _classes(self, verts, CS, KA, boundary, level):
@@ -620,8 +639,8 @@ class FluxEquilibration:
         geo, space = self.geo, self.space
         P, n = CS.shape
         CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, self._cent,
-                                              np.sqrt(geo.area.mean()), self.TRANSLATES,
-                                              space.exterior_edge)
+                                              self._scale, self.TRANSLATES,
+                                              space.exterior_edge, frames=self._frames)
         size = np.bincount(rep, minlength=P)
         member = size[rep] >= self.MIN_CLASS
         own = np.flatnonzero(~member)
@@ -748,6 +767,10 @@ class FluxEquilibration:
             pieces.clear()
             rets.clear()
 
+        # each call ends in a scatter onto all RT dofs: it takes pieces of at least half as
+        # many entries (a few calls per level, their temporaries bounded by about 50 bytes
+        # per RT dof)
+        enough = max(self.sigma_f.shape[1] // 2, 16 * self.CHUNK)
         for _, ret, (S, G, L, C) in level:
             g, nr, _ = S.shape
             per = G.shape[0] // g                             # patches per class
@@ -756,8 +779,8 @@ class FluxEquilibration:
                 part = slice(s * per, (s + step) * per)
                 pieces.append((S[s:s + step], G[part], L[part], C[part]))
                 rets.append(ret[part.start * nr:part.stop * nr])
-                count += len(G[part])
-                if count >= 8 * self.CHUNK:
+                count += len(rets[-1])
+                if count >= enough:
                     add()
                     count = 0
         if pieces:
