@@ -394,15 +394,15 @@ _MATCH = np.array([[t[np.argsort(s)] for t in _PERMS] for s in _PERMS], dtype=np
 def _canonical_vertices(geo, cent, cells, scale):
     """The vertices of the given cells in a canonical order (by their offsets from the cell's
     centroid, rounded as `_grid_keys`: the same order in translated cells) and the number of
-    that order among _PERMS: (len(cells), 3) vertex numbers, (len(cells),) codes (None if
+    that order among _PERMS: (len(cells), 3, 2) coordinates, (len(cells),) codes (None if
     the keys overflow)."""
-    verts = geo.cells[cells]
-    key = _grid_keys(geo.x[verts] - cent[cells][:, None, :], scale)
+    x = geo.x[geo.cells[cells]]
+    key = _grid_keys(x - cent[cells][:, None, :], scale)
     if key is None:
         return None, None
     order = np.argsort(key, axis=1, kind="stable")
     code = (2 * order[:, 0] + (order[:, 1] > order[:, 2])).astype(np.int8)
-    return np.take_along_axis(verts, order, axis=1), code
+    return np.take_along_axis(x, order[:, :, None], axis=1), code
 
 
 def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
@@ -463,10 +463,10 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
         lookup[uc] = np.arange(len(uc))
         inv = lookup[CF]
         del lookup
-        verts, code = _canonical_vertices(geo, cent, uc, scale)
+        corners, code = _canonical_vertices(geo, cent, uc, scale)
     else:
-        inv, (verts, code) = CF, frames
-    if verts is None:
+        inv, (corners, code) = CF, frames
+    if corners is None:
         return CF, KF, np.arange(P), identity()
     code = code[inv]                                                          # (P, m)
     # round-off: the offsets are differences of coordinates of size up to |x|max, a few ulps
@@ -476,7 +476,7 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
 
     def vertices(p):
         """The vertices of patches p relative to their xa, in canonical order, (len(p), 6 m)."""
-        return (geo.x[verts[inv[p]]] - xa[p, None, None, :]).reshape(len(p), -1)
+        return (corners[inv[p]] - xa[p, None, None, :]).reshape(len(p), -1)
 
     def match(p, first, gid):
         """Whether patches p are translates of the representatives p[first][gid] (same
@@ -537,16 +537,23 @@ def load_moments(disc, space):
     one evaluation of f_α at each quadrature point)."""
     from dolfinx import fem
     mesh = disc.V.mesh
+    nc = space.geo.ncells
     W = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=3)
-    nodes = W.dofmap.list.array.reshape(space.geo.ncells, 3).astype(np.int64)   # local vertex i
+    nodes = W.dofmap.list.array.reshape(nc, 3)                             # local vertex i
     v, w = ufl.TestFunction(W), fem.Function(W)
-    w.x.array[3 * nodes + np.arange(3)] = 1.0
+    # dolfinx numbers the DG dofs cell by cell: the moments are then a view of the vector
+    cellwise = np.array_equal(nodes, np.arange(3 * nc).reshape(nc, 3))
+    at = None if cellwise else 3 * nodes[:, :, None].astype(np.int64) + np.arange(3)
+    if cellwise:
+        w.x.array[:9 * nc].reshape(nc, 3, 3)[:] = np.eye(3)
+    else:
+        w.x.array[at[:, np.arange(3), np.arange(3)]] = 1.0
     out = []
     for f in (disc.problem.f1, disc.problem.f2):
         form = fem.form(over(disc.dx_data, lambda dx: weighted_mass(load(f, mesh), 1.0,
                                                                     ufl.inner(w, v), dx)))
         b = fem.assemble_vector(form).array
-        out.append(b[3 * nodes[:, :, None] + np.arange(3)])                   # [K, i, k]
+        out.append(b[:9 * nc].reshape(nc, 3, 3) if cellwise else b[at])        # [K, i, k]
     return out
 
 
