@@ -69,6 +69,10 @@ for _k in range(3):
         for _i in range(3):
             _C3[_k, _l, _i] = {1: 1 / 10, 2: 1 / 30, 3: 1 / 60}[len({_k, _l, _i})]
 _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
+# Passes over per-cell and per-patch arrays go by blocks of this many rows: their temporaries
+# (a few MB) stay in cache and are recycled by the allocator, where whole-array temporaries
+# of tens of MB each cost fresh pages (measured: 2-3x the time of the same pass in blocks).
+_BLOCK = 1 << 14
 
 
 class Geometry:
@@ -82,19 +86,21 @@ class Geometry:
         self.cells = V.dofmap.list.array.reshape(-1, 3)[:self.ncells].astype(np.int64)
         self.n = V.dofmap.index_map.size_local
         self.x = x = np.ascontiguousarray(V.tabulate_dof_coordinates()[:, :2])
-        p = x[self.cells]                                     # (ncells, 3, 2)
-        e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-        self.area = 0.5 * np.abs(det)
-        # ∇φ_k: rows of the inverse Jacobian transpose applied to reference gradients
-        jinv = np.empty((self.ncells, 2, 2))
-        jinv[:, 0, 0], jinv[:, 0, 1] = e2[:, 1] / det, -e2[:, 0] / det
-        jinv[:, 1, 0], jinv[:, 1, 1] = -e1[:, 1] / det, e1[:, 0] / det
-        # reference gradients (-1, -1), (1, 0), (0, 1): ∇φ_0 = -(J⁻ᵀ rows 0 + 1)
+        self.area = np.empty(self.ncells)
         self.grad = np.empty((self.ncells, 3, 2))              # (ncells, 3, 2)
-        self.grad[:, 1:] = jinv
-        np.add(jinv[:, 0], jinv[:, 1], out=self.grad[:, 0])
-        np.negative(self.grad[:, 0], out=self.grad[:, 0])
+        for s in range(0, self.ncells, _BLOCK):                # cache-sized blocks of cells
+            c = slice(s, s + _BLOCK)
+            p = x[self.cells[c]]
+            e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+            det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+            self.area[c] = 0.5 * np.abs(det)
+            # ∇φ_k: rows of the inverse Jacobian transpose applied to the reference gradients
+            # (-1, -1), (1, 0), (0, 1): ∇φ_1, ∇φ_2 its rows, ∇φ_0 = -(∇φ_1 + ∇φ_2)
+            g = self.grad[c]
+            g[:, 1, 0], g[:, 1, 1] = e2[:, 1] / det, -e2[:, 0] / det
+            g[:, 2, 0], g[:, 2, 1] = -e1[:, 1] / det, e1[:, 0] / det
+            np.add(g[:, 1], g[:, 2], out=g[:, 0])
+            np.negative(g[:, 0], out=g[:, 0])
         self.cells_per_vertex = np.bincount(self.cells.ravel(), minlength=self.n)
 
     def gradient(self, u):
@@ -391,22 +397,38 @@ _PERMS = np.array(list(itertools.permutations(range(3))), dtype=np.int8)
 _MATCH = np.array([[t[np.argsort(s)] for t in _PERMS] for s in _PERMS], dtype=np.int8)
 
 
+def _sort_code(le01, le02, le12):
+    """The number among _PERMS of the stable sorting order of three keys, from k0 <= k1,
+    k0 <= k2, k1 <= k2 (bits 0, 1, 2 of the index)."""
+    ranks = [2 - le01 - le02, le01 + 1 - le12, le02 + le12]      # keys before each (ties: index)
+    order = np.argsort(ranks)
+    return 2 * order[0] + (order[1] > order[2])
+
+
+_SORT3 = np.array([_sort_code(i & 1, i >> 1 & 1, i >> 2 & 1) for i in range(8)], dtype=np.int8)
+
+
 def _canonical_vertices(geo, cent, cells, scale):
     """The vertices of the given cells in a canonical order (by their offsets from the cell's
-    centroid, rounded as `_grid_keys`: the same order in translated cells) and the number of
-    that order among _PERMS: (len(cells), 3, 2) coordinates, (len(cells),) codes (None if
-    the keys overflow)."""
-    x = geo.x[geo.cells[cells]]
-    key = _grid_keys(x - cent[cells][:, None, :], scale)
-    if key is None:
-        return None, None
-    order = np.argsort(key, axis=1, kind="stable")
-    code = (2 * order[:, 0] + (order[:, 1] > order[:, 2])).astype(np.int8)
-    return np.take_along_axis(x, order[:, :, None], axis=1), code
+    centroid, rounded as `_grid_keys`, ties by local number: the same order in translated
+    cells) and the number of that order among _PERMS: (len(cells), 3, 2) coordinates,
+    (len(cells),) codes (None if the keys overflow)."""
+    corners = np.empty((len(cells), 3, 2))
+    code = np.empty(len(cells), dtype=np.int8)
+    for s in range(0, len(cells), _BLOCK):
+        c = cells[s:s + _BLOCK]
+        x = geo.x[geo.cells[c]]
+        k = _grid_keys(x - cent[c][:, None, :], scale)
+        if k is None:
+            return None, None
+        code[s:s + _BLOCK] = sc = _SORT3[(k[:, 0] <= k[:, 1]) + 2 * (k[:, 0] <= k[:, 2])
+                                         + 4 * (k[:, 1] <= k[:, 2])]
+        corners[s:s + _BLOCK] = np.take_along_axis(x, _PERMS[sc][:, :, None], axis=1)
+    return corners, code
 
 
 def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
-                        exterior=None, chunk=1 << 14, frames=None):
+                        exterior=None, chunk=_BLOCK // 4, frames=None):
     """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
     CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
     boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
@@ -434,13 +456,23 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     def identity():
         return np.broadcast_to(np.arange(3, dtype=np.int8), (P, m, 3)).copy()
 
-    key = _grid_keys(cent[CF] - xa[:, None, :], scale)                       # (P, m)
-    if not translates or key is None or P == 0:
+    if not translates or P == 0:
         return CF, KF, np.arange(P), identity()
-    order = np.argsort(key, axis=1, kind="stable")
-    CF, KF = np.take_along_axis(CF, order, axis=1), np.take_along_axis(KF, order, axis=1)
-    sig = [boundary[:, None].astype(np.int64), np.take_along_axis(key, order, axis=1)]
-    del key, order
+    # signature: boundary flag | the cells' rounded centroid offsets, sorted (the canonical
+    # cell order) | for boundary patches, their ∂Ω edges (below)
+    sig = np.empty((P, 1 + (2 if exterior is not None else 1) * m), dtype=np.int64)
+    sig[:, 0] = boundary
+    CFs, KFs = np.empty_like(CF), np.empty_like(KF)
+    for s in range(0, P, _BLOCK):
+        c = slice(s, s + _BLOCK)
+        key = _grid_keys(cent[CF[c]] - xa[c, None, :], scale)                 # (P, m)
+        if key is None:
+            return CF, KF, np.arange(P), identity()
+        order = np.argsort(key, axis=1, kind="stable")
+        CFs[c], KFs[c] = (np.take_along_axis(a[c], order, axis=1) for a in (CF, KF))
+        sig[c, 1:m + 1] = np.take_along_axis(key, order, axis=1)
+    CF, KF = CFs, KFs
+    del CFs, KFs
     if exterior is not None:
         b = np.flatnonzero(boundary)
         xv = geo.x[geo.cells[CF[b]]] - xa[b][:, None, None, :]
@@ -448,9 +480,8 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
         where = _grid_keys((mids * exterior[CF[b]][..., None]).sum(axis=2), scale)
         if where is None:
             return CF, KF, np.arange(P), identity()
-        sig.append(np.full((P, m), _grid_keys(np.zeros(2), scale)))
-        sig[-1][b] = where
-    sig = np.concatenate(sig, axis=1)
+        sig[:, m + 1:] = _grid_keys(np.zeros(2), scale)
+        sig[b, m + 1:] = where
     h = _row_hash(sig, seed=0)
     # the cells' vertices in canonical order, once per cell (inv: the cells' numbers among
     # those of the patches)
