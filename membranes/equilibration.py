@@ -593,10 +593,12 @@ def _class_tables(slots):
     """For the change of RT basis from a class representative to a translate (algebraic_flux:
     `_W_TABLE`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2), the (at most
     two) representative dofs l of the cell with W[l, k] ≠ 0 for each patch dof k, and their
-    coefficients; PATCH_DOF (6, 8): the patch dof in the slot of the entity that corresponds
-    to the representative dof l's entity (edge e of the patch ↦ edge pi[e] of the
-    representative; `slots` as in PatchSpace); and EDGE_BITS (6, 8): a set of patch cell edges
-    (bit e: edge e) as the set of the corresponding representative's edges."""
+    coefficients; with the patch dof k in the slot of the entity that corresponds to the
+    representative dof l's entity (edge e of the patch ↦ edge pi[e] of the representative;
+    `slots` as in PatchSpace) these are tabulated by u = ((ρ_r * 6 + perm) * 8 + ρ_p) * 8 + l:
+    PATCH_DOF (3072,) the k, TOP, COEF (2, 3072) the rows and coefficients of column k; and
+    EDGE_BITS (6, 8): a set of patch cell edges (bit e: edge e) as the set of the
+    corresponding representative's edges."""
     from .algebraic_flux import _W_COEF, _W_TOP
     slots = np.array(slots)
     anchor = np.empty((6, 8), dtype=np.int64)
@@ -607,7 +609,12 @@ def _class_tables(slots):
             anchor[code, slots[e]] = slots[pi[e]]
             bits[code] += (np.arange(8) >> e & 1) << pi[e]
         anchor[code, slots[3]] = slots[3]
-    return _W_TOP.astype(np.int64), _W_COEF, np.argsort(anchor, axis=1), bits
+    # indexed by u = ((ρ_r * 6 + perm) * 8 + ρ_p) * 8 + l for the representative's dof l:
+    # the patch dof k, and TOP, COEF of its column
+    u = np.arange(384 * 8)
+    k = np.argsort(anchor, axis=1)[u // 64 % 6, u % 8]
+    return (k, np.ascontiguousarray(_W_TOP[u // 8, k].T.astype(np.int64)),
+            np.ascontiguousarray(_W_COEF[u // 8, k].T), bits)
 
 
 class FluxEquilibration:
@@ -721,8 +728,9 @@ class FluxEquilibration:
     def _representatives(self, CR, loc):
         """What the members' changes of basis take from g representatives (cells CR (g, n),
         local numbers of their RT dofs loc (g, n, 8), -1 dropped): for each local dof i the
-        (last) cell and slot that hold it, where (g, nr) each, the edge reflections of that
-        cell (g, nr), the kept edges of each cell as bits (g, n), and loc."""
+        (last) cell c and slot l that hold it, as c (g, nr), 8 (b n + c) (b the
+        representative's number) and 384 ρ + l (ρ the cell's edge reflections); the kept
+        edges of each cell as bits (g, n); and loc."""
         g, n = CR.shape
         flat = loc.reshape(g, -1)
         nr = int(flat.max()) + 1
@@ -732,8 +740,9 @@ class FluxEquilibration:
         cell = at // 8
         edges = sum((loc[:, :, self.space.slots[e][0]] >= 0).astype(np.int8) << e
                     for e in range(3))
-        return (cell, at % 8, self.space.reflections[np.take_along_axis(CR, cell, axis=1)],
-                edges, loc)
+        refl = self.space.reflections[np.take_along_axis(CR, cell, axis=1)]
+        return (cell, 8 * (np.arange(g)[:, None] * n + cell), 384 * refl + at % 8, edges,
+                loc.reshape(-1))
 
     def _translates(self, CF, KF, perm, boundary, tables, bi):
         """Retained global dofs RET (P, nr) of P translates (cells CF, KF a's local index, perm
@@ -749,8 +758,8 @@ class FluxEquilibration:
         has one slot in every cell that has its entity); each cell's kept edges are checked
         against the representative's (the rule of `PatchSpace.retained_dofs`)."""
         space = self.space
-        TOP, COEF, PATCH_DOF, EDGE_BITS = _class_tables(tuple(map(tuple, space.slots)))
-        cell, slot, rrefl, redges, lr = tables
+        PATCH_DOF, TOP, COEF, EDGE_BITS = _class_tables(tuple(map(tuple, space.slots)))
+        cell, base, part, redges, lr = tables
         P, n = CF.shape
         nr = cell.shape[1]
         ext = space.exterior_edge[CF]
@@ -759,17 +768,15 @@ class FluxEquilibration:
         if (EDGE_BITS[perm, bits] != redges[bi]).any():
             raise RuntimeError("a translate keeps other RT dofs than its representative")
         ci = cell[bi]                                                        # (P, nr)
-        pc = np.take_along_axis(perm, ci, axis=1)
-        k = PATCH_DOF[pc, slot[bi]]
         cf = np.take_along_axis(CF, ci, axis=1)
-        RET = space.rt_cells.reshape(-1)[8 * cf + k].astype(np.int32)
-        ck = (((rrefl[bi] * 6 + pc) * 8 + space.reflections[cf]) * 8 + k) * 2
-        base = (bi[:, None] * n + ci) * 8
+        u = part[bi] + 64 * np.take_along_axis(perm, ci, axis=1) + 8 * space.reflections[cf]
+        RET = space.rt_cells.reshape(-1)[8 * cf + PATCH_DOF[u]].astype(np.int32)
+        base = base[bi]
         L = np.empty((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
         C = np.empty((P, nr, 2), dtype=np.int8)
         for t in range(2):
-            C[:, :, t] = coef = COEF.reshape(-1)[ck + t]
-            tgt = lr.reshape(-1)[base + TOP.reshape(-1)[ck + t]]
+            C[:, :, t] = coef = COEF[t][u]
+            tgt = lr[base + TOP[t][u]]
             if (tgt[coef != 0] < 0).any():
                 raise RuntimeError("a retained dof of a translate maps to a dropped one")
             L[:, :, t] = np.maximum(tgt, 0)
