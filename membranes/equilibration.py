@@ -423,7 +423,8 @@ def _canonical_vertices(geo, cent, cells, scale):
             return None, None
         code[s:s + _BLOCK] = sc = _SORT3[(k[:, 0] <= k[:, 1]) + 2 * (k[:, 0] <= k[:, 2])
                                          + 4 * (k[:, 1] <= k[:, 2])]
-        corners[s:s + _BLOCK] = np.take_along_axis(x, _PERMS[sc][:, :, None], axis=1)
+        rows = 3 * np.arange(len(c))[:, None] + _PERMS[sc]
+        corners[s:s + _BLOCK] = x.reshape(-1, 2)[rows]
     return corners, code
 
 
@@ -588,7 +589,10 @@ def load_moments(disc, space):
                                                                     dx)))
         b = fem.assemble_vector(form).array
         B = b[:nodes.size].reshape(nodes.shape) if cellwise else b[nodes]
-        out.append((B @ comb).reshape(nc, 3, 3))                              # [K, i, k]
+        W = np.empty((nc, 9))
+        for s in range(0, nc, _BLOCK):                        # cache-sized blocks of cells
+            np.dot(B[s:s + _BLOCK], comb, out=W[s:s + _BLOCK])
+        out.append(W.reshape(nc, 3, 3))                                      # [K, i, k]
     return out
 
 
