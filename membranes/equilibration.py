@@ -41,10 +41,13 @@ each patch its data indices and change of RT basis (entries 0, ±1; `_translates
 evaluation is then a gather, one batched product per stack of classes and one scatter. The other
 patches keep the sparse operators. The set-up handles all the patches of one size at once
 (classes, changes of basis, the representatives' systems in batches of one shape), so that its
-cost is a few passes over arrays of O(N) entries.
+cost is a few passes over arrays of O(N) entries, made by cache-sized blocks of rows: the
+cells' canonical vertex orders once per mesh, the classes from the patches' rounded centroid
+offsets (a sort of each patch's m keys, a hash, a check of the vertices), and each member's
+change of basis and data indices from tables per representative dof.
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
-quadrature (the scene's data measures).
+quadrature (the scene's data measures; `load_moments`: one assembly against DG2 per load).
 
 With a mask `owned` over the vertices, only the patches of the owned vertices are set up: σ is
 then their part of the sum, and the parts of a partition of the vertices add up to σ_α,disc
@@ -648,9 +651,12 @@ class FluxEquilibration:
         x = geo.x
         self._cent = (x[geo.cells[:, 0]] + x[geo.cells[:, 1]] + x[geo.cells[:, 2]]) / 3.0
         self._scale = np.sqrt(geo.area.mean())
-        self._frames = _canonical_vertices(geo, self._cent, np.arange(geo.ncells), self._scale)
-        if self._frames[0] is None:
-            self._frames = None
+        self._frames = None
+        if self.TRANSLATES:
+            self._frames = _canonical_vertices(geo, self._cent, np.arange(geo.ncells),
+                                               self._scale)
+            if self._frames[0] is None:
+                self._frames = None
         self._pending = []
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
