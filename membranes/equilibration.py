@@ -389,8 +389,8 @@ def _row_hash(keys, seed):
     fixed random odd c_i (equal rows, equal hashes; different rows collide with probability
     about 2^-63, and every class is checked entry by entry anyway)."""
     mult = np.random.default_rng(seed).integers(1, 2 ** 62, size=keys.shape[1]) | 1
-    with np.errstate(over="ignore"):
-        return keys @ mult
+    keys = np.ascontiguousarray(keys, dtype=np.int64).view(np.uint64)    # wraps, as defined
+    return (keys @ mult.astype(np.uint64)).view(np.int64)
 
 
 # the permutations of (0, 1, 2) as itertools lists them; s is number 2 s[0] + (s[1] > s[2])
