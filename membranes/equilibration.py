@@ -667,6 +667,7 @@ class FluxEquilibration:
             CS, KA, own = self._classes(verts, CS, KA, b, level)
             if len(own):
                 alone.append((verts[own], CS[own], KA[own], b[own]))
+        del self._cent, self._frames                      # the classes' only
         wf = load_moments(disc, space)
         # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
         self.load = [w.sum(axis=2) for w in wf]
@@ -677,7 +678,7 @@ class FluxEquilibration:
         self._add_operators()
         self.classes = self._class_load(level, wf) if level else None
         # what the evaluation does not need goes
-        del self._cent, self._frames, self._pending
+        del self._pending
         space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
 
     def _classes(self, verts, CS, KA, boundary, level):
