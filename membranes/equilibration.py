@@ -41,10 +41,13 @@ each patch its data indices and change of RT basis (entries 0, ±1; `_translates
 evaluation is then a gather, one batched product per stack of classes and one scatter. The other
 patches keep the sparse operators. The set-up handles all the patches of one size at once
 (classes, changes of basis, the representatives' systems in batches of one shape), so that its
-cost is a few passes over arrays of O(N) entries.
+cost is a few passes over arrays of O(N) entries, made by cache-sized blocks of rows: the
+cells' canonical vertex orders once per mesh, the classes from the patches' rounded centroid
+offsets (a sort of each patch's m keys, a hash, a check of the vertices), and each member's
+change of basis and data indices from tables per representative dof.
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
-quadrature (the scene's data measures).
+quadrature (the scene's data measures; `load_moments`: one assembly against DG2 per load).
 
 With a mask `owned` over the vertices, only the patches of the owned vertices are set up: σ is
 then their part of the sum, and the parts of a partition of the vertices add up to σ_α,disc
@@ -52,6 +55,7 @@ then their part of the sum, and the parts of a partition of the vertices add up 
 """
 
 import functools
+import itertools
 
 import numpy as np
 import scipy.sparse as sp
@@ -68,6 +72,11 @@ for _k in range(3):
         for _i in range(3):
             _C3[_k, _l, _i] = {1: 1 / 10, 2: 1 / 30, 3: 1 / 60}[len({_k, _l, _i})]
 _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
+# Passes over per-cell and per-patch arrays go by blocks of this many rows: their temporaries
+# (a few MB) stay in cache and are recycled by the allocator, where whole-array temporaries
+# of tens of MB each cost fresh pages (measured: 1.5-3x the time of the same pass in blocks,
+# for the canonical vertex orders of 8.7e5 cells).
+_BLOCK = 1 << 14
 
 
 class Geometry:
@@ -81,16 +90,21 @@ class Geometry:
         self.cells = V.dofmap.list.array.reshape(-1, 3)[:self.ncells].astype(np.int64)
         self.n = V.dofmap.index_map.size_local
         self.x = x = np.ascontiguousarray(V.tabulate_dof_coordinates()[:, :2])
-        p = x[self.cells]                                     # (ncells, 3, 2)
-        e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-        self.area = 0.5 * np.abs(det)
-        # ∇φ_k: rows of the inverse Jacobian transpose applied to reference gradients
-        jinv = np.empty((self.ncells, 2, 2))
-        jinv[:, 0, 0], jinv[:, 0, 1] = e2[:, 1] / det, -e2[:, 0] / det
-        jinv[:, 1, 0], jinv[:, 1, 1] = -e1[:, 1] / det, e1[:, 0] / det
-        ref = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
-        self.grad = np.einsum("kr,crd->ckd", ref, jinv)       # (ncells, 3, 2)
+        self.area = np.empty(self.ncells)
+        self.grad = np.empty((self.ncells, 3, 2))              # (ncells, 3, 2)
+        for s in range(0, self.ncells, _BLOCK):                # cache-sized blocks of cells
+            c = slice(s, s + _BLOCK)
+            p = x[self.cells[c]]
+            e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+            det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+            self.area[c] = 0.5 * np.abs(det)
+            # ∇φ_k: rows of the inverse Jacobian transpose applied to the reference gradients
+            # (-1, -1), (1, 0), (0, 1): ∇φ_1, ∇φ_2 its rows, ∇φ_0 = -(∇φ_1 + ∇φ_2)
+            g = self.grad[c]
+            g[:, 1, 0], g[:, 1, 1] = e2[:, 1] / det, -e2[:, 0] / det
+            g[:, 2, 0], g[:, 2, 1] = -e1[:, 1] / det, e1[:, 0] / det
+            np.add(g[:, 1], g[:, 2], out=g[:, 0])
+            np.negative(g[:, 0], out=g[:, 0])
         self.cells_per_vertex = np.bincount(self.cells.ravel(), minlength=self.n)
 
     def gradient(self, u):
@@ -213,8 +227,8 @@ class PatchSpace:
         self.RT = fem.FunctionSpace(mesh, ("RT", 2))
         self.DG = fem.FunctionSpace(mesh, ("DG", 1))
         self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        self.dg_cells = dg = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int32)
-        _check_vertex_order(self.DG, dg, geo)
+        self.dg_cells = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int32)
+        _check_vertex_order(V, self.DG)
         # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
         layout = self.RT.dofmap.dof_layout
         self.edge_of_dof = np.full(8, -1)
@@ -347,7 +361,11 @@ class PatchSpace:
 def vertex_patches(geo, owned=None):
     """For every vertex a (or every vertex of the mask `owned`): its cells (grouped by count)
     and a's local index in each. Yields (vertices (P,), CS (P, n), KA (P, n))."""
-    order = np.argsort(geo.cells.ravel(), kind="stable")
+    # the positions in geo.cells grouped by vertex, ascending (a stable counting sort: the
+    # CSR matrix of position -> vertex, transposed)
+    N = geo.cells.size
+    order = sp.csr_matrix((np.ones(N, dtype=np.int8), geo.cells.ravel(), np.arange(N + 1)),
+                          shape=(N, geo.n)).tocsc().indices
     ptr = np.concatenate([[0], np.cumsum(geo.cells_per_vertex)])
     count = geo.cells_per_vertex if owned is None else np.where(owned, geo.cells_per_vertex, 0)
     for n in np.unique(count[count > 0]):
@@ -359,9 +377,11 @@ def vertex_patches(geo, owned=None):
 def _grid_keys(v, scale):
     """One int64 per point of v (..., 2): its coordinates in units of 1e-6 scale, rounded and
     combined (None if they exceed 2^30 units, a patch larger than 1000 scale)."""
-    k = np.round(v * (1e6 / scale)).astype(np.int64)
-    if k.size and np.abs(k).max() >= 2 ** 30:
+    k = v * (1e6 / scale)
+    np.rint(k, out=k)
+    if k.size and max(k.max(), -k.min()) >= 2 ** 30:
         return None
+    k = k.astype(np.int64)
     return (k[..., 0] + 2 ** 30) * 2 ** 31 + (k[..., 1] + 2 ** 30)
 
 
@@ -370,12 +390,50 @@ def _row_hash(keys, seed):
     fixed random odd c_i (equal rows, equal hashes; different rows collide with probability
     about 2^-63, and every class is checked entry by entry anyway)."""
     mult = np.random.default_rng(seed).integers(1, 2 ** 62, size=keys.shape[1]) | 1
-    with np.errstate(over="ignore"):
-        return (keys * mult).sum(axis=1)
+    keys = np.ascontiguousarray(keys, dtype=np.int64).view(np.uint64)    # wraps, as defined
+    return (keys @ mult.astype(np.uint64)).view(np.int64)
+
+
+# the permutations of (0, 1, 2) as itertools lists them; s is number 2 s[0] + (s[1] > s[2])
+_PERMS = np.array(list(itertools.permutations(range(3))), dtype=np.int8)
+# _MATCH[a, b] = t ∘ s⁻¹ for s = _PERMS[a], t = _PERMS[b]: the vertex i of a cell whose
+# canonical order is s sits where vertex (t ∘ s⁻¹)[i] of a cell with canonical order t does
+_MATCH = np.array([[t[np.argsort(s)] for t in _PERMS] for s in _PERMS], dtype=np.int8)
+
+
+def _sort_code(le01, le02, le12):
+    """The number among _PERMS of the stable sorting order of three keys, from k0 <= k1,
+    k0 <= k2, k1 <= k2 (bits 0, 1, 2 of the index)."""
+    ranks = [2 - le01 - le02, le01 + 1 - le12, le02 + le12]      # keys before each (ties: index)
+    order = np.argsort(ranks)
+    return 2 * order[0] + (order[1] > order[2])
+
+
+_SORT3 = np.array([_sort_code(i & 1, i >> 1 & 1, i >> 2 & 1) for i in range(8)], dtype=np.int8)
+
+
+def _canonical_vertices(geo, cent, cells, scale):
+    """The vertices of the given cells in a canonical order (by their offsets from the cell's
+    centroid, rounded as `_grid_keys`, ties by local number: the same order in translated
+    cells) and the number of that order among _PERMS: (len(cells), 3, 2) coordinates,
+    (len(cells),) codes (None if the keys overflow)."""
+    corners = np.empty((len(cells), 3, 2))
+    code = np.empty(len(cells), dtype=np.int8)
+    for s in range(0, len(cells), _BLOCK):
+        c = cells[s:s + _BLOCK]
+        x = geo.x[geo.cells[c]]
+        k = _grid_keys(x - cent[c][:, None, :], scale)
+        if k is None:
+            return None, None
+        code[s:s + _BLOCK] = sc = _SORT3[(k[:, 0] <= k[:, 1]) + 2 * (k[:, 0] <= k[:, 2])
+                                         + 4 * (k[:, 1] <= k[:, 2])]
+        rows = 3 * np.arange(len(c))[:, None] + _PERMS[sc]
+        corners[s:s + _BLOCK] = x.reshape(-1, 2)[rows]
+    return corners, code
 
 
 def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
-                        exterior=None, chunk=1 << 14):
+                        exterior=None, chunk=_BLOCK // 4, frames=None):
     """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
     CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
     boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
@@ -383,63 +441,91 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
     (relative to xa). Patches are classed by their offsets rounded to 1e-6 scale (through a
     64-bit hash of the rounded signature, checked entry by entry against the
-    representative's), and are translates to round-off only: a patch whose vertices do not
-    match its representative's within 1e-13 of the largest coordinate (a coincidence of the
-    rounded keys: a near-translate) is classed again among such patches. `exterior`
-    (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets,
-    per cell): two patches of boundary vertices with the same cells keep different RT dofs
-    when one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of
-    a structured square). Each step is a pass over arrays of P m entries (no row sorting), the
-    vertex matches `chunk` patches at a time."""
+    representative's), and are translates to round-off only: a patch whose vertices (relative
+    to xa) do not match its representative's within 1e-13 of the largest coordinate (a
+    coincidence of the rounded keys: a near-translate) is classed again among such patches.
+    `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary
+    patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets, per
+    cell): two patches of boundary vertices with the same cells keep different RT dofs when
+    one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of a
+    structured square).
+
+    Each step is a pass over arrays of P m entries (no row sorting but the m keys of each
+    patch): the cells' vertices are put in a canonical order once per cell
+    (`_canonical_vertices`; `frames`: that of all of geo's cells, if computed beforehand), so
+    that a vertex match is a table entry per cell (_MATCH) and the check compares the
+    vertices in that order, `chunk` patches at a time."""
     P, m = CF.shape
     boundary = np.asarray(boundary, dtype=bool)
-    identity = np.broadcast_to(np.arange(3, dtype=np.int8), (P, m, 3)).copy()
-    key = _grid_keys(cent[CF] - xa[:, None, :], scale)                       # (P, m)
-    if not translates or key is None or P == 0:
-        return CF, KF, np.arange(P), identity
-    order = np.argsort(key, axis=1, kind="stable")
-    CF, KF = np.take_along_axis(CF, order, axis=1), np.take_along_axis(KF, order, axis=1)
-    sig = [boundary[:, None].astype(np.int64), np.take_along_axis(key, order, axis=1)]
+
+    def identity():
+        return np.broadcast_to(np.arange(3, dtype=np.int8), (P, m, 3)).copy()
+
+    if not translates or P == 0:
+        return CF, KF, np.arange(P), identity()
+    # signature: boundary flag | the cells' rounded centroid offsets, sorted (the canonical
+    # cell order) | for boundary patches, their ∂Ω edges (below)
+    sig = np.empty((P, 1 + (2 if exterior is not None else 1) * m), dtype=np.int64)
+    sig[:, 0] = boundary
+    CFs, KFs = np.empty_like(CF), np.empty_like(KF)
+    for s in range(0, P, _BLOCK):
+        c = slice(s, s + _BLOCK)
+        key = _grid_keys(cent[CF[c]] - xa[c, None, :], scale)                 # (P, m)
+        if key is None:
+            return CF, KF, np.arange(P), identity()
+        order = np.argsort(key, axis=1, kind="stable")
+        CFs[c], KFs[c] = (np.take_along_axis(a[c], order, axis=1) for a in (CF, KF))
+        sig[c, 1:m + 1] = np.take_along_axis(key, order, axis=1)
+    CF, KF = CFs, KFs
+    del CFs, KFs
     if exterior is not None:
-        where = np.zeros((P, m, 2))
         b = np.flatnonzero(boundary)
         xv = geo.x[geo.cells[CF[b]]] - xa[b][:, None, None, :]
         mids = 0.5 * (np.roll(xv, -1, axis=2) + np.roll(xv, -2, axis=2))   # edge e: opposite e
-        where[b] = (mids * exterior[CF[b]][..., None]).sum(axis=2)
-        sig.append(_grid_keys(where, scale))
-        if sig[-1] is None:
-            return CF, KF, np.arange(P), identity
-    sig = np.concatenate(sig, axis=1)
+        where = _grid_keys((mids * exterior[CF[b]][..., None]).sum(axis=2), scale)
+        if where is None:
+            return CF, KF, np.arange(P), identity()
+        sig[:, m + 1:] = _grid_keys(np.zeros(2), scale)
+        sig[b, m + 1:] = where
     h = _row_hash(sig, seed=0)
-    # vertex matches: the vertices of each cell in the order of their keys (offsets from the
-    # cell's centroid), patch against representative; checked in floating point (the offsets
-    # of the cell centroids and of the vertices from them, each to tol)
-    uc, inv = np.unique(CF, return_inverse=True)
-    inv = inv.reshape(P, m)
-    rel = geo.x[geo.cells[uc]] - cent[uc][:, None, :]                       # (U, 3, 2)
-    rkey = _grid_keys(rel, scale)
-    if rkey is None:
-        return CF, KF, np.arange(P), identity
-    vorder = np.argsort(rkey, axis=1)                                        # (U, 3)
-    del rkey
+    # the cells' vertices in canonical order, once per cell (inv: the cells' numbers among
+    # those of the patches)
+    if frames is None:
+        used = np.zeros(len(geo.cells), dtype=bool)
+        used[CF] = True
+        uc = np.flatnonzero(used)
+        del used
+        lookup = np.empty(len(geo.cells), dtype=np.int64)
+        lookup[uc] = np.arange(len(uc))
+        inv = lookup[CF]
+        del lookup
+        corners, code = _canonical_vertices(geo, cent, uc, scale)
+    else:
+        inv, (corners, code) = CF, frames
+    if corners is None:
+        return CF, KF, np.arange(P), identity()
+    code = code[inv]                                                          # (P, m)
     # round-off: the offsets are differences of coordinates of size up to |x|max, a few ulps
     # of it; 1e-13 |x|max leaves a margin of several hundred, and near-translates (a gmsh mesh
     # has patches equal to 1e-8 of their size) do not pass
     tol = 1e-13 * max(np.abs(geo.x).max(), scale)
 
-    def match(p, r):
-        """Whether patches p are translates of patches r (same signature, vertices within
-        tol), and the vertex matches pi (len(p), m, 3)."""
-        ok = (sig[p] == sig[r]).all(axis=1)
-        pi = np.empty((len(p), m, 3), dtype=np.int8)          # every entry set below
+    def vertices(p):
+        """The vertices of patches p relative to their xa, in canonical order, (len(p), 6 m)."""
+        return (corners[inv[p]] - xa[p, None, None, :]).reshape(len(p), -1)
+
+    def match(p, first, gid):
+        """Whether patches p are translates of the representatives p[first][gid] (same
+        signature, vertices within tol), and the vertex matches pi (len(p), m, 3)."""
+        r = p[first][gid]
+        few = len(first) <= chunk
+        theirs = vertices(p[first]) if few else None
+        ok = np.empty(len(p), dtype=bool)
         for s in range(0, len(p), chunk):
-            c, cp, cr = slice(s, s + chunk), p[s:s + chunk], r[s:s + chunk]
-            np.put_along_axis(pi[c], vorder[inv[cp]], vorder[inv[cr]].astype(np.int8), axis=2)
-            theirs = np.take_along_axis(rel[inv[cr]], pi[c, :, :, None].astype(np.int64), axis=2)
-            ok[c] &= np.abs(rel[inv[cp]] - theirs).max(axis=(1, 2, 3)) <= tol
-            off = cent[CF[cp]] - xa[cp, None, :]
-            ok[c] &= np.abs(off - (cent[CF[cr]] - xa[cr, None, :])).max(axis=(1, 2)) <= tol
-        return ok, pi
+            c = slice(s, s + chunk)
+            mine = vertices(p[c]) - (theirs[gid[c]] if few else vertices(r[c]))
+            ok[c] = (np.abs(mine).max(axis=1) <= tol) & (sig[p[c]] == sig[r[c]]).all(axis=1)
+        return ok, _MATCH[code[p], code[r]]
 
     def fine_hash(p):
         """A hash of the centroid offsets of patches p on a grid of 1e-10 scale (and of the
@@ -456,44 +542,61 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     # the levels of the multilevel flux: 1618 classes at J = 3 and 2741 at J = 4 on the disk,
     # h0 = 0.132, where 1419 do for every J.
     rep = np.empty(P, dtype=np.int64)
-    pi = identity
+    pi = np.empty((P, m, 3), dtype=np.int8)
     pending, key = np.arange(P), h
     while pending.size:
         _, first, gid = np.unique(key, return_index=True, return_inverse=True)
-        rep[pending] = pending[first[gid.ravel()]]
-        ok, pi[pending] = match(pending, rep[pending])
+        gid = gid.ravel()
+        rep[pending] = pending[first[gid]]
+        ok, pi[pending] = match(pending, first, gid)
         pending = pending[~ok]
         key = fine_hash(pending)
     return CF, KF, rep, pi
 
 
-def _check_vertex_order(DG, dg_cells, geo):
+def _check_vertex_order(V, DG):
     """The local formulas assume the DG1 and P1 dofs of a cell sit at its vertices in the same
-    order (basix's reference vertex order); check it rather than trust it."""
-    xd = DG.tabulate_dof_coordinates()
-    scale = max(1.0, np.abs(geo.x).max())
-    for k in range(3):
-        if np.abs(xd[dg_cells[:, k], :2] - geo.x[geo.cells[:, k]]).max() > 1e-12 * scale:
-            raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
+    order (basix's reference vertex order); check it rather than trust it: both elements have
+    their dofs at the same reference points in the same order and no dof transformations, and
+    the cells' one geometry map takes them to the same points of every cell."""
+    for e in (V.element, DG.element):
+        if e.needs_dof_transformations or not e.interpolation_ident:
+            raise RuntimeError("P1 or DG1 dofs are not point values at fixed reference points")
+    if not np.array_equal(V.element.interpolation_points(), DG.element.interpolation_points()):
+        raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
 
 
 def load_moments(disc, space):
     """Wf_α (ncells, 3, 3) with Wf_α[K, i, k] = (f_α φ_k, φ_i)_K, with the scene's data
-    measures: one assembly of (f_α w, v) per load against (DG1)³, w the (DG1)³ function whose
-    component k is the hat of local vertex k on every cell (the nine moments of a cell from
-    one evaluation of f_α at each quadrature point)."""
+    measures: one assembly of (f_α, v) per load against discontinuous P2, whose basis
+    functions L_j are nodal at reference points X_j (checked); φ_k φ_i ∈ P2(K) is its own
+    interpolant Σ_j (φ_k φ_i)(X_j) L_j, so a cell's nine moments are these combinations of its
+    six (f_α, L_j)_K: one evaluation of f_α at each quadrature point, the same quadrature
+    sums regrouped (equal to round-off: 1.4e-14 of the largest moment measured on the disk,
+    whose composite rule has 1536 points), and no coefficient to pack or interpolate."""
     from dolfinx import fem
     mesh = disc.V.mesh
-    W = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=3)
-    nodes = W.dofmap.list.array.reshape(space.geo.ncells, 3).astype(np.int64)   # local vertex i
-    v, w = ufl.TestFunction(W), fem.Function(W)
-    w.x.array[3 * nodes + np.arange(3)] = 1.0
+    nc = space.geo.ncells
+    Q = fem.FunctionSpace(mesh, ("DG", 2))
+    if Q.element.needs_dof_transformations or not Q.element.interpolation_ident:
+        raise RuntimeError("DG2 dofs are not point values at fixed reference points")
+    X = Q.element.interpolation_points()                                     # (6, 2)
+    hat = np.stack([1.0 - X[:, 0] - X[:, 1], X[:, 0], X[:, 1]], axis=1)       # φ_k(X_j)
+    comb = (hat[:, :, None] * hat[:, None, :]).reshape(len(X), 9)          # [j, 3 i + k]
+    nodes = Q.dofmap.list.array.reshape(nc, len(X))
+    # dolfinx numbers the DG dofs cell by cell: the (f_α, L_j)_K are then a view
+    cellwise = np.array_equal(nodes, np.arange(nodes.size).reshape(nodes.shape))
+    q = ufl.TestFunction(Q)
     out = []
     for f in (disc.problem.f1, disc.problem.f2):
-        form = fem.form(over(disc.dx_data, lambda dx: weighted_mass(load(f, mesh), 1.0,
-                                                                    ufl.inner(w, v), dx)))
+        form = fem.form(over(disc.dx_data, lambda dx: weighted_mass(load(f, mesh), 1.0, q,
+                                                                    dx)))
         b = fem.assemble_vector(form).array
-        out.append(b[3 * nodes[:, :, None] + np.arange(3)])                   # [K, i, k]
+        B = b[:nodes.size].reshape(nodes.shape) if cellwise else b[nodes]
+        W = np.empty((nc, 9))
+        for s in range(0, nc, _BLOCK):                        # cache-sized blocks of cells
+            np.dot(B[s:s + _BLOCK], comb, out=W[s:s + _BLOCK])
+        out.append(W.reshape(nc, 3, 3))                                      # [K, i, k]
     return out
 
 
@@ -502,18 +605,28 @@ def _class_tables(slots):
     """For the change of RT basis from a class representative to a translate (algebraic_flux:
     `_W_TABLE`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2), the (at most
     two) representative dofs l of the cell with W[l, k] ≠ 0 for each patch dof k, and their
-    coefficients; and ANCHOR (6, 8): the representative dof on the entity that corresponds to
-    patch dof k's entity (edge e ↦ edge pi[e]) in the same slot (`slots` as in PatchSpace)."""
-    import itertools
+    coefficients; with the patch dof k in the slot of the entity that corresponds to the
+    representative dof l's entity (edge e of the patch ↦ edge pi[e] of the representative;
+    `slots` as in PatchSpace) these are tabulated by u = ((ρ_r * 6 + perm) * 8 + ρ_p) * 8 + l:
+    PATCH_DOF (3072,) the k, TOP, COEF (2, 3072) the rows and coefficients of column k; and
+    EDGE_BITS (6, 8): a set of patch cell edges (bit e: edge e) as the set of the
+    corresponding representative's edges."""
     from .algebraic_flux import _W_COEF, _W_TOP
     slots = np.array(slots)
     anchor = np.empty((6, 8), dtype=np.int64)
-    for code, perm in enumerate(itertools.permutations(range(3))):        # perm = π, pi = π⁻¹
+    bits = np.zeros((6, 8), dtype=np.int8)
+    for code, perm in enumerate(_PERMS):                                  # perm = π, pi = π⁻¹
         pi = np.argsort(perm)
         for e in range(3):
             anchor[code, slots[e]] = slots[pi[e]]
+            bits[code] += (np.arange(8) >> e & 1) << pi[e]
         anchor[code, slots[3]] = slots[3]
-    return _W_TOP.astype(np.int64), _W_COEF, anchor
+    # indexed by u = ((ρ_r * 6 + perm) * 8 + ρ_p) * 8 + l for the representative's dof l:
+    # the patch dof k, and TOP, COEF of its column
+    u = np.arange(384 * 8)
+    k = np.argsort(anchor, axis=1)[u // 64 % 6, u % 8]
+    return (k, np.ascontiguousarray(_W_TOP[u // 8, k].T.astype(np.int64)),
+            np.ascontiguousarray(_W_COEF[u // 8, k].T), bits)
 
 
 class FluxEquilibration:
@@ -535,7 +648,16 @@ class FluxEquilibration:
         shape = (space.nrt, geo.n)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
-        self._cent = geo.x[geo.cells].mean(axis=1)
+        # the cells' centroids and canonical vertex orders (translation_classes)
+        x = geo.x
+        self._cent = (x[geo.cells[:, 0]] + x[geo.cells[:, 1]] + x[geo.cells[:, 2]]) / 3.0
+        self._scale = np.sqrt(geo.area.mean())
+        self._frames = None
+        if self.TRANSLATES:
+            self._frames = _canonical_vertices(geo, self._cent, np.arange(geo.ncells),
+                                               self._scale)
+            if self._frames[0] is None:
+                self._frames = None
         self._pending = []
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
@@ -545,6 +667,7 @@ class FluxEquilibration:
             CS, KA, own = self._classes(verts, CS, KA, b, level)
             if len(own):
                 alone.append((verts[own], CS[own], KA[own], b[own]))
+        del self._cent, self._frames                      # the classes' only
         wf = load_moments(disc, space)
         # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
         self.load = [w.sum(axis=2) for w in wf]
@@ -555,7 +678,7 @@ class FluxEquilibration:
         self._add_operators()
         self.classes = self._class_load(level, wf) if level else None
         # what the evaluation does not need goes
-        del self._cent, self._pending
+        del self._pending
         space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
 
     def _classes(self, verts, CS, KA, boundary, level):
@@ -573,11 +696,12 @@ class FluxEquilibration:
         (set-up only) the load moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map)
         and σ_p = Tᵀ S d_p for the patch's data d_p (the change of basis). The members are
         ordered by class size and class, so that a bucket is a slice of each array."""
+        from .algebraic_flux import _perm_code
         geo, space = self.geo, self.space
         P, n = CS.shape
         CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, self._cent,
-                                              np.sqrt(geo.area.mean()), self.TRANSLATES,
-                                              space.exterior_edge)
+                                              self._scale, self.TRANSLATES,
+                                              space.exterior_edge, frames=self._frames)
         size = np.bincount(rep, minlength=P)
         member = size[rep] >= self.MIN_CLASS
         own = np.flatnonzero(~member)
@@ -600,13 +724,14 @@ class FluxEquilibration:
             C = np.empty((Pm, nr, 2), dtype=np.int8)
             G = np.empty((Pm, q), dtype=self._index_type())
             GF = np.empty((Pm, 3 * n), dtype=G.dtype)
-            for s in range(0, Pm, 2 * self.CHUNK):
-                c = mem[s:s + 2 * self.CHUNK]
-                part = slice(s, s + 2 * self.CHUNK)
+            tables = self._representatives(CF[reps[sel]], loc)
+            for s in range(0, Pm, 4 * self.CHUNK):
+                c = mem[s:s + 4 * self.CHUNK]
+                part = slice(s, s + 4 * self.CHUNK)
+                perm = _perm_code(pi[c])
                 RETm[part], L[part], C[part] = self._translates(
-                    CF[c], KF[c], pi[c], CF[rep[c]], loc[batch[rep[c]]], boundary[c], nr)
-                G[part], GF[part] = np.split(
-                    self._data_indices(verts[c], CF[c], KF[c], pi[c]), [q], axis=1)
+                    CF[c], KF[c], perm, boundary[c], tables, batch[rep[c]])
+                self._data_indices(verts[c], CF[c], KF[c], perm, G[part], GF[part])
             # buckets: the classes of one size, each its members in a row
             csize = size[rep[mem]]
             cuts = np.concatenate([[0], np.flatnonzero(np.diff(csize)) + 1, [Pm]])
@@ -616,65 +741,79 @@ class FluxEquilibration:
                               RETm[s:e].ravel(), (Sb[:, :, q:], GF[s:e], L[s:e], C[s:e])))
         return CF, KF, own
 
-    def _translates(self, CF, KF, pi, CR, lr, boundary, nr):
-        """Retained global dofs RET (P, nr) of P translates (cells CF, vertex matches pi) of
-        representatives (cells CR, local numbers of their dofs lr (P, n, 8)), in the
-        representatives' local order, and their change of basis L, C (P, nr, 2): σ_p[i] =
-        Σ_t C[p, i, t] σ_r[L[p, i, t]]. With F_K the affine map of a cell K in its dolfinx
-        vertex order and R_K its edge reflections, the local RT basis is R_K F_K*ψ̂; the
-        representative's cell K' = K + shift has F_K' = shift ∘ F_K ∘ P_π, hence its basis is
-        W = R_K' M_π R_K times K's (algebraic_flux._W_TABLE, entries 0, ±1, at most two per
-        column: the dofs of one entity). A patch dof is numbered as the representative's dof
-        in the same slot of the corresponding entity (one number per global dof: a dof has
-        one slot in every cell that has its entity)."""
-        from .algebraic_flux import _perm_code
+    def _representatives(self, CR, loc):
+        """What the members' changes of basis take from g representatives (cells CR (g, n),
+        local numbers of their RT dofs loc (g, n, 8), -1 dropped): for each local dof i the
+        (last) cell c and slot l that hold it, as c (g, nr), 8 (b n + c) (b the
+        representative's number) and 384 ρ + l (ρ the cell's edge reflections); the kept
+        edges of each cell as bits (g, n); and loc."""
+        g, n = CR.shape
+        flat = loc.reshape(g, -1)
+        nr = int(flat.max()) + 1
+        at = np.full((g, nr), -1, dtype=np.int64)
+        rows, cols = np.nonzero(flat >= 0)
+        np.maximum.at(at, (rows, flat[rows, cols]), cols)
+        cell = at // 8
+        edges = sum((loc[:, :, self.space.slots[e][0]] >= 0).astype(np.int8) << e
+                    for e in range(3))
+        refl = self.space.reflections[np.take_along_axis(CR, cell, axis=1)]
+        return (cell, 8 * (np.arange(g)[:, None] * n + cell), 384 * refl + at % 8, edges,
+                loc.reshape(-1))
+
+    def _translates(self, CF, KF, perm, boundary, tables, bi):
+        """Retained global dofs RET (P, nr) of P translates (cells CF, KF a's local index, perm
+        the vertex matches as `_perm_code`) of representatives (their `_representatives`
+        tables, number bi (P,) in them), in the representatives' local order, and their
+        change of basis L, C (P, nr, 2): σ_p[i] = Σ_t C[p, i, t] σ_r[L[p, i, t]]. With F_K the
+        affine map of a cell K in its dolfinx vertex order and R_K its edge reflections, the
+        local RT basis is R_K F_K*ψ̂; the representative's cell K' = K + shift has F_K' =
+        shift ∘ F_K ∘ P_π, hence its basis is W = R_K' M_π R_K times K's
+        (algebraic_flux._W_TABLE, entries 0, ±1, at most two per column: the dofs of one
+        entity). The representative's local dof i, in slot l of its cell c, is the patch's dof
+        in the same slot of the corresponding entity of cell c (one number per global dof: a dof
+        has one slot in every cell that has its entity); each cell's kept edges are checked
+        against the representative's (the rule of `PatchSpace.retained_dofs`)."""
         space = self.space
-        TOP, COEF, ANCHOR = _class_tables(tuple(map(tuple, space.slots)))
+        PATCH_DOF, TOP, COEF, EDGE_BITS = _class_tables(tuple(map(tuple, space.slots)))
+        cell, base, part, redges, lr = tables
         P, n = CF.shape
-        glob = space.retained_dofs(CF, boundary, KF).ravel()
-        perm = _perm_code(pi).ravel()
-        code = (space.reflections[CR].ravel() * 6 + perm) * 8 + space.reflections[CF].ravel()
-        # one entry per retained dof position (patch p, cell c, dof k): row = p n + c; flat
-        # indices throughout (tables and outputs)
-        pos = np.flatnonzero(glob >= 0)
-        row, k = pos // 8, pos % 8
-        base = pos - k
-        lr = lr.ravel()
-        li = lr[base + ANCHOR.ravel()[perm[row] * 8 + k]]
-        if (li < 0).any() or (lr >= 0).sum() != len(pos):
+        nr = cell.shape[1]
+        ext = space.exterior_edge[CF]
+        keep = ((np.arange(3) != KF[:, :, None]) & ~ext) | (ext & boundary[:, None, None])
+        bits = (keep[:, :, 0] + 2 * keep[:, :, 1] + 4 * keep[:, :, 2]).astype(np.int64)
+        if (EDGE_BITS[perm, bits] != redges[bi]).any():
             raise RuntimeError("a translate keeps other RT dofs than its representative")
-        dest = (row // n) * nr + li
-        RET = np.full((P, nr), -1, dtype=np.int32)
-        RET.reshape(-1)[dest] = glob[pos]
-        if (RET < 0).any():
-            raise RuntimeError("a translate's RT dofs do not match its representative's")
-        ck = (code[row] * 8 + k) * 2
-        L = np.zeros((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
-        C = np.zeros((P, nr, 2), dtype=np.int8)
+        ci = cell[bi]                                                        # (P, nr)
+        cf = np.take_along_axis(CF, ci, axis=1)
+        u = part[bi] + 64 * np.take_along_axis(perm, ci, axis=1) + 8 * space.reflections[cf]
+        RET = space.rt_cells.reshape(-1)[8 * cf + PATCH_DOF[u]].astype(np.int32)
+        base = base[bi]
+        L = np.empty((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+        C = np.empty((P, nr, 2), dtype=np.int8)
         for t in range(2):
-            coef = COEF.reshape(-1)[ck + t]
-            tgt = lr[base + TOP.reshape(-1)[ck + t]]
+            C[:, :, t] = coef = COEF[t][u]
+            tgt = lr[base + TOP[t][u]]
             if (tgt[coef != 0] < 0).any():
                 raise RuntimeError("a retained dof of a translate maps to a dropped one")
-            L.reshape(-1)[2 * dest + t] = np.maximum(tgt, 0)
-            C.reshape(-1)[2 * dest + t] = coef
+            L[:, :, t] = np.maximum(tgt, 0)
         return RET, L, C
 
     def _index_type(self):
         return np.int32 if 14 * self.geo.ncells + self.geo.n < 2 ** 31 else np.int64
 
-    def _data_indices(self, verts, CF, KF, pi):
-        """(P, 8n + 1): where the data of P patches (in their representative's cell and
-        vertex order) sit in the flat array [∇u_h (2 per cell) | r_h (3 per cell) | λ (per
-        vertex)] (5n + 1 columns), then in the flat array of (f φ_k, φ_i)_K (9 per cell, 3n
-        columns): vertex i' of the representative's cell is vertex i of the patch's with
-        pi[c, i] = i'."""
+    def _data_indices(self, verts, CF, KF, perm, G, GF):
+        """Into G (P, 5n + 1) and GF (P, 3n): where the data of P patches (in their
+        representative's cell and vertex order; perm the vertex matches as `_perm_code`) sit
+        in the flat array [∇u_h (2 per cell) | r_h (3 per cell) | λ (per vertex)], then in
+        the flat array of (f φ_k, φ_i)_K (9 per cell): vertex i' of the representative's cell
+        is vertex i of the patch's with pi[c, i] = i', i = _PERMS[perm][c, i']."""
         nc = self.geo.ncells
         P, n = CF.shape
-        cv = 3 * CF[:, :, None] + np.argsort(pi, axis=2)                        # (P, n, 3)
-        return np.concatenate([(2 * CF[:, :, None] + np.arange(2)).reshape(P, -1),
-                               2 * nc + cv.reshape(P, -1), 5 * nc + verts[:, None],
-                               (3 * cv + KF[:, :, None]).reshape(P, -1)], axis=1)
+        cv = 3 * CF[:, :, None] + _PERMS[perm]                                 # (P, n, 3)
+        G[:, :2 * n].reshape(P, n, 2)[:] = 2 * CF[:, :, None] + np.arange(2)
+        G[:, 2 * n:5 * n].reshape(P, n, 3)[:] = 2 * nc + cv
+        G[:, 5 * n] = 5 * nc + verts
+        GF.reshape(P, n, 3)[:] = 3 * cv + KF[:, :, None]
 
     def _class_load(self, level, wf):
         """The classes' operators as the evaluation takes them (buckets, RT dofs), after
@@ -689,6 +828,10 @@ class FluxEquilibration:
             pieces.clear()
             rets.clear()
 
+        # each call ends in a scatter onto all RT dofs: it takes pieces of at least half as
+        # many entries (a few calls per level, their temporaries bounded by about 50 bytes
+        # per RT dof)
+        enough = max(self.sigma_f.shape[1] // 2, 16 * self.CHUNK)
         for _, ret, (S, G, L, C) in level:
             g, nr, _ = S.shape
             per = G.shape[0] // g                             # patches per class
@@ -697,8 +840,8 @@ class FluxEquilibration:
                 part = slice(s * per, (s + step) * per)
                 pieces.append((S[s:s + step], G[part], L[part], C[part]))
                 rets.append(ret[part.start * nr:part.stop * nr])
-                count += len(G[part])
-                if count >= 8 * self.CHUNK:
+                count += len(rets[-1])
+                if count >= enough:
                     add()
                     count = 0
         if pieces:
