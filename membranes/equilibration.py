@@ -63,7 +63,7 @@ import ufl
 
 from forms.equilibration import weighted_mass
 
-from .discretisation import load, over
+from .discretisation import form as compiled, load, over
 
 # ∫_K φ_k φ_l φ_i / |K| for barycentric φ: 1/10 (k = l = i), 1/30 (two equal), 1/60 (distinct)
 _C3 = np.empty((3, 3, 3))
@@ -589,7 +589,7 @@ def load_moments(disc, space):
     q = ufl.TestFunction(Q)
     out = []
     for f in (disc.problem.f1, disc.problem.f2):
-        form = fem.form(over(disc.dx_data, lambda dx: weighted_mass(load(f, mesh), 1.0, q,
+        form = compiled(over(disc.dx_data, lambda dx: weighted_mass(load(f, mesh), 1.0, q,
                                                                     dx)))
         b = fem.assemble_vector(form).array
         B = b[:nodes.size].reshape(nodes.shape) if cellwise else b[nodes]
