@@ -147,11 +147,19 @@ def _configure(ksp, options):
 
 
 def with_diagonal(A):
-    """A with every diagonal entry stored, zeros included (see the module notes)."""
+    """A (CSR) with every diagonal entry stored, zeros included (see the module notes): a zero
+    is appended to each row that stores no diagonal entry (A itself if none is missing)."""
+    A = sp.csr_matrix(A)
     n = A.shape[0]
-    C, diagonal = A.tocoo(), np.arange(n)
-    return sp.csr_matrix((np.concatenate([C.data, np.zeros(n)]),
-                          (np.concatenate([C.row, diagonal]), np.concatenate([C.col, diagonal]))),
+    rows = np.repeat(np.arange(n), np.diff(A.indptr))
+    stored = np.zeros(n, dtype=bool)
+    stored[rows[A.indices == rows]] = True
+    missing = np.flatnonzero(~stored)
+    if missing.size == 0:
+        return A
+    at = A.indptr[missing + 1]          # the end of each such row
+    indptr = A.indptr + np.searchsorted(missing, np.arange(n + 1))
+    return sp.csr_matrix((np.insert(A.data, at, 0.0), np.insert(A.indices, at, missing), indptr),
                          shape=A.shape)
 
 

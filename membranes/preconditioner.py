@@ -63,14 +63,17 @@ from petsc4py import PETSc
 from .linear_solve import petsc_matrix
 
 INNER_PREFIX = "vertex_amg_"
-DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg"}
+DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg",
+                 "pc_hypre_boomeramg_relax_type_down": "SOR/Jacobi",
+                 "pc_hypre_boomeramg_relax_type_up": "backward-SOR/Jacobi"}
 
 _prefixes = iter(range(1 << 62))
 
 
 def vertex_blocks_inverse(A):
-    """B⁻¹ as a sparse 2N × 2N matrix, B the 2×2 blocks of the vertices (rows and columns l and
-    N + l); ValueError if one is singular or A is not 2N × 2N."""
+    """B⁻¹ = [[diag P, diag Q], [diag R, diag S]] as the arrays (P, Q, R, S), B the 2×2 blocks
+    of the vertices (rows and columns l and N + l); ValueError if one is singular or A is not
+    2N × 2N."""
     if A.shape[0] != A.shape[1] or A.shape[0] % 2:
         raise ValueError(f"vertex_amg needs the eliminated 2N x 2N system, got {A.shape}")
     n = A.shape[0] // 2
@@ -81,18 +84,26 @@ def vertex_blocks_inverse(A):
     if not np.all(np.abs(det) > 1e-12 * scale) or not np.all(np.isfinite(det)):
         raise ValueError("vertex_amg: a singular 2x2 vertex block (it needs the eliminated "
                          "system, system='eliminated')")
-    return sp.bmat([[sp.diags(d / det), sp.diags(-b / det)],
-                    [sp.diags(-c / det), sp.diags(a / det)]], format="csr")
+    return d / det, -b / det, -c / det, a / det
+
+
+def _row_scaled(M, s):
+    """diag(s) M, by scaling M's stored entries (no sparse product)."""
+    M = M.copy()
+    M.data *= np.repeat(s, np.diff(M.indptr))
+    return M
 
 
 def slaves(A):
     """z-unknowns (as a mask over the N vertices) whose column of A has entries only in the
     two rows of their own vertex."""
     n = A.shape[0] // 2
-    C = A[:, n:].tocoo()
-    foreign = (C.row % n != C.col) & (C.data != 0)
+    C = A.tocoo()
+    z = C.col >= n
+    row, col = C.row[z], C.col[z] - n
+    foreign = (row != col) & (row != col + n) & (C.data[z] != 0)
     touched = np.zeros(n, dtype=bool)
-    touched[C.col[foreign]] = True
+    touched[col[foreign]] = True
     return ~touched
 
 
@@ -101,10 +112,12 @@ def gap_scales(A):
     the neighbours (module notes, 3.); 1 where u2_l does not depend on u1_l (z_l = u2_l)."""
     n = A.shape[0] // 2
     B = A[n:].tocoo()
-    foreign = B.row != B.col % n
-    u1, z = foreign & (B.col < n), foreign & (B.col >= n)
-    on_u1 = np.bincount(B.col[u1], B.data[u1], minlength=n)
-    on_z = np.bincount(B.col[z] - n, B.data[z], minlength=n)
+    z = B.col >= n
+    vertex = np.where(z, B.col - n, B.col)
+    foreign = B.row != vertex
+    u1, z = foreign & ~z, foreign & z
+    on_u1 = np.bincount(vertex[u1], B.data[u1], minlength=n)
+    on_z = np.bincount(vertex[z], B.data[z], minlength=n)
     gap = on_u1 != 0
     return np.where(gap, on_z / np.where(gap, on_u1, 1.0), 1.0)
 
@@ -116,8 +129,11 @@ class VertexAMG:
     def __init__(self, A, inner=None):
         A = sp.csr_matrix(A)
         n = A.shape[0] // 2
-        self.B_inv = vertex_blocks_inverse(A)
-        A_hat = (self.B_inv @ A).tocsr()
+        self.n = n
+        self.blocks = P, Q, R, S = vertex_blocks_inverse(A)
+        top, bottom = A[:n], A[n:]
+        A_hat = sp.vstack([_row_scaled(top, P) + _row_scaled(bottom, Q),
+                           _row_scaled(top, R) + _row_scaled(bottom, S)], format="csr")
         slave = np.zeros(2 * n, dtype=bool)
         slave[n:] = slaves(A)
         self.keep, self.slave = np.flatnonzero(~slave), np.flatnonzero(slave)
@@ -125,10 +141,10 @@ class VertexAMG:
         scale = np.ones(2 * n)
         scale[n:] = np.where(slave[n:] | (d == 0), 1.0, np.abs(d))
         self.scale = scale[self.keep]
-        kept = A_hat[self.keep]
-        K = sp.diags(self.scale) @ kept[:, self.keep] @ sp.diags(1.0 / self.scale)
-        self.X = A_hat[self.slave][:, self.keep].tocsr()
-        self.K = petsc_matrix(K.tocsr())
+        K = _row_scaled(A_hat[self.keep][:, self.keep], self.scale)
+        K.data /= self.scale[K.indices]
+        self.X = A_hat[self.slave][:, self.keep]
+        self.K = petsc_matrix(K)
         self.pc = PETSc.PC().create(PETSc.COMM_SELF)
         self.pc.setOperators(self.K)
         options = dict(DEFAULT_INNER if inner is None or "pc_type" not in inner else {})
@@ -148,7 +164,9 @@ class VertexAMG:
 
     def apply(self, pc, x, y):
         """y = M⁻¹ x."""
-        s = self.B_inv @ x.array_r
+        n, (P, Q, R, S) = self.n, self.blocks
+        x1, x2 = x.array_r[:n], x.array_r[n:]
+        s = np.concatenate([P * x1 + Q * x2, R * x1 + S * x2])
         self.rhs.array[:] = s[self.keep] * self.scale
         self.pc.apply(self.rhs, self.sol)
         kept = self.sol.array_r / self.scale
