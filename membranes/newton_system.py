@@ -44,6 +44,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import cfunctions
+from .linear_solve import scaled_columns
 
 
 @dataclass
@@ -60,6 +61,8 @@ class LinearRows:
         if self.weights is None:
             self.weights = np.ones(2 * self.n)
         self.norm_F = float(np.linalg.norm(self.weights * self.F))
+        n, E = self.n, sp.csr_matrix(self.E).sorted_indices()
+        self.column_blocks = (E[:, :n], E[:, n:2 * n], E[:, 2 * n:])   # of u1, u2, λ
 
     def weighted(self, R):
         """R (2N or 3N) with its first 2N entries (the rows of E) multiplied by W."""
@@ -138,13 +141,18 @@ def full_system(rows, alpha, beta, B3):
 
 @dataclass
 class Elimination:
-    """X = T Y + t; `eliminate_lambda[l]` tells which unknown vertex l lost."""
-    T: sp.csr_matrix
+    """X = T Y + t, T = [[I, 0], [diag U, diag H], [diag G, diag Q]]: u1 is kept, u2 and λ at
+    vertex l are combinations of u1_l and z_l (T is stored as its four diagonals `T_diagonals`
+    = (U, H, G, Q)); `eliminate_lambda[l]` tells which unknown vertex l lost."""
+    T_diagonals: tuple
     t: np.ndarray
     eliminate_lambda: np.ndarray
 
     def expand(self, Y):
-        return self.T @ Y + self.t
+        n = len(self.eliminate_lambda)
+        u1, z = Y[:n], Y[n:]
+        U, H, G, Q = self.T_diagonals
+        return np.concatenate([u1, U * u1 + H * z, G * u1 + Q * z]) + self.t
 
 
 def eliminate(n, alpha, beta, B3, kappa=1.0):
@@ -155,20 +163,20 @@ def eliminate(n, alpha, beta, B3, kappa=1.0):
     a_safe = np.where(u2_out, alpha, 1.0)
     b_safe = np.where(lam_out, beta, 1.0)
     L, U = lam_out.astype(float), u2_out.astype(float)
-    I = sp.identity(n, format="csr")
-    Z = sp.csr_matrix((n, n))
-    T = sp.bmat([
-        [I, Z],
-        [sp.diags(U), sp.diags(L + U * beta / a_safe)],
-        [sp.diags(-L * alpha / b_safe), sp.diags(L * alpha / b_safe + U)],
-    ], format="csr")
+    diagonals = (U, L + U * beta / a_safe, -L * alpha / b_safe, L * alpha / b_safe + U)
     t = np.concatenate([np.zeros(n), -U * B3 / a_safe, L * B3 / b_safe])
-    return Elimination(T, t, lam_out)
+    return Elimination(diagonals, t, lam_out)
 
 
 def eliminated_system(rows, alpha, beta, B3):
-    """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X."""
+    """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X. With E's
+    column blocks E_u1, E_u2, E_λ (`LinearRows.column_blocks`) and T's diagonals,
+    Ã = [E_u1 + E_u2 U + E_λ G, E_u2 H + E_λ Q]: column scalings and sums of sparse matrices
+    with sorted indices, no sparse product (the same sums of the same products as E T, so the
+    same numbers); entries that vanish are not stored."""
     elim = eliminate(rows.n, alpha, beta, B3, rows.kappa)
-    A = (rows.E @ elim.T).tocsr()
-    A.eliminate_zeros()
+    U, H, G, Q = elim.T_diagonals
+    E1, E2, E3 = rows.column_blocks
+    A = sp.hstack([E1 + scaled_columns(E2, U) + scaled_columns(E3, G),
+                   scaled_columns(E2, H) + scaled_columns(E3, Q)], format="csr")
     return A, rows.F - rows.E @ elim.t, elim

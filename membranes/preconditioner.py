@@ -60,7 +60,7 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from .linear_solve import petsc_matrix
+from .linear_solve import petsc_matrix, scaled_rows
 
 INNER_PREFIX = "vertex_amg_"
 DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg",
@@ -85,13 +85,6 @@ def vertex_blocks_inverse(A):
         raise ValueError("vertex_amg: a singular 2x2 vertex block (it needs the eliminated "
                          "system, system='eliminated')")
     return d / det, -b / det, -c / det, a / det
-
-
-def _row_scaled(M, s):
-    """diag(s) M, by scaling M's stored entries (no sparse product)."""
-    M = M.copy()
-    M.data *= np.repeat(s, np.diff(M.indptr))
-    return M
 
 
 def slaves(A):
@@ -132,8 +125,8 @@ class VertexAMG:
         self.n = n
         self.blocks = P, Q, R, S = vertex_blocks_inverse(A)
         top, bottom = A[:n], A[n:]
-        A_hat = sp.vstack([_row_scaled(top, P) + _row_scaled(bottom, Q),
-                           _row_scaled(top, R) + _row_scaled(bottom, S)], format="csr")
+        A_hat = sp.vstack([scaled_rows(top, P) + scaled_rows(bottom, Q),
+                           scaled_rows(top, R) + scaled_rows(bottom, S)], format="csr")
         slave = np.zeros(2 * n, dtype=bool)
         slave[n:] = slaves(A)
         self.keep, self.slave = np.flatnonzero(~slave), np.flatnonzero(slave)
@@ -141,7 +134,7 @@ class VertexAMG:
         scale = np.ones(2 * n)
         scale[n:] = np.where(slave[n:] | (d == 0), 1.0, np.abs(d))
         self.scale = scale[self.keep]
-        K = _row_scaled(A_hat[self.keep][:, self.keep], self.scale)
+        K = scaled_rows(A_hat[self.keep][:, self.keep], self.scale)
         K.data /= self.scale[K.indices]
         self.X = A_hat[self.slave][:, self.keep]
         self.K = petsc_matrix(K)
