@@ -34,10 +34,25 @@ paper's GMRES counts, DESIGN §8, grow the same way).
    dominant, and BoomerAMG converges (6–21 iterations on K alone at every step). d_l is read
    off Ã: in any second-block row N+m of a neighbour m, the u1_l and z_l entries are
    ρ μ2 S_ml and ρ μ2 d_l S_ml (ρ the row's scale), so d_l = their ratio, whatever ρ.
-4. One V-cycle of hypre BoomerAMG (PETSc defaults) on Ds K Ds⁻¹ per application.
+4. One V-cycle of hypre BoomerAMG on Ds K Ds⁻¹ per application (`DEFAULT_INNER`): PETSc's
+   defaults (classical interpolation, strong threshold 0.25) except two options.
+   * Smoothing: one forward hybrid Gauss–Seidel sweep down and one backward sweep up (a
+     symmetric V-cycle) instead of PETSc's symmetric sweep both ways, which costs twice as
+     much: the V-cycle takes 35 % less time (1.7e5 rows of K: 20 instead of 33 ms) for at most
+     one more GMRES iteration per Newton step (disk, cmp configuration, 1e2 … 4.4e5 vertices:
+     7–9 per step instead of 6–9, no growth with the mesh).
+   * Coarsening: Ruge–Stüben instead of Falgout (which adds CLJP on processor boundaries: none
+     in a serial run): the same hierarchy (grid complexity 1.66, operator 2.65) and the same
+     iterations, a 10–15 % cheaper set-up.
+   Tried and not kept (total time set-up + iterations × V-cycle at 1.1e5 and 4.4e5 vertices, or
+   iterations): HMIS/PMIS with ext+i interpolation and P_max 3–4 (cheaper V-cycles, dearer
+   set-up, up to 2 more iterations per step), aggressive coarsening (agg_nl 1: 70 % more
+   iterations), l1-Jacobi smoothing, strong threshold 0.3–0.5, interpolation truncation.
 
 The preconditioner is M⁻¹ r = block-triangular solve of Â with AMG for K, applied to B⁻¹ r.
-The set-up is a few sparse products and one BoomerAMG set-up per Newton step.
+The set-up is a few entry scalings and slicings of Ã (no sparse products) and one BoomerAMG
+set-up per Newton step; at 1.1e5 vertices the set-up is about 0.2 s and a V-cycle 20 ms, so
+that the BoomerAMG set-up is about half of a Newton step's linear algebra.
 
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
 bench_preconditioner.py; BENCHMARKS.md has the table): GMRES iterations per Newton step, mean
@@ -64,6 +79,7 @@ from .linear_solve import petsc_matrix, scaled_rows
 
 INNER_PREFIX = "vertex_amg_"
 DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg",
+                 "pc_hypre_boomeramg_coarsen_type": "Ruge-Stueben",
                  "pc_hypre_boomeramg_relax_type_down": "SOR/Jacobi",
                  "pc_hypre_boomeramg_relax_type_up": "backward-SOR/Jacobi"}
 
