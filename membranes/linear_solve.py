@@ -32,13 +32,6 @@ def scaled_rows(M, s):
     return M
 
 
-def scaled_columns(M, s):
-    """M diag(s) for a CSR matrix M, the same way."""
-    M = sp.csr_matrix(M, copy=True)
-    M.data *= s[M.indices]
-    return M
-
-
 class LinearSolveError(RuntimeError):
     """A linear solve that failed; `its` counts the iterations it performed all the same."""
 

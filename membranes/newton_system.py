@@ -44,7 +44,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import cfunctions
-from .linear_solve import scaled_columns
 
 
 @dataclass
@@ -61,8 +60,6 @@ class LinearRows:
         if self.weights is None:
             self.weights = np.ones(2 * self.n)
         self.norm_F = float(np.linalg.norm(self.weights * self.F))
-        n, E = self.n, sp.csr_matrix(self.E).sorted_indices()
-        self.column_blocks = (E[:, :n], E[:, n:2 * n], E[:, 2 * n:])   # of u1, u2, λ
 
     def weighted(self, R):
         """R (2N or 3N) with its first 2N entries (the rows of E) multiplied by W."""
@@ -141,42 +138,40 @@ def full_system(rows, alpha, beta, B3):
 
 @dataclass
 class Elimination:
-    """X = T Y + t, T = [[I, 0], [diag U, diag H], [diag G, diag Q]]: u1 is kept, u2 and λ at
-    vertex l are combinations of u1_l and z_l (T is stored as its four diagonals `T_diagonals`
-    = (U, H, G, Q)); `eliminate_lambda[l]` tells which unknown vertex l lost."""
-    T_diagonals: tuple
+    """X = T Y + t; `eliminate_lambda[l]` tells which unknown vertex l lost."""
+    T: sp.csr_matrix
     t: np.ndarray
     eliminate_lambda: np.ndarray
 
     def expand(self, Y):
-        n = len(self.eliminate_lambda)
-        u1, z = Y[:n], Y[n:]
-        U, H, G, Q = self.T_diagonals
-        return np.concatenate([u1, U * u1 + H * z, G * u1 + Q * z]) + self.t
+        return self.T @ Y + self.t
 
 
 def eliminate(n, alpha, beta, B3, kappa=1.0):
     """The substitution X = T Y + t that satisfies every complementarity row exactly; the
-    choice compares the C-function's own derivatives, |∂C/∂b| = |β|/κ against |α|."""
+    choice compares the C-function's own derivatives, |∂C/∂b| = |β|/κ against |α|.
+    T = [[I, 0], [diag U, diag H], [diag G, diag Q]] is built from its CSR arrays (two entries
+    in each row of u2 and λ, zeros included: they change no product)."""
     lam_out = np.abs(beta) >= kappa * np.abs(alpha)
     u2_out = ~lam_out
     a_safe = np.where(u2_out, alpha, 1.0)
     b_safe = np.where(lam_out, beta, 1.0)
     L, U = lam_out.astype(float), u2_out.astype(float)
-    diagonals = (U, L + U * beta / a_safe, -L * alpha / b_safe, L * alpha / b_safe + U)
+    H, G, Q = L + U * beta / a_safe, -L * alpha / b_safe, L * alpha / b_safe + U
+    vertex = np.arange(n)
+    pair = np.stack([vertex, vertex + n], axis=1).ravel()
+    T = sp.csr_matrix((np.concatenate([np.ones(n), np.stack([U, H], axis=1).ravel(),
+                                       np.stack([G, Q], axis=1).ravel()]),
+                       np.concatenate([vertex, pair, pair]),
+                       np.concatenate([vertex, n + 2 * np.arange(2 * n + 1)])),
+                      shape=(3 * n, 2 * n))
     t = np.concatenate([np.zeros(n), -U * B3 / a_safe, L * B3 / b_safe])
-    return Elimination(diagonals, t, lam_out)
+    return Elimination(T, t, lam_out)
 
 
 def eliminated_system(rows, alpha, beta, B3):
-    """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X. With E's
-    column blocks E_u1, E_u2, E_λ (`LinearRows.column_blocks`) and T's diagonals,
-    Ã = [E_u1 + E_u2 U + E_λ G, E_u2 H + E_λ Q]: column scalings and sums of sparse matrices
-    with sorted indices, no sparse product (the same sums of the same products as E T, so the
-    same numbers); entries that vanish are not stored."""
+    """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X."""
     elim = eliminate(rows.n, alpha, beta, B3, rows.kappa)
-    U, H, G, Q = elim.T_diagonals
-    E1, E2, E3 = rows.column_blocks
-    A = sp.hstack([E1 + scaled_columns(E2, U) + scaled_columns(E3, G),
-                   scaled_columns(E2, H) + scaled_columns(E3, Q)], format="csr")
+    A = rows.E @ elim.T
+    A.eliminate_zeros()
     return A, rows.F - rows.E @ elim.t, elim

@@ -50,9 +50,10 @@ paper's GMRES counts, DESIGN §8, grow the same way).
    iterations), l1-Jacobi smoothing, strong threshold 0.3–0.5, interpolation truncation.
 
 The preconditioner is M⁻¹ r = block-triangular solve of Â with AMG for K, applied to B⁻¹ r.
-The set-up is a few entry scalings and slicings of Ã (no sparse products) and one BoomerAMG
-set-up per Newton step; at 1.1e5 vertices the set-up is about 0.2 s and a V-cycle 20 ms, so
-that the BoomerAMG set-up is about half of a Newton step's linear algebra.
+The set-up is one sparse product (B⁻¹Ã; B⁻¹ and the diagonal similarity Ds are applied by
+scaling entries), a few slicings and one BoomerAMG set-up per Newton step. At 1.1e5 vertices
+(K: 1.7e5 rows) the scipy part takes 80 ms, the BoomerAMG set-up 200 ms and a V-cycle 20 ms:
+the set-up is about 40 % of a Newton step's linear algebra.
 
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
 bench_preconditioner.py; BENCHMARKS.md has the table): GMRES iterations per Newton step, mean
@@ -87,9 +88,9 @@ _prefixes = iter(range(1 << 62))
 
 
 def vertex_blocks_inverse(A):
-    """B⁻¹ = [[diag P, diag Q], [diag R, diag S]] as the arrays (P, Q, R, S), B the 2×2 blocks
-    of the vertices (rows and columns l and N + l); ValueError if one is singular or A is not
-    2N × 2N."""
+    """B⁻¹ as a sparse 2N × 2N matrix, B the 2×2 blocks of the vertices (rows and columns l and
+    N + l), built from its CSR arrays (two entries a row); ValueError if one is singular or A
+    is not 2N × 2N."""
     if A.shape[0] != A.shape[1] or A.shape[0] % 2:
         raise ValueError(f"vertex_amg needs the eliminated 2N x 2N system, got {A.shape}")
     n = A.shape[0] // 2
@@ -100,14 +101,18 @@ def vertex_blocks_inverse(A):
     if not np.all(np.abs(det) > 1e-12 * scale) or not np.all(np.isfinite(det)):
         raise ValueError("vertex_amg: a singular 2x2 vertex block (it needs the eliminated "
                          "system, system='eliminated')")
-    return d / det, -b / det, -c / det, a / det
+    pair = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1).ravel()
+    return sp.csr_matrix((np.concatenate([np.stack([d, -b], axis=1).ravel() / np.repeat(det, 2),
+                                          np.stack([-c, a], axis=1).ravel() / np.repeat(det, 2)]),
+                          np.concatenate([pair, pair]), 2 * np.arange(2 * n + 1)),
+                         shape=A.shape)
 
 
 def slaves(A):
     """z-unknowns (as a mask over the N vertices) whose column of A has entries only in the
     two rows of their own vertex."""
     n = A.shape[0] // 2
-    C = A.tocoo()
+    C = A.tocoo(copy=False)
     z = C.col >= n
     row, col = C.row[z], C.col[z] - n
     foreign = (row != col) & (row != col + n) & (C.data[z] != 0)
@@ -120,7 +125,7 @@ def gap_scales(A):
     """d_l where u2_l = u1_l + d_l z_l + const (z_l = λ_l), read off the second block's rows of
     the neighbours (module notes, 3.); 1 where u2_l does not depend on u1_l (z_l = u2_l)."""
     n = A.shape[0] // 2
-    B = A[n:].tocoo()
+    B = A[n:].tocoo(copy=False)
     z = B.col >= n
     vertex = np.where(z, B.col - n, B.col)
     foreign = B.row != vertex
@@ -138,11 +143,8 @@ class VertexAMG:
     def __init__(self, A, inner=None):
         A = sp.csr_matrix(A)
         n = A.shape[0] // 2
-        self.n = n
-        self.blocks = P, Q, R, S = vertex_blocks_inverse(A)
-        top, bottom = A[:n], A[n:]
-        A_hat = sp.vstack([scaled_rows(top, P) + scaled_rows(bottom, Q),
-                           scaled_rows(top, R) + scaled_rows(bottom, S)], format="csr")
+        self.B_inv = vertex_blocks_inverse(A)
+        A_hat = self.B_inv @ A
         slave = np.zeros(2 * n, dtype=bool)
         slave[n:] = slaves(A)
         self.keep, self.slave = np.flatnonzero(~slave), np.flatnonzero(slave)
@@ -173,9 +175,7 @@ class VertexAMG:
 
     def apply(self, pc, x, y):
         """y = M⁻¹ x."""
-        n, (P, Q, R, S) = self.n, self.blocks
-        x1, x2 = x.array_r[:n], x.array_r[n:]
-        s = np.concatenate([P * x1 + Q * x2, R * x1 + S * x2])
+        s = self.B_inv @ x.array_r
         self.rhs.array[:] = s[self.keep] * self.scale
         self.pc.apply(self.rhs, self.sol)
         kept = self.sol.array_r / self.scale
