@@ -44,20 +44,24 @@ paper's GMRES counts, DESIGN §8, grow the same way).
    * Coarsening: Ruge–Stüben instead of Falgout (which adds CLJP on processor boundaries: none
      in a serial run): the same hierarchy (grid complexity 1.66, operator 2.65) and the same
      iterations, a 10–15 % cheaper set-up.
-   Tried and not kept (total time set-up + iterations × V-cycle at 1.1e5 and 4.4e5 vertices, or
-   iterations): HMIS/PMIS with ext+i interpolation and P_max 3–4 (cheaper V-cycles, dearer
-   set-up, up to 2 more iterations per step), aggressive coarsening (agg_nl 1: 70 % more
-   iterations), l1-Jacobi smoothing, strong threshold 0.3–0.5, interpolation truncation.
+   Tried and not kept (set-up + iterations × V-cycle per Newton step at 1.1e5 and 4.4e5
+   vertices, and iterations): HMIS or PMIS coarsening with ext+i interpolation, P_max 4 (the
+   same total: V-cycles 5–20 % cheaper, set-up 15 % dearer) or P_max 3 (10–20 % less in
+   total, but one more iteration per step than the options above, 10 at the worst step: one
+   more would cost the adaptive variant an estimator evaluation at ν = 10, DESIGN §8);
+   aggressive coarsening (agg_nl 1: 70 % more iterations); l1-Jacobi smoothing (30 % more);
+   strong threshold 0.3–0.5, interpolation truncation (no gain).
 
 The preconditioner is M⁻¹ r = block-triangular solve of Â with AMG for K, applied to B⁻¹ r.
-The set-up is one sparse product (B⁻¹Ã; B⁻¹ and the diagonal similarity Ds are applied by
-scaling entries), a few slicings and one BoomerAMG set-up per Newton step. At 1.1e5 vertices
-(K: 1.7e5 rows) the scipy part takes 80 ms, the BoomerAMG set-up 200 ms and a V-cycle 20 ms:
-the set-up is about 40 % of a Newton step's linear algebra.
+The set-up is one sparse product (B⁻¹Ã; the similarity Ds scales K's entries), a few
+slicings and one BoomerAMG set-up per Newton step. At 1.1e5 vertices (K: 1.7e5 rows) the scipy
+part takes 80 ms, the BoomerAMG set-up 200 ms and a V-cycle 20 ms: the BoomerAMG set-up is
+about a third of a Newton step's linear algebra (600 ms with ~8 iterations).
 
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
-bench_preconditioner.py; BENCHMARKS.md has the table): GMRES iterations per Newton step, mean
-over the steps, min | fb:
+bench_preconditioner.py; BENCHMARKS.md has the table; with PETSc's BoomerAMG defaults, before
+the two options of 4., which add 0.3–0.7 iterations per step on average): GMRES iterations
+per Newton step, mean over the steps, min | fb:
 
     vertices          1.5k       6k         24k        (see BENCHMARKS.md for 1e4 … 6.6e5)
     ILU(0)         51 | 40    103 | 79    255 | 179
