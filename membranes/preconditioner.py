@@ -60,7 +60,7 @@ about a third of a Newton step's linear algebra (600 ms with ~8 iterations).
 
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
 bench_preconditioner.py; BENCHMARKS.md has the table; with PETSc's BoomerAMG defaults, before
-the two options of 4., which add 0.3–0.7 iterations per step on average): GMRES iterations
+the two options of 4., which add 0.3–0.8 iterations per step on average): GMRES iterations
 per Newton step, mean over the steps, min | fb:
 
     vertices          1.5k       6k         24k        (see BENCHMARKS.md for 1e4 … 6.6e5)
