@@ -126,11 +126,10 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
-import scipy.sparse as sp
 
 from . import cfunctions
 from . import newton_system as ns
-from .linear_solve import LinearSolveError, solve_direct
+from .linear_solve import LinearSolveError, scaled_rows, solve_direct
 
 SYSTEMS = ("full", "eliminated")
 VARIANTS = ("exact", "inexact", "adaptive")
@@ -196,13 +195,12 @@ def linear_step(rows, cfun, system, X, at_projection=False):
     norm_B = float(np.linalg.norm(np.concatenate([rows.weights * rows.F, B3])))
     if system == "full":
         A, B = ns.full_system(rows, alpha, beta, B3)
-        W = sp.diags(np.concatenate([rows.weights, np.ones(rows.n)]))
-        return LinearStep((W @ A).tocsr(), W @ B, X, norm_B, lambda y: y, rows.unweighted)
+        w = np.concatenate([rows.weights, np.ones(rows.n)])
+        return LinearStep(scaled_rows(A, w), w * B, X, norm_B, lambda y: y, rows.unweighted)
     A, b, elim = ns.eliminated_system(rows, alpha, beta, B3)
     u1, u2, lam = ns.split(X, rows.n)
     guess = np.concatenate([u1, np.where(elim.eliminate_lambda, u2, lam)])
-    W = sp.diags(rows.weights)
-    return LinearStep((W @ A).tocsr(), W @ b, guess, norm_B, elim.expand,
+    return LinearStep(scaled_rows(A, rows.weights), rows.weights * b, guess, norm_B, elim.expand,
                       lambda r: rows.unweighted(np.concatenate([r, np.zeros(rows.n)])))
 
 

@@ -149,19 +149,22 @@ class Elimination:
 
 def eliminate(n, alpha, beta, B3, kappa=1.0):
     """The substitution X = T Y + t that satisfies every complementarity row exactly; the
-    choice compares the C-function's own derivatives, |∂C/∂b| = |β|/κ against |α|."""
+    choice compares the C-function's own derivatives, |∂C/∂b| = |β|/κ against |α|.
+    T = [[I, 0], [diag U, diag H], [diag G, diag Q]] is built from its CSR arrays (two entries
+    in each row of u2 and λ, zeros included: they change no product)."""
     lam_out = np.abs(beta) >= kappa * np.abs(alpha)
     u2_out = ~lam_out
     a_safe = np.where(u2_out, alpha, 1.0)
     b_safe = np.where(lam_out, beta, 1.0)
     L, U = lam_out.astype(float), u2_out.astype(float)
-    I = sp.identity(n, format="csr")
-    Z = sp.csr_matrix((n, n))
-    T = sp.bmat([
-        [I, Z],
-        [sp.diags(U), sp.diags(L + U * beta / a_safe)],
-        [sp.diags(-L * alpha / b_safe), sp.diags(L * alpha / b_safe + U)],
-    ], format="csr")
+    H, G, Q = L + U * beta / a_safe, -L * alpha / b_safe, L * alpha / b_safe + U
+    vertex = np.arange(n)
+    pair = np.stack([vertex, vertex + n], axis=1).ravel()
+    T = sp.csr_matrix((np.concatenate([np.ones(n), np.stack([U, H], axis=1).ravel(),
+                                       np.stack([G, Q], axis=1).ravel()]),
+                       np.concatenate([vertex, pair, pair]),
+                       np.concatenate([vertex, n + 2 * np.arange(2 * n + 1)])),
+                      shape=(3 * n, 2 * n))
     t = np.concatenate([np.zeros(n), -U * B3 / a_safe, L * B3 / b_safe])
     return Elimination(T, t, lam_out)
 
@@ -169,6 +172,6 @@ def eliminate(n, alpha, beta, B3, kappa=1.0):
 def eliminated_system(rows, alpha, beta, B3):
     """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X."""
     elim = eliminate(rows.n, alpha, beta, B3, rows.kappa)
-    A = (rows.E @ elim.T).tocsr()
+    A = rows.E @ elim.T
     A.eliminate_zeros()
     return A, rows.F - rows.E @ elim.t, elim

@@ -34,14 +34,34 @@ paper's GMRES counts, DESIGN §8, grow the same way).
    dominant, and BoomerAMG converges (6–21 iterations on K alone at every step). d_l is read
    off Ã: in any second-block row N+m of a neighbour m, the u1_l and z_l entries are
    ρ μ2 S_ml and ρ μ2 d_l S_ml (ρ the row's scale), so d_l = their ratio, whatever ρ.
-4. One V-cycle of hypre BoomerAMG (PETSc defaults) on Ds K Ds⁻¹ per application.
+4. One V-cycle of hypre BoomerAMG on Ds K Ds⁻¹ per application (`DEFAULT_INNER`): PETSc's
+   defaults (classical interpolation, strong threshold 0.25) except two options.
+   * Smoothing: one forward hybrid Gauss–Seidel sweep down and one backward sweep up (a
+     symmetric V-cycle) instead of PETSc's symmetric sweep both ways, which costs twice as
+     much: the V-cycle takes 35 % less time (1.7e5 rows of K: 20 instead of 33 ms) for at most
+     one more GMRES iteration per Newton step (disk, cmp configuration, 1e2 … 4.4e5 vertices:
+     7–9 per step instead of 6–9, no growth with the mesh).
+   * Coarsening: Ruge–Stüben instead of Falgout (which adds CLJP on processor boundaries: none
+     in a serial run): the same hierarchy (grid complexity 1.66, operator 2.65) and the same
+     iterations, a 10–15 % cheaper set-up.
+   Tried and not kept (set-up + iterations × V-cycle per Newton step at 1.1e5 and 4.4e5
+   vertices, and iterations): HMIS or PMIS coarsening with ext+i interpolation, P_max 4 (the
+   same total: V-cycles 5–20 % cheaper, set-up 15 % dearer) or P_max 3 (10–20 % less in
+   total, but one more iteration per step than the options above, 10 at the worst step: one
+   more would cost the adaptive variant an estimator evaluation at ν = 10, DESIGN §8);
+   aggressive coarsening (agg_nl 1: 70 % more iterations); l1-Jacobi smoothing (30 % more);
+   strong threshold 0.3–0.5, interpolation truncation (no gain).
 
 The preconditioner is M⁻¹ r = block-triangular solve of Â with AMG for K, applied to B⁻¹ r.
-The set-up is a few sparse products and one BoomerAMG set-up per Newton step.
+The set-up is one sparse product (B⁻¹Ã; the similarity Ds scales K's entries), a few
+slicings and one BoomerAMG set-up per Newton step. At 1.1e5 vertices (K: 1.7e5 rows) the scipy
+part takes 80 ms, the BoomerAMG set-up 200 ms and a V-cycle 20 ms: the BoomerAMG set-up is
+about a third of a Newton step's linear algebra (600 ms with ~8 iterations).
 
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
-bench_preconditioner.py; BENCHMARKS.md has the table): GMRES iterations per Newton step, mean
-over the steps, min | fb:
+bench_preconditioner.py; BENCHMARKS.md has the table; with PETSc's BoomerAMG defaults, before
+the two options of 4., which add 0.3–0.8 iterations per step on average): GMRES iterations
+per Newton step, mean over the steps, min | fb:
 
     vertices          1.5k       6k         24k        (see BENCHMARKS.md for 1e4 … 6.6e5)
     ILU(0)         51 | 40    103 | 79    255 | 179
@@ -60,17 +80,21 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
-from .linear_solve import petsc_matrix
+from .linear_solve import petsc_matrix, scaled_rows
 
 INNER_PREFIX = "vertex_amg_"
-DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg"}
+DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg",
+                 "pc_hypre_boomeramg_coarsen_type": "Ruge-Stueben",
+                 "pc_hypre_boomeramg_relax_type_down": "SOR/Jacobi",
+                 "pc_hypre_boomeramg_relax_type_up": "backward-SOR/Jacobi"}
 
 _prefixes = iter(range(1 << 62))
 
 
 def vertex_blocks_inverse(A):
     """B⁻¹ as a sparse 2N × 2N matrix, B the 2×2 blocks of the vertices (rows and columns l and
-    N + l); ValueError if one is singular or A is not 2N × 2N."""
+    N + l), built from its CSR arrays (two entries a row); ValueError if one is singular or A
+    is not 2N × 2N."""
     if A.shape[0] != A.shape[1] or A.shape[0] % 2:
         raise ValueError(f"vertex_amg needs the eliminated 2N x 2N system, got {A.shape}")
     n = A.shape[0] // 2
@@ -81,18 +105,23 @@ def vertex_blocks_inverse(A):
     if not np.all(np.abs(det) > 1e-12 * scale) or not np.all(np.isfinite(det)):
         raise ValueError("vertex_amg: a singular 2x2 vertex block (it needs the eliminated "
                          "system, system='eliminated')")
-    return sp.bmat([[sp.diags(d / det), sp.diags(-b / det)],
-                    [sp.diags(-c / det), sp.diags(a / det)]], format="csr")
+    pair = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1).ravel()
+    return sp.csr_matrix((np.concatenate([np.stack([d, -b], axis=1).ravel() / np.repeat(det, 2),
+                                          np.stack([-c, a], axis=1).ravel() / np.repeat(det, 2)]),
+                          np.concatenate([pair, pair]), 2 * np.arange(2 * n + 1)),
+                         shape=A.shape)
 
 
 def slaves(A):
     """z-unknowns (as a mask over the N vertices) whose column of A has entries only in the
     two rows of their own vertex."""
     n = A.shape[0] // 2
-    C = A[:, n:].tocoo()
-    foreign = (C.row % n != C.col) & (C.data != 0)
+    C = A.tocoo(copy=False)
+    z = C.col >= n
+    row, col = C.row[z], C.col[z] - n
+    foreign = (row != col) & (row != col + n) & (C.data[z] != 0)
     touched = np.zeros(n, dtype=bool)
-    touched[C.col[foreign]] = True
+    touched[col[foreign]] = True
     return ~touched
 
 
@@ -100,11 +129,13 @@ def gap_scales(A):
     """d_l where u2_l = u1_l + d_l z_l + const (z_l = λ_l), read off the second block's rows of
     the neighbours (module notes, 3.); 1 where u2_l does not depend on u1_l (z_l = u2_l)."""
     n = A.shape[0] // 2
-    B = A[n:].tocoo()
-    foreign = B.row != B.col % n
-    u1, z = foreign & (B.col < n), foreign & (B.col >= n)
-    on_u1 = np.bincount(B.col[u1], B.data[u1], minlength=n)
-    on_z = np.bincount(B.col[z] - n, B.data[z], minlength=n)
+    B = A[n:].tocoo(copy=False)
+    z = B.col >= n
+    vertex = np.where(z, B.col - n, B.col)
+    foreign = B.row != vertex
+    u1, z = foreign & ~z, foreign & z
+    on_u1 = np.bincount(vertex[u1], B.data[u1], minlength=n)
+    on_z = np.bincount(vertex[z], B.data[z], minlength=n)
     gap = on_u1 != 0
     return np.where(gap, on_z / np.where(gap, on_u1, 1.0), 1.0)
 
@@ -117,7 +148,7 @@ class VertexAMG:
         A = sp.csr_matrix(A)
         n = A.shape[0] // 2
         self.B_inv = vertex_blocks_inverse(A)
-        A_hat = (self.B_inv @ A).tocsr()
+        A_hat = self.B_inv @ A
         slave = np.zeros(2 * n, dtype=bool)
         slave[n:] = slaves(A)
         self.keep, self.slave = np.flatnonzero(~slave), np.flatnonzero(slave)
@@ -125,10 +156,10 @@ class VertexAMG:
         scale = np.ones(2 * n)
         scale[n:] = np.where(slave[n:] | (d == 0), 1.0, np.abs(d))
         self.scale = scale[self.keep]
-        kept = A_hat[self.keep]
-        K = sp.diags(self.scale) @ kept[:, self.keep] @ sp.diags(1.0 / self.scale)
-        self.X = A_hat[self.slave][:, self.keep].tocsr()
-        self.K = petsc_matrix(K.tocsr())
+        K = scaled_rows(A_hat[self.keep][:, self.keep], self.scale)
+        K.data /= self.scale[K.indices]
+        self.X = A_hat[self.slave][:, self.keep]
+        self.K = petsc_matrix(K)
         self.pc = PETSc.PC().create(PETSc.COMM_SELF)
         self.pc.setOperators(self.K)
         options = dict(DEFAULT_INNER if inner is None or "pc_type" not in inner else {})

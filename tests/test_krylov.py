@@ -13,12 +13,14 @@ import json
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from petsc4py import PETSc
 
 from membranes import solve
 from membranes import newton_system as ns
 from membranes.cli import main
-from membranes.krylov import DEFAULT_OPTIONS, Krylov, parse_petsc_options
+from membranes.krylov import DEFAULT_OPTIONS, Krylov, parse_petsc_options, with_diagonal
+from membranes.linear_solve import petsc_matrix
 from membranes.newton import EXACT_LINEAR_TOL, linear_step, semismooth_newton
 
 from .conftest import cli_bad_input, scene, solved_with
@@ -177,6 +179,34 @@ def test_linear_solver_failure_is_reported():
     assert "Newton step 1" in run.reason and "DIVERGED_MAX_IT" in run.reason
     assert run.newton_iterations == 0 and run.linear_iterations == 5
     assert run.X is not None and run.final_record["kind"] == "initial"
+
+
+def test_matrix_builders():
+    """with_diagonal stores every diagonal entry (a zero where A has none) and changes no value;
+    petsc_matrix gives PETSc the same matrix, with each row's column indices sorted (as AIJ
+    wants), whatever their order in A."""
+    rng = np.random.default_rng(1)
+    A = sp.random(40, 40, density=0.15, format="csr", random_state=2)
+    diagonal = np.where(rng.random(40) < 0.5, 1.0 + rng.random(40), 0.0)   # half of it missing
+    A = sp.csr_matrix(A - sp.diags(A.diagonal()) + sp.diags(diagonal))
+    A.eliminate_zeros()
+    assert 0 < (A.diagonal() == 0).sum() < 40
+    D = with_diagonal(A)
+    C = D.tocoo()
+    assert np.array_equal(np.sort(C.row[C.row == C.col]), np.arange(40))
+    assert np.array_equal(D.toarray(), A.toarray())
+    unsorted = A.copy()
+    for i in range(40):                     # reverse each row's entries
+        a, b = unsorted.indptr[i], unsorted.indptr[i + 1]
+        unsorted.indices[a:b] = unsorted.indices[a:b][::-1].copy()
+        unsorted.data[a:b] = unsorted.data[a:b][::-1].copy()
+    assert np.array_equal(unsorted.toarray(), A.toarray())
+    M = petsc_matrix(unsorted)
+    indptr, indices, data = M.getValuesCSR()
+    assert all(np.all(np.diff(indices[indptr[i]:indptr[i + 1]]) > 0) for i in range(40))
+    assert np.array_equal(sp.csr_matrix((data, indices, indptr), shape=A.shape).toarray(),
+                          A.toarray())
+    M.destroy()
 
 
 def test_parse_petsc_options():

@@ -99,6 +99,20 @@ def test_independent_of_row_scaling():
         assert np.linalg.norm(plain[0] - scaled[0]) <= 1e-8 * np.linalg.norm(plain[0])
 
 
+def test_fgmres_is_right_preconditioned_gmres():
+    """vertex_amg runs FGMRES unless ksp_type is given: for a fixed preconditioner the same
+    iterates as right-preconditioned GMRES in exact arithmetic, so the same iteration counts
+    (±1 for round-off at the stopping test) and the same solutions to the tolerance's
+    accuracy (1e-10 here, as in test_independent_of_row_scaling)."""
+    fgmres, gmres = Krylov(dict(VAMG)), Krylov({**dict(VAMG), "ksp_type": "gmres"})
+    assert fgmres.options["ksp_type"] == "fgmres" and gmres.options["ksp_type"] == "gmres"
+    for step, _, _ in _steps("fb", 4)[1:]:
+        f = fgmres.solve(step.A, step.b, step.guess, 1e-10, np.linalg.norm(step.b))
+        g = gmres.solve(step.A, step.b, step.guess, 1e-10, np.linalg.norm(step.b))
+        assert abs(f[2] - g[2]) <= 1
+        assert np.linalg.norm(f[0] - g[0]) <= 1e-8 * np.linalg.norm(g[0])
+
+
 def test_slaves_and_gap_scales():
     """min: the multipliers of contact vertices are slaves (u2 = u1 there, d = 0); fb: none
     are, and d_l = β_l/α_l where u2 was eliminated, read off the matrix (1 elsewhere)."""
