@@ -136,16 +136,22 @@ def _apply_buckets(level, flat, size, scatter=None):
     with the representatives' operators; then each patch's change of basis (at most two
     representative dofs times 0, ±1) and one scatter, either by `scatter` (the sparse matrix
     `_bucket_scatter(level, size)` that does both, for a level applied many times) or
-    directly (a gather and a bincount)."""
+    directly, bucket by bucket (a gather; then one bincount; the temporaries stay of the
+    size of a bucket: the multilevel flux's levels together hold millions of patch dofs)."""
     buckets, ret = level
-    SR = np.concatenate([np.matmul(flat[G].reshape(S.shape[0], -1, S.shape[2]),
-                                   S.transpose(0, 2, 1)).ravel() for S, G, _, _ in buckets])
+    products = (np.matmul(flat[G].reshape(S.shape[0], -1, S.shape[2]),
+                          S.transpose(0, 2, 1)).ravel() for S, G, _, _ in buckets)
     if scatter is not None:
-        return scatter @ SR
-    cols, coef, second = _basis_terms(buckets)
-    v = SR[cols[:, 0]] * coef[:, 0]
-    v[second] += SR[cols[second, 1]] * coef[second, 1]
-    return np.bincount(ret, v, minlength=size)
+        return scatter @ np.concatenate(list(products))
+    values = []
+    for SR, (_, _, L, C) in zip(products, buckets):
+        nr = L.shape[1]
+        off = (np.arange(L.shape[0], dtype=np.int64) * nr)[:, None]
+        v = SR[L[:, :, 0] + off] * C[:, :, 0]
+        second = C[:, :, 1] != 0
+        v[second] += SR[(L[:, :, 1] + off)[second]] * C[:, :, 1][second]
+        values.append(v.ravel())
+    return np.bincount(ret, np.concatenate(values), minlength=size)
 
 
 def _basis_terms(buckets):
