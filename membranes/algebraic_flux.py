@@ -39,6 +39,7 @@ from .discretisation import boundary_dofs
 from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, _rt_reference, lifting,
                             translation_classes, vertex_patches)
 from .hierarchy import barycentric
+from .parallel import one_blas_thread
 
 
 def _rt_element():
@@ -263,18 +264,6 @@ def class_members(rep):
     return np.split(order, cuts)
 
 
-def _one_blas_thread():
-    """A context with BLAS on one thread (threadpoolctl, where installed): the patch systems
-    are small (N ≈ 200), and a threaded BLAS spends more on synchronising than it gains (5x
-    slower measured with OpenBLAS on 2 cores)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        import contextlib
-        return contextlib.nullcontext()
-    return threadpool_limits(1, user_api="blas")
-
-
 def _solution_operators(A, nr, nq):
     """S (g, nr, nq): the σ rows of A⁻¹ on the divergence rows, for patch systems A (g, N, N)
     = [[M, -Bᵀ, 0], [B, 0, c], [0, cᵀ, 0]] (the last row and column for interior patches only,
@@ -495,7 +484,7 @@ class MultilevelFlux:
                     glob = spaces[j].retained_dofs(cs, np.full(len(k), b))
                     _, _, A = spaces[j].saddle_point_systems(
                         cs, glob, b, blocks=(Me[inverse[k]], Be[inverse[k]]))
-                    with _one_blas_thread():
+                    with one_blas_thread():
                         out.update(zip(rj[k].tolist(), _solution_operators(A, n, nq)))
         return out
 
