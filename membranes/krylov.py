@@ -239,7 +239,7 @@ class Krylov:
         (x, b - A x) at that iterate; a true return value stops the solve at that iterate.
         Returns (x, b - A x, its); raises LinearSolveError (with `its`) if the KSP stops
         before either happens (e.g. at max_linear_its)."""
-        M = petsc_matrix(with_diagonal(A))
+        M = petsc_matrix(with_diagonal(A), copy=False)   # A is the step's: not changed here
         rhs = PETSc.Vec().createWithArray(np.array(b, dtype=float), comm=PETSc.COMM_SELF)
         x = PETSc.Vec().createWithArray(np.array(x0, dtype=float), comm=PETSc.COMM_SELF)
         work = x.duplicate()

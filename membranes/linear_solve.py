@@ -11,11 +11,13 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 
-def petsc_matrix(A):
+def petsc_matrix(A, copy=True):
     """A scipy sparse matrix as a serial PETSc AIJ matrix, built on copies of its CSR arrays
     (MatCreateSeqAIJWithArrays: no insertion of values one row at a time, which took 4 times
-    as long at 1.6e6 entries; PETSc's AIJ wants the column indices of each row sorted)."""
-    A = sp.csr_matrix(A, dtype=PETSc.ScalarType, copy=True)   # the copy the matrix owns
+    as long at 1.6e6 entries; PETSc's AIJ wants the column indices of each row sorted).
+    copy=False: on A's own arrays where their types allow (the caller keeps A unchanged while
+    the matrix lives; its indices may get sorted in place); saves a copy of the system."""
+    A = sp.csr_matrix(A, dtype=PETSc.ScalarType, copy=copy)
     A.sort_indices()
     csr = (A.indptr.astype(PETSc.IntType, copy=False), A.indices.astype(PETSc.IntType, copy=False),
            A.data)
