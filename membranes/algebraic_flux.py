@@ -36,17 +36,10 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .discretisation import boundary_dofs
-from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, _rt_reference, lifting,
-                            translation_classes, vertex_patches)
+from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, _rt_element, lifting,
+                            rt_signs, translation_classes, vertex_patches)
 from .hierarchy import barycentric
 from .parallel import one_blas_thread
-
-
-def _rt_element():
-    """basix's element of dolfinx's ("RT", 2): RT_1, Legendre variant."""
-    import basix
-    return basix.create_element(basix.ElementFamily.RT, basix.CellType.triangle, 2,
-                                basix.LagrangeVariant.legendre)
 
 
 def _reference_tables():
@@ -597,16 +590,15 @@ class Prolongation:
     (one product with a block per kind)."""
 
     def __init__(self, coarse, fine, parent, Bp2):
-        signs = _rt_reference()[3].astype(np.int8)        # [ρ]: the edge reflections' signs
         self.shape = (fine.nrt, coarse.nrt)
         self.rt_c = coarse.rt_cells.astype(np.int32)
-        self.s_c = signs[coarse.reflections]                                 # (nc_{j-1}, 8)
+        self.s_c = rt_signs(coarse.reflections)                              # (nc_{j-1}, 8)
         # the fine cells in kind order, each kind a slice
         cells, Bp = child_kinds(Bp2)
         order = np.concatenate(cells)
         self.cuts = np.cumsum([0] + [len(c) for c in cells])
         self.rt_f = fine.rt_cells[order].astype(np.int32)
-        self.s_f = signs[fine.reflections[order]]
+        self.s_f = rt_signs(fine.reflections[order])
         self.parent = np.asarray(parent, dtype=np.int32)[order]
         # exact zeros where the block is zero to round-off (its entries are O(1))
         self.blocks = [np.where(np.abs(b) < 1e-12, 0.0, b).T for b in map(_child_block, Bp)]

@@ -140,6 +140,26 @@ class Lifting:
         return ((3.0 / geo.area)[:, None] * (v @ _MINV_REF.T)).ravel()
 
 
+def _rt_element():
+    """basix's element of dolfinx's ("RT", 2): RT_1, Legendre variant."""
+    import basix
+    return basix.create_element(basix.ElementFamily.RT, basix.CellType.triangle, 2,
+                                basix.LagrangeVariant.legendre)
+
+
+def cell_reflections(mesh, ncells):
+    """The edge reflections of the first ncells cells of `mesh` (bit e: edge e), which the RT
+    basis carries (dolfinx's dof transformations)."""
+    mesh.topology.create_entity_permutations()
+    return np.asarray(mesh.topology.get_cell_permutation_info())[:ncells] & 7
+
+
+def rt_signs(reflections):
+    """The RT_1 dof signs (..., 8), ±1 as int8, of cells with these edge reflections (the
+    dof transformations of `_rt_reference`)."""
+    return _rt_reference()[3].astype(np.int8)[reflections]
+
+
 @functools.lru_cache(maxsize=None)
 def _rt_reference():
     """Integrals over the reference triangle of dolfinx's ("RT", 2) basis ψ̂ (basix's RT of
@@ -148,8 +168,7 @@ def _rt_reference():
     and sign[ρ] (8, 8): the dof transformation of a cell whose edges with a bit set in ρ are
     reflected (basix's base transformations; for this element a sign on one dof per edge)."""
     import basix
-    e = basix.create_element(basix.ElementFamily.RT, basix.CellType.triangle, 2,
-                             basix.LagrangeVariant.legendre)
+    e = _rt_element()
     X, w = basix.make_quadrature(basix.CellType.triangle, 4)
     tab = e.tabulate(1, X)                                    # (3, npts, 8, 2)
     psi, div = tab[0], tab[1][:, :, 0] + tab[2][:, :, 1]
@@ -246,10 +265,7 @@ class PatchSpace:
         exterior[dmesh.exterior_facet_indices(mesh.topology)] = True
         self.exterior_edge = exterior[self.c2e]
         self.nrt = self.RT.dofmap.index_map.size_local
-        # the edge reflections of every cell (bit e: edge e), which the RT basis carries
-        mesh.topology.create_entity_permutations()
-        self.reflections = (np.asarray(mesh.topology.get_cell_permutation_info())[:nc]
-                            & 7).astype(np.int64)
+        self.reflections = cell_reflections(mesh, nc).astype(np.int64)
         self.Me = self.Be = None
         if blocks:
             self.Me, self.Be = self.element_blocks(np.arange(nc))
@@ -259,7 +275,7 @@ class PatchSpace:
         cells = np.asarray(cells, dtype=np.int64)
         J = self.geo.jacobians(cells)
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        return J, det, _rt_reference()[3][self.reflections[cells]]
+        return J, det, rt_signs(self.reflections[cells])
 
     def element_blocks(self, cells):
         """(Me, Be) of the given cells: Me (c, 8, 8), Be (c, 3, 8). With the contravariant

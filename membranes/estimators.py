@@ -46,7 +46,8 @@ import numpy as np
 import ufl
 
 from .discretisation import assemble_vector_array, over
-from .equilibration import _MINV_REF, FluxEquilibration, _rt_reference
+from .equilibration import (_MINV_REF, FluxEquilibration, _rt_element, cell_reflections,
+                            rt_signs)
 from .meshes import cell_diameters
 from .newton_system import split
 from .problem import as_builder
@@ -85,16 +86,10 @@ class CellFluxNorms:
 
     def __init__(self, space):
         import basix
-        from .algebraic_flux import _rt_element
         geo = space.geo
-        mesh = space.RT.mesh
         nc = geo.ncells
         self.rt_cells = space.RT.dofmap.list.array.reshape(-1, 8)[:nc].astype(np.int32)
-        mesh.topology.create_entity_permutations()
-        refl = np.asarray(mesh.topology.get_cell_permutation_info())[:nc] & 7
-        signs = _rt_reference()[3]                                          # ±1
-        assert np.array_equal(np.abs(signs), np.ones_like(signs))
-        self.signs = signs.astype(np.int8)[refl]              # (nc, 8): 1 byte, not 8
+        self.signs = rt_signs(cell_reflections(space.RT.mesh, nc))          # (nc, 8) int8
         X, self.w = basix.make_quadrature(basix.CellType.triangle, 4)
         psi = _rt_element().tabulate(0, X)[0]                             # (q, 8, 2)
         self.psi = np.ascontiguousarray(psi.transpose(1, 2, 0).reshape(8, -1))  # (8, 2 q)
