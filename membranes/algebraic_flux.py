@@ -36,8 +36,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .discretisation import boundary_dofs
-from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, _rt_element, lifting,
-                            rt_signs, translation_classes, vertex_patches)
+from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, _local_index_type,
+                            _rt_element, lifting, rt_signs, translation_classes,
+                            vertex_patches)
 from .hierarchy import barycentric
 from .parallel import one_blas_thread
 
@@ -97,11 +98,6 @@ def _inverse_permutation(pi):
     return inv
 
 
-def _index_type(n):
-    """The smallest integer type for local numbers 0 .. n - 1."""
-    return np.uint8 if n <= 256 else np.int16 if n <= 2 ** 15 else np.int32
-
-
 def _buckets(groups):
     """Stack the groups (S, G, RET, L, C) of classes of patches (one per class, see
     MultilevelFlux._translates) by (S.shape, number of patches): one batched product per
@@ -117,7 +113,7 @@ def _buckets(groups):
         L = np.concatenate([g[3] for g in members])
         buckets.append((np.stack([g[0] for g in members]),
                         np.concatenate([g[1] for g in members]),
-                        L.astype(_index_type(L.shape[1])),
+                        L.astype(_local_index_type(L.shape[1])),
                         np.concatenate([g[4] for g in members])))
         ret.append(np.concatenate([g[2].ravel() for g in members]))
     return buckets, np.concatenate(ret)
@@ -243,7 +239,7 @@ def basis_change(refl, loc, pi, rep_refl, rep_loc, nr):
     if (tgt[coef != 0] < 0).any():
         raise RuntimeError("a retained dof of a translate maps to a dropped one")
     rows = (cell // m) * nr + loc.reshape(-1)[ok]
-    L = np.zeros((P * nr, 2), dtype=_index_type(nr))
+    L = np.zeros((P * nr, 2), dtype=_local_index_type(nr))
     C = np.zeros((P * nr, 2), dtype=np.int8)
     L[rows] = np.maximum(tgt, 0)
     C[rows] = coef
@@ -433,7 +429,7 @@ class MultilevelFlux:
         for idx, R in chunks:
             RET[idx, :R.shape[1]] = R
         del chunks
-        L = np.empty((P, nr, 2), dtype=_index_type(nr))
+        L = np.empty((P, nr, 2), dtype=_local_index_type(nr))
         C = np.empty((P, nr, 2), dtype=np.int8)
         for s in range(0, P, self.CHUNK):
             sl = slice(s, s + self.CHUNK)

@@ -140,6 +140,11 @@ class Lifting:
         return ((3.0 / geo.area)[:, None] * (v @ _MINV_REF.T)).ravel()
 
 
+def _local_index_type(n):
+    """The smallest integer type for local numbers 0 .. n - 1."""
+    return np.uint8 if n <= 256 else np.int16 if n <= 2 ** 15 else np.int32
+
+
 def _rt_element():
     """basix's element of dolfinx's ("RT", 2): RT_1, Legendre variant."""
     import basix
@@ -736,7 +741,7 @@ class FluxEquilibration:
             mem = mem[np.lexsort((rep[mem], size[rep[mem]]))]
             Pm = len(mem)
             RETm = np.empty((Pm, nr), dtype=np.int32)
-            L = np.empty((Pm, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+            L = np.empty((Pm, nr, 2), dtype=_local_index_type(nr))
             C = np.empty((Pm, nr, 2), dtype=np.int8)
             G = np.empty((Pm, q), dtype=self._index_type())
             GF = np.empty((Pm, 3 * n), dtype=G.dtype)
@@ -804,7 +809,7 @@ class FluxEquilibration:
         u = part[bi] + 64 * np.take_along_axis(perm, ci, axis=1) + 8 * space.reflections[cf]
         RET = space.rt_cells.reshape(-1)[8 * cf + PATCH_DOF[u]].astype(np.int32)
         base = base[bi]
-        L = np.empty((P, nr, 2), dtype=np.int16 if nr < 2 ** 15 else np.int32)
+        L = np.empty((P, nr, 2), dtype=_local_index_type(nr))
         C = np.empty((P, nr, 2), dtype=np.int8)
         for t in range(2):
             C[:, :, t] = coef = COEF[t][u]
