@@ -36,8 +36,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .discretisation import boundary_dofs
-from .equilibration import (_C3, _MINV_REF, Geometry, PatchSpace, _local_index_type,
-                            _rt_element, lifting, rt_signs, translation_classes,
+from .equilibration import (_C3, _MINV_REF, Geometry, Lifting, PatchSpace,
+                            _local_index_type, _rt_element, rt_signs, translation_classes,
                             vertex_patches)
 from .hierarchy import barycentric
 from .parallel import one_blas_thread
@@ -300,7 +300,7 @@ class MultilevelFlux:
         self.disc, self.J = disc, J
         V = [fem.FunctionSpace(m, ("Lagrange", 1)) for m in hierarchy.meshes[:-1]] + [disc.V]
         self.geo = [Geometry(v) for v in V]
-        self.lift = lifting(self.geo[J])
+        self.lift = Lifting(self.geo[J])
         # vertices of each T_j cell in its parent's barycentric basis (multiples of 1/2, kept
         # as 2 Bp in int8: exact), and the four children of each T_{j-1} cell
         corners = [g.x[g.cells] for g in self.geo]

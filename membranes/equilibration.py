@@ -5,9 +5,9 @@
 An algebraic residual R_α (nodal, zero at Dirichlet vertices) is lifted to r_αh, discontinuous
 P1: on each cell K with vertices a_l, (r_αh, ψ_{a_l})_K = R_{α,l} / N_l, N_l the number of cells
 sharing a_l. With the P1 mass matrix M_K = |K|/12 [[2,1,1],[1,2,1],[1,1,2]] this is
-r_K = M_K⁻¹ (R_l / N_l)_l = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l, the sparse
-operator `lifting` below (DG1 coefficients, in the cell's vertex order), which `Lifting`
-applies without storing it.
+r_K = M_K⁻¹ (R_l / N_l)_l = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l, the
+operator `Lifting` below (DG1 coefficients, in the cell's vertex order; tests/
+test_equilibration checks it against the sparse matrix of the formula and against R).
 
 ## Patchwise equilibration
 
@@ -118,18 +118,10 @@ class Geometry:
         return np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)
 
 
-def lifting(geo):
-    """The sparse operator R ↦ r_h (DG1 coefficients, 3 per cell in vertex order), DESIGN §4."""
-    rows = np.repeat(np.arange(3 * geo.ncells), 3)
-    cols = np.repeat(geo.cells, 3, axis=0).ravel()
-    scale = (3.0 / geo.area)[:, None, None] * _MINV_REF[None] \
-        / geo.cells_per_vertex[geo.cells][:, None, :]
-    return sp.csr_matrix((scale.ravel(), (rows, cols)), shape=(3 * geo.ncells, geo.n))
-
-
 class Lifting:
-    """`Lifting(geo) @ R` = `lifting(geo) @ R` without storing the matrix: per cell
-    r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l (DESIGN §4)."""
+    """`Lifting(geo) @ R`: the lifting R ↦ r_h of DESIGN §4 (DG1 coefficients, 3 per cell in
+    vertex order), applied without storing its matrix: per cell
+    r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l."""
 
     def __init__(self, geo):
         self.geo = geo
