@@ -33,6 +33,7 @@ import ufl
 from forms.membrane import (contact_weight, energy_error_expansion, energy_norm_squared,
                             membrane_bilinear, membrane_linear)
 
+from .meshes import holding_cells, p1_cells
 from .problem import as_builder
 
 DATA_DEGREE = 6          # Gauss degree for data on cells the interface does not cut
@@ -336,12 +337,9 @@ def _interpolant(V, u):
     if u.ufl_domain() is None:                                  # a constant
         f.x.array[:] = float(u)
         return f
-    ncells = V.mesh.topology.index_map(2).size_local
-    cells = V.dofmap.list.array.reshape(-1, 3)[:ncells]
-    holder = np.empty(len(f.x.array), dtype=np.int32)
-    holder[cells.ravel()] = np.repeat(np.arange(ncells, dtype=np.int32), 3)
-    chosen = np.zeros(ncells, dtype=bool)
-    chosen[holder] = True
+    cells = p1_cells(V)
+    chosen = np.zeros(len(cells), dtype=bool)
+    chosen[holding_cells(cells, len(f.x.array))] = True
     f.interpolate(fem.Expression(u, V.element.interpolation_points()),
                   np.flatnonzero(chosen).astype(np.int32))
     return f

@@ -64,6 +64,7 @@ import ufl
 from forms.equilibration import weighted_mass
 
 from .discretisation import form as compiled, load, over
+from .meshes import p1_cells
 
 # ∫_K φ_k φ_l φ_i / |K| for barycentric φ: 1/10 (k = l = i), 1/30 (two equal), 1/60 (distinct)
 _C3 = np.empty((3, 3, 3))
@@ -87,7 +88,7 @@ class Geometry:
         mesh = V.mesh
         self.V = V
         self.ncells = mesh.topology.index_map(2).size_local
-        self.cells = V.dofmap.list.array.reshape(-1, 3)[:self.ncells].astype(np.int64)
+        self.cells = p1_cells(V).astype(np.int64)
         self.n = V.dofmap.index_map.size_local
         self.x = x = np.ascontiguousarray(V.tabulate_dof_coordinates()[:, :2])
         self.area = np.empty(self.ncells)

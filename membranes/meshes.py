@@ -135,6 +135,20 @@ def read_msh(path, comm=MPI.COMM_SELF):
             raise ValueError(f"cannot convert mesh file {path!r}: {e}") from None
 
 
+def p1_cells(V):
+    """The dofs of every local cell of a P1 space V, shape (cells, 3), in the cells' vertex
+    order."""
+    ncells = V.mesh.topology.index_map(2).size_local
+    return V.dofmap.list.array.reshape(-1, 3)[:ncells]
+
+
+def holding_cells(cells, n):
+    """For each of n vertices, one of the `cells` (c, 3) that has it (the last one listed)."""
+    holder = np.empty(n, dtype=np.int64)
+    holder[cells.ravel()] = np.repeat(np.arange(len(cells)), 3)
+    return holder
+
+
 def _cell_vertices(mesh):
     """(ncells, 3, 2): the vertex coordinates of every local cell."""
     x = mesh.geometry.x[:, :2]

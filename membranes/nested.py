@@ -40,6 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .hierarchy import Hierarchy, barycentric
+from .meshes import holding_cells, p1_cells
 
 SNAP = 1e-8      # barycentric weights farther than this from {0, 1/2, 1}: not a Plaza refinement
 
@@ -56,12 +57,6 @@ def level_problem(problem, j):
                                                             list(h.parent_cells[:j])))
 
 
-def _cells(V):
-    """The dofs of every local cell of the P1 space V, shape (cells, 3)."""
-    ncells = V.mesh.topology.index_map(2).size_local
-    return V.dofmap.list.array.reshape(-1, 3)[:ncells]
-
-
 def prolongation(V_coarse, V_fine, parent_cells):
     """The P1 interpolation matrix T_{j-1} → T_j (scipy CSR, n_fine × n_coarse) of the P1
     spaces V_coarse on T_{j-1} and V_fine on T_j; parent_cells[c] is the cell of T_{j-1} that
@@ -70,13 +65,12 @@ def prolongation(V_coarse, V_fine, parent_cells):
     n_f = V_fine.dofmap.index_map.size_local
     xc = V_coarse.tabulate_dof_coordinates()[:, :2]
     xf = V_fine.tabulate_dof_coordinates()[:n_f, :2]
-    fine_cells, coarse_cells = _cells(V_fine), _cells(V_coarse)
+    fine_cells, coarse_cells = p1_cells(V_fine), p1_cells(V_coarse)
     parent_cells = np.asarray(parent_cells)
     if parent_cells.shape != (len(fine_cells),):
         raise ValueError(f"{len(parent_cells)} parent cells for {len(fine_cells)} fine cells")
     # every fine vertex in one fine cell that contains it, and so in that cell's parent
-    holder = np.empty(n_f, dtype=np.int64)
-    holder[fine_cells.ravel()] = np.repeat(np.arange(len(fine_cells)), 3)
+    holder = holding_cells(fine_cells, n_f)
     dofs = coarse_cells[parent_cells[holder]]             # (n_f, 3) coarse dofs
     weights = barycentric(xf[:, None, :], xc[dofs])[:, 0]   # (n_f, 3)
     snapped = np.round(2.0 * weights) / 2.0
