@@ -147,24 +147,30 @@ class Elimination:
         return self.T @ Y + self.t
 
 
+def vertex_pair_rows(*pairs):
+    """The CSR matrix (k n × 2n, k = len(pairs)) whose row i n + l holds pairs[i][0][l] in
+    column l and pairs[i][1][l] in column n + l (zeros stored): rows that couple the two
+    unknowns of each vertex l of the 2N systems (u1_l and z_l, or the 2×2 vertex blocks)."""
+    n = len(pairs[0][0])
+    pair = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1).ravel()
+    data = np.concatenate([np.stack([a, b], axis=1).ravel() for a, b in pairs])
+    return sp.csr_matrix((data, np.tile(pair, len(pairs)), 2 * np.arange(len(pairs) * n + 1)),
+                         shape=(len(pairs) * n, 2 * n))
+
+
 def eliminate(n, alpha, beta, B3, kappa=1.0):
     """The substitution X = T Y + t that satisfies every complementarity row exactly; the
     choice compares the C-function's own derivatives, |∂C/∂b| = |β|/κ against |α|.
     T = [[I, 0], [diag U, diag H], [diag G, diag Q]] is built from its CSR arrays (two entries
-    in each row of u2 and λ, zeros included: they change no product)."""
+    in each row of u2 and λ, zeros included: they change no product; `vertex_pair_rows`)."""
     lam_out = np.abs(beta) >= kappa * np.abs(alpha)
     u2_out = ~lam_out
     a_safe = np.where(u2_out, alpha, 1.0)
     b_safe = np.where(lam_out, beta, 1.0)
     L, U = lam_out.astype(float), u2_out.astype(float)
     H, G, Q = L + U * beta / a_safe, -L * alpha / b_safe, L * alpha / b_safe + U
-    vertex = np.arange(n)
-    pair = np.stack([vertex, vertex + n], axis=1).ravel()
-    T = sp.csr_matrix((np.concatenate([np.ones(n), np.stack([U, H], axis=1).ravel(),
-                                       np.stack([G, Q], axis=1).ravel()]),
-                       np.concatenate([vertex, pair, pair]),
-                       np.concatenate([vertex, n + 2 * np.arange(2 * n + 1)])),
-                      shape=(3 * n, 2 * n))
+    T = sp.vstack([sp.eye(n, 2 * n, format="csr"), vertex_pair_rows((U, H), (G, Q))],
+                  format="csr")
     t = np.concatenate([np.zeros(n), -U * B3 / a_safe, L * B3 / b_safe])
     return Elimination(T, t, lam_out)
 

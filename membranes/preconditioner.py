@@ -81,6 +81,7 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from .linear_solve import petsc_matrix, scaled_rows
+from .newton_system import vertex_pair_rows
 
 INNER_PREFIX = "vertex_amg_"
 DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg",
@@ -93,8 +94,8 @@ _prefixes = iter(range(1 << 62))
 
 def vertex_blocks_inverse(A):
     """B⁻¹ as a sparse 2N × 2N matrix, B the 2×2 blocks of the vertices (rows and columns l and
-    N + l), built from its CSR arrays (two entries a row); ValueError if one is singular or A
-    is not 2N × 2N."""
+    N + l), two entries a row (`vertex_pair_rows`); ValueError if one is singular or A is not
+    2N × 2N."""
     if A.shape[0] != A.shape[1] or A.shape[0] % 2:
         raise ValueError(f"vertex_amg needs the eliminated 2N x 2N system, got {A.shape}")
     n = A.shape[0] // 2
@@ -105,11 +106,7 @@ def vertex_blocks_inverse(A):
     if not np.all(np.abs(det) > 1e-12 * scale) or not np.all(np.isfinite(det)):
         raise ValueError("vertex_amg: a singular 2x2 vertex block (it needs the eliminated "
                          "system, system='eliminated')")
-    pair = np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1).ravel()
-    return sp.csr_matrix((np.concatenate([np.stack([d, -b], axis=1).ravel() / np.repeat(det, 2),
-                                          np.stack([-c, a], axis=1).ravel() / np.repeat(det, 2)]),
-                          np.concatenate([pair, pair]), 2 * np.arange(2 * n + 1)),
-                         shape=A.shape)
+    return vertex_pair_rows((d / det, -b / det), (-c / det, a / det))
 
 
 def slaves(A):
