@@ -691,6 +691,7 @@ class FluxEquilibration:
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A, wf)
         self._add_operators()
         self.classes = self._class_load(level, wf) if level else None
+        self._class_scatter = None     # the classes' change of basis and scatter (`sigma`)
         # what the evaluation does not need goes
         del self._pending
         space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
@@ -959,14 +960,10 @@ class FluxEquilibration:
         if self.classes is not None:
             r = np.zeros(3 * self.geo.ncells) if R is None else self.lift @ R
             data = np.concatenate([mu * self.geo.gradient(u).ravel(), r, sign * lam])
-            out += _apply_class(self, data, len(out))
+            # the classes' part (`algebraic_flux._apply_buckets`), their change of basis and
+            # scatter as one sparse matrix, built at the first evaluation and kept
+            from .algebraic_flux import _apply_buckets, _bucket_scatter
+            if self._class_scatter is None:
+                self._class_scatter = _bucket_scatter(self.classes, len(out))
+            out += _apply_buckets(self.classes, data, len(out), self._class_scatter)
         return out
-
-
-def _apply_class(flux, data, size):
-    """The classes' part of σ (`algebraic_flux._apply_buckets`), with their change of basis
-    and scatter as one sparse matrix, built at the first evaluation and kept."""
-    from .algebraic_flux import _apply_buckets, _bucket_scatter
-    if getattr(flux, "_class_scatter", None) is None:
-        flux._class_scatter = _bucket_scatter(flux.classes, size)
-    return _apply_buckets(flux.classes, data, size, flux._class_scatter)
