@@ -374,25 +374,61 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     if comm is not None and comm.rank > 0:
         say = None
 
-    method = _Method(newton, cfun, system, krylov, tol, int(max_newton), gamma_lin,
-                     gamma_alg, say, comm)
     options = {"newton": newton, "cfun": cfun, "system": system,
                "linear_solver": linear_solver,
                "petsc_options": {} if krylov is None else krylov.options,
                "nu": None if krylov is None else krylov.nu,
                "gamma_lin": gamma_lin, "gamma_alg": gamma_alg, "alg_flux": alg_flux,
                "initial_guess": guess_name, "nested": nested}
-    if not nested:
-        runs = [_solve_on(problem, method, alg_flux, initial_guess, level=problem.levels)]
-    else:
-        if not (initial_guess is None or isinstance(initial_guess, str) or
-                callable(initial_guess)):
-            raise ValueError("with nested iteration the initial guess is that of the coarse "
-                             "mesh T_0: give 'paper', 'zero' or a function of the "
-                             "discretisation, or nested=False for nodal values on the "
-                             "computational mesh")
-        runs = _solve_nested(problem, method, alg_flux, estimators, initial_guess)
-    sol = _solution(problem, runs, options)
+    if nested and not (initial_guess is None or isinstance(initial_guess, str) or
+                       callable(initial_guess)):
+        raise ValueError("with nested iteration the initial guess is that of the coarse "
+                         "mesh T_0: give 'paper', 'zero' or a function of the "
+                         "discretisation, or nested=False for nodal values on the "
+                         "computational mesh")
+    link = None
+    if comm is not None:        # Newton on process 0, the estimators on the others
+        from . import pipeline
+        est_comm, link = pipeline.roles(comm)
+        if est_comm is not None:
+            return _on_estimator_process(problem, comm, est_comm)
+    method = _Method(newton, cfun, system, krylov, tol, int(max_newton), gamma_lin,
+                     gamma_alg, say, link)
+    try:
+        if not nested:
+            runs = [_solve_on(problem, method, alg_flux, initial_guess, level=problem.levels)]
+        else:
+            runs = _solve_nested(problem, method, alg_flux, estimators, initial_guess)
+        sol = _solution(problem, runs, options)
+    except Exception as e:
+        if link is not None:
+            link.close()
+            comm.bcast(("error", type(e).__name__, str(e)), root=0)
+        raise
+    if link is not None:
+        link.close()
+        comm.bcast({k: getattr(sol, k) for k in _SHARED}, root=0)
+        sol.comm = comm
+    return sol
+
+
+_SHARED = ("X", "converged", "reason", "newton_iterations", "linear_iterations",
+           "wall_time_s", "history", "options", "energy_error", "eta_K", "estimator_times",
+           "per_level")
+
+
+def _on_estimator_process(problem, comm, est_comm):
+    """An estimator process's part of a run on several processes (membranes.pipeline): serve
+    the estimates, then return the Solution that process 0 made."""
+    from .pipeline import serve
+    level, disc = serve(problem, comm, est_comm)
+    est_comm.Free()
+    shared = comm.bcast(None, root=0)
+    if isinstance(shared, tuple):           # process 0 failed: so does this one
+        raise (ValueError if shared[1] == "ValueError" else RuntimeError)(shared[2])
+    if level != problem.levels:
+        disc = discretise(problem)
+    sol = Solution(problem, disc, functions=disc.functions(shared["X"]), **shared)
     sol.comm = comm
     return sol
 
@@ -409,7 +445,7 @@ class _Method:
     gamma_lin: float
     gamma_alg: float
     say: object
-    comm: object = None      # processes sharing the patches (membranes.parallel), or None
+    link: object = None      # process 0's link to the estimator processes (pipeline), or None
 
 
 @dataclass
@@ -461,6 +497,10 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     `its_offset` (the earlier levels of a nested run). `timed_guess`: the initial guess is part
     of the method (a nested run's prolongation) and its time counts."""
     t0 = time.perf_counter()
+    remote = method.link is not None and alg_flux is not None
+    if remote:      # first: the estimator processes set this level up meanwhile
+        from .pipeline import RemoteEstimates
+        est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive")
     disc = discretise(problem)
     rows = linear_rows(disc)
     setup_time = time.perf_counter() - t0
@@ -469,7 +509,8 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     if timed_guess:
         setup_time += time.perf_counter() - t
     error = EnergyError(disc) if problem.exact is not None else None
-    est = IterateEstimates(disc, rows, alg_flux, method.comm) if alg_flux is not None else None
+    if not remote:
+        est = IterateEstimates(disc, rows, alg_flux) if alg_flux is not None else None
     if method.newton == "adaptive":
         setup_time += est.setup_time          # the adaptive method uses the estimators
     say = method.say
@@ -480,14 +521,20 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
         rec["level"] = level
         rec["energy_error"] = error(X) if error is not None else None
         if say is not None and rec["kind"] != "krylov":
-            line = (f"{tag}newton {rec['newton_it']:3d}  residual {rec['residual']:.3e}  "
-                    f"linear its {rec['linear_it']:5d}  total {rec['cumulative_linear_its']:6d}  "
-                    f"time {rec['wall_time_s']:7.2f} s")
-            if rec["energy_error"] is not None:
-                line += f"  energy error {rec['energy_error']:.4e}"
-            if rec.get("eta") is not None:
-                line += f"  eta {rec['eta']:.4e}"
-            say(line)
+            if remote:      # the line once the estimates are in
+                est.when_complete(rec, progress_line)
+            else:
+                progress_line(rec)
+
+    def progress_line(rec):
+        line = (f"{tag}newton {rec['newton_it']:3d}  residual {rec['residual']:.3e}  "
+                f"linear its {rec['linear_it']:5d}  total {rec['cumulative_linear_its']:6d}  "
+                f"time {rec['wall_time_s']:7.2f} s")
+        if rec["energy_error"] is not None:
+            line += f"  energy error {rec['energy_error']:.4e}"
+        if rec.get("eta") is not None:
+            line += f"  eta {rec['eta']:.4e}"
+        say(line)
 
     result = semismooth_newton(rows, problem.g, cfun=method.cfun, system=method.system,
                                variant=method.newton, krylov=method.krylov, tol=method.tol,

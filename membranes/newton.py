@@ -305,6 +305,7 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                          f"the {rows.n} vertices), got shape {X.shape}"
                          + ("" if X.shape != (3 * rows.n,) else " with non-finite values"))
     history = []
+    recorded_at = [0.0]     # the clock when the last record was made
     # the C-function in use (the guard may switch it), where the step linearised it, and
     # whether the last step decreased the merit enough (FB: the next step tries active-set)
     state = {"cfun": cfun, "note": "", "at": "iterate", "decreased": False}
@@ -323,19 +324,23 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         if not adaptive:
             clock.pause()
         ready = [] if estimate is None else estimate(rec, X, R, same_as)
-        rec["wall_time_s"] = clock.pause()
+        rec["wall_time_s"] = recorded_at[0] = clock.pause()
         if monitor is not None:
             monitor(rec, X, R)
         history.append(rec)
         clock.resume()
         return rec, ready
 
-    def hand_out(k, step, done, accepted, before=0):
+    def hand_out(k, step, done, accepted, before=0, unsettled=None):
         """The Krylov callback of step k (`done`: the linear iterations of the steps before,
         `before`: those of this step's rejected active-set solve): record X^{k,i}; for
         adaptive, keep in `accepted` the first iterate of this step that meets the linear
-        criterion, and stop GMRES then."""
+        criterion, and stop GMRES then. `unsettled`: the record of X^{k-1} when step k is
+        computed before its stopping test (module notes): the first handed-out iterate waits
+        for that test, and stops GMRES if it is met (the step is then dropped)."""
         def on_iterate(its, current):
+            if unsettled is not None and stopping(unsettled)[0]:
+                return True
             if not adaptive:
                 clock.pause()
             y, r = current()
@@ -348,11 +353,17 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
             return bool(accepted)
         return on_iterate
 
+    def deferred(rec):
+        """Whether rec's estimates are still being computed elsewhere (module notes)."""
+        return hasattr(estimate, "awaiting") and estimate.awaiting(rec)
+
     def stopping(rec):
         """The variant's Newton stopping test at rec: (met, description)."""
         if adaptive:
             if rec["kind"] == "initial":      # Algorithm 1 makes at least one step
                 return False, "no Newton step made"
+            if deferred(rec):
+                estimate.resolve(rec)
             met = newton_criterion(rec, gamma_lin)
             return met, (f"adaptive criterion eta_lin {rec['eta_lin']:.2e} "
                          f"{'<=' if met else '>'} gamma_lin eta_disc = "
@@ -360,6 +371,16 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                          f"{rec['residual']:.2e})")
         met = rec["residual"] <= tol
         return met, f"relative residual {rec['residual']:.2e} {'<=' if met else '>'} {tol:.0e}"
+
+    def settled_at(unsettled):
+        """After a step computed ahead of the test at `unsettled` (the last record): whether
+        that test is met, the step then dropped; the record is complete only now, and its
+        wall time says so."""
+        if unsettled is None or not stopping(unsettled)[0]:
+            return False
+        unsettled["wall_time_s"] += clock.pause() - recorded_at[0]
+        clock.resume()
+        return True
 
     def result(converged, reason, k, done):
         return NewtonResult(X, converged, reason + state["note"], k, done, history)
@@ -369,7 +390,10 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
     damped = False    # FB: True once the watchdog returned to a checkpoint
     rec, done = record("initial", 0, 0, 0, X, None, None)[0], 0
     for k in range(1, max_it + 1):
-        if stopping(rec)[0]:
+        # adaptive, with the estimates of X^{k-1} on their way from other processes: compute
+        # step k meanwhile, and take the stopping test at X^{k-1} once they are in
+        unsettled = rec if adaptive and deferred(rec) else None
+        if unsettled is None and stopping(rec)[0]:
             break
         if state["cfun"] == "min" and not adaptive:
             signature = active_set(rows, X)
@@ -418,11 +442,15 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                 state["at"] = "iterate"
                 step = linear_step(rows, state["cfun"], system, X)
                 X_new, R, its = solve_step(step, krylov, lin_tol, test_every,
-                                           hand_out(k, step, done, accepted, before))
+                                           hand_out(k, step, done, accepted, before, unsettled))
         except LinearSolveError as e:
+            if settled_at(unsettled):
+                break
             unmet = " before the adaptive criterion was met" if adaptive else ""
             return result(False, f"linear solver failed at Newton step {k}{unmet}: {e}",
                           k - 1, done + before + e.its)
+        if settled_at(unsettled):
+            break
         its += before
         done += its
         if accepted:

@@ -1,0 +1,263 @@
+"""Several MPI processes: Newton on process 0, the estimators on the others (issue 6).
+
+Under ``mpirun -n P membranes solve ...`` every process builds the whole problem on
+``MPI.COMM_SELF`` (the mesh and its hierarchy are replicated: `parallel.check_replicated`),
+and the work is split by kind, not by mesh:
+
+* process 0 runs the method: discretisation, semismooth Newton, GMRES, the energy error and
+  the progress lines; each iterate it records goes to the estimator processes (`Link`);
+* processes 1 … P-1 (the *estimator processes*) discretise each level too, set up its
+  estimators (DESIGN §5–§7: the flux equilibration, the multilevel flux) and evaluate them
+  at every iterate they receive (`serve`): with P ≥ 3 they share the vertex patches among
+  themselves (`parallel.owned_vertices`, `parallel.Summation`), patches on either side of
+  the cut included.
+
+The two kinds overlap. The set-up of a level's estimators runs while process 0 discretises
+that level and takes the first Newton steps, and an iterate's estimates are computed while
+process 0 already computes the next Newton step. Only what the method decides from the
+estimates waits for them:
+
+* exact and inexact Newton never wait (their stopping tests are the residual's); the
+  estimates of a level are collected when its Newton run ends (`RemoteEstimates.finish`);
+* adaptive Newton's stopping test at X^{k-1} needs η_lin, η_disc of X^{k-1}: process 0
+  computes step k meanwhile (membranes.newton: a step computed ahead) and takes the test
+  when they come; if it is met, step k is dropped. The criterion that stops GMRES needs the
+  estimates of the Krylov iterate it is made on, so a Krylov iterate handed out every ν
+  steps waits for its estimates (with vertex_amg, GMRES reaches round-off before ν: none
+  is handed out).
+
+Every process runs the same code on the same data as a serial run, in the same order: with
+P = 2 the iterates, the estimates and every decision taken from them are those of one
+process bit for bit; with P ≥ 3 the estimates differ from them by the order in which the
+patch contributions are summed (round-off). A record's wall time is that of process 0 when
+it recorded the iterate, and for the iterate that stops an adaptive run, when its estimates
+were in (waiting included).
+
+**Transport.** An iterate and its residual are 6N numbers (45 MB at 9.3e5 vertices). MPI
+moves a large message only while both sides are inside MPI calls (measured with Open MPI 4.1
+here: an `Isend` of 22 MB completed 2.9 s later, when the sender next called MPI), and
+process 0 is in PETSc then. So where the processes share a node, the arrays go through a file
+in shared memory (/dev/shm) that the receiver reads and removes, and the message that names
+it is small (it leaves at once); across nodes they go in the message itself.
+"""
+
+import os
+import tempfile
+
+import numpy as np
+
+WORK, REPLY = 71, 72            # message tags: process 0 → estimators, and back
+LEADER = 1                      # the estimator process that talks to process 0
+
+
+def roles(comm):
+    """(estimator communicator, link): on process 0 (None, its Link to the estimator
+    processes); on the others (their communicator, None). Collective over comm."""
+    same_node = _same_node(comm)
+    est_comm = comm.Split(0 if comm.rank == 0 else 1, comm.rank)
+    if comm.rank == 0:
+        est_comm.Free()
+        return None, Link(comm, same_node)
+    return est_comm, None
+
+
+def _shm_dir():
+    return "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
+
+
+def _same_node(comm):
+    from mpi4py import MPI
+    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+    same = node.size == comm.size
+    node.Free()
+    return comm.allreduce(same, op=MPI.LAND)
+
+
+def _pack(arrays, directory, name):
+    """The arrays (None allowed) written to one file; returns what `_unpack` needs."""
+    sizes = [None if a is None else len(a) for a in arrays]
+    path = os.path.join(directory, name)
+    np.concatenate([a for a in arrays if a is not None]).astype(np.float64).tofile(path)
+    return ("file", path, sizes)
+
+
+def _unpack(packed):
+    if packed[0] != "file":
+        return packed[1]
+    _, path, sizes = packed
+    data = np.fromfile(path, dtype=np.float64)
+    os.unlink(path)
+    out, at = [], 0
+    for n in sizes:
+        out.append(None if n is None else data[at:at + n])
+        at += 0 if n is None else n
+    return out
+
+
+class Link:
+    """Process 0's side of the messages to the estimator processes."""
+
+    def __init__(self, comm, same_node):
+        self.comm = comm
+        self.directory = _shm_dir() if same_node else None
+        self.requests, self.files, self.count = [], set(), 0
+
+    def post(self, kind, *payload, arrays=()):
+        """Send (kind, payload, arrays) without waiting for the receiver."""
+        self.count += 1
+        if self.directory is not None and arrays:
+            name = f"membranes-{os.getpid()}-{self.count}"
+            packed = _pack(arrays, self.directory, name)
+            self.files.add(packed[1])
+        else:
+            packed = ("inline", list(arrays))
+        self.requests.append(self.comm.isend((kind, payload, packed), dest=LEADER, tag=WORK))
+        self.requests = [r for r in self.requests if not r.Test()]
+
+    def receive(self):
+        """The next reply; RuntimeError if the estimator processes failed."""
+        kind, payload = self.comm.recv(source=LEADER, tag=REPLY)
+        if kind == "error":
+            raise RuntimeError(f"estimator processes: {payload}")
+        return payload
+
+    def close(self):
+        """End the estimator processes' loop; remove any file they did not read."""
+        self.post("end")
+        for r in self.requests:
+            r.Wait()
+        for path in self.files:
+            if os.path.exists(path):
+                os.unlink(path)
+
+
+class RemoteEstimates:
+    """Process 0's stand-in for the driver's IterateEstimates of one level: the same calls,
+    served by the estimator processes (`serve`). A record handed in is *awaited* until its
+    estimates are back (`awaiting`, `resolve`); an adaptive run's Krylov iterates wait for
+    theirs (the criterion that stops GMRES reads them at once)."""
+
+    def __init__(self, link, level, alg_flux, adaptive):
+        self.link, self.adaptive = link, adaptive
+        self.multilevel = True if alg_flux == "multilevel" else None
+        self.setup_time, self.time, self.eta_K = 0.0, 0.0, None
+        self.ids, self.waiting, self.then, self.calls = {}, {}, {}, 0
+        link.post("level", level, alg_flux)
+
+    def __call__(self, rec, X, R, same_as=None):
+        rid = len(self.ids)
+        self.ids[id(rec)] = rid
+        self.waiting[rid] = (rec, X, R)
+        self.link.post("call", rid, dict(rec), None if same_as is None else
+                       self.ids[id(same_as)], arrays=(X, R))
+        self.calls += 1
+        if not (self.adaptive and rec["kind"] == "krylov"):
+            return []
+        while True:
+            call, ready = self._take()
+            if call == self.calls:
+                return ready
+
+    def awaiting(self, rec):
+        return self.ids.get(id(rec)) in self.waiting
+
+    def resolve(self, rec):
+        """Wait until rec's estimates are back."""
+        while self.awaiting(rec):
+            self._take()
+
+    def when_complete(self, rec, action):
+        """action(rec) now if rec is complete, else when its estimates come back."""
+        if self.awaiting(rec):
+            self.then[self.ids[id(rec)]] = action
+        else:
+            action(rec)
+
+    def finish(self):
+        """Estimate the iterate still waiting for a later one, and collect every estimate."""
+        self.link.post("finish")
+        while True:
+            call, _ = self._take()
+            if call == "finish":
+                return
+
+    def _take(self):
+        """Apply the next reply: (its call number or 'finish', the records it completed)."""
+        call, values, ready, extra = self.link.receive()
+        done = []
+        for rid, v in values:
+            rec, X, R = self.waiting.pop(rid)
+            rec.update(v)
+            done.append((rid, (rec, X, R)))
+        for rid, item in done:
+            action = self.then.pop(rid, None)
+            if action is not None:
+                action(item[0])
+        if extra is not None:
+            self.setup_time, self.time, self.eta_K = extra
+        done = dict(done)
+        return call, [done[rid] for rid in ready]
+
+
+def serve(problem, comm, est_comm):
+    """The estimator processes' loop (module notes): build each level's IterateEstimates when
+    process 0 starts the level, evaluate them at the iterates it sends, reply with the
+    estimates; returns (level, discretisation) of the last level served ((None, None) if
+    none) when process 0 ends the run."""
+    from .discretisation import discretise
+    from .driver import RECORD_KEYS, IterateEstimates
+    from .nested import level_problem
+    from .newton_system import linear_rows
+    leader = est_comm.rank == 0
+    shared = est_comm if est_comm.size > 1 else None
+    est = disc = failed = level = None
+
+    def reply(call, ready, extra=None):
+        # every record handed in is complete after a call, except the one IterateEstimates
+        # keeps waiting for its later iterate ('nu' flux)
+        waiting = None if est.pending is None else id(est.pending[0])
+        values = [(rid, {k: rec.get(k) for k in RECORD_KEYS})
+                  for rid, rec in unsent.items() if id(rec) != waiting]
+        for rid, _ in values:
+            del unsent[rid]
+        if leader:
+            comm.send(("values", (call, values, [rid_of[id(r[0])] for r in ready], extra)),
+                      dest=0, tag=REPLY)
+
+    while True:
+        message = comm.recv(source=0, tag=WORK) if leader else None
+        if shared is not None:
+            message = shared.bcast(message, root=0)
+        kind, payload, packed = message
+        if kind == "end":
+            return level, disc
+        arrays = _unpack(packed) if leader else None    # read (and remove) the file first
+        if failed is not None:
+            if leader and kind in ("call", "finish"):
+                comm.send(("error", failed), dest=0, tag=REPLY)
+            continue
+        try:
+            if kind == "level":
+                level, alg_flux = payload
+                pj = problem if level == problem.levels else level_problem(problem, level)
+                est = None          # the level below: freed before this one is built
+                disc = discretise(pj)
+                est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
+                recs, rid_of, unsent, calls = {}, {}, {}, 0
+            elif kind == "call":
+                rid, rec, same_as = payload
+                if shared is not None:
+                    arrays = shared.bcast(arrays, root=0)
+                X, R = arrays
+                recs[rid] = unsent[rid] = rec
+                rid_of[id(rec)] = rid
+                ready = est(rec, X, R, None if same_as is None else recs[same_as])
+                calls += 1
+                reply(calls, ready)
+            elif kind == "finish":
+                est.finish()
+                reply("finish", [], (est.setup_time, est.time, est.eta_K))
+        except Exception as e:            # tell process 0, then wait for its end
+            failed = f"{type(e).__name__}: {e}"
+            if leader:
+                comm.send(("error", failed), dest=0, tag=REPLY)
