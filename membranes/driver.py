@@ -346,9 +346,10 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     the variant's stopping test; default True where the problem has levels ≥ 1. Iteration
     counts and the wall time are those of all levels (per level: `Solution.per_level`); the
     iterate, estimates and energy error those of T_J;
-    comm: an MPI communicator whose processes share the patch problems of the estimators
-    (membranes.parallel: each process builds the same problem on MPI.COMM_SELF; Newton and
-    GMRES run on each, identically; progress lines come from process 0 only); None: one process.
+    comm: an MPI communicator of P ≥ 2 processes (membranes.pipeline: each process builds the
+    same problem on MPI.COMM_SELF; Newton and GMRES run on process 0, the estimators on the
+    others, which share the patch problems when P ≥ 3; progress lines come from process 0;
+    every process returns the same Solution); None: one process.
     """
     parallel.check_replicated(problem.mesh, comm)
     comm = comm if comm is not None and comm.size > 1 else None

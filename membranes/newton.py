@@ -114,6 +114,16 @@ that produced it (None for X^0):
   accepted Krylov record when `record` is an adaptive step's Newton record (the same iterate);
 * `monitor(record, X, R)` sees the record (diagnostics: energy error, progress).
 
+**Estimates computed elsewhere.** An `estimate` may evaluate on other processes
+(membranes.pipeline) and then has two more methods: `awaiting(record)` (its estimates are
+still to come) and `resolve(record)` (wait for them). Where the adaptive stopping test at
+X^{k-1} is awaiting its estimates, step k is computed meanwhile (the step depends on X^{k-1}
+alone) and the test is taken when they come, at the latest once the step is solved; if it is
+met, the step is dropped and X^{k-1} ends the run as it would have without the step. A
+Krylov iterate that step k hands out first waits for that test (and ends the solve if it is
+met), so that no record of a dropped step is made: the history, the iterates and the
+decisions are those of a run that evaluates every estimate at once.
+
 Wall times count the method's own work: assembly, linear solves, and what the variant's tests
 use: the nonlinear residual of the Newton iterates (exact, inexact), or the Krylov iterates
 handed out and their estimates (adaptive; with each record's nonlinear residual, one sparse

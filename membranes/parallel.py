@@ -1,22 +1,20 @@
 """Several MPI processes: a replicated mesh, and the vertex patches shared out (issue 6).
 
 Under ``mpirun -n P membranes solve ...`` every process builds the whole problem on
-``MPI.COMM_SELF``: the mesh and its hierarchy are *replicated*, not distributed. What the
-processes share is the work that dominates a run with estimators, the patch problems:
+``MPI.COMM_SELF``: the mesh and its hierarchy are *replicated*, not distributed
+(`check_replicated`). Process 0 runs Newton and GMRES, the others evaluate the estimators
+(membranes.pipeline). With P ≥ 3 the estimator processes share the work that dominates an
+estimate, the patch problems:
 
 * the flux equilibration (DESIGN §5) solves one mixed problem per vertex patch ω_a, and
   σ_α,disc = Σ_a σ_a;
 * the multilevel algebraic flux (DESIGN §6) solves one per vertex patch of every level, and
   σ_alg is again a sum over them (and the coarse solve).
 
-Process p sets up and solves the patches of the vertices it owns (`owned_vertices`: P
-contiguous blocks of the vertex numbering), and the partial sums are added over the processes
-(`Summation`). Newton and GMRES are not shared: every process runs the same serial linear
-algebra on the same data, so every variant takes the steps one process takes (the adaptive
-stopping decisions included) and the results agree with a serial run up to the order of
-summation of the patch contributions. The price is memory (each process holds the whole
-discretisation) and no speed-up of the Newton and Krylov part; BENCHMARKS.md gives the
-speed-up measured.
+Estimator process p sets up and solves the patches of the vertices it owns (`owned_vertices`:
+contiguous blocks of the vertex numbering), and the partial sums are added over the estimator
+processes (`Summation`). The results agree with a serial run up to the order of summation of
+the patch contributions. The price is memory: each process holds the whole discretisation.
 
 To use it from Python, build the problem on ``MPI.COMM_SELF`` on every process and pass
 ``comm=MPI.COMM_WORLD`` to `membranes.solve`; the meshes must be the same on every process

@@ -114,6 +114,10 @@ class Link:
         self.requests.append(self.comm.isend((kind, payload, packed), dest=LEADER, tag=WORK))
         self.requests = [r for r in self.requests if not r.Test()]
 
+    def ready(self):
+        """Whether a reply is here."""
+        return self.comm.Iprobe(source=LEADER, tag=REPLY)
+
     def receive(self):
         """The next reply; RuntimeError if the estimator processes failed."""
         kind, payload = self.comm.recv(source=LEADER, tag=REPLY)
@@ -159,16 +163,19 @@ class RemoteEstimates:
                 return ready
 
     def awaiting(self, rec):
+        """Whether rec's estimates are still to come (the replies already here applied)."""
+        while self.ids.get(id(rec)) in self.waiting and self.link.ready():
+            self._take()
         return self.ids.get(id(rec)) in self.waiting
 
     def resolve(self, rec):
         """Wait until rec's estimates are back."""
-        while self.awaiting(rec):
+        while self.ids.get(id(rec)) in self.waiting:
             self._take()
 
     def when_complete(self, rec, action):
         """action(rec) now if rec is complete, else when its estimates come back."""
-        if self.awaiting(rec):
+        if self.ids.get(id(rec)) in self.waiting:
             self.then[self.ids[id(rec)]] = action
         else:
             action(rec)
