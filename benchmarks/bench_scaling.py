@@ -10,8 +10,8 @@ fresh processes (so that each peak memory is its own):
   estimators on (the method uses them);
 * ours-ml: the same with the multilevel algebraic flux on T_J (`alg_flux multilevel`, the
   driver's default on a hierarchy; its set-up on T_J is the difference);
-* ours-2: ours under `mpirun -n 2`, the estimators' patches shared between
-  the processes (membranes.parallel; the mesh is replicated, Newton and GMRES run on both);
+* ours-2: ours under `mpirun -n 2`: Newton and GMRES on process 0, the estimators on
+  process 1, overlapped (membranes.pipeline; the mesh is replicated);
 * peer: `vinewtonrsls` on the decoupled problem (DESIGN §10), CG + BoomerAMG
   (membranes.decoupled.AMG), on the same mesh, to its own convergence (rtol 1e-14).
 
