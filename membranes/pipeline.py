@@ -33,6 +33,11 @@ patch contributions are summed (round-off). A record's wall time is that of proc
 it recorded the iterate, and for the iterate that stops an adaptive run, when its estimates
 were in (waiting included).
 
+**Flow.** Process 0 goes on with at most AHEAD = 3 iterates sent and not yet estimated;
+beyond, it waits (exact and inexact runs hand out a Krylov iterate every ν steps, and their
+estimates may take longer than the ν steps: without a bound the iterates in transit would
+pile up in memory).
+
 **Transport.** An iterate and its residual are 6N numbers (45 MB at 9.3e5 vertices). MPI
 moves a large message only while both sides are inside MPI calls (measured with Open MPI 4.1
 here: an `Isend` of 22 MB completed 2.9 s later, when the sender next called MPI), and
@@ -48,6 +53,7 @@ import numpy as np
 
 WORK, REPLY = 71, 72            # message tags: process 0 → estimators, and back
 LEADER = 1                      # the estimator process that talks to process 0
+AHEAD = 3                       # iterates process 0 may send before their estimates are back
 
 
 def roles(comm):
@@ -145,7 +151,7 @@ class RemoteEstimates:
         self.link, self.adaptive = link, adaptive
         self.multilevel = True if alg_flux == "multilevel" else None
         self.setup_time, self.time, self.eta_K = 0.0, 0.0, None
-        self.ids, self.waiting, self.then, self.calls = {}, {}, {}, 0
+        self.ids, self.waiting, self.then, self.calls, self.replied = {}, {}, {}, 0, 0
         link.post("level", level, alg_flux)
 
     def __call__(self, rec, X, R, same_as=None):
@@ -156,6 +162,8 @@ class RemoteEstimates:
                        self.ids[id(same_as)], arrays=(X, R))
         self.calls += 1
         if not (self.adaptive and rec["kind"] == "krylov"):
+            while self.calls - self.replied > AHEAD:    # the estimator processes lag behind
+                self._take()
             return []
         while True:
             call, ready = self._take()
@@ -191,6 +199,8 @@ class RemoteEstimates:
     def _take(self):
         """Apply the next reply: (its call number or 'finish', the records it completed)."""
         call, values, ready, extra = self.link.receive()
+        if call != "finish":
+            self.replied = call
         done = []
         for rid, v in values:
             rec, X, R = self.waiting.pop(rid)
