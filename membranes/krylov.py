@@ -86,7 +86,7 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from .linear_solve import LinearSolveError, petsc_matrix
-from .preconditioner import INNER_PREFIX, VertexAMG
+from .preconditioner import INNER_PREFIX, vertex_amg
 
 DEFAULT_OPTIONS = {"ksp_type": "gmres", "pc_type": "ilu", "ksp_pc_side": "right",
                    "ksp_norm_type": "unpreconditioned"}
@@ -191,10 +191,11 @@ def _split_options(options):
     return outer, inner
 
 
-def _install(ksp, A, inner):
-    """The vertex-block AMG of A as the KSP's (Python) PC; PETSc frees it with the KSP."""
+def _install(ksp, A, inner, cache=None):
+    """The vertex-block AMG of A (`preconditioner.vertex_amg`, with its `cache`) as the KSP's
+    (Python) PC; PETSc frees it with the KSP."""
     try:
-        context = VertexAMG(A, inner)
+        context = vertex_amg(A, inner, cache)
     except PETSc.Error as e:
         raise ValueError(f"PETSc options of vertex_amg: {_petsc_message(e)}") from None
     except ValueError as e:        # not the eliminated system: the Newton run reports it
@@ -215,6 +216,7 @@ class Krylov:
     options: dict = field(init=False)
     _petsc: dict = field(init=False, repr=False)
     _vertex_amg: dict = field(init=False, repr=False)
+    _cache: dict = field(init=False, repr=False, compare=False, default_factory=dict)
 
     def __post_init__(self):
         for name in ("nu", "max_linear_its"):
@@ -248,7 +250,7 @@ class Krylov:
             ksp.setOperators(M)
             _configure(ksp, self._petsc)
             if self._vertex_amg is not None:
-                _install(ksp, A, self._vertex_amg)
+                _install(ksp, A, self._vertex_amg, self._cache)
             ksp.setTolerances(max_it=self.max_linear_its)
             ksp.setInitialGuessNonzero(True)
             bound = tol * scale

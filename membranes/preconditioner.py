@@ -92,12 +92,17 @@ DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg",
 _prefixes = iter(range(1 << 62))
 
 
+def check_shape(A):
+    """ValueError unless A is 2N × 2N."""
+    if A.shape[0] != A.shape[1] or A.shape[0] % 2:
+        raise ValueError(f"vertex_amg needs the eliminated 2N x 2N system, got {A.shape}")
+
+
 def vertex_blocks_inverse(A):
     """B⁻¹ as a sparse 2N × 2N matrix, B the 2×2 blocks of the vertices (rows and columns l and
     N + l), two entries a row (`vertex_pair_rows`); ValueError if one is singular or A is not
     2N × 2N."""
-    if A.shape[0] != A.shape[1] or A.shape[0] % 2:
-        raise ValueError(f"vertex_amg needs the eliminated 2N x 2N system, got {A.shape}")
+    check_shape(A)
     n = A.shape[0] // 2
     a, d = A.diagonal()[:n], A.diagonal()[n:]
     b, c = A.diagonal(n), A.diagonal(-n)
@@ -137,6 +142,81 @@ def gap_scales(A):
     return np.where(gap, on_z / np.where(gap, on_u1, 1.0), 1.0)
 
 
+def leading_block(A, n):
+    """A[:n, :n] of the CSR matrix A, its column indices sorted."""
+    end = A.indptr[n]
+    inside = A.indices[:end] < n
+    counts = np.concatenate([[0], np.cumsum(inside)])
+    M = sp.csr_matrix((A.data[:end][inside], A.indices[:end][inside], counts[A.indptr[:n + 1]]),
+                      shape=(n, n))
+    M.sort_indices()
+    return M
+
+
+def mean_gap_split(A, rtol=1e-10):
+    """(S, a, b) if A is a min system with equally weighted rows (module notes, 5.):
+    A = [[S, -diag a], [S (u2 → u1 where a ≠ 0), diag b]], i.e. for Y = (p, q)
+
+        (A Y)[:N] = S p - a q,   (A Y)[N:] = S u2 + b λ,   u2, λ = (p, q) where a ≠ 0, else (q, 0),
+
+    with a ≠ 0 exactly at the slaves, a/(a + b) the same there and S = A[:N, :N] with a nonzero
+    diagonal; else None. The identity is checked on a random Y (seeded: the same decision every
+    run), to rtol of the largest product: a linear map that differs fails it with probability 1."""
+    n = A.shape[0] // 2
+    S = leading_block(A, n)
+    a, b = -A.diagonal(n), A.diagonal()[n:]
+    contact = a != 0
+    ab = (a + b)[contact]
+    theta = a[contact] / np.where(ab != 0, ab, 1.0)
+    if np.any(ab == 0) or np.any(S.diagonal() == 0) or \
+            (theta.size and np.ptp(theta) > rtol * np.abs(theta).max()):
+        return None
+    p, q = np.random.default_rng(0).standard_normal((2, n))
+    u2, lam = np.where(contact, p, q), np.where(contact, q, 0.0)
+    expected = np.concatenate([S @ p - a * q, S @ u2 + b * lam])
+    found = A @ np.concatenate([p, q])
+    if np.abs(found - expected).max() > rtol * np.abs(expected).max():
+        return None
+    return S, a, b
+
+
+class InnerAMG:
+    """The inner PC (BoomerAMG by default, `DEFAULT_INNER`; `inner` the user's options) set up
+    on the scipy matrix M, applied to arrays (`solve`). `M` is kept (`MeanGapAMG` compares it
+    with the next step's)."""
+
+    def __init__(self, M, inner=None):
+        self.M = M
+        self.mat = petsc_matrix(M)
+        self.pc = PETSc.PC().create(PETSc.COMM_SELF)
+        self.pc.setOperators(self.mat)
+        options = dict(DEFAULT_INNER if inner is None or "pc_type" not in inner else {})
+        options.update(inner or {})
+        prefix = f"membranes_vamg_{next(_prefixes)}_"
+        database = PETSc.Options()
+        for name, value in options.items():
+            database[prefix + name] = value
+        self.pc.setOptionsPrefix(prefix)
+        try:
+            self.pc.setFromOptions()
+        finally:
+            for name in options:
+                database.delValue(prefix + name)
+        self.pc.setUp()
+        self.rhs, self.sol = self.mat.createVecs()
+
+    def solve(self, r):
+        """One application (a V-cycle) to the array r; a view of the result, valid until the
+        next call."""
+        self.rhs.array[:] = r
+        self.pc.apply(self.rhs, self.sol)
+        return self.sol.array_r
+
+    def destroy(self):
+        for obj in (self.pc, self.mat, self.rhs, self.sol):
+            obj.destroy()
+
+
 class VertexAMG:
     """The preconditioner of the module notes for the 2N × 2N scipy matrix A, as a petsc4py
     Python PC context (`apply`); `inner` are the options of the PC on K."""
@@ -156,30 +236,12 @@ class VertexAMG:
         K = scaled_rows(A_hat[self.keep][:, self.keep], self.scale)
         K.data /= self.scale[K.indices]
         self.X = A_hat[self.slave][:, self.keep]
-        self.K = petsc_matrix(K)
-        self.pc = PETSc.PC().create(PETSc.COMM_SELF)
-        self.pc.setOperators(self.K)
-        options = dict(DEFAULT_INNER if inner is None or "pc_type" not in inner else {})
-        options.update(inner or {})
-        prefix = f"membranes_vamg_{next(_prefixes)}_"
-        database = PETSc.Options()
-        for name, value in options.items():
-            database[prefix + name] = value
-        self.pc.setOptionsPrefix(prefix)
-        try:
-            self.pc.setFromOptions()
-        finally:
-            for name in options:
-                database.delValue(prefix + name)
-        self.pc.setUp()
-        self.rhs, self.sol = self.K.createVecs()
+        self.amg = InnerAMG(K, inner)
 
     def apply(self, pc, x, y):
         """y = M⁻¹ x."""
         s = self.B_inv @ x.array_r
-        self.rhs.array[:] = s[self.keep] * self.scale
-        self.pc.apply(self.rhs, self.sol)
-        kept = self.sol.array_r / self.scale
+        kept = self.amg.solve(s[self.keep] * self.scale) / self.scale
         out = np.empty_like(s)
         out[self.keep] = kept
         out[self.slave] = s[self.slave] - self.X @ kept
@@ -187,5 +249,67 @@ class VertexAMG:
 
     def destroy(self, pc=None):
         """Free the PETSc objects (petsc4py calls this when the outer PC is destroyed)."""
-        for obj in (self.pc, self.K, self.rhs, self.sol):
-            obj.destroy()
+        self.amg.destroy()
+
+
+class MeanGapAMG:
+    """The exact mean/gap split of a min system (module notes, 5.) as a petsc4py Python PC
+    context: (S, a, b) from `mean_gap_split`, one inner PC on S (the mean; taken from
+    cache["mean"] when it was set up on the same S, and left there for the next step) and one
+    on S restricted to the free vertices (the gap)."""
+
+    def __init__(self, S, a, b, inner=None, cache=None):
+        contact = a != 0
+        self.free, self.contact = np.flatnonzero(~contact), np.flatnonzero(contact)
+        self.theta = a[contact][0] / (a + b)[contact][0] if self.contact.size else 0.5
+        self.ab = (a + b)[contact]
+        self.S_contact = S[self.contact]
+        mean = (cache or {}).get("mean")
+        if mean is None or not same_matrix(mean.M, S):
+            if mean is not None:
+                mean.destroy()
+            mean = InnerAMG(S, inner)
+            if cache is not None:
+                cache["mean"] = mean
+        self.mean, self.owns_mean = mean, cache is None
+        self.gap = InnerAMG(S[self.free][:, self.free], inner) if self.free.size else None
+
+    def apply(self, pc, x, y):
+        """y = M⁻¹ x: m = S⁻¹((1 - θ) r1 + θ r2), δ_free = S_ff⁻¹ (r2 - r1)_free (δ = 0 at
+        contact), u1 = m - θ δ, u2 = m + (1 - θ) δ, λ_contact = (r2 - r1 - S δ)/(a + b)."""
+        r = x.array_r
+        n = r.size // 2
+        d = r[n:] - r[:n]
+        m = self.mean.solve((1.0 - self.theta) * r[:n] + self.theta * r[n:])
+        delta = np.zeros(n)
+        if self.gap is not None:
+            delta[self.free] = self.gap.solve(d[self.free])
+        out = np.empty(2 * n)
+        out[:n] = m - self.theta * delta
+        out[n:] = m + (1.0 - self.theta) * delta
+        out[n + self.contact] = (d[self.contact] - self.S_contact @ delta) / self.ab
+        y.array[:] = out
+
+    def destroy(self, pc=None):
+        """Free the PETSc objects, except the mean's inner PC when the cache keeps it."""
+        for amg in ([self.gap] + ([self.mean] if self.owns_mean else [])):
+            if amg is not None:
+                amg.destroy()
+
+
+def same_matrix(M, N):
+    """M and N (sorted CSR) hold the same entries."""
+    return M.shape == N.shape and np.array_equal(M.indptr, N.indptr) and \
+        np.array_equal(M.indices, N.indices) and np.array_equal(M.data, N.data)
+
+
+def vertex_amg(A, inner=None, cache=None):
+    """The Python PC context for the eliminated system A: `MeanGapAMG` where `mean_gap_split`
+    finds a min system, else `VertexAMG`; `cache`: a dict kept from one Newton step to the next
+    (the mean's inner PC)."""
+    A = sp.csr_matrix(A)
+    check_shape(A)
+    split = mean_gap_split(A)
+    if split is not None:
+        return MeanGapAMG(*split, inner=inner, cache=cache)
+    return VertexAMG(A, inner)
