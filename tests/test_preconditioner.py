@@ -20,7 +20,8 @@ from membranes import solve
 from membranes.krylov import Krylov
 from membranes.linear_solve import solve_direct
 from membranes.newton import EXACT_LINEAR_TOL, linear_step
-from membranes.preconditioner import VertexAMG, gap_scales, slaves
+from membranes.discretisation import discretise
+from membranes.preconditioner import VertexAMG, gap_scales, mean_gap_split, slaves
 
 from .conftest import scene
 
@@ -142,3 +143,54 @@ def test_inner_options():
         Krylov({**dict(VAMG), "vertex_amg_pc_type": "no_such_pc"})
     run = _run(0.1, "min", VAMG + (("vertex_amg_pc_type", "gamg"),))
     assert run.converged, run.reason
+
+
+@functools.lru_cache(maxsize=None)
+def _square_steps(count):
+    """The first `count` eliminated min systems of the square (μ1 = 1, μ2 = 2), h = 0.1, each
+    with the unweighted Ã (newton_system.eliminated_system) beside the weighted one."""
+    rows = ns.linear_rows(discretise(scene("square", 0.1)))
+    X, steps = ns.initial_guess(rows, 0.1), []
+    for _ in range(count):
+        step = linear_step(rows, "min", "eliminated", X)
+        unweighted = ns.eliminated_system(rows, *ns.complementarity_rows(rows, "min", X))[0]
+        steps.append((step, unweighted))
+        X = step.expand(solve_direct(step.A, step.b)[0])
+    return steps
+
+
+def test_mean_gap_split_recognised():
+    """min systems with the rows weighted by W split into mean and gap (module notes), with
+    θ = μ2/(μ1 + μ2) and a ≠ 0 exactly at the contact vertices; fb systems do not, nor does the
+    unweighted system when μ1 ≠ μ2 (its two blocks hold μ1 S and μ2 S)."""
+    for step, contact, _ in _steps("min", 3)[1:]:
+        S, a, b = mean_gap_split(step.A)
+        assert np.array_equal(a != 0, contact)
+        assert np.allclose(a[contact] / (a + b)[contact], 0.5, rtol=1e-12)
+    for step, unweighted in _square_steps(3)[1:]:
+        S, a, b = mean_gap_split(step.A)
+        assert (a != 0).any()
+        assert np.allclose(a[a != 0] / (a + b)[a != 0], 2.0 / 3.0, rtol=1e-12)
+        assert mean_gap_split(unweighted) is None
+    assert all(mean_gap_split(step.A) is None for step, _, _ in _steps("fb", 4)[1:])
+
+
+def test_mean_gap_split_is_exact():
+    """With exact inner solves (LU) the split is Ã⁻¹ itself: FGMRES meets 1e-10 after one
+    iteration, also for μ1 ≠ μ2."""
+    krylov = Krylov({**dict(VAMG), "vertex_amg_pc_type": "lu"})
+    systems = [s for s, _, _ in _steps("min", 3)[1:]] + [s for s, _ in _square_steps(3)[1:]]
+    for step in systems:
+        x, r, its = krylov.solve(step.A, step.b, step.guess, 1e-10, np.linalg.norm(step.b))
+        assert its == 1 and np.linalg.norm(r) <= 1e-10 * np.linalg.norm(step.b)
+
+
+def test_mean_amg_kept_per_mesh():
+    """The mean's AMG is set up once per mesh: the next step on the same mesh reuses it, a
+    system of another mesh replaces it."""
+    krylov = Krylov(dict(VAMG))
+    kept = []
+    for step in [s for s, _, _ in _steps("min", 3)] + [_square_steps(2)[1][0]]:
+        krylov.solve(step.A, step.b, step.guess, 1e-10, np.linalg.norm(step.b))
+        kept.append(krylov._cache["mean"])
+    assert kept[0] is kept[1] is kept[2] and kept[3] is not kept[2]
