@@ -58,6 +58,33 @@ slicings and one BoomerAMG set-up per Newton step. At 1.1e5 vertices (K: 1.7e5 r
 part takes 80 ms, the BoomerAMG set-up 200 ms and a V-cycle 20 ms: the BoomerAMG set-up is
 about a third of a Newton step's linear algebra (600 ms with ~8 iterations).
 
+**For min: the exact mean/gap split** (`MeanGapAMG`; `vertex_amg` takes it wherever
+`mean_gap_split` recognises the system, else 1.–4.). For min every vertex is free (c_l = 0:
+z_l = u2_l, λ_l = const) or in contact (d_l = 0: z_l = λ_l, u2_l = u1_l + const), and with the
+rows weighted by W (newton.linear_step) both membrane blocks hold the same S, Dirichlet rows
+included. Let a_l = D_l/μ1 and b_l = D_l/μ2 be the λ-entries of a contact vertex's two rows
+(-a_l in the first, b_l in the second), θ = a/(a + b) = μ2/(μ1 + μ2). Then Ã Y = r is, exactly,
+with the mean m = (1 - θ) u1 + θ u2 = (μ1 u1 + μ2 u2)/(μ1 + μ2), the gap δ = u2 - u1 and f the
+free vertices:
+
+    S m = (1 - θ) r1 + θ r2                      (every vertex: λ cancels)
+    S_ff δ_f = (r2 - r1)_f,   δ = 0 at contact   (S_ff: S on the free vertices)
+    λ_l = (r2 - r1 - S δ)_l / (a_l + b_l)         (contact vertices)
+
+and u1 = m - θ δ, u2 = m + (1 - θ) δ. Two Laplacians, one V-cycle on each per application.
+S does not depend on the iterate: its AMG is set up on the first Newton step of a mesh and
+kept (`Krylov`'s cache; reused while Ã[:N, :N] is the same matrix, entry for entry), so a step
+sets up only the gap's, on the N_f free vertices (~55 % of N on the disk), where 1.–4. set up
+K (N + N_f rows; the glued rows of the contact vertices give it operator complexity 2.66, the
+hierarchy above). a, b, θ and S are read off Ã, and the identity above is checked on a random
+vector (a seeded one: the same decision every run); where it fails (fb; rows not weighted
+alike, e.g. Ã unweighted with μ1 ≠ μ2) 1.–4. apply. Measured (disk, min, the adaptive nested
+run of issue 6's comparison, ν-flux; GMRES iterations per Newton step and the time of the
+Krylov solves, set-ups included): the three steps of the finest level at 1.1e5 vertices
+(h0 = 0.2, J = 5), solved to 2e-12 on their own: 9, 8, 7 → 8, 6, 6 iterations, 0.68, 0.59,
+0.61 s → 0.36, 0.23, 0.22 s; the whole run at 9.3e5 vertices (h0 = 0.132, J = 6; 21 Newton
+steps): 7–9 → 5–8 iterations a step (168 → 142), Krylov 24 s → 9.3 s, the same Newton steps.
+
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
 bench_preconditioner.py; BENCHMARKS.md has the table; with PETSc's BoomerAMG defaults, before
 the two options of 4., which add 0.3–0.8 iterations per step on average): GMRES iterations
@@ -154,13 +181,14 @@ def leading_block(A, n):
 
 
 def mean_gap_split(A, rtol=1e-10):
-    """(S, a, b) if A is a min system with equally weighted rows (module notes, 5.):
-    A = [[S, -diag a], [S (u2 → u1 where a ≠ 0), diag b]], i.e. for Y = (p, q)
+    """(S, a, b) if A is a min system with equally weighted rows (module notes, the mean/gap
+    split): A = [[S, -diag a], [S (u2 → u1 where a ≠ 0), diag b]], i.e. for Y = (p, q)
 
-        (A Y)[:N] = S p - a q,   (A Y)[N:] = S u2 + b λ,   u2, λ = (p, q) where a ≠ 0, else (q, 0),
+        (A Y)[:N] = S p - a q,   (A Y)[N:] = S u2 + b λ,
+        (u2, λ) = (p, q) where a ≠ 0 (contact vertices), (q, 0) elsewhere (free vertices),
 
-    with a ≠ 0 exactly at the slaves, a/(a + b) the same there and S = A[:N, :N] with a nonzero
-    diagonal; else None. The identity is checked on a random Y (seeded: the same decision every
+    with a/(a + b) the same at every contact vertex and S = A[:N, :N] with a nonzero diagonal;
+    else None. The identity is checked on a random Y (seeded: the same decision every
     run), to rtol of the largest product: a linear map that differs fails it with probability 1."""
     n = A.shape[0] // 2
     S = leading_block(A, n)
@@ -253,10 +281,10 @@ class VertexAMG:
 
 
 class MeanGapAMG:
-    """The exact mean/gap split of a min system (module notes, 5.) as a petsc4py Python PC
-    context: (S, a, b) from `mean_gap_split`, one inner PC on S (the mean; taken from
-    cache["mean"] when it was set up on the same S, and left there for the next step) and one
-    on S restricted to the free vertices (the gap)."""
+    """The exact mean/gap split of a min system (module notes) as a petsc4py Python PC context:
+    (S, a, b) from `mean_gap_split`, one inner PC on S (the mean; taken from cache["mean"] when
+    it was set up on the same S, and left there for the next step) and one on S restricted to
+    the free vertices (the gap)."""
 
     def __init__(self, S, a, b, inner=None, cache=None):
         contact = a != 0
