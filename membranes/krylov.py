@@ -13,8 +13,10 @@ GMRES (PETSc's restart, 30) with ILU(0), as in the paper, preconditioned on the 
 unpreconditioned norm, so that the residual GMRES minimises and reports is ‖B - A X‖ itself.
 
 **A scalable preconditioner for the eliminated system**: ``pc_type vertex_amg``
-(`preconditioner.VertexAMG`: 2×2 vertex-block inverse, contact multipliers of min as slaves,
-gap scaling for fb, one BoomerAMG V-cycle; options ``vertex_amg_<option>`` go to the inner PC).
+(`preconditioner.vertex_amg`: for min the exact split into mean and gap, one BoomerAMG V-cycle
+on each, the mean's set up once per mesh and kept in the solver; otherwise 2×2 vertex-block
+inverse, contact multipliers as slaves, gap scaling for fb, one BoomerAMG V-cycle; options
+``vertex_amg_<option>`` go to the inner PCs).
 ILU(0)'s GMRES iterations per Newton step grow like 1/h; vertex_amg's do not (disk, exact
 Newton, mean per step, min | fb: 1.5k vertices 51 | 40 → 7.4 | 7.1; 1.1e4: 120 | 102 →
 8.1 | 8.3; more in BENCHMARKS.md). ILU(0) stays the default: it also serves the full 3N system,

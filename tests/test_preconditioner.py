@@ -56,7 +56,7 @@ def test_same_solution_as_ilu(cfun):
 @pytest.mark.parametrize("cfun", ["min", "fb"])
 def test_iterations_do_not_grow_with_the_mesh(cfun):
     """Disk h = 0.1 refined 0 and 2 times (411 and ~6k vertices, h / 4). An AMG V-cycle
-    contracts at a rate independent of h on the glued Laplacians behind the system (module
+    contracts at a rate independent of h on the Laplacians behind the system (module
     notes), so GMRES needs a bounded number of iterations per Newton step; ILU(0)'s grow
     like 1/h (×4 here: it is checked to grow at least ×2, so that the test can tell).
     The bound is on the mean over the Newton steps: fb's worst step (the third or fourth,
