@@ -165,6 +165,8 @@ def with_diagonal(A):
     is appended to each row that stores no diagonal entry (A itself if none is missing)."""
     A = sp.csr_matrix(A)
     n = A.shape[0]
+    if np.all(A.diagonal() != 0):      # all stored (the usual case): no pass over the entries
+        return A
     rows = np.repeat(np.arange(n), np.diff(A.indptr))
     stored = np.zeros(n, dtype=bool)
     stored[rows[A.indices == rows]] = True
