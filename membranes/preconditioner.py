@@ -83,7 +83,10 @@ run of issue 6's comparison, ν-flux; GMRES iterations per Newton step and the t
 Krylov solves, set-ups included): the three steps of the finest level at 1.1e5 vertices
 (h0 = 0.2, J = 5), solved to 2e-12 on their own: 9, 8, 7 → 8, 6, 6 iterations, 0.68, 0.59,
 0.61 s → 0.36, 0.23, 0.22 s; the whole run at 9.3e5 vertices (h0 = 0.132, J = 6; 21 Newton
-steps): 7–9 → 5–8 iterations a step (168 → 142), Krylov 24 s → 9.3 s, the same Newton steps.
+steps): 7–9 → 5–8 iterations a step (168 → 142), Krylov 21 s → 9.4 s, the same Newton steps.
+Keeping the mean's AMG costs memory: the run's peak was 4.41 GiB, 4.11 GiB when it is set up
+anew at every step (Krylov 11.2 s) and 4.23 GiB with 1.–4.; the PETSc matrices of the inner
+PCs are built on the scipy arrays (no copy).
 
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
 bench_preconditioner.py; BENCHMARKS.md has the table; with PETSc's BoomerAMG defaults, before
@@ -211,12 +214,13 @@ def mean_gap_split(A, rtol=1e-10):
 
 class InnerAMG:
     """The inner PC (BoomerAMG by default, `DEFAULT_INNER`; `inner` the user's options) set up
-    on the scipy matrix M, applied to arrays (`solve`). `M` is kept (`MeanGapAMG` compares it
-    with the next step's)."""
+    on the scipy matrix M, applied to arrays (`solve`). The PETSc matrix is built on M's own
+    arrays (M is the caller's fresh matrix, kept unchanged as `M`: `MeanGapAMG` compares it
+    with the next step's), one copy of it less in memory."""
 
     def __init__(self, M, inner=None):
         self.M = M
-        self.mat = petsc_matrix(M)
+        self.mat = petsc_matrix(M, copy=False)
         self.pc = PETSc.PC().create(PETSc.COMM_SELF)
         self.pc.setOperators(self.mat)
         options = dict(DEFAULT_INNER if inner is None or "pc_type" not in inner else {})
