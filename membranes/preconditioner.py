@@ -246,6 +246,7 @@ class InnerAMG:
         return self.sol.array_r
 
     def destroy(self):
+        """Free the PETSc objects."""
         for obj in (self.pc, self.mat, self.rhs, self.sol):
             obj.destroy()
 
@@ -294,12 +295,14 @@ class MeanGapAMG:
     def __init__(self, S, a, b, inner=None, cache=None):
         contact = a != 0
         self.free, self.contact = np.flatnonzero(~contact), np.flatnonzero(contact)
+        # without contact the membranes are uncoupled, and any θ splits them exactly
         self.theta = a[contact][0] / (a + b)[contact][0] if self.contact.size else 0.5
         self.ab = (a + b)[contact]
         self.S_contact = S[self.contact]
         mean = (cache or {}).get("mean")
         if mean is None or not same_matrix(mean.M, S):
             if mean is not None:
+                del cache["mean"]
                 mean.destroy()
             mean = InnerAMG(S, inner)
             if cache is not None:
