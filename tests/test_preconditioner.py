@@ -1,7 +1,8 @@
 """The vertex-block AMG preconditioner (membranes.preconditioner, `pc_type vertex_amg`) on the
 eliminated 2N system: the same discrete solution as the default ILU(0), GMRES iterations per
-Newton step that do not grow with the mesh, independence of the row scaling, and refusal of
-what it cannot precondition.
+Newton step that do not grow with the mesh, independence of the row scaling, refusal of what
+it cannot precondition, and for min the exact mean/gap split (recognised where it applies,
+exact with exact inner solves, its mean AMG kept per mesh).
 
 "Same solution": both runs solve every Newton step to ‖R_alg‖/‖B‖ ≤ 2e-12 and stop Newton at
 ‖R_lin‖/‖(F, 0)‖ ≤ 1e-10, so the two final iterates differ by what the two linear residuals
