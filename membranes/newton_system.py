@@ -65,7 +65,8 @@ class LinearRows:
 
     @functools.cached_property
     def weighted_E(self):
-        """W E, formed once (E itself where W = 1, e.g. μ1 = μ2 = 1)."""
+        """W E, formed once (E itself where W = 1, e.g. μ1 = μ2 = 1; else a second matrix of
+        E's size, kept with it)."""
         return self.E if np.all(self.weights == 1.0) else scaled_rows(self.E, self.weights)
 
     def weighted(self, R):
@@ -106,6 +107,8 @@ def linear_rows(disc):
     start, count = indptr[dirichlet], np.diff(indptr)[dirichlet]
     entries = np.repeat(start - np.cumsum(count) + count, count) + np.arange(count.sum())
     data[entries] = indices[entries] == np.repeat(dirichlet, count)
+    if np.count_nonzero(data[entries]) != dirichlet.size:
+        raise ValueError("a stiffness matrix without its diagonal entry in a boundary row")
     slot = np.where(interior, disc.D, 0.0)
     E = sp.csr_matrix((np.insert(data, indptr[1:], np.concatenate([-slot, slot])),
                        np.insert(indices, indptr[1:], np.tile(2 * n + np.arange(n), 2)),
