@@ -13,8 +13,10 @@ GMRES (PETSc's restart, 30) with ILU(0), as in the paper, preconditioned on the 
 unpreconditioned norm, so that the residual GMRES minimises and reports is ‖B - A X‖ itself.
 
 **A scalable preconditioner for the eliminated system**: ``pc_type vertex_amg``
-(`preconditioner.VertexAMG`: 2×2 vertex-block inverse, contact multipliers of min as slaves,
-gap scaling for fb, one BoomerAMG V-cycle; options ``vertex_amg_<option>`` go to the inner PC).
+(`preconditioner.vertex_amg`: for min the exact split into mean and gap, one BoomerAMG V-cycle
+on each, the mean's set up once per mesh and kept in the solver; otherwise 2×2 vertex-block
+inverse, contact multipliers as slaves, gap scaling for fb, one BoomerAMG V-cycle; options
+``vertex_amg_<option>`` go to the inner PCs).
 ILU(0)'s GMRES iterations per Newton step grow like 1/h; vertex_amg's do not (disk, exact
 Newton, mean per step, min | fb: 1.5k vertices 51 | 40 → 7.4 | 7.1; 1.1e4: 120 | 102 →
 8.1 | 8.3; more in BENCHMARKS.md). ILU(0) stays the default: it also serves the full 3N system,
@@ -86,7 +88,7 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from .linear_solve import LinearSolveError, petsc_matrix
-from .preconditioner import INNER_PREFIX, VertexAMG
+from .preconditioner import INNER_PREFIX, vertex_amg
 
 DEFAULT_OPTIONS = {"ksp_type": "gmres", "pc_type": "ilu", "ksp_pc_side": "right",
                    "ksp_norm_type": "unpreconditioned"}
@@ -163,6 +165,8 @@ def with_diagonal(A):
     is appended to each row that stores no diagonal entry (A itself if none is missing)."""
     A = sp.csr_matrix(A)
     n = A.shape[0]
+    if np.all(A.diagonal() != 0):      # all stored (the usual case): no pass over the entries
+        return A
     rows = np.repeat(np.arange(n), np.diff(A.indptr))
     stored = np.zeros(n, dtype=bool)
     stored[rows[A.indices == rows]] = True
@@ -191,10 +195,11 @@ def _split_options(options):
     return outer, inner
 
 
-def _install(ksp, A, inner):
-    """The vertex-block AMG of A as the KSP's (Python) PC; PETSc frees it with the KSP."""
+def _install(ksp, A, inner, cache=None):
+    """The vertex-block AMG of A (`preconditioner.vertex_amg`, with its `cache`) as the KSP's
+    (Python) PC; PETSc frees it with the KSP."""
     try:
-        context = VertexAMG(A, inner)
+        context = vertex_amg(A, inner, cache)
     except PETSc.Error as e:
         raise ValueError(f"PETSc options of vertex_amg: {_petsc_message(e)}") from None
     except ValueError as e:        # not the eliminated system: the Newton run reports it
@@ -215,6 +220,7 @@ class Krylov:
     options: dict = field(init=False)
     _petsc: dict = field(init=False, repr=False)
     _vertex_amg: dict = field(init=False, repr=False)
+    _cache: dict = field(init=False, repr=False, compare=False, default_factory=dict)
 
     def __post_init__(self):
         for name in ("nu", "max_linear_its"):
@@ -248,7 +254,7 @@ class Krylov:
             ksp.setOperators(M)
             _configure(ksp, self._petsc)
             if self._vertex_amg is not None:
-                _install(ksp, A, self._vertex_amg)
+                _install(ksp, A, self._vertex_amg, self._cache)
             ksp.setTolerances(max_it=self.max_linear_its)
             ksp.setInitialGuessNonzero(True)
             bound = tol * scale

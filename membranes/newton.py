@@ -207,10 +207,10 @@ def linear_step(rows, cfun, system, X, at_projection=False):
         A, B = ns.full_system(rows, alpha, beta, B3)
         w = np.concatenate([rows.weights, np.ones(rows.n)])
         return LinearStep(scaled_rows(A, w), w * B, X, norm_B, lambda y: y, rows.unweighted)
-    A, b, elim = ns.eliminated_system(rows, alpha, beta, B3)
+    A, b, elim = ns.eliminated_system(rows, alpha, beta, B3, weighted=True)
     u1, u2, lam = ns.split(X, rows.n)
     guess = np.concatenate([u1, np.where(elim.eliminate_lambda, u2, lam)])
-    return LinearStep(scaled_rows(A, rows.weights), rows.weights * b, guess, norm_B, elim.expand,
+    return LinearStep(A, b, guess, norm_B, elim.expand,
                       lambda r: rows.unweighted(np.concatenate([r, np.zeros(rows.n)])))
 
 

@@ -38,12 +38,14 @@ iteration counts do not change; scaling μ1, μ2, f1, f2 by t leaves u and W F, 
 Residuals R handed to the estimators are always the unweighted ones (DESIGN §4).
 """
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from . import cfunctions
+from .linear_solve import scaled_rows
 
 
 @dataclass
@@ -60,6 +62,12 @@ class LinearRows:
         if self.weights is None:
             self.weights = np.ones(2 * self.n)
         self.norm_F = float(np.linalg.norm(self.weights * self.F))
+
+    @functools.cached_property
+    def weighted_E(self):
+        """W E, formed once (E itself where W = 1, e.g. μ1 = μ2 = 1; else a second matrix of
+        E's size, kept with it)."""
+        return self.E if np.all(self.weights == 1.0) else scaled_rows(self.E, self.weights)
 
     def weighted(self, R):
         """R (2N or 3N) with its first 2N entries (the rows of E) multiplied by W."""
@@ -80,23 +88,38 @@ class LinearRows:
 
 
 def linear_rows(disc):
-    """Assemble E and F with the Dirichlet rows u1 = g, u2 = 0 on boundary vertices."""
+    """Assemble E and F with the Dirichlet rows u1 = g, u2 = 0 on boundary vertices.
+
+    E is built from the CSR arrays of S1 and S2 (scipy's bmat of the blocks, which converts
+    them all to COO and back, took 7 times as long at 9.3e5 vertices): the 2N rows of S1 and
+    of S2 (its columns shifted by N), a slot for ∓D_l (column 2N + l) inserted at the end of
+    each; in a boundary row every entry but the diagonal (stored in a stiffness matrix) and
+    the slot become zeros, dropped at the end."""
     n = disc.n
-    Dm = sp.diags(disc.D)
-    E = sp.bmat([[disc.S1, None, -Dm], [None, disc.S2, Dm]], format="csr")
-    bmask = np.zeros(n)
-    bmask[disc.boundary] = 1.0
-    keep = sp.diags(np.concatenate([1.0 - bmask, 1.0 - bmask]))
-    dirichlet = sp.hstack([sp.diags(np.concatenate([bmask, bmask])),
-                           sp.csr_matrix((2 * n, n))])
-    E = (keep @ E + dirichlet).tocsr()
+    interior = disc.interior
+    S1, S2 = (sp.csr_matrix(S) for S in (disc.S1, disc.S2))
+    S1, S2 = (S if S.has_sorted_indices else S.sorted_indices() for S in (S1, S2))
+    indptr = np.concatenate([S1.indptr, S1.indptr[-1] + S2.indptr[1:]])
+    indices = np.concatenate([S1.indices, S2.indices])
+    indices[S1.nnz:] += n
+    data = np.concatenate([S1.data, S2.data])
+    dirichlet = np.flatnonzero(np.concatenate([~interior, ~interior]))
+    start, count = indptr[dirichlet], np.diff(indptr)[dirichlet]
+    entries = np.repeat(start - np.cumsum(count) + count, count) + np.arange(count.sum())
+    data[entries] = indices[entries] == np.repeat(dirichlet, count)
+    if np.count_nonzero(data[entries]) != dirichlet.size:
+        raise ValueError("a stiffness matrix without its diagonal entry in a boundary row")
+    slot = np.where(interior, disc.D, 0.0)
+    E = sp.csr_matrix((np.insert(data, indptr[1:], np.concatenate([-slot, slot])),
+                       np.insert(indices, indptr[1:], np.tile(2 * n + np.arange(n), 2)),
+                       indptr + np.arange(2 * n + 1)), shape=(2 * n, 3 * n))
     E.eliminate_zeros()
     F1, F2 = disc.F1.copy(), disc.F2.copy()
     F1[disc.boundary] = disc.problem.g
     F2[disc.boundary] = 0.0
     mu1, mu2 = disc.problem.mu1, disc.problem.mu2
-    weights = np.concatenate([np.where(bmask > 0, 1.0, 1.0 / mu1),
-                              np.where(bmask > 0, 1.0, 1.0 / mu2)])
+    weights = np.concatenate([np.where(interior, 1.0 / mu1, 1.0),
+                              np.where(interior, 1.0 / mu2, 1.0)])
     return LinearRows(E, np.concatenate([F1, F2]), n, disc.boundary, weights,
                       0.5 * (1.0 / mu1 + 1.0 / mu2))
 
@@ -161,23 +184,28 @@ def vertex_pair_rows(*pairs):
 def eliminate(n, alpha, beta, B3, kappa=1.0):
     """The substitution X = T Y + t that satisfies every complementarity row exactly; the
     choice compares the C-function's own derivatives, |∂C/∂b| = |β|/κ against |α|.
-    T = [[I, 0], [diag U, diag H], [diag G, diag Q]] is built from its CSR arrays (two entries
-    in each row of u2 and λ, zeros included: they change no product; `vertex_pair_rows`)."""
+    T = [[I, 0], [diag U, diag H], [diag G, diag Q]] is built from its CSR arrays (one entry in
+    each row of u1, two in each row of u2 and λ, zeros included: they change no product;
+    `vertex_pair_rows`)."""
     lam_out = np.abs(beta) >= kappa * np.abs(alpha)
     u2_out = ~lam_out
     a_safe = np.where(u2_out, alpha, 1.0)
     b_safe = np.where(lam_out, beta, 1.0)
     L, U = lam_out.astype(float), u2_out.astype(float)
     H, G, Q = L + U * beta / a_safe, -L * alpha / b_safe, L * alpha / b_safe + U
-    T = sp.vstack([sp.eye(n, 2 * n, format="csr"), vertex_pair_rows((U, H), (G, Q))],
-                  format="csr")
+    pairs = vertex_pair_rows((U, H), (G, Q))
+    T = sp.csr_matrix((np.concatenate([np.ones(n), pairs.data]),
+                       np.concatenate([np.arange(n), pairs.indices]),
+                       np.concatenate([np.arange(n), n + pairs.indptr])), shape=(3 * n, 2 * n))
     t = np.concatenate([np.zeros(n), -U * B3 / a_safe, L * B3 / b_safe])
     return Elimination(T, t, lam_out)
 
 
-def eliminated_system(rows, alpha, beta, B3):
-    """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X."""
+def eliminated_system(rows, alpha, beta, B3, weighted=False):
+    """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X; weighted:
+    W Ã = (W E) T and W B̃ (the system the solvers see, module notes)."""
     elim = eliminate(rows.n, alpha, beta, B3, rows.kappa)
-    A = rows.E @ elim.T
+    E, F = (rows.weighted_E, rows.weights * rows.F) if weighted else (rows.E, rows.F)
+    A = E @ elim.T
     A.eliminate_zeros()
-    return A, rows.F - rows.E @ elim.t, elim
+    return A, F - E @ elim.t, elim

@@ -58,6 +58,36 @@ slicings and one BoomerAMG set-up per Newton step. At 1.1e5 vertices (K: 1.7e5 r
 part takes 80 ms, the BoomerAMG set-up 200 ms and a V-cycle 20 ms: the BoomerAMG set-up is
 about a third of a Newton step's linear algebra (600 ms with ~8 iterations).
 
+**For min: the exact mean/gap split** (`MeanGapAMG`; `vertex_amg` takes it wherever
+`mean_gap_split` recognises the system, else 1.–4.). For min every vertex is free (c_l = 0:
+z_l = u2_l, λ_l = const) or in contact (d_l = 0: z_l = λ_l, u2_l = u1_l + const), and with the
+rows weighted by W (newton.linear_step) both membrane blocks hold the same S, Dirichlet rows
+included. Let a_l = D_l/μ1 and b_l = D_l/μ2 be the λ-entries of a contact vertex's two rows
+(-a_l in the first, b_l in the second), θ = a/(a + b) = μ2/(μ1 + μ2). Then Ã Y = r is, exactly,
+with the mean m = (1 - θ) u1 + θ u2 = (μ1 u1 + μ2 u2)/(μ1 + μ2), the gap δ = u2 - u1 and f the
+free vertices:
+
+    S m = (1 - θ) r1 + θ r2                      (every vertex: λ cancels)
+    S_ff δ_f = (r2 - r1)_f,   δ = 0 at contact   (S_ff: S on the free vertices)
+    λ_l = (r2 - r1 - S δ)_l / (a_l + b_l)         (contact vertices)
+
+and u1 = m - θ δ, u2 = m + (1 - θ) δ. Two Laplacians, one V-cycle on each per application.
+S does not depend on the iterate: its AMG is set up on the first Newton step of a mesh and
+kept (`Krylov`'s cache; reused while Ã[:N, :N] is the same matrix, entry for entry), so a step
+sets up only the gap's, on the N_f free vertices (~55 % of N on the disk), where 1.–4. set up
+K (N + N_f rows; the glued rows of the contact vertices give it operator complexity 2.66, the
+hierarchy above). a, b, θ and S are read off Ã, and the identity above is checked on a random
+vector (a seeded one: the same decision every run); where it fails (fb; rows not weighted
+alike, e.g. Ã unweighted with μ1 ≠ μ2) 1.–4. apply. Measured (disk, min, the adaptive nested
+run of issue 6's comparison, ν-flux; GMRES iterations per Newton step and the time of the
+Krylov solves, set-ups included): the three steps of the finest level at 1.1e5 vertices
+(h0 = 0.2, J = 5), solved to 2e-12 on their own: 9, 8, 7 → 8, 6, 6 iterations, 0.68, 0.59,
+0.61 s → 0.36, 0.23, 0.22 s; the whole run at 9.3e5 vertices (h0 = 0.132, J = 6; 21 Newton
+steps): 7–9 → 5–8 iterations a step (168 → 142), Krylov 21 s → 9.4 s, the same Newton steps.
+Keeping the mean's AMG costs memory: the run's peak was 4.41 GiB, 4.11 GiB when it is set up
+anew at every step (Krylov 11.2 s) and 4.23 GiB with 1.–4.; the PETSc matrices of the inner
+PCs are built on the scipy arrays (no copy).
+
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
 bench_preconditioner.py; BENCHMARKS.md has the table; with PETSc's BoomerAMG defaults, before
 the two options of 4., which add 0.3–0.8 iterations per step on average): GMRES iterations
@@ -92,12 +122,17 @@ DEFAULT_INNER = {"pc_type": "hypre", "pc_hypre_type": "boomeramg",
 _prefixes = iter(range(1 << 62))
 
 
+def check_shape(A):
+    """ValueError unless A is 2N × 2N."""
+    if A.shape[0] != A.shape[1] or A.shape[0] % 2:
+        raise ValueError(f"vertex_amg needs the eliminated 2N x 2N system, got {A.shape}")
+
+
 def vertex_blocks_inverse(A):
     """B⁻¹ as a sparse 2N × 2N matrix, B the 2×2 blocks of the vertices (rows and columns l and
     N + l), two entries a row (`vertex_pair_rows`); ValueError if one is singular or A is not
     2N × 2N."""
-    if A.shape[0] != A.shape[1] or A.shape[0] % 2:
-        raise ValueError(f"vertex_amg needs the eliminated 2N x 2N system, got {A.shape}")
+    check_shape(A)
     n = A.shape[0] // 2
     a, d = A.diagonal()[:n], A.diagonal()[n:]
     b, c = A.diagonal(n), A.diagonal(-n)
@@ -137,6 +172,85 @@ def gap_scales(A):
     return np.where(gap, on_z / np.where(gap, on_u1, 1.0), 1.0)
 
 
+def leading_block(A, n):
+    """A[:n, :n] of the CSR matrix A, its column indices sorted."""
+    end = A.indptr[n]
+    outside = np.flatnonzero(A.indices[:end] >= n)        # a few: the λ-columns of contact
+    indptr = A.indptr[:n + 1] - np.searchsorted(outside, A.indptr[:n + 1])
+    M = sp.csr_matrix((np.delete(A.data[:end], outside), np.delete(A.indices[:end], outside),
+                       indptr), shape=(n, n))
+    M.sort_indices()
+    return M
+
+
+def mean_gap_split(A, rtol=1e-10):
+    """(S, a, b) if A is a min system with equally weighted rows (module notes, the mean/gap
+    split): A = [[S, -diag a], [S (u2 → u1 where a ≠ 0), diag b]], i.e. for Y = (p, q)
+
+        (A Y)[:N] = S p - a q,   (A Y)[N:] = S u2 + b λ,
+        (u2, λ) = (p, q) where a ≠ 0 (contact vertices), (q, 0) elsewhere (free vertices),
+
+    with a/(a + b) the same at every contact vertex and S = A[:N, :N] with a nonzero diagonal;
+    else None. The identity is checked on a random Y (seeded: the same decision every
+    run), to rtol of the largest product: a linear map that differs fails it with probability 1."""
+    n = A.shape[0] // 2
+    S = leading_block(A, n)
+    diagonal = A.diagonal()
+    a, b = -A.diagonal(n), diagonal[n:]
+    contact = a != 0
+    ab = (a + b)[contact]
+    theta = a[contact] / np.where(ab != 0, ab, 1.0)
+    if np.any(ab == 0) or np.any(diagonal[:n] == 0) or \
+            (theta.size and np.ptp(theta) > rtol * np.abs(theta).max()):
+        return None
+    p, q = np.random.default_rng(0).random((2, n))
+    u2, lam = np.where(contact, p, q), np.where(contact, q, 0.0)
+    expected = np.concatenate([S @ p - a * q, S @ u2 + b * lam])
+    found = A @ np.concatenate([p, q])
+    if np.abs(found - expected).max() > rtol * np.abs(expected).max():
+        return None
+    return S, a, b
+
+
+class InnerAMG:
+    """The inner PC (BoomerAMG by default, `DEFAULT_INNER`; `inner` the user's options) set up
+    on the scipy matrix M, applied to arrays (`solve`). The PETSc matrix is built on M's own
+    arrays (M is the caller's fresh matrix, kept unchanged as `M`: `MeanGapAMG` compares it
+    with the next step's), one copy of it less in memory."""
+
+    def __init__(self, M, inner=None):
+        self.M = M
+        self.mat = petsc_matrix(M, copy=False)
+        self.pc = PETSc.PC().create(PETSc.COMM_SELF)
+        self.pc.setOperators(self.mat)
+        options = dict(DEFAULT_INNER if inner is None or "pc_type" not in inner else {})
+        options.update(inner or {})
+        prefix = f"membranes_vamg_{next(_prefixes)}_"
+        database = PETSc.Options()
+        for name, value in options.items():
+            database[prefix + name] = value
+        self.pc.setOptionsPrefix(prefix)
+        try:
+            self.pc.setFromOptions()
+        finally:
+            for name in options:
+                database.delValue(prefix + name)
+        self.pc.setUp()
+        self.rhs, self.sol = self.mat.createVecs()
+
+    def solve(self, r):
+        """One application (a V-cycle) to the array r; a view of the result, valid until the
+        next call."""
+        self.rhs.array[:] = r
+        self.pc.apply(self.rhs, self.sol)
+        return self.sol.array_r
+
+    def destroy(self):
+        """Free the PETSc objects."""
+        for obj in (self.pc, self.mat, self.rhs, self.sol):
+            obj.destroy()
+
+
 class VertexAMG:
     """The preconditioner of the module notes for the 2N × 2N scipy matrix A, as a petsc4py
     Python PC context (`apply`); `inner` are the options of the PC on K."""
@@ -156,30 +270,12 @@ class VertexAMG:
         K = scaled_rows(A_hat[self.keep][:, self.keep], self.scale)
         K.data /= self.scale[K.indices]
         self.X = A_hat[self.slave][:, self.keep]
-        self.K = petsc_matrix(K)
-        self.pc = PETSc.PC().create(PETSc.COMM_SELF)
-        self.pc.setOperators(self.K)
-        options = dict(DEFAULT_INNER if inner is None or "pc_type" not in inner else {})
-        options.update(inner or {})
-        prefix = f"membranes_vamg_{next(_prefixes)}_"
-        database = PETSc.Options()
-        for name, value in options.items():
-            database[prefix + name] = value
-        self.pc.setOptionsPrefix(prefix)
-        try:
-            self.pc.setFromOptions()
-        finally:
-            for name in options:
-                database.delValue(prefix + name)
-        self.pc.setUp()
-        self.rhs, self.sol = self.K.createVecs()
+        self.amg = InnerAMG(K, inner)
 
     def apply(self, pc, x, y):
         """y = M⁻¹ x."""
         s = self.B_inv @ x.array_r
-        self.rhs.array[:] = s[self.keep] * self.scale
-        self.pc.apply(self.rhs, self.sol)
-        kept = self.sol.array_r / self.scale
+        kept = self.amg.solve(s[self.keep] * self.scale) / self.scale
         out = np.empty_like(s)
         out[self.keep] = kept
         out[self.slave] = s[self.slave] - self.X @ kept
@@ -187,5 +283,69 @@ class VertexAMG:
 
     def destroy(self, pc=None):
         """Free the PETSc objects (petsc4py calls this when the outer PC is destroyed)."""
-        for obj in (self.pc, self.K, self.rhs, self.sol):
-            obj.destroy()
+        self.amg.destroy()
+
+
+class MeanGapAMG:
+    """The exact mean/gap split of a min system (module notes) as a petsc4py Python PC context:
+    (S, a, b) from `mean_gap_split`, one inner PC on S (the mean; taken from cache["mean"] when
+    it was set up on the same S, and left there for the next step) and one on S restricted to
+    the free vertices (the gap)."""
+
+    def __init__(self, S, a, b, inner=None, cache=None):
+        contact = a != 0
+        self.free, self.contact = np.flatnonzero(~contact), np.flatnonzero(contact)
+        # without contact the membranes are uncoupled, and any θ splits them exactly
+        self.theta = a[contact][0] / (a + b)[contact][0] if self.contact.size else 0.5
+        self.ab = (a + b)[contact]
+        self.S_contact = S[self.contact]
+        mean = (cache or {}).get("mean")
+        if mean is None or not same_matrix(mean.M, S):
+            if mean is not None:
+                del cache["mean"]
+                mean.destroy()
+            mean = InnerAMG(S, inner)
+            if cache is not None:
+                cache["mean"] = mean
+        self.mean, self.owns_mean = mean, cache is None
+        self.gap = InnerAMG(S[self.free][:, self.free], inner) if self.free.size else None
+
+    def apply(self, pc, x, y):
+        """y = M⁻¹ x: m = S⁻¹((1 - θ) r1 + θ r2), δ_free = S_ff⁻¹ (r2 - r1)_free (δ = 0 at
+        contact), u1 = m - θ δ, u2 = m + (1 - θ) δ, λ_contact = (r2 - r1 - S δ)/(a + b)."""
+        r = x.array_r
+        n = r.size // 2
+        d = r[n:] - r[:n]
+        m = self.mean.solve((1.0 - self.theta) * r[:n] + self.theta * r[n:])
+        delta = np.zeros(n)
+        if self.gap is not None:
+            delta[self.free] = self.gap.solve(d[self.free])
+        out = np.empty(2 * n)
+        out[:n] = m - self.theta * delta
+        out[n:] = m + (1.0 - self.theta) * delta
+        out[n + self.contact] = (d[self.contact] - self.S_contact @ delta) / self.ab
+        y.array[:] = out
+
+    def destroy(self, pc=None):
+        """Free the PETSc objects, except the mean's inner PC when the cache keeps it."""
+        for amg in ([self.gap] + ([self.mean] if self.owns_mean else [])):
+            if amg is not None:
+                amg.destroy()
+
+
+def same_matrix(M, N):
+    """M and N (sorted CSR) hold the same entries."""
+    return M.shape == N.shape and np.array_equal(M.indptr, N.indptr) and \
+        np.array_equal(M.indices, N.indices) and np.array_equal(M.data, N.data)
+
+
+def vertex_amg(A, inner=None, cache=None):
+    """The Python PC context for the eliminated system A: `MeanGapAMG` where `mean_gap_split`
+    finds a min system, else `VertexAMG`; `cache`: a dict kept from one Newton step to the next
+    (the mean's inner PC)."""
+    A = sp.csr_matrix(A)
+    check_shape(A)
+    split = mean_gap_split(A)
+    if split is not None:
+        return MeanGapAMG(*split, inner=inner, cache=cache)
+    return VertexAMG(A, inner)

@@ -1,7 +1,8 @@
 """The vertex-block AMG preconditioner (membranes.preconditioner, `pc_type vertex_amg`) on the
 eliminated 2N system: the same discrete solution as the default ILU(0), GMRES iterations per
-Newton step that do not grow with the mesh, independence of the row scaling, and refusal of
-what it cannot precondition.
+Newton step that do not grow with the mesh, independence of the row scaling, refusal of what
+it cannot precondition, and for min the exact mean/gap split (recognised where it applies,
+exact with exact inner solves, its mean AMG kept per mesh).
 
 "Same solution": both runs solve every Newton step to ‖R_alg‖/‖B‖ ≤ 2e-12 and stop Newton at
 ‖R_lin‖/‖(F, 0)‖ ≤ 1e-10, so the two final iterates differ by what the two linear residuals
@@ -20,7 +21,8 @@ from membranes import solve
 from membranes.krylov import Krylov
 from membranes.linear_solve import solve_direct
 from membranes.newton import EXACT_LINEAR_TOL, linear_step
-from membranes.preconditioner import VertexAMG, gap_scales, slaves
+from membranes.discretisation import discretise
+from membranes.preconditioner import VertexAMG, gap_scales, mean_gap_split, slaves
 
 from .conftest import scene
 
@@ -55,7 +57,7 @@ def test_same_solution_as_ilu(cfun):
 @pytest.mark.parametrize("cfun", ["min", "fb"])
 def test_iterations_do_not_grow_with_the_mesh(cfun):
     """Disk h = 0.1 refined 0 and 2 times (411 and ~6k vertices, h / 4). An AMG V-cycle
-    contracts at a rate independent of h on the glued Laplacians behind the system (module
+    contracts at a rate independent of h on the Laplacians behind the system (module
     notes), so GMRES needs a bounded number of iterations per Newton step; ILU(0)'s grow
     like 1/h (×4 here: it is checked to grow at least ×2, so that the test can tell).
     The bound is on the mean over the Newton steps: fb's worst step (the third or fourth,
@@ -142,3 +144,54 @@ def test_inner_options():
         Krylov({**dict(VAMG), "vertex_amg_pc_type": "no_such_pc"})
     run = _run(0.1, "min", VAMG + (("vertex_amg_pc_type", "gamg"),))
     assert run.converged, run.reason
+
+
+@functools.lru_cache(maxsize=None)
+def _square_steps(count):
+    """The first `count` eliminated min systems of the square (μ1 = 1, μ2 = 2), h = 0.1, each
+    with the unweighted Ã (newton_system.eliminated_system) beside the weighted one."""
+    rows = ns.linear_rows(discretise(scene("square", 0.1)))
+    X, steps = ns.initial_guess(rows, 0.1), []
+    for _ in range(count):
+        step = linear_step(rows, "min", "eliminated", X)
+        unweighted = ns.eliminated_system(rows, *ns.complementarity_rows(rows, "min", X))[0]
+        steps.append((step, unweighted))
+        X = step.expand(solve_direct(step.A, step.b)[0])
+    return steps
+
+
+def test_mean_gap_split_recognised():
+    """min systems with the rows weighted by W split into mean and gap (module notes), with
+    θ = μ2/(μ1 + μ2) and a ≠ 0 exactly at the contact vertices; fb systems do not, nor does the
+    unweighted system when μ1 ≠ μ2 (its two blocks hold μ1 S and μ2 S)."""
+    for step, contact, _ in _steps("min", 3)[1:]:
+        S, a, b = mean_gap_split(step.A)
+        assert np.array_equal(a != 0, contact)
+        assert np.allclose(a[contact] / (a + b)[contact], 0.5, rtol=1e-12)
+    for step, unweighted in _square_steps(3)[1:]:
+        S, a, b = mean_gap_split(step.A)
+        assert (a != 0).any()
+        assert np.allclose(a[a != 0] / (a + b)[a != 0], 2.0 / 3.0, rtol=1e-12)
+        assert mean_gap_split(unweighted) is None
+    assert all(mean_gap_split(step.A) is None for step, _, _ in _steps("fb", 4)[1:])
+
+
+def test_mean_gap_split_is_exact():
+    """With exact inner solves (LU) the split is Ã⁻¹ itself: FGMRES meets 1e-10 after one
+    iteration, also for μ1 ≠ μ2."""
+    krylov = Krylov({**dict(VAMG), "vertex_amg_pc_type": "lu"})
+    systems = [s for s, _, _ in _steps("min", 3)[1:]] + [s for s, _ in _square_steps(3)[1:]]
+    for step in systems:
+        x, r, its = krylov.solve(step.A, step.b, step.guess, 1e-10, np.linalg.norm(step.b))
+        assert its == 1 and np.linalg.norm(r) <= 1e-10 * np.linalg.norm(step.b)
+
+
+def test_mean_amg_kept_per_mesh():
+    """The mean's AMG is set up once per mesh: the next step on the same mesh reuses it, a
+    system of another mesh replaces it."""
+    krylov = Krylov(dict(VAMG))
+    kept = []
+    for step in [s for s, _, _ in _steps("min", 3)] + [_square_steps(2)[1][0]]:
+        krylov.solve(step.A, step.b, step.guess, 1e-10, np.linalg.norm(step.b))
+        kept.append(krylov._cache["mean"])
+    assert kept[0] is kept[1] is kept[2] and kept[3] is not kept[2]
