@@ -238,11 +238,13 @@ class Krylov:
         finally:
             ksp.destroy()
 
-    def solve(self, A, b, x0, tol, scale, test_every=1, on_iterate=None):
+    def solve(self, A, b, x0, tol, scale, test_every=1, on_iterate=None, cancel=None):
         """Solve A x = b from x0 until ‖b - A x‖ ≤ tol · scale (tested after iterations
         test_every, 2 test_every, ...) or until on_iterate says stop. Every ν iterations that
         do not meet the test, on_iterate(its, current) is called; current() returns
         (x, b - A x) at that iterate; a true return value stops the solve at that iterate.
+        `cancel()`, asked after every iteration, stops the solve at once when true (a step
+        computed ahead that will be dropped, membranes.newton); its iterate is returned.
         Returns (x, b - A x, its); raises LinearSolveError (with `its`) if the KSP stops
         before either happens (e.g. at max_linear_its)."""
         M = petsc_matrix(with_diagonal(A), copy=False)   # A is the step's: not changed here
@@ -258,7 +260,7 @@ class Krylov:
             ksp.setTolerances(max_it=self.max_linear_its)
             ksp.setInitialGuessNonzero(True)
             bound = tol * scale
-            test = _StoppingTest(A, b, work, bound, test_every, self.nu, on_iterate)
+            test = _StoppingTest(A, b, work, bound, test_every, self.nu, on_iterate, cancel)
             ksp.setConvergenceTest(test)
             try:
                 ksp.solve(rhs, x)
@@ -282,9 +284,10 @@ class _StoppingTest:
     """The KSP convergence test of the module notes; it also hands out every ν-th iterate,
     and stops GMRES there (`stopped`) when the callback returns True."""
 
-    def __init__(self, A, b, work, bound, test_every, nu, on_iterate):
+    def __init__(self, A, b, work, bound, test_every, nu, on_iterate, cancel=None):
         self.A, self.b, self.work, self.bound = A, b, work, bound
         self.test_every, self.nu, self.on_iterate = test_every, nu, on_iterate
+        self.cancel = cancel
         self.its, self._current, self.stopped = 0, None, False
 
     def current(self):
@@ -307,6 +310,9 @@ class _StoppingTest:
             self.ksp = None
 
     def _verdict(self, ksp, its, rnorm):
+        if self.cancel is not None and self.cancel():
+            self.stopped = True
+            return PETSc.KSP.ConvergedReason.CONVERGED_ITS
         estimate_is_residual = ksp.getNormType() == PETSc.KSP.NormType.UNPRECONDITIONED
         if (its % self.test_every == 0 or rnorm == 0) and \
                 (rnorm <= self.bound or not estimate_is_residual) and \

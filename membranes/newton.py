@@ -118,8 +118,10 @@ that produced it (None for X^0):
 (membranes.pipeline) and then has two more methods: `awaiting(record)` (its estimates are
 still to come) and `resolve(record)` (wait for them). Where the adaptive stopping test at
 X^{k-1} is awaiting its estimates, step k is computed meanwhile (the step depends on X^{k-1}
-alone) and the test is taken when they come, at the latest once the step is solved; if it is
-met, the step is dropped and X^{k-1} ends the run as it would have without the step. A
+alone) and the test is taken when they come: GMRES asks after every iteration whether they
+are in (`cancel` of Krylov.solve) and stops if the test is then met; at the latest the test is
+taken once the step is solved. If it is met, the step is dropped and X^{k-1} ends the run as
+it would have without the step. A
 Krylov iterate that step k hands out first waits for that test (and ends the solve if it is
 met), so that no record of a dropped step is made: the history, the iterates and the
 decisions are those of a run that evaluates every estimate at once.
@@ -234,14 +236,15 @@ def newton_criterion(record, gamma_lin):
     return record["eta_lin"] <= gamma_lin * record["eta_disc"]
 
 
-def solve_step(step, krylov, tol, test_every, on_iterate):
-    """X^k, its residual R (3N) and the linear iterations of one step."""
+def solve_step(step, krylov, tol, test_every, on_iterate, cancel=None):
+    """X^k, its residual R (3N) and the linear iterations of one step (`cancel`: see
+    Krylov.solve)."""
     if krylov is None:
         y, its = solve_direct(step.A, step.b)
         r = step.b - step.A @ y
     else:
         y, r, its = krylov.solve(step.A, step.b, step.guess, tol, step.norm_B, test_every,
-                                 on_iterate)
+                                 on_iterate, cancel)
     return step.expand(y), step.pad(r), its
 
 
@@ -452,7 +455,10 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                 state["at"] = "iterate"
                 step = linear_step(rows, state["cfun"], system, X)
                 X_new, R, its = solve_step(step, krylov, lin_tol, test_every,
-                                           hand_out(k, step, done, accepted, before, unsettled))
+                                           hand_out(k, step, done, accepted, before, unsettled),
+                                           None if unsettled is None else
+                                           lambda: not deferred(unsettled) and
+                                           stopping(unsettled)[0])
         except LinearSolveError as e:
             if settled_at(unsettled):
                 break
