@@ -122,15 +122,16 @@ class Geometry:
 class Lifting:
     """`Lifting(geo) @ R`: the lifting R ↦ r_h of DESIGN §4 (DG1 coefficients, 3 per cell in
     vertex order), applied without storing its matrix: per cell
-    r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l."""
+    r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l, the quotients R_l / N_l
+    formed once per vertex and the factors 3/|K| kept."""
 
     def __init__(self, geo):
         self.geo = geo
+        self.scale = (3.0 / geo.area)[:, None]
 
     def __matmul__(self, R):
-        geo = self.geo
-        v = R[geo.cells] / geo.cells_per_vertex[geo.cells]
-        return ((3.0 / geo.area)[:, None] * (v @ _MINV_REF.T)).ravel()
+        v = (R / self.geo.cells_per_vertex)[self.geo.cells]
+        return (self.scale * (v @ _MINV_REF.T)).ravel()
 
 
 def _local_index_type(n):
@@ -690,8 +691,10 @@ class FluxEquilibration:
             for sel, RET, loc, A in space.patch_groups(CS, b, self.CHUNK, glob):
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A, wf)
         self._add_operators()
-        self.classes = self._class_load(level, wf) if level else None
-        self._class_scatter = None     # the classes' change of basis and scatter (`sigma`)
+        self._keep_touched_rows()
+        self.classes = self._class_scatter = None
+        if level:
+            self._class_load(level, wf)
         # what the evaluation does not need goes
         del self._pending
         space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
@@ -831,37 +834,20 @@ class FluxEquilibration:
         GF.reshape(P, n, 3)[:] = 3 * cv + KF[:, :, None]
 
     def _class_load(self, level, wf):
-        """The classes' operators as the evaluation takes them (buckets, RT dofs), after
-        adding their σ_f from the load columns, which are then dropped."""
-        from .algebraic_flux import _apply_buckets
-        pieces, rets, count = [], [], 0
-
-        def add():                                        # σ_f of the pieces gathered so far
-            for alpha in range(2):
-                self.sigma_f[alpha] += _apply_buckets((pieces, np.concatenate(rets)),
-                                                      wf[alpha].ravel(), self.sigma_f.shape[1])
-            pieces.clear()
-            rets.clear()
-
-        # each call ends in a scatter onto all RT dofs: it takes pieces of at least half as
-        # many entries (a few calls per level, their temporaries bounded by about 50 bytes
-        # per RT dof)
-        enough = max(self.sigma_f.shape[1] // 2, 16 * self.CHUNK)
-        for _, ret, (S, G, L, C) in level:
-            g, nr, _ = S.shape
-            per = G.shape[0] // g                             # patches per class
-            step = max(1, 4 * self.CHUNK // per)              # some classes at a time
-            for s in range(0, g, step):
-                part = slice(s * per, (s + step) * per)
-                pieces.append((S[s:s + step], G[part], L[part], C[part]))
-                rets.append(ret[part.start * nr:part.stop * nr])
-                count += len(rets[-1])
-                if count >= enough:
-                    add()
-                    count = 0
-        if pieces:
-            add()
-        return [b for b, _, _ in level], np.concatenate([r for _, r, _ in level])
+        """Keep the classes' operators as the evaluation takes them (`classes`: buckets, RT
+        dofs) and their change of basis and scatter as one sparse matrix (`_class_scatter`,
+        algebraic_flux._bucket_scatter: the evaluation applies it at every call), and add the
+        classes' σ_f from the load columns through the same matrix; the load columns are then
+        dropped."""
+        from .algebraic_flux import _apply_buckets, _bucket_scatter
+        ret = np.concatenate([r for _, r, _ in level])
+        self.classes = ([b for b, _, _ in level], ret)
+        self._class_scatter = _bucket_scatter(self.classes, self.sigma_f.shape[1])
+        load = ([f for _, _, f in level], ret)
+        level.clear()
+        for alpha in range(2):
+            self.sigma_f[alpha] += _apply_buckets(load, wf[alpha].ravel(),
+                                                  self.sigma_f.shape[1], self._class_scatter)
 
     def _right_hand_sides(self, CS, KA, nr, loc, N):
         """The right-hand sides of P patch problems of one shape (cells CS (P, n), a's local
@@ -940,6 +926,7 @@ class FluxEquilibration:
                                                minlength=self.sigma_f.shape[1])
 
     def _add_operators(self):
+        """Add the pending batches of `_solve_patches` to G_u, G_R, G_λ."""
         if not self._pending:
             return
         rows, cols, u, R, rows_lam, cols_lam, lam = (np.concatenate(z)
@@ -950,20 +937,35 @@ class FluxEquilibration:
         self.G_R = self.G_R + sp.csr_matrix((R, (rows, cols)), shape=shape)
         self.G_lam = self.G_lam + sp.csr_matrix((lam, (rows_lam, cols_lam)), shape=shape)
 
+    def _keep_touched_rows(self):
+        """Restrict G_u, G_R, G_λ to the RT dofs they touch (`touched`): those of the patches
+        solved on their own, a few thousand where the classes take all others, so that an
+        evaluation makes no vectors of all RT dofs for them."""
+        touched = np.zeros(self.G_u.shape[0], dtype=bool)
+        for G in (self.G_u, self.G_R, self.G_lam):
+            touched[np.diff(G.indptr) > 0] = True
+        self.touched = np.flatnonzero(touched)
+        self.G_u, self.G_R, self.G_lam = (G[self.touched] for G in (self.G_u, self.G_R,
+                                                                     self.G_lam))
+
     def sigma(self, alpha, u, lam, R):
-        """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5)."""
+        """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5): σ_f,α, plus
+        μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on their own, plus the
+        classes' part (`algebraic_flux._apply_buckets` on the data [μ_α ∇u_h | r_h | ±λ],
+        with the change of basis and scatter matrix kept by the set-up)."""
         mu = self.disc.problem.mu1 if alpha == 1 else self.disc.problem.mu2
         sign = 1.0 if alpha == 1 else -1.0
-        out = mu * (self.G_u @ u) + sign * (self.G_lam @ lam) + self.sigma_f[alpha - 1]
+        out = self.sigma_f[alpha - 1].copy()
+        rows = self.touched
+        out[rows] = mu * (self.G_u @ u) + sign * (self.G_lam @ lam) + out[rows]
         if R is not None:
-            out += self.G_R @ R
+            out[rows] += self.G_R @ R
         if self.classes is not None:
-            r = np.zeros(3 * self.geo.ncells) if R is None else self.lift @ R
-            data = np.concatenate([mu * self.geo.gradient(u).ravel(), r, sign * lam])
-            # the classes' part (`algebraic_flux._apply_buckets`), their change of basis and
-            # scatter as one sparse matrix, built at the first evaluation and kept
-            from .algebraic_flux import _apply_buckets, _bucket_scatter
-            if self._class_scatter is None:
-                self._class_scatter = _bucket_scatter(self.classes, len(out))
+            from .algebraic_flux import _apply_buckets
+            nc = self.geo.ncells
+            data = np.empty(5 * nc + len(lam))
+            np.multiply(mu, self.geo.gradient(u), out=data[:2 * nc].reshape(nc, 2))
+            data[2 * nc:5 * nc] = 0.0 if R is None else self.lift @ R
+            np.multiply(sign, lam, out=data[5 * nc:])
             out += _apply_buckets(self.classes, data, len(out), self._class_scatter)
         return out
