@@ -82,10 +82,12 @@ class CellFluxNorms:
     assembly does (no cancellation between the terms of an expanded square).
 
     The signs take eight patterns (one per set of reflected edges ρ): the cells are kept
-    grouped by ρ, and each group's signs are folded into its reference values, s_j ψ̂_j(x̂_q)
-    (exact: a sign), so that a cell's values at the points are one product of its gathered
-    coefficients with a table. The cells are taken CHUNK at a time within a group (the
-    temporaries stay in cache)."""
+    grouped by ρ, and each group's signs are folded into its reference values s_j ψ̂_j(x̂_q)
+    (exact: a sign), so that the values of a block of cells are one product of a table with
+    their gathered coefficients. The arrays are laid out cell index last (coefficients,
+    points, components, Piola entries × cells), so that every elementwise step runs along
+    contiguous rows of a block of cells; the cells are taken CHUNK at a time within a group
+    (the temporaries stay in cache)."""
 
     CHUNK = 4096
 
@@ -99,25 +101,26 @@ class CellFluxNorms:
         self.cuts = np.searchsorted(rho[self.order], np.arange(9))
         X, self.w = basix.make_quadrature(basix.CellType.triangle, 4)
         psi = _rt_element().tabulate(0, X)[0]                             # (q, 8, 2)
-        psi = np.ascontiguousarray(psi.transpose(1, 2, 0).reshape(8, -1))  # (8, 2 q)
-        self.psi = rt_signs(np.arange(8))[:, :, None] * psi                # (ρ, 8, 2 q)
-        self.rt_cells = space.RT.dofmap.list.array.reshape(-1, 8)[:nc][self.order].astype(
-            np.int32)
+        psi = psi.transpose(2, 0, 1).reshape(-1, 8)                       # (2 q, 8)
+        self.psi = np.ascontiguousarray(psi[None] * rt_signs(np.arange(8))[:, None, :])
+        self.rt_cells = np.ascontiguousarray(
+            space.RT.dofmap.list.array.reshape(-1, 8)[:nc][self.order].T.astype(np.int32))
         J = geo.jacobians(self.order)
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        self.piola = (J / det[:, None, None]).reshape(nc, 4, 1)             # J / det J
+        self.piola = np.ascontiguousarray((J / det[:, None, None]).reshape(nc, 4).T)
         self.abs_det = np.abs(det)
 
     def squared(self, a, sigma, tau=None):
         """∫_K |a + σ|² for every cell K (a (ncells, 2)); with τ ∈ RT_1 also ∫_K |a + σ + τ|²
         and ∫_K |τ|²: shape (ncells,), or (3, ncells) with τ."""
         nc = len(self.abs_det)
+        a = np.ascontiguousarray(a[self.order].T)                            # (2, nc)
         out = np.empty((1 if tau is None else 3, nc))
         for r in range(8):
             for s in range(self.cuts[r], self.cuts[r + 1], self.CHUNK):
                 cells = slice(s, min(s + self.CHUNK, self.cuts[r + 1]))
                 e = self._values(sigma, cells, r)
-                e += a[self.order[cells]].T[:, :, None]
+                e += a[:, None, cells]
                 out[0, cells] = self._integral(e, cells)
                 if tau is not None:
                     t = self._values(tau, cells, r)
@@ -130,18 +133,19 @@ class CellFluxNorms:
 
     def _values(self, sigma, cells, r):
         """σ at the quadrature points of the cells (positions in `order`, all of reflections
-        r), (2, cells, q)."""
-        v = sigma[self.rt_cells[cells]] @ self.psi[r]
-        v = v.reshape(len(v), 2, -1)
-        F = self.piola[cells]
-        out = np.multiply(F[:, 0], v[:, 0], out=np.empty((2,) + v[:, 0].shape))
-        out[0] += F[:, 1] * v[:, 1]
-        np.multiply(F[:, 2], v[:, 0], out=out[1])
-        out[1] += F[:, 3] * v[:, 1]
-        return out
+        r), (2, q, cells)."""
+        v = self.psi[r] @ sigma[self.rt_cells[:, cells]]                   # (2 q, cells)
+        v = v.reshape(2, -1, v.shape[1])
+        F = self.piola[:, cells]
+        e = np.empty_like(v)
+        np.multiply(F[0], v[0], out=e[0])
+        e[0] += F[1] * v[1]
+        np.multiply(F[2], v[0], out=e[1])
+        e[1] += F[3] * v[1]
+        return e
 
     def _integral(self, v, cells):
-        return ((v[0] * v[0] + v[1] * v[1]) @ self.w) * self.abs_det[cells]
+        return (self.w @ (v[0] * v[0] + v[1] * v[1])) * self.abs_det[cells]
 
 
 def constraint_projection(u1, u2):
