@@ -827,11 +827,19 @@ class FluxEquilibration:
         is vertex i of the patch's with pi[c, i] = i', i = _PERMS[perm][c, i']."""
         nc = self.geo.ncells
         P, n = CF.shape
-        cv = 3 * CF[:, :, None] + _PERMS[perm]                                 # (P, n, 3)
-        G[:, :2 * n].reshape(P, n, 2)[:] = 2 * CF[:, :, None] + np.arange(2)
-        G[:, 2 * n:5 * n].reshape(P, n, 3)[:] = 2 * nc + cv
+        # one pass per slot, in G's integer type (numpy's loops over the last axis of
+        # (P, n, 2) or (P, n, 3) arrays would run two or three entries at a time)
+        C = CF.astype(G.dtype)
+        i = _PERMS.astype(G.dtype)[perm]                                       # (P, n, 3)
+        grad = G[:, :2 * n].reshape(P, n, 2)
+        np.multiply(C, 2, out=grad[:, :, 0])
+        np.add(grad[:, :, 0], 1, out=grad[:, :, 1])
+        lift, load = G[:, 2 * n:5 * n].reshape(P, n, 3), GF.reshape(P, n, 3)
+        c3, c9 = 3 * C + 2 * nc, 9 * C + KF.astype(G.dtype)
+        for l in range(3):
+            np.add(c3, i[:, :, l], out=lift[:, :, l])
+            np.add(c9, 3 * i[:, :, l], out=load[:, :, l])
         G[:, 5 * n] = 5 * nc + verts
-        GF.reshape(P, n, 3)[:] = 3 * cv + KF[:, :, None]
 
     def _class_load(self, level, wf):
         """Keep the classes' operators as the evaluation takes them (`classes`: buckets, RT
