@@ -230,6 +230,29 @@ def _row_index(table, values):
     return idx - np.arange(P)[:, None] * k
 
 
+def patch_vertices(geo, CS):
+    """The vertices of P patches of one shape (cells CS (P, n), m vertices each): VERTS (P, m)
+    ascending and their local numbers vloc (P, n, 3) in the cells' vertex order."""
+    P, n = CS.shape
+    VERTS, _ = _row_unique(geo.cells[CS].reshape(P, -1), -1)
+    return VERTS, _row_index(VERTS, geo.cells[CS].reshape(P, -1)).reshape(P, n, 3)
+
+
+def local_lifting(geo, CS, vloc, m, divide=True):
+    """(P, 3n, m): the lifting of DESIGN §4 (`Lifting`) on P patches (cells CS (P, n), local
+    vertex numbers vloc, m vertices), from nodal values at the patch's vertices to r_h on its
+    cells (3 per cell, vertex order): (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l;
+    with divide=False the values are R_l / N_l already (no division)."""
+    P, n = CS.shape
+    liftK = (3.0 / geo.area[CS])[..., None, None] * _MINV_REF                 # (P, n, 3, 3)
+    if divide:
+        liftK = liftK / geo.cells_per_vertex[geo.cells[CS]][:, :, None, :]
+    Lr = np.zeros((P, 3 * n, m))
+    qloc = 3 * np.arange(n)[None, :, None] + np.arange(3)[None, None, :]      # (1, n, 3)
+    Lr[np.arange(P)[:, None, None, None], qloc[..., None], vloc[:, :, None, :]] = liftK
+    return Lr
+
+
 class PatchSpace:
     """RT_1 × DG1 on one mesh, with the per-cell blocks that every patch problem is made of:
     Me[K] = (φ_j, φ_i)_K (RT mass), Be[K] = (∇·φ_j, q_i)_K and Ce[K] = (φ_k e_d, φ_j)_K, in
@@ -709,11 +732,16 @@ class FluxEquilibration:
         Returns CS, KA in the classes' canonical cell order and the indices of the other
         patches (each solved on its own into G_u, G_R, G_lam).
 
-        The representative's right-hand side is a linear map of cell data that a translation
-        carries over: ∇u_h per cell (2), r_h per cell (3, its vertices permuted by π), λ_a, and
-        (set-up only) the load moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map)
-        and σ_p = Tᵀ S d_p for the patch's data d_p (the change of basis). The members are
-        ordered by class size and class, so that a bucket is a slice of each array."""
+        The representative's right-hand side is a linear map of data that a translation
+        carries over: ∇u_h per cell (2), r_h per cell (3), λ_a, and (set-up only) the load
+        moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map) and σ_p = Tᵀ S d_p for
+        the patch's data d_p (the change of basis). The r_h columns are composed with the
+        representative's local lifting (`local_lifting`, a translation leaves |K| alone) and
+        take the values R_l / N_l at the patch's m vertices (in the representative's vertex
+        order; m < 3n): the data of a patch are 2n + m + 1 numbers, the ∇u_h kept per cell
+        (the gradient formed from nodal values in the evaluation, as before, not inside the
+        operator: the same round-off). The members are ordered by class size and class, so
+        that a bucket is a slice of each array."""
         from .algebraic_flux import _perm_code
         geo, space = self.geo, self.space
         P, n = CS.shape
@@ -727,11 +755,20 @@ class FluxEquilibration:
         if len(reps) == 0:
             return CF, KF, own
         glob = space.retained_dofs(CF[reps], boundary[reps], KF[reps])
-        q = 5 * n + 1
         for sel, RET, loc, A in space.patch_groups(CF[reps], boundary[reps], len(reps), glob):
             nr = RET.shape[1]
-            S = np.linalg.solve(A, self._right_hand_sides(CF[reps[sel]], KF[reps[sel]], nr,
-                                                          loc, A.shape[1]))[:, :nr]
+            CR = CF[reps[sel]]
+            S = np.linalg.solve(A, self._right_hand_sides(CR, KF[reps[sel]], nr, loc,
+                                                          A.shape[1]))[:, :nr]
+            _, vloc = patch_vertices(geo, CR)
+            m = int(vloc.max()) + 1
+            Sd = np.concatenate([S[:, :, :2 * n],
+                                 S[:, :, 2 * n:5 * n] @ local_lifting(geo, CR, vloc, m, False),
+                                 S[:, :, 5 * n:5 * n + 1]], axis=2)         # (g, nr, 2n+m+1)
+            # each representative's vertex v at its first (cell, slot) c_v, k_v
+            first = np.empty((len(sel), m), dtype=np.int64)
+            for j in range(3 * n - 1, -1, -1):
+                first[np.arange(len(sel)), vloc.reshape(len(sel), -1)[:, j]] = j
             batch = np.full(P, -1)
             batch[reps[sel]] = np.arange(len(sel))
             mem = np.flatnonzero(member & (batch[rep] >= 0))
@@ -740,23 +777,25 @@ class FluxEquilibration:
             RETm = np.empty((Pm, nr), dtype=np.int32)
             L = np.empty((Pm, nr, 2), dtype=_local_index_type(nr))
             C = np.empty((Pm, nr, 2), dtype=np.int8)
-            G = np.empty((Pm, q), dtype=self._index_type())
+            G = np.empty((Pm, 2 * n + m + 1), dtype=self._index_type())
             GF = np.empty((Pm, 3 * n), dtype=G.dtype)
-            tables = self._representatives(CF[reps[sel]], loc)
+            tables = self._representatives(CR, loc)
             for s in range(0, Pm, 4 * self.CHUNK):
                 c = mem[s:s + 4 * self.CHUNK]
                 part = slice(s, s + 4 * self.CHUNK)
                 perm = _perm_code(pi[c])
+                bi = batch[rep[c]]
                 RETm[part], L[part], C[part] = self._translates(
-                    CF[c], KF[c], perm, boundary[c], tables, batch[rep[c]])
-                self._data_indices(verts[c], CF[c], KF[c], perm, G[part], GF[part])
+                    CF[c], KF[c], perm, boundary[c], tables, bi)
+                self._data_indices(verts[c], CF[c], KF[c], perm, first[bi], G[part],
+                                   GF[part])
             # buckets: the classes of one size, each its members in a row
             csize = size[rep[mem]]
             cuts = np.concatenate([[0], np.flatnonzero(np.diff(csize)) + 1, [Pm]])
             for s, e in zip(cuts[:-1], cuts[1:]):
-                Sb = S[batch[rep[mem[s:e:csize[s]]]]]                          # (g, nr, 8n+1)
-                level.append(((np.ascontiguousarray(Sb[:, :, :q]), G[s:e], L[s:e], C[s:e]),
-                              RETm[s:e].ravel(), (Sb[:, :, q:], GF[s:e], L[s:e], C[s:e])))
+                b = batch[rep[mem[s:e:csize[s]]]]
+                level.append(((Sd[b], G[s:e], L[s:e], C[s:e]), RETm[s:e].ravel(),
+                              (S[b, :, 5 * n + 1:], GF[s:e], L[s:e], C[s:e])))
         return CF, KF, own
 
     def _representatives(self, CR, loc):
@@ -819,13 +858,15 @@ class FluxEquilibration:
     def _index_type(self):
         return np.int32 if 14 * self.geo.ncells + self.geo.n < 2 ** 31 else np.int64
 
-    def _data_indices(self, verts, CF, KF, perm, G, GF):
-        """Into G (P, 5n + 1) and GF (P, 3n): where the data of P patches (in their
-        representative's cell and vertex order; perm the vertex matches as `_perm_code`) sit
-        in the flat array [∇u_h (2 per cell) | r_h (3 per cell) | λ (per vertex)], then in
-        the flat array of (f φ_k, φ_i)_K (9 per cell): vertex i' of the representative's cell
-        is vertex i of the patch's with pi[c, i] = i', i = _PERMS[perm][c, i']."""
-        nc = self.geo.ncells
+    def _data_indices(self, verts, CF, KF, perm, first, G, GF):
+        """Into G (P, 2n + m + 1) and GF (P, 3n): where the data of P patches (in their
+        representative's cell and vertex order; perm the vertex matches as `_perm_code`,
+        first (P, m) the first (cell, slot) 3 c + k of each representative vertex) sit in the
+        flat array [∇u_h (2 per cell) | R_l / N_l (per vertex) | λ (per vertex)], then in the
+        flat array of (f φ_k, φ_i)_K (9 per cell): vertex i' of the representative's cell c
+        is vertex i = _PERMS[perm][c, i'] of the patch's."""
+        geo = self.geo
+        nc, nv = geo.ncells, geo.n
         P, n = CF.shape
         # one pass per slot, in G's integer type (numpy's loops over the last axis of
         # (P, n, 2) or (P, n, 3) arrays would run two or three entries at a time)
@@ -834,12 +875,13 @@ class FluxEquilibration:
         grad = G[:, :2 * n].reshape(P, n, 2)
         np.multiply(C, 2, out=grad[:, :, 0])
         np.add(grad[:, :, 0], 1, out=grad[:, :, 1])
-        lift, load = G[:, 2 * n:5 * n].reshape(P, n, 3), GF.reshape(P, n, 3)
-        c3, c9 = 3 * C + 2 * nc, 9 * C + KF.astype(G.dtype)
+        cv, kv = first // 3, first % 3
+        slot = i[np.arange(P)[:, None], cv, kv]                                # (P, m)
+        G[:, 2 * n:-1] = 2 * nc + geo.cells[np.take_along_axis(CF, cv, axis=1), slot]
+        G[:, -1] = 2 * nc + nv + verts
+        load, c9 = GF.reshape(P, n, 3), 9 * C + KF.astype(G.dtype)
         for l in range(3):
-            np.add(c3, i[:, :, l], out=lift[:, :, l])
             np.add(c9, 3 * i[:, :, l], out=load[:, :, l])
-        G[:, 5 * n] = 5 * nc + verts
 
     def _class_load(self, level, wf):
         """Keep the classes' operators as the evaluation takes them (`classes`: buckets, RT
@@ -897,20 +939,15 @@ class FluxEquilibration:
         geo = self.geo
         P, n = CS.shape
         nr, N = RET.shape[1], A.shape[1]
-        VERTS, _ = _row_unique(geo.cells[CS].reshape(P, -1), -1)              # (P, m)
+        VERTS, vloc = patch_vertices(geo, CS)                                  # (P, m)
         m = VERTS.shape[1]
-        vloc = _row_index(VERTS, geo.cells[CS].reshape(P, -1)).reshape(P, n, 3)
         nq = 3 * n
         pp = np.arange(P)[:, None, None]
-        qloc = 3 * np.arange(n)[None, :, None] + np.arange(3)[None, None, :]  # (1, n, 3)
         # local gradient (P, 2n, m) and lifting (P, 3n, m) operators
         Gd = np.zeros((P, 2 * n, m))
         rows = 2 * np.arange(n)[None, :, None, None] + np.arange(2)           # (1, n, 1, 2)
         Gd[pp[..., None], rows, vloc[..., None]] = geo.grad[CS]
-        Lr = np.zeros((P, nq, m))
-        liftK = (3.0 / geo.area[CS])[..., None, None] * _MINV_REF \
-            / geo.cells_per_vertex[geo.cells[CS]][:, :, None, :]              # (P, n, 3, 3)
-        Lr[pp[..., None], qloc[..., None], vloc[:, :, None, :]] = liftK
+        Lr = local_lifting(geo, CS, vloc, m)
         cell = self._right_hand_sides(CS, KA, nr, loc, N)
         # columns u (m) | λ_a (1) | R (m) | f1 | f2
         load = [np.take_along_axis(w[CS], KA[:, :, None, None], axis=3).reshape(P, nq, 1)
@@ -959,8 +996,9 @@ class FluxEquilibration:
     def sigma(self, alpha, u, lam, R):
         """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5): σ_f,α, plus
         μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on their own, plus the
-        classes' part (`algebraic_flux._apply_buckets` on the data [μ_α ∇u_h | r_h | ±λ],
-        with the change of basis and scatter matrix kept by the set-up)."""
+        classes' part (`algebraic_flux._apply_buckets` on the data [μ_α ∇u_h per cell |
+        R_l / N_l per vertex | ±λ], with the change of basis and scatter matrix kept by the
+        set-up)."""
         mu = self.disc.problem.mu1 if alpha == 1 else self.disc.problem.mu2
         sign = 1.0 if alpha == 1 else -1.0
         out = self.sigma_f[alpha - 1].copy()
@@ -970,10 +1008,10 @@ class FluxEquilibration:
             out[rows] += self.G_R @ R
         if self.classes is not None:
             from .algebraic_flux import _apply_buckets
-            nc = self.geo.ncells
-            data = np.empty(5 * nc + len(lam))
+            nc, nv = self.geo.ncells, len(lam)
+            data = np.empty(2 * nc + 2 * nv)
             np.multiply(mu, self.geo.gradient(u), out=data[:2 * nc].reshape(nc, 2))
-            data[2 * nc:5 * nc] = 0.0 if R is None else self.lift @ R
-            np.multiply(sign, lam, out=data[5 * nc:])
+            data[2 * nc:2 * nc + nv] = 0.0 if R is None else R / self.geo.cells_per_vertex
+            np.multiply(sign, lam, out=data[2 * nc + nv:])
             out += _apply_buckets(self.classes, data, len(out), self._class_scatter)
         return out
