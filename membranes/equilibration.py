@@ -36,12 +36,15 @@ data, the set-up solves every patch problem once for the *operators*
 (G_u, G_λ, G_R sparse, σ_f,α a fixed vector): one evaluation is three sparse products, O(N).
 Where many patches are translates of one another (a uniform refinement: all but a few, in about
 #vertices + #edges + #cells of T_0 classes) the operators are not assembled: each class keeps
-one dense operator from cell data (∇u_h, r_h, λ_a) to σ_a, computed for a representative, and
+one dense operator from the patch's data (∇u_h per cell, R_l / N_l at its vertices, λ_a) to
+σ_a, computed for a representative (its r_h columns composed with the local lifting), and
 each patch its data indices and change of RT basis (entries 0, ±1; `_translates`); one
-evaluation is then a gather, one batched product per stack of classes and one scatter. The other
-patches keep the sparse operators. The set-up handles all the patches of one size at once
-(classes, changes of basis, the representatives' systems in batches of one shape), so that its
-cost is a few passes over arrays of O(N) entries, made by cache-sized blocks of rows: the
+evaluation is then a gather, one batched product per stack of classes and one sparse product
+(the change of basis and the scatter, a matrix kept from the set-up). The other patches keep
+the sparse operators, restricted to the RT dofs they touch. The set-up handles all the
+patches of one size at once (classes, changes of basis, the representatives' systems in
+batches of one shape), so that its cost is a few passes over arrays of O(N) entries, made by
+cache-sized blocks of rows: the
 cells' canonical vertex orders once per mesh, the classes from the patches' rounded centroid
 offsets (a sort of each patch's m keys, a hash, a check of the vertices), and each member's
 change of basis and data indices from tables per representative dof.
