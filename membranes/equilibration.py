@@ -44,10 +44,10 @@ evaluation is then a gather, one batched product per stack of classes and one sp
 the sparse operators, restricted to the RT dofs they touch. The set-up handles all the
 patches of one size at once (classes, changes of basis, the representatives' systems in
 batches of one shape), so that its cost is a few passes over arrays of O(N) entries, made by
-cache-sized blocks of rows: the
-cells' canonical vertex orders once per mesh, the classes from the patches' rounded centroid
-offsets (a sort of each patch's m keys, a hash, a check of the vertices), and each member's
-change of basis and data indices from tables per representative dof.
+cache-sized blocks of rows: the cells' canonical vertex orders once per mesh, the classes
+from the patches' rounded centroid offsets (a sort of each patch's m keys, a hash, a check of
+the vertices), and each member's change of basis and data indices from tables per
+representative dof.
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures; `load_moments`: one assembly against DG2 per load).
