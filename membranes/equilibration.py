@@ -699,6 +699,7 @@ class FluxEquilibration:
                                                self._scale)
             if self._frames[0] is None:
                 self._frames = None
+        self._exterior_bits = space.exterior_edge.astype(np.int64) @ np.array([1, 2, 4])
         self._pending = []
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
@@ -708,7 +709,7 @@ class FluxEquilibration:
             CS, KA, own = self._classes(verts, CS, KA, b, level)
             if len(own):
                 alone.append((verts[own], CS[own], KA[own], b[own]))
-        del self._cent, self._frames                      # the classes' only
+        del self._cent, self._frames, self._exterior_bits   # the classes' only
         wf = load_moments(disc, space)
         # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
         self.load = [w.sum(axis=2) for w in wf]
@@ -838,9 +839,10 @@ class FluxEquilibration:
         cell, base, part, redges, lr = tables
         P, n = CF.shape
         nr = cell.shape[1]
-        ext = space.exterior_edge[CF]
-        keep = ((np.arange(3) != KF[:, :, None]) & ~ext) | (ext & boundary[:, None, None])
-        bits = (keep[:, :, 0] + 2 * keep[:, :, 1] + 4 * keep[:, :, 2]).astype(np.int64)
+        # kept edges as bits: those not opposite a and not on ∂Ω, and for a boundary vertex
+        # those on ∂Ω (the cells' ∂Ω edges as bits, `_exterior_bits`)
+        ext = self._exterior_bits[CF]
+        bits = (7 & ~(1 << KF) & ~ext) | np.where(boundary[:, None], ext, 0)
         if (EDGE_BITS[perm, bits] != redges[bi]).any():
             raise RuntimeError("a translate keeps other RT dofs than its representative")
         ci = cell[bi]                                                        # (P, nr)
