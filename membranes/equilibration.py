@@ -742,10 +742,11 @@ class FluxEquilibration:
         the patch's data d_p (the change of basis). The r_h columns are composed with the
         representative's local lifting (`local_lifting`, a translation leaves |K| alone) and
         take the values R_l / N_l at the patch's m vertices (in the representative's vertex
-        order; m < 3n): the data of a patch are 2n + m + 1 numbers, the ∇u_h kept per cell
-        (the gradient formed from nodal values in the evaluation, as before, not inside the
-        operator: the same round-off). The members are ordered by class size and class, so
-        that a bucket is a slice of each array."""
+        order; m < 3n): the data of a patch are 2n + m + 1 numbers. ∇u_h stays per cell,
+        formed from the nodal values in the evaluation: composed into the operator, its
+        columns would take values of the size of u_h and cancel down to the size of ∇u_h h
+        (round-off amplified by about 1/h). The members are ordered by class size and class,
+        so that a bucket is a slice of each array."""
         from .algebraic_flux import _perm_code
         geo, space = self.geo, self.space
         P, n = CS.shape

@@ -102,7 +102,7 @@ class CellFluxNorms:
         X, self.w = basix.make_quadrature(basix.CellType.triangle, 4)
         psi = _rt_element().tabulate(0, X)[0]                             # (q, 8, 2)
         psi = psi.transpose(2, 0, 1).reshape(-1, 8)                       # (2 q, 8)
-        self.psi = np.ascontiguousarray(psi[None] * rt_signs(np.arange(8))[:, None, :])
+        self.psi = np.ascontiguousarray(psi[None] * rt_signs(np.arange(8))[:, None, :])  # ρ
         self.rt_cells = np.ascontiguousarray(
             space.RT.dofmap.list.array.reshape(-1, 8)[:nc][self.order].T.astype(np.int32))
         J = geo.jacobians(self.order)
