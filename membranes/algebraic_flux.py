@@ -144,33 +144,34 @@ def _apply_buckets(level, flat, size, scatter=None):
     return np.bincount(ret, np.concatenate(values), minlength=size)
 
 
-def _basis_terms(buckets):
-    """The change of basis of every patch dof of the buckets (in the order of their RT dofs
-    RET): cols (n, 2), its terms' positions in the products of all buckets (each (g P, nr),
-    row-major, one after the other), their coefficients coef (n, 2) (0, ±1), and the dofs
-    with a second term (coef[:, 1] ≠ 0)."""
-    total = sum(L.shape[0] * L.shape[1] for _, _, L, _ in buckets)
-    index = np.int32 if total < 2 ** 31 else np.int64
-    cols, coef, first = [], [], 0
-    for _, _, L, C in buckets:
-        Pn, nr = L.shape[:2]
-        start = np.arange(first, first + Pn * nr, nr, dtype=index)[:, None, None]
-        cols.append((L + start).reshape(-1, 2))
-        coef.append(C.reshape(-1, 2))
-        first += Pn * nr
-    cols, coef = np.concatenate(cols), np.concatenate(coef)
-    return cols, coef, np.flatnonzero(coef[:, 1])
-
-
 def _bucket_scatter(level, size):
     """The change of basis and the scatter of `_apply_buckets` as one sparse matrix (size ×
-    the products' length; one or two entries ±1 per patch dof)."""
+    the products' length; one or two entries ±1 per patch dof): patch dof p of a bucket (its
+    products (g P, nr) row-major, the buckets one after the other; RET[p] its RT dof) has the
+    entry C[p, 0] at (RET[p], position of its first term) and, where C[p, 1] ≠ 0, C[p, 1] at
+    (RET[p], position of its second term). The coordinates are written straight into the
+    arrays of the matrix's construction, bucket by bucket (no intermediate copies: tens of
+    millions of entries on a mesh of 10⁶ vertices)."""
     buckets, ret = level
-    cols, coef, second = _basis_terms(buckets)
-    return sp.csr_matrix((np.concatenate([coef[:, 0], coef[second, 1]]).astype(float),
-                          (np.concatenate([ret, ret[second]]),
-                           np.concatenate([cols[:, 0], cols[second, 1]]))),
-                         shape=(size, cols.shape[0]))
+    sizes = [L.shape[0] * L.shape[1] for _, _, L, _ in buckets]
+    total = sum(sizes)
+    second = [np.flatnonzero(C[:, :, 1]) for _, _, _, C in buckets]
+    nnz = total + sum(len(k) for k in second)
+    index = np.int32 if max(nnz, size) < 2 ** 31 else np.int64
+    rows, cols, data = np.empty(nnz, dtype=index), np.empty(nnz, dtype=index), np.empty(nnz)
+    rows[:total] = ret
+    first, at = 0, total
+    for (_, _, L, C), n, k in zip(buckets, sizes, second):
+        Pn, nr = L.shape[:2]
+        start = np.arange(first, first + n, nr, dtype=index)[:, None]          # (Pn, 1)
+        np.add(L[:, :, 0], start, out=cols[first:first + n].reshape(Pn, nr))
+        data[first:first + n].reshape(Pn, nr)[:] = C[:, :, 0]
+        m = len(k)
+        cols[at:at + m] = L[:, :, 1].reshape(-1)[k] + start.ravel()[k // nr]
+        data[at:at + m] = C[:, :, 1].reshape(-1)[k]
+        rows[at:at + m] = ret[first + k]
+        first, at = first + n, at + m
+    return sp.csr_matrix((data, (rows, cols)), shape=(size, total))
 
 
 def _top_tables():

@@ -36,15 +36,18 @@ data, the set-up solves every patch problem once for the *operators*
 (G_u, G_λ, G_R sparse, σ_f,α a fixed vector): one evaluation is three sparse products, O(N).
 Where many patches are translates of one another (a uniform refinement: all but a few, in about
 #vertices + #edges + #cells of T_0 classes) the operators are not assembled: each class keeps
-one dense operator from cell data (∇u_h, r_h, λ_a) to σ_a, computed for a representative, and
+one dense operator from the patch's data (∇u_h per cell, R_l / N_l at its vertices, λ_a) to
+σ_a, computed for a representative (its r_h columns composed with the local lifting), and
 each patch its data indices and change of RT basis (entries 0, ±1; `_translates`); one
-evaluation is then a gather, one batched product per stack of classes and one scatter. The other
-patches keep the sparse operators. The set-up handles all the patches of one size at once
-(classes, changes of basis, the representatives' systems in batches of one shape), so that its
-cost is a few passes over arrays of O(N) entries, made by cache-sized blocks of rows: the
-cells' canonical vertex orders once per mesh, the classes from the patches' rounded centroid
-offsets (a sort of each patch's m keys, a hash, a check of the vertices), and each member's
-change of basis and data indices from tables per representative dof.
+evaluation is then a gather, one batched product per stack of classes and one sparse product
+(the change of basis and the scatter, a matrix kept from the set-up). The other patches keep
+the sparse operators, restricted to the RT dofs they touch. The set-up handles all the
+patches of one size at once (classes, changes of basis, the representatives' systems in
+batches of one shape), so that its cost is a few passes over arrays of O(N) entries, made by
+cache-sized blocks of rows: the cells' canonical vertex orders once per mesh, the classes
+from the patches' rounded centroid offsets (a sort of each patch's m keys, a hash, a check of
+the vertices), and each member's change of basis and data indices from tables per
+representative dof.
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures; `load_moments`: one assembly against DG2 per load).
@@ -122,15 +125,16 @@ class Geometry:
 class Lifting:
     """`Lifting(geo) @ R`: the lifting R ↦ r_h of DESIGN §4 (DG1 coefficients, 3 per cell in
     vertex order), applied without storing its matrix: per cell
-    r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l."""
+    r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l, the quotients R_l / N_l
+    formed once per vertex and the factors 3/|K| kept."""
 
     def __init__(self, geo):
         self.geo = geo
+        self.scale = (3.0 / geo.area)[:, None]
 
     def __matmul__(self, R):
-        geo = self.geo
-        v = R[geo.cells] / geo.cells_per_vertex[geo.cells]
-        return ((3.0 / geo.area)[:, None] * (v @ _MINV_REF.T)).ravel()
+        v = (R / self.geo.cells_per_vertex)[self.geo.cells]
+        return (self.scale * (v @ _MINV_REF.T)).ravel()
 
 
 def _local_index_type(n):
@@ -227,6 +231,29 @@ def _row_index(table, values):
     off = np.arange(P, dtype=np.int64)[:, None] * big
     idx = np.searchsorted((table + off).ravel(), (values + off).ravel()).reshape(values.shape)
     return idx - np.arange(P)[:, None] * k
+
+
+def patch_vertices(geo, CS):
+    """The vertices of P patches of one shape (cells CS (P, n), m vertices each): VERTS (P, m)
+    ascending and their local numbers vloc (P, n, 3) in the cells' vertex order."""
+    P, n = CS.shape
+    VERTS, _ = _row_unique(geo.cells[CS].reshape(P, -1), -1)
+    return VERTS, _row_index(VERTS, geo.cells[CS].reshape(P, -1)).reshape(P, n, 3)
+
+
+def local_lifting(geo, CS, vloc, m, divide=True):
+    """(P, 3n, m): the lifting of DESIGN §4 (`Lifting`) on P patches (cells CS (P, n), local
+    vertex numbers vloc, m vertices), from nodal values at the patch's vertices to r_h on its
+    cells (3 per cell, vertex order): (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l;
+    with divide=False the values are R_l / N_l already (no division)."""
+    P, n = CS.shape
+    liftK = (3.0 / geo.area[CS])[..., None, None] * _MINV_REF                 # (P, n, 3, 3)
+    if divide:
+        liftK = liftK / geo.cells_per_vertex[geo.cells[CS]][:, :, None, :]
+    Lr = np.zeros((P, 3 * n, m))
+    qloc = 3 * np.arange(n)[None, :, None] + np.arange(3)[None, None, :]      # (1, n, 3)
+    Lr[np.arange(P)[:, None, None, None], qloc[..., None], vloc[:, :, None, :]] = liftK
+    return Lr
 
 
 class PatchSpace:
@@ -672,6 +699,7 @@ class FluxEquilibration:
                                                self._scale)
             if self._frames[0] is None:
                 self._frames = None
+        self._exterior_bits = space.exterior_edge.astype(np.int64) @ np.array([1, 2, 4])
         self._pending = []
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
@@ -681,7 +709,7 @@ class FluxEquilibration:
             CS, KA, own = self._classes(verts, CS, KA, b, level)
             if len(own):
                 alone.append((verts[own], CS[own], KA[own], b[own]))
-        del self._cent, self._frames                      # the classes' only
+        del self._cent, self._frames, self._exterior_bits   # the classes' only
         wf = load_moments(disc, space)
         # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
         self.load = [w.sum(axis=2) for w in wf]
@@ -690,8 +718,10 @@ class FluxEquilibration:
             for sel, RET, loc, A in space.patch_groups(CS, b, self.CHUNK, glob):
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A, wf)
         self._add_operators()
-        self.classes = self._class_load(level, wf) if level else None
-        self._class_scatter = None     # the classes' change of basis and scatter (`sigma`)
+        self._keep_touched_rows()
+        self.classes = self._class_scatter = None
+        if level:
+            self._class_load(level, wf)
         # what the evaluation does not need goes
         del self._pending
         space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
@@ -706,11 +736,17 @@ class FluxEquilibration:
         Returns CS, KA in the classes' canonical cell order and the indices of the other
         patches (each solved on its own into G_u, G_R, G_lam).
 
-        The representative's right-hand side is a linear map of cell data that a translation
-        carries over: ∇u_h per cell (2), r_h per cell (3, its vertices permuted by π), λ_a, and
-        (set-up only) the load moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map)
-        and σ_p = Tᵀ S d_p for the patch's data d_p (the change of basis). The members are
-        ordered by class size and class, so that a bucket is a slice of each array."""
+        The representative's right-hand side is a linear map of data that a translation
+        carries over: ∇u_h per cell (2), r_h per cell (3), λ_a, and (set-up only) the load
+        moments (f φ_a, φ_i)_K; so S = (σ rows of A_r⁻¹ times that map) and σ_p = Tᵀ S d_p for
+        the patch's data d_p (the change of basis). The r_h columns are composed with the
+        representative's local lifting (`local_lifting`, a translation leaves |K| alone) and
+        take the values R_l / N_l at the patch's m vertices (in the representative's vertex
+        order; m < 3n): the data of a patch are 2n + m + 1 numbers. ∇u_h stays per cell,
+        formed from the nodal values in the evaluation: composed into the operator, its
+        columns would take values of the size of u_h and cancel down to the size of ∇u_h h
+        (round-off amplified by about 1/h). The members are ordered by class size and class,
+        so that a bucket is a slice of each array."""
         from .algebraic_flux import _perm_code
         geo, space = self.geo, self.space
         P, n = CS.shape
@@ -724,11 +760,20 @@ class FluxEquilibration:
         if len(reps) == 0:
             return CF, KF, own
         glob = space.retained_dofs(CF[reps], boundary[reps], KF[reps])
-        q = 5 * n + 1
         for sel, RET, loc, A in space.patch_groups(CF[reps], boundary[reps], len(reps), glob):
             nr = RET.shape[1]
-            S = np.linalg.solve(A, self._right_hand_sides(CF[reps[sel]], KF[reps[sel]], nr,
-                                                          loc, A.shape[1]))[:, :nr]
+            CR = CF[reps[sel]]
+            S = np.linalg.solve(A, self._right_hand_sides(CR, KF[reps[sel]], nr, loc,
+                                                          A.shape[1]))[:, :nr]
+            _, vloc = patch_vertices(geo, CR)
+            m = int(vloc.max()) + 1
+            Sd = np.concatenate([S[:, :, :2 * n],
+                                 S[:, :, 2 * n:5 * n] @ local_lifting(geo, CR, vloc, m, False),
+                                 S[:, :, 5 * n:5 * n + 1]], axis=2)         # (g, nr, 2n+m+1)
+            # each representative's vertex v at its first (cell, slot) c_v, k_v
+            first = np.empty((len(sel), m), dtype=np.int64)
+            for j in range(3 * n - 1, -1, -1):
+                first[np.arange(len(sel)), vloc.reshape(len(sel), -1)[:, j]] = j
             batch = np.full(P, -1)
             batch[reps[sel]] = np.arange(len(sel))
             mem = np.flatnonzero(member & (batch[rep] >= 0))
@@ -737,23 +782,25 @@ class FluxEquilibration:
             RETm = np.empty((Pm, nr), dtype=np.int32)
             L = np.empty((Pm, nr, 2), dtype=_local_index_type(nr))
             C = np.empty((Pm, nr, 2), dtype=np.int8)
-            G = np.empty((Pm, q), dtype=self._index_type())
+            G = np.empty((Pm, 2 * n + m + 1), dtype=self._index_type())
             GF = np.empty((Pm, 3 * n), dtype=G.dtype)
-            tables = self._representatives(CF[reps[sel]], loc)
+            tables = self._representatives(CR, loc)
             for s in range(0, Pm, 4 * self.CHUNK):
                 c = mem[s:s + 4 * self.CHUNK]
                 part = slice(s, s + 4 * self.CHUNK)
                 perm = _perm_code(pi[c])
+                bi = batch[rep[c]]
                 RETm[part], L[part], C[part] = self._translates(
-                    CF[c], KF[c], perm, boundary[c], tables, batch[rep[c]])
-                self._data_indices(verts[c], CF[c], KF[c], perm, G[part], GF[part])
+                    CF[c], KF[c], perm, boundary[c], tables, bi)
+                self._data_indices(verts[c], CF[c], KF[c], perm, first[bi], G[part],
+                                   GF[part])
             # buckets: the classes of one size, each its members in a row
             csize = size[rep[mem]]
             cuts = np.concatenate([[0], np.flatnonzero(np.diff(csize)) + 1, [Pm]])
             for s, e in zip(cuts[:-1], cuts[1:]):
-                Sb = S[batch[rep[mem[s:e:csize[s]]]]]                          # (g, nr, 8n+1)
-                level.append(((np.ascontiguousarray(Sb[:, :, :q]), G[s:e], L[s:e], C[s:e]),
-                              RETm[s:e].ravel(), (Sb[:, :, q:], GF[s:e], L[s:e], C[s:e])))
+                b = batch[rep[mem[s:e:csize[s]]]]
+                level.append(((Sd[b], G[s:e], L[s:e], C[s:e]), RETm[s:e].ravel(),
+                              (S[b, :, 5 * n + 1:], GF[s:e], L[s:e], C[s:e])))
         return CF, KF, own
 
     def _representatives(self, CR, loc):
@@ -793,9 +840,10 @@ class FluxEquilibration:
         cell, base, part, redges, lr = tables
         P, n = CF.shape
         nr = cell.shape[1]
-        ext = space.exterior_edge[CF]
-        keep = ((np.arange(3) != KF[:, :, None]) & ~ext) | (ext & boundary[:, None, None])
-        bits = (keep[:, :, 0] + 2 * keep[:, :, 1] + 4 * keep[:, :, 2]).astype(np.int64)
+        # kept edges as bits: those not opposite a and not on ∂Ω, and for a boundary vertex
+        # those on ∂Ω (the cells' ∂Ω edges as bits, `_exterior_bits`)
+        ext = self._exterior_bits[CF]
+        bits = (7 & ~(1 << KF) & ~ext) | np.where(boundary[:, None], ext, 0)
         if (EDGE_BITS[perm, bits] != redges[bi]).any():
             raise RuntimeError("a translate keeps other RT dofs than its representative")
         ci = cell[bi]                                                        # (P, nr)
@@ -816,52 +864,46 @@ class FluxEquilibration:
     def _index_type(self):
         return np.int32 if 14 * self.geo.ncells + self.geo.n < 2 ** 31 else np.int64
 
-    def _data_indices(self, verts, CF, KF, perm, G, GF):
-        """Into G (P, 5n + 1) and GF (P, 3n): where the data of P patches (in their
-        representative's cell and vertex order; perm the vertex matches as `_perm_code`) sit
-        in the flat array [∇u_h (2 per cell) | r_h (3 per cell) | λ (per vertex)], then in
-        the flat array of (f φ_k, φ_i)_K (9 per cell): vertex i' of the representative's cell
-        is vertex i of the patch's with pi[c, i] = i', i = _PERMS[perm][c, i']."""
-        nc = self.geo.ncells
+    def _data_indices(self, verts, CF, KF, perm, first, G, GF):
+        """Into G (P, 2n + m + 1) and GF (P, 3n): where the data of P patches (in their
+        representative's cell and vertex order; perm the vertex matches as `_perm_code`,
+        first (P, m) the first (cell, slot) 3 c + k of each representative vertex) sit in the
+        flat array [∇u_h (2 per cell) | R_l / N_l (per vertex) | λ (per vertex)], then in the
+        flat array of (f φ_k, φ_i)_K (9 per cell): vertex i' of the representative's cell c
+        is vertex i = _PERMS[perm][c, i'] of the patch's."""
+        geo = self.geo
+        nc, nv = geo.ncells, geo.n
         P, n = CF.shape
-        cv = 3 * CF[:, :, None] + _PERMS[perm]                                 # (P, n, 3)
-        G[:, :2 * n].reshape(P, n, 2)[:] = 2 * CF[:, :, None] + np.arange(2)
-        G[:, 2 * n:5 * n].reshape(P, n, 3)[:] = 2 * nc + cv
-        G[:, 5 * n] = 5 * nc + verts
-        GF.reshape(P, n, 3)[:] = 3 * cv + KF[:, :, None]
+        # one pass per slot, in G's integer type (numpy's loops over the last axis of
+        # (P, n, 2) or (P, n, 3) arrays would run two or three entries at a time)
+        C = CF.astype(G.dtype)
+        i = _PERMS.astype(G.dtype)[perm]                                       # (P, n, 3)
+        grad = G[:, :2 * n].reshape(P, n, 2)
+        np.multiply(C, 2, out=grad[:, :, 0])
+        np.add(grad[:, :, 0], 1, out=grad[:, :, 1])
+        cv, kv = first // 3, first % 3
+        slot = i[np.arange(P)[:, None], cv, kv]                                # (P, m)
+        G[:, 2 * n:-1] = 2 * nc + geo.cells[np.take_along_axis(CF, cv, axis=1), slot]
+        G[:, -1] = 2 * nc + nv + verts
+        load, c9 = GF.reshape(P, n, 3), 9 * C + KF.astype(G.dtype)
+        for l in range(3):
+            np.add(c9, 3 * i[:, :, l], out=load[:, :, l])
 
     def _class_load(self, level, wf):
-        """The classes' operators as the evaluation takes them (buckets, RT dofs), after
-        adding their σ_f from the load columns, which are then dropped."""
-        from .algebraic_flux import _apply_buckets
-        pieces, rets, count = [], [], 0
-
-        def add():                                        # σ_f of the pieces gathered so far
-            for alpha in range(2):
-                self.sigma_f[alpha] += _apply_buckets((pieces, np.concatenate(rets)),
-                                                      wf[alpha].ravel(), self.sigma_f.shape[1])
-            pieces.clear()
-            rets.clear()
-
-        # each call ends in a scatter onto all RT dofs: it takes pieces of at least half as
-        # many entries (a few calls per level, their temporaries bounded by about 50 bytes
-        # per RT dof)
-        enough = max(self.sigma_f.shape[1] // 2, 16 * self.CHUNK)
-        for _, ret, (S, G, L, C) in level:
-            g, nr, _ = S.shape
-            per = G.shape[0] // g                             # patches per class
-            step = max(1, 4 * self.CHUNK // per)              # some classes at a time
-            for s in range(0, g, step):
-                part = slice(s * per, (s + step) * per)
-                pieces.append((S[s:s + step], G[part], L[part], C[part]))
-                rets.append(ret[part.start * nr:part.stop * nr])
-                count += len(rets[-1])
-                if count >= enough:
-                    add()
-                    count = 0
-        if pieces:
-            add()
-        return [b for b, _, _ in level], np.concatenate([r for _, r, _ in level])
+        """Keep the classes' operators as the evaluation takes them (`classes`: buckets, RT
+        dofs) and their change of basis and scatter as one sparse matrix (`_class_scatter`,
+        algebraic_flux._bucket_scatter: the evaluation applies it at every call), and add the
+        classes' σ_f from the load columns through the same matrix; the load columns are then
+        dropped."""
+        from .algebraic_flux import _apply_buckets, _bucket_scatter
+        ret = np.concatenate([r for _, r, _ in level])
+        self.classes = ([b for b, _, _ in level], ret)
+        self._class_scatter = _bucket_scatter(self.classes, self.sigma_f.shape[1])
+        load = ([f for _, _, f in level], ret)
+        level.clear()
+        for alpha in range(2):
+            self.sigma_f[alpha] += _apply_buckets(load, wf[alpha].ravel(),
+                                                  self.sigma_f.shape[1], self._class_scatter)
 
     def _right_hand_sides(self, CS, KA, nr, loc, N):
         """The right-hand sides of P patch problems of one shape (cells CS (P, n), a's local
@@ -903,20 +945,15 @@ class FluxEquilibration:
         geo = self.geo
         P, n = CS.shape
         nr, N = RET.shape[1], A.shape[1]
-        VERTS, _ = _row_unique(geo.cells[CS].reshape(P, -1), -1)              # (P, m)
+        VERTS, vloc = patch_vertices(geo, CS)                                  # (P, m)
         m = VERTS.shape[1]
-        vloc = _row_index(VERTS, geo.cells[CS].reshape(P, -1)).reshape(P, n, 3)
         nq = 3 * n
         pp = np.arange(P)[:, None, None]
-        qloc = 3 * np.arange(n)[None, :, None] + np.arange(3)[None, None, :]  # (1, n, 3)
         # local gradient (P, 2n, m) and lifting (P, 3n, m) operators
         Gd = np.zeros((P, 2 * n, m))
         rows = 2 * np.arange(n)[None, :, None, None] + np.arange(2)           # (1, n, 1, 2)
         Gd[pp[..., None], rows, vloc[..., None]] = geo.grad[CS]
-        Lr = np.zeros((P, nq, m))
-        liftK = (3.0 / geo.area[CS])[..., None, None] * _MINV_REF \
-            / geo.cells_per_vertex[geo.cells[CS]][:, :, None, :]              # (P, n, 3, 3)
-        Lr[pp[..., None], qloc[..., None], vloc[:, :, None, :]] = liftK
+        Lr = local_lifting(geo, CS, vloc, m)
         cell = self._right_hand_sides(CS, KA, nr, loc, N)
         # columns u (m) | λ_a (1) | R (m) | f1 | f2
         load = [np.take_along_axis(w[CS], KA[:, :, None, None], axis=3).reshape(P, nq, 1)
@@ -940,6 +977,7 @@ class FluxEquilibration:
                                                minlength=self.sigma_f.shape[1])
 
     def _add_operators(self):
+        """Add the pending batches of `_solve_patches` to G_u, G_R, G_λ."""
         if not self._pending:
             return
         rows, cols, u, R, rows_lam, cols_lam, lam = (np.concatenate(z)
@@ -950,20 +988,36 @@ class FluxEquilibration:
         self.G_R = self.G_R + sp.csr_matrix((R, (rows, cols)), shape=shape)
         self.G_lam = self.G_lam + sp.csr_matrix((lam, (rows_lam, cols_lam)), shape=shape)
 
+    def _keep_touched_rows(self):
+        """Restrict G_u, G_R, G_λ to the RT dofs they touch (`touched`): those of the patches
+        solved on their own, a few thousand where the classes take all others, so that an
+        evaluation makes no vectors of all RT dofs for them."""
+        touched = np.zeros(self.G_u.shape[0], dtype=bool)
+        for G in (self.G_u, self.G_R, self.G_lam):
+            touched[np.diff(G.indptr) > 0] = True
+        self.touched = np.flatnonzero(touched)
+        self.G_u, self.G_R, self.G_lam = (G[self.touched] for G in (self.G_u, self.G_R,
+                                                                     self.G_lam))
+
     def sigma(self, alpha, u, lam, R):
-        """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5)."""
+        """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5): σ_f,α, plus
+        μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on their own, plus the
+        classes' part (`algebraic_flux._apply_buckets` on the data [μ_α ∇u_h per cell |
+        R_l / N_l per vertex | ±λ], with the change of basis and scatter matrix kept by the
+        set-up)."""
         mu = self.disc.problem.mu1 if alpha == 1 else self.disc.problem.mu2
         sign = 1.0 if alpha == 1 else -1.0
-        out = mu * (self.G_u @ u) + sign * (self.G_lam @ lam) + self.sigma_f[alpha - 1]
+        out = self.sigma_f[alpha - 1].copy()
+        rows = self.touched
+        out[rows] = mu * (self.G_u @ u) + sign * (self.G_lam @ lam) + out[rows]
         if R is not None:
-            out += self.G_R @ R
+            out[rows] += self.G_R @ R
         if self.classes is not None:
-            r = np.zeros(3 * self.geo.ncells) if R is None else self.lift @ R
-            data = np.concatenate([mu * self.geo.gradient(u).ravel(), r, sign * lam])
-            # the classes' part (`algebraic_flux._apply_buckets`), their change of basis and
-            # scatter as one sparse matrix, built at the first evaluation and kept
-            from .algebraic_flux import _apply_buckets, _bucket_scatter
-            if self._class_scatter is None:
-                self._class_scatter = _bucket_scatter(self.classes, len(out))
+            from .algebraic_flux import _apply_buckets
+            nc, nv = self.geo.ncells, len(lam)
+            data = np.empty(2 * nc + 2 * nv)
+            np.multiply(mu, self.geo.gradient(u), out=data[:2 * nc].reshape(nc, 2))
+            data[2 * nc:2 * nc + nv] = 0.0 if R is None else R / self.geo.cells_per_vertex
+            np.multiply(sign, lam, out=data[2 * nc + nv:])
             out += _apply_buckets(self.classes, data, len(out), self._class_scatter)
         return out

@@ -73,14 +73,21 @@ def _p1_products(geo, p, q):
 class CellFluxNorms:
     """‖a + σ‖_K² on every cell K at once, for a piecewise-constant vector field a and σ ∈ RT_1
     given by its global coefficients (dolfinx's ("RT", 2) on `space`, a PatchSpace), without
-    assembly. On K, σ = (1/det J) J Σ_j s_j c_j ψ̂_j ∘ F_K⁻¹: the contravariant Piola map of
-    basix's reference basis ψ̂ (RT_1, Legendre variant) with the cell's dof signs s (its edge
-    reflections), as in PatchSpace.element_blocks. Its components are polynomials of degree 2
-    (RT_1 = P_1² + x P̃_1), so |a + σ|² has degree 4 and basix's degree-4 rule (weights w_q,
-    points x̂_q) integrates it exactly: ‖a + σ‖_K² = |det J| Σ_q w_q |a + σ(F_K(x̂_q))|², with
-    a added to the values of σ before squaring, as an assembly does (no cancellation between
-    the terms of an expanded square). The cells are taken CHUNK at a time (the temporaries
-    stay in cache)."""
+    assembly (DESIGN §7: η_F and η_alg). On K, σ = (1/det J) J Σ_j s_j c_j ψ̂_j ∘ F_K⁻¹: the
+    contravariant Piola map of basix's reference basis ψ̂ (RT_1, Legendre variant) with the
+    cell's dof signs s (its edge reflections), as in PatchSpace.element_blocks. Its components
+    are polynomials of degree 2 (RT_1 = P_1² + x P̃_1), so |a + σ|² has degree 4 and basix's
+    degree-4 rule (weights w_q, points x̂_q) integrates it exactly: ‖a + σ‖_K² = |det J|
+    Σ_q w_q |a + σ(F_K(x̂_q))|², with a added to the values of σ before squaring, as an
+    assembly does (no cancellation between the terms of an expanded square).
+
+    The signs take eight patterns (one per set of reflected edges ρ): the cells are kept
+    grouped by ρ, and each group's signs are folded into its reference values s_j ψ̂_j(x̂_q)
+    (exact: a sign), so that the values of a block of cells are one product of a table with
+    their gathered coefficients. The arrays are laid out cell index last (coefficients,
+    points, components, Piola entries × cells), so that every elementwise step runs along
+    contiguous rows of a block of cells; the cells are taken CHUNK at a time within a group
+    (the temporaries stay in cache)."""
 
     CHUNK = 4096
 
@@ -88,43 +95,57 @@ class CellFluxNorms:
         import basix
         geo = space.geo
         nc = geo.ncells
-        self.rt_cells = space.RT.dofmap.list.array.reshape(-1, 8)[:nc].astype(np.int32)
-        self.signs = rt_signs(cell_reflections(space.RT.mesh, nc))          # (nc, 8) int8
+        rho = cell_reflections(space.RT.mesh, nc)
+        # the cells grouped by their reflections, each group a slice of `order`
+        self.order = np.argsort(rho, kind="stable")
+        self.cuts = np.searchsorted(rho[self.order], np.arange(9))
         X, self.w = basix.make_quadrature(basix.CellType.triangle, 4)
         psi = _rt_element().tabulate(0, X)[0]                             # (q, 8, 2)
-        self.psi = np.ascontiguousarray(psi.transpose(1, 2, 0).reshape(8, -1))  # (8, 2 q)
-        J = geo.jacobians(np.arange(nc))
+        psi = psi.transpose(2, 0, 1).reshape(-1, 8)                       # (2 q, 8)
+        self.psi = np.ascontiguousarray(psi[None] * rt_signs(np.arange(8))[:, None, :])  # ρ
+        self.rt_cells = np.ascontiguousarray(
+            space.RT.dofmap.list.array.reshape(-1, 8)[:nc][self.order].T.astype(np.int32))
+        J = geo.jacobians(self.order)
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        self.piola = (J / det[:, None, None]).reshape(nc, 4, 1)             # J / det J
+        self.piola = np.ascontiguousarray((J / det[:, None, None]).reshape(nc, 4).T)
         self.abs_det = np.abs(det)
 
     def squared(self, a, sigma, tau=None):
         """∫_K |a + σ|² for every cell K (a (ncells, 2)); with τ ∈ RT_1 also ∫_K |a + σ + τ|²
         and ∫_K |τ|²: shape (ncells,), or (3, ncells) with τ."""
         nc = len(self.abs_det)
+        a = np.ascontiguousarray(a[self.order].T)                            # (2, nc)
         out = np.empty((1 if tau is None else 3, nc))
-        for s in range(0, nc, self.CHUNK):
-            cells = slice(s, s + self.CHUNK)
-            e = self._values(sigma, cells)
-            e += a[cells].T[:, :, None]
-            out[0, cells] = self._integral(e, cells)
-            if tau is not None:
-                t = self._values(tau, cells)
-                out[2, cells] = self._integral(t, cells)
-                e += t
-                out[1, cells] = self._integral(e, cells)
-        return out[0] if tau is None else out
+        for r in range(8):
+            for s in range(self.cuts[r], self.cuts[r + 1], self.CHUNK):
+                cells = slice(s, min(s + self.CHUNK, self.cuts[r + 1]))
+                e = self._values(sigma, cells, r)
+                e += a[:, None, cells]
+                out[0, cells] = self._integral(e, cells)
+                if tau is not None:
+                    t = self._values(tau, cells, r)
+                    out[2, cells] = self._integral(t, cells)
+                    e += t
+                    out[1, cells] = self._integral(e, cells)
+        res = np.empty_like(out)
+        res[:, self.order] = out
+        return res[0] if tau is None else res
 
-    def _values(self, sigma, cells):
-        """σ at the quadrature points of the cells, (2, cells, q)."""
-        v = ((sigma[self.rt_cells[cells]] * self.signs[cells]) @ self.psi)
-        v = v.reshape(len(v), 2, -1)
-        F = self.piola[cells]
-        return np.stack([F[:, 0] * v[:, 0] + F[:, 1] * v[:, 1],
-                         F[:, 2] * v[:, 0] + F[:, 3] * v[:, 1]])
+    def _values(self, sigma, cells, r):
+        """σ at the quadrature points of the cells (positions in `order`, all of reflections
+        r), (2, q, cells)."""
+        v = self.psi[r] @ sigma[self.rt_cells[:, cells]]                   # (2 q, cells)
+        v = v.reshape(2, -1, v.shape[1])
+        F = self.piola[:, cells]
+        e = np.empty_like(v)
+        np.multiply(F[0], v[0], out=e[0])
+        e[0] += F[1] * v[1]
+        np.multiply(F[2], v[0], out=e[1])
+        e[1] += F[3] * v[1]
+        return e
 
     def _integral(self, v, cells):
-        return ((v[0] * v[0] + v[1] * v[1]) @ self.w) * self.abs_det[cells]
+        return (self.w @ (v[0] * v[0] + v[1] * v[1])) * self.abs_det[cells]
 
 
 def constraint_projection(u1, u2):
