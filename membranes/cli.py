@@ -4,8 +4,8 @@
 Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out),
 3 the solver did not converge (the outputs are written, with converged = false and a reason).
 Progress: one line per Newton step on stderr (``--quiet`` silences it).
-``mpirun -n P membranes solve ...`` shares the estimators' patch problems between P processes
-(membranes.parallel); process 0 prints and writes.
+``mpirun -n P membranes solve ...`` runs Newton on process 0 and the estimators on the others
+(membranes.pipeline); process 0 prints and writes.
 """
 
 import argparse
@@ -142,7 +142,8 @@ def _solve(args):
         parse_petsc_options(args.petsc_options)
     from mpi4py import MPI
     world = MPI.COMM_WORLD
-    # several processes (mpirun): each builds the whole problem, they share the patches
+    # several processes (mpirun): each builds the whole problem; Newton on process 0, the
+    # estimators on the others (membranes.pipeline)
     # (membranes.parallel)
     problem = scenes.make(scene, comm=MPI.COMM_SELF, **kwargs)
     sol = solve(problem, newton=args.newton, cfun=args.cfun, system=args.system,
