@@ -144,7 +144,6 @@ def _solve(args):
     world = MPI.COMM_WORLD
     # several processes (mpirun): each builds the whole problem; Newton on process 0, the
     # estimators on the others (membranes.pipeline)
-    # (membranes.parallel)
     problem = scenes.make(scene, comm=MPI.COMM_SELF, **kwargs)
     sol = solve(problem, newton=args.newton, cfun=args.cfun, system=args.system,
                 linear_solver=args.linear_solver, petsc_options=petsc_options, nu=args.nu,
