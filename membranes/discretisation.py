@@ -309,14 +309,16 @@ def boundary_dofs(V):
     return fem.locate_dofs_topological(V, 1, dmesh.exterior_facet_indices(mesh.topology))
 
 
-def discretise(problem):
+def discretise(problem, stiffness=True):
     """Assemble S1, S2, D, F1, F2 and the boundary vertices of `problem` (DESIGN §2). The
-    stiffness matrix S is assembled once and scaled: S_α = μ_α S."""
+    stiffness matrix S is assembled once and scaled: S_α = μ_α S. stiffness=False: no S
+    (S1 = S2 = None), for the estimator processes of a run on several processes
+    (membranes.pipeline), whose estimators read the loads, the space and the boundary."""
     from dolfinx import fem
     mesh = problem.mesh
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-    S = assemble_matrix_csr(membrane_bilinear(1.0, u, v))
+    S = assemble_matrix_csr(membrane_bilinear(1.0, u, v)) if stiffness else None
     D = assemble_vector_array(contact_weight(v))
     dxd = data_measures(mesh, problem.interface)
     f1, f2 = (load(f, mesh) for f in (problem.f1, problem.f2))
@@ -324,7 +326,8 @@ def discretise(problem):
     F2 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f2, v, dx)))
     boundary = boundary_dofs(V)
     n = V.dofmap.index_map.size_local
-    return Discretisation(problem, V, problem.mu1 * S, problem.mu2 * S, D[:n], F1[:n], F2[:n],
+    S1, S2 = (None, None) if S is None else (problem.mu1 * S, problem.mu2 * S)
+    return Discretisation(problem, V, S1, S2, D[:n], F1[:n], F2[:n],
                           np.asarray(boundary[boundary < n], dtype=np.int32), dxd)
 
 

@@ -27,7 +27,7 @@ from .krylov import DEFAULT_MAX_LINEAR_ITS, DEFAULT_NU, Krylov
 from .meshes import mesh_size
 from .newton import (DEFAULT_GAMMA, DEFAULT_TOL, check_choice, check_gamma, check_method,
                      semismooth_newton)
-from .newton_system import linear_rows, split
+from .newton_system import initial_residual, linear_rows, split
 
 LINEAR_SOLVERS = ("gmres", "direct")
 ALG_FLUXES = ("nu", "multilevel")
@@ -273,7 +273,7 @@ class IterateEstimates:
             self.eta_K, self.pending, ready = self.latest_eta_K, None, []
         else:
             if R is None:   # X^0 comes from no linear solve: its linear rows are out of balance
-                R = np.concatenate([self.rows.F - self.rows.E @ X, np.zeros(self.rows.n)])
+                R = initial_residual(self.rows, X)
             ready = [] if self.pending is None else [self._estimate(*self.pending, (X, R))]
             self.pending = None
             if self.multilevel is not None or self._alg(rec, R) <= ALG_ROUNDOFF:
@@ -349,7 +349,8 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     comm: an MPI communicator of P ≥ 2 processes (membranes.pipeline: each process builds the
     same problem on MPI.COMM_SELF; Newton and GMRES run on process 0, the estimators on the
     others, which share the patch problems when P ≥ 3; progress lines come from process 0;
-    every process returns the same Solution); None: one process.
+    every process returns the same Solution, whose discretisation on the estimator processes
+    has no stiffness matrices, S1 = S2 = None); None: one process.
     """
     parallel.check_replicated(problem.mesh, comm)
     comm = comm if comm is not None and comm.size > 1 else None
@@ -504,6 +505,8 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
         est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive")
     disc = discretise(problem)
     rows = linear_rows(disc)
+    if remote:      # the estimator processes have no E: X^0's residual goes with X^0
+        est.rows = rows
     setup_time = time.perf_counter() - t0
     t = time.perf_counter()
     X0 = _initial_guess(initial_guess, disc)   # first: a nested run then frees the level below

@@ -94,7 +94,23 @@ def linear_rows(disc):
     them all to COO and back, took 7 times as long at 9.3e5 vertices): the 2N rows of S1 and
     of S2 (its columns shifted by N), a slot for ∓D_l (column 2N + l) inserted at the end of
     each; in a boundary row every entry but the diagonal (stored in a stiffness matrix) and
-    the slot become zeros, dropped at the end."""
+    the slot become zeros, dropped at the end. Without stiffness matrices (discretise with
+    stiffness=False) E is None: F and the weights alone."""
+    n = disc.n
+    interior = disc.interior
+    E = None if disc.S1 is None else _membrane_rows(disc)
+    F1, F2 = disc.F1.copy(), disc.F2.copy()
+    F1[disc.boundary] = disc.problem.g
+    F2[disc.boundary] = 0.0
+    mu1, mu2 = disc.problem.mu1, disc.problem.mu2
+    weights = np.concatenate([np.where(interior, 1.0 / mu1, 1.0),
+                              np.where(interior, 1.0 / mu2, 1.0)])
+    return LinearRows(E, np.concatenate([F1, F2]), n, disc.boundary, weights,
+                      0.5 * (1.0 / mu1 + 1.0 / mu2))
+
+
+def _membrane_rows(disc):
+    """E of `linear_rows`, from the CSR arrays of S1 and S2."""
     n = disc.n
     interior = disc.interior
     S1, S2 = (sp.csr_matrix(S) for S in (disc.S1, disc.S2))
@@ -114,14 +130,13 @@ def linear_rows(disc):
                        np.insert(indices, indptr[1:], np.tile(2 * n + np.arange(n), 2)),
                        indptr + np.arange(2 * n + 1)), shape=(2 * n, 3 * n))
     E.eliminate_zeros()
-    F1, F2 = disc.F1.copy(), disc.F2.copy()
-    F1[disc.boundary] = disc.problem.g
-    F2[disc.boundary] = 0.0
-    mu1, mu2 = disc.problem.mu1, disc.problem.mu2
-    weights = np.concatenate([np.where(interior, 1.0 / mu1, 1.0),
-                              np.where(interior, 1.0 / mu2, 1.0)])
-    return LinearRows(E, np.concatenate([F1, F2]), n, disc.boundary, weights,
-                      0.5 * (1.0 / mu1 + 1.0 / mu2))
+    return E
+
+
+def initial_residual(rows, X):
+    """R = (F - E X, 0) (3N): the residual DESIGN §4 reads at an iterate that no linear solve
+    produced (X^0), whose linear rows are out of balance."""
+    return np.concatenate([rows.F - rows.E @ X, np.zeros(rows.n)])
 
 
 def initial_guess(rows, g):

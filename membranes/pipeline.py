@@ -51,6 +51,8 @@ import tempfile
 
 import numpy as np
 
+from .newton_system import initial_residual
+
 WORK, REPLY = 71, 72            # message tags: process 0 → estimators, and back
 LEADER = 1                      # the estimator process that talks to process 0
 AHEAD = 3                       # iterates process 0 may send before their estimates are back
@@ -151,10 +153,13 @@ class RemoteEstimates:
         self.link, self.adaptive = link, adaptive
         self.multilevel = True if alg_flux == "multilevel" else None
         self.setup_time, self.time, self.eta_K = 0.0, 0.0, None
+        self.rows = None            # the level's LinearRows, once process 0 has them
         self.ids, self.waiting, self.then, self.calls, self.replied = {}, {}, {}, 0, 0
         link.post("level", level, alg_flux)
 
     def __call__(self, rec, X, R, same_as=None):
+        if R is None:       # X^0: its residual needs E, which the estimator processes lack
+            R = initial_residual(self.rows, X)
         rid = len(self.ids)
         self.ids[id(rec)] = rid
         self.waiting[rid] = (rec, X, R)
@@ -256,9 +261,10 @@ def serve(problem, comm, est_comm):
         try:
             if kind == "level":
                 level, alg_flux = payload
-                pj = problem if level == problem.levels else level_problem(problem, level)
                 est = None          # the level below: freed before this one is built
-                disc = discretise(pj)
+                # no stiffness matrix: E's residuals come made (RemoteEstimates)
+                pj = problem if level == problem.levels else level_problem(problem, level)
+                disc = discretise(pj, stiffness=False)
                 est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
                 recs, rid_of, unsent, calls = {}, {}, {}, 0
             elif kind == "call":

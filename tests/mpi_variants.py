@@ -35,6 +35,8 @@ def run(name, scene, options, comm):
         out[f"{name}/same_on_all"] = np.array([all(same)])
     return out | {f"{name}/X": sol.X, f"{name}/eta": np.array([last["eta"]]),
                   f"{name}/eta_K": sol.eta_K,
+                  f"{name}/etas": np.array([np.nan if r.get("eta") is None else r["eta"]
+                                            for r in sol.history]),
                   f"{name}/newton": np.array([sol.newton_iterations]),
                   f"{name}/linear": np.array([sol.linear_iterations])}
 

@@ -86,12 +86,17 @@ def test_several_processes_give_the_results_of_one(tmp_path, processes):
         eta1, eta2 = one[f"{name}/eta"][0], many[f"{name}/eta"][0]
         K1, K2 = one[f"{name}/eta_K"], many[f"{name}/eta_K"]
         assert eta1 is not None and np.isfinite(eta1), name
+        etas1, etas2 = one[f"{name}/etas"], many[f"{name}/etas"]
+        assert etas1.shape == etas2.shape, name          # the same records
         if processes == 2:
+            # every record's η (X^0 of each level, whose residual process 0 sends, included)
             assert np.array_equal(X1, X2) and eta1 == eta2 and np.array_equal(K1, K2), name
+            assert np.array_equal(etas1, etas2, equal_nan=True), name
         else:
             assert np.abs(X2 - X1).max() <= 1e-10 * np.abs(X1).max(), name
             assert abs(eta2 - eta1) <= 1e-8 * eta1, name
             assert np.abs(K2 - K1).max() <= 1e-8 * np.abs(K1).max(), name
+            assert np.allclose(etas2, etas1, rtol=1e-8, atol=0.0, equal_nan=True), name
 
 
 def test_cli_under_mpirun_writes_once(tmp_path):
