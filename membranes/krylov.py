@@ -243,8 +243,9 @@ class Krylov:
         test_every, 2 test_every, ...) or until on_iterate says stop. Every ν iterations that
         do not meet the test, on_iterate(its, current) is called; current() returns
         (x, b - A x) at that iterate; a true return value stops the solve at that iterate.
-        `cancel()`, asked after every iteration, stops the solve at once when true (a step
-        computed ahead that will be dropped, membranes.newton); its iterate is returned.
+        `cancel()`, asked before the preconditioner is set up and after every iteration,
+        stops the solve at once when true (a step computed ahead that will be dropped,
+        membranes.newton); its iterate is returned.
         Returns (x, b - A x, its); raises LinearSolveError (with `its`) if the KSP stops
         before either happens (e.g. at max_linear_its)."""
         M = petsc_matrix(with_diagonal(A), copy=False)   # A is the step's: not changed here
@@ -255,6 +256,8 @@ class Krylov:
         try:
             ksp.setOperators(M)
             _configure(ksp, self._petsc)
+            if cancel is not None and cancel():     # dropped before its preconditioner is set up
+                return np.array(x0, dtype=float), b - A @ np.asarray(x0, dtype=float), 0
             if self._vertex_amg is not None:
                 _install(ksp, A, self._vertex_amg, self._cache)
             ksp.setTolerances(max_it=self.max_linear_its)
