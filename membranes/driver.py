@@ -235,14 +235,14 @@ class IterateEstimates:
     (RECORD_KEYS), None where not estimated.
     """
 
-    def __init__(self, disc, rows, alg_flux, comm=None):
+    def __init__(self, disc, rows, alg_flux, comm=None, own_oscillation=True):
         t = time.perf_counter()
         self.rows = rows
         with parallel.one_blas_thread():
             # with several processes each sets up its own vertices' patches (parallel)
             self.sum_parts = None if comm is None else parallel.Summation(comm)
             self.est = Estimators(disc, owned=parallel.owned_vertices(disc.n, comm),
-                                  sum_parts=self.sum_parts)
+                                  sum_parts=self.sum_parts, own_oscillation=own_oscillation)
             if alg_flux == "multilevel":
                 from .algebraic_flux import MultilevelFlux   # only a run that uses it pays
                 hierarchy = disc.problem.hierarchy
@@ -507,6 +507,7 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     rows = linear_rows(disc)
     if remote:      # the estimator processes have no E: X^0's residual goes with X^0
         est.rows = rows
+        est.send_oscillation(disc)      # and their set-up leaves the data oscillation to us
     setup_time = time.perf_counter() - t0
     t = time.perf_counter()
     X0 = _initial_guess(initial_guess, disc)   # first: a nested run then frees the level below

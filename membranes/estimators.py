@@ -46,8 +46,8 @@ import numpy as np
 import ufl
 
 from .discretisation import assemble_vector_array, over
-from .equilibration import (_MINV_REF, FluxEquilibration, _rt_element, cell_reflections,
-                            rt_signs)
+from .equilibration import (_MINV_REF, FluxEquilibration, PatchSpace, _rt_element,
+                            cell_reflections, load_moments, rt_signs)
 from .meshes import cell_diameters
 from .newton_system import split
 from .problem import as_builder
@@ -156,6 +156,35 @@ def constraint_projection(u1, u2):
     return s1, s2
 
 
+def oscillation(disc, space, load):
+    """η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K (iterate-independent), assembled
+    against a piecewise-constant test function w; Π_P1 f_α from the load moments
+    load[α][K, i] = (f_α, φ_i)_K (FluxEquilibration.load) on the patch space `space`."""
+    from dolfinx import fem
+    problem, geo = disc.problem, space.geo
+    DG0 = fem.FunctionSpace(problem.mesh, ("DG", 0))
+    w = ufl.TestFunction(DG0)
+    cell_dof = DG0.dofmap.list.array[:geo.ncells]
+    x = ufl.SpatialCoordinate(problem.mesh)
+    hK = cell_diameters(problem.mesh)
+    out = []
+    for alpha, (f, mu) in enumerate(((problem.f1, problem.mu1), (problem.f2, problem.mu2))):
+        proj = fem.Function(space.DG)
+        proj.x.array[space.dg_cells] = (3.0 / geo.area)[:, None] * (load[alpha] @ _MINV_REF.T)
+        e = as_builder(f)(x) - proj
+        sq = assemble_vector_array(over(disc.dx_data, lambda dx: e * e * w * dx))
+        out.append(hK / np.pi / np.sqrt(mu) * np.sqrt(np.maximum(sq[cell_dof], 0.0)))
+    return np.array(out)
+
+
+def data_oscillation(disc):
+    """`oscillation` on its own, as Estimators computes it (the same patch space and load
+    moments, built for it alone): what process 0 computes for the estimator processes of a
+    run on several processes (membranes.pipeline)."""
+    space = PatchSpace(disc.V, blocks=False)
+    return oscillation(disc, space, [w.sum(axis=2) for w in load_moments(disc, space)])
+
+
 class Estimators:
     """Set-up once per discretisation; `evaluate(X, R)` at any iterate.
 
@@ -165,7 +194,7 @@ class Estimators:
     sums over all processes before anything uses them; the rest of the evaluation is the
     same on every process."""
 
-    def __init__(self, disc, owned=None, sum_parts=None):
+    def __init__(self, disc, owned=None, sum_parts=None, own_oscillation=True):
         self.disc = disc
         problem = disc.problem
         self.flux = FluxEquilibration(disc, owned)
@@ -175,31 +204,12 @@ class Estimators:
         self.cpf = problem.poincare_constant()
         self.kappa = self.cpf * np.sqrt(1.0 / self.mu[0] + 1.0 / self.mu[1])
         self.norms = CellFluxNorms(self.flux.space)
-        self.osc = self._oscillation()                        # (2, ncells)
+        # (2, ncells); given later (data_oscillation, computed elsewhere) if own_oscillation
+        # is False: membranes.pipeline
+        self.osc = oscillation(disc, self.flux.space, self.flux.load) if own_oscillation \
+            else None
         self.flux.load = None                                 # only the oscillation uses it
         self._recent = []                                     # sigma_disc's last two
-
-    def _oscillation(self):
-        """η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K (iterate-independent), assembled
-        against a piecewise-constant test function w."""
-        from dolfinx import fem
-        disc, geo = self.disc, self.geo
-        DG0 = fem.FunctionSpace(disc.problem.mesh, ("DG", 0))
-        w = ufl.TestFunction(DG0)
-        cell_dof = DG0.dofmap.list.array[:geo.ncells]
-        x = ufl.SpatialCoordinate(disc.problem.mesh)
-        DG1, dg_cells = self.flux.space.DG, self.flux.space.dg_cells
-        hK = cell_diameters(disc.problem.mesh)
-        out = []
-        for alpha, f in enumerate((disc.problem.f1, disc.problem.f2)):
-            b = self.flux.load[alpha]                           # (f, φ_i)_K
-            proj = fem.Function(DG1)
-            proj.x.array[dg_cells] = (3.0 / geo.area)[:, None] * (b @ _MINV_REF.T)
-            e = as_builder(f)(x) - proj
-            sq = assemble_vector_array(over(disc.dx_data, lambda dx: e * e * w * dx))
-            out.append(hK / np.pi / np.sqrt(self.mu[alpha]) * np.sqrt(np.maximum(
-                sq[cell_dof], 0.0)))
-        return np.array(out)
 
     def _p1_dg_norms(self, coeffs):
         """‖v‖_Ω for v ∈ DG1 given by coefficients (ncells, 3) in cell-vertex order."""

@@ -48,6 +48,7 @@ it is small (it leaves at once); across nodes they go in the message itself.
 
 import os
 import tempfile
+import time
 
 import numpy as np
 
@@ -154,6 +155,7 @@ class RemoteEstimates:
         self.multilevel = True if alg_flux == "multilevel" else None
         self.setup_time, self.time, self.eta_K = 0.0, 0.0, None
         self.rows = None            # the level's LinearRows, once process 0 has them
+        self.own_time = 0.0         # estimator set-up done here (send_oscillation)
         self.ids, self.waiting, self.then, self.calls, self.replied = {}, {}, {}, 0, 0
         link.post("level", level, alg_flux)
 
@@ -174,6 +176,16 @@ class RemoteEstimates:
             call, ready = self._take()
             if call == self.calls:
                 return ready
+
+    def send_oscillation(self, disc):
+        """Compute the level's data oscillation η_osc,K,α (estimators.data_oscillation: data
+        only, no iterate) here, and send it: the estimator processes' set-up, the critical
+        path of a run (module notes), leaves it out."""
+        from .estimators import data_oscillation
+        t = time.perf_counter()
+        osc = data_oscillation(disc)
+        self.link.post("oscillation", osc.shape, arrays=(osc.ravel(),))
+        self.own_time = time.perf_counter() - t
 
     def awaiting(self, rec):
         """Whether rec's estimates are still to come (the replies already here applied)."""
@@ -217,6 +229,7 @@ class RemoteEstimates:
                 action(item[0])
         if extra is not None:
             self.setup_time, self.time, self.eta_K = extra
+            self.setup_time += self.own_time
         done = dict(done)
         return call, [done[rid] for rid in ready]
 
@@ -265,7 +278,8 @@ def serve(problem, comm, est_comm):
                 # no stiffness matrix: E's residuals come made (RemoteEstimates)
                 pj = problem if level == problem.levels else level_problem(problem, level)
                 disc = discretise(pj, stiffness=False)
-                est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
+                est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared,
+                                       own_oscillation=False)
                 recs, rid_of, unsent, calls = {}, {}, {}, 0
             elif kind == "call":
                 rid, rec, same_as = payload
@@ -277,6 +291,10 @@ def serve(problem, comm, est_comm):
                 ready = est(rec, X, R, None if same_as is None else recs[same_as])
                 calls += 1
                 reply(calls, ready)
+            elif kind == "oscillation":
+                if shared is not None:
+                    arrays = shared.bcast(arrays, root=0)
+                est.est.osc = arrays[0].reshape(payload[0])
             elif kind == "finish":
                 est.finish()
                 reply("finish", [], (est.setup_time, est.time, est.eta_K))
