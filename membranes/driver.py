@@ -505,9 +505,8 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
         est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive")
     disc = discretise(problem)
     rows = linear_rows(disc)
-    if remote:      # the estimator processes have no E: X^0's residual goes with X^0
-        est.rows = rows
-        est.send_oscillation(disc)      # and their set-up leaves the data oscillation to us
+    if remote:      # X^0's residual and the data oscillation come from here
+        est.discretised(disc, rows)
     setup_time = time.perf_counter() - t0
     t = time.perf_counter()
     X0 = _initial_guess(initial_guess, disc)   # first: a nested run then frees the level below

@@ -121,10 +121,10 @@ X^{k-1} is awaiting its estimates, step k is computed meanwhile (the step depend
 alone) and the test is taken when they come: GMRES asks after every iteration whether they
 are in (`cancel` of Krylov.solve) and stops if the test is then met; at the latest the test is
 taken once the step is solved. If it is met, the step is dropped and X^{k-1} ends the run as
-it would have without the step. A
-Krylov iterate that step k hands out first waits for that test (and ends the solve if it is
-met), so that no record of a dropped step is made: the history, the iterates and the
-decisions are those of a run that evaluates every estimate at once.
+it would have without the step. A Krylov iterate that step k hands out first waits for that
+test (and ends the solve if it is met), so that no record of a dropped step is made: the
+history, the iterates and the decisions are those of a run that evaluates every estimate at
+once.
 
 Wall times count the method's own work: assembly, linear solves, and what the variant's tests
 use: the nonlinear residual of the Newton iterates (exact, inexact), or the Krylov iterates

@@ -18,7 +18,7 @@ process 0 already computes the next Newton step. The estimator processes are the
 path (at 9.3e5 vertices they are busy all but a few percent of the run while process 0 waits
 for estimates), so they are spared what process 0 can do for them: they assemble no stiffness
 matrix (X⁰'s residual comes with X⁰), and process 0 computes each level's data oscillation
-(data only, `RemoteEstimates.send_oscillation`) before its Newton steps. Only what the method
+(data only, `RemoteEstimates.discretised`) before its Newton steps. Only what the method
 decides from the estimates waits for them:
 
 * exact and inexact Newton never wait (their stopping tests are the residual's); the
@@ -159,7 +159,7 @@ class RemoteEstimates:
         self.multilevel = True if alg_flux == "multilevel" else None
         self.setup_time, self.time, self.eta_K = 0.0, 0.0, None
         self.rows = None            # the level's LinearRows, once process 0 has them
-        self.own_time = 0.0         # estimator set-up done here (send_oscillation)
+        self.own_time = 0.0         # estimator set-up done here (`discretised`)
         self.ids, self.waiting, self.then, self.calls, self.replied = {}, {}, {}, 0, 0
         link.post("level", level, alg_flux)
 
@@ -181,30 +181,37 @@ class RemoteEstimates:
             if call == self.calls:
                 return ready
 
-    def send_oscillation(self, disc):
-        """Compute the level's data oscillation η_osc,K,α (estimators.data_oscillation: data
-        only, no iterate) here, and send it: the estimator processes' set-up, the critical
-        path of a run (module notes), leaves it out."""
+    def discretised(self, disc, rows):
+        """Process 0 has the level's discretisation: keep its rows (X⁰'s residual needs E,
+        which the estimator processes lack), and compute the level's data oscillation
+        η_osc,K,α here (estimators.data_oscillation: data only, no iterate) and send it: the
+        estimator processes' set-up, the critical path of a run (module notes), leaves it
+        out."""
         from .estimators import data_oscillation
+        self.rows = rows
         t = time.perf_counter()
         osc = data_oscillation(disc)
         self.link.post("oscillation", osc.shape, arrays=(osc.ravel(),))
         self.own_time = time.perf_counter() - t
 
+    def _awaited(self, rec):
+        """Whether rec was handed in and its estimates are not back (no reply taken)."""
+        return self.ids.get(id(rec)) in self.waiting
+
     def awaiting(self, rec):
         """Whether rec's estimates are still to come (the replies already here applied)."""
-        while self.ids.get(id(rec)) in self.waiting and self.link.ready():
+        while self._awaited(rec) and self.link.ready():
             self._take()
-        return self.ids.get(id(rec)) in self.waiting
+        return self._awaited(rec)
 
     def resolve(self, rec):
         """Wait until rec's estimates are back."""
-        while self.ids.get(id(rec)) in self.waiting:
+        while self._awaited(rec):
             self._take()
 
     def when_complete(self, rec, action):
         """action(rec) now if rec is complete, else when its estimates come back."""
-        if self.ids.get(id(rec)) in self.waiting:
+        if self._awaited(rec):
             self.then[self.ids[id(rec)]] = action
         else:
             action(rec)
@@ -271,6 +278,8 @@ def serve(problem, comm, est_comm):
         if kind == "end":
             return level, disc
         arrays = _unpack(packed) if leader else None    # read (and remove) the file first
+        if shared is not None:
+            arrays = shared.bcast(arrays, root=0)
         if failed is not None:
             if leader and kind in ("call", "finish"):
                 comm.send(("error", failed), dest=0, tag=REPLY)
@@ -287,8 +296,6 @@ def serve(problem, comm, est_comm):
                 recs, rid_of, unsent, calls = {}, {}, {}, 0
             elif kind == "call":
                 rid, rec, same_as = payload
-                if shared is not None:
-                    arrays = shared.bcast(arrays, root=0)
                 X, R = arrays
                 recs[rid] = unsent[rid] = rec
                 rid_of[id(rec)] = rid
@@ -296,8 +303,6 @@ def serve(problem, comm, est_comm):
                 calls += 1
                 reply(calls, ready)
             elif kind == "oscillation":
-                if shared is not None:
-                    arrays = shared.bcast(arrays, root=0)
                 est.est.osc = arrays[0].reshape(payload[0])
             elif kind == "finish":
                 est.finish()
