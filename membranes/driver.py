@@ -520,6 +520,9 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     say = method.say
 
     def monitor(rec, X, R):
+        if est is not None:     # None where not estimated (yet: X^0 of an adaptive run never)
+            for k in RECORD_KEYS:
+                rec.setdefault(k, None)
         rec["wall_time_s"] += setup_time + offset
         rec["cumulative_linear_its"] += its_offset
         rec["level"] = level

@@ -101,10 +101,13 @@ def test_algorithm_1_with_the_nu_flux(cfun, system):
 @pytest.mark.parametrize("cfun,system", CASES)
 def test_bound_at_every_estimated_adaptive_iterate(cfun, system):
     """With the ν-flux, the only iterates without a bound are the ends of the solves,
-    X^{k,i+ν}, which no later iterate follows."""
+    X^{k,i+ν}, which no later iterate follows, and X^0, which Algorithm 1 does not estimate
+    (all its estimator columns None)."""
     run = solved_with("disk", H, newton="adaptive", cfun=cfun, system=system)
     unbounded = _check_bounds(run)
-    assert unbounded == [krylov[-1] for krylov, _ in _steps(run)]
+    first = run.history[0]
+    assert first["kind"] == "initial" and all(first[k] is None for k in COLUMNS + ("bound",))
+    assert unbounded == [first] + [krylov[-1] for krylov, _ in _steps(run)]
     assert run.summary()["bound_guaranteed"] is True
     assert run.summary()["effectivity"] >= 1.0
 
@@ -153,13 +156,12 @@ def test_seed_claim_with_the_multilevel_flux():
 
 def test_multilevel_flux_bounds_every_iterate_at_once():
     """The multilevel flux estimates every iterate when it is handed out: the step's last
-    hand-out is the accepted iterate, and every record claims the bound (the square: its
-    polygon is the domain, unlike the refined disk's, DESIGN §9)."""
-    pytest.importorskip("membranes.algebraic_flux")
+    hand-out is the accepted iterate, and every record but X^0 (not estimated) claims the
+    bound (the square: its polygon is the domain, unlike the refined disk's, DESIGN §9)."""
     run = solved_on("square", 0.25, 1, newton="adaptive", system="eliminated", cfun="fb",
                     nested=False)
     assert run.converged, run.reason
-    assert _check_bounds(run) == []
+    assert _check_bounds(run) == [run.history[0]]
     for krylov, newton in _steps(run):
         assert krylov[-1]["linear_it"] == newton["linear_it"]
         assert newton["eta"] == krylov[-1]["eta"]
@@ -323,5 +325,6 @@ def test_cli_adaptive_run(tmp_path, capsys):
         rows = list(csv.DictReader(f))
     assert all(int(r["linear_it"]) % 5 == 0 for r in rows if r["kind"] == "krylov")
     assert int(rows[-1]["cumulative_linear_its"]) == summary["linear_iterations"]
-    # the ends of the solves (X^{k,i+ν}) are not estimated: empty columns
-    assert sum(r["eta_disc"] == "" for r in rows) == summary["newton_iterations"]
+    # X^0 and the ends of the solves (X^{k,i+ν}) are not estimated: empty columns
+    assert rows[0]["kind"] == "initial" and rows[0]["eta_disc"] == ""
+    assert sum(r["eta_disc"] == "" for r in rows) == summary["newton_iterations"] + 1
