@@ -45,6 +45,7 @@ is the later iterate of the one before; `sigma_disc` keeps the last two.
 import numpy as np
 import ufl
 
+from .compiled import kernel
 from .discretisation import assemble_vector_array, over
 from .equilibration import (_MINV_REF, FluxEquilibration, PatchSpace, _rt_element,
                             cell_reflections, load_moments, rt_signs)
@@ -71,81 +72,92 @@ def _p1_products(geo, p, q):
 
 
 class CellFluxNorms:
-    """‖a + σ‖_K² on every cell K at once, for a piecewise-constant vector field a and σ ∈ RT_1
-    given by its global coefficients (dolfinx's ("RT", 2) on `space`, a PatchSpace), without
-    assembly (DESIGN §7: η_F and η_alg). On K, σ = (1/det J) J Σ_j s_j c_j ψ̂_j ∘ F_K⁻¹: the
-    contravariant Piola map of basix's reference basis ψ̂ (RT_1, Legendre variant) with the
-    cell's dof signs s (its edge reflections), as in PatchSpace.element_blocks. Its components
-    are polynomials of degree 2 (RT_1 = P_1² + x P̃_1), so |a + σ|² has degree 4 and basix's
-    degree-4 rule (weights w_q, points x̂_q) integrates it exactly: ‖a + σ‖_K² = |det J|
-    Σ_q w_q |a + σ(F_K(x̂_q))|², with a added to the values of σ before squaring, as an
-    assembly does (no cancellation between the terms of an expanded square).
+    """‖a + c σ‖_K² on every cell K at once, for a piecewise-constant vector field a, a factor
+    c and σ ∈ RT_1 given by its global coefficients (dolfinx's ("RT", 2) on `space`, a
+    PatchSpace), without assembly (DESIGN §7: η_F and η_alg). On K, σ = (1/det J) J Σ_j s_j
+    c_j ψ̂_j ∘ F_K⁻¹: the contravariant Piola map of basix's reference basis ψ̂ (RT_1, Legendre
+    variant) with the cell's dof signs s (its edge reflections), as in
+    PatchSpace.element_blocks. Its components are polynomials of degree 2 (RT_1 = P_1² +
+    x P̃_1), so |a + σ|² has degree 4 and basix's degree-4 rule (weights w_q, points x̂_q)
+    integrates it exactly: ‖a + σ‖_K² = |det J| Σ_q w_q |a + σ(F_K(x̂_q))|², with a added to
+    the values of σ before squaring, as an assembly does (no cancellation between the terms of
+    an expanded square).
 
-    The signs take eight patterns (one per set of reflected edges ρ): the cells are kept
-    grouped by ρ, and each group's signs are folded into its reference values s_j ψ̂_j(x̂_q)
-    (exact: a sign), so that the values of a block of cells are one product of a table with
-    their gathered coefficients. The arrays are laid out cell index last (coefficients,
-    points, components, Piola entries × cells), so that every elementwise step runs along
-    contiguous rows of a block of cells; the cells are taken CHUNK at a time within a group
-    (the temporaries stay in cache)."""
-
-    CHUNK = 4096
+    The signs take eight patterns (one per set of reflected edges ρ), folded into eight
+    tables of reference values s_j ψ̂_j(x̂_q) (exact: a sign); one compiled pass over the cells
+    (`_flux_squares`) gathers each cell's coefficients, forms the values at the points from
+    the table of its ρ and the Piola entries J / det J, and sums the weighted squares: no
+    array of values at the points is formed."""
 
     def __init__(self, space):
         import basix
         geo = space.geo
         nc = geo.ncells
-        rho = cell_reflections(space.RT.mesh, nc)
-        # the cells grouped by their reflections, each group a slice of `order`
-        self.order = np.argsort(rho, kind="stable")
-        self.cuts = np.searchsorted(rho[self.order], np.arange(9))
+        self.reflections = cell_reflections(space.RT.mesh, nc).astype(np.int8)
         X, self.w = basix.make_quadrature(basix.CellType.triangle, 4)
         psi = _rt_element().tabulate(0, X)[0]                             # (q, 8, 2)
         psi = psi.transpose(2, 0, 1).reshape(-1, 8)                       # (2 q, 8)
         self.psi = np.ascontiguousarray(psi[None] * rt_signs(np.arange(8))[:, None, :])  # ρ
         self.rt_cells = np.ascontiguousarray(
-            space.RT.dofmap.list.array.reshape(-1, 8)[:nc][self.order].T.astype(np.int32))
-        J = geo.jacobians(self.order)
+            space.RT.dofmap.list.array.reshape(-1, 8)[:nc].astype(np.int32))
+        J = geo.jacobians(np.arange(nc))
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        self.piola = np.ascontiguousarray((J / det[:, None, None]).reshape(nc, 4).T)
+        self.piola = np.ascontiguousarray((J / det[:, None, None]).reshape(nc, 4))
         self.abs_det = np.abs(det)
 
-    def squared(self, a, sigma, tau=None):
-        """∫_K |a + σ|² for every cell K (a (ncells, 2)); with τ ∈ RT_1 also ∫_K |a + σ + τ|²
-        and ∫_K |τ|²: shape (ncells,), or (3, ncells) with τ."""
-        nc = len(self.abs_det)
-        a = np.ascontiguousarray(a[self.order].T)                            # (2, nc)
-        out = np.empty((1 if tau is None else 3, nc))
-        for r in range(8):
-            for s in range(self.cuts[r], self.cuts[r + 1], self.CHUNK):
-                cells = slice(s, min(s + self.CHUNK, self.cuts[r + 1]))
-                e = self._values(sigma, cells, r)
-                e += a[:, None, cells]
-                out[0, cells] = self._integral(e, cells)
-                if tau is not None:
-                    t = self._values(tau, cells, r)
-                    out[2, cells] = self._integral(t, cells)
-                    e += t
-                    out[1, cells] = self._integral(e, cells)
-        res = np.empty_like(out)
-        res[:, self.order] = out
-        return res[0] if tau is None else res
+    def squared(self, a, sigma, tau=None, c=1.0):
+        """∫_K |a + c σ|² for every cell K (a (ncells, 2)); with τ ∈ RT_1 also
+        ∫_K |a + c σ + c τ|² and ∫_K |c τ|²: shape (ncells,), or (3, ncells) with τ."""
+        out = np.empty((1 if tau is None else 3, len(self.abs_det)))
+        _flux_squares(self.psi, self.reflections, self.rt_cells, self.piola, self.abs_det,
+                      self.w, np.ascontiguousarray(a, dtype=float), sigma,
+                      sigma if tau is None else tau, float(c), out)
+        return out[0] if tau is None else out
 
-    def _values(self, sigma, cells, r):
-        """σ at the quadrature points of the cells (positions in `order`, all of reflections
-        r), (2, q, cells)."""
-        v = self.psi[r] @ sigma[self.rt_cells[:, cells]]                   # (2 q, cells)
-        v = v.reshape(2, -1, v.shape[1])
-        F = self.piola[:, cells]
-        e = np.empty_like(v)
-        np.multiply(F[0], v[0], out=e[0])
-        e[0] += F[1] * v[1]
-        np.multiply(F[2], v[0], out=e[1])
-        e[1] += F[3] * v[1]
-        return e
 
-    def _integral(self, v, cells):
-        return (self.w @ (v[0] * v[0] + v[1] * v[1])) * self.abs_det[cells]
+@kernel
+def _flux_squares(psi, refl, rt_cells, piola, abs_det, w, a, sigma, tau, c, out):
+    """CellFluxNorms.squared: out[0, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|², and where out
+    has three rows out[2, K] for c τ and out[1, K] for a_K + c σ + c τ; σ at the points from
+    the table psi[ρ_K] (2 nq, 8) of signed reference values and the Piola entries J / det J."""
+    nq = len(w)
+    both = out.shape[0] == 3
+    s = np.empty(8)
+    t = np.empty(8)
+    for K in range(len(abs_det)):
+        tab = psi[refl[K]]
+        for j in range(8):
+            s[j] = c * sigma[rt_cells[K, j]]
+            t[j] = c * tau[rt_cells[K, j]]
+        F0, F1, F2, F3 = piola[K, 0], piola[K, 1], piola[K, 2], piola[K, 3]
+        e_sum = 0.0
+        f_sum = 0.0
+        t_sum = 0.0
+        for q in range(nq):
+            v0 = 0.0
+            v1 = 0.0
+            for j in range(8):
+                v0 += tab[q, j] * s[j]
+                v1 += tab[nq + q, j] * s[j]
+            e0 = F0 * v0 + F1 * v1 + a[K, 0]
+            e1 = F2 * v0 + F3 * v1 + a[K, 1]
+            e_sum += w[q] * (e0 * e0 + e1 * e1)
+            if both:
+                v0 = 0.0
+                v1 = 0.0
+                for j in range(8):
+                    v0 += tab[q, j] * t[j]
+                    v1 += tab[nq + q, j] * t[j]
+                t0 = F0 * v0 + F1 * v1
+                t1 = F2 * v0 + F3 * v1
+                t_sum += w[q] * (t0 * t0 + t1 * t1)
+                e0 += t0
+                e1 += t1
+                f_sum += w[q] * (e0 * e0 + e1 * e1)
+        out[0, K] = e_sum * abs_det[K]
+        if both:
+            out[1, K] = f_sum * abs_det[K]
+            out[2, K] = t_sum * abs_det[K]
 
 
 def constraint_projection(u1, u2):
@@ -282,12 +294,12 @@ class Estimators:
         for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R))):
             root = np.sqrt(self.mu[alpha])
             if sigma_alg is None:
-                disc_cells.append(np.sqrt(self.norms.squared(root * geo.gradient(u),
-                                                             s_disc / root)))
+                disc_cells.append(np.sqrt(self.norms.squared(root * geo.gradient(u), s_disc,
+                                                             c=1.0 / root)))
                 flux_cells.append(disc_cells[-1])
             else:
-                d, f, a = np.sqrt(self.norms.squared(root * geo.gradient(u), s_disc / root,
-                                                     sigma_alg[alpha] / root))
+                d, f, a = np.sqrt(self.norms.squared(root * geo.gradient(u), s_disc,
+                                                     sigma_alg[alpha], 1.0 / root))
                 disc_cells.append(d)
                 flux_cells.append(f)
                 alg_cells.append(a)
