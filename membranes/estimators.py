@@ -59,16 +59,40 @@ COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
            "eta_lin1", "eta_lin2", "eta_lin3")
 
 
-def _cell_products(area, pc, qc):
-    """(p, q)_K = |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k) for p, q ∈ P1(K) given by their values
-    at the vertices of every cell, pc, qc of shape (ncells, 3)."""
-    one = np.ones(3)
-    return area / 12.0 * (np.einsum("ck,ck->c", pc, qc) + (pc @ one) * (qc @ one))
+@kernel
+def _cell_products(area, index, p, q):
+    """(p, q)_K = |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k) on every cell K for p, q ∈ P1(K) with
+    the values p[index[K, k]], q[index[K, k]] at the cell's vertices k (index: the cells'
+    vertices for nodal P1 values, consecutive triples for DG1 coefficients)."""
+    out = np.empty(len(area))
+    for K in range(len(area)):
+        i0, i1, i2 = index[K, 0], index[K, 1], index[K, 2]
+        p0, p1, p2 = p[i0], p[i1], p[i2]
+        q0, q1, q2 = q[i0], q[i1], q[i2]
+        out[K] = area[K] / 12.0 * ((p0 * q0 + p1 * q1 + p2 * q2) + (p0 + p1 + p2) * (q0 + q1 + q2))
+    return out
+
+
+@kernel
+def _energy_squares(area, cells, grad, mu1, e1, mu2, e2):
+    """|||e_h|||_K² = |K| (μ_1 |∇e_1h|² + μ_2 |∇e_2h|²) on every cell K for nodal P1 values
+    e_1, e_2 (grad (ncells, 3, 2): the gradients of the cells' hat functions)."""
+    out = np.empty(len(area))
+    for K in range(len(area)):
+        a0 = a1 = b0 = b1 = 0.0
+        for k in range(3):
+            v = cells[K, k]
+            a0 += e1[v] * grad[K, k, 0]
+            a1 += e1[v] * grad[K, k, 1]
+            b0 += e2[v] * grad[K, k, 0]
+            b1 += e2[v] * grad[K, k, 1]
+        out[K] = area[K] * (mu1 * (a0 * a0 + a1 * a1) + mu2 * (b0 * b0 + b1 * b1))
+    return out
 
 
 def _p1_products(geo, p, q):
     """(p, q)_K for nodal P1 values p, q."""
-    return _cell_products(geo.area, p[geo.cells], q[geo.cells])
+    return _cell_products(geo.area, geo.cells, p, q)
 
 
 class CellFluxNorms:
@@ -222,10 +246,12 @@ class Estimators:
             else None
         self.flux.load = None                                 # only the oscillation uses it
         self._recent = []                                     # sigma_disc's last two
+        self._dg_index = np.arange(3 * self.geo.ncells, dtype=np.int32).reshape(-1, 3)
 
     def _p1_dg_norms(self, coeffs):
         """‖v‖_Ω for v ∈ DG1 given by coefficients (ncells, 3) in cell-vertex order."""
-        return np.sqrt(np.sum(_cell_products(self.geo.area, coeffs, coeffs)))
+        v = np.ascontiguousarray(coeffs).reshape(-1)
+        return np.sqrt(np.sum(_cell_products(self.geo.area, self._dg_index, v, v)))
 
     def remainder(self, R, lam_shift=None):
         """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_α = r_αh (DESIGN §4), or with
@@ -308,9 +334,8 @@ class Estimators:
         lam_pos, lam_neg = np.maximum(lam, 0.0), np.minimum(lam, 0.0)
         eta_C_K = 2.0 * _p1_products(geo, u1 - u2, lam_pos)
         s1, s2 = constraint_projection(u1, u2)
-        g1, g2 = geo.gradient(s1 - u1), geo.gradient(s2 - u2)
-        lin1_K = np.sqrt(geo.area * (self.mu[0] * (g1 * g1).sum(axis=1)
-                                     + self.mu[1] * (g2 * g2).sum(axis=1)))
+        lin1_K = np.sqrt(_energy_squares(geo.area, geo.cells, geo.grad, self.mu[0], s1 - u1,
+                                         self.mu[1], s2 - u2))
         lam_pos_norm = np.sqrt(max(_p1_products(geo, lam_pos, lam_pos).sum(), 0.0))
         lin2_K = 2.0 * self.kappa * lam_pos_norm * lin1_K
         lin3_K = self.kappa * np.sqrt(np.maximum(_p1_products(geo, lam_neg, lam_neg), 0.0))
