@@ -69,7 +69,8 @@ def _cell_products(area, index, p, q):
         i0, i1, i2 = index[K, 0], index[K, 1], index[K, 2]
         p0, p1, p2 = p[i0], p[i1], p[i2]
         q0, q1, q2 = q[i0], q[i1], q[i2]
-        out[K] = area[K] / 12.0 * ((p0 * q0 + p1 * q1 + p2 * q2) + (p0 + p1 + p2) * (q0 + q1 + q2))
+        out[K] = area[K] / 12.0 * ((p0 * q0 + p1 * q1 + p2 * q2)
+                                   + (p0 + p1 + p2) * (q0 + q1 + q2))
     return out
 
 
@@ -115,7 +116,7 @@ class CellFluxNorms:
 
     def __init__(self, space):
         import basix
-        geo = space.geo
+        self.geo = geo = space.geo
         nc = geo.ncells
         self.reflections = cell_reflections(space.RT.mesh, nc).astype(np.int8)
         X, self.w = basix.make_quadrature(basix.CellType.triangle, 4)
@@ -124,36 +125,35 @@ class CellFluxNorms:
         self.psi = np.ascontiguousarray(psi[None] * rt_signs(np.arange(8))[:, None, :])  # ρ
         self.rt_cells = np.ascontiguousarray(
             space.RT.dofmap.list.array.reshape(-1, 8)[:nc].astype(np.int32))
-        J = geo.jacobians(np.arange(nc))
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        self.piola = np.ascontiguousarray((J / det[:, None, None]).reshape(nc, 4))
-        self.abs_det = np.abs(det)
 
     def squared(self, a, sigma, tau=None, c=1.0):
         """∫_K |a + c σ|² for every cell K (a (ncells, 2)); with τ ∈ RT_1 also
         ∫_K |a + c σ + c τ|² and ∫_K |c τ|²: shape (ncells,), or (3, ncells) with τ."""
-        out = np.empty((1 if tau is None else 3, len(self.abs_det)))
-        _flux_squares(self.psi, self.reflections, self.rt_cells, self.piola, self.abs_det,
+        out = np.empty((1 if tau is None else 3, self.geo.ncells))
+        _flux_squares(self.psi, self.reflections, self.rt_cells, self.geo.grad, self.geo.area,
                       self.w, np.ascontiguousarray(a, dtype=float), sigma,
                       sigma if tau is None else tau, float(c), out)
         return out[0] if tau is None else out
 
 
 @kernel
-def _flux_squares(psi, refl, rt_cells, piola, abs_det, w, a, sigma, tau, c, out):
+def _flux_squares(psi, refl, rt_cells, grad, area, w, a, sigma, tau, c, out):
     """CellFluxNorms.squared: out[0, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|², and where out
     has three rows out[2, K] for c τ and out[1, K] for a_K + c σ + c τ; σ at the points from
-    the table psi[ρ_K] (2 nq, 8) of signed reference values and the Piola entries J / det J."""
+    the table psi[ρ_K] (2 nq, 8) of signed reference values and the Piola entries J / det J,
+    which the gradients of the cell's hat functions hold (Geometry: ∇φ_1 = (J_11, -J_01) /
+    det J, ∇φ_2 = (-J_10, J_00) / det J; |det J| = 2 |K|)."""
     nq = len(w)
     both = out.shape[0] == 3
     s = np.empty(8)
     t = np.empty(8)
-    for K in range(len(abs_det)):
+    for K in range(len(area)):
         tab = psi[refl[K]]
         for j in range(8):
             s[j] = c * sigma[rt_cells[K, j]]
             t[j] = c * tau[rt_cells[K, j]]
-        F0, F1, F2, F3 = piola[K, 0], piola[K, 1], piola[K, 2], piola[K, 3]
+        F0, F1, F2, F3 = grad[K, 2, 1], -grad[K, 1, 1], -grad[K, 2, 0], grad[K, 1, 0]
+        abs_det = 2.0 * area[K]
         e_sum = 0.0
         f_sum = 0.0
         t_sum = 0.0
@@ -178,10 +178,10 @@ def _flux_squares(psi, refl, rt_cells, piola, abs_det, w, a, sigma, tau, c, out)
                 e0 += t0
                 e1 += t1
                 f_sum += w[q] * (e0 * e0 + e1 * e1)
-        out[0, K] = e_sum * abs_det[K]
+        out[0, K] = e_sum * abs_det
         if both:
-            out[1, K] = f_sum * abs_det[K]
-            out[2, K] = t_sum * abs_det[K]
+            out[1, K] = f_sum * abs_det
+            out[2, K] = t_sum * abs_det
 
 
 def constraint_projection(u1, u2):
