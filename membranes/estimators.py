@@ -97,22 +97,22 @@ def _p1_products(geo, p, q):
 
 
 class CellFluxNorms:
-    """‖a + c σ‖_K² on every cell K at once, for a piecewise-constant vector field a, a factor
-    c and σ ∈ RT_1 given by its global coefficients (dolfinx's ("RT", 2) on `space`, a
-    PatchSpace), without assembly (DESIGN §7: η_F and η_alg). On K, σ = (1/det J) J Σ_j s_j
-    c_j ψ̂_j ∘ F_K⁻¹: the contravariant Piola map of basix's reference basis ψ̂ (RT_1, Legendre
-    variant) with the cell's dof signs s (its edge reflections), as in
-    PatchSpace.element_blocks. Its components are polynomials of degree 2 (RT_1 = P_1² +
-    x P̃_1), so |a + σ|² has degree 4 and basix's degree-4 rule (weights w_q, points x̂_q)
-    integrates it exactly: ‖a + σ‖_K² = |det J| Σ_q w_q |a + σ(F_K(x̂_q))|², with a added to
-    the values of σ before squaring, as an assembly does (no cancellation between the terms of
-    an expanded square).
+    """‖a + c σ‖_K² on every cell K at once, for a = b ∇u_h (u_h ∈ P1 by its nodal values, b a
+    factor), a factor c and σ ∈ RT_1 given by its global coefficients (dolfinx's ("RT", 2) on
+    `space`, a PatchSpace), without assembly (DESIGN §7: η_F and η_alg, with b = μ^{1/2} and
+    c = μ^{-1/2}). On K, σ = (1/det J) J Σ_j s_j c_j ψ̂_j ∘ F_K⁻¹: the contravariant Piola map
+    of basix's reference basis ψ̂ (RT_1, Legendre variant) with the cell's dof signs s (its
+    edge reflections), as in PatchSpace.element_blocks. Its components are polynomials of
+    degree 2 (RT_1 = P_1² + x P̃_1), so |a + σ|² has degree 4 and basix's degree-4 rule
+    (weights w_q, points x̂_q) integrates it exactly: ‖a + σ‖_K² = |det J| Σ_q w_q
+    |a + σ(F_K(x̂_q))|², with a added to the values of σ before squaring, as an assembly does
+    (no cancellation between the terms of an expanded square).
 
     The signs take eight patterns (one per set of reflected edges ρ), folded into eight
     tables of reference values s_j ψ̂_j(x̂_q) (exact: a sign); one compiled pass over the cells
-    (`_flux_squares`) gathers each cell's coefficients, forms the values at the points from
-    the table of its ρ and the Piola entries J / det J, and sums the weighted squares: no
-    array of values at the points is formed."""
+    (`_flux_squares`) forms each cell's ∇u_h and gathers its coefficients, forms the values
+    at the points from the table of its ρ and the Piola entries J / det J, and sums the
+    weighted squares: no array of values at the points is formed."""
 
     def __init__(self, space):
         import basix
@@ -126,23 +126,24 @@ class CellFluxNorms:
         self.rt_cells = np.ascontiguousarray(
             space.RT.dofmap.list.array.reshape(-1, 8)[:nc].astype(np.int32))
 
-    def squared(self, a, sigma, tau=None, c=1.0):
-        """∫_K |a + c σ|² for every cell K (a (ncells, 2)); with τ ∈ RT_1 also
-        ∫_K |a + c σ + c τ|² and ∫_K |c τ|²: shape (ncells,), or (3, ncells) with τ."""
-        out = np.empty((1 if tau is None else 3, self.geo.ncells))
-        _flux_squares(self.psi, self.reflections, self.rt_cells, self.geo.grad, self.geo.area,
-                      self.w, np.ascontiguousarray(a, dtype=float), sigma,
-                      sigma if tau is None else tau, float(c), out)
+    def squared(self, u, sigma, tau=None, b=1.0, c=1.0):
+        """∫_K |b ∇u_h + c σ|² for every cell K; with τ ∈ RT_1 also ∫_K |b ∇u_h + c σ + c τ|²
+        and ∫_K |c τ|²: shape (ncells,), or (3, ncells) with τ."""
+        geo = self.geo
+        out = np.empty((1 if tau is None else 3, geo.ncells))
+        _flux_squares(self.psi, self.reflections, self.rt_cells, geo.cells, geo.grad, geo.area,
+                      self.w, u, float(b), sigma, sigma if tau is None else tau, float(c), out)
         return out[0] if tau is None else out
 
 
 @kernel
-def _flux_squares(psi, refl, rt_cells, grad, area, w, a, sigma, tau, c, out):
-    """CellFluxNorms.squared: out[0, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|², and where out
-    has three rows out[2, K] for c τ and out[1, K] for a_K + c σ + c τ; σ at the points from
-    the table psi[ρ_K] (2 nq, 8) of signed reference values and the Piola entries J / det J,
-    which the gradients of the cell's hat functions hold (Geometry: ∇φ_1 = (J_11, -J_01) /
-    det J, ∇φ_2 = (-J_10, J_00) / det J; |det J| = 2 |K|)."""
+def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u, b, sigma, tau, c, out):
+    """CellFluxNorms.squared: out[0, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|² with
+    a_K = b ∇u_h|_K, and where out has three rows out[2, K] for c τ and out[1, K] for
+    a_K + c σ + c τ; σ at the points from the table psi[ρ_K] (2 nq, 8) of signed reference
+    values and the Piola entries J / det J, which the gradients of the cell's hat functions
+    hold (Geometry: ∇φ_1 = (J_11, -J_01) / det J, ∇φ_2 = (-J_10, J_00) / det J;
+    |det J| = 2 |K|)."""
     nq = len(w)
     both = out.shape[0] == 3
     s = np.empty(8)
@@ -154,6 +155,12 @@ def _flux_squares(psi, refl, rt_cells, grad, area, w, a, sigma, tau, c, out):
             t[j] = c * tau[rt_cells[K, j]]
         F0, F1, F2, F3 = grad[K, 2, 1], -grad[K, 1, 1], -grad[K, 2, 0], grad[K, 1, 0]
         abs_det = 2.0 * area[K]
+        a0 = a1 = 0.0
+        for k in range(3):
+            a0 += u[cells[K, k]] * grad[K, k, 0]
+            a1 += u[cells[K, k]] * grad[K, k, 1]
+        a0 *= b
+        a1 *= b
         e_sum = 0.0
         f_sum = 0.0
         t_sum = 0.0
@@ -163,8 +170,8 @@ def _flux_squares(psi, refl, rt_cells, grad, area, w, a, sigma, tau, c, out):
             for j in range(8):
                 v0 += tab[q, j] * s[j]
                 v1 += tab[nq + q, j] * s[j]
-            e0 = F0 * v0 + F1 * v1 + a[K, 0]
-            e1 = F2 * v0 + F3 * v1 + a[K, 1]
+            e0 = F0 * v0 + F1 * v1 + a0
+            e1 = F2 * v0 + F3 * v1 + a1
             e_sum += w[q] * (e0 * e0 + e1 * e1)
             if both:
                 v0 = 0.0
@@ -264,7 +271,7 @@ class Estimators:
         for alpha, Ra in enumerate((R[:n], R[n:2 * n])):
             rho = (self.flux.lift @ Ra).reshape(-1, 3)
             if lam_shift is not None:
-                rho = rho - (1.0 if alpha == 0 else -1.0) * lam_shift[self.geo.cells]
+                rho -= (lam_shift if alpha == 0 else -lam_shift)[self.geo.cells]
             total += self._p1_dg_norms(rho) ** 2 / self.mu[alpha]
         return float(self.cpf * np.sqrt(total))
 
@@ -320,12 +327,11 @@ class Estimators:
         for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R))):
             root = np.sqrt(self.mu[alpha])
             if sigma_alg is None:
-                disc_cells.append(np.sqrt(self.norms.squared(root * geo.gradient(u), s_disc,
-                                                             c=1.0 / root)))
+                disc_cells.append(np.sqrt(self.norms.squared(u, s_disc, b=root, c=1.0 / root)))
                 flux_cells.append(disc_cells[-1])
             else:
-                d, f, a = np.sqrt(self.norms.squared(root * geo.gradient(u), s_disc,
-                                                     sigma_alg[alpha], 1.0 / root))
+                d, f, a = np.sqrt(self.norms.squared(u, s_disc, sigma_alg[alpha], root,
+                                                     1.0 / root))
                 disc_cells.append(d)
                 flux_cells.append(f)
                 alg_cells.append(a)
