@@ -34,8 +34,10 @@ A remainder η_rem left by σ_alg (the ν-construction) joins η_1 in the bound 
 
 Integrals of P1 products (η_C, η_lin1, η_lin3, ‖λ^pos‖) are exact cell formulas; so are η_F
 and η_alg (`CellFluxNorms`: σ_α is a quadratic vector polynomial on each cell, integrated by
-an exact rule); η_osc is assembled once with dolfinx against a piecewise-constant test
-function, with the scene's data measures.
+an exact rule); each is one compiled pass over the cells (membranes.compiled: `_cell_products`,
+`_energy_squares`, `_flux_squares`) that reads the nodal values, RT coefficients and the
+Geometry's cell data where they are, with no per-cell copies. η_osc is assembled once with
+dolfinx against a piecewise-constant test function, with the scene's data measures.
 
 σ_disc is computed once per iterate: the driver (membranes.driver, IterateEstimates) asks
 for the σ_disc of an iterate in `nu_flux`, in `evaluate`, and in the next `nu_flux` when it
