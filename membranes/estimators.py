@@ -128,14 +128,17 @@ class CellFluxNorms:
         self.rt_cells = np.ascontiguousarray(
             space.RT.dofmap.list.array.reshape(-1, 8)[:nc].astype(np.int32))
 
-    def squared(self, u, sigma, tau=None, b=1.0, c=1.0):
+    def squared(self, u, sigma, tau=None, b=1.0, c=1.0, out=None):
         """∫_K |b ∇u_h + c σ|² for every cell K; with τ ∈ RT_1 also ∫_K |b ∇u_h + c σ + c τ|²
-        and ∫_K |c τ|²: shape (ncells,), or (3, ncells) with τ."""
+        and ∫_K |c τ|²: shape (ncells,), or (3, ncells) with τ (into `out`, of shape (1 or
+        3, ncells), if given)."""
         geo = self.geo
-        out = np.empty((1 if tau is None else 3, geo.ncells))
+        given = out is not None
+        if not given:
+            out = np.empty((1 if tau is None else 3, geo.ncells))
         _flux_squares(self.psi, self.reflections, self.rt_cells, geo.cells, geo.grad, geo.area,
                       self.w, u, float(b), sigma, sigma if tau is None else tau, float(c), out)
-        return out[0] if tau is None else out
+        return out if given or tau is not None else out[0]
 
 
 @kernel
@@ -325,19 +328,15 @@ class Estimators:
         roundoff = R is None or (alg_residual is not None and alg_residual <= ALG_ROUNDOFF)
         have_alg = sigma_alg is not None or roundoff
         # η_F,K,α = ‖μ^{1/2} ∇u_h + μ^{-1/2} σ‖_K, η_alg,K,α = ‖μ^{-1/2} σ_alg‖_K
-        disc_cells, flux_cells, alg_cells = [], [], []
+        # cells[:, α]: η_disc,K,α (σ_disc alone), η_F,K,α and η_alg,K,α (with σ_alg)
+        cells = np.empty((1 if sigma_alg is None else 3, 2, geo.ncells))
         for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R))):
             root = np.sqrt(self.mu[alpha])
-            if sigma_alg is None:
-                disc_cells.append(np.sqrt(self.norms.squared(u, s_disc, b=root, c=1.0 / root)))
-                flux_cells.append(disc_cells[-1])
-            else:
-                d, f, a = np.sqrt(self.norms.squared(u, s_disc, sigma_alg[alpha], root,
-                                                     1.0 / root))
-                disc_cells.append(d)
-                flux_cells.append(f)
-                alg_cells.append(a)
-        disc_cells, flux_cells = np.array(disc_cells), np.array(flux_cells)
+            self.norms.squared(u, s_disc, None if sigma_alg is None else sigma_alg[alpha],
+                               root, 1.0 / root, out=cells[:, alpha])
+        np.sqrt(cells, out=cells)
+        disc_cells = cells[0]
+        flux_cells = disc_cells if sigma_alg is None else cells[1]
         # constraint and linearisation parts (exact P1 integrals)
         lam_pos, lam_neg = np.maximum(lam, 0.0), np.minimum(lam, 0.0)
         eta_C_K = 2.0 * _p1_products(geo, u1 - u2, lam_pos)
@@ -363,7 +362,7 @@ class Estimators:
             out["eta_K"] = None
             return out
         if sigma_alg is not None:
-            alg_cells = np.array(alg_cells)
+            alg_cells = cells[2]
             eta_rem = float(eta_rem)
             eta_alg = float(np.sqrt((alg_cells * alg_cells).sum())) + eta_rem
         else:
