@@ -35,6 +35,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .compiled import kernel
 from .discretisation import boundary_dofs
 from .equilibration import (_C3, _MINV_REF, Geometry, Lifting, PatchSpace,
                             _local_index_type, _rt_element, rt_signs, translation_classes,
@@ -122,56 +123,60 @@ def _buckets(groups):
 def _apply_buckets(level, flat, size, scatter=None):
     """Σ_a σ^a over the patches of `level` (global RT coefficients, length `size`; for
     MultilevelFlux all levels' RT spaces one after the other) from the flat array of their
-    data moments: per bucket, the data of every patch (a gather) and one batched product
-    with the representatives' operators; then each patch's change of basis (at most two
-    representative dofs times 0, ±1) and one scatter, either by `scatter` (the sparse matrix
-    `_bucket_scatter(level, size)` that does both, for a level applied many times) or
-    directly, bucket by bucket (a gather; then one bincount; the temporaries stay of the
-    size of a bucket: the multilevel flux's levels together hold millions of patch dofs)."""
+    data moments. Per bucket, a few classes at a time (about ROWS patches: the temporaries
+    stay in cache): the data of their patches (a gather), one product per class with its
+    representative's operator (BLAS), then each patch's change of basis (at most two
+    representative dofs times 0, ±1) added to its RT dofs by `_scatter_products` (compiled).
+    Every RT dof receives its terms in the order of the patches and, within a patch, of the
+    representative's dofs: the sums of the sparse matrix that did the change of basis and
+    the scatter before (its rows' entries in column order), to the bit.
+
+    `scatter` is not used (the scatter needs no matrix; the argument goes with
+    `_bucket_scatter`'s call in equilibration.FluxEquilibration._class_load)."""
     buckets, ret = level
-    products = (np.matmul(flat[G].reshape(S.shape[0], -1, S.shape[2]),
-                          S.transpose(0, 2, 1)).ravel() for S, G, _, _ in buckets)
-    if scatter is not None:
-        return scatter @ np.concatenate(list(products))
-    values = []
-    for SR, (_, _, L, C) in zip(products, buckets):
-        nr = L.shape[1]
-        off = (np.arange(L.shape[0], dtype=np.int64) * nr)[:, None]
-        v = SR[L[:, :, 0] + off] * C[:, :, 0]
-        second = C[:, :, 1] != 0
-        v[second] += SR[(L[:, :, 1] + off)[second]] * C[:, :, 1][second]
-        values.append(v.ravel())
-    return np.bincount(ret, np.concatenate(values), minlength=size)
+    out = np.zeros(size)
+    first = 0
+    for S, G, L, C in buckets:
+        g, nr, nq = S.shape
+        per = G.shape[0] // g                          # the patches of each class
+        step = max(1, _ROWS // per)
+        for a in range(0, g, step):
+            b = min(a + step, g)
+            rows = slice(a * per, b * per)
+            SR = np.matmul(flat[G[rows]].reshape(b - a, per, nq), S[a:b].transpose(0, 2, 1))
+            _scatter_products(SR.reshape(-1, nr), L[rows], C[rows],
+                              ret[first + a * per * nr:first + b * per * nr], out)
+        first += G.shape[0] * nr
+    return out
+
+
+_ROWS = 1 << 14     # patches per product and scatter of `_apply_buckets`
+
+
+@kernel
+def _scatter_products(SR, L, C, ret, out):
+    """out[ret[p nr + i]] += C[p, i, t] SR[p, L[p, i, t]] for the patches p of SR (P, nr)
+    (their representatives' σ) and t = 0, 1 (the second where C[p, i, 1] ≠ 0), the two
+    terms of a dof in the order of L."""
+    P, nr = SR.shape
+    for p in range(P):
+        for i in range(nr):
+            r = ret[p * nr + i]
+            l0, l1 = L[p, i, 0], L[p, i, 1]
+            c0, c1 = C[p, i, 0], C[p, i, 1]
+            if c1 != 0 and l1 < l0:
+                out[r] += c1 * SR[p, l1]
+                out[r] += c0 * SR[p, l0]
+            else:
+                out[r] += c0 * SR[p, l0]
+                if c1 != 0:
+                    out[r] += c1 * SR[p, l1]
 
 
 def _bucket_scatter(level, size):
-    """The change of basis and the scatter of `_apply_buckets` as one sparse matrix (size ×
-    the products' length; one or two entries ±1 per patch dof): patch dof p of a bucket (its
-    products (g P, nr) row-major, the buckets one after the other; RET[p] its RT dof) has the
-    entry C[p, 0] at (RET[p], position of its first term) and, where C[p, 1] ≠ 0, C[p, 1] at
-    (RET[p], position of its second term). The coordinates are written straight into the
-    arrays of the matrix's construction, bucket by bucket (no intermediate copies: tens of
-    millions of entries on a mesh of 10⁶ vertices)."""
-    buckets, ret = level
-    sizes = [L.shape[0] * L.shape[1] for _, _, L, _ in buckets]
-    total = sum(sizes)
-    second = [np.flatnonzero(C[:, :, 1]) for _, _, _, C in buckets]
-    nnz = total + sum(len(k) for k in second)
-    index = np.int32 if max(nnz, size) < 2 ** 31 else np.int64
-    rows, cols, data = np.empty(nnz, dtype=index), np.empty(nnz, dtype=index), np.empty(nnz)
-    rows[:total] = ret
-    first, at = 0, total
-    for (_, _, L, C), n, k in zip(buckets, sizes, second):
-        Pn, nr = L.shape[:2]
-        start = np.arange(first, first + n, nr, dtype=index)[:, None]          # (Pn, 1)
-        np.add(L[:, :, 0], start, out=cols[first:first + n].reshape(Pn, nr))
-        data[first:first + n].reshape(Pn, nr)[:] = C[:, :, 0]
-        m = len(k)
-        cols[at:at + m] = L[:, :, 1].reshape(-1)[k] + start.ravel()[k // nr]
-        data[at:at + m] = C[:, :, 1].reshape(-1)[k]
-        rows[at:at + m] = ret[first + k]
-        first, at = first + n, at + m
-    return sp.csr_matrix((data, (rows, cols)), shape=(size, total))
+    """Nothing: `_apply_buckets` scatters without a matrix. Kept until its call in
+    equilibration.FluxEquilibration._class_load goes (with the `scatter` argument)."""
+    return None
 
 
 def _top_tables():

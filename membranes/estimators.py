@@ -34,8 +34,10 @@ A remainder η_rem left by σ_alg (the ν-construction) joins η_1 in the bound 
 
 Integrals of P1 products (η_C, η_lin1, η_lin3, ‖λ^pos‖) are exact cell formulas; so are η_F
 and η_alg (`CellFluxNorms`: σ_α is a quadratic vector polynomial on each cell, integrated by
-an exact rule); η_osc is assembled once with dolfinx against a piecewise-constant test
-function, with the scene's data measures.
+an exact rule); each is one compiled pass over the cells (membranes.compiled: `_cell_products`,
+`_energy_squares`, `_flux_squares`) that reads the nodal values, RT coefficients and the
+Geometry's cell data where they are, with no per-cell copies. η_osc is assembled once with
+dolfinx against a piecewise-constant test function, with the scene's data measures.
 
 σ_disc is computed once per iterate: the driver (membranes.driver, IterateEstimates) asks
 for the σ_disc of an iterate in `nu_flux`, in `evaluate`, and in the next `nu_flux` when it
@@ -45,6 +47,7 @@ is the later iterate of the one before; `sigma_disc` keeps the last two.
 import numpy as np
 import ufl
 
+from .compiled import kernel
 from .discretisation import assemble_vector_array, over
 from .equilibration import (_MINV_REF, FluxEquilibration, PatchSpace, _rt_element,
                             cell_reflections, load_moments, rt_signs)
@@ -58,94 +61,139 @@ COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
            "eta_lin1", "eta_lin2", "eta_lin3")
 
 
-def _cell_products(area, pc, qc):
-    """(p, q)_K = |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k) for p, q ∈ P1(K) given by their values
-    at the vertices of every cell, pc, qc of shape (ncells, 3)."""
-    one = np.ones(3)
-    return area / 12.0 * (np.einsum("ck,ck->c", pc, qc) + (pc @ one) * (qc @ one))
+@kernel
+def _cell_products(area, index, p, q):
+    """(p, q)_K = |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k) on every cell K for p, q ∈ P1(K) with
+    the values p[index[K, k]], q[index[K, k]] at the cell's vertices k (index: the cells'
+    vertices for nodal P1 values, consecutive triples for DG1 coefficients)."""
+    out = np.empty(len(area))
+    for K in range(len(area)):
+        i0, i1, i2 = index[K, 0], index[K, 1], index[K, 2]
+        p0, p1, p2 = p[i0], p[i1], p[i2]
+        q0, q1, q2 = q[i0], q[i1], q[i2]
+        out[K] = area[K] / 12.0 * ((p0 * q0 + p1 * q1 + p2 * q2)
+                                   + (p0 + p1 + p2) * (q0 + q1 + q2))
+    return out
+
+
+@kernel
+def _energy_squares(area, cells, grad, mu1, e1, mu2, e2):
+    """|||e_h|||_K² = |K| (μ_1 |∇e_1h|² + μ_2 |∇e_2h|²) on every cell K for nodal P1 values
+    e_1, e_2 (grad (ncells, 3, 2): the gradients of the cells' hat functions)."""
+    out = np.empty(len(area))
+    for K in range(len(area)):
+        a0 = a1 = b0 = b1 = 0.0
+        for k in range(3):
+            v = cells[K, k]
+            a0 += e1[v] * grad[K, k, 0]
+            a1 += e1[v] * grad[K, k, 1]
+            b0 += e2[v] * grad[K, k, 0]
+            b1 += e2[v] * grad[K, k, 1]
+        out[K] = area[K] * (mu1 * (a0 * a0 + a1 * a1) + mu2 * (b0 * b0 + b1 * b1))
+    return out
 
 
 def _p1_products(geo, p, q):
     """(p, q)_K for nodal P1 values p, q."""
-    return _cell_products(geo.area, p[geo.cells], q[geo.cells])
+    return _cell_products(geo.area, geo.cells, p, q)
 
 
 class CellFluxNorms:
-    """‖a + σ‖_K² on every cell K at once, for a piecewise-constant vector field a and σ ∈ RT_1
-    given by its global coefficients (dolfinx's ("RT", 2) on `space`, a PatchSpace), without
-    assembly (DESIGN §7: η_F and η_alg). On K, σ = (1/det J) J Σ_j s_j c_j ψ̂_j ∘ F_K⁻¹: the
-    contravariant Piola map of basix's reference basis ψ̂ (RT_1, Legendre variant) with the
-    cell's dof signs s (its edge reflections), as in PatchSpace.element_blocks. Its components
-    are polynomials of degree 2 (RT_1 = P_1² + x P̃_1), so |a + σ|² has degree 4 and basix's
-    degree-4 rule (weights w_q, points x̂_q) integrates it exactly: ‖a + σ‖_K² = |det J|
-    Σ_q w_q |a + σ(F_K(x̂_q))|², with a added to the values of σ before squaring, as an
-    assembly does (no cancellation between the terms of an expanded square).
+    """‖a + c σ‖_K² on every cell K at once, for a = b ∇u_h (u_h ∈ P1 by its nodal values, b a
+    factor), a factor c and σ ∈ RT_1 given by its global coefficients (dolfinx's ("RT", 2) on
+    `space`, a PatchSpace), without assembly (DESIGN §7: η_F and η_alg, with b = μ^{1/2} and
+    c = μ^{-1/2}). On K, σ = (1/det J) J Σ_j s_j c_j ψ̂_j ∘ F_K⁻¹: the contravariant Piola map
+    of basix's reference basis ψ̂ (RT_1, Legendre variant) with the cell's dof signs s (its
+    edge reflections), as in PatchSpace.element_blocks. Its components are polynomials of
+    degree 2 (RT_1 = P_1² + x P̃_1), so |a + σ|² has degree 4 and basix's degree-4 rule
+    (weights w_q, points x̂_q) integrates it exactly: ‖a + σ‖_K² = |det J| Σ_q w_q
+    |a + σ(F_K(x̂_q))|², with a added to the values of σ before squaring, as an assembly does
+    (no cancellation between the terms of an expanded square).
 
-    The signs take eight patterns (one per set of reflected edges ρ): the cells are kept
-    grouped by ρ, and each group's signs are folded into its reference values s_j ψ̂_j(x̂_q)
-    (exact: a sign), so that the values of a block of cells are one product of a table with
-    their gathered coefficients. The arrays are laid out cell index last (coefficients,
-    points, components, Piola entries × cells), so that every elementwise step runs along
-    contiguous rows of a block of cells; the cells are taken CHUNK at a time within a group
-    (the temporaries stay in cache)."""
-
-    CHUNK = 4096
+    The signs take eight patterns (one per set of reflected edges ρ), folded into eight
+    tables of reference values s_j ψ̂_j(x̂_q) (exact: a sign); one compiled pass over the cells
+    (`_flux_squares`) forms each cell's ∇u_h and gathers its coefficients, forms the values
+    at the points from the table of its ρ and the Piola entries J / det J, and sums the
+    weighted squares: no array of values at the points is formed."""
 
     def __init__(self, space):
         import basix
-        geo = space.geo
+        self.geo = geo = space.geo
         nc = geo.ncells
-        rho = cell_reflections(space.RT.mesh, nc)
-        # the cells grouped by their reflections, each group a slice of `order`
-        self.order = np.argsort(rho, kind="stable")
-        self.cuts = np.searchsorted(rho[self.order], np.arange(9))
+        self.reflections = cell_reflections(space.RT.mesh, nc).astype(np.int8)
         X, self.w = basix.make_quadrature(basix.CellType.triangle, 4)
         psi = _rt_element().tabulate(0, X)[0]                             # (q, 8, 2)
         psi = psi.transpose(2, 0, 1).reshape(-1, 8)                       # (2 q, 8)
         self.psi = np.ascontiguousarray(psi[None] * rt_signs(np.arange(8))[:, None, :])  # ρ
         self.rt_cells = np.ascontiguousarray(
-            space.RT.dofmap.list.array.reshape(-1, 8)[:nc][self.order].T.astype(np.int32))
-        J = geo.jacobians(self.order)
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        self.piola = np.ascontiguousarray((J / det[:, None, None]).reshape(nc, 4).T)
-        self.abs_det = np.abs(det)
+            space.RT.dofmap.list.array.reshape(-1, 8)[:nc].astype(np.int32))
 
-    def squared(self, a, sigma, tau=None):
-        """∫_K |a + σ|² for every cell K (a (ncells, 2)); with τ ∈ RT_1 also ∫_K |a + σ + τ|²
-        and ∫_K |τ|²: shape (ncells,), or (3, ncells) with τ."""
-        nc = len(self.abs_det)
-        a = np.ascontiguousarray(a[self.order].T)                            # (2, nc)
-        out = np.empty((1 if tau is None else 3, nc))
-        for r in range(8):
-            for s in range(self.cuts[r], self.cuts[r + 1], self.CHUNK):
-                cells = slice(s, min(s + self.CHUNK, self.cuts[r + 1]))
-                e = self._values(sigma, cells, r)
-                e += a[:, None, cells]
-                out[0, cells] = self._integral(e, cells)
-                if tau is not None:
-                    t = self._values(tau, cells, r)
-                    out[2, cells] = self._integral(t, cells)
-                    e += t
-                    out[1, cells] = self._integral(e, cells)
-        res = np.empty_like(out)
-        res[:, self.order] = out
-        return res[0] if tau is None else res
+    def squared(self, u, sigma, tau=None, b=1.0, c=1.0, out=None):
+        """∫_K |b ∇u_h + c σ|² for every cell K; with τ ∈ RT_1 also ∫_K |b ∇u_h + c σ + c τ|²
+        and ∫_K |c τ|²: shape (ncells,), or (3, ncells) with τ (into `out`, of shape (1 or
+        3, ncells), if given)."""
+        geo = self.geo
+        given = out is not None
+        if not given:
+            out = np.empty((1 if tau is None else 3, geo.ncells))
+        _flux_squares(self.psi, self.reflections, self.rt_cells, geo.cells, geo.grad, geo.area,
+                      self.w, u, float(b), sigma, sigma if tau is None else tau, float(c), out)
+        return out if given or tau is not None else out[0]
 
-    def _values(self, sigma, cells, r):
-        """σ at the quadrature points of the cells (positions in `order`, all of reflections
-        r), (2, q, cells)."""
-        v = self.psi[r] @ sigma[self.rt_cells[:, cells]]                   # (2 q, cells)
-        v = v.reshape(2, -1, v.shape[1])
-        F = self.piola[:, cells]
-        e = np.empty_like(v)
-        np.multiply(F[0], v[0], out=e[0])
-        e[0] += F[1] * v[1]
-        np.multiply(F[2], v[0], out=e[1])
-        e[1] += F[3] * v[1]
-        return e
 
-    def _integral(self, v, cells):
-        return (self.w @ (v[0] * v[0] + v[1] * v[1])) * self.abs_det[cells]
+@kernel
+def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u, b, sigma, tau, c, out):
+    """CellFluxNorms.squared: out[0, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|² with
+    a_K = b ∇u_h|_K, and where out has three rows out[2, K] for c τ and out[1, K] for
+    a_K + c σ + c τ; σ at the points from the table psi[ρ_K] (2 nq, 8) of signed reference
+    values and the Piola entries J / det J, which the gradients of the cell's hat functions
+    hold (Geometry: ∇φ_1 = (J_11, -J_01) / det J, ∇φ_2 = (-J_10, J_00) / det J;
+    |det J| = 2 |K|)."""
+    nq = len(w)
+    both = out.shape[0] == 3
+    s = np.empty(8)
+    t = np.empty(8)
+    for K in range(len(area)):
+        tab = psi[refl[K]]
+        for j in range(8):
+            s[j] = c * sigma[rt_cells[K, j]]
+            t[j] = c * tau[rt_cells[K, j]]
+        F0, F1, F2, F3 = grad[K, 2, 1], -grad[K, 1, 1], -grad[K, 2, 0], grad[K, 1, 0]
+        abs_det = 2.0 * area[K]
+        a0 = a1 = 0.0
+        for k in range(3):
+            a0 += u[cells[K, k]] * grad[K, k, 0]
+            a1 += u[cells[K, k]] * grad[K, k, 1]
+        a0 *= b
+        a1 *= b
+        e_sum = 0.0
+        f_sum = 0.0
+        t_sum = 0.0
+        for q in range(nq):
+            v0 = 0.0
+            v1 = 0.0
+            for j in range(8):
+                v0 += tab[q, j] * s[j]
+                v1 += tab[nq + q, j] * s[j]
+            e0 = F0 * v0 + F1 * v1 + a0
+            e1 = F2 * v0 + F3 * v1 + a1
+            e_sum += w[q] * (e0 * e0 + e1 * e1)
+            if both:
+                v0 = 0.0
+                v1 = 0.0
+                for j in range(8):
+                    v0 += tab[q, j] * t[j]
+                    v1 += tab[nq + q, j] * t[j]
+                t0 = F0 * v0 + F1 * v1
+                t1 = F2 * v0 + F3 * v1
+                t_sum += w[q] * (t0 * t0 + t1 * t1)
+                e0 += t0
+                e1 += t1
+                f_sum += w[q] * (e0 * e0 + e1 * e1)
+        out[0, K] = e_sum * abs_det
+        if both:
+            out[1, K] = f_sum * abs_det
+            out[2, K] = t_sum * abs_det
 
 
 def constraint_projection(u1, u2):
@@ -210,10 +258,12 @@ class Estimators:
             else None
         self.flux.load = None                                 # only the oscillation uses it
         self._recent = []                                     # sigma_disc's last two
+        self._dg_index = np.arange(3 * self.geo.ncells, dtype=np.int32).reshape(-1, 3)
 
     def _p1_dg_norms(self, coeffs):
         """‖v‖_Ω for v ∈ DG1 given by coefficients (ncells, 3) in cell-vertex order."""
-        return np.sqrt(np.sum(_cell_products(self.geo.area, coeffs, coeffs)))
+        v = np.ascontiguousarray(coeffs).reshape(-1)
+        return np.sqrt(np.sum(_cell_products(self.geo.area, self._dg_index, v, v)))
 
     def remainder(self, R, lam_shift=None):
         """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_α = r_αh (DESIGN §4), or with
@@ -226,7 +276,7 @@ class Estimators:
         for alpha, Ra in enumerate((R[:n], R[n:2 * n])):
             rho = (self.flux.lift @ Ra).reshape(-1, 3)
             if lam_shift is not None:
-                rho = rho - (1.0 if alpha == 0 else -1.0) * lam_shift[self.geo.cells]
+                rho -= (lam_shift if alpha == 0 else -lam_shift)[self.geo.cells]
             total += self._p1_dg_norms(rho) ** 2 / self.mu[alpha]
         return float(self.cpf * np.sqrt(total))
 
@@ -278,27 +328,21 @@ class Estimators:
         roundoff = R is None or (alg_residual is not None and alg_residual <= ALG_ROUNDOFF)
         have_alg = sigma_alg is not None or roundoff
         # η_F,K,α = ‖μ^{1/2} ∇u_h + μ^{-1/2} σ‖_K, η_alg,K,α = ‖μ^{-1/2} σ_alg‖_K
-        disc_cells, flux_cells, alg_cells = [], [], []
+        # cells[:, α]: η_disc,K,α (σ_disc alone), η_F,K,α and η_alg,K,α (with σ_alg)
+        cells = np.empty((1 if sigma_alg is None else 3, 2, geo.ncells))
         for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R))):
             root = np.sqrt(self.mu[alpha])
-            if sigma_alg is None:
-                disc_cells.append(np.sqrt(self.norms.squared(root * geo.gradient(u),
-                                                             s_disc / root)))
-                flux_cells.append(disc_cells[-1])
-            else:
-                d, f, a = np.sqrt(self.norms.squared(root * geo.gradient(u), s_disc / root,
-                                                     sigma_alg[alpha] / root))
-                disc_cells.append(d)
-                flux_cells.append(f)
-                alg_cells.append(a)
-        disc_cells, flux_cells = np.array(disc_cells), np.array(flux_cells)
+            self.norms.squared(u, s_disc, None if sigma_alg is None else sigma_alg[alpha],
+                               root, 1.0 / root, out=cells[:, alpha])
+        np.sqrt(cells, out=cells)
+        disc_cells = cells[0]
+        flux_cells = disc_cells if sigma_alg is None else cells[1]
         # constraint and linearisation parts (exact P1 integrals)
         lam_pos, lam_neg = np.maximum(lam, 0.0), np.minimum(lam, 0.0)
         eta_C_K = 2.0 * _p1_products(geo, u1 - u2, lam_pos)
         s1, s2 = constraint_projection(u1, u2)
-        g1, g2 = geo.gradient(s1 - u1), geo.gradient(s2 - u2)
-        lin1_K = np.sqrt(geo.area * (self.mu[0] * (g1 * g1).sum(axis=1)
-                                     + self.mu[1] * (g2 * g2).sum(axis=1)))
+        lin1_K = np.sqrt(_energy_squares(geo.area, geo.cells, geo.grad, self.mu[0], s1 - u1,
+                                         self.mu[1], s2 - u2))
         lam_pos_norm = np.sqrt(max(_p1_products(geo, lam_pos, lam_pos).sum(), 0.0))
         lin2_K = 2.0 * self.kappa * lam_pos_norm * lin1_K
         lin3_K = self.kappa * np.sqrt(np.maximum(_p1_products(geo, lam_neg, lam_neg), 0.0))
@@ -318,7 +362,7 @@ class Estimators:
             out["eta_K"] = None
             return out
         if sigma_alg is not None:
-            alg_cells = np.array(alg_cells)
+            alg_cells = cells[2]
             eta_rem = float(eta_rem)
             eta_alg = float(np.sqrt((alg_cells * alg_cells).sum())) + eta_rem
         else:
