@@ -271,8 +271,12 @@ class Krylov:
                 raise LinearSolveError(f"PETSc: {_petsc_message(e)}",
                                        its=ksp.getIterationNumber()) from None
             its, reason = ksp.getIterationNumber(), ksp.getConvergedReason()
-            xs = x.array.copy()
-            r = b - A @ xs
+            tested = test.tested if test.its == its else None
+            if tested is not None and np.array_equal(tested[0], x.array_r):
+                xs, r = tested             # the iterate the test built: its residual is known
+            else:
+                xs = x.array.copy()
+                r = b - A @ xs
             if reason > 0 and (test.stopped or np.linalg.norm(r) <= bound):
                 return xs, r, its
             raise LinearSolveError(
@@ -298,6 +302,14 @@ class _StoppingTest:
         if self._current is None:
             x = self.ksp.buildSolution(self.work).array.copy()
             self._current = (x, self.b - self.A @ x)
+        return self._current
+
+    @property
+    def tested(self):
+        """(x, b - A x) at the last iterate the test built (`current`), or None: the KSP's
+        solution when it stopped at that iterate (the same vector: GMRES builds its solution
+        as buildSolution does; `Krylov.solve` checks), so that the residual is not formed
+        again."""
         return self._current
 
     def __call__(self, ksp, its, rnorm):

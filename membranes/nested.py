@@ -39,8 +39,9 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 
-from .hierarchy import Hierarchy, barycentric
-from .meshes import holding_cells, p1_cells
+from .compiled import kernel
+from .hierarchy import Hierarchy
+from .meshes import p1_cells
 
 SNAP = 1e-8      # barycentric weights farther than this from {0, 1/2, 1}: not a Plaza refinement
 
@@ -61,18 +62,17 @@ def prolongation(V_coarse, V_fine, parent_cells):
     """The P1 interpolation matrix T_{j-1} → T_j (scipy CSR, n_fine × n_coarse) of the P1
     spaces V_coarse on T_{j-1} and V_fine on T_j; parent_cells[c] is the cell of T_{j-1} that
     holds the cell c of T_j (Hierarchy.parent_cells[j-1])."""
-    n_c = V_coarse.dofmap.index_map.size_local
     n_f = V_fine.dofmap.index_map.size_local
-    xc = V_coarse.tabulate_dof_coordinates()[:, :2]
-    xf = V_fine.tabulate_dof_coordinates()[:n_f, :2]
     fine_cells, coarse_cells = p1_cells(V_fine), p1_cells(V_coarse)
+    n_c = V_coarse.dofmap.index_map.size_local
     parent_cells = np.asarray(parent_cells)
     if parent_cells.shape != (len(fine_cells),):
         raise ValueError(f"{len(parent_cells)} parent cells for {len(fine_cells)} fine cells")
-    # every fine vertex in one fine cell that contains it, and so in that cell's parent
-    holder = holding_cells(fine_cells, n_f)
-    dofs = coarse_cells[parent_cells[holder]]             # (n_f, 3) coarse dofs
-    weights = barycentric(xf[:, None, :], xc[dofs])[:, 0]   # (n_f, 3)
+    fine, coarse = V_fine.mesh, V_coarse.mesh
+    dofs, weights = _parent_weights(
+        fine_cells, fine.geometry.dofmap.array.reshape(-1, 3), fine.geometry.x,
+        coarse_cells, coarse.geometry.dofmap.array.reshape(-1, 3), coarse.geometry.x,
+        parent_cells, n_f)
     snapped = np.round(2.0 * weights) / 2.0
     if np.abs(weights - snapped).max(initial=0.0) > SNAP or np.any(snapped < 0) or \
             not np.all(snapped.sum(axis=1) == 1.0):
@@ -84,6 +84,38 @@ def prolongation(V_coarse, V_fine, parent_cells):
     P = sp.csr_matrix((snapped[keep], dofs[keep], indptr), shape=(n_f, n_c))
     P.sort_indices()
     return P
+
+
+@kernel
+def _parent_weights(fine_cells, fine_nodes, fine_x, coarse_cells, coarse_nodes, coarse_x,
+                    parent_cells, n_f):
+    """For every fine vertex (the P1 dofs `fine_cells`, the geometry nodes `fine_nodes` of the
+    same cells and local order, coordinates `fine_x`): the coarse dofs of the parent of one
+    fine cell that holds it (the last listed, as `holding_cells`) and its barycentric weights
+    there (`hierarchy.barycentric`'s formula: Cramer's rule on the parent's edges)."""
+    dofs = np.empty((n_f, 3), dtype=np.int64)
+    weights = np.empty((n_f, 3))
+    holder = np.empty(n_f, dtype=np.int64)
+    local = np.empty(n_f, dtype=np.int64)
+    for c in range(fine_cells.shape[0]):
+        for a in range(3):
+            if fine_cells[c, a] < n_f:
+                holder[fine_cells[c, a]], local[fine_cells[c, a]] = c, a
+    for v in range(n_f):
+        c = holder[v]
+        p = parent_cells[c]
+        x = fine_x[fine_nodes[c, local[v]]]
+        v0, v1, v2 = (coarse_x[coarse_nodes[p, 0]], coarse_x[coarse_nodes[p, 1]],
+                      coarse_x[coarse_nodes[p, 2]])
+        e1x, e1y, e2x, e2y = v1[0] - v0[0], v1[1] - v0[1], v2[0] - v0[0], v2[1] - v0[1]
+        det = e1x * e2y - e1y * e2x
+        dx, dy = x[0] - v0[0], x[1] - v0[1]
+        xi1 = (dx * e2y - dy * e2x) / det
+        xi2 = (e1x * dy - e1y * dx) / det
+        weights[v, 0], weights[v, 1], weights[v, 2] = 1.0 - xi1 - xi2, xi1, xi2
+        for a in range(3):
+            dofs[v, a] = coarse_cells[p, a]
+    return dofs, weights
 
 
 def prolong(P, X):

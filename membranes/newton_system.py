@@ -45,6 +45,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import cfunctions
+from .compiled import kernel
 from .linear_solve import scaled_rows
 
 
@@ -90,11 +91,11 @@ class LinearRows:
 def linear_rows(disc):
     """Assemble E and F with the Dirichlet rows u1 = g, u2 = 0 on boundary vertices.
 
-    E is built from the CSR arrays of S1 and S2 (scipy's bmat of the blocks, which converts
-    them all to COO and back, took 7 times as long at 9.3e5 vertices): the 2N rows of S1 and
-    of S2 (its columns shifted by N), a slot for ∓D_l (column 2N + l) inserted at the end of
-    each; in a boundary row every entry but the diagonal (stored in a stiffness matrix) and
-    the slot become zeros, dropped at the end. Without stiffness matrices (discretise with
+    E is built from the CSR arrays of S1 and S2 in two compiled passes (`_membrane_entries`;
+    scipy's bmat of the blocks, which converts them all to COO and back, took 7 times as long
+    as numpy passes at 9.3e5 vertices, and those 5 times as long as the compiled ones): the 2N
+    rows of S1 and of S2 (its columns shifted by N), ∓D_l (column 2N + l) at the end of each;
+    a boundary row holds its diagonal entry 1 alone (a stiffness matrix stores the diagonal). Without stiffness matrices (discretise with
     stiffness=False) E is None: F and the weights alone."""
     n = disc.n
     interior = disc.interior
@@ -110,27 +111,64 @@ def linear_rows(disc):
 
 
 def _membrane_rows(disc):
-    """E of `linear_rows`, from the CSR arrays of S1 and S2."""
+    """E of `linear_rows`, from the CSR arrays of S1 and S2 (`_membrane_entries`)."""
     n = disc.n
-    interior = disc.interior
     S1, S2 = (sp.csr_matrix(S) for S in (disc.S1, disc.S2))
     S1, S2 = (S if S.has_sorted_indices else S.sorted_indices() for S in (S1, S2))
-    indptr = np.concatenate([S1.indptr, S1.indptr[-1] + S2.indptr[1:]])
-    indices = np.concatenate([S1.indices, S2.indices])
-    indices[S1.nnz:] += n
-    data = np.concatenate([S1.data, S2.data])
-    dirichlet = np.flatnonzero(np.concatenate([~interior, ~interior]))
-    start, count = indptr[dirichlet], np.diff(indptr)[dirichlet]
-    entries = np.repeat(start - np.cumsum(count) + count, count) + np.arange(count.sum())
-    data[entries] = indices[entries] == np.repeat(dirichlet, count)
-    if np.count_nonzero(data[entries]) != dirichlet.size:
-        raise ValueError("a stiffness matrix without its diagonal entry in a boundary row")
+    interior = disc.interior
     slot = np.where(interior, disc.D, 0.0)
-    E = sp.csr_matrix((np.insert(data, indptr[1:], np.concatenate([-slot, slot])),
-                       np.insert(indices, indptr[1:], np.tile(2 * n + np.arange(n), 2)),
-                       indptr + np.arange(2 * n + 1)), shape=(2 * n, 3 * n))
-    E.eliminate_zeros()
+    indptr = np.zeros(2 * n + 1, dtype=np.int64)
+    arrays = (S1.indptr, S1.indices, S1.data, S2.indptr, S2.indices, S2.data, interior, slot)
+    none = np.zeros(0, dtype=np.int32), np.zeros(0)
+    if not _membrane_entries(*arrays, True, indptr, *none):
+        raise ValueError("a stiffness matrix without its diagonal entry in a boundary row")
+    np.cumsum(indptr, out=indptr)
+    indices, data = np.empty(indptr[-1], dtype=np.int32), np.empty(indptr[-1])
+    _membrane_entries(*arrays, False, indptr, indices, data)
+    E = sp.csr_matrix((data, indices, indptr), shape=(2 * n, 3 * n))
+    E.has_sorted_indices = True
     return E
+
+
+@kernel
+def _membrane_entries(indptr1, indices1, data1, indptr2, indices2, data2, interior, slot,
+                      count_only, out_indptr, out_indices, out_data):
+    """The CSR arrays of E (`linear_rows`), zeros not stored: row l of block α is row l of
+    S_α (columns shifted by (α - 1) N) and ∓slot_l in column 2N + l at an interior vertex,
+    the single entry 1 on the diagonal at a boundary vertex. count_only: out_indptr[i + 1] =
+    the entries of row i; else the rows are written at out_indptr. False if a boundary row
+    of S_α stores no diagonal entry."""
+    n = interior.size
+    for block in range(2):
+        indptr, indices, data = (indptr2, indices2, data2) if block else \
+            (indptr1, indices1, data1)
+        sign = 1.0 if block else -1.0
+        for i in range(n):
+            row = block * n + i
+            stored = 0 if count_only else out_indptr[row]
+            if interior[i]:
+                for k in range(indptr[i], indptr[i + 1]):
+                    if data[k] != 0.0:
+                        if not count_only:
+                            out_indices[stored] = indices[k] + block * n
+                            out_data[stored] = data[k]
+                        stored += 1
+                if slot[i] != 0.0:
+                    if not count_only:
+                        out_indices[stored], out_data[stored] = 2 * n + i, sign * slot[i]
+                    stored += 1
+            else:
+                found = False
+                for k in range(indptr[i], indptr[i + 1]):
+                    found = found or indices[k] == i
+                if not found:
+                    return False
+                if not count_only:
+                    out_indices[stored], out_data[stored] = row, 1.0
+                stored += 1
+            if count_only:
+                out_indptr[row + 1] = stored
+    return True
 
 
 def initial_residual(rows, X):
@@ -176,13 +214,30 @@ def full_system(rows, alpha, beta, B3):
 
 @dataclass
 class Elimination:
-    """X = T Y + t; `eliminate_lambda[l]` tells which unknown vertex l lost."""
-    T: sp.csr_matrix
+    """X = T Y + t, T = [[I, 0], [diag U, diag H], [diag G, diag Q]] (`coefficients` = (U, H,
+    G, Q)); `eliminate_lambda[l]` tells which unknown vertex l lost."""
+    coefficients: tuple
     t: np.ndarray
     eliminate_lambda: np.ndarray
 
+    @functools.cached_property
+    def T(self):
+        """T as a CSR matrix (3N × 2N) from its CSR arrays (one entry in each row of u1, two
+        in each row of u2 and λ, zeros included: they change no product; `vertex_pair_rows`)."""
+        U, H, G, Q = self.coefficients
+        n = len(U)
+        pairs = vertex_pair_rows((U, H), (G, Q))
+        return sp.csr_matrix((np.concatenate([np.ones(n), pairs.data]),
+                              np.concatenate([np.arange(n), pairs.indices]),
+                              np.concatenate([np.arange(n), n + pairs.indptr])),
+                             shape=(3 * n, 2 * n))
+
     def expand(self, Y):
-        return self.T @ Y + self.t
+        """T Y + t, without T: (u1, U u1 + H z, G u1 + Q z) + t (the same sums as T @ Y)."""
+        U, H, G, Q = self.coefficients
+        n = len(U)
+        u1, z = Y[:n], Y[n:]
+        return np.concatenate([u1, U * u1 + H * z, G * u1 + Q * z]) + self.t
 
 
 def vertex_pair_rows(*pairs):
@@ -198,29 +253,84 @@ def vertex_pair_rows(*pairs):
 
 def eliminate(n, alpha, beta, B3, kappa=1.0):
     """The substitution X = T Y + t that satisfies every complementarity row exactly; the
-    choice compares the C-function's own derivatives, |∂C/∂b| = |β|/κ against |α|.
-    T = [[I, 0], [diag U, diag H], [diag G, diag Q]] is built from its CSR arrays (one entry in
-    each row of u1, two in each row of u2 and λ, zeros included: they change no product;
-    `vertex_pair_rows`)."""
+    choice compares the C-function's own derivatives, |∂C/∂b| = |β|/κ against |α|."""
     lam_out = np.abs(beta) >= kappa * np.abs(alpha)
     u2_out = ~lam_out
     a_safe = np.where(u2_out, alpha, 1.0)
     b_safe = np.where(lam_out, beta, 1.0)
     L, U = lam_out.astype(float), u2_out.astype(float)
     H, G, Q = L + U * beta / a_safe, -L * alpha / b_safe, L * alpha / b_safe + U
-    pairs = vertex_pair_rows((U, H), (G, Q))
-    T = sp.csr_matrix((np.concatenate([np.ones(n), pairs.data]),
-                       np.concatenate([np.arange(n), pairs.indices]),
-                       np.concatenate([np.arange(n), n + pairs.indptr])), shape=(3 * n, 2 * n))
     t = np.concatenate([np.zeros(n), -U * B3 / a_safe, L * B3 / b_safe])
-    return Elimination(T, t, lam_out)
+    return Elimination((U, H, G, Q), t, lam_out)
+
+
+@kernel
+def _product_entries(indptr, indices, data, n, U, H, G, Q, count_only, out_indptr, out_indices,
+                     out_data):
+    """The CSR arrays of E T (E: 2N × 3N, T of `Elimination`) without forming T: an entry v of
+    E in column l, N + l or 2N + l goes to columns l and N + l of the product with the factors
+    (1, 0), (U_l, H_l) or (G_l, Q_l). Row by row, as scipy's csr_matmat: the products summed
+    in E's order in a dense accumulator, zero sums not stored (at most two terms meet in one
+    entry, so the sums are those of E @ T, bit for bit); each row's columns sorted (by
+    insertion: a row has a dozen).
+    count_only: out_indptr[i + 1] = the entries of row i (the rest untouched); else the rows
+    are written at out_indptr."""
+    acc = np.zeros(2 * n)
+    seen = np.zeros(2 * n, dtype=np.bool_)
+    touched = np.empty(2 * n, dtype=np.int64)
+    for i in range(indptr.size - 1):
+        m = 0
+        for k in range(indptr[i], indptr[i + 1]):
+            c, v = np.int64(indices[k]), data[k]
+            if c < n:
+                j1, w1, j2, w2 = c, v, n + c, 0.0
+            elif c < 2 * n:
+                j1, w1, j2, w2 = c - n, v * U[c - n], c, v * H[c - n]
+            else:
+                j1, w1, j2, w2 = c - 2 * n, v * G[c - 2 * n], c - n, v * Q[c - 2 * n]
+            for second in range(2):
+                j, w = (j2, w2) if second else (j1, w1)
+                if not seen[j]:
+                    if w == 0.0:
+                        continue
+                    seen[j] = True
+                    acc[j] = w
+                    p = m                   # insertion into the sorted columns of the row
+                    while p > 0 and touched[p - 1] > j:
+                        touched[p] = touched[p - 1]
+                        p -= 1
+                    touched[p] = j
+                    m += 1
+                else:
+                    acc[j] += w
+        stored = 0 if count_only else out_indptr[i]
+        for p in range(m):
+            j = touched[p]
+            if acc[j] != 0.0:
+                if not count_only:
+                    out_indices[stored], out_data[stored] = j, acc[j]
+                stored += 1
+            seen[j] = False
+        if count_only:
+            out_indptr[i + 1] = stored
 
 
 def eliminated_system(rows, alpha, beta, B3, weighted=False):
     """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X; weighted:
-    W Ã = (W E) T and W B̃ (the system the solvers see, module notes)."""
+    W Ã = (W E) T and W B̃ (the system the solvers see, module notes). Ã by
+    `_product_entries` (two compiled passes over E's entries, counting and writing; scipy's
+    product, its zero entries dropped and its columns sorted for PETSc, took 6 times as long
+    at 9.3e5 vertices), column indices sorted."""
     elim = eliminate(rows.n, alpha, beta, B3, rows.kappa)
     E, F = (rows.weighted_E, rows.weights * rows.F) if weighted else (rows.E, rows.F)
-    A = E @ elim.T
-    A.eliminate_zeros()
+    n = rows.n
+    indptr = np.zeros(2 * n + 1, dtype=np.int64)
+    none = np.zeros(0, dtype=np.int32), np.zeros(0)
+    _product_entries(E.indptr, E.indices, E.data, n, *elim.coefficients, True, indptr, *none)
+    np.cumsum(indptr, out=indptr)
+    indices, data = np.empty(indptr[-1], dtype=np.int32), np.empty(indptr[-1])
+    _product_entries(E.indptr, E.indices, E.data, n, *elim.coefficients, False, indptr,
+                     indices, data)
+    A = sp.csr_matrix((data, indices, indptr), shape=(2 * n, 2 * n))
+    A.has_sorted_indices = True
     return A, F - E @ elim.t, elim

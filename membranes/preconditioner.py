@@ -76,9 +76,13 @@ S does not depend on the iterate: its AMG is set up on the first Newton step of 
 kept (`Krylov`'s cache; reused while Ã[:N, :N] is the same matrix, entry for entry), so a step
 sets up only the gap's, on the N_f free vertices (~55 % of N on the disk), where 1.–4. set up
 K (N + N_f rows; the glued rows of the contact vertices give it operator complexity 2.66, the
-hierarchy above). a, b, θ and S are read off Ã, and the identity above is checked on a random
-vector (a seeded one: the same decision every run); where it fails (fb; rows not weighted
-alike, e.g. Ã unweighted with μ1 ≠ μ2) 1.–4. apply. Measured (disk, min, the adaptive nested
+hierarchy above). a, b, θ and S are read off Ã, and Ã is compared with the model of the
+identity above entry by entry (to 1e-10 of S's largest entry; one compiled pass over Ã's
+entries, `mean_gap_split`); where it differs (fb; rows not weighted alike, e.g. Ã unweighted
+with μ1 ≠ μ2) 1.–4. apply. The gap's matrix S_ff and the two halves of an application (the
+right sides of the two V-cycles; u1, u2 and λ from their solutions) are compiled passes too:
+at 9.3e5 vertices a numpy application cost 25 ms besides its V-cycles, now 12 ms, and the
+split with S_ff 0.35 s a step, now 0.12 s. Measured (disk, min, the adaptive nested
 run of issue 6's comparison, ν-flux; GMRES iterations per Newton step and the time of the
 Krylov solves, set-ups included): the three steps of the finest level at 1.1e5 vertices
 (h0 = 0.2, J = 5), solved to 2e-12 on their own: 9, 8, 7 → 8, 6, 6 iterations, 0.68, 0.59,
@@ -110,6 +114,7 @@ import numpy as np
 import scipy.sparse as sp
 from petsc4py import PETSc
 
+from .compiled import kernel
 from .linear_solve import petsc_matrix, scaled_rows
 from .newton_system import vertex_pair_rows
 
@@ -172,15 +177,68 @@ def gap_scales(A):
     return np.where(gap, on_z / np.where(gap, on_u1, 1.0), 1.0)
 
 
-def leading_block(A, n):
-    """A[:n, :n] of the CSR matrix A, its column indices sorted."""
-    end = A.indptr[n]
-    outside = np.flatnonzero(A.indices[:end] >= n)        # a few: the λ-columns of contact
-    indptr = A.indptr[:n + 1] - np.searchsorted(outside, A.indptr[:n + 1])
-    M = sp.csr_matrix((np.delete(A.data[:end], outside), np.delete(A.indices[:end], outside),
-                       indptr), shape=(n, n))
-    M.sort_indices()
-    return M
+@kernel
+def _split_entries(indptr, indices, data, n, rtol):
+    """The mean/gap model of `mean_gap_split` read off the CSR arrays of A (2N × 2N) in one
+    pass over the entries, and checked entry by entry in a second: (ok, S's indptr, indices
+    and data (A[:N, :N], in A's order), a, b). ok is False where a first-block row has an
+    entry outside its own columns S and N + l, where S has a zero diagonal entry, or where a
+    second-block row differs from the model by more than rtol max |S| in some column."""
+    a, b, diagonal = np.zeros(n), np.zeros(n), np.zeros(n)
+    S_indptr = np.zeros(n + 1, dtype=np.int64)
+    ok = True
+    for i in range(n):
+        for k in range(indptr[i], indptr[i + 1]):
+            c = indices[k]
+            if c < n:
+                S_indptr[i + 1] += 1
+                if c == i:
+                    diagonal[i] += data[k]
+            elif c == n + i:
+                a[i] -= data[k]
+            elif data[k] != 0.0:
+                ok = False
+        for k in range(indptr[n + i], indptr[n + i + 1]):
+            if indices[k] == n + i:
+                b[i] += data[k]
+        if diagonal[i] == 0.0:
+            ok = False
+        S_indptr[i + 1] += S_indptr[i]
+    S_indices = np.empty(S_indptr[n], dtype=indices.dtype)
+    S_data = np.empty(S_indptr[n])
+    largest = 0.0
+    for i in range(n):
+        m = S_indptr[i]
+        for k in range(indptr[i], indptr[i + 1]):
+            if indices[k] < n:
+                S_indices[m], S_data[m] = indices[k], data[k]
+                largest = max(largest, abs(data[k]))
+                m += 1
+    # second block: row N + l of A minus the model (S_lj in column j at contact vertices j,
+    # N + j at free ones; b_l in column N + l at a contact vertex l), scattered into `work`
+    tol = rtol * largest
+    work = np.zeros(2 * n)
+    for i in range(n):
+        if not ok:
+            break
+        for k in range(indptr[n + i], indptr[n + i + 1]):
+            work[indices[k]] += data[k]
+        for k in range(S_indptr[i], S_indptr[i + 1]):
+            j = S_indices[k]
+            work[j if a[j] != 0.0 else n + j] -= S_data[k]
+        if a[i] != 0.0:
+            work[n + i] -= b[i]
+        for k in range(indptr[n + i], indptr[n + i + 1]):
+            ok = ok and abs(work[indices[k]]) <= tol
+            work[indices[k]] = 0.0
+        for k in range(S_indptr[i], S_indptr[i + 1]):
+            j = S_indices[k]
+            c = j if a[j] != 0.0 else n + j
+            ok = ok and abs(work[c]) <= tol
+            work[c] = 0.0
+        ok = ok and abs(work[n + i]) <= tol
+        work[n + i] = 0.0
+    return ok, S_indptr, S_indices, S_data, a, b
 
 
 def mean_gap_split(A, rtol=1e-10):
@@ -191,32 +249,95 @@ def mean_gap_split(A, rtol=1e-10):
         (u2, λ) = (p, q) where a ≠ 0 (contact vertices), (q, 0) elsewhere (free vertices),
 
     with a/(a + b) the same at every contact vertex and S = A[:N, :N] with a nonzero diagonal;
-    else None. The identity is checked on a random Y (seeded: the same decision every
-    run), to rtol of the largest product: a linear map that differs fails it with probability 1."""
+    else None. The second block is compared with this model entry by entry, to rtol of the
+    largest entry of S (`_split_entries`: two passes over A's entries, where a product with a
+    random vector, the check this replaces, took three sparse products, the diagonals and a
+    slicing, 0.26 s at 9.3e5 vertices against 0.10 s): any other matrix fails it."""
+    A = sp.csr_matrix(A)
     n = A.shape[0] // 2
-    S = leading_block(A, n)
-    diagonal = A.diagonal()
-    a, b = -A.diagonal(n), diagonal[n:]
+    ok, indptr, indices, data, a, b = _split_entries(A.indptr, A.indices, A.data, n, rtol)
+    if not ok:
+        return None
     contact = a != 0
     ab = (a + b)[contact]
     theta = a[contact] / np.where(ab != 0, ab, 1.0)
-    if np.any(ab == 0) or np.any(diagonal[:n] == 0) or \
-            (theta.size and np.ptp(theta) > rtol * np.abs(theta).max()):
+    if np.any(ab == 0) or (theta.size and np.ptp(theta) > rtol * np.abs(theta).max()):
         return None
-    p, q = np.random.default_rng(0).random((2, n))
-    u2, lam = np.where(contact, p, q), np.where(contact, q, 0.0)
-    expected = np.concatenate([S @ p - a * q, S @ u2 + b * lam])
-    found = A @ np.concatenate([p, q])
-    if np.abs(found - expected).max() > rtol * np.abs(expected).max():
-        return None
+    S = sp.csr_matrix((data, indices, indptr), shape=(n, n))
+    S.sort_indices()
     return S, a, b
+
+
+@kernel
+def _principal_entries(indptr, indices, data, keep):
+    """The CSR arrays of M[keep][:, keep] (`keep` increasing indices), the entries of each row
+    in M's order."""
+    number = np.full(indptr.size - 1, -1, dtype=np.int64)
+    for i in range(keep.size):
+        number[keep[i]] = i
+    out_indptr = np.zeros(keep.size + 1, dtype=np.int64)
+    for i in range(keep.size):
+        count = 0
+        for k in range(indptr[keep[i]], indptr[keep[i] + 1]):
+            if number[indices[k]] >= 0:
+                count += 1
+        out_indptr[i + 1] = out_indptr[i] + count
+    out_indices = np.empty(out_indptr[-1], dtype=indices.dtype)
+    out_data = np.empty(out_indptr[-1])
+    m = 0
+    for i in range(keep.size):
+        for k in range(indptr[keep[i]], indptr[keep[i] + 1]):
+            c = number[indices[k]]
+            if c >= 0:
+                out_indices[m], out_data[m] = c, data[k]
+                m += 1
+    return out_indptr, out_indices, out_data
+
+
+def principal_submatrix(M, keep):
+    """M[keep][:, keep] for a CSR matrix M and increasing indices `keep` (one compiled pass:
+    scipy's two fancy slicings took 0.25 s for 5e5 of 9.3e5 vertices)."""
+    indptr, indices, data = _principal_entries(M.indptr, M.indices, M.data,
+                                               np.asarray(keep, dtype=np.int64))
+    return sp.csr_matrix((data, indices, indptr), shape=(len(keep), len(keep)))
+
+
+@kernel
+def _mean_gap_right_sides(r, theta, free, mean, gap):
+    """mean = (1 - θ) r1 + θ r2, gap = (r2 - r1)[free] (`MeanGapAMG.apply`)."""
+    n = mean.size
+    for i in range(n):
+        mean[i] = (1.0 - theta) * r[i] + theta * r[n + i]
+    for k in range(free.size):
+        gap[k] = r[n + free[k]] - r[free[k]]
+
+
+@kernel
+def _mean_gap_combine(r, m, gap, theta, free, contact, ab, indptr, indices, data, delta, out):
+    """out = (m - θ δ, m + (1 - θ) δ), with λ = (r2 - r1 - S δ)/(a + b) at contact vertices;
+    δ = `gap` on the free vertices, 0 elsewhere (`delta`: zeros of size N, left zero)."""
+    n = m.size
+    for k in range(free.size):
+        delta[free[k]] = gap[k]
+    for i in range(n):
+        out[i] = m[i] - theta * delta[i]
+        out[n + i] = m[i] + (1.0 - theta) * delta[i]
+    for k in range(contact.size):
+        c = contact[k]
+        s = 0.0
+        for e in range(indptr[c], indptr[c + 1]):
+            s += data[e] * delta[indices[e]]
+        out[n + c] = ((r[n + c] - r[c]) - s) / ab[k]
+    for k in range(free.size):
+        delta[free[k]] = 0.0
 
 
 class InnerAMG:
     """The inner PC (BoomerAMG by default, `DEFAULT_INNER`; `inner` the user's options) set up
-    on the scipy matrix M, applied to arrays (`solve`). The PETSc matrix is built on M's own
-    arrays (M is the caller's fresh matrix, kept unchanged as `M`: `MeanGapAMG` compares it
-    with the next step's), one copy of it less in memory."""
+    on the scipy matrix M, applied to arrays (`solve`, or `b` → `apply` → `x`). The PETSc
+    matrix is built on M's own arrays (M is the caller's fresh matrix, kept unchanged as `M`:
+    `MeanGapAMG` compares it with the next step's), one copy of it less in memory; the right
+    side and the solution are PETSc vectors on the arrays `b` and `x`."""
 
     def __init__(self, M, inner=None):
         self.M = M
@@ -236,14 +357,19 @@ class InnerAMG:
             for name in options:
                 database.delValue(prefix + name)
         self.pc.setUp()
-        self.rhs, self.sol = self.mat.createVecs()
+        self.b, self.x = np.zeros(M.shape[0]), np.zeros(M.shape[0])
+        self.rhs, self.sol = (PETSc.Vec().createWithArray(v, comm=PETSc.COMM_SELF)
+                              for v in (self.b, self.x))
+
+    def apply(self):
+        """One application (a V-cycle) to the array `b`, into the array `x`."""
+        self.pc.apply(self.rhs, self.sol)
 
     def solve(self, r):
-        """One application (a V-cycle) to the array r; a view of the result, valid until the
-        next call."""
-        self.rhs.array[:] = r
-        self.pc.apply(self.rhs, self.sol)
-        return self.sol.array_r
+        """One application to the array r; a view of the result, valid until the next call."""
+        self.b[:] = r
+        self.apply()
+        return self.x
 
     def destroy(self):
         """Free the PETSc objects."""
@@ -298,7 +424,7 @@ class MeanGapAMG:
         # without contact the membranes are uncoupled, and any θ splits them exactly
         self.theta = a[contact][0] / (a + b)[contact][0] if self.contact.size else 0.5
         self.ab = (a + b)[contact]
-        self.S_contact = S[self.contact]
+        self.S = S
         mean = (cache or {}).get("mean")
         if mean is None or not same_matrix(mean.M, S):
             if mean is not None:
@@ -308,23 +434,25 @@ class MeanGapAMG:
             if cache is not None:
                 cache["mean"] = mean
         self.mean, self.owns_mean = mean, cache is None
-        self.gap = InnerAMG(S[self.free][:, self.free], inner) if self.free.size else None
+        self.gap = InnerAMG(principal_submatrix(S, self.free), inner) if self.free.size \
+            else None
+        self.delta = np.zeros(S.shape[0])
 
     def apply(self, pc, x, y):
         """y = M⁻¹ x: m = S⁻¹((1 - θ) r1 + θ r2), δ_free = S_ff⁻¹ (r2 - r1)_free (δ = 0 at
-        contact), u1 = m - θ δ, u2 = m + (1 - θ) δ, λ_contact = (r2 - r1 - S δ)/(a + b)."""
+        contact), u1 = m - θ δ, u2 = m + (1 - θ) δ, λ_contact = (r2 - r1 - S δ)/(a + b)
+        (`_mean_gap_right_sides`, `_mean_gap_combine`: one compiled pass each side of the
+        V-cycles, where numpy made a dozen temporaries of size N)."""
         r = x.array_r
-        n = r.size // 2
-        d = r[n:] - r[:n]
-        m = self.mean.solve((1.0 - self.theta) * r[:n] + self.theta * r[n:])
-        delta = np.zeros(n)
+        gap = self.gap.b if self.gap is not None else self.delta[:0]
+        _mean_gap_right_sides(r, self.theta, self.free, self.mean.b, gap)
+        self.mean.apply()
         if self.gap is not None:
-            delta[self.free] = self.gap.solve(d[self.free])
-        out = np.empty(2 * n)
-        out[:n] = m - self.theta * delta
-        out[n:] = m + (1.0 - self.theta) * delta
-        out[n + self.contact] = (d[self.contact] - self.S_contact @ delta) / self.ab
-        y.array[:] = out
+            self.gap.apply()
+            gap = self.gap.x
+        S = self.S
+        _mean_gap_combine(r, self.mean.x, gap, self.theta, self.free, self.contact, self.ab,
+                          S.indptr, S.indices, S.data, self.delta, y.array)
 
     def destroy(self, pc=None):
         """Free the PETSc objects, except the mean's inner PC when the cache keeps it."""
