@@ -2,8 +2,7 @@
 
 `discretise(problem)` assembles, once per mesh, everything the Newton driver needs:
 
-    S_α = μ_α (∇ψ_b, ∇ψ_a)      membrane stiffness matrices (forms.membrane.membrane_bilinear,
-                                assembled by `stiffness_matrix`)
+    S_α = μ_α (∇ψ_b, ∇ψ_a)      membrane stiffness matrices (forms.membrane.membrane_bilinear)
     D_a = (ψ_a, 1)              lumped contact weights       (forms.membrane.contact_weight)
     F_α,a = (f_α, ψ_a)          loads                        (forms.membrane.membrane_linear)
 
@@ -32,9 +31,8 @@ import scipy.sparse as sp
 import ufl
 
 from forms.membrane import (contact_weight, energy_error_expansion, energy_norm_squared,
-                            membrane_linear)
+                            membrane_bilinear, membrane_linear)
 
-from .compiled import kernel
 from .meshes import holding_cells, p1_cells
 from .problem import as_builder
 
@@ -236,96 +234,6 @@ def assemble_matrix_csr(a):
     return out
 
 
-@kernel
-def _stiffness_entries(cells, points, n, count_only, indptr, indices, data):
-    """The CSR arrays of the P1 stiffness matrix (∇ψ_b, ∇ψ_a) on the triangles `cells` (dofs)
-    with vertices `points` (c, 3, 2), rows by vertex: the cells of each vertex gathered (a
-    vertex → cells incidence by counting), the entries e_a·e_b/(4|T|) of every cell summed
-    into the row's columns (e_a the edge opposite vertex a turned by 90°, 2|T| = |e_1 × e_2|),
-    columns sorted (by insertion: a row has about seven). count_only: indptr[i + 1] = the
-    columns of row i; else the rows are written at indptr. All pairs of vertices of a cell are
-    stored, zeros included, as dolfinx's sparsity pattern does."""
-    start = np.zeros(n + 1, dtype=np.int64)
-    for c in range(cells.shape[0]):
-        for a in range(3):
-            start[cells[c, a] + 1] += 1
-    for i in range(n):
-        start[i + 1] += start[i]
-    fill = start[:n].copy()
-    incident = np.empty(start[n], dtype=np.int64)
-    for c in range(cells.shape[0]):
-        for a in range(3):
-            incident[fill[cells[c, a]]] = c
-            fill[cells[c, a]] += 1
-    slot = np.full(n, -1, dtype=np.int64)
-    columns = np.empty(64, dtype=np.int64)
-    values = np.empty(64)
-    e = np.empty((3, 2))
-    for i in range(n):
-        m = 0
-        for k in range(start[i], start[i + 1]):
-            c = incident[k]
-            for a in range(3):
-                if cells[c, a] == i:
-                    own = a
-                if not count_only:
-                    p, q = points[c, (a + 1) % 3], points[c, (a + 2) % 3]
-                    e[a, 0], e[a, 1] = p[1] - q[1], q[0] - p[0]
-            if not count_only:
-                scale = 0.5 / abs(e[1, 0] * e[2, 1] - e[1, 1] * e[2, 0])    # 1/(4|T|)
-            for b in range(3):
-                j = cells[c, b]
-                w = 0.0 if count_only else (e[own, 0] * e[b, 0] + e[own, 1] * e[b, 1]) * scale
-                if slot[j] < 0:
-                    p = m                     # insertion into the row's sorted columns
-                    while p > 0 and columns[p - 1] > j:
-                        columns[p], values[p] = columns[p - 1], values[p - 1]
-                        slot[columns[p]] = p
-                        p -= 1
-                    columns[p], values[p], slot[j] = j, w, p
-                    m += 1
-                else:
-                    values[slot[j]] += w
-        if count_only:
-            indptr[i + 1] = m
-        else:
-            for p in range(m):
-                indices[indptr[i] + p], data[indptr[i] + p] = columns[p], values[p]
-        for p in range(m):
-            slot[columns[p]] = -1
-
-
-def stiffness_matrix(V):
-    """The P1 stiffness matrix (∇ψ_b, ∇ψ_a) of the P1 space V on a straight-sided triangle
-    mesh, scipy CSR with sorted columns: the matrix of membrane_bilinear(1, u, v) (the same
-    sparsity pattern, the entries to round-off: each sums the same cell terms, in another
-    order), in two compiled passes (`_stiffness_entries`), where dolfinx's sparsity pattern,
-    assembly and the copy into scipy (`assemble_matrix_csr`) took twice as long (measured at
-    2.3e5 vertices: 0.12 s against 0.06 s).
-    Serial (owned rows = all rows)."""
-    cells = p1_cells(V)
-    n = V.dofmap.index_map.size_local
-    points = _cell_points(V)
-    indptr = np.zeros(n + 1, dtype=np.int64)
-    none = np.zeros(0, dtype=np.int32), np.zeros(0)
-    _stiffness_entries(cells, points, n, True, indptr, *none)
-    np.cumsum(indptr, out=indptr)
-    indices, data = np.empty(indptr[-1], dtype=np.int32), np.empty(indptr[-1])
-    _stiffness_entries(cells, points, n, False, indptr, indices, data)
-    S = sp.csr_matrix((data, indices, indptr), shape=(n, n))
-    S.has_sorted_indices = True
-    return S
-
-
-def _cell_points(V):
-    """(cells, 3, 2): the vertices of every local cell of the P1 space V, in the order of its
-    dofs (`p1_cells`): the mesh geometry's, which is a P1 map with the same local order."""
-    mesh = V.mesh
-    ncells = mesh.topology.index_map(2).size_local
-    gcells = mesh.geometry.dofmap.array.reshape(-1, 3)[:ncells]
-    return mesh.geometry.x[:, :2][gcells]
-
-
 def release_memory():
     """Hand freed heap memory back to the system (glibc malloc_trim), so that the transient
     PETSc and sparsity-pattern buffers of one assembly do not add to the next phase's peak."""
@@ -409,8 +317,8 @@ def discretise(problem, stiffness=True):
     from dolfinx import fem
     mesh = problem.mesh
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
-    v = ufl.TestFunction(V)
-    S = stiffness_matrix(V) if stiffness else None
+    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    S = assemble_matrix_csr(membrane_bilinear(1.0, u, v)) if stiffness else None
     D = assemble_vector_array(contact_weight(v))
     dxd = data_measures(mesh, problem.interface)
     f1, f2 = (load(f, mesh) for f in (problem.f1, problem.f2))

@@ -80,27 +80,3 @@ def test_cached_forms_are_dolfinx_forms_and_tell_rules_apart():
         for b in forms:
             assert (form_signature(a) == form_signature(b)) == (a.signature() == b.signature())
     assert len({form_signature(a) for a in forms}) == 5       # each form on both levels
-
-
-def test_stiffness_matrix_is_the_assembled_form():
-    """`stiffness_matrix` (compiled, from the cells' vertices) is the matrix dolfinx assembles
-    from membrane_bilinear(1, u, v): the same sparsity pattern (every pair of vertices of a
-    cell, columns sorted), the entries equal to round-off (the same cell terms, summed in
-    another order: a few ulps of the largest entry), on every level of a hierarchy and on a
-    mesh of the square (right angles: entries that are zero up to round-off)."""
-    import ufl
-    from dolfinx import fem
-    from forms.membrane import membrane_bilinear
-    from membranes.discretisation import assemble_matrix_csr, stiffness_matrix
-    meshes = list(scene("disk", 0.3, levels=2).hierarchy.meshes) + [scene("square", 0.2).mesh]
-    for mesh in meshes:
-        V = fem.FunctionSpace(mesh, ("Lagrange", 1))
-        u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-        theirs = assemble_matrix_csr(membrane_bilinear(1.0, u, v))
-        theirs.sort_indices()
-        mine = stiffness_matrix(V)
-        assert np.array_equal(mine.indptr, theirs.indptr)
-        assert np.array_equal(mine.indices, theirs.indices)
-        assert np.abs(mine.data - theirs.data).max() <= 1e-14 * np.abs(theirs.data).max()
-        assert np.abs(mine @ np.ones(V.dofmap.index_map.size_local)).max() <= \
-            1e-13 * np.abs(theirs.data).max()                 # constants in the kernel
