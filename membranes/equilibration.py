@@ -66,6 +66,7 @@ import ufl
 
 from forms.equilibration import weighted_mass
 
+from .compiled import kernel
 from .discretisation import form as compiled, load, over
 from .meshes import p1_cells
 
@@ -415,15 +416,10 @@ def vertex_patches(geo, owned=None):
         yield verts, idx // 3, idx % 3
 
 
-def _grid_keys(v, scale):
-    """One int64 per point of v (..., 2): its coordinates in units of 1e-6 scale, rounded and
-    combined (None if they exceed 2^30 units, a patch larger than 1000 scale)."""
-    k = v * (1e6 / scale)
-    np.rint(k, out=k)
-    if k.size and max(k.max(), -k.min()) >= 2 ** 30:
-        return None
-    k = k.astype(np.int64)
-    return (k[..., 0] + 2 ** 30) * 2 ** 31 + (k[..., 1] + 2 ** 30)
+# Keys of points on a grid of 1e-6 scale: coordinates in those units, rounded, each shifted by
+# 2^30 and the pair combined into one int64 (patches larger than 1000 scale overflow: then
+# no classes are formed).
+_KEY_RANGE = 2 ** 30
 
 
 def _row_hash(keys, seed):
@@ -453,28 +449,102 @@ def _sort_code(le01, le02, le12):
 _SORT3 = np.array([_sort_code(i & 1, i >> 1 & 1, i >> 2 & 1) for i in range(8)], dtype=np.int8)
 
 
-def _canonical_vertices(geo, cent, cells, scale):
-    """The vertices of the given cells in a canonical order (by their offsets from the cell's
-    centroid, rounded as `_grid_keys`, ties by local number: the same order in translated
-    cells) and the number of that order among _PERMS: (len(cells), 3, 2) coordinates,
-    (len(cells),) codes (None if the keys overflow)."""
-    corners = np.empty((len(cells), 3, 2))
-    code = np.empty(len(cells), dtype=np.int8)
-    for s in range(0, len(cells), _BLOCK):
-        c = cells[s:s + _BLOCK]
-        x = geo.x[geo.cells[c]]
-        k = _grid_keys(x - cent[c][:, None, :], scale)
-        if k is None:
-            return None, None
-        code[s:s + _BLOCK] = sc = _SORT3[(k[:, 0] <= k[:, 1]) + 2 * (k[:, 0] <= k[:, 2])
-                                         + 4 * (k[:, 1] <= k[:, 2])]
-        rows = 3 * np.arange(len(c))[:, None] + _PERMS[sc]
-        corners[s:s + _BLOCK] = x.reshape(-1, 2)[rows]
-    return corners, code
+@kernel
+def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, CFs, KFs, sig):
+    """The signatures of P patches (`translation_classes`) into sig (P, 1 + 2m) and their cells
+    in canonical order into CFs, KFs; False if a key overflows. Per patch: the keys of its m
+    cells' centroid offsets from xa (rounded in units of 1/unit), sorted stably by insertion
+    (ties keep the patch's order) and the cells with them; for a boundary patch (exterior
+    given, (ncells, 3) ∂Ω flags of the cells' edges, edge e opposite vertex e) then the key of
+    Σ_e [e on ∂Ω] (midpoint of e - xa) per cell, for the others the key of (0, 0)."""
+    P, m = CF.shape
+    key = np.empty(m, dtype=np.int64)
+    order = np.empty(m, dtype=np.int64)
+    none = np.int64(_KEY_RANGE) * 2 ** 31 + _KEY_RANGE                  # the key of (0, 0)
+    for p in range(P):
+        for j in range(m):
+            c = CF[p, j]
+            k0 = np.rint((cent[c, 0] - xa[p, 0]) * unit)
+            k1 = np.rint((cent[c, 1] - xa[p, 1]) * unit)
+            if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+                return False
+            key[j] = (np.int64(k0) + _KEY_RANGE) * 2 ** 31 + (np.int64(k1) + _KEY_RANGE)
+            order[j] = j
+            i = j                                                   # stable insertion sort
+            while i > 0 and key[order[i - 1]] > key[j]:
+                order[i] = order[i - 1]
+                i -= 1
+            order[i] = j
+        sig[p, 0] = 1 if boundary[p] else 0
+        for j in range(m):
+            CFs[p, j] = CF[p, order[j]]
+            KFs[p, j] = KF[p, order[j]]
+            sig[p, 1 + j] = key[order[j]]
+        if exterior.shape[0] == 0:
+            continue
+        for j in range(m):
+            if not boundary[p]:
+                sig[p, 1 + m + j] = none
+                continue
+            c = CFs[p, j]
+            s0 = 0.0
+            s1 = 0.0
+            for e in range(3):
+                a, b = cells[c, (e + 1) % 3], cells[c, (e + 2) % 3]
+                f = 1.0 if exterior[c, e] else 0.0
+                s0 += 0.5 * ((x[a, 0] - xa[p, 0]) + (x[b, 0] - xa[p, 0])) * f
+                s1 += 0.5 * ((x[a, 1] - xa[p, 1]) + (x[b, 1] - xa[p, 1])) * f
+            k0 = np.rint(s0 * unit)
+            k1 = np.rint(s1 * unit)
+            if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+                return False
+            sig[p, 1 + m + j] = (np.int64(k0) + _KEY_RANGE) * 2 ** 31 + (np.int64(k1) +
+                                                                         _KEY_RANGE)
+    return True
+
+
+@kernel
+def _match(p, r, x, cells, cent, xa, sig, CF, unit, tol, code, PERMS, SORT3, MATCH, ok, pi):
+    """Whether patches p (cells CF in canonical order) are translates of the patches r (same
+    signature, vertices relative to xa within tol), into ok, and the vertex matches into
+    pi[p] (_MATCH of the two cells' canonical vertex orders); False if a key overflows. The
+    cells' canonical vertex orders (by the vertices' offsets from the centroid, keyed as in
+    `_signatures`, ties by local number: the same order in translated cells) are computed at
+    a cell's first use into code (-1: not yet)."""
+    m = CF.shape[1]
+    k = np.empty(3, dtype=np.int64)
+    for q in range(len(p)):
+        a, b = p[q], r[q]
+        same = True
+        for i in range(sig.shape[1]):
+            if sig[a, i] != sig[b, i]:
+                same = False
+        for j in range(m):
+            for t in range(2):
+                c = CF[b, j] if t == 0 else CF[a, j]
+                if code[c] < 0:
+                    for i in range(3):
+                        k0 = np.rint((x[cells[c, i], 0] - cent[c, 0]) * unit)
+                        k1 = np.rint((x[cells[c, i], 1] - cent[c, 1]) * unit)
+                        if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+                            return False
+                        k[i] = (np.int64(k0) + _KEY_RANGE) * 2 ** 31 + (np.int64(k1) +
+                                                                         _KEY_RANGE)
+                    code[c] = SORT3[(k[0] <= k[1]) + 2 * (k[0] <= k[2]) + 4 * (k[1] <= k[2])]
+            ca, cb = CF[a, j], CF[b, j]
+            sa, sb = code[ca], code[cb]
+            for i in range(3):
+                va, vb = cells[ca, PERMS[sa, i]], cells[cb, PERMS[sb, i]]
+                for d in range(2):
+                    if not abs((x[va, d] - xa[a, d]) - (x[vb, d] - xa[b, d])) <= tol:
+                        same = False
+                pi[a, j, i] = MATCH[sa, sb, i]
+        ok[q] = same
+    return True
 
 
 def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
-                        exterior=None, chunk=_BLOCK // 4, frames=None):
+                        exterior=None):
     """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
     CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
     boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
@@ -491,82 +561,36 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of a
     structured square).
 
-    Each step is a pass over arrays of P m entries (no row sorting but the m keys of each
-    patch): the cells' vertices are put in a canonical order once per cell
-    (`_canonical_vertices`; `frames`: that of all of geo's cells, if computed beforehand), so
-    that a vertex match is a table entry per cell (_MATCH) and the check compares the
-    vertices in that order, `chunk` patches at a time."""
+    Two compiled loops over the patches (`_signatures`, `_match`), each touching a patch's m
+    cells once, with a hash and numpy's sort of the P hashes between them: the signature
+    sorts only the m keys of each patch, and a cell's vertices are put in a canonical order
+    (once per cell), so that a vertex match is a table entry per cell (_MATCH) and the check
+    compares the vertices in that order."""
     P, m = CF.shape
     boundary = np.asarray(boundary, dtype=bool)
 
     def identity():
-        return np.broadcast_to(np.arange(3, dtype=np.int8), (P, m, 3)).copy()
+        return CF, KF, np.arange(P), np.broadcast_to(np.arange(3, dtype=np.int8),
+                                                     (P, m, 3)).copy()
 
     if not translates or P == 0:
-        return CF, KF, np.arange(P), identity()
+        return identity()
     # signature: boundary flag | the cells' rounded centroid offsets, sorted (the canonical
-    # cell order) | for boundary patches, their ∂Ω edges (below)
+    # cell order) | for boundary patches, their ∂Ω edges
+    unit = 1e6 / scale
     sig = np.empty((P, 1 + (2 if exterior is not None else 1) * m), dtype=np.int64)
-    sig[:, 0] = boundary
     CFs, KFs = np.empty_like(CF), np.empty_like(KF)
-    for s in range(0, P, _BLOCK):
-        c = slice(s, s + _BLOCK)
-        key = _grid_keys(cent[CF[c]] - xa[c, None, :], scale)                 # (P, m)
-        if key is None:
-            return CF, KF, np.arange(P), identity()
-        order = np.argsort(key, axis=1, kind="stable")
-        CFs[c], KFs[c] = (np.take_along_axis(a[c], order, axis=1) for a in (CF, KF))
-        sig[c, 1:m + 1] = np.take_along_axis(key, order, axis=1)
+    ext = np.zeros((0, 3), dtype=bool) if exterior is None else exterior
+    if not _signatures(geo.x, geo.cells, cent, xa, CF, KF, boundary, ext, unit, CFs, KFs,
+                       sig):
+        return identity()
     CF, KF = CFs, KFs
     del CFs, KFs
-    if exterior is not None:
-        b = np.flatnonzero(boundary)
-        xv = geo.x[geo.cells[CF[b]]] - xa[b][:, None, None, :]
-        mids = 0.5 * (np.roll(xv, -1, axis=2) + np.roll(xv, -2, axis=2))   # edge e: opposite e
-        where = _grid_keys((mids * exterior[CF[b]][..., None]).sum(axis=2), scale)
-        if where is None:
-            return CF, KF, np.arange(P), identity()
-        sig[:, m + 1:] = _grid_keys(np.zeros(2), scale)
-        sig[b, m + 1:] = where
     h = _row_hash(sig, seed=0)
-    # the cells' vertices in canonical order, once per cell (inv: the cells' numbers among
-    # those of the patches)
-    if frames is None:
-        used = np.zeros(len(geo.cells), dtype=bool)
-        used[CF] = True
-        uc = np.flatnonzero(used)
-        del used
-        lookup = np.empty(len(geo.cells), dtype=np.int64)
-        lookup[uc] = np.arange(len(uc))
-        inv = lookup[CF]
-        del lookup
-        corners, code = _canonical_vertices(geo, cent, uc, scale)
-    else:
-        inv, (corners, code) = CF, frames
-    if corners is None:
-        return CF, KF, np.arange(P), identity()
-    code = code[inv]                                                          # (P, m)
     # round-off: the offsets are differences of coordinates of size up to |x|max, a few ulps
     # of it; 1e-13 |x|max leaves a margin of several hundred, and near-translates (a gmsh mesh
     # has patches equal to 1e-8 of their size) do not pass
     tol = 1e-13 * max(np.abs(geo.x).max(), scale)
-
-    def vertices(p):
-        """The vertices of patches p relative to their xa, in canonical order, (len(p), 6 m)."""
-        return (corners[inv[p]] - xa[p, None, None, :]).reshape(len(p), -1)
-
-    def match(p, first, gid):
-        """Whether patches p are translates of the representatives p[first][gid] (same
-        signature, vertices within tol), and the vertex matches pi (len(p), m, 3)."""
-        r = p[first][gid]
-        few = len(first) <= chunk
-        theirs = vertices(p[first]) if few else None
-        ok = np.empty(len(p), dtype=bool)
-        for s in range(0, len(p), chunk):
-            c = slice(s, s + chunk)
-            mine = vertices(p[c]) - (theirs[gid[c]] if few else vertices(r[c]))
-            ok[c] = (np.abs(mine).max(axis=1) <= tol) & (sig[p[c]] == sig[r[c]]).all(axis=1)
-        return ok, _MATCH[code[p], code[r]]
 
     def fine_hash(p):
         """A hash of the centroid offsets of patches p on a grid of 1e-10 scale (and of the
@@ -584,12 +608,16 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     # h0 = 0.132, where 1419 do for every J.
     rep = np.empty(P, dtype=np.int64)
     pi = np.empty((P, m, 3), dtype=np.int8)
+    code = np.full(len(geo.cells), -1, dtype=np.int8)
     pending, key = np.arange(P), h
     while pending.size:
         _, first, gid = np.unique(key, return_index=True, return_inverse=True)
-        gid = gid.ravel()
-        rep[pending] = pending[first[gid]]
-        ok, pi[pending] = match(pending, first, gid)
+        r = pending[first[gid.ravel()]]
+        rep[pending] = r
+        ok = np.empty(len(pending), dtype=bool)
+        if not _match(pending, r, geo.x, geo.cells, cent, xa, sig, CF, unit, tol, code,
+                      _PERMS, _SORT3, _MATCH, ok, pi):
+            return identity()
         pending = pending[~ok]
         key = fine_hash(pending)
     return CF, KF, rep, pi
@@ -689,16 +717,10 @@ class FluxEquilibration:
         shape = (space.nrt, geo.n)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
-        # the cells' centroids and canonical vertex orders (translation_classes)
+        # the cells' centroids (translation_classes)
         x = geo.x
         self._cent = (x[geo.cells[:, 0]] + x[geo.cells[:, 1]] + x[geo.cells[:, 2]]) / 3.0
         self._scale = np.sqrt(geo.area.mean())
-        self._frames = None
-        if self.TRANSLATES:
-            self._frames = _canonical_vertices(geo, self._cent, np.arange(geo.ncells),
-                                               self._scale)
-            if self._frames[0] is None:
-                self._frames = None
         self._exterior_bits = space.exterior_edge.astype(np.int64) @ np.array([1, 2, 4])
         self._pending = []
         # the classes first, then the load moments and the other patches (the moments and
@@ -709,7 +731,7 @@ class FluxEquilibration:
             CS, KA, own = self._classes(verts, CS, KA, b, level)
             if len(own):
                 alone.append((verts[own], CS[own], KA[own], b[own]))
-        del self._cent, self._frames, self._exterior_bits   # the classes' only
+        del self._cent, self._exterior_bits   # the classes' only
         wf = load_moments(disc, space)
         # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
         self.load = [w.sum(axis=2) for w in wf]
@@ -752,7 +774,7 @@ class FluxEquilibration:
         P, n = CS.shape
         CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, self._cent,
                                               self._scale, self.TRANSLATES,
-                                              space.exterior_edge, frames=self._frames)
+                                              space.exterior_edge)
         size = np.bincount(rep, minlength=P)
         member = size[rep] >= self.MIN_CLASS
         own = np.flatnonzero(~member)
