@@ -669,6 +669,68 @@ def load_moments(disc, space):
     return out
 
 
+@kernel
+def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt_cells, cells,
+                 cell, base, part, redges, lr, first, PATCH_DOF, TOP, COEF, EDGE_BITS, PERMS,
+                 nc, nv, RET, L, C, G, GF):
+    """The loop of `FluxEquilibration._translates` (its arguments, with row (P,) the row of
+    each member patch in the outputs, -1 for the others, and the tables of `_representatives`
+    and `_class_tables` unpacked): 0, or 1 if a member keeps other edges
+    than its representative, 2 if a retained dof maps to a dropped one. Per member cell, the
+    number π of the vertex permutation (as algebraic_flux._perm_code: from pi's inverse) and
+    the kept edges as bits (those not opposite a and not on ∂Ω, and for a boundary vertex
+    those on ∂Ω); per retained dof i, in slot l of the representative's cell c with
+    reflections ρ_r, the table entry u = 384 ρ_r + 64 π_c + 8 ρ_p + l (ρ_p the member cell's
+    reflections) gives the patch dof and the (at most two) representative dofs of its
+    column of W."""
+    n = CF.shape[1]
+    nr = cell.shape[1]
+    m = first.shape[1]
+    perm = np.empty(n, dtype=np.int64)
+    for p in range(len(row)):                 # in the patches' order: their cells are near
+        q, b = row[p], bi[p]
+        if q < 0:
+            continue
+        for j in range(n):
+            i0, i1, i2 = 0, 0, 0                               # pi⁻¹: rep vertex v -> i_v
+            for i in range(3):
+                v = pi[p, j, i]
+                if v == 0:
+                    i0 = i
+                elif v == 1:
+                    i1 = i
+                else:
+                    i2 = i
+            perm[j] = 2 * i0 + (1 if i1 > i2 else 0)
+            ext = ext_bits[CF[p, j]]
+            bits = 7 & ~(1 << KF[p, j]) & ~ext
+            if boundary[p]:
+                bits |= ext
+            if EDGE_BITS[perm[j], bits] != redges[b, j]:
+                return 1
+        for i in range(nr):
+            cf = CF[p, cell[b, i]]
+            u = part[b, i] + 64 * perm[cell[b, i]] + 8 * reflections[cf]
+            RET[q, i] = rt_cells[cf, PATCH_DOF[u]]
+            for t in range(2):
+                coef = COEF[t, u]
+                tgt = lr[base[b, i] + TOP[t, u]]
+                if coef != 0 and tgt < 0:
+                    return 2
+                C[q, i, t] = coef
+                L[q, i, t] = max(tgt, 0)
+        for j in range(n):
+            G[q, 2 * j] = 2 * CF[p, j]
+            G[q, 2 * j + 1] = 2 * CF[p, j] + 1
+            for k in range(3):
+                GF[q, 3 * j + k] = 9 * CF[p, j] + KF[p, j] + 3 * PERMS[perm[j], k]
+        for v in range(m):
+            c, k = first[b, v] // 3, first[b, v] % 3
+            G[q, 2 * n + v] = 2 * nc + cells[CF[p, c], PERMS[perm[c], k]]
+        G[q, 2 * n + m] = 2 * nc + nv + verts[p]
+    return 0
+
+
 @functools.lru_cache(maxsize=None)
 def _class_tables(slots):
     """For the change of RT basis from a class representative to a translate (algebraic_flux:
@@ -769,7 +831,6 @@ class FluxEquilibration:
         columns would take values of the size of u_h and cancel down to the size of ∇u_h h
         (round-off amplified by about 1/h). The members are ordered by class size and class,
         so that a bucket is a slice of each array."""
-        from .algebraic_flux import _perm_code
         geo, space = self.geo, self.space
         P, n = CS.shape
         CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, self._cent,
@@ -807,15 +868,8 @@ class FluxEquilibration:
             G = np.empty((Pm, 2 * n + m + 1), dtype=self._index_type())
             GF = np.empty((Pm, 3 * n), dtype=G.dtype)
             tables = self._representatives(CR, loc)
-            for s in range(0, Pm, 4 * self.CHUNK):
-                c = mem[s:s + 4 * self.CHUNK]
-                part = slice(s, s + 4 * self.CHUNK)
-                perm = _perm_code(pi[c])
-                bi = batch[rep[c]]
-                RETm[part], L[part], C[part] = self._translates(
-                    CF[c], KF[c], perm, boundary[c], tables, bi)
-                self._data_indices(verts[c], CF[c], KF[c], perm, first[bi], G[part],
-                                   GF[part])
+            self._translates(mem, batch[rep], CF, KF, pi, boundary, verts, tables,
+                             first, (RETm, L, C, G, GF))
             # buckets: the classes of one size, each its members in a row
             csize = size[rep[mem]]
             cuts = np.concatenate([[0], np.flatnonzero(np.diff(csize)) + 1, [Pm]])
@@ -844,72 +898,43 @@ class FluxEquilibration:
         return (cell, 8 * (np.arange(g)[:, None] * n + cell), 384 * refl + at % 8, edges,
                 loc.reshape(-1))
 
-    def _translates(self, CF, KF, perm, boundary, tables, bi):
-        """Retained global dofs RET (P, nr) of P translates (cells CF, KF a's local index, perm
-        the vertex matches as `_perm_code`) of representatives (their `_representatives`
-        tables, number bi (P,) in them), in the representatives' local order, and their
-        change of basis L, C (P, nr, 2): σ_p[i] = Σ_t C[p, i, t] σ_r[L[p, i, t]]. With F_K the
-        affine map of a cell K in its dolfinx vertex order and R_K its edge reflections, the
-        local RT basis is R_K F_K*ψ̂; the representative's cell K' = K + shift has F_K' =
-        shift ∘ F_K ∘ P_π, hence its basis is W = R_K' M_π R_K times K's
+    def _translates(self, mem, bi, CF, KF, pi, boundary, verts, tables, first, out):
+        """For the members mem of classes (cells CF in canonical order, KF a's local index,
+        pi the vertex matches from `translation_classes`; patch p's representative is number
+        bi[p] in the representatives' `tables`, `_representatives`), with first (g, m) the first
+        (cell, slot) 3 c + k of each representative vertex: into out = (RET, L, C, G, GF),
+        row q for member mem[q], the retained global dofs RET (nr,) in the representative's
+        local order, the change of basis L, C (nr, 2): σ_p[i] = Σ_t C[i, t] σ_r[L[i, t]], and
+        where the patch's data sit (in the representative's cell and vertex order) in the
+        flat array [∇u_h (2 per cell) | R_l / N_l (per vertex) | λ (per vertex)], G
+        (2n + m + 1,), then in the flat array of (f φ_k, φ_i)_K (9 per cell), GF (3n,).
+
+        With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
+        reflections, the local RT basis is R_K F_K*ψ̂; the representative's cell K' = K + shift
+        has F_K' = shift ∘ F_K ∘ P_π, hence its basis is W = R_K' M_π R_K times K's
         (algebraic_flux._W_TABLE, entries 0, ±1, at most two per column: the dofs of one
         entity). The representative's local dof i, in slot l of its cell c, is the patch's dof
-        in the same slot of the corresponding entity of cell c (one number per global dof: a dof
-        has one slot in every cell that has its entity); each cell's kept edges are checked
-        against the representative's (the rule of `PatchSpace.retained_dofs`)."""
+        in the same slot of the corresponding entity of cell c (one number per global dof: a
+        dof has one slot in every cell that has its entity); each cell's kept edges are checked
+        against the representative's (the rule of `PatchSpace.retained_dofs`). Vertex i' of
+        the representative's cell c is vertex _PERMS[π][i'] of the patch's. One compiled loop
+        over the patches in their order (their cells are near one another in memory), each
+        member's rows written where mem puts them (`_member_maps`)."""
         space = self.space
         PATCH_DOF, TOP, COEF, EDGE_BITS = _class_tables(tuple(map(tuple, space.slots)))
-        cell, base, part, redges, lr = tables
-        P, n = CF.shape
-        nr = cell.shape[1]
-        # kept edges as bits: those not opposite a and not on ∂Ω, and for a boundary vertex
-        # those on ∂Ω (the cells' ∂Ω edges as bits, `_exterior_bits`)
-        ext = self._exterior_bits[CF]
-        bits = (7 & ~(1 << KF) & ~ext) | np.where(boundary[:, None], ext, 0)
-        if (EDGE_BITS[perm, bits] != redges[bi]).any():
+        row = np.full(len(CF), -1)
+        row[mem] = np.arange(len(mem))
+        status = _member_maps(row, bi, CF, KF, pi, boundary, verts, self._exterior_bits,
+                              space.reflections, space.rt_cells, self.geo.cells, *tables,
+                              first, PATCH_DOF, TOP, COEF, EDGE_BITS, _PERMS,
+                              self.geo.ncells, self.geo.n, *out)
+        if status == 1:
             raise RuntimeError("a translate keeps other RT dofs than its representative")
-        ci = cell[bi]                                                        # (P, nr)
-        cf = np.take_along_axis(CF, ci, axis=1)
-        u = part[bi] + 64 * np.take_along_axis(perm, ci, axis=1) + 8 * space.reflections[cf]
-        RET = space.rt_cells.reshape(-1)[8 * cf + PATCH_DOF[u]].astype(np.int32)
-        base = base[bi]
-        L = np.empty((P, nr, 2), dtype=_local_index_type(nr))
-        C = np.empty((P, nr, 2), dtype=np.int8)
-        for t in range(2):
-            C[:, :, t] = coef = COEF[t][u]
-            tgt = lr[base + TOP[t][u]]
-            if (tgt[coef != 0] < 0).any():
-                raise RuntimeError("a retained dof of a translate maps to a dropped one")
-            L[:, :, t] = np.maximum(tgt, 0)
-        return RET, L, C
+        if status == 2:
+            raise RuntimeError("a retained dof of a translate maps to a dropped one")
 
     def _index_type(self):
         return np.int32 if 14 * self.geo.ncells + self.geo.n < 2 ** 31 else np.int64
-
-    def _data_indices(self, verts, CF, KF, perm, first, G, GF):
-        """Into G (P, 2n + m + 1) and GF (P, 3n): where the data of P patches (in their
-        representative's cell and vertex order; perm the vertex matches as `_perm_code`,
-        first (P, m) the first (cell, slot) 3 c + k of each representative vertex) sit in the
-        flat array [∇u_h (2 per cell) | R_l / N_l (per vertex) | λ (per vertex)], then in the
-        flat array of (f φ_k, φ_i)_K (9 per cell): vertex i' of the representative's cell c
-        is vertex i = _PERMS[perm][c, i'] of the patch's."""
-        geo = self.geo
-        nc, nv = geo.ncells, geo.n
-        P, n = CF.shape
-        # one pass per slot, in G's integer type (numpy's loops over the last axis of
-        # (P, n, 2) or (P, n, 3) arrays would run two or three entries at a time)
-        C = CF.astype(G.dtype)
-        i = _PERMS.astype(G.dtype)[perm]                                       # (P, n, 3)
-        grad = G[:, :2 * n].reshape(P, n, 2)
-        np.multiply(C, 2, out=grad[:, :, 0])
-        np.add(grad[:, :, 0], 1, out=grad[:, :, 1])
-        cv, kv = first // 3, first % 3
-        slot = i[np.arange(P)[:, None], cv, kv]                                # (P, m)
-        G[:, 2 * n:-1] = 2 * nc + geo.cells[np.take_along_axis(CF, cv, axis=1), slot]
-        G[:, -1] = 2 * nc + nv + verts
-        load, c9 = GF.reshape(P, n, 3), 9 * C + KF.astype(G.dtype)
-        for l in range(3):
-            np.add(c9, 3 * i[:, :, l], out=load[:, :, l])
 
     def _class_load(self, level, wf):
         """Keep the classes' operators as the evaluation takes them (`classes`: buckets, RT
