@@ -400,20 +400,42 @@ class PatchSpace:
                 yield (sel,) + self.saddle_point_systems(CS[sel], glob[sel], b)
 
 
+@kernel
+def _counting_sort(keys, ptr):
+    """The positions 0 .. len(keys) - 1 grouped by key, ascending within each group (a stable
+    counting sort; ptr (n + 1,) the groups' offsets, from the counts of the keys)."""
+    at = ptr[:-1].copy()
+    order = np.empty(len(keys), dtype=np.int64)
+    for i in range(len(keys)):
+        order[at[keys[i]]] = i
+        at[keys[i]] += 1
+    return order
+
+
 def vertex_patches(geo, owned=None):
     """For every vertex a (or every vertex of the mask `owned`): its cells (grouped by count)
     and a's local index in each. Yields (vertices (P,), CS (P, n), KA (P, n))."""
-    # the positions in geo.cells grouped by vertex, ascending (a stable counting sort: the
-    # CSR matrix of position -> vertex, transposed)
-    N = geo.cells.size
-    order = sp.csr_matrix((np.ones(N, dtype=np.int8), geo.cells.ravel(), np.arange(N + 1)),
-                          shape=(N, geo.n)).tocsc().indices
+    # the positions in geo.cells grouped by vertex, ascending
     ptr = np.concatenate([[0], np.cumsum(geo.cells_per_vertex)])
+    order = _counting_sort(geo.cells.ravel(), ptr)
     count = geo.cells_per_vertex if owned is None else np.where(owned, geo.cells_per_vertex, 0)
     for n in np.unique(count[count > 0]):
         verts = np.flatnonzero(count == n)
-        idx = order[ptr[verts][:, None] + np.arange(n)]
-        yield verts, idx // 3, idx % 3
+        yield (verts,) + _patch_cells(order, ptr, verts, n)
+
+
+@kernel
+def _patch_cells(order, ptr, verts, n):
+    """The cells CS (P, n) and local indices KA (P, n) of the vertices verts, each in n cells,
+    from the positions in the cells' array grouped by vertex (`_counting_sort`)."""
+    CS = np.empty((len(verts), n), dtype=np.int64)
+    KA = np.empty((len(verts), n), dtype=np.int64)
+    for p in range(len(verts)):
+        for j in range(n):
+            i = order[ptr[verts[p]] + j]
+            CS[p, j] = i // 3
+            KA[p, j] = i - 3 * CS[p, j]
+    return CS, KA
 
 
 # Keys of points on a grid of 1e-6 scale: coordinates in those units, rounded, each shifted by
