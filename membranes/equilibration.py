@@ -97,19 +97,7 @@ class Geometry:
         self.x = x = np.ascontiguousarray(V.tabulate_dof_coordinates()[:, :2])
         self.area = np.empty(self.ncells)
         self.grad = np.empty((self.ncells, 3, 2))              # (ncells, 3, 2)
-        for s in range(0, self.ncells, _BLOCK):                # cache-sized blocks of cells
-            c = slice(s, s + _BLOCK)
-            p = x[self.cells[c]]
-            e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-            det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-            self.area[c] = 0.5 * np.abs(det)
-            # ∇φ_k: rows of the inverse Jacobian transpose applied to the reference gradients
-            # (-1, -1), (1, 0), (0, 1): ∇φ_1, ∇φ_2 its rows, ∇φ_0 = -(∇φ_1 + ∇φ_2)
-            g = self.grad[c]
-            g[:, 1, 0], g[:, 1, 1] = e2[:, 1] / det, -e2[:, 0] / det
-            g[:, 2, 0], g[:, 2, 1] = -e1[:, 1] / det, e1[:, 0] / det
-            np.add(g[:, 1], g[:, 2], out=g[:, 0])
-            np.negative(g[:, 0], out=g[:, 0])
+        _cell_geometry(x, self.cells, self.area, self.grad)
         self.cells_per_vertex = np.bincount(self.cells.ravel(), minlength=self.n)
 
     def gradient(self, u):
@@ -121,6 +109,24 @@ class Geometry:
         reference triangle, shape (c, 2, 2)."""
         p = self.x[self.cells[cells]]
         return np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)
+
+
+@kernel
+def _cell_geometry(x, cells, area, grad):
+    """Into area (ncells,) and grad (ncells, 3, 2): |K| and the barycentric gradients ∇φ_k of
+    each cell, the rows of the inverse Jacobian transpose applied to the reference gradients
+    (-1, -1), (1, 0), (0, 1): with e1 = x_1 - x_0, e2 = x_2 - x_0 and det = e1 × e2,
+    ∇φ_1 = (e2_y, -e2_x) / det, ∇φ_2 = (-e1_y, e1_x) / det, ∇φ_0 = -(∇φ_1 + ∇φ_2)."""
+    for c in range(area.shape[0]):
+        a, b, d = cells[c, 0], cells[c, 1], cells[c, 2]
+        e1x, e1y = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1]
+        e2x, e2y = x[d, 0] - x[a, 0], x[d, 1] - x[a, 1]
+        det = e1x * e2y - e1y * e2x
+        area[c] = 0.5 * abs(det)
+        grad[c, 1, 0], grad[c, 1, 1] = e2y / det, -e2x / det
+        grad[c, 2, 0], grad[c, 2, 1] = -e1y / det, e1x / det
+        grad[c, 0, 0] = -(grad[c, 1, 0] + grad[c, 2, 0])
+        grad[c, 0, 1] = -(grad[c, 1, 1] + grad[c, 2, 1])
 
 
 class Lifting:
