@@ -43,11 +43,15 @@ evaluation is then a gather, one batched product per stack of classes and one sp
 (the change of basis and the scatter, a matrix kept from the set-up). The other patches keep
 the sparse operators, restricted to the RT dofs they touch. The set-up handles all the
 patches of one size at once (classes, changes of basis, the representatives' systems in
-batches of one shape), so that its cost is a few passes over arrays of O(N) entries, made by
-cache-sized blocks of rows: the cells' canonical vertex orders once per mesh, the classes
-from the patches' rounded centroid offsets (a sort of each patch's m keys, a hash, a check of
-the vertices), and each member's change of basis and data indices from tables per
-representative dof.
+batches of one shape), so that its cost is a few passes over arrays of O(N) entries. The
+passes whose per-item work is a few dozen table look-ups are compiled loops (`compiled.kernel`)
+that touch each item once, where numpy made many temporaries of O(N) entries each (DESIGN
+§5): the cells' areas and gradients (`_cell_geometry`), the patches' cells
+(`_counting_sort`, `_patch_cells`), the classes from the patches' rounded centroid offsets
+(`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
+`_match`: a check of the vertices, each cell's canonical vertex order computed at its first
+use), and each member's change of basis and data indices from tables per representative dof
+(`_member_maps`, in the patches' order).
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures; `load_moments`: one assembly against DG2 per load).
@@ -77,10 +81,9 @@ for _k in range(3):
         for _i in range(3):
             _C3[_k, _l, _i] = {1: 1 / 10, 2: 1 / 30, 3: 1 / 60}[len({_k, _l, _i})]
 _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
-# Passes over per-cell and per-patch arrays go by blocks of this many rows: their temporaries
-# (a few MB) stay in cache and are recycled by the allocator, where whole-array temporaries
-# of tens of MB each cost fresh pages (measured: 1.5-3x the time of the same pass in blocks,
-# for the canonical vertex orders of 8.7e5 cells).
+# numpy passes over per-cell arrays go by blocks of this many rows: their temporaries (a few
+# MB) stay in cache and are recycled by the allocator, where whole-array temporaries of tens
+# of MB each cost fresh pages (measured: 1.5-3x the time of the same pass in blocks).
 _BLOCK = 1 << 14
 
 
