@@ -1050,9 +1050,12 @@ class FluxEquilibration:
                               np.repeat(verts, nr).astype(np.int32), sol[:, :, m].ravel()))
         if sum(len(z[0]) for z in self._pending) > 1 << 22:
             self._add_operators()
+        # σ_f: the sums over this batch's patches of each RT dof they touch (numbered among
+        # those: no pass over all RT dofs per batch)
+        dofs, at = np.unique(RET, return_inverse=True)
         for alpha in range(2):
-            self.sigma_f[alpha] += np.bincount(RET.ravel(), sol[:, :, 2 * m + 1 + alpha].ravel(),
-                                               minlength=self.sigma_f.shape[1])
+            self.sigma_f[alpha, dofs] += np.bincount(at.ravel(),
+                                                     sol[:, :, 2 * m + 1 + alpha].ravel())
 
     def _add_operators(self):
         """Add the pending batches of `_solve_patches` to G_u, G_R, G_λ."""
