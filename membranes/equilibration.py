@@ -481,16 +481,18 @@ _SORT3 = np.array([_sort_code(i & 1, i >> 1 & 1, i >> 2 & 1) for i in range(8)],
 
 
 @kernel
-def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, CFs, KFs, sig):
-    """The signatures of P patches (`translation_classes`) into sig (P, 1 + 2m) and their cells
-    in canonical order into CFs, KFs; False if a key overflows. Per patch: the keys of its m
-    cells' centroid offsets from xa (rounded in units of 1/unit), sorted stably by insertion
-    (ties keep the patch's order) and the cells with them; for a boundary patch (exterior
+def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, sig):
+    """The signatures of P patches (`translation_classes`) into sig (P, 1 + 2m), their cells
+    CF, KF put in canonical order in place; False if a key overflows (the rows before it
+    already reordered). Per patch: the keys of its m cells' centroid offsets from xa (rounded
+    in units of 1/unit), sorted stably by insertion (ties keep the patch's order) and the
+    cells with them; for a boundary patch (exterior
     given, (ncells, 3) ∂Ω flags of the cells' edges, edge e opposite vertex e) then the key of
     Σ_e [e on ∂Ω] (midpoint of e - xa) per cell, for the others the key of (0, 0)."""
     P, m = CF.shape
     key = np.empty(m, dtype=np.int64)
     order = np.empty(m, dtype=np.int64)
+    cf, kf = CF[0].copy(), KF[0].copy()
     none = np.int64(_KEY_RANGE) * 2 ** 31 + _KEY_RANGE                  # the key of (0, 0)
     for p in range(P):
         for j in range(m):
@@ -507,9 +509,11 @@ def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, CFs, KFs, 
                 i -= 1
             order[i] = j
         sig[p, 0] = 1 if boundary[p] else 0
+        cf[:] = CF[p]
+        kf[:] = KF[p]
         for j in range(m):
-            CFs[p, j] = CF[p, order[j]]
-            KFs[p, j] = KF[p, order[j]]
+            CF[p, j] = cf[order[j]]
+            KF[p, j] = kf[order[j]]
             sig[p, 1 + j] = key[order[j]]
         if exterior.shape[0] == 0:
             continue
@@ -517,7 +521,7 @@ def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, CFs, KFs, 
             if not boundary[p]:
                 sig[p, 1 + m + j] = none
                 continue
-            c = CFs[p, j]
+            c = CF[p, j]
             s0 = 0.0
             s1 = 0.0
             for e in range(3):
@@ -578,8 +582,8 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
                         exterior=None):
     """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
     CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
-    boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
-    centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
+    boundary (P,) flags. Returns CF, KF put in a canonical order in place (by the offset of
+    the cell centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
     pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
     (relative to xa). Patches are classed by their offsets rounded to 1e-6 scale (through a
     64-bit hash of the rounded signature, checked entry by entry against the
@@ -610,13 +614,9 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     # cell order) | for boundary patches, their ∂Ω edges
     unit = 1e6 / scale
     sig = np.empty((P, 1 + (2 if exterior is not None else 1) * m), dtype=np.int64)
-    CFs, KFs = np.empty_like(CF), np.empty_like(KF)
     ext = np.zeros((0, 3), dtype=bool) if exterior is None else exterior
-    if not _signatures(geo.x, geo.cells, cent, xa, CF, KF, boundary, ext, unit, CFs, KFs,
-                       sig):
+    if not _signatures(geo.x, geo.cells, cent, xa, CF, KF, boundary, ext, unit, sig):
         return identity()
-    CF, KF = CFs, KFs
-    del CFs, KFs
     h = _row_hash(sig, seed=0)
     # round-off: the offsets are differences of coordinates of size up to |x|max, a few ulps
     # of it; 1e-13 |x|max leaves a margin of several hundred, and near-translates (a gmsh mesh
