@@ -453,13 +453,17 @@ def _patch_cells(order, ptr, verts, n):
 _KEY_RANGE = 2 ** 30
 
 
+def _hash_multipliers(k, seed):
+    """The fixed random odd c_i (k of them, uint64) of the row hash Σ_i keys[i] c_i mod 2^64
+    (equal rows, equal hashes; different rows collide with probability about 2^-63, and
+    every class is checked against its representative anyway)."""
+    return (np.random.default_rng(seed).integers(1, 2 ** 62, size=k) | 1).astype(np.uint64)
+
+
 def _row_hash(keys, seed):
-    """One int64 per row of the integer array `keys` (n, k): Σ_i keys[:, i] c_i mod 2^64 with
-    fixed random odd c_i (equal rows, equal hashes; different rows collide with probability
-    about 2^-63, and every class is checked entry by entry anyway)."""
-    mult = np.random.default_rng(seed).integers(1, 2 ** 62, size=keys.shape[1]) | 1
+    """One int64 per row of the integer array `keys` (n, k): the hash of `_hash_multipliers`."""
     keys = np.ascontiguousarray(keys, dtype=np.int64).view(np.uint64)    # wraps, as defined
-    return (keys @ mult.astype(np.uint64)).view(np.int64)
+    return (keys @ _hash_multipliers(keys.shape[1], seed)).view(np.int64)
 
 
 # the permutations of (0, 1, 2) as itertools lists them; s is number 2 s[0] + (s[1] > s[2])
@@ -481,13 +485,14 @@ _SORT3 = np.array([_sort_code(i & 1, i >> 1 & 1, i >> 2 & 1) for i in range(8)],
 
 
 @kernel
-def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, sig):
-    """The signatures of P patches (`translation_classes`) into sig (P, 1 + 2m), their cells
-    CF, KF put in canonical order in place; False if a key overflows (the rows before it
-    already reordered). Per patch: the keys of its m cells' centroid offsets from xa (rounded
-    in units of 1/unit), sorted stably by insertion (ties keep the patch's order) and the
-    cells with them; for a boundary patch (exterior
-    given, (ncells, 3) ∂Ω flags of the cells' edges, edge e opposite vertex e) then the key of
+def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, mult, h):
+    """The hashes h (P,) of the signatures of P patches (`translation_classes`; the row hash
+    of `_hash_multipliers`, multipliers mult, accumulated entry by entry), their cells CF, KF
+    put in canonical order in place; False if a key overflows (the rows before it already
+    reordered). The signature of a patch: its boundary flag, the keys of its m cells'
+    centroid offsets from xa (rounded in units of 1/unit), sorted stably by insertion (ties
+    keep the patch's order; the cells with them), then if exterior is given ((ncells, 3) ∂Ω
+    flags of the cells' edges, edge e opposite vertex e), for a boundary patch the key of
     Σ_e [e on ∂Ω] (midpoint of e - xa) per cell, for the others the key of (0, 0)."""
     P, m = CF.shape
     key = np.empty(m, dtype=np.int64)
@@ -508,18 +513,19 @@ def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, sig):
                 order[i] = order[i - 1]
                 i -= 1
             order[i] = j
-        sig[p, 0] = 1 if boundary[p] else 0
+        acc = mult[0] if boundary[p] else np.uint64(0)
         cf[:] = CF[p]
         kf[:] = KF[p]
         for j in range(m):
             CF[p, j] = cf[order[j]]
             KF[p, j] = kf[order[j]]
-            sig[p, 1 + j] = key[order[j]]
+            acc += np.uint64(key[order[j]]) * mult[1 + j]
+        h[p] = acc
         if exterior.shape[0] == 0:
             continue
         for j in range(m):
             if not boundary[p]:
-                sig[p, 1 + m + j] = none
+                acc += np.uint64(none) * mult[1 + m + j]
                 continue
             c = CF[p, j]
             s0 = 0.0
@@ -533,16 +539,20 @@ def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, sig):
             k1 = np.rint(s1 * unit)
             if max(abs(k0), abs(k1)) >= _KEY_RANGE:
                 return False
-            sig[p, 1 + m + j] = (np.int64(k0) + _KEY_RANGE) * 2 ** 31 + (np.int64(k1) +
-                                                                         _KEY_RANGE)
+            acc += np.uint64((np.int64(k0) + _KEY_RANGE) * 2 ** 31
+                             + (np.int64(k1) + _KEY_RANGE)) * mult[1 + m + j]
+        h[p] = acc
     return True
 
 
 @kernel
-def _match(p, r, x, cells, cent, xa, sig, CF, unit, tol, code, PERMS, SORT3, MATCH, ok, pi):
-    """Whether patches p (cells CF in canonical order) are translates of the patches r (same
-    signature, vertices relative to xa within tol), into ok, and the vertex matches into
-    pi[p] (_MATCH of the two cells' canonical vertex orders); False if a key overflows. The
+def _match(p, r, x, cells, cent, xa, boundary, exterior, CF, unit, tol, code, PERMS, SORT3,
+           MATCH, ok, pi):
+    """Whether patches p (cells CF in canonical order) are translates of the patches r, into
+    ok: the same boundary flag, the vertices relative to xa within tol and, for boundary
+    patches (exterior given), the same ∂Ω edges (edge e of a cell, opposite vertex e, matched
+    to the edge opposite the matched vertex); and the vertex matches into pi[p] (_MATCH of
+    the two cells' canonical vertex orders); False if a key overflows. The
     cells' canonical vertex orders (by the vertices' offsets from the centroid, keyed as in
     `_signatures`, ties by local number: the same order in translated cells) are computed at
     a cell's first use into code (-1: not yet)."""
@@ -550,10 +560,8 @@ def _match(p, r, x, cells, cent, xa, sig, CF, unit, tol, code, PERMS, SORT3, MAT
     k = np.empty(3, dtype=np.int64)
     for q in range(len(p)):
         a, b = p[q], r[q]
-        same = True
-        for i in range(sig.shape[1]):
-            if sig[a, i] != sig[b, i]:
-                same = False
+        same = boundary[a] == boundary[b]
+        edges = boundary[a] and exterior.shape[0] > 0
         for j in range(m):
             for t in range(2):
                 c = CF[b, j] if t == 0 else CF[a, j]
@@ -574,6 +582,9 @@ def _match(p, r, x, cells, cent, xa, sig, CF, unit, tol, code, PERMS, SORT3, MAT
                     if not abs((x[va, d] - xa[a, d]) - (x[vb, d] - xa[b, d])) <= tol:
                         same = False
                 pi[a, j, i] = MATCH[sa, sb, i]
+            for i in range(3):
+                if edges and exterior[ca, i] != exterior[cb, pi[a, j, i]]:
+                    same = False
         ok[q] = same
     return True
 
@@ -586,8 +597,8 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     the cell centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
     pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
     (relative to xa). Patches are classed by their offsets rounded to 1e-6 scale (through a
-    64-bit hash of the rounded signature, checked entry by entry against the
-    representative's), and are translates to round-off only: a patch whose vertices (relative
+    64-bit hash of the rounded signature; each patch is checked against its representative:
+    boundary flag, vertices, ∂Ω edges), and are translates to round-off only: a patch whose vertices (relative
     to xa) do not match its representative's within 1e-13 of the largest coordinate (a
     coincidence of the rounded keys: a near-translate) is classed again among such patches.
     `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary
@@ -613,11 +624,12 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     # signature: boundary flag | the cells' rounded centroid offsets, sorted (the canonical
     # cell order) | for boundary patches, their ∂Ω edges
     unit = 1e6 / scale
-    sig = np.empty((P, 1 + (2 if exterior is not None else 1) * m), dtype=np.int64)
     ext = np.zeros((0, 3), dtype=bool) if exterior is None else exterior
-    if not _signatures(geo.x, geo.cells, cent, xa, CF, KF, boundary, ext, unit, sig):
+    h = np.empty(P, dtype=np.uint64)
+    if not _signatures(geo.x, geo.cells, cent, xa, CF, KF, boundary, ext, unit,
+                       _hash_multipliers(1 + (2 if exterior is not None else 1) * m, 0), h):
         return identity()
-    h = _row_hash(sig, seed=0)
+    h = h.view(np.int64)
     # round-off: the offsets are differences of coordinates of size up to |x|max, a few ulps
     # of it; 1e-13 |x|max leaves a margin of several hundred, and near-translates (a gmsh mesh
     # has patches equal to 1e-8 of their size) do not pass
@@ -646,8 +658,8 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
         r = pending[first[gid.ravel()]]
         rep[pending] = r
         ok = np.empty(len(pending), dtype=bool)
-        if not _match(pending, r, geo.x, geo.cells, cent, xa, sig, CF, unit, tol, code,
-                      _PERMS, _SORT3, _MATCH, ok, pi):
+        if not _match(pending, r, geo.x, geo.cells, cent, xa, boundary, ext, CF, unit, tol,
+                      code, _PERMS, _SORT3, _MATCH, ok, pi):
             return identity()
         pending = pending[~ok]
         key = fine_hash(pending)
