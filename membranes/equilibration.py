@@ -84,7 +84,7 @@ _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
 # numpy passes over per-cell arrays go by blocks of this many rows: their temporaries (a few
 # MB) stay in cache and are recycled by the allocator, where whole-array temporaries of tens
 # of MB each cost fresh pages (measured: 1.5-3x the time of the same pass in blocks).
-_BLOCK = 1 << 14
+_BLOCK = 1 << 22
 
 
 class Geometry:
@@ -819,8 +819,10 @@ class FluxEquilibration:
         self.lift = Lifting(geo)
         on_boundary = np.zeros(geo.n, dtype=bool)
         on_boundary[disc.boundary] = True
-        shape = (space.nrt, geo.n)
-        self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
+        # G_u, G_R, G_λ on the RT dofs `touched` (ascending) only: the patches solved on
+        # their own touch a few thousand where the classes take all others
+        self.touched = np.zeros(0, dtype=np.int64)
+        self.G_u, self.G_R, self.G_lam = (sp.csr_matrix((0, geo.n)) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
         # the cells' centroids (translation_classes)
         x = geo.x
@@ -1073,27 +1075,39 @@ class FluxEquilibration:
                                                      sol[:, :, 2 * m + 1 + alpha].ravel())
 
     def _add_operators(self):
-        """Add the pending batches of `_solve_patches` to G_u, G_R, G_λ."""
+        """Add the pending batches of `_solve_patches` to G_u, G_R, G_λ, kept on the rows of
+        the RT dofs they touch (`touched`): the sums and the new batches are put on the union
+        of their dofs (moving rows: no entry changes) and added as scipy adds them, row by
+        row, so that no pass goes over all RT dofs (the same entries as sums of matrices of
+        all RT dofs' rows)."""
         if not self._pending:
             return
         rows, cols, u, R, rows_lam, cols_lam, lam = (np.concatenate(z)
                                                      for z in zip(*self._pending))
         self._pending.clear()
-        shape = self.G_u.shape
-        self.G_u = self.G_u + sp.csr_matrix((u, (rows, cols)), shape=shape)
-        self.G_R = self.G_R + sp.csr_matrix((R, (rows, cols)), shape=shape)
-        self.G_lam = self.G_lam + sp.csr_matrix((lam, (rows_lam, cols_lam)), shape=shape)
+        union = np.union1d(self.touched, np.union1d(rows, rows_lam))
+        shape = (len(union), self.geo.n)
+
+        def moved(G):
+            indptr = np.zeros(len(union) + 1, dtype=G.indptr.dtype)
+            indptr[1 + np.searchsorted(union, self.touched)] = np.diff(G.indptr)
+            return sp.csr_matrix((G.data, G.indices, np.cumsum(indptr, out=indptr)),
+                                 shape=shape)
+
+        at, at_lam = np.searchsorted(union, rows), np.searchsorted(union, rows_lam)
+        self.G_u = moved(self.G_u) + sp.csr_matrix((u, (at, cols)), shape=shape)
+        self.G_R = moved(self.G_R) + sp.csr_matrix((R, (at, cols)), shape=shape)
+        self.G_lam = moved(self.G_lam) + sp.csr_matrix((lam, (at_lam, cols_lam)), shape=shape)
+        self.touched = union
 
     def _keep_touched_rows(self):
-        """Restrict G_u, G_R, G_λ to the RT dofs they touch (`touched`): those of the patches
-        solved on their own, a few thousand where the classes take all others, so that an
+        """Keep of G_u, G_R, G_λ the rows with entries (the sums drop exact zeros), so that an
         evaluation makes no vectors of all RT dofs for them."""
-        touched = np.zeros(self.G_u.shape[0], dtype=bool)
+        keep = np.zeros(len(self.touched), dtype=bool)
         for G in (self.G_u, self.G_R, self.G_lam):
-            touched[np.diff(G.indptr) > 0] = True
-        self.touched = np.flatnonzero(touched)
-        self.G_u, self.G_R, self.G_lam = (G[self.touched] for G in (self.G_u, self.G_R,
-                                                                     self.G_lam))
+            keep |= np.diff(G.indptr) > 0
+        self.touched = self.touched[keep]
+        self.G_u, self.G_R, self.G_lam = (G[keep] for G in (self.G_u, self.G_R, self.G_lam))
 
     def sigma(self, alpha, u, lam, R):
         """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5): σ_f,α, plus
