@@ -43,11 +43,15 @@ evaluation is then a gather, one batched product per stack of classes and one sp
 (the change of basis and the scatter, a matrix kept from the set-up). The other patches keep
 the sparse operators, restricted to the RT dofs they touch. The set-up handles all the
 patches of one size at once (classes, changes of basis, the representatives' systems in
-batches of one shape), so that its cost is a few passes over arrays of O(N) entries, made by
-cache-sized blocks of rows: the cells' canonical vertex orders once per mesh, the classes
-from the patches' rounded centroid offsets (a sort of each patch's m keys, a hash, a check of
-the vertices), and each member's change of basis and data indices from tables per
-representative dof.
+batches of one shape), so that its cost is a few passes over arrays of O(N) entries. The
+passes whose per-item work is a few dozen table look-ups are compiled loops (`compiled.kernel`)
+that touch each item once, where numpy made many temporaries of O(N) entries each (DESIGN
+§5): the cells' areas and gradients (`_cell_geometry`), the patches' cells
+(`_counting_sort`, `_patch_cells`), the classes from the patches' rounded centroid offsets
+(`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
+`_match`: a check of the vertices, each cell's canonical vertex order computed at its first
+use), and each member's change of basis and data indices from tables per representative dof
+(`_member_maps`, in the patches' order).
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures; `load_moments`: one assembly against DG2 per load).
@@ -66,6 +70,7 @@ import ufl
 
 from forms.equilibration import weighted_mass
 
+from .compiled import kernel
 from .discretisation import form as compiled, load, over
 from .meshes import p1_cells
 
@@ -76,10 +81,11 @@ for _k in range(3):
         for _i in range(3):
             _C3[_k, _l, _i] = {1: 1 / 10, 2: 1 / 30, 3: 1 / 60}[len({_k, _l, _i})]
 _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
-# Passes over per-cell and per-patch arrays go by blocks of this many rows: their temporaries
-# (a few MB) stay in cache and are recycled by the allocator, where whole-array temporaries
-# of tens of MB each cost fresh pages (measured: 1.5-3x the time of the same pass in blocks,
-# for the canonical vertex orders of 8.7e5 cells).
+# numpy passes over per-cell arrays go by blocks of this many rows: their temporaries (a few
+# MB) stay in cache and are recycled by the allocator, where whole-array temporaries of tens
+# of MB each cost fresh pages (measured: 1.5-3x the time of the same pass in blocks, for the
+# canonical vertex orders of 8.7e5 cells, a pass now compiled). A BLAS product by blocks
+# beats a compiled loop here (`load_moments`: 0.04 s against 0.11 s at 1.9e6 cells).
 _BLOCK = 1 << 14
 
 
@@ -96,19 +102,7 @@ class Geometry:
         self.x = x = np.ascontiguousarray(V.tabulate_dof_coordinates()[:, :2])
         self.area = np.empty(self.ncells)
         self.grad = np.empty((self.ncells, 3, 2))              # (ncells, 3, 2)
-        for s in range(0, self.ncells, _BLOCK):                # cache-sized blocks of cells
-            c = slice(s, s + _BLOCK)
-            p = x[self.cells[c]]
-            e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-            det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-            self.area[c] = 0.5 * np.abs(det)
-            # ∇φ_k: rows of the inverse Jacobian transpose applied to the reference gradients
-            # (-1, -1), (1, 0), (0, 1): ∇φ_1, ∇φ_2 its rows, ∇φ_0 = -(∇φ_1 + ∇φ_2)
-            g = self.grad[c]
-            g[:, 1, 0], g[:, 1, 1] = e2[:, 1] / det, -e2[:, 0] / det
-            g[:, 2, 0], g[:, 2, 1] = -e1[:, 1] / det, e1[:, 0] / det
-            np.add(g[:, 1], g[:, 2], out=g[:, 0])
-            np.negative(g[:, 0], out=g[:, 0])
+        _cell_geometry(x, self.cells, self.area, self.grad)
         self.cells_per_vertex = np.bincount(self.cells.ravel(), minlength=self.n)
 
     def gradient(self, u):
@@ -120,6 +114,24 @@ class Geometry:
         reference triangle, shape (c, 2, 2)."""
         p = self.x[self.cells[cells]]
         return np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)
+
+
+@kernel
+def _cell_geometry(x, cells, area, grad):
+    """Into area (ncells,) and grad (ncells, 3, 2): |K| and the barycentric gradients ∇φ_k of
+    each cell, the rows of the inverse Jacobian transpose applied to the reference gradients
+    (-1, -1), (1, 0), (0, 1): with e1 = x_1 - x_0, e2 = x_2 - x_0 and det = e1 × e2,
+    ∇φ_1 = (e2_y, -e2_x) / det, ∇φ_2 = (-e1_y, e1_x) / det, ∇φ_0 = -(∇φ_1 + ∇φ_2)."""
+    for c in range(area.shape[0]):
+        a, b, d = cells[c, 0], cells[c, 1], cells[c, 2]
+        e1x, e1y = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1]
+        e2x, e2y = x[d, 0] - x[a, 0], x[d, 1] - x[a, 1]
+        det = e1x * e2y - e1y * e2x
+        area[c] = 0.5 * abs(det)
+        grad[c, 1, 0], grad[c, 1, 1] = e2y / det, -e2x / det
+        grad[c, 2, 0], grad[c, 2, 1] = -e1y / det, e1x / det
+        grad[c, 0, 0] = -(grad[c, 1, 0] + grad[c, 2, 0])
+        grad[c, 0, 1] = -(grad[c, 1, 1] + grad[c, 2, 1])
 
 
 class Lifting:
@@ -399,40 +411,61 @@ class PatchSpace:
                 yield (sel,) + self.saddle_point_systems(CS[sel], glob[sel], b)
 
 
+@kernel
+def _counting_sort(keys, ptr):
+    """The positions 0 .. len(keys) - 1 grouped by key, ascending within each group (a stable
+    counting sort; ptr (n + 1,) the groups' offsets, from the counts of the keys)."""
+    at = ptr[:-1].copy()
+    order = np.empty(len(keys), dtype=np.int64)
+    for i in range(len(keys)):
+        order[at[keys[i]]] = i
+        at[keys[i]] += 1
+    return order
+
+
 def vertex_patches(geo, owned=None):
     """For every vertex a (or every vertex of the mask `owned`): its cells (grouped by count)
     and a's local index in each. Yields (vertices (P,), CS (P, n), KA (P, n))."""
-    # the positions in geo.cells grouped by vertex, ascending (a stable counting sort: the
-    # CSR matrix of position -> vertex, transposed)
-    N = geo.cells.size
-    order = sp.csr_matrix((np.ones(N, dtype=np.int8), geo.cells.ravel(), np.arange(N + 1)),
-                          shape=(N, geo.n)).tocsc().indices
+    # the positions in geo.cells grouped by vertex, ascending
     ptr = np.concatenate([[0], np.cumsum(geo.cells_per_vertex)])
+    order = _counting_sort(geo.cells.ravel(), ptr)
     count = geo.cells_per_vertex if owned is None else np.where(owned, geo.cells_per_vertex, 0)
     for n in np.unique(count[count > 0]):
         verts = np.flatnonzero(count == n)
-        idx = order[ptr[verts][:, None] + np.arange(n)]
-        yield verts, idx // 3, idx % 3
+        yield (verts,) + _patch_cells(order, ptr, verts, n)
 
 
-def _grid_keys(v, scale):
-    """One int64 per point of v (..., 2): its coordinates in units of 1e-6 scale, rounded and
-    combined (None if they exceed 2^30 units, a patch larger than 1000 scale)."""
-    k = v * (1e6 / scale)
-    np.rint(k, out=k)
-    if k.size and max(k.max(), -k.min()) >= 2 ** 30:
-        return None
-    k = k.astype(np.int64)
-    return (k[..., 0] + 2 ** 30) * 2 ** 31 + (k[..., 1] + 2 ** 30)
+@kernel
+def _patch_cells(order, ptr, verts, n):
+    """The cells CS (P, n) and local indices KA (P, n) of the vertices verts, each in n cells,
+    from the positions in the cells' array grouped by vertex (`_counting_sort`)."""
+    CS = np.empty((len(verts), n), dtype=np.int64)
+    KA = np.empty((len(verts), n), dtype=np.int64)
+    for p in range(len(verts)):
+        for j in range(n):
+            i = order[ptr[verts[p]] + j]
+            CS[p, j] = i // 3
+            KA[p, j] = i - 3 * CS[p, j]
+    return CS, KA
+
+
+# Keys of points on a grid of 1e-6 scale: coordinates in those units, rounded, each shifted by
+# 2^30 and the pair combined into one int64 (patches larger than 1000 scale overflow: then
+# no classes are formed).
+_KEY_RANGE = 2 ** 30
+
+
+def _hash_multipliers(k, seed):
+    """The fixed random odd c_i (k of them, uint64) of the row hash Σ_i keys[i] c_i mod 2^64
+    (equal rows, equal hashes; different rows collide with probability about 2^-63, and
+    every class is checked against its representative anyway)."""
+    return (np.random.default_rng(seed).integers(1, 2 ** 62, size=k) | 1).astype(np.uint64)
 
 
 def _row_hash(keys, seed):
-    """One int64 per row of the integer array `keys` (n, k): Σ_i keys[:, i] c_i mod 2^64 with
-    fixed random odd c_i (equal rows, equal hashes; different rows collide with probability
-    about 2^-63, and every class is checked entry by entry anyway)."""
-    mult = np.random.default_rng(seed).integers(1, 2 ** 62, size=keys.shape[1]) | 1
+    """One int64 per row of the integer array `keys` (n, k): the hash of `_hash_multipliers`."""
     keys = np.ascontiguousarray(keys, dtype=np.int64).view(np.uint64)    # wraps, as defined
-    return (keys @ mult.astype(np.uint64)).view(np.int64)
+    return (keys @ _hash_multipliers(keys.shape[1], seed)).view(np.int64)
 
 
 # the permutations of (0, 1, 2) as itertools lists them; s is number 2 s[0] + (s[1] > s[2])
@@ -453,36 +486,121 @@ def _sort_code(le01, le02, le12):
 _SORT3 = np.array([_sort_code(i & 1, i >> 1 & 1, i >> 2 & 1) for i in range(8)], dtype=np.int8)
 
 
-def _canonical_vertices(geo, cent, cells, scale):
-    """The vertices of the given cells in a canonical order (by their offsets from the cell's
-    centroid, rounded as `_grid_keys`, ties by local number: the same order in translated
-    cells) and the number of that order among _PERMS: (len(cells), 3, 2) coordinates,
-    (len(cells),) codes (None if the keys overflow)."""
-    corners = np.empty((len(cells), 3, 2))
-    code = np.empty(len(cells), dtype=np.int8)
-    for s in range(0, len(cells), _BLOCK):
-        c = cells[s:s + _BLOCK]
-        x = geo.x[geo.cells[c]]
-        k = _grid_keys(x - cent[c][:, None, :], scale)
-        if k is None:
-            return None, None
-        code[s:s + _BLOCK] = sc = _SORT3[(k[:, 0] <= k[:, 1]) + 2 * (k[:, 0] <= k[:, 2])
-                                         + 4 * (k[:, 1] <= k[:, 2])]
-        rows = 3 * np.arange(len(c))[:, None] + _PERMS[sc]
-        corners[s:s + _BLOCK] = x.reshape(-1, 2)[rows]
-    return corners, code
+@kernel
+def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, mult, h):
+    """The hashes h (P,) of the signatures of P patches (`translation_classes`; the row hash
+    of `_hash_multipliers`, multipliers mult, accumulated entry by entry), their cells CF, KF
+    put in canonical order in place; False if a key overflows (the rows before it already
+    reordered). The signature of a patch: its boundary flag, the keys of its m cells'
+    centroid offsets from xa (rounded in units of 1/unit), sorted stably by insertion (ties
+    keep the patch's order; the cells with them), then if exterior is given ((ncells, 3) ∂Ω
+    flags of the cells' edges, edge e opposite vertex e), for a boundary patch the key of
+    Σ_e [e on ∂Ω] (midpoint of e - xa) per cell, for the others the key of (0, 0)."""
+    P, m = CF.shape
+    key = np.empty(m, dtype=np.int64)
+    order = np.empty(m, dtype=np.int64)
+    cf, kf = CF[0].copy(), KF[0].copy()
+    none = np.int64(_KEY_RANGE) * 2 ** 31 + _KEY_RANGE                  # the key of (0, 0)
+    for p in range(P):
+        for j in range(m):
+            c = CF[p, j]
+            k0 = np.rint((cent[c, 0] - xa[p, 0]) * unit)
+            k1 = np.rint((cent[c, 1] - xa[p, 1]) * unit)
+            if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+                return False
+            key[j] = (np.int64(k0) + _KEY_RANGE) * 2 ** 31 + (np.int64(k1) + _KEY_RANGE)
+            order[j] = j
+            i = j                                                   # stable insertion sort
+            while i > 0 and key[order[i - 1]] > key[j]:
+                order[i] = order[i - 1]
+                i -= 1
+            order[i] = j
+        acc = mult[0] if boundary[p] else np.uint64(0)
+        cf[:] = CF[p]
+        kf[:] = KF[p]
+        for j in range(m):
+            CF[p, j] = cf[order[j]]
+            KF[p, j] = kf[order[j]]
+            acc += np.uint64(key[order[j]]) * mult[1 + j]
+        h[p] = acc
+        if exterior.shape[0] == 0:
+            continue
+        for j in range(m):
+            if not boundary[p]:
+                acc += np.uint64(none) * mult[1 + m + j]
+                continue
+            c = CF[p, j]
+            s0 = 0.0
+            s1 = 0.0
+            for e in range(3):
+                a, b = cells[c, (e + 1) % 3], cells[c, (e + 2) % 3]
+                f = 1.0 if exterior[c, e] else 0.0
+                s0 += 0.5 * ((x[a, 0] - xa[p, 0]) + (x[b, 0] - xa[p, 0])) * f
+                s1 += 0.5 * ((x[a, 1] - xa[p, 1]) + (x[b, 1] - xa[p, 1])) * f
+            k0 = np.rint(s0 * unit)
+            k1 = np.rint(s1 * unit)
+            if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+                return False
+            acc += np.uint64((np.int64(k0) + _KEY_RANGE) * 2 ** 31
+                             + (np.int64(k1) + _KEY_RANGE)) * mult[1 + m + j]
+        h[p] = acc
+    return True
+
+
+@kernel
+def _match(p, r, x, cells, cent, xa, boundary, exterior, CF, unit, tol, code, PERMS, SORT3,
+           MATCH, ok, pi):
+    """Whether patches p (cells CF in canonical order) are translates of the patches r, into
+    ok: the same boundary flag, the vertices relative to xa within tol and, for boundary
+    patches (exterior given), the same ∂Ω edges (edge e of a cell, opposite vertex e, matched
+    to the edge opposite the matched vertex); and the vertex matches into pi[p] (_MATCH of
+    the two cells' canonical vertex orders); False if a key overflows. The
+    cells' canonical vertex orders (by the vertices' offsets from the centroid, keyed as in
+    `_signatures`, ties by local number: the same order in translated cells) are computed at
+    a cell's first use into code (-1: not yet)."""
+    m = CF.shape[1]
+    k = np.empty(3, dtype=np.int64)
+    for q in range(len(p)):
+        a, b = p[q], r[q]
+        same = boundary[a] == boundary[b]
+        edges = boundary[a] and exterior.shape[0] > 0
+        for j in range(m):
+            for t in range(2):
+                c = CF[b, j] if t == 0 else CF[a, j]
+                if code[c] < 0:
+                    for i in range(3):
+                        k0 = np.rint((x[cells[c, i], 0] - cent[c, 0]) * unit)
+                        k1 = np.rint((x[cells[c, i], 1] - cent[c, 1]) * unit)
+                        if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+                            return False
+                        k[i] = (np.int64(k0) + _KEY_RANGE) * 2 ** 31 + (np.int64(k1) +
+                                                                         _KEY_RANGE)
+                    code[c] = SORT3[(k[0] <= k[1]) + 2 * (k[0] <= k[2]) + 4 * (k[1] <= k[2])]
+            ca, cb = CF[a, j], CF[b, j]
+            sa, sb = code[ca], code[cb]
+            for i in range(3):
+                va, vb = cells[ca, PERMS[sa, i]], cells[cb, PERMS[sb, i]]
+                for d in range(2):
+                    if not abs((x[va, d] - xa[a, d]) - (x[vb, d] - xa[b, d])) <= tol:
+                        same = False
+                pi[a, j, i] = MATCH[sa, sb, i]
+            for i in range(3):
+                if edges and exterior[ca, i] != exterior[cb, pi[a, j, i]]:
+                    same = False
+        ok[q] = same
+    return True
 
 
 def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
-                        exterior=None, chunk=_BLOCK // 4, frames=None):
+                        exterior=None):
     """Classes of translated patches: patch p around the point xa[p] (P, 2), made of the cells
     CF (P, m) of the mesh `geo` (centroids cent), KF (P, m) a per-cell label carried along, and
-    boundary (P,) flags. Returns CF, KF in a canonical order (by the offset of the cell
-    centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
+    boundary (P,) flags. Returns CF, KF put in a canonical order in place (by the offset of
+    the cell centroid from xa), rep (P,) the representative of each patch and pi (P, m, 3): vertex
     pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
     (relative to xa). Patches are classed by their offsets rounded to 1e-6 scale (through a
-    64-bit hash of the rounded signature, checked entry by entry against the
-    representative's), and are translates to round-off only: a patch whose vertices (relative
+    64-bit hash of the rounded signature; each patch is checked against its representative:
+    boundary flag, vertices, ∂Ω edges), and are translates to round-off only: a patch whose vertices (relative
     to xa) do not match its representative's within 1e-13 of the largest coordinate (a
     coincidence of the rounded keys: a near-translate) is classed again among such patches.
     `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary
@@ -491,82 +609,33 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     one of them has a patch edge on ∂Ω where the other's is inside Ω (next to a corner of a
     structured square).
 
-    Each step is a pass over arrays of P m entries (no row sorting but the m keys of each
-    patch): the cells' vertices are put in a canonical order once per cell
-    (`_canonical_vertices`; `frames`: that of all of geo's cells, if computed beforehand), so
-    that a vertex match is a table entry per cell (_MATCH) and the check compares the
-    vertices in that order, `chunk` patches at a time."""
+    Two compiled loops over the patches (`_signatures`, `_match`), each touching a patch's m
+    cells once, with a hash and numpy's sort of the P hashes between them: the signature
+    sorts only the m keys of each patch, and a cell's vertices are put in a canonical order
+    (once per cell), so that a vertex match is a table entry per cell (_MATCH) and the check
+    compares the vertices in that order."""
     P, m = CF.shape
     boundary = np.asarray(boundary, dtype=bool)
 
     def identity():
-        return np.broadcast_to(np.arange(3, dtype=np.int8), (P, m, 3)).copy()
+        return CF, KF, np.arange(P), np.broadcast_to(np.arange(3, dtype=np.int8),
+                                                     (P, m, 3)).copy()
 
     if not translates or P == 0:
-        return CF, KF, np.arange(P), identity()
+        return identity()
     # signature: boundary flag | the cells' rounded centroid offsets, sorted (the canonical
-    # cell order) | for boundary patches, their ∂Ω edges (below)
-    sig = np.empty((P, 1 + (2 if exterior is not None else 1) * m), dtype=np.int64)
-    sig[:, 0] = boundary
-    CFs, KFs = np.empty_like(CF), np.empty_like(KF)
-    for s in range(0, P, _BLOCK):
-        c = slice(s, s + _BLOCK)
-        key = _grid_keys(cent[CF[c]] - xa[c, None, :], scale)                 # (P, m)
-        if key is None:
-            return CF, KF, np.arange(P), identity()
-        order = np.argsort(key, axis=1, kind="stable")
-        CFs[c], KFs[c] = (np.take_along_axis(a[c], order, axis=1) for a in (CF, KF))
-        sig[c, 1:m + 1] = np.take_along_axis(key, order, axis=1)
-    CF, KF = CFs, KFs
-    del CFs, KFs
-    if exterior is not None:
-        b = np.flatnonzero(boundary)
-        xv = geo.x[geo.cells[CF[b]]] - xa[b][:, None, None, :]
-        mids = 0.5 * (np.roll(xv, -1, axis=2) + np.roll(xv, -2, axis=2))   # edge e: opposite e
-        where = _grid_keys((mids * exterior[CF[b]][..., None]).sum(axis=2), scale)
-        if where is None:
-            return CF, KF, np.arange(P), identity()
-        sig[:, m + 1:] = _grid_keys(np.zeros(2), scale)
-        sig[b, m + 1:] = where
-    h = _row_hash(sig, seed=0)
-    # the cells' vertices in canonical order, once per cell (inv: the cells' numbers among
-    # those of the patches)
-    if frames is None:
-        used = np.zeros(len(geo.cells), dtype=bool)
-        used[CF] = True
-        uc = np.flatnonzero(used)
-        del used
-        lookup = np.empty(len(geo.cells), dtype=np.int64)
-        lookup[uc] = np.arange(len(uc))
-        inv = lookup[CF]
-        del lookup
-        corners, code = _canonical_vertices(geo, cent, uc, scale)
-    else:
-        inv, (corners, code) = CF, frames
-    if corners is None:
-        return CF, KF, np.arange(P), identity()
-    code = code[inv]                                                          # (P, m)
+    # cell order) | for boundary patches, their ∂Ω edges
+    unit = 1e6 / scale
+    ext = np.zeros((0, 3), dtype=bool) if exterior is None else exterior
+    h = np.empty(P, dtype=np.uint64)
+    if not _signatures(geo.x, geo.cells, cent, xa, CF, KF, boundary, ext, unit,
+                       _hash_multipliers(1 + (2 if exterior is not None else 1) * m, 0), h):
+        return identity()
+    h = h.view(np.int64)
     # round-off: the offsets are differences of coordinates of size up to |x|max, a few ulps
     # of it; 1e-13 |x|max leaves a margin of several hundred, and near-translates (a gmsh mesh
     # has patches equal to 1e-8 of their size) do not pass
     tol = 1e-13 * max(np.abs(geo.x).max(), scale)
-
-    def vertices(p):
-        """The vertices of patches p relative to their xa, in canonical order, (len(p), 6 m)."""
-        return (corners[inv[p]] - xa[p, None, None, :]).reshape(len(p), -1)
-
-    def match(p, first, gid):
-        """Whether patches p are translates of the representatives p[first][gid] (same
-        signature, vertices within tol), and the vertex matches pi (len(p), m, 3)."""
-        r = p[first][gid]
-        few = len(first) <= chunk
-        theirs = vertices(p[first]) if few else None
-        ok = np.empty(len(p), dtype=bool)
-        for s in range(0, len(p), chunk):
-            c = slice(s, s + chunk)
-            mine = vertices(p[c]) - (theirs[gid[c]] if few else vertices(r[c]))
-            ok[c] = (np.abs(mine).max(axis=1) <= tol) & (sig[p[c]] == sig[r[c]]).all(axis=1)
-        return ok, _MATCH[code[p], code[r]]
 
     def fine_hash(p):
         """A hash of the centroid offsets of patches p on a grid of 1e-10 scale (and of the
@@ -584,12 +653,16 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     # h0 = 0.132, where 1419 do for every J.
     rep = np.empty(P, dtype=np.int64)
     pi = np.empty((P, m, 3), dtype=np.int8)
+    code = np.full(len(geo.cells), -1, dtype=np.int8)
     pending, key = np.arange(P), h
     while pending.size:
         _, first, gid = np.unique(key, return_index=True, return_inverse=True)
-        gid = gid.ravel()
-        rep[pending] = pending[first[gid]]
-        ok, pi[pending] = match(pending, first, gid)
+        r = pending[first[gid.ravel()]]
+        rep[pending] = r
+        ok = np.empty(len(pending), dtype=bool)
+        if not _match(pending, r, geo.x, geo.cells, cent, xa, boundary, ext, CF, unit, tol,
+                      code, _PERMS, _SORT3, _MATCH, ok, pi):
+            return identity()
         pending = pending[~ok]
         key = fine_hash(pending)
     return CF, KF, rep, pi
@@ -641,6 +714,68 @@ def load_moments(disc, space):
     return out
 
 
+@kernel
+def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt_cells, cells,
+                 cell, base, part, redges, lr, first, PATCH_DOF, TOP, COEF, EDGE_BITS, PERMS,
+                 nc, nv, RET, L, C, G, GF):
+    """The loop of `FluxEquilibration._translates` (its arguments, with row (P,) the row of
+    each member patch in the outputs, -1 for the others, and the tables of `_representatives`
+    and `_class_tables` unpacked): 0, or 1 if a member keeps other edges
+    than its representative, 2 if a retained dof maps to a dropped one. Per member cell, the
+    number π of the vertex permutation (as algebraic_flux._perm_code: from pi's inverse) and
+    the kept edges as bits (those not opposite a and not on ∂Ω, and for a boundary vertex
+    those on ∂Ω); per retained dof i, in slot l of the representative's cell c with
+    reflections ρ_r, the table entry u = 384 ρ_r + 64 π_c + 8 ρ_p + l (ρ_p the member cell's
+    reflections) gives the patch dof and the (at most two) representative dofs of its
+    column of W."""
+    n = CF.shape[1]
+    nr = cell.shape[1]
+    m = first.shape[1]
+    perm = np.empty(n, dtype=np.int64)
+    for p in range(len(row)):                 # in the patches' order: their cells are near
+        q, b = row[p], bi[p]
+        if q < 0:
+            continue
+        for j in range(n):
+            i0, i1, i2 = 0, 0, 0                               # pi⁻¹: rep vertex v -> i_v
+            for i in range(3):
+                v = pi[p, j, i]
+                if v == 0:
+                    i0 = i
+                elif v == 1:
+                    i1 = i
+                else:
+                    i2 = i
+            perm[j] = 2 * i0 + (1 if i1 > i2 else 0)
+            ext = ext_bits[CF[p, j]]
+            bits = 7 & ~(1 << KF[p, j]) & ~ext
+            if boundary[p]:
+                bits |= ext
+            if EDGE_BITS[perm[j], bits] != redges[b, j]:
+                return 1
+        for i in range(nr):
+            cf = CF[p, cell[b, i]]
+            u = part[b, i] + 64 * perm[cell[b, i]] + 8 * reflections[cf]
+            RET[q, i] = rt_cells[cf, PATCH_DOF[u]]
+            for t in range(2):
+                coef = COEF[t, u]
+                tgt = lr[base[b, i] + TOP[t, u]]
+                if coef != 0 and tgt < 0:
+                    return 2
+                C[q, i, t] = coef
+                L[q, i, t] = max(tgt, 0)
+        for j in range(n):
+            G[q, 2 * j] = 2 * CF[p, j]
+            G[q, 2 * j + 1] = 2 * CF[p, j] + 1
+            for k in range(3):
+                GF[q, 3 * j + k] = 9 * CF[p, j] + KF[p, j] + 3 * PERMS[perm[j], k]
+        for v in range(m):
+            c, k = first[b, v] // 3, first[b, v] % 3
+            G[q, 2 * n + v] = 2 * nc + cells[CF[p, c], PERMS[perm[c], k]]
+        G[q, 2 * n + m] = 2 * nc + nv + verts[p]
+    return 0
+
+
 @functools.lru_cache(maxsize=None)
 def _class_tables(slots):
     """For the change of RT basis from a class representative to a translate (algebraic_flux:
@@ -686,19 +821,15 @@ class FluxEquilibration:
         self.lift = Lifting(geo)
         on_boundary = np.zeros(geo.n, dtype=bool)
         on_boundary[disc.boundary] = True
-        shape = (space.nrt, geo.n)
-        self.G_u, self.G_R, self.G_lam = (sp.csr_matrix(shape) for _ in range(3))
+        # G_u, G_R, G_λ on the RT dofs `touched` (ascending) only: the patches solved on
+        # their own touch a few thousand where the classes take all others
+        self.touched = np.zeros(0, dtype=np.int64)
+        self.G_u, self.G_R, self.G_lam = (sp.csr_matrix((0, geo.n)) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
-        # the cells' centroids and canonical vertex orders (translation_classes)
+        # the cells' centroids (translation_classes)
         x = geo.x
         self._cent = (x[geo.cells[:, 0]] + x[geo.cells[:, 1]] + x[geo.cells[:, 2]]) / 3.0
         self._scale = np.sqrt(geo.area.mean())
-        self._frames = None
-        if self.TRANSLATES:
-            self._frames = _canonical_vertices(geo, self._cent, np.arange(geo.ncells),
-                                               self._scale)
-            if self._frames[0] is None:
-                self._frames = None
         self._exterior_bits = space.exterior_edge.astype(np.int64) @ np.array([1, 2, 4])
         self._pending = []
         # the classes first, then the load moments and the other patches (the moments and
@@ -709,10 +840,13 @@ class FluxEquilibration:
             CS, KA, own = self._classes(verts, CS, KA, b, level)
             if len(own):
                 alone.append((verts[own], CS[own], KA[own], b[own]))
-        del self._cent, self._frames, self._exterior_bits   # the classes' only
+        del self._cent, self._exterior_bits   # the classes' only
         wf = load_moments(disc, space)
-        # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
-        self.load = [w.sum(axis=2) for w in wf]
+        # the load moments (f_α, φ_i)_K = Σ_k (f_α φ_k, φ_i)_K, kept for the oscillation
+        # estimator (two adds of strided columns: numpy's reduction over a last axis of three
+        # entries is several times slower; the same sums in the same order, bar the sign of
+        # a zero sum of negative zeros)
+        self.load = [w[:, :, 0] + w[:, :, 1] + w[:, :, 2] for w in wf]
         for verts, CS, KA, b in alone:
             glob = space.retained_dofs(CS, b, KA)
             for sel, RET, loc, A in space.patch_groups(CS, b, self.CHUNK, glob):
@@ -747,12 +881,11 @@ class FluxEquilibration:
         columns would take values of the size of u_h and cancel down to the size of ∇u_h h
         (round-off amplified by about 1/h). The members are ordered by class size and class,
         so that a bucket is a slice of each array."""
-        from .algebraic_flux import _perm_code
         geo, space = self.geo, self.space
         P, n = CS.shape
         CF, KF, rep, pi = translation_classes(geo.x[verts], CS, KA, boundary, geo, self._cent,
                                               self._scale, self.TRANSLATES,
-                                              space.exterior_edge, frames=self._frames)
+                                              space.exterior_edge)
         size = np.bincount(rep, minlength=P)
         member = size[rep] >= self.MIN_CLASS
         own = np.flatnonzero(~member)
@@ -785,15 +918,8 @@ class FluxEquilibration:
             G = np.empty((Pm, 2 * n + m + 1), dtype=self._index_type())
             GF = np.empty((Pm, 3 * n), dtype=G.dtype)
             tables = self._representatives(CR, loc)
-            for s in range(0, Pm, 4 * self.CHUNK):
-                c = mem[s:s + 4 * self.CHUNK]
-                part = slice(s, s + 4 * self.CHUNK)
-                perm = _perm_code(pi[c])
-                bi = batch[rep[c]]
-                RETm[part], L[part], C[part] = self._translates(
-                    CF[c], KF[c], perm, boundary[c], tables, bi)
-                self._data_indices(verts[c], CF[c], KF[c], perm, first[bi], G[part],
-                                   GF[part])
+            self._translates(mem, batch[rep], CF, KF, pi, boundary, verts, tables,
+                             first, (RETm, L, C, G, GF))
             # buckets: the classes of one size, each its members in a row
             csize = size[rep[mem]]
             cuts = np.concatenate([[0], np.flatnonzero(np.diff(csize)) + 1, [Pm]])
@@ -822,72 +948,43 @@ class FluxEquilibration:
         return (cell, 8 * (np.arange(g)[:, None] * n + cell), 384 * refl + at % 8, edges,
                 loc.reshape(-1))
 
-    def _translates(self, CF, KF, perm, boundary, tables, bi):
-        """Retained global dofs RET (P, nr) of P translates (cells CF, KF a's local index, perm
-        the vertex matches as `_perm_code`) of representatives (their `_representatives`
-        tables, number bi (P,) in them), in the representatives' local order, and their
-        change of basis L, C (P, nr, 2): σ_p[i] = Σ_t C[p, i, t] σ_r[L[p, i, t]]. With F_K the
-        affine map of a cell K in its dolfinx vertex order and R_K its edge reflections, the
-        local RT basis is R_K F_K*ψ̂; the representative's cell K' = K + shift has F_K' =
-        shift ∘ F_K ∘ P_π, hence its basis is W = R_K' M_π R_K times K's
+    def _translates(self, mem, bi, CF, KF, pi, boundary, verts, tables, first, out):
+        """For the members mem of classes (cells CF in canonical order, KF a's local index,
+        pi the vertex matches from `translation_classes`; patch p's representative is number
+        bi[p] in the representatives' `tables`, `_representatives`), with first (g, m) the first
+        (cell, slot) 3 c + k of each representative vertex: into out = (RET, L, C, G, GF),
+        row q for member mem[q], the retained global dofs RET (nr,) in the representative's
+        local order, the change of basis L, C (nr, 2): σ_p[i] = Σ_t C[i, t] σ_r[L[i, t]], and
+        where the patch's data sit (in the representative's cell and vertex order) in the
+        flat array [∇u_h (2 per cell) | R_l / N_l (per vertex) | λ (per vertex)], G
+        (2n + m + 1,), then in the flat array of (f φ_k, φ_i)_K (9 per cell), GF (3n,).
+
+        With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
+        reflections, the local RT basis is R_K F_K*ψ̂; the representative's cell K' = K + shift
+        has F_K' = shift ∘ F_K ∘ P_π, hence its basis is W = R_K' M_π R_K times K's
         (algebraic_flux._W_TABLE, entries 0, ±1, at most two per column: the dofs of one
         entity). The representative's local dof i, in slot l of its cell c, is the patch's dof
-        in the same slot of the corresponding entity of cell c (one number per global dof: a dof
-        has one slot in every cell that has its entity); each cell's kept edges are checked
-        against the representative's (the rule of `PatchSpace.retained_dofs`)."""
+        in the same slot of the corresponding entity of cell c (one number per global dof: a
+        dof has one slot in every cell that has its entity); each cell's kept edges are checked
+        against the representative's (the rule of `PatchSpace.retained_dofs`). Vertex i' of
+        the representative's cell c is vertex _PERMS[π][i'] of the patch's. One compiled loop
+        over the patches in their order (their cells are near one another in memory), each
+        member's rows written where mem puts them (`_member_maps`)."""
         space = self.space
         PATCH_DOF, TOP, COEF, EDGE_BITS = _class_tables(tuple(map(tuple, space.slots)))
-        cell, base, part, redges, lr = tables
-        P, n = CF.shape
-        nr = cell.shape[1]
-        # kept edges as bits: those not opposite a and not on ∂Ω, and for a boundary vertex
-        # those on ∂Ω (the cells' ∂Ω edges as bits, `_exterior_bits`)
-        ext = self._exterior_bits[CF]
-        bits = (7 & ~(1 << KF) & ~ext) | np.where(boundary[:, None], ext, 0)
-        if (EDGE_BITS[perm, bits] != redges[bi]).any():
+        row = np.full(len(CF), -1)
+        row[mem] = np.arange(len(mem))
+        status = _member_maps(row, bi, CF, KF, pi, boundary, verts, self._exterior_bits,
+                              space.reflections, space.rt_cells, self.geo.cells, *tables,
+                              first, PATCH_DOF, TOP, COEF, EDGE_BITS, _PERMS,
+                              self.geo.ncells, self.geo.n, *out)
+        if status == 1:
             raise RuntimeError("a translate keeps other RT dofs than its representative")
-        ci = cell[bi]                                                        # (P, nr)
-        cf = np.take_along_axis(CF, ci, axis=1)
-        u = part[bi] + 64 * np.take_along_axis(perm, ci, axis=1) + 8 * space.reflections[cf]
-        RET = space.rt_cells.reshape(-1)[8 * cf + PATCH_DOF[u]].astype(np.int32)
-        base = base[bi]
-        L = np.empty((P, nr, 2), dtype=_local_index_type(nr))
-        C = np.empty((P, nr, 2), dtype=np.int8)
-        for t in range(2):
-            C[:, :, t] = coef = COEF[t][u]
-            tgt = lr[base + TOP[t][u]]
-            if (tgt[coef != 0] < 0).any():
-                raise RuntimeError("a retained dof of a translate maps to a dropped one")
-            L[:, :, t] = np.maximum(tgt, 0)
-        return RET, L, C
+        if status == 2:
+            raise RuntimeError("a retained dof of a translate maps to a dropped one")
 
     def _index_type(self):
         return np.int32 if 14 * self.geo.ncells + self.geo.n < 2 ** 31 else np.int64
-
-    def _data_indices(self, verts, CF, KF, perm, first, G, GF):
-        """Into G (P, 2n + m + 1) and GF (P, 3n): where the data of P patches (in their
-        representative's cell and vertex order; perm the vertex matches as `_perm_code`,
-        first (P, m) the first (cell, slot) 3 c + k of each representative vertex) sit in the
-        flat array [∇u_h (2 per cell) | R_l / N_l (per vertex) | λ (per vertex)], then in the
-        flat array of (f φ_k, φ_i)_K (9 per cell): vertex i' of the representative's cell c
-        is vertex i = _PERMS[perm][c, i'] of the patch's."""
-        geo = self.geo
-        nc, nv = geo.ncells, geo.n
-        P, n = CF.shape
-        # one pass per slot, in G's integer type (numpy's loops over the last axis of
-        # (P, n, 2) or (P, n, 3) arrays would run two or three entries at a time)
-        C = CF.astype(G.dtype)
-        i = _PERMS.astype(G.dtype)[perm]                                       # (P, n, 3)
-        grad = G[:, :2 * n].reshape(P, n, 2)
-        np.multiply(C, 2, out=grad[:, :, 0])
-        np.add(grad[:, :, 0], 1, out=grad[:, :, 1])
-        cv, kv = first // 3, first % 3
-        slot = i[np.arange(P)[:, None], cv, kv]                                # (P, m)
-        G[:, 2 * n:-1] = 2 * nc + geo.cells[np.take_along_axis(CF, cv, axis=1), slot]
-        G[:, -1] = 2 * nc + nv + verts
-        load, c9 = GF.reshape(P, n, 3), 9 * C + KF.astype(G.dtype)
-        for l in range(3):
-            np.add(c9, 3 * i[:, :, l], out=load[:, :, l])
 
     def _class_load(self, level, wf):
         """Keep the classes' operators as the evaluation takes them (`classes`: buckets, RT
@@ -972,32 +1069,47 @@ class FluxEquilibration:
                               np.repeat(verts, nr).astype(np.int32), sol[:, :, m].ravel()))
         if sum(len(z[0]) for z in self._pending) > 1 << 22:
             self._add_operators()
+        # σ_f: the sums over this batch's patches of each RT dof they touch (numbered among
+        # those: no pass over all RT dofs per batch)
+        dofs, at = np.unique(RET, return_inverse=True)
         for alpha in range(2):
-            self.sigma_f[alpha] += np.bincount(RET.ravel(), sol[:, :, 2 * m + 1 + alpha].ravel(),
-                                               minlength=self.sigma_f.shape[1])
+            self.sigma_f[alpha, dofs] += np.bincount(at.ravel(),
+                                                     sol[:, :, 2 * m + 1 + alpha].ravel())
 
     def _add_operators(self):
-        """Add the pending batches of `_solve_patches` to G_u, G_R, G_λ."""
+        """Add the pending batches of `_solve_patches` to G_u, G_R, G_λ, kept on the rows of
+        the RT dofs they touch (`touched`): the sums and the new batches are put on the union
+        of their dofs (moving rows: no entry changes) and added as scipy adds them, row by
+        row, so that no pass goes over all RT dofs (the same entries as sums of matrices of
+        all RT dofs' rows)."""
         if not self._pending:
             return
         rows, cols, u, R, rows_lam, cols_lam, lam = (np.concatenate(z)
                                                      for z in zip(*self._pending))
         self._pending.clear()
-        shape = self.G_u.shape
-        self.G_u = self.G_u + sp.csr_matrix((u, (rows, cols)), shape=shape)
-        self.G_R = self.G_R + sp.csr_matrix((R, (rows, cols)), shape=shape)
-        self.G_lam = self.G_lam + sp.csr_matrix((lam, (rows_lam, cols_lam)), shape=shape)
+        union = np.union1d(self.touched, np.union1d(rows, rows_lam))
+        shape = (len(union), self.geo.n)
+
+        def moved(G):
+            indptr = np.zeros(len(union) + 1, dtype=G.indptr.dtype)
+            indptr[1 + np.searchsorted(union, self.touched)] = np.diff(G.indptr)
+            return sp.csr_matrix((G.data, G.indices, np.cumsum(indptr, out=indptr)),
+                                 shape=shape)
+
+        at, at_lam = np.searchsorted(union, rows), np.searchsorted(union, rows_lam)
+        self.G_u = moved(self.G_u) + sp.csr_matrix((u, (at, cols)), shape=shape)
+        self.G_R = moved(self.G_R) + sp.csr_matrix((R, (at, cols)), shape=shape)
+        self.G_lam = moved(self.G_lam) + sp.csr_matrix((lam, (at_lam, cols_lam)), shape=shape)
+        self.touched = union
 
     def _keep_touched_rows(self):
-        """Restrict G_u, G_R, G_λ to the RT dofs they touch (`touched`): those of the patches
-        solved on their own, a few thousand where the classes take all others, so that an
+        """Keep of G_u, G_R, G_λ the rows with entries (the sums drop exact zeros), so that an
         evaluation makes no vectors of all RT dofs for them."""
-        touched = np.zeros(self.G_u.shape[0], dtype=bool)
+        keep = np.zeros(len(self.touched), dtype=bool)
         for G in (self.G_u, self.G_R, self.G_lam):
-            touched[np.diff(G.indptr) > 0] = True
-        self.touched = np.flatnonzero(touched)
-        self.G_u, self.G_R, self.G_lam = (G[self.touched] for G in (self.G_u, self.G_R,
-                                                                     self.G_lam))
+            keep |= np.diff(G.indptr) > 0
+        self.touched = self.touched[keep]
+        self.G_u, self.G_R, self.G_lam = (G[keep] for G in (self.G_u, self.G_R, self.G_lam))
 
     def sigma(self, alpha, u, lam, R):
         """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5): σ_f,α, plus

@@ -402,3 +402,41 @@ def test_translation_classes_regroup_near_translates():
         theirs = geo.x[geo.cells[CF[rep[p]]]] - np.array(xa[rep[p]])
         matched = np.take_along_axis(theirs, pi[p][..., None].astype(int), axis=1)
         assert np.abs(mine - matched).max() <= 1e-13
+
+
+def test_vertex_patches_are_the_cells_at_each_vertex():
+    """`vertex_patches` (a compiled counting sort of the cells' vertex slots, then a gather per
+    patch size) lists, for every vertex, exactly the cells that contain it in ascending order
+    and the vertex's local index in each: compared with numpy's stable argsort of the slots."""
+    from membranes.equilibration import vertex_patches
+    geo = Geometry(_discretisation("disk-refined").V)
+    order = np.argsort(geo.cells.ravel(), kind="stable")
+    ptr = np.concatenate([[0], np.cumsum(geo.cells_per_vertex)])
+    seen = 0
+    for verts, CS, KA in vertex_patches(geo):
+        idx = order[ptr[verts][:, None] + np.arange(CS.shape[1])]
+        assert np.array_equal(CS, idx // 3) and np.array_equal(KA, idx % 3)
+        assert np.array_equal(geo.cells[CS, KA], np.repeat(verts[:, None], CS.shape[1], 1))
+        seen += len(verts)
+    assert seen == geo.n
+
+
+def test_translation_classes_without_classes_when_keys_overflow():
+    """Keys in units of 1e-6 scale must fit in 31 bits: with a scale so small that a patch
+    spans more than 2^30 units, the compiled signature loop reports the overflow and every
+    patch is its own class (identity vertex matches), rather than wrapped keys joining
+    patches that are not translates."""
+    from types import SimpleNamespace
+    from membranes.equilibration import translation_classes
+    fan = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 1.0], [-0.5, 1.0], [-1.0, 0.0],
+                    [-0.5, -1.0], [0.5, -1.0]])
+    cells = np.array([[0, 1 + i, 1 + (i + 1) % 6] for i in range(6)])
+    geo = SimpleNamespace(x=np.vstack([fan, fan + 4.0]), cells=np.vstack([cells, cells + 7]))
+    cent = geo.x[geo.cells].mean(axis=1)
+    CF = np.arange(12).reshape(2, 6)
+    xa = geo.x[[0, 7]]
+    for scale, classes in ((1.0, 1), (1e-4, 2)):
+        _, _, rep, pi = translation_classes(xa, CF, np.zeros_like(CF), np.zeros(2, dtype=bool),
+                                            geo, cent, scale)
+        assert len(np.unique(rep)) == classes
+    assert np.array_equal(pi, np.broadcast_to(np.arange(3), pi.shape))
