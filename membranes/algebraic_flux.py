@@ -120,7 +120,7 @@ def _buckets(groups):
     return buckets, np.concatenate(ret)
 
 
-def _apply_buckets(level, flat, size, scatter=None):
+def _apply_buckets(level, flat, size):
     """Σ_a σ^a over the patches of `level` (global RT coefficients, length `size`; for
     MultilevelFlux all levels' RT spaces one after the other) from the flat array of their
     data moments. Per bucket, a few classes at a time (about ROWS patches: the temporaries
@@ -129,10 +129,7 @@ def _apply_buckets(level, flat, size, scatter=None):
     representative dofs times 0, ±1) added to its RT dofs by `_scatter_products` (compiled).
     Every RT dof receives its terms in the order of the patches and, within a patch, of the
     representative's dofs: the sums of the sparse matrix that did the change of basis and
-    the scatter before (its rows' entries in column order), to the bit.
-
-    `scatter` is not used (the scatter needs no matrix; the argument goes with
-    `_bucket_scatter`'s call in equilibration.FluxEquilibration._class_load)."""
+    the scatter before (its rows' entries in column order), to the bit."""
     buckets, ret = level
     out = np.zeros(size)
     first = 0
@@ -171,12 +168,6 @@ def _scatter_products(SR, L, C, ret, out):
                 out[r] += c0 * SR[p, l0]
                 if c1 != 0:
                     out[r] += c1 * SR[p, l1]
-
-
-def _bucket_scatter(level, size):
-    """Nothing: `_apply_buckets` scatters without a matrix. Kept until its call in
-    equilibration.FluxEquilibration._class_load goes (with the `scatter` argument)."""
-    return None
 
 
 def _top_tables():

@@ -39,8 +39,8 @@ Where many patches are translates of one another (a uniform refinement: all but 
 one dense operator from the patch's data (∇u_h per cell, R_l / N_l at its vertices, λ_a) to
 σ_a, computed for a representative (its r_h columns composed with the local lifting), and
 each patch its data indices and change of RT basis (entries 0, ±1; `_translates`); one
-evaluation is then a gather, one batched product per stack of classes and one sparse product
-(the change of basis and the scatter, a matrix kept from the set-up). The other patches keep
+evaluation is then a gather, one batched product per stack of classes and one compiled pass
+for the change of basis and the scatter (algebraic_flux._apply_buckets). The other patches keep
 the sparse operators, restricted to the RT dofs they touch. The set-up handles all the
 patches of one size at once (classes, changes of basis, the representatives' systems in
 batches of one shape), so that its cost is a few passes over arrays of O(N) entries. The
@@ -853,7 +853,7 @@ class FluxEquilibration:
                 self._solve_patches(verts[sel], CS[sel], KA[sel], RET, loc, A, wf)
         self._add_operators()
         self._keep_touched_rows()
-        self.classes = self._class_scatter = None
+        self.classes = None
         if level:
             self._class_load(level, wf)
         # what the evaluation does not need goes
@@ -988,19 +988,17 @@ class FluxEquilibration:
 
     def _class_load(self, level, wf):
         """Keep the classes' operators as the evaluation takes them (`classes`: buckets, RT
-        dofs) and their change of basis and scatter as one sparse matrix (`_class_scatter`,
-        algebraic_flux._bucket_scatter: the evaluation applies it at every call), and add the
-        classes' σ_f from the load columns through the same matrix; the load columns are then
-        dropped."""
-        from .algebraic_flux import _apply_buckets, _bucket_scatter
+        dofs; algebraic_flux._apply_buckets applies them, their changes of basis and the
+        scatter at every call), and add the classes' σ_f from the load columns the same way;
+        the load columns are then dropped."""
+        from .algebraic_flux import _apply_buckets
         ret = np.concatenate([r for _, r, _ in level])
         self.classes = ([b for b, _, _ in level], ret)
-        self._class_scatter = _bucket_scatter(self.classes, self.sigma_f.shape[1])
         load = ([f for _, _, f in level], ret)
         level.clear()
         for alpha in range(2):
             self.sigma_f[alpha] += _apply_buckets(load, wf[alpha].ravel(),
-                                                  self.sigma_f.shape[1], self._class_scatter)
+                                                  self.sigma_f.shape[1])
 
     def _right_hand_sides(self, CS, KA, nr, loc, N):
         """The right-hand sides of P patch problems of one shape (cells CS (P, n), a's local
@@ -1115,8 +1113,7 @@ class FluxEquilibration:
         """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5): σ_f,α, plus
         μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on their own, plus the
         classes' part (`algebraic_flux._apply_buckets` on the data [μ_α ∇u_h per cell |
-        R_l / N_l per vertex | ±λ], with the change of basis and scatter matrix kept by the
-        set-up)."""
+        R_l / N_l per vertex | ±λ], with the changes of basis kept by the set-up)."""
         mu = self.disc.problem.mu1 if alpha == 1 else self.disc.problem.mu2
         sign = 1.0 if alpha == 1 else -1.0
         out = self.sigma_f[alpha - 1].copy()
@@ -1131,5 +1128,5 @@ class FluxEquilibration:
             np.multiply(mu, self.geo.gradient(u), out=data[:2 * nc].reshape(nc, 2))
             data[2 * nc:2 * nc + nv] = 0.0 if R is None else R / self.geo.cells_per_vertex
             np.multiply(sign, lam, out=data[2 * nc + nv:])
-            out += _apply_buckets(self.classes, data, len(out), self._class_scatter)
+            out += _apply_buckets(self.classes, data, len(out))
         return out
