@@ -776,6 +776,14 @@ def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt
     return 0
 
 
+def cell_loads(w):
+    """(f_α, φ_i)_K = Σ_k (f_α φ_k, φ_i)_K (ncells, 3) from the moments w = Wf_α of
+    `load_moments`: two adds of strided columns (numpy's reduction over a last axis of three
+    entries is several times slower; the same sums in the same order, bar the sign of a zero
+    sum of negative zeros)."""
+    return w[:, :, 0] + w[:, :, 1] + w[:, :, 2]
+
+
 @functools.lru_cache(maxsize=None)
 def _class_tables(slots):
     """For the change of RT basis from a class representative to a translate (algebraic_flux:
@@ -842,11 +850,8 @@ class FluxEquilibration:
                 alone.append((verts[own], CS[own], KA[own], b[own]))
         del self._cent, self._exterior_bits   # the classes' only
         wf = load_moments(disc, space)
-        # the load moments (f_α, φ_i)_K = Σ_k (f_α φ_k, φ_i)_K, kept for the oscillation
-        # estimator (two adds of strided columns: numpy's reduction over a last axis of three
-        # entries is several times slower; the same sums in the same order, bar the sign of
-        # a zero sum of negative zeros)
-        self.load = [w[:, :, 0] + w[:, :, 1] + w[:, :, 2] for w in wf]
+        # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
+        self.load = [cell_loads(w) for w in wf]
         for verts, CS, KA, b in alone:
             glob = space.retained_dofs(CS, b, KA)
             for sel, RET, loc, A in space.patch_groups(CS, b, self.CHUNK, glob):

@@ -50,7 +50,7 @@ import ufl
 from .compiled import kernel
 from .discretisation import assemble_vector_array, over
 from .equilibration import (_MINV_REF, FluxEquilibration, PatchSpace, _rt_element,
-                            cell_reflections, load_moments, rt_signs)
+                            cell_loads, cell_reflections, load_moments, rt_signs)
 from .meshes import cell_diameters
 from .newton_system import split
 from .problem import as_builder
@@ -230,7 +230,7 @@ def data_oscillation(disc):
     moments, built for it alone): what process 0 computes for the estimator processes of a
     run on several processes (membranes.pipeline)."""
     space = PatchSpace(disc.V, blocks=False)
-    return oscillation(disc, space, [w.sum(axis=2) for w in load_moments(disc, space)])
+    return oscillation(disc, space, [cell_loads(w) for w in load_moments(disc, space)])
 
 
 class Estimators:

@@ -95,8 +95,9 @@ def linear_rows(disc):
     scipy's bmat of the blocks, which converts them all to COO and back, took 7 times as long
     as numpy passes at 9.3e5 vertices, and those 5 times as long as the compiled ones): the 2N
     rows of S1 and of S2 (its columns shifted by N), ∓D_l (column 2N + l) at the end of each;
-    a boundary row holds its diagonal entry 1 alone (a stiffness matrix stores the diagonal). Without stiffness matrices (discretise with
-    stiffness=False) E is None: F and the weights alone."""
+    a boundary row holds its diagonal entry 1 alone (a stiffness matrix stores the diagonal).
+    Without stiffness matrices (discretise with stiffness=False) E is None: F and the weights
+    alone."""
     n = disc.n
     interior = disc.interior
     E = None if disc.S1 is None else _membrane_rows(disc)
@@ -219,18 +220,6 @@ class Elimination:
     coefficients: tuple
     t: np.ndarray
     eliminate_lambda: np.ndarray
-
-    @functools.cached_property
-    def T(self):
-        """T as a CSR matrix (3N × 2N) from its CSR arrays (one entry in each row of u1, two
-        in each row of u2 and λ, zeros included: they change no product; `vertex_pair_rows`)."""
-        U, H, G, Q = self.coefficients
-        n = len(U)
-        pairs = vertex_pair_rows((U, H), (G, Q))
-        return sp.csr_matrix((np.concatenate([np.ones(n), pairs.data]),
-                              np.concatenate([np.arange(n), pairs.indices]),
-                              np.concatenate([np.arange(n), n + pairs.indptr])),
-                             shape=(3 * n, 2 * n))
 
     def expand(self, Y):
         """T Y + t, without T: (u1, U u1 + H z, G u1 + Q z) + t (the same sums as T @ Y)."""
