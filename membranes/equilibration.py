@@ -70,7 +70,7 @@ import ufl
 
 from forms.equilibration import weighted_mass
 
-from .compiled import kernel
+from .compiled import kernel, part
 from .discretisation import form as compiled, load, over
 from .meshes import p1_cells
 
@@ -449,10 +449,19 @@ def _patch_cells(order, ptr, verts, n):
     return CS, KA
 
 
-# Keys of points on a grid of 1e-6 scale: coordinates in those units, rounded, each shifted by
-# 2^30 and the pair combined into one int64 (patches larger than 1000 scale overflow: then
-# no classes are formed).
 _KEY_RANGE = 2 ** 30
+
+
+@part
+def _grid_key(d0, d1, unit):
+    """The key of the point (d0, d1) on a grid of 1/unit (1e-6 scale): its coordinates in
+    those units, rounded, each shifted by 2^30 and the pair combined into one int64 (> 0);
+    -1 if a coordinate reaches 2^30 units (patches larger than 1000 scale: then no classes
+    are formed)."""
+    k0, k1 = np.rint(d0 * unit), np.rint(d1 * unit)
+    if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+        return np.int64(-1)
+    return (np.int64(k0) + _KEY_RANGE) * 2 ** 31 + (np.int64(k1) + _KEY_RANGE)
 
 
 def _hash_multipliers(k, seed):
@@ -500,15 +509,13 @@ def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, mult, h):
     key = np.empty(m, dtype=np.int64)
     order = np.empty(m, dtype=np.int64)
     cf, kf = CF[0].copy(), KF[0].copy()
-    none = np.int64(_KEY_RANGE) * 2 ** 31 + _KEY_RANGE                  # the key of (0, 0)
+    none = _grid_key(0.0, 0.0, unit)
     for p in range(P):
         for j in range(m):
             c = CF[p, j]
-            k0 = np.rint((cent[c, 0] - xa[p, 0]) * unit)
-            k1 = np.rint((cent[c, 1] - xa[p, 1]) * unit)
-            if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+            key[j] = _grid_key(cent[c, 0] - xa[p, 0], cent[c, 1] - xa[p, 1], unit)
+            if key[j] < 0:
                 return False
-            key[j] = (np.int64(k0) + _KEY_RANGE) * 2 ** 31 + (np.int64(k1) + _KEY_RANGE)
             order[j] = j
             i = j                                                   # stable insertion sort
             while i > 0 and key[order[i - 1]] > key[j]:
@@ -537,12 +544,10 @@ def _signatures(x, cells, cent, xa, CF, KF, boundary, exterior, unit, mult, h):
                 f = 1.0 if exterior[c, e] else 0.0
                 s0 += 0.5 * ((x[a, 0] - xa[p, 0]) + (x[b, 0] - xa[p, 0])) * f
                 s1 += 0.5 * ((x[a, 1] - xa[p, 1]) + (x[b, 1] - xa[p, 1])) * f
-            k0 = np.rint(s0 * unit)
-            k1 = np.rint(s1 * unit)
-            if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+            where = _grid_key(s0, s1, unit)
+            if where < 0:
                 return False
-            acc += np.uint64((np.int64(k0) + _KEY_RANGE) * 2 ** 31
-                             + (np.int64(k1) + _KEY_RANGE)) * mult[1 + m + j]
+            acc += np.uint64(where) * mult[1 + m + j]
         h[p] = acc
     return True
 
@@ -569,12 +574,10 @@ def _match(p, r, x, cells, cent, xa, boundary, exterior, CF, unit, tol, code, PE
                 c = CF[b, j] if t == 0 else CF[a, j]
                 if code[c] < 0:
                     for i in range(3):
-                        k0 = np.rint((x[cells[c, i], 0] - cent[c, 0]) * unit)
-                        k1 = np.rint((x[cells[c, i], 1] - cent[c, 1]) * unit)
-                        if max(abs(k0), abs(k1)) >= _KEY_RANGE:
+                        k[i] = _grid_key(x[cells[c, i], 0] - cent[c, 0],
+                                         x[cells[c, i], 1] - cent[c, 1], unit)
+                        if k[i] < 0:
                             return False
-                        k[i] = (np.int64(k0) + _KEY_RANGE) * 2 ** 31 + (np.int64(k1) +
-                                                                         _KEY_RANGE)
                     code[c] = SORT3[(k[0] <= k[1]) + 2 * (k[0] <= k[2]) + 4 * (k[1] <= k[2])]
             ca, cb = CF[a, j], CF[b, j]
             sa, sb = code[ca], code[cb]
