@@ -235,14 +235,14 @@ class IterateEstimates:
     (RECORD_KEYS), None where not estimated.
     """
 
-    def __init__(self, disc, rows, alg_flux, comm=None, own_oscillation=True):
+    def __init__(self, disc, rows, alg_flux, comm=None):
         t = time.perf_counter()
         self.rows = rows
         with parallel.one_blas_thread():
             # with several processes each sets up its own vertices' patches (parallel)
             self.sum_parts = None if comm is None else parallel.Summation(comm)
             self.est = Estimators(disc, owned=parallel.owned_vertices(disc.n, comm),
-                                  sum_parts=self.sum_parts, own_oscillation=own_oscillation)
+                                  sum_parts=self.sum_parts)
             if alg_flux == "multilevel":
                 from .algebraic_flux import MultilevelFlux   # only a run that uses it pays
                 hierarchy = disc.problem.hierarchy

@@ -49,8 +49,8 @@ import ufl
 
 from .compiled import kernel
 from .discretisation import assemble_vector_array, over
-from .equilibration import (_MINV_REF, FluxEquilibration, PatchSpace, _rt_element,
-                            cell_loads, cell_reflections, load_moments, rt_signs)
+from .equilibration import (_MINV_REF, FluxEquilibration, _rt_element, cell_reflections,
+                            rt_signs)
 from .meshes import cell_diameters
 from .newton_system import split
 from .problem import as_builder
@@ -225,14 +225,6 @@ def oscillation(disc, space, load):
     return np.array(out)
 
 
-def data_oscillation(disc):
-    """`oscillation` on its own, as Estimators computes it (the same patch space and load
-    moments, built for it alone): what process 0 computes for the estimator processes of a
-    run on several processes (membranes.pipeline)."""
-    space = PatchSpace(disc.V, blocks=False)
-    return oscillation(disc, space, [cell_loads(w) for w in load_moments(disc, space)])
-
-
 class Estimators:
     """Set-up once per discretisation; `evaluate(X, R)` at any iterate.
 
@@ -242,7 +234,7 @@ class Estimators:
     sums over all processes before anything uses them; the rest of the evaluation is the
     same on every process."""
 
-    def __init__(self, disc, owned=None, sum_parts=None, own_oscillation=True):
+    def __init__(self, disc, owned=None, sum_parts=None):
         self.disc = disc
         problem = disc.problem
         self.flux = FluxEquilibration(disc, owned)
@@ -252,10 +244,7 @@ class Estimators:
         self.cpf = problem.poincare_constant()
         self.kappa = self.cpf * np.sqrt(1.0 / self.mu[0] + 1.0 / self.mu[1])
         self.norms = CellFluxNorms(self.flux.space)
-        # (2, ncells); given later (data_oscillation, computed elsewhere) if own_oscillation
-        # is False: membranes.pipeline
-        self.osc = oscillation(disc, self.flux.space, self.flux.load) if own_oscillation \
-            else None
+        self.osc = oscillation(disc, self.flux.space, self.flux.load)   # (2, ncells)
         self.flux.load = None                                 # only the oscillation uses it
         self._recent = []                                     # sigma_disc's last two
         self._dg_index = np.arange(3 * self.geo.ncells, dtype=np.int32).reshape(-1, 3)

@@ -14,12 +14,16 @@ and the work is split by kind, not by mesh:
 
 The two kinds overlap. The set-up of a level's estimators runs while process 0 discretises
 that level and takes the first Newton steps, and an iterate's estimates are computed while
-process 0 already computes the next Newton step. The estimator processes are the critical
-path (at 9.3e5 vertices they are busy all but a few percent of the run while process 0 waits
-for estimates), so they are spared what process 0 can do for them: they assemble no stiffness
-matrix (X⁰'s residual comes with X⁰), and process 0 computes each level's data oscillation
-(data only, `RemoteEstimates.discretised`) before its Newton steps. Only what the method
-decides from the estimates waits for them:
+process 0 already computes the next Newton step. The estimator processes assemble no stiffness
+matrix (X⁰'s residual comes with X⁰). Which side is the critical path depends on how fast
+each is: at 9.3e5 vertices (disk, J = 6, 2 processes) process 0 is, since the estimators'
+set-up and evaluations were compiled: on the finest level the estimator process has the
+level set up, data oscillation included (1.0 s of discretisation, 4.9 s of set-up), 2 s
+before process 0 hands out X¹ (disc. 1.9 s, rows and prolongation 0.6 s, the first step with
+both AMG set-ups 4.5 s). The data oscillation is therefore computed where the estimators
+are set up, from the load moments the flux set-up has anyway (when process 0 computed it,
+with moments of its own, 2.9 s of its time, the finest level took 15.6 s instead of 14.0 s).
+Only what the method decides from the estimates waits for them:
 
 * exact and inexact Newton never wait (their stopping tests are the residual's); the
   estimates of a level are collected when its Newton run ends (`RemoteEstimates.finish`);
@@ -52,7 +56,6 @@ it is small (it leaves at once); across nodes they go in the message itself.
 
 import os
 import tempfile
-import time
 
 import numpy as np
 
@@ -159,7 +162,6 @@ class RemoteEstimates:
         self.multilevel = True if alg_flux == "multilevel" else None
         self.setup_time, self.time, self.eta_K = 0.0, 0.0, None
         self.rows = None            # the level's LinearRows, once process 0 has them
-        self.own_time = 0.0         # estimator set-up done here (`discretised`)
         self.ids, self.waiting, self.then, self.calls, self.replied = {}, {}, {}, 0, 0
         link.post("level", level, alg_flux)
 
@@ -183,16 +185,8 @@ class RemoteEstimates:
 
     def discretised(self, disc, rows):
         """Process 0 has the level's discretisation: keep its rows (X⁰'s residual needs E,
-        which the estimator processes lack), and compute the level's data oscillation
-        η_osc,K,α here (estimators.data_oscillation: data only, no iterate) and send it: the
-        estimator processes' set-up, the critical path of a run (module notes), leaves it
-        out."""
-        from .estimators import data_oscillation
+        which the estimator processes lack)."""
         self.rows = rows
-        t = time.perf_counter()
-        osc = data_oscillation(disc)
-        self.link.post("oscillation", osc.shape, arrays=(osc.ravel(),))
-        self.own_time = time.perf_counter() - t
 
     def _awaited(self, rec):
         """Whether rec was handed in and its estimates are not back (no reply taken)."""
@@ -240,7 +234,6 @@ class RemoteEstimates:
                 action(item[0])
         if extra is not None:
             self.setup_time, self.time, self.eta_K = extra
-            self.setup_time += self.own_time
         done = dict(done)
         return call, [done[rid] for rid in ready]
 
@@ -291,8 +284,7 @@ def serve(problem, comm, est_comm):
                 # no stiffness matrix: E's residuals come made (RemoteEstimates)
                 pj = problem if level == problem.levels else level_problem(problem, level)
                 disc = discretise(pj, stiffness=False)
-                est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared,
-                                       own_oscillation=False)
+                est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
                 recs, rid_of, unsent, calls = {}, {}, {}, 0
             elif kind == "call":
                 rid, rec, same_as = payload
@@ -302,8 +294,6 @@ def serve(problem, comm, est_comm):
                 ready = est(rec, X, R, None if same_as is None else recs[same_as])
                 calls += 1
                 reply(calls, ready)
-            elif kind == "oscillation":
-                est.est.osc = arrays[0].reshape(payload[0])
             elif kind == "finish":
                 est.finish()
                 reply("finish", [], (est.setup_time, est.time, est.eta_K))
