@@ -60,6 +60,25 @@ def owned_vertices(n, comm):
     return mask
 
 
+class PartnerFailed(RuntimeError):
+    """A process of the communicator failed (`agree`): its error message."""
+
+
+def agree(comm, error=None):
+    """Collective over comm (None or one process: nothing): PartnerFailed for the first
+    process (by rank) that brings an `error` (its message), on every process.
+
+    Processes that share work (P ≥ 3 estimator processes) meet in collectives: `Summation`
+    calls it first, and membranes.pipeline at the end of every message. A process that fails
+    calls it once with its error, in place of the next collective its partners make, so that
+    they learn of the failure there instead of waiting for it for ever."""
+    if comm is None or comm.size == 1:
+        return
+    for e in comm.allgather(error):
+        if e is not None:
+            raise PartnerFailed(e)
+
+
 class Summation:
     """Adds partial sums over the processes of `comm` (None: nothing to add).
 
@@ -76,6 +95,7 @@ class Summation:
         if self.comm is None:
             return parts
         from mpi4py import MPI
+        agree(self.comm)            # a partner that failed comes here instead (`agree`)
         partial = np.concatenate([np.asarray(a, dtype=np.float64) for a in parts])
         total = np.empty_like(partial)
         self.comm.Reduce(partial, total, op=MPI.SUM, root=0)

@@ -46,6 +46,13 @@ beyond, it waits (exact and inexact runs hand out a Krylov iterate every ν step
 estimates may take longer than the ν steps: without a bound the iterates in transit would
 pile up in memory).
 
+**Failure.** An estimator process that raises tells process 0 (through the leader), which
+raises RuntimeError naming the process and its error, and every process ends the run with
+it. With P ≥ 3 its partners may be waiting for its partial flux in a collective
+(`parallel.Summation`): the failing process meets them there with its error
+(`parallel.agree`, also the checkpoint at the end of every message), so that they stop too
+instead of waiting for ever (tests/test_parallel.py injects a failure).
+
 **Transport.** An iterate and its residual are 6N numbers (45 MB at 9.3e5 vertices). MPI
 moves a large message only while both sides are inside MPI calls (measured with Open MPI 4.1
 here: an `Isend` of 22 MB completed 2.9 s later, when the sender next called MPI), and
@@ -59,6 +66,7 @@ import tempfile
 
 import numpy as np
 
+from . import parallel
 from .newton_system import initial_residual
 
 WORK, REPLY = 71, 72            # message tags: process 0 → estimators, and back
@@ -286,6 +294,7 @@ def serve(problem, comm, est_comm):
                 disc = discretise(pj, stiffness=False)
                 est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
                 recs, rid_of, unsent, calls = {}, {}, {}, 0
+                parallel.agree(shared)
             elif kind == "call":
                 rid, rec, same_as = payload
                 X, R = arrays
@@ -293,11 +302,21 @@ def serve(problem, comm, est_comm):
                 rid_of[id(rec)] = rid
                 ready = est(rec, X, R, None if same_as is None else recs[same_as])
                 calls += 1
+                parallel.agree(shared)      # all went well everywhere: then reply
                 reply(calls, ready)
             elif kind == "finish":
                 est.finish()
+                parallel.agree(shared)
                 reply("finish", [], (est.setup_time, est.time, est.eta_K))
-        except Exception as e:            # tell process 0, then wait for its end
-            failed = f"{type(e).__name__}: {e}"
+        except Exception as e:
+            # agree on the failure with the partners (P ≥ 3: they may be waiting in a
+            # collective for this process), tell process 0, then wait for its end
+            failed = str(e) if isinstance(e, parallel.PartnerFailed) else \
+                f"estimator process {comm.rank}: {type(e).__name__}: {e}"
+            if not isinstance(e, parallel.PartnerFailed):
+                try:
+                    parallel.agree(shared, failed)
+                except parallel.PartnerFailed as first:      # the first by rank
+                    failed = str(first)
             if leader:
                 comm.send(("error", failed), dest=0, tag=REPLY)

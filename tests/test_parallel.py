@@ -133,3 +133,18 @@ def test_only_solve_runs_under_mpirun(tmp_path):
     proc = _mpirun(["-m", "membranes.cli", "stability", "--out", str(tmp_path / "s")])
     assert proc.returncode == 2
     assert "only `membranes solve` runs on several processes" in proc.stderr
+
+
+@pytest.mark.parametrize("processes, fail", [(2, 1), (3, 1), (3, 2)])
+def test_a_failed_estimator_process_stops_the_run(tmp_path, processes, fail):
+    """An estimator process that fails at its first evaluation (mpi_failure.py) ends the run
+    on every process with its error, also with P = 3 when its partner waits for its partial
+    flux in a collective (it hung there before `parallel.agree`)."""
+    out = tmp_path / "failed"
+    proc = _mpirun([os.path.join(HERE, "mpi_failure.py"), str(out), str(fail)],
+                   timeout=300, processes=processes)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for rank in range(processes):
+        raised = (tmp_path / f"failed.{rank}.txt").read_text()
+        assert raised == f"RuntimeError: estimator processes: estimator process {fail}: " \
+                         "RuntimeError: injected failure", (rank, raised)
