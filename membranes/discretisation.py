@@ -33,6 +33,7 @@ import ufl
 from forms.membrane import (contact_weight, energy_error_expansion, energy_norm_squared,
                             membrane_bilinear, membrane_linear)
 
+from .compiled import kernel
 from .meshes import holding_cells, p1_cells
 from .problem import as_builder
 
@@ -226,7 +227,9 @@ def assemble_matrix_csr(a):
         rows, cols = (V.dofmap.index_map for V in a.function_spaces)
         m = rows.size_local
         indptr = np.array(A.indptr[:m + 1])
-        indices = cols.local_to_global(np.asarray(A.indices[:indptr[-1]], dtype=np.int32))
+        indices = np.array(A.indices[:indptr[-1]])
+        if cols.num_ghosts or cols.size_global != cols.size_local:   # else: local = global
+            indices = cols.local_to_global(indices)
         out = sp.csr_matrix((np.array(A.data[:indptr[-1]]), indices, indptr),
                             shape=(m, cols.size_global))
         del A, pattern
@@ -301,19 +304,72 @@ class Discretisation:
         return out
 
 
-def boundary_dofs(V):
-    """The dofs of the P1 space V on the boundary facets of its mesh (Dirichlet vertices)."""
+def boundary_dofs(V, facets=True):
+    """The dofs of the P1 space V on the boundary of its mesh (Dirichlet vertices), increasing:
+    the two vertices of every edge that lies in one cell only, counted over the cells in one
+    compiled pass (`_boundary_vertices`), which needs no mesh entities. dolfinx's exterior
+    facets (locate_dofs_topological on exterior_facet_indices, still taken on a mesh shared by
+    several processes, where an edge of a ghost cell may lie in one local cell) need the mesh's
+    edges and their cells: 0.65 s at 9.3e5 vertices, the count 0.03 s. facets=True creates
+    that edge-to-cell connectivity all the same, as boundary_dofs always did: the flux
+    equilibration (equilibration.PatchSpace) reads dolfinx's exterior facets of the same mesh
+    and relies on it; facets=False leaves it out (process 0 of a run on several processes, which
+    sets up no estimators, membranes.pipeline)."""
     from dolfinx import fem, mesh as dmesh
     mesh = V.mesh
-    mesh.topology.create_connectivity(1, 2)
-    return fem.locate_dofs_topological(V, 1, dmesh.exterior_facet_indices(mesh.topology))
+    if facets or mesh.comm.size > 1:
+        mesh.topology.create_connectivity(1, 2)
+    if mesh.comm.size > 1:
+        return fem.locate_dofs_topological(V, 1, dmesh.exterior_facet_indices(mesh.topology))
+    cells = p1_cells(V)
+    n = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
+    return np.flatnonzero(_boundary_vertices(cells, n)).astype(np.int32)
 
 
-def discretise(problem, stiffness=True):
+@kernel
+def _boundary_vertices(cells, n):
+    """A mask of the n vertices: those of an edge that only one of the `cells` (c, 3) has.
+    The cells of each vertex a (a counting sort), then for each a the number of its cells that
+    hold each neighbour b: the edge ab lies in one cell if that number is 1."""
+    start = np.zeros(n + 1, dtype=np.int64)
+    for c in range(cells.shape[0]):
+        for k in range(3):
+            start[cells[c, k] + 1] += 1
+    for a in range(n):
+        start[a + 1] += start[a]
+    fill = start[:-1].copy()
+    holding = np.empty(start[n], dtype=np.int64)
+    for c in range(cells.shape[0]):
+        for k in range(3):
+            a = cells[c, k]
+            holding[fill[a]] = c
+            fill[a] += 1
+    count = np.zeros(n, dtype=np.int64)
+    boundary = np.zeros(n, dtype=np.bool_)
+    for a in range(n):
+        for p in range(start[a], start[a + 1]):
+            for k in range(3):
+                count[cells[holding[p], k]] += 1
+        for p in range(start[a], start[a + 1]):
+            for k in range(3):
+                b = cells[holding[p], k]
+                if b != a and count[b] == 1:
+                    boundary[a] = True
+                    boundary[b] = True
+        for p in range(start[a], start[a + 1]):
+            for k in range(3):
+                count[cells[holding[p], k]] = 0
+    return boundary
+
+
+def discretise(problem, stiffness=True, facets=True):
     """Assemble S1, S2, D, F1, F2 and the boundary vertices of `problem` (DESIGN §2). The
-    stiffness matrix S is assembled once and scaled: S_α = μ_α S. stiffness=False: no S
+    stiffness matrix S is assembled once and scaled: S_α = μ_α S, on S's own index arrays (S
+    itself where μ_α = 1, S1 = S2 where μ1 = μ2: the same numbers, and no copies: two took
+    0.33 s at 9.3e5 vertices; nothing changes the matrices in place). stiffness=False: no S
     (S1 = S2 = None), for the estimator processes of a run on several processes
-    (membranes.pipeline), whose estimators read the loads, the space and the boundary."""
+    (membranes.pipeline), whose estimators read the loads, the space and the boundary.
+    facets: see `boundary_dofs` (False where no estimators are set up on this process)."""
     from dolfinx import fem
     mesh = problem.mesh
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
@@ -324,11 +380,21 @@ def discretise(problem, stiffness=True):
     f1, f2 = (load(f, mesh) for f in (problem.f1, problem.f2))
     F1 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f1, v, dx)))
     F2 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f2, v, dx)))
-    boundary = boundary_dofs(V)
+    boundary = boundary_dofs(V, facets)
     n = V.dofmap.index_map.size_local
-    S1, S2 = (None, None) if S is None else (problem.mu1 * S, problem.mu2 * S)
+    S1 = S2 = None
+    if S is not None:
+        S1 = scaled(S, problem.mu1)
+        S2 = S1 if problem.mu2 == problem.mu1 else scaled(S, problem.mu2)
     return Discretisation(problem, V, S1, S2, D[:n], F1[:n], F2[:n],
                           np.asarray(boundary[boundary < n], dtype=np.int32), dxd)
+
+
+def scaled(S, mu):
+    """μ S (CSR) on S's index arrays: S itself for μ = 1 (the same numbers)."""
+    if mu == 1.0:
+        return S
+    return sp.csr_matrix((mu * S.data, S.indices, S.indptr), shape=S.shape, copy=False)
 
 
 def _interpolant(V, u):

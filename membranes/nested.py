@@ -69,38 +69,40 @@ def prolongation(V_coarse, V_fine, parent_cells):
     if parent_cells.shape != (len(fine_cells),):
         raise ValueError(f"{len(parent_cells)} parent cells for {len(fine_cells)} fine cells")
     fine, coarse = V_fine.mesh, V_coarse.mesh
-    dofs, weights = _parent_weights(
-        fine_cells, fine.geometry.dofmap.array.reshape(-1, 3), fine.geometry.x,
-        coarse_cells, coarse.geometry.dofmap.array.reshape(-1, 3), coarse.geometry.x,
-        parent_cells, n_f)
-    snapped = np.round(2.0 * weights) / 2.0
-    if np.abs(weights - snapped).max(initial=0.0) > SNAP or np.any(snapped < 0) or \
-            not np.all(snapped.sum(axis=1) == 1.0):
+    indptr = np.zeros(n_f + 1, dtype=np.int64)
+    indices, data = np.empty(2 * n_f, dtype=np.int32), np.empty(2 * n_f)
+    if not _interpolation_rows(
+            fine_cells, fine.geometry.dofmap.array.reshape(-1, 3), fine.geometry.x,
+            coarse_cells, coarse.geometry.dofmap.array.reshape(-1, 3), coarse.geometry.x,
+            parent_cells, SNAP, indptr, indices, data):
         raise ValueError("the fine mesh is not a uniform refinement of the coarse one (a fine "
                          "vertex is neither a coarse vertex nor an edge midpoint)")
-    keep = snapped != 0.0                  # one weight 1 or two weights 1/2 in every row
-    indptr = np.zeros(n_f + 1, dtype=np.int64)
-    np.cumsum(keep.sum(axis=1), out=indptr[1:])
-    P = sp.csr_matrix((snapped[keep], dofs[keep], indptr), shape=(n_f, n_c))
-    P.sort_indices()
+    P = sp.csr_matrix((data[:indptr[-1]], indices[:indptr[-1]], indptr), shape=(n_f, n_c))
+    P.has_sorted_indices = True
     return P
 
 
 @kernel
-def _parent_weights(fine_cells, fine_nodes, fine_x, coarse_cells, coarse_nodes, coarse_x,
-                    parent_cells, n_f):
-    """For every fine vertex (the P1 dofs `fine_cells`, the geometry nodes `fine_nodes` of the
-    same cells and local order, coordinates `fine_x`): the coarse dofs of the parent of one
-    fine cell that holds it (the last listed, as `holding_cells`) and its barycentric weights
-    there (`hierarchy.barycentric`'s formula: Cramer's rule on the parent's edges)."""
-    dofs = np.empty((n_f, 3), dtype=np.int64)
-    weights = np.empty((n_f, 3))
+def _interpolation_rows(fine_cells, fine_nodes, fine_x, coarse_cells, coarse_nodes, coarse_x,
+                        parent_cells, snap, out_indptr, out_indices, out_data):
+    """The CSR rows of the prolongation, one per fine vertex (the P1 dofs `fine_cells`, the
+    geometry nodes `fine_nodes` of the same cells and local order, coordinates `fine_x`): in
+    the parent of one fine cell that holds the vertex (the last listed, as `holding_cells`),
+    its barycentric weights (`hierarchy.barycentric`'s formula: Cramer's rule on the parent's
+    edges) snapped to {0, 1/2, 1} (the nearest multiple of 1/2), the nonzero ones stored with
+    their coarse dofs in increasing order, rows written one after the other (out_indptr[v + 1]
+    where row v ends). False if a weight is farther than `snap` from its snapped value, or the
+    snapped weights are negative or do not sum to 1 (one compiled pass, where numpy passes
+    over the weights and scipy's sorting took 0.13 s at 9.3e5 vertices)."""
+    n_f = out_indptr.size - 1
     holder = np.empty(n_f, dtype=np.int64)
     local = np.empty(n_f, dtype=np.int64)
     for c in range(fine_cells.shape[0]):
         for a in range(3):
             if fine_cells[c, a] < n_f:
                 holder[fine_cells[c, a]], local[fine_cells[c, a]] = c, a
+    w = np.empty(3)
+    stored = 0
     for v in range(n_f):
         c = holder[v]
         p = parent_cells[c]
@@ -112,10 +114,28 @@ def _parent_weights(fine_cells, fine_nodes, fine_x, coarse_cells, coarse_nodes, 
         dx, dy = x[0] - v0[0], x[1] - v0[1]
         xi1 = (dx * e2y - dy * e2x) / det
         xi2 = (e1x * dy - e1y * dx) / det
-        weights[v, 0], weights[v, 1], weights[v, 2] = 1.0 - xi1 - xi2, xi1, xi2
+        w[0], w[1], w[2] = 1.0 - xi1 - xi2, xi1, xi2
+        total = 0.0
+        start = stored
         for a in range(3):
-            dofs[v, a] = coarse_cells[p, a]
-    return dofs, weights
+            snapped = np.round(2.0 * w[a]) / 2.0
+            if not abs(w[a] - snapped) <= snap or snapped < 0.0:
+                return False
+            total += snapped
+            if snapped != 0.0:
+                if stored - start >= 2:
+                    return False
+                dof = coarse_cells[p, a]
+                q = stored                  # insertion: the row's dofs in increasing order
+                while q > start and out_indices[q - 1] > dof:
+                    out_indices[q], out_data[q] = out_indices[q - 1], out_data[q - 1]
+                    q -= 1
+                out_indices[q], out_data[q] = dof, snapped
+                stored += 1
+        if total != 1.0:
+            return False
+        out_indptr[v + 1] = stored
+    return True
 
 
 def prolong(P, X):

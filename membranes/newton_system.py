@@ -91,9 +91,9 @@ class LinearRows:
 def linear_rows(disc):
     """Assemble E and F with the Dirichlet rows u1 = g, u2 = 0 on boundary vertices.
 
-    E is built from the CSR arrays of S1 and S2 in two compiled passes (`_membrane_entries`;
+    E is built from the CSR arrays of S1 and S2 in one compiled pass (`_membrane_entries`;
     scipy's bmat of the blocks, which converts them all to COO and back, took 7 times as long
-    as numpy passes at 9.3e5 vertices, and those 5 times as long as the compiled ones): the 2N
+    as numpy passes at 9.3e5 vertices, and those 5 times as long as compiled ones): the 2N
     rows of S1 and of S2 (its columns shifted by N), ∓D_l (column 2N + l) at the end of each;
     a boundary row holds its diagonal entry 1 alone (a stiffness matrix stores the diagonal).
     Without stiffness matrices (discretise with stiffness=False) E is None: F and the weights
@@ -119,44 +119,47 @@ def _membrane_rows(disc):
     interior = disc.interior
     slot = np.where(interior, disc.D, 0.0)
     indptr = np.zeros(2 * n + 1, dtype=np.int64)
-    arrays = (S1.indptr, S1.indices, S1.data, S2.indptr, S2.indices, S2.data, interior, slot)
-    none = np.zeros(0, dtype=np.int32), np.zeros(0)
-    if not _membrane_entries(*arrays, True, indptr, *none):
+    indices, data = _row_buffers(S1.nnz + S2.nnz + 2 * n)
+    if not _membrane_entries(S1.indptr, S1.indices, S1.data, S2.indptr, S2.indices, S2.data,
+                             interior, slot, indptr, indices, data):
         raise ValueError("a stiffness matrix without its diagonal entry in a boundary row")
-    np.cumsum(indptr, out=indptr)
-    indices, data = np.empty(indptr[-1], dtype=np.int32), np.empty(indptr[-1])
-    _membrane_entries(*arrays, False, indptr, indices, data)
-    E = sp.csr_matrix((data, indices, indptr), shape=(2 * n, 3 * n))
+    E = sp.csr_matrix((data[:indptr[-1]], indices[:indptr[-1]], indptr), shape=(2 * n, 3 * n))
     E.has_sorted_indices = True
     return E
 
 
+def _row_buffers(bound):
+    """Column indices (int32) and values for at most `bound` entries of a CSR matrix that a
+    compiled pass writes row after row, its row pointers with them (one pass, where counting
+    the entries first took a second one; the matrix then holds views of the written prefix:
+    the pages of the tail are never touched, and so never allocated)."""
+    return np.empty(bound, dtype=np.int32), np.empty(bound)
+
+
 @kernel
 def _membrane_entries(indptr1, indices1, data1, indptr2, indices2, data2, interior, slot,
-                      count_only, out_indptr, out_indices, out_data):
+                      out_indptr, out_indices, out_data):
     """The CSR arrays of E (`linear_rows`), zeros not stored: row l of block α is row l of
     S_α (columns shifted by (α - 1) N) and ∓slot_l in column 2N + l at an interior vertex,
-    the single entry 1 on the diagonal at a boundary vertex. count_only: out_indptr[i + 1] =
-    the entries of row i; else the rows are written at out_indptr. False if a boundary row
-    of S_α stores no diagonal entry."""
+    the single entry 1 on the diagonal at a boundary vertex; rows written one after the
+    other, out_indptr[i + 1] where row i ends. False if a boundary row of S_α stores no
+    diagonal entry."""
     n = interior.size
+    stored = 0
     for block in range(2):
         indptr, indices, data = (indptr2, indices2, data2) if block else \
             (indptr1, indices1, data1)
         sign = 1.0 if block else -1.0
         for i in range(n):
             row = block * n + i
-            stored = 0 if count_only else out_indptr[row]
             if interior[i]:
                 for k in range(indptr[i], indptr[i + 1]):
                     if data[k] != 0.0:
-                        if not count_only:
-                            out_indices[stored] = indices[k] + block * n
-                            out_data[stored] = data[k]
+                        out_indices[stored] = indices[k] + block * n
+                        out_data[stored] = data[k]
                         stored += 1
                 if slot[i] != 0.0:
-                    if not count_only:
-                        out_indices[stored], out_data[stored] = 2 * n + i, sign * slot[i]
+                    out_indices[stored], out_data[stored] = 2 * n + i, sign * slot[i]
                     stored += 1
             else:
                 found = False
@@ -164,11 +167,9 @@ def _membrane_entries(indptr1, indices1, data1, indptr2, indices2, data2, interi
                     found = found or indices[k] == i
                 if not found:
                     return False
-                if not count_only:
-                    out_indices[stored], out_data[stored] = row, 1.0
+                out_indices[stored], out_data[stored] = row, 1.0
                 stored += 1
-            if count_only:
-                out_indptr[row + 1] = stored
+            out_indptr[row + 1] = stored
     return True
 
 
@@ -254,19 +255,18 @@ def eliminate(n, alpha, beta, B3, kappa=1.0):
 
 
 @kernel
-def _product_entries(indptr, indices, data, n, U, H, G, Q, count_only, out_indptr, out_indices,
-                     out_data):
+def _product_entries(indptr, indices, data, n, U, H, G, Q, out_indptr, out_indices, out_data):
     """The CSR arrays of E T (E: 2N × 3N, T of `Elimination`) without forming T: an entry v of
     E in column l, N + l or 2N + l goes to columns l and N + l of the product with the factors
     (1, 0), (U_l, H_l) or (G_l, Q_l). Row by row, as scipy's csr_matmat: the products summed
     in E's order in a dense accumulator, zero sums not stored (at most two terms meet in one
     entry, so the sums are those of E @ T, bit for bit); each row's columns sorted (by
-    insertion: a row has a dozen).
-    count_only: out_indptr[i + 1] = the entries of row i (the rest untouched); else the rows
-    are written at out_indptr."""
+    insertion: a row has a dozen). Rows written one after the other, out_indptr[i + 1] where
+    row i ends (at most two entries of the product per entry of E)."""
     acc = np.zeros(2 * n)
     seen = np.zeros(2 * n, dtype=np.bool_)
     touched = np.empty(2 * n, dtype=np.int64)
+    stored = 0
     for i in range(indptr.size - 1):
         m = 0
         for k in range(indptr[i], indptr[i + 1]):
@@ -292,34 +292,28 @@ def _product_entries(indptr, indices, data, n, U, H, G, Q, count_only, out_indpt
                     m += 1
                 else:
                     acc[j] += w
-        stored = 0 if count_only else out_indptr[i]
         for p in range(m):
             j = touched[p]
             if acc[j] != 0.0:
-                if not count_only:
-                    out_indices[stored], out_data[stored] = j, acc[j]
+                out_indices[stored], out_data[stored] = j, acc[j]
                 stored += 1
             seen[j] = False
-        if count_only:
-            out_indptr[i + 1] = stored
+        out_indptr[i + 1] = stored
 
 
 def eliminated_system(rows, alpha, beta, B3, weighted=False):
     """Ã = E T, B̃ = F - E t (2N × 2N) and the elimination that maps Y back to X; weighted:
     W Ã = (W E) T and W B̃ (the system the solvers see, module notes). Ã by
-    `_product_entries` (two compiled passes over E's entries, counting and writing; scipy's
-    product, its zero entries dropped and its columns sorted for PETSc, took 6 times as long
-    at 9.3e5 vertices), column indices sorted."""
+    `_product_entries` (one compiled pass over E's entries; scipy's product, its zero entries
+    dropped and its columns sorted for PETSc, took 6 times as long as two such passes at 9.3e5
+    vertices, counting and writing; one pass 0.19 s a step, where two took 0.26 s), column
+    indices sorted."""
     elim = eliminate(rows.n, alpha, beta, B3, rows.kappa)
     E, F = (rows.weighted_E, rows.weights * rows.F) if weighted else (rows.E, rows.F)
     n = rows.n
     indptr = np.zeros(2 * n + 1, dtype=np.int64)
-    none = np.zeros(0, dtype=np.int32), np.zeros(0)
-    _product_entries(E.indptr, E.indices, E.data, n, *elim.coefficients, True, indptr, *none)
-    np.cumsum(indptr, out=indptr)
-    indices, data = np.empty(indptr[-1], dtype=np.int32), np.empty(indptr[-1])
-    _product_entries(E.indptr, E.indices, E.data, n, *elim.coefficients, False, indptr,
-                     indices, data)
-    A = sp.csr_matrix((data, indices, indptr), shape=(2 * n, 2 * n))
+    indices, data = _row_buffers(2 * E.nnz)
+    _product_entries(E.indptr, E.indices, E.data, n, *elim.coefficients, indptr, indices, data)
+    A = sp.csr_matrix((data[:indptr[-1]], indices[:indptr[-1]], indptr), shape=(2 * n, 2 * n))
     A.has_sorted_indices = True
     return A, F - E @ elim.t, elim

@@ -1,0 +1,60 @@
+"""The discretisation's boundary vertices and stiffness matrices (DESIGN §2)."""
+
+import numpy as np
+import pytest
+
+from membranes import meshes
+from membranes.discretisation import boundary_dofs, discretise
+
+from .conftest import scene
+
+
+def _exterior_facet_dofs(V):
+    """dolfinx's own: the dofs on the exterior facets of V's mesh."""
+    from dolfinx import fem, mesh as dmesh
+    V.mesh.topology.create_connectivity(1, 2)
+    return fem.locate_dofs_topological(V, 1, dmesh.exterior_facet_indices(V.mesh.topology))
+
+
+@pytest.mark.parametrize("mesh_of", [
+    lambda: scene("disk", 0.3, levels=2).mesh,                      # refined hierarchy
+    lambda: scene("square", 0.25).mesh,
+    lambda: meshes.structured_square(7, 3, grading=2.0),             # boundary corner cells
+])
+def test_boundary_vertices_are_those_of_exterior_facets(mesh_of):
+    """The count of cells per edge (one: a boundary edge) finds dolfinx's exterior-facet dofs,
+    the same set in the same (increasing) order."""
+    from dolfinx import fem
+    mesh = mesh_of()
+    V = fem.FunctionSpace(mesh, ("Lagrange", 1))
+    ours = boundary_dofs(V, facets=False)
+    assert ours.dtype == np.int32
+    assert np.array_equal(ours, _exterior_facet_dofs(V))
+
+
+def test_facets_false_leaves_the_mesh_edges_alone():
+    """facets=False computes no mesh entities (process 0 of a multi-process run); the default
+    creates the edge-to-cell connectivity the flux equilibration reads."""
+    from dolfinx import fem
+    mesh = meshes.unit_disk(0.4)
+    V = fem.FunctionSpace(mesh, ("Lagrange", 1))
+    boundary_dofs(V, facets=False)
+    assert mesh.topology.connectivity(1, 2) is None
+    boundary_dofs(V)
+    assert mesh.topology.connectivity(1, 2) is not None
+
+
+def test_membrane_stiffness_is_mu_times_s():
+    """S_α = μ_α S entry for entry (μ1 ≠ μ2: two matrices on S's index arrays)."""
+    import ufl
+    from forms.membrane import membrane_bilinear
+    from membranes.discretisation import assemble_matrix_csr
+    d = discretise(scene("radial", 0.3, mu1=2.5, mu2=0.75))
+    S = assemble_matrix_csr(membrane_bilinear(1.0, ufl.TrialFunction(d.V),
+                                              ufl.TestFunction(d.V)))
+    assert d.S2.shape == d.S1.shape == (d.n, d.n)
+    assert np.array_equal(d.S1.data, 2.5 * S.data)
+    assert np.array_equal(d.S2.data, 0.75 * S.data)
+    assert np.array_equal(d.S2.indices, d.S1.indices)
+    # a constant has zero energy: the rows of S sum to zero (round-off of the entries)
+    assert np.abs(d.S1 @ np.ones(d.n)).max() < 1e-12 * np.abs(d.S1.data).max()
