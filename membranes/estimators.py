@@ -270,8 +270,8 @@ class Estimators:
         return float(self.cpf * np.sqrt(total))
 
     def sigma_disc(self, X, R=None):
-        """(σ_1,disc, σ_2,disc) at X with algebraic residual R (RT_1 coefficients, read-only).
-        The last two are kept and given again for the same X and R (equal entries; every
+        """(σ_1,disc, σ_2,disc) at X with algebraic residual R (RT_1 coefficients, read-only;
+        FluxEquilibration.sigmas, both membranes in one pass). The last two are kept and given again for the same X and R (equal entries; every
         process of a run has the same iterates, so all of them compute or none)."""
         for (Xk, Rk), sigma in self._recent:
             if np.array_equal(Xk, X) and (Rk is None if R is None else
@@ -280,8 +280,7 @@ class Estimators:
         n = self.disc.n
         u1, u2, lam = split(X, n)
         Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
-        sigma = [self.flux.sigma(alpha + 1, u, lam, Ra)
-                 for alpha, (u, Ra) in enumerate(zip((u1, u2), Rs))]
+        sigma = self.flux.sigmas([(1, u1, Rs[0]), (2, u2, Rs[1])], lam)
         if self.sum_parts is not None:
             sigma = self.sum_parts(sigma)
         for s in sigma:
