@@ -162,34 +162,43 @@ _ROWS = 1 << 14     # patches per product and scatter of `_apply_buckets`
 
 @kernel
 def _gather(flat, G, F):
-    """F[f, p, i] = flat[G[p, i], f] for the fields f of flat (n, k)."""
+    """F[f, p, i] = flat[G[p, i], f] for the fields f of flat (n, k) (one field and two
+    written out: a loop over the fields per datum costs twice as much)."""
     k = flat.shape[1]
     for p in range(G.shape[0]):
         for i in range(G.shape[1]):
             j = G[p, i]
-            for f in range(k):
-                F[f, p, i] = flat[j, f]
+            if k == 1:
+                F[0, p, i] = flat[j, 0]
+            elif k == 2:
+                F[0, p, i] = flat[j, 0]
+                F[1, p, i] = flat[j, 1]
+            else:
+                for f in range(k):
+                    F[f, p, i] = flat[j, f]
 
 
 @kernel
 def _scatter_products(SR, L, C, ret, out):
     """out[ret[p nr + i], f] += C[p, i, t] SR[f, p, L[p, i, t]] for the patches p of SR
     (k, P, nr) (their representatives' σ, k fields) and t = 0, 1 (the second where
-    C[p, i, 1] ≠ 0), the two terms of a dof in the order of L."""
+    C[p, i, 1] ≠ 0), the two terms of a dof in the order of L (the first field, then the
+    others: the same sums)."""
     k, P, nr = SR.shape
     for p in range(P):
         for i in range(nr):
             r = ret[p * nr + i]
             l0, l1 = L[p, i, 0], L[p, i, 1]
             c0, c1 = C[p, i, 0], C[p, i, 1]
-            for f in range(k):
-                if c1 != 0 and l1 < l0:
+            if c1 != 0 and l1 < l0:
+                l0, l1, c0, c1 = l1, l0, c1, c0
+            out[r, 0] += c0 * SR[0, p, l0]
+            if c1 != 0:
+                out[r, 0] += c1 * SR[0, p, l1]
+            for f in range(1, k):
+                out[r, f] += c0 * SR[f, p, l0]
+                if c1 != 0:
                     out[r, f] += c1 * SR[f, p, l1]
-                    out[r, f] += c0 * SR[f, p, l0]
-                else:
-                    out[r, f] += c0 * SR[f, p, l0]
-                    if c1 != 0:
-                        out[r, f] += c1 * SR[f, p, l1]
 
 
 def _top_tables():
