@@ -123,51 +123,82 @@ def _buckets(groups):
 def _apply_buckets(level, flat, size):
     """Σ_a σ^a over the patches of `level` (global RT coefficients, length `size`; for
     MultilevelFlux all levels' RT spaces one after the other) from the flat array of their
-    data moments. Per bucket, a few classes at a time (about ROWS patches: the temporaries
-    stay in cache): the data of their patches (a gather), one product per class with its
-    representative's operator (BLAS), then each patch's change of basis (at most two
-    representative dofs times 0, ±1) added to its RT dofs by `_scatter_products` (compiled).
-    Every RT dof receives its terms in the order of the patches and, within a patch, of the
-    representative's dofs: the sums of the sparse matrix that did the change of basis and
-    the scatter before (its rows' entries in column order), to the bit."""
+    data moments; with flat of shape (n, k), k fields at once (their data side by side, as
+    FluxEquilibration.sigmas gives both membranes' data), returned as (size, k). Per bucket, a
+    few classes at a time (about ROWS patches: the temporaries stay in cache): the data of
+    their patches, all fields (`_gather`, compiled: one read of the indices, one cache line
+    for the fields of a datum), one product per class and field with its representative's
+    operator (BLAS: the same products for one field or several), then each patch's change of
+    basis (at most two representative dofs times 0, ±1) added to its RT dofs, all fields
+    side by side, by `_scatter_products` (compiled). Every RT dof receives its terms in the
+    order of the patches and, within a patch, of the representative's dofs: the sums of the
+    sparse matrix that did the change of basis and the scatter before (its rows' entries in
+    column order), to the bit, for each field the same as alone."""
     buckets, ret = level
-    out = np.zeros(size)
+    one = flat.ndim == 1
+    flat = flat.reshape(len(flat), -1)
+    k = flat.shape[1]
+    out = np.zeros((size, k))
     first = 0
     for S, G, L, C in buckets:
         g, nr, nq = S.shape
         per = G.shape[0] // g                          # the patches of each class
         step = max(1, _ROWS // per)
+        F = np.empty((k, min(step, g) * per, nq))
         for a in range(0, g, step):
             b = min(a + step, g)
             rows = slice(a * per, b * per)
-            SR = np.matmul(flat[G[rows]].reshape(b - a, per, nq), S[a:b].transpose(0, 2, 1))
-            _scatter_products(SR.reshape(-1, nr), L[rows], C[rows],
+            Fb = F[:, :(b - a) * per]
+            _gather(flat, G[rows], Fb)
+            SR = np.matmul(Fb.reshape(k, b - a, per, nq), S[a:b].transpose(0, 2, 1)[None])
+            _scatter_products(SR.reshape(k, -1, nr), L[rows], C[rows],
                               ret[first + a * per * nr:first + b * per * nr], out)
         first += G.shape[0] * nr
-    return out
+    return out[:, 0] if one else out
 
 
 _ROWS = 1 << 14     # patches per product and scatter of `_apply_buckets`
 
 
 @kernel
+def _gather(flat, G, F):
+    """F[f, p, i] = flat[G[p, i], f] for the fields f of flat (n, k) (one field and two
+    written out: a loop over the fields per datum costs twice as much)."""
+    k = flat.shape[1]
+    for p in range(G.shape[0]):
+        for i in range(G.shape[1]):
+            j = G[p, i]
+            if k == 1:
+                F[0, p, i] = flat[j, 0]
+            elif k == 2:
+                F[0, p, i] = flat[j, 0]
+                F[1, p, i] = flat[j, 1]
+            else:
+                for f in range(k):
+                    F[f, p, i] = flat[j, f]
+
+
+@kernel
 def _scatter_products(SR, L, C, ret, out):
-    """out[ret[p nr + i]] += C[p, i, t] SR[p, L[p, i, t]] for the patches p of SR (P, nr)
-    (their representatives' σ) and t = 0, 1 (the second where C[p, i, 1] ≠ 0), the two
-    terms of a dof in the order of L."""
-    P, nr = SR.shape
+    """out[ret[p nr + i], f] += C[p, i, t] SR[f, p, L[p, i, t]] for the patches p of SR
+    (k, P, nr) (their representatives' σ, k fields) and t = 0, 1 (the second where
+    C[p, i, 1] ≠ 0), the two terms of a dof in the order of L (the first field, then the
+    others: the same sums)."""
+    k, P, nr = SR.shape
     for p in range(P):
         for i in range(nr):
             r = ret[p * nr + i]
             l0, l1 = L[p, i, 0], L[p, i, 1]
             c0, c1 = C[p, i, 0], C[p, i, 1]
             if c1 != 0 and l1 < l0:
-                out[r] += c1 * SR[p, l1]
-                out[r] += c0 * SR[p, l0]
-            else:
-                out[r] += c0 * SR[p, l0]
+                l0, l1, c0, c1 = l1, l0, c1, c0
+            out[r, 0] += c0 * SR[0, p, l0]
+            if c1 != 0:
+                out[r, 0] += c1 * SR[0, p, l1]
+            for f in range(1, k):
+                out[r, f] += c0 * SR[f, p, l0]
                 if c1 != 0:
-                    out[r] += c1 * SR[p, l1]
+                    out[r, f] += c1 * SR[f, p, l1]
 
 
 def _top_tables():

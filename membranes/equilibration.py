@@ -1118,23 +1118,62 @@ class FluxEquilibration:
         self.G_u, self.G_R, self.G_lam = (G[keep] for G in (self.G_u, self.G_R, self.G_lam))
 
     def sigma(self, alpha, u, lam, R):
-        """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5): σ_f,α, plus
-        μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on their own, plus the
-        classes' part (`algebraic_flux._apply_buckets` on the data [μ_α ∇u_h per cell |
-        R_l / N_l per vertex | ±λ], with the changes of basis kept by the set-up)."""
-        mu = self.disc.problem.mu1 if alpha == 1 else self.disc.problem.mu2
-        sign = 1.0 if alpha == 1 else -1.0
-        out = self.sigma_f[alpha - 1].copy()
+        """RT_1 coefficients of σ_α,disc for membrane α ∈ {1, 2} (DESIGN §5): `sigmas` for
+        one membrane."""
+        return self.sigmas([(alpha, u, R)], lam)[0]
+
+    def sigmas(self, fields, lam):
+        """[σ_α,disc for (α, u, R) in fields] (RT_1 coefficients, DESIGN §5), the membranes
+        together: σ_f,α, plus μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on
+        their own, plus the classes' part: `algebraic_flux._apply_buckets` on the data
+        [μ_α ∇u_h per cell | R_l / N_l per vertex | ±λ] of all fields side by side
+        (`_class_data`, compiled), with the changes of basis kept by the set-up; each σ the
+        same to the bit as alone."""
+        p = self.disc.problem
+        mus = np.array([p.mu1 if alpha == 1 else p.mu2 for alpha, _, _ in fields])
+        signs = np.array([1.0 if alpha == 1 else -1.0 for alpha, _, _ in fields])
         rows = self.touched
-        out[rows] = mu * (self.G_u @ u) + sign * (self.G_lam @ lam) + out[rows]
-        if R is not None:
-            out[rows] += self.G_R @ R
         if self.classes is not None:
             from .algebraic_flux import _apply_buckets
-            nc, nv = self.geo.ncells, len(lam)
-            data = np.empty(2 * nc + 2 * nv)
-            np.multiply(mu, self.geo.gradient(u), out=data[:2 * nc].reshape(nc, 2))
-            data[2 * nc:2 * nc + nv] = 0.0 if R is None else R / self.geo.cells_per_vertex
-            np.multiply(sign, lam, out=data[2 * nc + nv:])
-            out += _apply_buckets(self.classes, data, len(out))
+            geo = self.geo
+            data = np.empty((2 * geo.ncells + 2 * len(lam), len(fields)))
+            given = any(R is not None for _, _, R in fields)
+            Rs = np.array([np.zeros(len(lam)) if R is None else R for _, _, R in fields]
+                          if given else np.zeros((len(fields), 0)))
+            _class_data(geo.cells, geo.grad, geo.cells_per_vertex, mus, signs,
+                        np.array([u for _, u, _ in fields]), lam, Rs, data)
+            classes = _apply_buckets(self.classes, data, self.sigma_f.shape[1])
+        out = []
+        for f, (alpha, u, R) in enumerate(fields):
+            base = self.sigma_f[alpha - 1]
+            at = mus[f] * (self.G_u @ u) + signs[f] * (self.G_lam @ lam) + base[rows]
+            if R is not None:
+                at += self.G_R @ R
+            if self.classes is None:
+                s = base.copy()
+                s[rows] = at
+            else:
+                s = base + classes[:, f]
+                s[rows] = at + classes[rows, f]
+            out.append(s)
         return out
+
+
+@kernel
+def _class_data(cells, grad, cpv, mus, signs, U, lam, R, data):
+    """The classes' data of FluxEquilibration.sigmas, field f in column f of data: μ_f ∇u_h
+    on every cell (two entries), R_l / N_l at every vertex (0 where R has no columns), ±λ."""
+    nc, nv, k = cells.shape[0], len(lam), U.shape[0]
+    for c in range(nc):
+        for f in range(k):
+            g0 = 0.0
+            g1 = 0.0
+            for i in range(3):
+                g0 += U[f, cells[c, i]] * grad[c, i, 0]
+                g1 += U[f, cells[c, i]] * grad[c, i, 1]
+            data[2 * c, f] = mus[f] * g0
+            data[2 * c + 1, f] = mus[f] * g1
+    for v in range(nv):
+        for f in range(k):
+            data[2 * nc + v, f] = R[f, v] / cpv[v] if R.shape[1] else 0.0
+            data[2 * nc + nv + v, f] = signs[f] * lam[v]

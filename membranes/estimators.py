@@ -34,9 +34,10 @@ A remainder η_rem left by σ_alg (the ν-construction) joins η_1 in the bound 
 
 Integrals of P1 products (η_C, η_lin1, η_lin3, ‖λ^pos‖) are exact cell formulas; so are η_F
 and η_alg (`CellFluxNorms`: σ_α is a quadratic vector polynomial on each cell, integrated by
-an exact rule); each is one compiled pass over the cells (membranes.compiled: `_cell_products`,
-`_energy_squares`, `_flux_squares`) that reads the nodal values, RT coefficients and the
-Geometry's cell data where they are, with no per-cell copies. η_osc is assembled once with
+an exact rule); so is ‖r_αh‖ of the remainder. Each kind is one compiled pass over the
+cells for both membranes (membranes.compiled: `_constraint_parts` for the four P1 parts,
+`_flux_squares` for η_F, η_alg, `_lifted_squares` for the remainder) that reads the nodal
+values, RT coefficients and the Geometry's cell data where they are, with no per-cell copies. η_osc is assembled once with
 dolfinx against a piecewise-constant test function, with the scene's data measures.
 
 σ_disc is computed once per iterate: the driver (membranes.driver, IterateEstimates) asks
@@ -47,7 +48,7 @@ is the later iterate of the one before; `sigma_disc` keeps the last two.
 import numpy as np
 import ufl
 
-from .compiled import kernel
+from .compiled import kernel, part
 from .discretisation import assemble_vector_array, over
 from .equilibration import (_MINV_REF, FluxEquilibration, _rt_element, cell_reflections,
                             rt_signs)
@@ -61,41 +62,75 @@ COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
            "eta_lin1", "eta_lin2", "eta_lin3")
 
 
-@kernel
-def _cell_products(area, index, p, q):
-    """(p, q)_K = |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k) on every cell K for p, q ∈ P1(K) with
-    the values p[index[K, k]], q[index[K, k]] at the cell's vertices k (index: the cells'
-    vertices for nodal P1 values, consecutive triples for DG1 coefficients)."""
-    out = np.empty(len(area))
-    for K in range(len(area)):
-        i0, i1, i2 = index[K, 0], index[K, 1], index[K, 2]
-        p0, p1, p2 = p[i0], p[i1], p[i2]
-        q0, q1, q2 = q[i0], q[i1], q[i2]
-        out[K] = area[K] / 12.0 * ((p0 * q0 + p1 * q1 + p2 * q2)
-                                   + (p0 + p1 + p2) * (q0 + q1 + q2))
-    return out
+@part
+def _p1_product(area, p0, p1, p2, q0, q1, q2):
+    """(p, q)_K = |K|/12 (Σ_k p_k q_k + Σ_k p_k Σ_k q_k) for p, q ∈ P1(K) with the values
+    p_k, q_k at the cell's vertices (exact)."""
+    return area / 12.0 * ((p0 * q0 + p1 * q1 + p2 * q2) + (p0 + p1 + p2) * (q0 + q1 + q2))
 
 
 @kernel
-def _energy_squares(area, cells, grad, mu1, e1, mu2, e2):
-    """|||e_h|||_K² = |K| (μ_1 |∇e_1h|² + μ_2 |∇e_2h|²) on every cell K for nodal P1 values
-    e_1, e_2 (grad (ncells, 3, 2): the gradients of the cells' hat functions)."""
-    out = np.empty(len(area))
+def _constraint_parts(area, cells, grad, u1, u2, lam, mu1, mu2):
+    """Per cell K (rows of the result, (4, ncells)): (u1h - u2h, λ^pos)_K, |||s_h - u_h|||_K²
+    = |K| (μ_1 |∇e_1h|² + μ_2 |∇e_2h|²) with e_αh = s_αh - u_αh (s_h of the module notes,
+    vertex by vertex: e_h = 0 where u1h ≥ u2h, else s_αh = (u1h + u2h)/2), ‖λ^pos‖_K² and
+    ‖λ^neg‖_K² (λ^pos, λ^neg the nodal max(λ, 0), min(λ, 0)): exact P1 integrals from the
+    nodal values at the cell's vertices, one pass for the four."""
+    out = np.empty((4, len(area)))
+    d = np.empty(3)
+    lp = np.empty(3)
+    ln = np.empty(3)
     for K in range(len(area)):
         a0 = a1 = b0 = b1 = 0.0
         for k in range(3):
             v = cells[K, k]
-            a0 += e1[v] * grad[K, k, 0]
-            a1 += e1[v] * grad[K, k, 1]
-            b0 += e2[v] * grad[K, k, 0]
-            b1 += e2[v] * grad[K, k, 1]
-        out[K] = area[K] * (mu1 * (a0 * a0 + a1 * a1) + mu2 * (b0 * b0 + b1 * b1))
+            x, y, z = u1[v], u2[v], lam[v]
+            d[k] = x - y
+            lp[k] = z if z >= 0.0 else 0.0
+            ln[k] = z if z <= 0.0 else 0.0
+            e1 = e2 = 0.0
+            if x < y:
+                m = 0.5 * (x + y)
+                e1, e2 = m - x, m - y
+            a0 += e1 * grad[K, k, 0]
+            a1 += e1 * grad[K, k, 1]
+            b0 += e2 * grad[K, k, 0]
+            b1 += e2 * grad[K, k, 1]
+        out[0, K] = _p1_product(area[K], d[0], d[1], d[2], lp[0], lp[1], lp[2])
+        out[1, K] = area[K] * (mu1 * (a0 * a0 + a1 * a1) + mu2 * (b0 * b0 + b1 * b1))
+        out[2, K] = _p1_product(area[K], lp[0], lp[1], lp[2], lp[0], lp[1], lp[2])
+        out[3, K] = _p1_product(area[K], ln[0], ln[1], ln[2], ln[0], ln[1], ln[2])
     return out
 
 
-def _p1_products(geo, p, q):
-    """(p, q)_K for nodal P1 values p, q."""
-    return _cell_products(geo.area, geo.cells, p, q)
+@kernel
+def _lifted_squares(area, cells, cpv, R1, R2, shift):
+    """‖ρ_α‖_K² for α = 1, 2 on every cell K ((2, ncells)): ρ_α = r_αh the lifting of R_α
+    (equilibration.Lifting: r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l,
+    its terms added in column order as the product of the lifting does), minus λ'_h - λ_h
+    for α = 1 and plus it for α = 2 where `shift` (nodal) has entries; exact P1 products."""
+    out = np.empty((2, len(area)))
+    r = np.empty(3)
+    v = np.empty(3)
+    for K in range(len(area)):
+        scale = 3.0 / area[K]
+        for alpha in range(2):
+            R = R1 if alpha == 0 else R2
+            for k in range(3):
+                v[k] = R[cells[K, k]] / cpv[cells[K, k]]
+            for i in range(3):
+                acc = 0.0
+                for k in range(3):
+                    acc += v[k] * (3.0 if k == i else -1.0)
+                r[i] = scale * acc
+            if len(shift):
+                for i in range(3):
+                    if alpha == 0:
+                        r[i] -= shift[cells[K, i]]
+                    else:
+                        r[i] -= -shift[cells[K, i]]
+            out[alpha, K] = _p1_product(area[K], r[0], r[1], r[2], r[0], r[1], r[2])
+    return out
 
 
 class CellFluxNorms:
@@ -131,77 +166,89 @@ class CellFluxNorms:
     def squared(self, u, sigma, tau=None, b=1.0, c=1.0, out=None):
         """∫_K |b ∇u_h + c σ|² for every cell K; with τ ∈ RT_1 also ∫_K |b ∇u_h + c σ + c τ|²
         and ∫_K |c τ|²: shape (ncells,), or (3, ncells) with τ (into `out`, of shape (1 or
-        3, ncells), if given)."""
-        geo = self.geo
+        3, ncells), if given). `squares` for one field."""
         given = out is not None
-        if not given:
-            out = np.empty((1 if tau is None else 3, geo.ncells))
+        full = self.squares([(u, sigma, tau, b, c)], None if out is None else out[:, None])
+        if given:
+            return out
+        return full[:, 0] if tau is not None else full[0, 0]
+
+    def squares(self, fields, out=None):
+        """`squared` for one or two fields (u, σ, τ, b, c) (the two membranes) in one pass over
+        the cells, τ None in all or none: out (1 or 3, fields, ncells), each field's values
+        the same to the bit as alone."""
+        geo = self.geo
+        k = len(fields)
+        rows = 1 if fields[0][2] is None else 3
+        if out is None:
+            out = np.empty((rows, k, geo.ncells))
+        u, sigma, tau, b, c = zip(*fields)
+        tau = tuple(s if t is None else t for s, t in zip(sigma, tau))
+        second = 1 if k == 2 else 0
         _flux_squares(self.psi, self.reflections, self.rt_cells, geo.cells, geo.grad, geo.area,
-                      self.w, u, float(b), sigma, sigma if tau is None else tau, float(c), out)
-        return out if given or tau is not None else out[0]
+                      self.w, u[0], u[second], np.array(b, dtype=float), sigma[0],
+                      sigma[second], tau[0], tau[second], np.array(c, dtype=float), out)
+        return out
 
 
 @kernel
-def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u, b, sigma, tau, c, out):
-    """CellFluxNorms.squared: out[0, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|² with
-    a_K = b ∇u_h|_K, and where out has three rows out[2, K] for c τ and out[1, K] for
-    a_K + c σ + c τ; σ at the points from the table psi[ρ_K] (2 nq, 8) of signed reference
-    values and the Piola entries J / det J, which the gradients of the cell's hat functions
-    hold (Geometry: ∇φ_1 = (J_11, -J_01) / det J, ∇φ_2 = (-J_10, J_00) / det J;
-    |det J| = 2 |K|)."""
+def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u1, u2, b, sigma1, sigma2, tau1,
+                  tau2, c, out):
+    """CellFluxNorms.squares, out (1 or 3, k, ncells) for k = 1 or 2 fields (u_f, σ_f, τ_f,
+    b[f], c[f]): out[0, f, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|² with a_K = b ∇u_h|_K, and
+    where out has three rows out[2, f, K] for c τ and out[1, f, K] for a_K + c σ + c τ; σ at
+    the points from the table psi[ρ_K] (2 nq, 8) of signed reference values and the Piola
+    entries J / det J, which the gradients of the cell's hat functions hold (Geometry:
+    ∇φ_1 = (J_11, -J_01) / det J, ∇φ_2 = (-J_10, J_00) / det J; |det J| = 2 |K|); the
+    cell's table, Piola entries and dofs read once for the fields."""
     nq = len(w)
     both = out.shape[0] == 3
+    k = out.shape[1]
     s = np.empty(8)
     t = np.empty(8)
     for K in range(len(area)):
         tab = psi[refl[K]]
-        for j in range(8):
-            s[j] = c * sigma[rt_cells[K, j]]
-            t[j] = c * tau[rt_cells[K, j]]
         F0, F1, F2, F3 = grad[K, 2, 1], -grad[K, 1, 1], -grad[K, 2, 0], grad[K, 1, 0]
         abs_det = 2.0 * area[K]
-        a0 = a1 = 0.0
-        for k in range(3):
-            a0 += u[cells[K, k]] * grad[K, k, 0]
-            a1 += u[cells[K, k]] * grad[K, k, 1]
-        a0 *= b
-        a1 *= b
-        e_sum = 0.0
-        f_sum = 0.0
-        t_sum = 0.0
-        for q in range(nq):
-            v0 = 0.0
-            v1 = 0.0
+        for f in range(k):
+            u, sigma, tau = (u1, sigma1, tau1) if f == 0 else (u2, sigma2, tau2)
             for j in range(8):
-                v0 += tab[q, j] * s[j]
-                v1 += tab[nq + q, j] * s[j]
-            e0 = F0 * v0 + F1 * v1 + a0
-            e1 = F2 * v0 + F3 * v1 + a1
-            e_sum += w[q] * (e0 * e0 + e1 * e1)
-            if both:
+                s[j] = c[f] * sigma[rt_cells[K, j]]
+                t[j] = c[f] * tau[rt_cells[K, j]]
+            a0 = a1 = 0.0
+            for i in range(3):
+                a0 += u[cells[K, i]] * grad[K, i, 0]
+                a1 += u[cells[K, i]] * grad[K, i, 1]
+            a0 *= b[f]
+            a1 *= b[f]
+            e_sum = 0.0
+            f_sum = 0.0
+            t_sum = 0.0
+            for q in range(nq):
                 v0 = 0.0
                 v1 = 0.0
                 for j in range(8):
-                    v0 += tab[q, j] * t[j]
-                    v1 += tab[nq + q, j] * t[j]
-                t0 = F0 * v0 + F1 * v1
-                t1 = F2 * v0 + F3 * v1
-                t_sum += w[q] * (t0 * t0 + t1 * t1)
-                e0 += t0
-                e1 += t1
-                f_sum += w[q] * (e0 * e0 + e1 * e1)
-        out[0, K] = e_sum * abs_det
-        if both:
-            out[1, K] = f_sum * abs_det
-            out[2, K] = t_sum * abs_det
-
-
-def constraint_projection(u1, u2):
-    """s_h (DESIGN §7): nodal, u_h where u1 ≥ u2, else both components the mean."""
-    s1, s2 = u1.copy(), u2.copy()
-    bad = u1 < u2
-    s1[bad] = s2[bad] = 0.5 * (u1[bad] + u2[bad])
-    return s1, s2
+                    v0 += tab[q, j] * s[j]
+                    v1 += tab[nq + q, j] * s[j]
+                e0 = F0 * v0 + F1 * v1 + a0
+                e1 = F2 * v0 + F3 * v1 + a1
+                e_sum += w[q] * (e0 * e0 + e1 * e1)
+                if both:
+                    v0 = 0.0
+                    v1 = 0.0
+                    for j in range(8):
+                        v0 += tab[q, j] * t[j]
+                        v1 += tab[nq + q, j] * t[j]
+                    t0 = F0 * v0 + F1 * v1
+                    t1 = F2 * v0 + F3 * v1
+                    t_sum += w[q] * (t0 * t0 + t1 * t1)
+                    e0 += t0
+                    e1 += t1
+                    f_sum += w[q] * (e0 * e0 + e1 * e1)
+            out[0, f, K] = e_sum * abs_det
+            if both:
+                out[1, f, K] = f_sum * abs_det
+                out[2, f, K] = t_sum * abs_det
 
 
 def oscillation(disc, space, load):
@@ -247,31 +294,25 @@ class Estimators:
         self.osc = oscillation(disc, self.flux.space, self.flux.load)   # (2, ncells)
         self.flux.load = None                                 # only the oscillation uses it
         self._recent = []                                     # sigma_disc's last two
-        self._dg_index = np.arange(3 * self.geo.ncells, dtype=np.int32).reshape(-1, 3)
-
-    def _p1_dg_norms(self, coeffs):
-        """‖v‖_Ω for v ∈ DG1 given by coefficients (ncells, 3) in cell-vertex order."""
-        v = np.ascontiguousarray(coeffs).reshape(-1)
-        return np.sqrt(np.sum(_cell_products(self.geo.area, self._dg_index, v, v)))
 
     def remainder(self, R, lam_shift=None):
         """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_α = r_αh (DESIGN §4), or with
         lam_shift = λ' - λ (nodal): ρ_α = r_αh ∓ (λ'_h - λ_h) (- for α = 1: the flux
         σ_disc(X') balances Π_P1 f_1 + λ'_h - r'_1h = Π_P1 f_1 + λ_h - (r'_1h - (λ'_h - λ_h))).
         It bounds the part of the residual that the flux leaves out of balance, by
-        Poincaré–Friedrichs."""
+        Poincaré–Friedrichs. The cells' ‖ρ_α‖_K² in one compiled pass (`_lifted_squares`)."""
         n = self.disc.n
+        geo = self.geo
+        sq = _lifted_squares(geo.area, geo.cells, geo.cells_per_vertex, R[:n], R[n:2 * n],
+                             np.zeros(0) if lam_shift is None else lam_shift)
         total = 0.0
-        for alpha, Ra in enumerate((R[:n], R[n:2 * n])):
-            rho = (self.flux.lift @ Ra).reshape(-1, 3)
-            if lam_shift is not None:
-                rho -= (lam_shift if alpha == 0 else -lam_shift)[self.geo.cells]
-            total += self._p1_dg_norms(rho) ** 2 / self.mu[alpha]
+        for alpha in range(2):
+            total += np.sqrt(np.sum(sq[alpha])) ** 2 / self.mu[alpha]
         return float(self.cpf * np.sqrt(total))
 
     def sigma_disc(self, X, R=None):
-        """(σ_1,disc, σ_2,disc) at X with algebraic residual R (RT_1 coefficients, read-only).
-        The last two are kept and given again for the same X and R (equal entries; every
+        """(σ_1,disc, σ_2,disc) at X with algebraic residual R (RT_1 coefficients, read-only;
+        FluxEquilibration.sigmas, both membranes in one pass). The last two are kept and given again for the same X and R (equal entries; every
         process of a run has the same iterates, so all of them compute or none)."""
         for (Xk, Rk), sigma in self._recent:
             if np.array_equal(Xk, X) and (Rk is None if R is None else
@@ -280,8 +321,7 @@ class Estimators:
         n = self.disc.n
         u1, u2, lam = split(X, n)
         Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
-        sigma = [self.flux.sigma(alpha + 1, u, lam, Ra)
-                 for alpha, (u, Ra) in enumerate(zip((u1, u2), Rs))]
+        sigma = self.flux.sigmas([(1, u1, Rs[0]), (2, u2, Rs[1])], lam)
         if self.sum_parts is not None:
             sigma = self.sum_parts(sigma)
         for s in sigma:
@@ -318,23 +358,21 @@ class Estimators:
         have_alg = sigma_alg is not None or roundoff
         # η_F,K,α = ‖μ^{1/2} ∇u_h + μ^{-1/2} σ‖_K, η_alg,K,α = ‖μ^{-1/2} σ_alg‖_K
         # cells[:, α]: η_disc,K,α (σ_disc alone), η_F,K,α and η_alg,K,α (with σ_alg)
-        cells = np.empty((1 if sigma_alg is None else 3, 2, geo.ncells))
-        for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R))):
-            root = np.sqrt(self.mu[alpha])
-            self.norms.squared(u, s_disc, None if sigma_alg is None else sigma_alg[alpha],
-                               root, 1.0 / root, out=cells[:, alpha])
+        roots = [np.sqrt(mu) for mu in self.mu]
+        cells = self.norms.squares([(u, s_disc, None if sigma_alg is None else sigma_alg[alpha],
+                                     roots[alpha], 1.0 / roots[alpha])
+                                    for alpha, (u, s_disc) in
+                                    enumerate(zip((u1, u2), self.sigma_disc(X, R)))])
         np.sqrt(cells, out=cells)
         disc_cells = cells[0]
         flux_cells = disc_cells if sigma_alg is None else cells[1]
         # constraint and linearisation parts (exact P1 integrals)
-        lam_pos, lam_neg = np.maximum(lam, 0.0), np.minimum(lam, 0.0)
-        eta_C_K = 2.0 * _p1_products(geo, u1 - u2, lam_pos)
-        s1, s2 = constraint_projection(u1, u2)
-        lin1_K = np.sqrt(_energy_squares(geo.area, geo.cells, geo.grad, self.mu[0], s1 - u1,
-                                         self.mu[1], s2 - u2))
-        lam_pos_norm = np.sqrt(max(_p1_products(geo, lam_pos, lam_pos).sum(), 0.0))
+        parts = _constraint_parts(geo.area, geo.cells, geo.grad, u1, u2, lam, *self.mu)
+        eta_C_K = 2.0 * parts[0]
+        lin1_K = np.sqrt(parts[1])
+        lam_pos_norm = np.sqrt(max(parts[2].sum(), 0.0))
         lin2_K = 2.0 * self.kappa * lam_pos_norm * lin1_K
-        lin3_K = self.kappa * np.sqrt(np.maximum(_p1_products(geo, lam_neg, lam_neg), 0.0))
+        lin3_K = self.kappa * np.sqrt(np.maximum(parts[3], 0.0))
         sum_C = float(eta_C_K.sum())
         eta_lin1, eta_lin2, eta_lin3 = (float(np.sqrt((v * v).sum()))
                                         for v in (lin1_K, lin2_K, lin3_K))
