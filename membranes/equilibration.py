@@ -737,61 +737,64 @@ def load_moments(disc, geo):
     evaluation of f_α at each quadrature point serves both; the sums are those of the
     assembled forms (f_α, φ_i φ_k) and ((f_α - Π_P1 f_α)², 1_K) regrouped (equal to round-off:
     tests/test_equilibration, tests/test_estimators), with no function space or assembly."""
+    import ufl
     from dolfinx import fem
     mesh = disc.V.mesh
     nc = geo.ncells
     W = np.zeros((2, nc, 3, 3))
     sq = np.zeros((2, nc))
+    loads = ufl.as_vector([load(f, mesh) for f in (disc.problem.f1, disc.problem.f2)])
     for cells, X, w in data_rules(disc):
-        hat = np.ascontiguousarray(np.stack([1.0 - X[:, 0] - X[:, 1], X[:, 0], X[:, 1]],
-                                            axis=1))                           # φ_k(X_q)
-        block = max(1, (1 << 19) // len(w))                  # f values of a block: 4 MB
-        for alpha, f in enumerate((disc.problem.f1, disc.problem.f2)):
-            expr = fem.Expression(load(f, mesh), X)
-            values = np.empty((min(block, len(cells)), len(w)))
-            for s in range(0, len(cells), block):
-                c = cells[s:s + block]
-                fv = values[:len(c)]
-                expr.eval(c, fv)
-                _data_moments(c, fv, w, hat, geo.area, _MINV_REF, W[alpha], sq[alpha])
+        hat = np.stack([1.0 - X[:, 0] - X[:, 1], X[:, 0], X[:, 1]], axis=1)     # φ_k(X_q)
+        products = np.ascontiguousarray(hat[:, [0, 0, 0, 1, 1, 2]] * hat[:, [0, 1, 2, 1, 2, 2]])
+        expr = fem.Expression(loads, X)                    # (f_1, f_2) at each point
+        block = max(1, (1 << 18) // len(w))                # f values of a block: 4 MB
+        values = np.empty((min(block, len(cells)), 2 * len(w)))
+        for s in range(0, len(cells), block):
+            c = cells[s:s + block]
+            fv = values[:len(c)]
+            expr.eval(c, fv)
+            _data_moments(c, fv, w, np.ascontiguousarray(hat), products, geo.area, _MINV_REF,
+                          W, sq)
     return list(W), sq
 
 
 @kernel
-def _data_moments(cells, fv, w, hat, area, minv, W, sq):
-    """`load_moments` on the given cells, with f at the rule's points fv (c, q) (weights w,
-    hat values (q, 3)): W[K, i, k] = |det J| Σ_q w_q f_q φ_i φ_k (|det J| = 2 |K|), the loads
-    l_i = Σ_k W[K, i, k] = (f, φ_i)_K, Π_P1 f = Σ_k p_k φ_k with p = (3/|K|) minv l, and
-    sq[K] = |det J| Σ_q w_q (f_q - Π_P1 f(x_q))²."""
+def _data_moments(cells, fv, w, hat, products, area, minv, W, sq):
+    """`load_moments` on the given cells, with f_α at the rule's points fv (c, 2 q) (point by
+    point, f_1 then f_2; weights w, hat values φ_k(X_q) (q, 3), products (q, 6) φ_i φ_k for
+    ik = 00, 01, 02, 11, 12, 22): for α = 1, 2, W[α, K, i, k] = |det J| Σ_q w_q f_q φ_i φ_k
+    (|det J| = 2 |K|), the loads l_i = Σ_k W[α, K, i, k] = (f, φ_i)_K, Π_P1 f = Σ_k p_k φ_k
+    with p = (3/|K|) minv l, and sq[α, K] = |det J| Σ_q w_q (f_q - Π_P1 f(x_q))²."""
     nq = len(w)
     for j in range(len(cells)):
         K = cells[j]
-        m00 = m01 = m02 = m11 = m12 = m22 = 0.0
-        for q in range(nq):
-            wf = w[q] * fv[j, q]
-            h0, h1, h2 = hat[q, 0], hat[q, 1], hat[q, 2]
-            m00 += wf * h0 * h0
-            m01 += wf * h0 * h1
-            m02 += wf * h0 * h2
-            m11 += wf * h1 * h1
-            m12 += wf * h1 * h2
-            m22 += wf * h2 * h2
         det = 2.0 * area[K]
-        m00, m01, m02, m11, m12, m22 = (det * m00, det * m01, det * m02, det * m11,
-                                        det * m12, det * m22)
-        W[K, 0, 0], W[K, 0, 1], W[K, 0, 2] = m00, m01, m02
-        W[K, 1, 0], W[K, 1, 1], W[K, 1, 2] = m01, m11, m12
-        W[K, 2, 0], W[K, 2, 1], W[K, 2, 2] = m02, m12, m22
-        l0, l1, l2 = m00 + m01 + m02, m01 + m11 + m12, m02 + m12 + m22
         scale = 3.0 / area[K]
-        p0 = scale * (minv[0, 0] * l0 + minv[0, 1] * l1 + minv[0, 2] * l2)
-        p1 = scale * (minv[1, 0] * l0 + minv[1, 1] * l1 + minv[1, 2] * l2)
-        p2 = scale * (minv[2, 0] * l0 + minv[2, 1] * l1 + minv[2, 2] * l2)
-        e2 = 0.0
-        for q in range(nq):
-            e = fv[j, q] - (p0 * hat[q, 0] + p1 * hat[q, 1] + p2 * hat[q, 2])
-            e2 += w[q] * e * e
-        sq[K] = det * e2
+        for a in range(2):
+            m00 = m01 = m02 = m11 = m12 = m22 = 0.0
+            for q in range(nq):
+                wf = w[q] * fv[j, 2 * q + a]
+                m00 += wf * products[q, 0]
+                m01 += wf * products[q, 1]
+                m02 += wf * products[q, 2]
+                m11 += wf * products[q, 3]
+                m12 += wf * products[q, 4]
+                m22 += wf * products[q, 5]
+            m00, m01, m02 = det * m00, det * m01, det * m02
+            m11, m12, m22 = det * m11, det * m12, det * m22
+            W[a, K, 0, 0], W[a, K, 0, 1], W[a, K, 0, 2] = m00, m01, m02
+            W[a, K, 1, 0], W[a, K, 1, 1], W[a, K, 1, 2] = m01, m11, m12
+            W[a, K, 2, 0], W[a, K, 2, 1], W[a, K, 2, 2] = m02, m12, m22
+            l0, l1, l2 = m00 + m01 + m02, m01 + m11 + m12, m02 + m12 + m22
+            p0 = scale * (minv[0, 0] * l0 + minv[0, 1] * l1 + minv[0, 2] * l2)
+            p1 = scale * (minv[1, 0] * l0 + minv[1, 1] * l1 + minv[1, 2] * l2)
+            p2 = scale * (minv[2, 0] * l0 + minv[2, 1] * l1 + minv[2, 2] * l2)
+            e2 = 0.0
+            for q in range(nq):
+                e = fv[j, 2 * q + a] - (p0 * hat[q, 0] + p1 * hat[q, 1] + p2 * hat[q, 2])
+                e2 += w[q] * e * e
+            sq[a, K] = det * e2
 
 
 @kernel
