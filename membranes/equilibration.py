@@ -54,7 +54,9 @@ use), and each member's change of basis and data indices from tables per represe
 (`_member_maps`, in the patches' order).
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
-quadrature (the scene's data measures; `load_moments`: one assembly against DG2 per load).
+quadrature (the scene's data measures; `load_moments`: f_α evaluated once at the points of
+their rules, and one compiled pass that gives the moments (f_α φ_k, φ_i)_K and the squares
+‖f_α - Π_P1 f_α‖_K² of the data oscillation, DESIGN §7).
 
 With a mask `owned` over the vertices, only the patches of the owned vertices are set up: σ is
 then their part of the sum, and the parts of a partition of the vertices add up to σ_α,disc
@@ -66,12 +68,9 @@ import itertools
 
 import numpy as np
 import scipy.sparse as sp
-import ufl
-
-from forms.equilibration import weighted_mass
 
 from .compiled import kernel, part
-from .discretisation import form as compiled, load, over
+from .discretisation import load
 from .meshes import p1_cells
 
 # ∫_K φ_k φ_l φ_i / |K| for barycentric φ: 1/10 (k = l = i), 1/30 (two equal), 1/60 (distinct)
@@ -81,12 +80,6 @@ for _k in range(3):
         for _i in range(3):
             _C3[_k, _l, _i] = {1: 1 / 10, 2: 1 / 30, 3: 1 / 60}[len({_k, _l, _i})]
 _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
-# numpy passes over per-cell arrays go by blocks of this many rows: their temporaries (a few
-# MB) stay in cache and are recycled by the allocator, where whole-array temporaries of tens
-# of MB each cost fresh pages (measured: 1.5-3x the time of the same pass in blocks, for the
-# canonical vertex orders of 8.7e5 cells, a pass now compiled). A BLAS product by blocks
-# beats a compiled loop here (`load_moments`: 0.04 s against 0.11 s at 1.9e6 cells).
-_BLOCK = 1 << 14
 
 
 class Geometry:
@@ -281,10 +274,8 @@ class PatchSpace:
         self.geo = geo = Geometry(V)
         nc = geo.ncells
         self.RT = fem.FunctionSpace(mesh, ("RT", 2))
-        self.DG = fem.FunctionSpace(mesh, ("DG", 1))
         self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
-        self.dg_cells = self.DG.dofmap.list.array.reshape(nc, -1).astype(np.int32)
-        _check_vertex_order(V, self.DG)
+        _check_vertex_order(V)
         # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
         layout = self.RT.dofmap.dof_layout
         self.edge_of_dof = np.full(8, -1)
@@ -306,6 +297,21 @@ class PatchSpace:
         self.Me = self.Be = None
         if blocks:
             self.Me, self.Be = self.element_blocks(np.arange(nc))
+
+    @functools.cached_property
+    def DG(self):
+        """dolfinx's discontinuous P1 on the mesh, made at first use (the set-up works with DG1
+        coefficients in each cell's P1 vertex order and needs no space; tests and pictures
+        make functions of it), its dofs checked to be in that order."""
+        from dolfinx import fem
+        DG = fem.FunctionSpace(self.V.mesh, ("DG", 1))
+        _check_vertex_order(self.V, DG)
+        return DG
+
+    @functools.cached_property
+    def dg_cells(self):
+        """The DG1 dofs of each cell (ncells, 3), in its P1 vertex order."""
+        return self.DG.dofmap.list.array.reshape(self.geo.ncells, -1).astype(np.int32)
 
     def _mapped(self, cells):
         """Jacobians, sign of det J, and the dof signs of the given cells."""
@@ -671,50 +677,124 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     return CF, KF, rep, pi
 
 
-def _check_vertex_order(V, DG):
-    """The local formulas assume the DG1 and P1 dofs of a cell sit at its vertices in the same
-    order (basix's reference vertex order); check it rather than trust it: both elements have
-    their dofs at the same reference points in the same order and no dof transformations, and
-    the cells' one geometry map takes them to the same points of every cell."""
-    for e in (V.element, DG.element):
+def _check_vertex_order(V, DG=None):
+    """The local formulas assume that a cell's P1 dofs (Geometry.cells) sit at its vertices in
+    basix's reference vertex order, that of the hats of the reference integrals (and, with DG,
+    that the DG1 dofs sit there in the same order); check it rather than trust it: the
+    elements have their dofs at the reference vertices in that order and no dof
+    transformations, and the cells' one geometry map takes them to the same points of every
+    cell."""
+    import basix
+    for e in (V.element,) + (() if DG is None else (DG.element,)):
         if e.needs_dof_transformations or not e.interpolation_ident:
             raise RuntimeError("P1 or DG1 dofs are not point values at fixed reference points")
-    if not np.array_equal(V.element.interpolation_points(), DG.element.interpolation_points()):
-        raise RuntimeError("DG1 and P1 dofs are not in the same cell vertex order")
+        if not np.array_equal(e.interpolation_points(), basix.geometry(basix.CellType.triangle)):
+            raise RuntimeError("P1 or DG1 dofs are not at the reference vertices in order")
 
 
-def load_moments(disc, space):
-    """Wf_α (ncells, 3, 3) with Wf_α[K, i, k] = (f_α φ_k, φ_i)_K, with the scene's data
-    measures: one assembly of (f_α, v) per load against discontinuous P2, whose basis
-    functions L_j are nodal at reference points X_j (checked); φ_k φ_i ∈ P2(K) is its own
-    interpolant Σ_j (φ_k φ_i)(X_j) L_j, so a cell's nine moments are these combinations of its
-    six (f_α, L_j)_K: one evaluation of f_α at each quadrature point, the same quadrature
-    sums regrouped (equal to round-off: 1.4e-14 of the largest moment measured on the disk,
-    whose composite rule has 1536 points), and no coefficient to pack or interpolate."""
+def data_rules(disc):
+    """The scene's data measures (disc.dx_data, summed with `over`) as cells and quadrature
+    rules: for each measure, (cells, points X (q, 2), weights w (q,)), the rule FFCx builds
+    for its integrals (the custom points and weights of its metadata, or
+    ffcx.element_interface.create_quadrature of its degree and scheme) and the local cells
+    it integrates over (those of its subdomain id in its mesh tags, or all). The measures
+    must not share a cell (as `discretisation.data_measures` makes them: cut cells and the
+    others)."""
+    from ffcx.element_interface import create_quadrature
+    mesh = disc.V.mesh
+    nc = mesh.topology.index_map(2).size_local
+    rules, count = [], np.zeros(nc, dtype=np.int64)
+    for dx in disc.dx_data:
+        md = dx.metadata()
+        if "quadrature_points" in md:
+            X = np.asarray(md["quadrature_points"], dtype=np.float64).reshape(-1, 2)
+            w = np.asarray(md["quadrature_weights"], dtype=np.float64)
+        else:
+            X, w = create_quadrature("triangle", md["quadrature_degree"],
+                                     md.get("quadrature_rule", "default"))
+        sid = dx.subdomain_id()
+        if sid == "everywhere":
+            cells = np.arange(nc, dtype=np.int32)
+        else:
+            tags = dx.subdomain_data()
+            cells = tags.indices[tags.values == sid].astype(np.int32)
+            cells = cells[cells < nc]
+        count[cells] += 1
+        rules.append((cells, np.ascontiguousarray(X), np.ascontiguousarray(w)))
+    if count.max(initial=0) > 1:
+        raise RuntimeError("data measures that share cells")
+    return rules
+
+
+def load_moments(disc, geo):
+    """Wf_α (ncells, 3, 3) with Wf_α[K, i, k] = (f_α φ_k, φ_i)_K, and the squares
+    ‖f_α - Π_P1 f_α‖_K² (2, ncells) that the data oscillation takes (DESIGN §7), with the
+    scene's data measures (`data_rules`): f_α at the points of each rule on its cells, a
+    dolfinx Expression of the UFL load evaluated by blocks of cells, then one compiled pass
+    over the block (`_data_moments`) forms a cell's moments |det J| Σ_q w_q f(x_q) φ_k φ_i,
+    Π_P1 f_α = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] ((f_α, φ_i)_K)_i (the L² projection;
+    (f_α, φ_i)_K = Σ_k (f_α φ_k, φ_i)_K) and |det J| Σ_q w_q (f(x_q) - Π_P1 f(x_q))². One
+    evaluation of f_α at each quadrature point serves both; the sums are those of the
+    assembled forms (f_α, φ_i φ_k) and ((f_α - Π_P1 f_α)², 1_K) regrouped (equal to round-off:
+    tests/test_equilibration, tests/test_estimators), with no function space or assembly."""
+    import ufl
     from dolfinx import fem
     mesh = disc.V.mesh
-    nc = space.geo.ncells
-    Q = fem.FunctionSpace(mesh, ("DG", 2))
-    if Q.element.needs_dof_transformations or not Q.element.interpolation_ident:
-        raise RuntimeError("DG2 dofs are not point values at fixed reference points")
-    X = Q.element.interpolation_points()                                     # (6, 2)
-    hat = np.stack([1.0 - X[:, 0] - X[:, 1], X[:, 0], X[:, 1]], axis=1)       # φ_k(X_j)
-    comb = (hat[:, :, None] * hat[:, None, :]).reshape(len(X), 9)          # [j, 3 i + k]
-    nodes = Q.dofmap.list.array.reshape(nc, len(X))
-    # dolfinx numbers the DG dofs cell by cell: the (f_α, L_j)_K are then a view
-    cellwise = np.array_equal(nodes, np.arange(nodes.size).reshape(nodes.shape))
-    q = ufl.TestFunction(Q)
-    out = []
-    for f in (disc.problem.f1, disc.problem.f2):
-        form = compiled(over(disc.dx_data, lambda dx: weighted_mass(load(f, mesh), 1.0, q,
-                                                                    dx)))
-        b = fem.assemble_vector(form).array
-        B = b[:nodes.size].reshape(nodes.shape) if cellwise else b[nodes]
-        W = np.empty((nc, 9))
-        for s in range(0, nc, _BLOCK):                        # cache-sized blocks of cells
-            np.dot(B[s:s + _BLOCK], comb, out=W[s:s + _BLOCK])
-        out.append(W.reshape(nc, 3, 3))                                      # [K, i, k]
-    return out
+    nc = geo.ncells
+    W = np.zeros((2, nc, 3, 3))
+    sq = np.zeros((2, nc))
+    loads = ufl.as_vector([load(f, mesh) for f in (disc.problem.f1, disc.problem.f2)])
+    for cells, X, w in data_rules(disc):
+        hat = np.stack([1.0 - X[:, 0] - X[:, 1], X[:, 0], X[:, 1]], axis=1)     # φ_k(X_q)
+        products = np.ascontiguousarray(hat[:, [0, 0, 0, 1, 1, 2]] * hat[:, [0, 1, 2, 1, 2, 2]])
+        expr = fem.Expression(loads, X)                    # (f_1, f_2) at each point
+        block = max(1, (1 << 18) // len(w))                # f values of a block: 4 MB
+        values = np.empty((min(block, len(cells)), 2 * len(w)))
+        for s in range(0, len(cells), block):
+            c = cells[s:s + block]
+            fv = values[:len(c)]
+            expr.eval(c, fv)
+            _data_moments(c, fv, w, np.ascontiguousarray(hat), products, geo.area, _MINV_REF,
+                          W, sq)
+    return list(W), sq
+
+
+@kernel
+def _data_moments(cells, fv, w, hat, products, area, minv, W, sq):
+    """`load_moments` on the given cells, with f_α at the rule's points fv (c, 2 q) (point by
+    point, f_1 then f_2; weights w, hat values φ_k(X_q) (q, 3), products (q, 6) φ_i φ_k for
+    ik = 00, 01, 02, 11, 12, 22): for α = 1, 2, W[α, K, i, k] = |det J| Σ_q w_q f_q φ_i φ_k
+    (|det J| = 2 |K|), the loads l_i = Σ_k W[α, K, i, k] = (f, φ_i)_K, Π_P1 f = Σ_k p_k φ_k
+    with p = (3/|K|) minv l, and sq[α, K] = |det J| Σ_q w_q (f_q - Π_P1 f(x_q))²."""
+    nq = len(w)
+    for j in range(len(cells)):
+        K = cells[j]
+        det = 2.0 * area[K]
+        scale = 3.0 / area[K]
+        for a in range(2):
+            m00 = m01 = m02 = m11 = m12 = m22 = 0.0
+            for q in range(nq):
+                wf = w[q] * fv[j, 2 * q + a]
+                m00 += wf * products[q, 0]
+                m01 += wf * products[q, 1]
+                m02 += wf * products[q, 2]
+                m11 += wf * products[q, 3]
+                m12 += wf * products[q, 4]
+                m22 += wf * products[q, 5]
+            m00, m01, m02 = det * m00, det * m01, det * m02
+            m11, m12, m22 = det * m11, det * m12, det * m22
+            W[a, K, 0, 0], W[a, K, 0, 1], W[a, K, 0, 2] = m00, m01, m02
+            W[a, K, 1, 0], W[a, K, 1, 1], W[a, K, 1, 2] = m01, m11, m12
+            W[a, K, 2, 0], W[a, K, 2, 1], W[a, K, 2, 2] = m02, m12, m22
+            l0, l1, l2 = m00 + m01 + m02, m01 + m11 + m12, m02 + m12 + m22
+            p0 = scale * (minv[0, 0] * l0 + minv[0, 1] * l1 + minv[0, 2] * l2)
+            p1 = scale * (minv[1, 0] * l0 + minv[1, 1] * l1 + minv[1, 2] * l2)
+            p2 = scale * (minv[2, 0] * l0 + minv[2, 1] * l1 + minv[2, 2] * l2)
+            e2 = 0.0
+            for q in range(nq):
+                e = fv[j, 2 * q + a] - (p0 * hat[q, 0] + p1 * hat[q, 1] + p2 * hat[q, 2])
+                e2 += w[q] * e * e
+            sq[a, K] = det * e2
 
 
 @kernel
@@ -777,14 +857,6 @@ def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt
             G[q, 2 * n + v] = 2 * nc + cells[CF[p, c], PERMS[perm[c], k]]
         G[q, 2 * n + m] = 2 * nc + nv + verts[p]
     return 0
-
-
-def cell_loads(w):
-    """(f_α, φ_i)_K = Σ_k (f_α φ_k, φ_i)_K (ncells, 3) from the moments w = Wf_α of
-    `load_moments`: two adds of strided columns (numpy's reduction over a last axis of three
-    entries is several times slower; the same sums in the same order, bar the sign of a zero
-    sum of negative zeros)."""
-    return w[:, :, 0] + w[:, :, 1] + w[:, :, 2]
 
 
 @functools.lru_cache(maxsize=None)
@@ -852,9 +924,9 @@ class FluxEquilibration:
             if len(own):
                 alone.append((verts[own], CS[own], KA[own], b[own]))
         del self._cent, self._exterior_bits   # the classes' only
-        wf = load_moments(disc, space)
-        # the load moments (f_α, φ_i)_K, kept for the oscillation estimator
-        self.load = [cell_loads(w) for w in wf]
+        wf, sq = load_moments(disc, geo)
+        # ‖f_α - Π_P1 f_α‖_K², kept for the oscillation estimator (Estimators)
+        self.projection_squares = sq
         for verts, CS, KA, b in alone:
             glob = space.retained_dofs(CS, b, KA)
             for sel, RET, loc, A in space.patch_groups(CS, b, self.CHUNK, glob):

@@ -37,8 +37,10 @@ and η_alg (`CellFluxNorms`: σ_α is a quadratic vector polynomial on each cell
 an exact rule); so is ‖r_αh‖ of the remainder. Each kind is one compiled pass over the
 cells for both membranes (membranes.compiled: `_constraint_parts` for the four P1 parts,
 `_flux_squares` for η_F, η_alg, `_lifted_squares` for the remainder) that reads the nodal
-values, RT coefficients and the Geometry's cell data where they are, with no per-cell copies. η_osc is assembled once with
-dolfinx against a piecewise-constant test function, with the scene's data measures.
+values, RT coefficients and the Geometry's cell data where they are, with no per-cell copies.
+η_osc is computed once per mesh from ‖f_α - Π_P1 f_α‖_K², which the flux set-up's pass over
+the quadrature points of the scene's data measures gives with the load moments
+(equilibration.load_moments).
 
 σ_disc is computed once per iterate: the driver (membranes.driver, IterateEstimates) asks
 for the σ_disc of an iterate in `nu_flux`, in `evaluate`, and in the next `nu_flux` when it
@@ -46,15 +48,11 @@ is the later iterate of the one before; `sigma_disc` keeps the last two.
 """
 
 import numpy as np
-import ufl
 
 from .compiled import kernel, part
-from .discretisation import assemble_vector_array, over
-from .equilibration import (_MINV_REF, FluxEquilibration, _rt_element, cell_reflections,
-                            rt_signs)
+from .equilibration import FluxEquilibration, _rt_element, cell_reflections, rt_signs
 from .meshes import cell_diameters
 from .newton_system import split
-from .problem import as_builder
 
 ALG_ROUNDOFF = 1e-11   # ‖R_alg‖/‖B‖ below which σ_alg = 0 and η_rem carries the bound
 
@@ -251,25 +249,15 @@ def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u1, u2, b, sigma1, 
                 out[2, f, K] = t_sum * abs_det
 
 
-def oscillation(disc, space, load):
-    """η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K (iterate-independent), assembled
-    against a piecewise-constant test function w; Π_P1 f_α from the load moments
-    load[α][K, i] = (f_α, φ_i)_K (FluxEquilibration.load) on the patch space `space`."""
-    from dolfinx import fem
-    problem, geo = disc.problem, space.geo
-    DG0 = fem.FunctionSpace(problem.mesh, ("DG", 0))
-    w = ufl.TestFunction(DG0)
-    cell_dof = DG0.dofmap.list.array[:geo.ncells]
-    x = ufl.SpatialCoordinate(problem.mesh)
+def oscillation(disc, squares):
+    """η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K (iterate-independent), from the
+    squares ‖f_α - Π_P1 f_α‖_K² (2, ncells) that the flux set-up's load pass gives
+    (FluxEquilibration.projection_squares: equilibration.load_moments, with the scene's data
+    measures and Π_P1 f_α from the load moments)."""
+    problem = disc.problem
     hK = cell_diameters(problem.mesh)
-    out = []
-    for alpha, (f, mu) in enumerate(((problem.f1, problem.mu1), (problem.f2, problem.mu2))):
-        proj = fem.Function(space.DG)
-        proj.x.array[space.dg_cells] = (3.0 / geo.area)[:, None] * (load[alpha] @ _MINV_REF.T)
-        e = as_builder(f)(x) - proj
-        sq = assemble_vector_array(over(disc.dx_data, lambda dx: e * e * w * dx))
-        out.append(hK / np.pi / np.sqrt(mu) * np.sqrt(np.maximum(sq[cell_dof], 0.0)))
-    return np.array(out)
+    return np.array([hK / np.pi / np.sqrt(mu) * np.sqrt(np.maximum(sq, 0.0))
+                     for sq, mu in zip(squares, (problem.mu1, problem.mu2))])
 
 
 class Estimators:
@@ -291,8 +279,8 @@ class Estimators:
         self.cpf = problem.poincare_constant()
         self.kappa = self.cpf * np.sqrt(1.0 / self.mu[0] + 1.0 / self.mu[1])
         self.norms = CellFluxNorms(self.flux.space)
-        self.osc = oscillation(disc, self.flux.space, self.flux.load)   # (2, ncells)
-        self.flux.load = None                                 # only the oscillation uses it
+        self.osc = oscillation(disc, self.flux.projection_squares)     # (2, ncells)
+        self.flux.projection_squares = None                   # only the oscillation uses it
         self._recent = []                                     # sigma_disc's last two
 
     def remainder(self, R, lam_shift=None):

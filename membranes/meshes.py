@@ -12,6 +12,8 @@ import os
 import numpy as np
 from mpi4py import MPI
 
+from .compiled import kernel
+
 _GMSH_TRIANGLE = 2  # gmsh element type of the 3-node triangle
 
 
@@ -157,10 +159,25 @@ def _cell_vertices(mesh):
 
 
 def cell_diameters(mesh):
-    """Diameter of every local cell (the longest edge of the triangle)."""
-    p = _cell_vertices(mesh)
-    edges = [np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in ((0, 1), (1, 2), (2, 0))]
-    return np.max(edges, axis=0)
+    """Diameter of every local cell (the longest edge of the triangle): one compiled pass
+    over the cells (`_longest_edges`)."""
+    ncells = mesh.topology.index_map(2).size_local
+    out = np.empty(ncells)
+    _longest_edges(mesh.geometry.x, mesh.geometry.dofmap.array.reshape(-1, 3), out)
+    return out
+
+
+@kernel
+def _longest_edges(x, cells, out):
+    """out[c] = max over the edges (0, 1), (1, 2), (2, 0) of cell c of the edge length
+    sqrt(dx² + dy²) (x: the vertex coordinates, 3 per row)."""
+    for c in range(len(out)):
+        longest = 0.0
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            dx = x[cells[c, i], 0] - x[cells[c, j], 0]
+            dy = x[cells[c, i], 1] - x[cells[c, j], 1]
+            longest = max(longest, np.sqrt(dx * dx + dy * dy))
+        out[c] = longest
 
 
 def mesh_size(mesh):

@@ -148,6 +148,50 @@ def test_cell_flux_norms_match_assembly(name, h, levels):
         assert np.all(np.abs(g - wnt) <= 2e-14 * bound), np.max(np.abs(g - wnt) / bound)
 
 
+@pytest.mark.parametrize("name,h,levels", [("disk", 0.1, 0), ("square", 0.1, 0), ("disk", 0.3, 2)])
+def test_oscillation_matches_assembly(name, h, levels):
+    """η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K from the set-up's pass over the data
+    measures' quadrature points (equilibration.load_moments, estimators.oscillation) against
+    dolfinx: Π_P1 f_α from the assembled DG1 mass matrix and (f_α, q) (a sparse solve), then
+    ((f_α - Π_P1 f_α)², w) assembled against piecewise constants w, with the scene's data
+    measures (the disk's composite rule on the cut cells). The same quadrature sums in
+    another order: f - Π_P1 f at a point differs by a few dozen ε of the sizes of f and
+    Π_P1 f, so the cell norms by about that times ‖f_α‖_K (ε‖f‖_K, not relative to
+    ‖f - Π_P1 f‖_K, which vanishes to round-off where f_α is affine); 1e-13 is 450 ε, 25 ε
+    measured."""
+    import scipy.sparse.linalg as spla
+    from dolfinx import fem
+
+    from membranes.discretisation import (assemble_matrix_csr, assemble_vector_array,
+                                          discretise, load, over)
+    from membranes.equilibration import Geometry, load_moments
+    from membranes.estimators import oscillation
+    from membranes.meshes import cell_diameters
+
+    disc = discretise(scene(name, h, levels=levels) if levels else scene(name, h))
+    problem, mesh = disc.problem, disc.problem.mesh
+    got = oscillation(disc, load_moments(disc, Geometry(disc.V))[1])
+    DG, DG0 = fem.FunctionSpace(mesh, ("DG", 1)), fem.FunctionSpace(mesh, ("DG", 0))
+    p, q, w = ufl.TrialFunction(DG), ufl.TestFunction(DG), ufl.TestFunction(DG0)
+    ncells = mesh.topology.index_map(2).size_local
+    cell_dof = DG0.dofmap.list.array[:ncells]
+    mass = assemble_matrix_csr(p * q * ufl.dx).tocsc()
+    hK = cell_diameters(mesh)
+    for alpha, (f, mu) in enumerate(((problem.f1, problem.mu1), (problem.f2, problem.mu2))):
+        fx = load(f, mesh)
+        proj = fem.Function(DG)
+        proj.x.array[:] = spla.spsolve(mass, assemble_vector_array(
+            over(disc.dx_data, lambda dx: fx * q * dx)))
+        e = fx - proj
+        scale = hK / np.pi / np.sqrt(mu)
+        want = scale * np.sqrt(np.maximum(assemble_vector_array(
+            over(disc.dx_data, lambda dx: e * e * w * dx))[cell_dof], 0.0))
+        f_norm = scale * np.sqrt(assemble_vector_array(
+            over(disc.dx_data, lambda dx: fx * fx * w * dx))[cell_dof])
+        assert np.all(np.abs(got[alpha] - want) <= 1e-13 * f_norm), \
+            np.max(np.abs(got[alpha] - want) / f_norm)
+
+
 def test_sigma_disc_kept_for_the_same_iterate():
     """Estimators.sigma_disc gives the σ_disc it computed last for equal (X, R) (the driver asks
     for it again in nu_flux and evaluate), read-only, and computes it afresh otherwise."""
