@@ -1109,7 +1109,7 @@ class FluxEquilibration:
         side by side as `load_moments` keeps them: each σ_f,α the same to the bit as alone,
         `_apply_buckets`)."""
         from .algebraic_flux import _apply_buckets
-        ret = np.concatenate([r for _, r, _ in level])
+        ret = [r for _, r, _ in level]                  # per bucket: no copy of them all
         self.classes = ([b for b, _, _ in level], ret)
         load = ([f for _, _, f in level], ret)
         level.clear()
