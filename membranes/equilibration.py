@@ -80,6 +80,9 @@ for _k in range(3):
         for _i in range(3):
             _C3[_k, _l, _i] = {1: 1 / 10, 2: 1 / 30, 3: 1 / 60}[len({_k, _l, _i})]
 _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
+# the symmetric pairs (i, k) of a cell's 3 × 3 load moments, numbered as ik = 00, 01, 02, 11,
+# 12, 22 (load_moments keeps these six)
+_SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 
 
 class Geometry:
@@ -747,9 +750,9 @@ def data_rules(disc):
 
 
 def load_moments(disc, geo):
-    """Wf (2, ncells, 3, 3) with Wf[α, K, i, k] = (f_α φ_k, φ_i)_K (a view of an array
-    of shape (ncells, 3, 3, 2): the two membranes' moments side by side, as
-    FluxEquilibration._class_load takes them), and the squares
+    """Wf (ncells, 6, 2) with Wf[K, _SYM[i, k], α] = (f_α φ_k, φ_i)_K (symmetric in i, k:
+    six per cell; the two membranes' moments side by side, as FluxEquilibration._class_load
+    takes them), and the squares
     ‖f_α - Π_P1 f_α‖_K² (2, ncells) that the data oscillation takes (DESIGN §7), with the
     scene's data measures (`data_rules`): f_α at the points of each rule on its cells, a
     dolfinx Expression of the UFL load evaluated by blocks of cells, then one compiled pass
@@ -763,7 +766,7 @@ def load_moments(disc, geo):
     from dolfinx import fem
     mesh = disc.V.mesh
     nc = geo.ncells
-    W = np.zeros((nc, 3, 3, 2))
+    W = np.zeros((nc, 6, 2))
     sq = np.zeros((2, nc))
     loads = ufl.as_vector([load(f, mesh) for f in (disc.problem.f1, disc.problem.f2)])
     for cells, X, w in data_rules(disc):
@@ -778,14 +781,14 @@ def load_moments(disc, geo):
             expr.eval(c, fv)
             _data_moments(c, fv, w, np.ascontiguousarray(hat), products, geo.area, _MINV_REF,
                           W, sq)
-    return np.moveaxis(W, 3, 0), sq
+    return W, sq
 
 
 @kernel
 def _data_moments(cells, fv, w, hat, products, area, minv, W, sq):
     """`load_moments` on the given cells, with f_α at the rule's points fv (c, 2 q) (point by
     point, f_1 then f_2; weights w, hat values φ_k(X_q) (q, 3), products (q, 6) φ_i φ_k for
-    ik = 00, 01, 02, 11, 12, 22): for α = 1, 2, W[K, i, k, α] = |det J| Σ_q w_q f_q φ_i φ_k
+    ik = 00, 01, 02, 11, 12, 22): for α = 1, 2, W[K, ik, α] = |det J| Σ_q w_q f_q φ_i φ_k
     (|det J| = 2 |K|), the loads l_i = Σ_k W[α, K, i, k] = (f, φ_i)_K, Π_P1 f = Σ_k p_k φ_k
     with p = (3/|K|) minv l, and sq[α, K] = |det J| Σ_q w_q (f_q - Π_P1 f(x_q))²."""
     nq = len(w)
@@ -805,9 +808,8 @@ def _data_moments(cells, fv, w, hat, products, area, minv, W, sq):
                 m22 += wf * products[q, 5]
             m00, m01, m02 = det * m00, det * m01, det * m02
             m11, m12, m22 = det * m11, det * m12, det * m22
-            W[K, 0, 0, a], W[K, 0, 1, a], W[K, 0, 2, a] = m00, m01, m02
-            W[K, 1, 0, a], W[K, 1, 1, a], W[K, 1, 2, a] = m01, m11, m12
-            W[K, 2, 0, a], W[K, 2, 1, a], W[K, 2, 2, a] = m02, m12, m22
+            W[K, 0, a], W[K, 1, a], W[K, 2, a] = m00, m01, m02
+            W[K, 3, a], W[K, 4, a], W[K, 5, a] = m11, m12, m22
             l0, l1, l2 = m00 + m01 + m02, m01 + m11 + m12, m02 + m12 + m22
             p0 = scale * (minv[0, 0] * l0 + minv[0, 1] * l1 + minv[0, 2] * l2)
             p1 = scale * (minv[1, 0] * l0 + minv[1, 1] * l1 + minv[1, 2] * l2)
@@ -833,7 +835,7 @@ def _class_cell_data(x, cells, exterior, cent, bits):
 
 @kernel
 def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt_cells, cells,
-                 cell, base, part, redges, lr, first, PATCH_DOF, TOP, COEF, EDGE_BITS, PERMS,
+                 cell, base, part, redges, lr, first, PATCH_DOF, TOP, COEF, EDGE_BITS, PERMS, SYM,
                  nc, nv, RET, L, C, G, GF):
     """The loop of `FluxEquilibration._translates` (its arguments, with row (P,) the row of
     each member patch in the outputs, -1 for the others, and the tables of `_representatives`
@@ -886,7 +888,7 @@ def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt
             G[q, 2 * j] = 2 * CF[p, j]
             G[q, 2 * j + 1] = 2 * CF[p, j] + 1
             for k in range(3):
-                GF[q, 3 * j + k] = 9 * CF[p, j] + KF[p, j] + 3 * PERMS[perm[j], k]
+                GF[q, 3 * j + k] = 6 * CF[p, j] + SYM[PERMS[perm[j], k], KF[p, j]]
         for v in range(m):
             c, k = first[b, v] // 3, first[b, v] % 3
             G[q, 2 * n + v] = 2 * nc + cells[CF[p, c], PERMS[perm[c], k]]
@@ -1072,7 +1074,8 @@ class FluxEquilibration:
         local order, the change of basis L, C (nr, 2): σ_p[i] = Σ_t C[i, t] σ_r[L[i, t]], and
         where the patch's data sit (in the representative's cell and vertex order) in the
         flat array [∇u_h (2 per cell) | R_l / N_l (per vertex) | λ (per vertex)], G
-        (2n + m + 1,), then in the flat array of (f φ_k, φ_i)_K (9 per cell), GF (3n,).
+        (2n + m + 1,), then in the flat array of (f φ_k, φ_i)_K (6 per cell, `load_moments`),
+        GF (3n,).
 
         With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
         reflections, the local RT basis is R_K F_K*ψ̂; the representative's cell K' = K + shift
@@ -1091,7 +1094,7 @@ class FluxEquilibration:
         row[mem] = np.arange(len(mem))
         status = _member_maps(row, bi, CF, KF, pi, boundary, verts, self._exterior_bits,
                               space.reflections, space.rt_cells, self.geo.cells, *tables,
-                              first, PATCH_DOF, TOP, COEF, EDGE_BITS, _PERMS,
+                              first, PATCH_DOF, TOP, COEF, EDGE_BITS, _PERMS, _SYM,
                               self.geo.ncells, self.geo.n, *out)
         if status == 1:
             raise RuntimeError("a translate keeps other RT dofs than its representative")
@@ -1113,8 +1116,7 @@ class FluxEquilibration:
         self.classes = ([b for b, _, _ in level], ret)
         load = ([f for _, _, f in level], ret)
         level.clear()
-        both = _apply_buckets(load, np.moveaxis(wf, 0, 3).reshape(-1, 2),
-                              self.sigma_f.shape[1])
+        both = _apply_buckets(load, wf.reshape(-1, 2), self.sigma_f.shape[1])
         for alpha in range(2):
             self.sigma_f[alpha] += both[:, alpha]
 
@@ -1169,8 +1171,8 @@ class FluxEquilibration:
         Lr = local_lifting(geo, CS, vloc, m)
         cell = self._right_hand_sides(CS, KA, nr, loc, N)
         # columns u (m) | λ_a (1) | R (m) | f1 | f2
-        load = [np.take_along_axis(w[CS], KA[:, :, None, None], axis=3).reshape(P, nq, 1)
-                for w in wf]
+        ik = _SYM[np.arange(3), KA[:, :, None]]                               # (P, n, 3)
+        load = [wf[CS[:, :, None], ik, alpha].reshape(P, nq, 1) for alpha in range(2)]
         rhs = np.concatenate([cell[:, :, :2 * n] @ Gd, cell[:, :, 5 * n:5 * n + 1],
                               cell[:, :, 2 * n:5 * n] @ Lr]
                              + [cell[:, :, 5 * n + 1:] @ w for w in load], axis=2)
