@@ -443,9 +443,10 @@ def _assemble_patches(loc, Me, Be, nr, A):
 @kernel
 def _counting_sort(keys, ptr):
     """The positions 0 .. len(keys) - 1 grouped by key, ascending within each group (a stable
-    counting sort; ptr (n + 1,) the groups' offsets, from the counts of the keys)."""
+    counting sort; ptr (n + 1,) the groups' offsets, from the counts of the keys), as int32
+    (3 ncells < 2^31: half the memory of int64)."""
     at = ptr[:-1].copy()
-    order = np.empty(len(keys), dtype=np.int64)
+    order = np.empty(len(keys), dtype=np.int32)
     for i in range(len(keys)):
         order[at[keys[i]]] = i
         at[keys[i]] += 1
