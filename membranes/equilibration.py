@@ -47,15 +47,18 @@ batches of one shape), so that its cost is a few passes over arrays of O(N) entr
 passes whose per-item work is a few dozen table look-ups are compiled loops (`compiled.kernel`)
 that touch each item once, where numpy made many temporaries of O(N) entries each (DESIGN
 §5): the cells' areas and gradients (`_cell_geometry`), the patches' cells
-(`_counting_sort`, `_patch_cells`), the classes from the patches' rounded centroid offsets
-(`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
+(`_counting_sort`, `_patch_cells`), the patch matrices (`_assemble_patches`: each cell's
+blocks added where its retained dofs sit, no index arrays of P n 64 entries), the cells'
+centroids and ∂Ω edges (`_class_cell_data`), the classes from the patches' rounded centroid
+offsets (`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
 `_match`: a check of the vertices, each cell's canonical vertex order computed at its first
 use), and each member's change of basis and data indices from tables per representative dof
 (`_member_maps`, in the patches' order).
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures; `load_moments`: f_α evaluated once at the points of
-their rules, and one compiled pass that gives the moments (f_α φ_k, φ_i)_K and the squares
+their rules, and one compiled pass that gives the moments (f_α φ_k, φ_i)_K (symmetric in
+i, k: six per cell, both membranes side by side) and the squares
 ‖f_α - Π_P1 f_α‖_K² of the data oscillation, DESIGN §7).
 
 With a mask `owned` over the vertices, only the patches of the owned vertices are set up: σ is
