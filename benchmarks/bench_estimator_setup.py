@@ -10,8 +10,13 @@ medians compared (wall and CPU time). The results are compared between the trees
 fixed random data, η_osc per cell, and η and η_K at a random iterate (bitwise, or the largest
 difference relative to the largest entry).
 
-Usage: `.venv/bin/python benchmarks/bench_estimator_setup.py [--tree OLD] [--repeat N] J H0`
-(J = 6, H0 = 0.132: 9.3e5 vertices; J = 5, H0 = 0.2: 1.1e5).
+With `--levels R`, each tree's process instead sets up the estimators on every level
+j = 1 .. J of the scene (as the nested iteration does) R times, level after level, and prints
+the least time of each level and their sum (warm: the later rounds reuse the memory of the
+earlier ones, which a fresh process's first round pays for).
+
+Usage: `.venv/bin/python benchmarks/bench_estimator_setup.py [--tree OLD] [--repeat N]
+[--levels R] J H0` (J = 6, H0 = 0.132: 9.3e5 vertices; J = 5, H0 = 0.2: 1.1e5).
 """
 
 import functools
@@ -79,20 +84,71 @@ def one(J, h0, out):
     return {"vertices": int(n), "total": total, "cpu": cpu, "pieces": times}
 
 
+def levels(J, h0, rounds):
+    """The least set-up time of `Estimators` on each level 1 .. J over `rounds` rounds."""
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+    from membranes import scenes
+    from membranes.cli import quiet_jit_logging
+    from membranes.discretisation import discretise
+    from membranes.estimators import Estimators
+    quiet_jit_logging()
+    Estimators(discretise(scenes.disk(h=0.3, levels=2)))
+    discs = [discretise(scenes.disk(h=h0, levels=j)) for j in range(1, J + 1)]
+    best = [np.inf] * J
+    with threadpool_limits(limits=1, user_api="blas"):
+        for _ in range(rounds):
+            for j, disc in enumerate(discs):
+                t = time.perf_counter()
+                Estimators(disc)
+                best[j] = min(best[j], time.perf_counter() - t)
+    return {"vertices": [int(d.n) for d in discs], "levels": best}
+
+
 def main(args):
-    old, repeat = None, 1
+    old, repeat, rounds = None, 1, 0
     while args and args[0].startswith("--"):
         if args[0] == "--tree":
             old, args = os.path.abspath(args[1]), args[2:]
         elif args[0] == "--repeat":
             repeat, args = int(args[1]), args[2:]
+        elif args[0] == "--levels":
+            rounds, args = int(args[1]), args[2:]
         elif args[0] == "--one":
             print(json.dumps(one(int(args[1]), float(args[2]), args[3])))
+            return
+        elif args[0] == "--one-levels":
+            print(json.dumps(levels(int(args[1]), float(args[2]), int(args[3]))))
             return
     J, h0 = int(args[0]), float(args[1])
     trees = {"new": os.path.dirname(HERE)}
     if old:
         trees["old"] = old
+    if rounds:
+        per = {k: [] for k in trees}
+        for r in range(repeat):
+            for name, tree in trees.items():
+                env = dict(os.environ,
+                           PYTHONPATH=tree + os.pathsep + os.environ.get("PYTHONPATH", ""))
+                p = subprocess.run([sys.executable, __file__, "--one-levels", str(J), str(h0),
+                                    str(rounds)], capture_output=True, text=True, env=env,
+                                   cwd=tree)
+                if p.returncode != 0:
+                    print(f"{name} failed:\n{p.stderr[-3000:]}")
+                    return
+                res = json.loads(p.stdout.strip().splitlines()[-1])
+                per[name].append(res["levels"])
+                print(f"{name} ({tree}), J = {J}, h0 = {h0}, least of {rounds} per level: "
+                      + ", ".join(f"{v} vertices {t:.3f} s" for v, t in
+                                  zip(res["vertices"], res["levels"]))
+                      + f" | sum {sum(res['levels']):.3f} s", flush=True)
+        if old:
+            best = {k: [min(c) for c in zip(*v)] for k, v in per.items()}
+            print("least per level, new / old: " + ", ".join(
+                f"{a / b:.2f}" for a, b in zip(best["new"], best["old"]))
+                + f" | sum new {sum(best['new']):.3f} s, old {sum(best['old']):.3f} s, "
+                f"{sum(best['new']) / sum(best['old']):.2f}")
+        return
     runs = {k: [] for k in trees}
     for r in range(repeat):
         for name, tree in trees.items():

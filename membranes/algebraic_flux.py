@@ -104,7 +104,7 @@ def _buckets(groups):
     MultilevelFlux._translates) by (S.shape, number of patches): one batched product per
     bucket in an evaluation. Returns
     (buckets, RET): each bucket (S (g, nr, nq), G (g P, nq), L (g P, nr, 2), C (g P, nr, 2)),
-    RET the global RT dofs of all buckets' patches in bucket order, flat."""
+    RET the global RT dofs of each bucket's patches, flat (a list, one array per bucket)."""
     keys = {}
     for k, g in enumerate(groups):
         keys.setdefault((g[0].shape, len(g[1])), []).append(k)
@@ -117,7 +117,7 @@ def _buckets(groups):
                         L.astype(_local_index_type(L.shape[1])),
                         np.concatenate([g[4] for g in members])))
         ret.append(np.concatenate([g[2].ravel() for g in members]))
-    return buckets, np.concatenate(ret)
+    return buckets, ret
 
 
 def _apply_buckets(level, flat, size):
@@ -134,13 +134,12 @@ def _apply_buckets(level, flat, size):
     order of the patches and, within a patch, of the representative's dofs: the sums of the
     sparse matrix that did the change of basis and the scatter before (its rows' entries in
     column order), to the bit, for each field the same as alone."""
-    buckets, ret = level
+    buckets, rets = level
     one = flat.ndim == 1
     flat = flat.reshape(len(flat), -1)
     k = flat.shape[1]
     out = np.zeros((size, k))
-    first = 0
-    for S, G, L, C in buckets:
+    for (S, G, L, C), ret in zip(buckets, rets):
         g, nr, nq = S.shape
         per = G.shape[0] // g                          # the patches of each class
         step = max(1, _ROWS // per)
@@ -152,8 +151,7 @@ def _apply_buckets(level, flat, size):
             _gather(flat, G[rows], Fb)
             SR = np.matmul(Fb.reshape(k, b - a, per, nq), S[a:b].transpose(0, 2, 1)[None])
             _scatter_products(SR.reshape(k, -1, nr), L[rows], C[rows],
-                              ret[first + a * per * nr:first + b * per * nr], out)
-        first += G.shape[0] * nr
+                              ret[a * per * nr:b * per * nr], out)
     return out[:, 0] if one else out
 
 

@@ -47,15 +47,18 @@ batches of one shape), so that its cost is a few passes over arrays of O(N) entr
 passes whose per-item work is a few dozen table look-ups are compiled loops (`compiled.kernel`)
 that touch each item once, where numpy made many temporaries of O(N) entries each (DESIGN
 §5): the cells' areas and gradients (`_cell_geometry`), the patches' cells
-(`_counting_sort`, `_patch_cells`), the classes from the patches' rounded centroid offsets
-(`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
+(`_counting_sort`, `_patch_cells`), the patch matrices (`_assemble_patches`: each cell's
+blocks added where its retained dofs sit, no index arrays of P n 64 entries), the cells'
+centroids and ∂Ω edges (`_class_cell_data`), the classes from the patches' rounded centroid
+offsets (`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
 `_match`: a check of the vertices, each cell's canonical vertex order computed at its first
 use), and each member's change of basis and data indices from tables per representative dof
 (`_member_maps`, in the patches' order).
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures; `load_moments`: f_α evaluated once at the points of
-their rules, and one compiled pass that gives the moments (f_α φ_k, φ_i)_K and the squares
+their rules, and one compiled pass that gives the moments (f_α φ_k, φ_i)_K (symmetric in
+i, k: six per cell, both membranes side by side) and the squares
 ‖f_α - Π_P1 f_α‖_K² of the data oscillation, DESIGN §7).
 
 With a mask `owned` over the vertices, only the patches of the owned vertices are set up: σ is
@@ -80,6 +83,9 @@ for _k in range(3):
         for _i in range(3):
             _C3[_k, _l, _i] = {1: 1 / 10, 2: 1 / 30, 3: 1 / 60}[len({_k, _l, _i})]
 _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
+# the symmetric pairs (i, k) of a cell's 3 × 3 load moments, numbered as ik = 00, 01, 02, 11,
+# 12, 22 (load_moments keeps these six)
+_SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 
 
 class Geometry:
@@ -274,7 +280,9 @@ class PatchSpace:
         self.geo = geo = Geometry(V)
         nc = geo.ncells
         self.RT = fem.FunctionSpace(mesh, ("RT", 2))
-        self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1).astype(np.int64)
+        # dolfinx's int32 arrays as they are (no int64 copies of O(ncells) entries; the
+        # products that need 64 bits are formed in int64 where they are made)
+        self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1)
         _check_vertex_order(V)
         # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
         layout = self.RT.dofmap.dof_layout
@@ -287,7 +295,7 @@ class PatchSpace:
         self.slots = np.array([layout.entity_dofs(1, e) for e in range(3)]
                               + [layout.entity_dofs(2, 0)])
         mesh.topology.create_connectivity(2, 1)
-        self.c2e = mesh.topology.connectivity(2, 1).array.reshape(nc, 3).astype(np.int64)
+        self.c2e = mesh.topology.connectivity(2, 1).array.reshape(nc, 3)
         nedges = mesh.topology.index_map(1).size_local + mesh.topology.index_map(1).num_ghosts
         exterior = np.zeros(nedges, dtype=bool)
         exterior[dmesh.exterior_facet_indices(mesh.topology)] = True
@@ -379,24 +387,14 @@ class PatchSpace:
         nq = 3 * n
         N = nr + nq + (0 if boundary else 1)
         A = np.zeros((P, N, N))
-        li, lj = loc[:, :, :, None], loc[:, :, None, :]
-        ok = (li >= 0) & (lj >= 0)
-        lin = (np.arange(P)[:, None, None, None] * N + li) * N + lj
         if blocks is not None:
             Me, Be = blocks
         elif self.Me is not None:
             Me, Be = self.Me[CS], self.Be[CS]
         else:
             Me, Be = self.element_blocks(CS.ravel())
-            Me, Be = Me.reshape(P, n, 8, 8), Be.reshape(P, n, 3, 8)
-        A.ravel()[:] += np.bincount(lin[ok], weights=Me[ok], minlength=P * N * N)
-        qrow = nr + 3 * np.arange(n)[None, :, None] + np.arange(3)[None, None, :]
-        okb = np.broadcast_to(loc[:, :, None, :] >= 0, Be.shape)
-        pb = np.broadcast_to(np.arange(P)[:, None, None, None], Be.shape)
-        rb = np.broadcast_to(qrow[..., None], Be.shape)
-        cb = np.broadcast_to(loc[:, :, None, :], Be.shape)
-        A[pb[okb], rb[okb], cb[okb]] = Be[okb]
-        A[pb[okb], cb[okb], rb[okb]] = -Be[okb]
+        _assemble_patches(loc, np.ascontiguousarray(Me).reshape(P, n, 8, 8),
+                          np.ascontiguousarray(Be).reshape(P, n, 3, 8), nr, A)
         if not boundary:
             c = np.repeat(geo.area[CS] / 3.0, 3, axis=1)                     # (P, nq)
             A[:, nr:nr + nq, -1] = c
@@ -418,11 +416,40 @@ class PatchSpace:
 
 
 @kernel
+def _assemble_patches(loc, Me, Be, nr, A):
+    """Into A (P, N, N), zero: the blocks M and ±B of `PatchSpace.saddle_point_systems` of P
+    patches of n cells (local numbers loc (P, n, 8) of their RT dofs, -1 dropped; Me
+    (P, n, 8, 8), Be (P, n, 3, 8)): M[loc_i, loc_l] += Me[j, i, l] in the order of the cells
+    j, then i, l (the sums of the sparse assembly, term by term), and the rows nr + 3 j + i
+    of B = Be, with -Bᵀ in the columns (each entry set once). One pass over the cells' blocks
+    where numpy made index arrays of P n 64 entries."""
+    P, n = loc.shape[0], loc.shape[1]
+    for p in range(P):
+        for j in range(n):
+            for i in range(8):
+                li = loc[p, j, i]
+                if li < 0:
+                    continue
+                for l in range(8):
+                    lj = loc[p, j, l]
+                    if lj >= 0:
+                        A[p, li, lj] += Me[p, j, i, l]
+            for i in range(3):
+                q = nr + 3 * j + i
+                for l in range(8):
+                    lj = loc[p, j, l]
+                    if lj >= 0:
+                        A[p, q, lj] = Be[p, j, i, l]
+                        A[p, lj, q] = -Be[p, j, i, l]
+
+
+@kernel
 def _counting_sort(keys, ptr):
     """The positions 0 .. len(keys) - 1 grouped by key, ascending within each group (a stable
-    counting sort; ptr (n + 1,) the groups' offsets, from the counts of the keys)."""
+    counting sort; ptr (n + 1,) the groups' offsets, from the counts of the keys), as int32
+    (3 ncells < 2^31: half the memory of int64)."""
     at = ptr[:-1].copy()
-    order = np.empty(len(keys), dtype=np.int64)
+    order = np.empty(len(keys), dtype=np.int32)
     for i in range(len(keys)):
         order[at[keys[i]]] = i
         at[keys[i]] += 1
@@ -727,7 +754,9 @@ def data_rules(disc):
 
 
 def load_moments(disc, geo):
-    """Wf_α (ncells, 3, 3) with Wf_α[K, i, k] = (f_α φ_k, φ_i)_K, and the squares
+    """Wf (ncells, 6, 2) with Wf[K, _SYM[i, k], α] = (f_α φ_k, φ_i)_K (symmetric in i, k:
+    six per cell; the two membranes' moments side by side, as FluxEquilibration._class_load
+    takes them), and the squares
     ‖f_α - Π_P1 f_α‖_K² (2, ncells) that the data oscillation takes (DESIGN §7), with the
     scene's data measures (`data_rules`): f_α at the points of each rule on its cells, a
     dolfinx Expression of the UFL load evaluated by blocks of cells, then one compiled pass
@@ -741,7 +770,7 @@ def load_moments(disc, geo):
     from dolfinx import fem
     mesh = disc.V.mesh
     nc = geo.ncells
-    W = np.zeros((2, nc, 3, 3))
+    W = np.zeros((nc, 6, 2))
     sq = np.zeros((2, nc))
     loads = ufl.as_vector([load(f, mesh) for f in (disc.problem.f1, disc.problem.f2)])
     for cells, X, w in data_rules(disc):
@@ -756,14 +785,14 @@ def load_moments(disc, geo):
             expr.eval(c, fv)
             _data_moments(c, fv, w, np.ascontiguousarray(hat), products, geo.area, _MINV_REF,
                           W, sq)
-    return list(W), sq
+    return W, sq
 
 
 @kernel
 def _data_moments(cells, fv, w, hat, products, area, minv, W, sq):
     """`load_moments` on the given cells, with f_α at the rule's points fv (c, 2 q) (point by
     point, f_1 then f_2; weights w, hat values φ_k(X_q) (q, 3), products (q, 6) φ_i φ_k for
-    ik = 00, 01, 02, 11, 12, 22): for α = 1, 2, W[α, K, i, k] = |det J| Σ_q w_q f_q φ_i φ_k
+    ik = 00, 01, 02, 11, 12, 22): for α = 1, 2, W[K, ik, α] = |det J| Σ_q w_q f_q φ_i φ_k
     (|det J| = 2 |K|), the loads l_i = Σ_k W[α, K, i, k] = (f, φ_i)_K, Π_P1 f = Σ_k p_k φ_k
     with p = (3/|K|) minv l, and sq[α, K] = |det J| Σ_q w_q (f_q - Π_P1 f(x_q))²."""
     nq = len(w)
@@ -783,9 +812,8 @@ def _data_moments(cells, fv, w, hat, products, area, minv, W, sq):
                 m22 += wf * products[q, 5]
             m00, m01, m02 = det * m00, det * m01, det * m02
             m11, m12, m22 = det * m11, det * m12, det * m22
-            W[a, K, 0, 0], W[a, K, 0, 1], W[a, K, 0, 2] = m00, m01, m02
-            W[a, K, 1, 0], W[a, K, 1, 1], W[a, K, 1, 2] = m01, m11, m12
-            W[a, K, 2, 0], W[a, K, 2, 1], W[a, K, 2, 2] = m02, m12, m22
+            W[K, 0, a], W[K, 1, a], W[K, 2, a] = m00, m01, m02
+            W[K, 3, a], W[K, 4, a], W[K, 5, a] = m11, m12, m22
             l0, l1, l2 = m00 + m01 + m02, m01 + m11 + m12, m02 + m12 + m22
             p0 = scale * (minv[0, 0] * l0 + minv[0, 1] * l1 + minv[0, 2] * l2)
             p1 = scale * (minv[1, 0] * l0 + minv[1, 1] * l1 + minv[1, 2] * l2)
@@ -798,8 +826,20 @@ def _data_moments(cells, fv, w, hat, products, area, minv, W, sq):
 
 
 @kernel
+def _class_cell_data(x, cells, exterior, cent, bits):
+    """Into cent (ncells, 2) and bits (ncells,): each cell's centroid (x_0 + x_1 + x_2) / 3
+    and its edges on ∂Ω (exterior (ncells, 3)) as bits (bit e: edge e), in one pass."""
+    for c in range(len(bits)):
+        a, b, d = cells[c, 0], cells[c, 1], cells[c, 2]
+        cent[c, 0] = (x[a, 0] + x[b, 0] + x[d, 0]) / 3.0
+        cent[c, 1] = (x[a, 1] + x[b, 1] + x[d, 1]) / 3.0
+        bits[c] = (1 if exterior[c, 0] else 0) + (2 if exterior[c, 1] else 0) \
+            + (4 if exterior[c, 2] else 0)
+
+
+@kernel
 def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt_cells, cells,
-                 cell, base, part, redges, lr, first, PATCH_DOF, TOP, COEF, EDGE_BITS, PERMS,
+                 cell, base, part, redges, lr, first, PATCH_DOF, TOP, COEF, EDGE_BITS, PERMS, SYM,
                  nc, nv, RET, L, C, G, GF):
     """The loop of `FluxEquilibration._translates` (its arguments, with row (P,) the row of
     each member patch in the outputs, -1 for the others, and the tables of `_representatives`
@@ -810,11 +850,12 @@ def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt
     those on ∂Ω); per retained dof i, in slot l of the representative's cell c with
     reflections ρ_r, the table entry u = 384 ρ_r + 64 π_c + 8 ρ_p + l (ρ_p the member cell's
     reflections) gives the patch dof and the (at most two) representative dofs of its
-    column of W."""
+    column of W (64 π_c + 8 ρ_p formed once per cell)."""
     n = CF.shape[1]
     nr = cell.shape[1]
     m = first.shape[1]
     perm = np.empty(n, dtype=np.int64)
+    cu = np.empty(n, dtype=np.int64)       # the part of u that depends on the cell only
     for p in range(len(row)):                 # in the patches' order: their cells are near
         q, b = row[p], bi[p]
         if q < 0:
@@ -830,6 +871,7 @@ def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt
                 else:
                     i2 = i
             perm[j] = 2 * i0 + (1 if i1 > i2 else 0)
+            cu[j] = 64 * perm[j] + 8 * reflections[CF[p, j]]
             ext = ext_bits[CF[p, j]]
             bits = 7 & ~(1 << KF[p, j]) & ~ext
             if boundary[p]:
@@ -837,21 +879,20 @@ def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt
             if EDGE_BITS[perm[j], bits] != redges[b, j]:
                 return 1
         for i in range(nr):
-            cf = CF[p, cell[b, i]]
-            u = part[b, i] + 64 * perm[cell[b, i]] + 8 * reflections[cf]
-            RET[q, i] = rt_cells[cf, PATCH_DOF[u]]
-            for t in range(2):
-                coef = COEF[t, u]
-                tgt = lr[base[b, i] + TOP[t, u]]
-                if coef != 0 and tgt < 0:
-                    return 2
-                C[q, i, t] = coef
-                L[q, i, t] = max(tgt, 0)
+            c = cell[b, i]
+            u = part[b, i] + cu[c]
+            RET[q, i] = rt_cells[CF[p, c], PATCH_DOF[u]]
+            c0, c1 = COEF[0, u], COEF[1, u]
+            t0, t1 = lr[base[b, i] + TOP[0, u]], lr[base[b, i] + TOP[1, u]]
+            if (c0 != 0 and t0 < 0) or (c1 != 0 and t1 < 0):
+                return 2
+            C[q, i, 0], C[q, i, 1] = c0, c1
+            L[q, i, 0], L[q, i, 1] = max(t0, 0), max(t1, 0)
         for j in range(n):
             G[q, 2 * j] = 2 * CF[p, j]
             G[q, 2 * j + 1] = 2 * CF[p, j] + 1
             for k in range(3):
-                GF[q, 3 * j + k] = 9 * CF[p, j] + KF[p, j] + 3 * PERMS[perm[j], k]
+                GF[q, 3 * j + k] = 6 * CF[p, j] + SYM[PERMS[perm[j], k], KF[p, j]]
         for v in range(m):
             c, k = first[b, v] // 3, first[b, v] % 3
             G[q, 2 * n + v] = 2 * nc + cells[CF[p, c], PERMS[perm[c], k]]
@@ -909,11 +950,11 @@ class FluxEquilibration:
         self.touched = np.zeros(0, dtype=np.int64)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix((0, geo.n)) for _ in range(3))
         self.sigma_f = np.zeros((2, space.nrt))
-        # the cells' centroids (translation_classes)
-        x = geo.x
-        self._cent = (x[geo.cells[:, 0]] + x[geo.cells[:, 1]] + x[geo.cells[:, 2]]) / 3.0
+        # the cells' centroids (translation_classes) and ∂Ω edges as bits (_translates)
+        self._cent = np.empty((geo.ncells, 2))
+        self._exterior_bits = np.empty(geo.ncells, dtype=np.int64)
+        _class_cell_data(geo.x, geo.cells, space.exterior_edge, self._cent, self._exterior_bits)
         self._scale = np.sqrt(geo.area.mean())
-        self._exterior_bits = space.exterior_edge.astype(np.int64) @ np.array([1, 2, 4])
         self._pending = []
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
@@ -1037,7 +1078,8 @@ class FluxEquilibration:
         local order, the change of basis L, C (nr, 2): σ_p[i] = Σ_t C[i, t] σ_r[L[i, t]], and
         where the patch's data sit (in the representative's cell and vertex order) in the
         flat array [∇u_h (2 per cell) | R_l / N_l (per vertex) | λ (per vertex)], G
-        (2n + m + 1,), then in the flat array of (f φ_k, φ_i)_K (9 per cell), GF (3n,).
+        (2n + m + 1,), then in the flat array of (f φ_k, φ_i)_K (6 per cell, `load_moments`),
+        GF (3n,).
 
         With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
         reflections, the local RT basis is R_K F_K*ψ̂; the representative's cell K' = K + shift
@@ -1056,7 +1098,7 @@ class FluxEquilibration:
         row[mem] = np.arange(len(mem))
         status = _member_maps(row, bi, CF, KF, pi, boundary, verts, self._exterior_bits,
                               space.reflections, space.rt_cells, self.geo.cells, *tables,
-                              first, PATCH_DOF, TOP, COEF, EDGE_BITS, _PERMS,
+                              first, PATCH_DOF, TOP, COEF, EDGE_BITS, _PERMS, _SYM,
                               self.geo.ncells, self.geo.n, *out)
         if status == 1:
             raise RuntimeError("a translate keeps other RT dofs than its representative")
@@ -1070,15 +1112,17 @@ class FluxEquilibration:
         """Keep the classes' operators as the evaluation takes them (`classes`: buckets, RT
         dofs; algebraic_flux._apply_buckets applies them, their changes of basis and the
         scatter at every call), and add the classes' σ_f from the load columns the same way;
-        the load columns are then dropped."""
+        the load columns are then dropped. Both membranes' loads in one pass (their moments
+        side by side as `load_moments` keeps them: each σ_f,α the same to the bit as alone,
+        `_apply_buckets`)."""
         from .algebraic_flux import _apply_buckets
-        ret = np.concatenate([r for _, r, _ in level])
+        ret = [r for _, r, _ in level]                  # per bucket: no copy of them all
         self.classes = ([b for b, _, _ in level], ret)
         load = ([f for _, _, f in level], ret)
         level.clear()
+        both = _apply_buckets(load, wf.reshape(-1, 2), self.sigma_f.shape[1])
         for alpha in range(2):
-            self.sigma_f[alpha] += _apply_buckets(load, wf[alpha].ravel(),
-                                                  self.sigma_f.shape[1])
+            self.sigma_f[alpha] += both[:, alpha]
 
     def _right_hand_sides(self, CS, KA, nr, loc, N):
         """The right-hand sides of P patch problems of one shape (cells CS (P, n), a's local
@@ -1131,8 +1175,8 @@ class FluxEquilibration:
         Lr = local_lifting(geo, CS, vloc, m)
         cell = self._right_hand_sides(CS, KA, nr, loc, N)
         # columns u (m) | λ_a (1) | R (m) | f1 | f2
-        load = [np.take_along_axis(w[CS], KA[:, :, None, None], axis=3).reshape(P, nq, 1)
-                for w in wf]
+        ik = _SYM[np.arange(3), KA[:, :, None]]                               # (P, n, 3)
+        load = [wf[CS[:, :, None], ik, alpha].reshape(P, nq, 1) for alpha in range(2)]
         rhs = np.concatenate([cell[:, :, :2 * n] @ Gd, cell[:, :, 5 * n:5 * n + 1],
                               cell[:, :, 2 * n:5 * n] @ Lr]
                              + [cell[:, :, 5 * n + 1:] @ w for w in load], axis=2)

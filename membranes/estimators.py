@@ -158,8 +158,8 @@ class CellFluxNorms:
         psi = _rt_element().tabulate(0, X)[0]                             # (q, 8, 2)
         psi = psi.transpose(2, 0, 1).reshape(-1, 8)                       # (2 q, 8)
         self.psi = np.ascontiguousarray(psi[None] * rt_signs(np.arange(8))[:, None, :])  # ρ
-        self.rt_cells = np.ascontiguousarray(
-            space.RT.dofmap.list.array.reshape(-1, 8)[:nc].astype(np.int32))
+        self.rt_cells = np.ascontiguousarray(space.RT.dofmap.list.array.reshape(-1, 8)[:nc],
+                                             dtype=np.int32)       # dolfinx's, no copy
 
     def squared(self, u, sigma, tau=None, b=1.0, c=1.0, out=None):
         """∫_K |b ∇u_h + c σ|² for every cell K; with τ ∈ RT_1 also ∫_K |b ∇u_h + c σ + c τ|²

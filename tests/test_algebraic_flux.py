@@ -252,7 +252,7 @@ def test_bucket_scatter_sums_in_column_order():
             data.append(C[:, :, t][keep].astype(float))
         first += P * nr
     flat = rng.standard_normal(nflat)
-    level = (buckets, np.concatenate(ret))
+    level = (buckets, ret)
     M = sp.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))),
                       shape=(size, first))
     products = np.concatenate([np.matmul(flat[G].reshape(S.shape[0], -1, S.shape[2]),

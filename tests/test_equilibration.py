@@ -205,7 +205,7 @@ def test_element_blocks_match_dolfinx_assembly(kind):
     from dolfinx import fem
     from forms.equilibration import divergence, rt_mass, vector_moment, weighted_mass
     from membranes.discretisation import load, over
-    from membranes.equilibration import PatchSpace, load_moments
+    from membranes.equilibration import _SYM, PatchSpace, load_moments
     d = _discretisation(kind)
     space = PatchSpace(d.V)
     nc = space.geo.ncells
@@ -221,7 +221,9 @@ def test_element_blocks_match_dolfinx_assembly(kind):
              (space.Be, lambda dx: divergence(sig, q, dx), dg, rt, True),
              (space.vector_moments(np.arange(nc)),
               lambda dx: vector_moment(ufl.TrialFunction(W), tau, dx), rt, wcols, True)]
-    for f, wf in zip((d.problem.f1, d.problem.f2), load_moments(d, space.geo)[0]):
+    Wf = load_moments(d, space.geo)[0]                           # (ncells, 6, 2), symmetric
+    for alpha, f in enumerate((d.problem.f1, d.problem.f2)):
+        wf = Wf[:, _SYM, alpha]                                     # (ncells, 3, 3)
         # DG1 × DG1: every entry belongs to one cell (the data measures as the scene has them)
         cases.append((wf, lambda dx, f=f: over(d.dx_data, lambda dxd: weighted_mass(
             load(f, mesh), p, q, dxd)), dg, dg, False))
