@@ -16,9 +16,10 @@ compiled for argument types it had not met is also compiled ahead of time (numba
 nopython code for this machine's CPU) into an extension module in `__pycache__/kernels` next
 to its module, named after the kernel, its types and its source file's size and time (as
 numba's cache keys on them: an edited module is compiled again); a later process imports that
-module (a fraction of a millisecond) and never imports numba. Where the types are not plain
-(arrays, Python and numpy scalars: `_type_key`) or the module cannot be built, the kernel runs
-as numba's njit.
+module (a fraction of a millisecond) and never imports numba. Building a module takes a few
+seconds, once per kernel, argument types and edit of its source file. Where the types are not
+plain (arrays, Python and numpy scalars: `_type_key`) or the module cannot be built, the
+kernel runs as numba's njit.
 
 A kernel calls no other kernel (its wrapper is a Python function). A small formula that
 several kernels share is a `part`: a plain function of scalars, compiled into every kernel of
@@ -60,13 +61,13 @@ def part(f):
     return f
 
 
-_SCALARS = {bool: "boolean", int: "int64", float: "float64"}
+_SCALARS = {bool: ("scalar", "|b1"), int: ("scalar", "<i8"), float: ("scalar", "<f8")}
 
 
 def _type_key(a):
-    """numba's type of an argument, as a string, for arrays and scalars (numba.typeof: an
-    array's dtype, dimension, layout C, F or A, and whether it is read-only; a Python int is
-    an int64, a float a float64); None for anything else."""
+    """numba's type of an argument (numba.typeof), for arrays and scalars: an array's dtype,
+    dimension, layout (C, F or A) and whether it is read-only; a scalar's dtype (a Python bool,
+    int, float as numba types them: boolean, int64, float64); None for anything else."""
     if isinstance(a, np.ndarray):
         flags = a.flags
         layout = "C" if flags.c_contiguous else "F" if flags.f_contiguous else "A"
@@ -100,17 +101,27 @@ def _entry(f, key, args):
 
 def _module_path(f, key):
     """Where the extension module of `f` for argument types `key` is kept: named after the
-    kernel and a digest of its types, its source file's path, size and time, and numba's."""
+    kernel's module and name, a digest of its types and one of its source file's path, size and time and of
+    `_toolchain` (a module built for an edited source replaces the one before it)."""
     source = f.__code__.co_filename
     stat = os.stat(source)
-    numba_spec = importlib.util.find_spec("numba")
-    numba_stat = os.stat(numba_spec.origin) if numba_spec is not None else None
-    digest = hashlib.sha1(repr((f.__qualname__, key, source, stat.st_size, stat.st_mtime_ns,
-                                numba_stat and numba_stat.st_mtime_ns, sys.version))
-                          .encode()).hexdigest()[:20]
+    types_digest = hashlib.sha1(repr((f.__module__, f.__qualname__, key)).encode()
+                                ).hexdigest()[:12]
+    stamp = hashlib.sha1(repr((source, stat.st_size, stat.st_mtime_ns, _toolchain()))
+                         .encode()).hexdigest()[:12]
     suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
     return os.path.join(os.path.dirname(source), "__pycache__", "kernels",
-                        f"{f.__name__.lstrip('_')}_{digest}{suffix}")
+                        f"{f.__module__.rpartition('.')[2]}_{f.__name__.lstrip('_')}_"
+                        f"{types_digest}_{stamp}{suffix}")
+
+
+@functools.lru_cache(maxsize=None)
+def _toolchain():
+    """What else a kept module depends on: numba's installation (its time), Python's version,
+    and the machine (its code is for this host's CPU)."""
+    numba = importlib.util.find_spec("numba")
+    return (numba and os.stat(numba.origin).st_mtime_ns, sys.version, os.uname().machine,
+            os.uname().nodename)
 
 
 def _build(f, args, path):
@@ -131,6 +142,14 @@ def _build(f, args, path):
         cc.compile()
         built, = (os.path.join(tmp, p) for p in os.listdir(tmp) if p.startswith(name + "."))
         os.replace(built, path)
+    folder, kept = os.path.split(path)
+    earlier = kept[:kept.rindex("_") + 1]        # the same kernel and types, an older source
+    for p in os.listdir(folder):
+        if p.startswith(earlier) and p != kept:
+            try:
+                os.remove(os.path.join(folder, p))
+            except OSError:
+                pass
 
 
 def _signature(dispatcher, args):
