@@ -11,8 +11,8 @@ exact solution; the estimators of DESIGN §7 unless `estimators=False`. The ener
 counts in the wall times; the estimators count for the adaptive method, which uses them (set-up
 and evaluations), and not for exact and inexact Newton, which do not (their costs are reported
 apart in any case: `estimator_setup_s`, `estimator_time_s`). The wall time runs from the call of
-`solve`: the Krylov solver's set-up counts (checking the vertex_amg options on a 2 x 2 system
-loads the compiled kernels' machinery, numba: 0.3 s in a fresh process), as in the first level.
+`solve`: the Krylov solver's set-up counts (it checks the vertex_amg options on a 2 x 2
+system: in a fresh process, the first compiled kernel's first call, membranes.compiled).
 """
 
 import sys
