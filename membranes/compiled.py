@@ -128,6 +128,21 @@ def _build(f, args, path):
     """Compile `f` for the types of `args` ahead of time (numba.pycc, for this machine's CPU)
     into the extension module `path`: built in a temporary directory, then moved in place (a
     process that builds the same module meanwhile moves the same file)."""
+    import warnings
+    if not _told and sys.stderr.isatty():
+        print("membranes: compiling kernels for later runs (once per installation and edit of "
+              "their modules; a few seconds each)", file=sys.stderr, flush=True)
+        _told.append(True)
+    with warnings.catch_warnings():     # numba.pycc imports numpy.distutils (deprecated)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        _build_module(f, args, path)
+
+
+_told = []      # whether this process has said that it builds kernels (`_build`)
+
+
+def _build_module(f, args, path):
+    """`_build` without the notice."""
     from numba.pycc import CC
     dispatcher = _compiled(f)
     signature = _signature(dispatcher, args)
