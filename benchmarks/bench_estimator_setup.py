@@ -2,8 +2,8 @@
 §5, §7: the flux set-up, the data oscillation, the cell norms' tables), on the finest level of
 the disk scene, with the time of its pieces, old tree against new.
 
-As bench_flux_setup.py: each measurement is a fresh process that
-builds `scenes.disk(h=H0, levels=J)`, discretises it, sets up the estimators on a small mesh
+It replaces bench_flux_setup.py (the flux set-up alone, `FluxEquilibration`, is one of the
+pieces timed here). Each measurement is a fresh process that builds `scenes.disk(h=H0, levels=J)`, discretises it, sets up the estimators on a small mesh
 first (forms and kernels loaded off the clock), then times `Estimators(disc)` with BLAS on one
 thread; with `--tree OLD` the two trees are measured alternately `--repeat` times each and the
 medians compared (wall and CPU time). The results are compared between the trees: σ_disc of
