@@ -19,7 +19,8 @@ numba's cache keys on them: an edited module is compiled again); a later process
 module (a fraction of a millisecond) and never imports numba. Building a module takes a few
 seconds, once per kernel, argument types and edit of its source file. Where the types are not
 plain (arrays, Python and numpy scalars: `_type_key`) or the module cannot be built, the
-kernel runs as numba's njit.
+kernel runs as numba's njit (a failed build leaves a marker next to where the module would
+be, so that later processes go straight to njit instead of trying again for seconds).
 
 A kernel calls no other kernel (its wrapper is a Python function). A small formula that
 several kernels share is a `part`: a plain function of scalars, compiled into every kernel of
@@ -84,10 +85,18 @@ def _entry(f, key, args):
         return _compiled(f)
     path = _module_path(f, key)
     name = os.path.basename(path).split(".")[0]
+    failed = path + ".failed"           # a build that failed is not tried again by every process
+    if os.path.exists(failed):
+        return _compiled(f)
     if not os.path.exists(path):
         try:
             _build(f, args, path)
         except Exception:       # not compilable ahead of time: numba's njit, as before
+            try:
+                os.makedirs(os.path.dirname(failed), exist_ok=True)
+                open(failed, "w").close()
+            except OSError:
+                pass
             return _compiled(f)
     try:
         spec = importlib.util.spec_from_file_location(

@@ -79,3 +79,18 @@ def test_type_key_is_numbas_typeof():
         for j in range(len(values)):
             assert (keys[i] == keys[j]) == (types[i] == types[j]), (values[i], values[j])
     assert _type_key((1, 2)) is None and _type_key(None) is None
+
+
+def test_a_failed_build_is_not_tried_again(tmp_path, monkeypatch):
+    import membranes.compiled as compiled
+    tries = []
+
+    def failing(f, args, path):
+        tries.append(path)
+        raise RuntimeError("no C compiler")
+    monkeypatch.setattr(compiled, "_build_module", failing)
+    a = np.arange(5.0)
+    assert _kernel_module(tmp_path).scaled_sum(a, 2.0) == 20.0        # njit instead
+    assert len(tries) == 1 and os.path.exists(tries[0] + ".failed")
+    assert _kernel_module(tmp_path).scaled_sum(a, 2.0) == 20.0        # a new module object
+    assert len(tries) == 1                                             # the marker: no retry
