@@ -107,9 +107,13 @@ def measure(which, levels):
 
 
 def main(levels_list):
-    # one small run first, not reported: the disk caches of compiled code (dolfinx's forms,
-    # numba's kernels) are then warm for every measured process, as for any run after the first
-    measure("ours", "1:0.4")
+    # small runs first, not reported: the disk caches of compiled code (dolfinx's forms, the
+    # kept kernels of membranes.compiled) are then warm for every measured process, as for any
+    # run after the first. J = 3 and each of our variants: a J = 1 run of `ours` alone left out
+    # kernels that only meshes with translation classes use, and the multilevel flux's
+    ms = [measure(which, "3") for which in ("ours", "ours-ml", "ours-2")]
+    if any("failed" in r for r in ms):
+        print("warm-up failed:", [r.get("failed") for r in ms])
     results = []
     for levels in levels_list:
         for which in ("ours", "ours-ml", "ours-2", "peer"):

@@ -143,11 +143,13 @@ def _apply_buckets(level, flat, size):
         g, nr, nq = S.shape
         per = G.shape[0] // g                          # the patches of each class
         step = max(1, _ROWS // per)
-        F = np.empty((k, min(step, g) * per, nq))
+        F = np.empty(k * min(step, g) * per * nq)
         for a in range(0, g, step):
             b = min(a + step, g)
             rows = slice(a * per, b * per)
-            Fb = F[:, :(b - a) * per]
+            # the leading part of one buffer: C-contiguous for a short last chunk too (one
+            # argument type for _gather at every mesh size, so one compiled version of it)
+            Fb = F[:k * (b - a) * per * nq].reshape(k, (b - a) * per, nq)
             _gather(flat, G[rows], Fb)
             SR = np.matmul(Fb.reshape(k, b - a, per, nq), S[a:b].transpose(0, 2, 1)[None])
             _scatter_products(SR.reshape(k, -1, nr), L[rows], C[rows],
