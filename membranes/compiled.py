@@ -23,9 +23,10 @@ kernel runs as numba's njit (a failed build leaves a marker next to where the mo
 be, so that later processes go straight to njit instead of trying again for seconds).
 
 A kernel calls no other kernel (its wrapper is a Python function). A small formula that
-several kernels share is a `part`: a plain function of scalars, compiled into every kernel of
-its module that calls it (the kernel is compiled with its module's globals, each part among
-them replaced by its compiled form), and callable from Python as it is.
+several kernels share is a `part`: a plain function of scalars, compiled into every kernel
+that has it among its module's globals, defined there or imported (the kernel is compiled with
+its module's globals, each part among them replaced by its compiled form; a kept module is
+keyed on the part's source file too), and callable from Python as it is.
 """
 
 import functools
@@ -110,14 +111,14 @@ def _entry(f, key, args):
 
 def _module_path(f, key):
     """Where the extension module of `f` for argument types `key` is kept: named after the
-    kernel's module and name, a digest of its types and one of its source file's path, size and time and of
-    `_toolchain` (a module built for an edited source replaces the one before it)."""
+    kernel's module and name, a digest of its types and one of the path, size and time of its
+    source file and of the files of the parts it calls (`_sources`), and of `_toolchain` (a
+    module built for an edited source replaces the one before it)."""
     source = f.__code__.co_filename
-    stat = os.stat(source)
     types_digest = hashlib.sha1(repr((f.__module__, f.__qualname__, key)).encode()
                                 ).hexdigest()[:12]
-    stamp = hashlib.sha1(repr((source, stat.st_size, stat.st_mtime_ns, _toolchain()))
-                         .encode()).hexdigest()[:12]
+    files = [(s, os.stat(s).st_size, os.stat(s).st_mtime_ns) for s in _sources(f)]
+    stamp = hashlib.sha1(repr((files, _toolchain())).encode()).hexdigest()[:12]
     suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
     return os.path.join(os.path.dirname(source), "__pycache__", "kernels",
                         f"{f.__module__.rpartition('.')[2]}_{f.__name__.lstrip('_')}_"
@@ -167,7 +168,8 @@ def _build_module(f, args, path):
         built, = (os.path.join(tmp, p) for p in os.listdir(tmp) if p.startswith(name + "."))
         os.replace(built, path)
     folder, kept = os.path.split(path)
-    earlier = kept[:kept.rindex("_") + 1]        # the same kernel and types, an older source
+    stem = kept.split(".")[0]                    # without the suffix (x86_64 has a "_")
+    earlier = stem[:stem.rindex("_") + 1]        # the same kernel and types, an older source
     for p in os.listdir(folder):
         if p.startswith(earlier) and p != kept:
             try:
@@ -184,15 +186,29 @@ def _signature(dispatcher, args):
     return dispatcher.overloads[argtypes].signature
 
 
+def _parts(f):
+    """The parts among the globals of `f`: {name: part}."""
+    return {name: g for name, g in f.__globals__.items() if getattr(g, "kernel_part", False)}
+
+
+def _sources(f):
+    """The source files of `f` and of the parts it may call, sorted (the kernel's first)."""
+    own = f.__code__.co_filename
+    return [own] + sorted({g.__code__.co_filename for g in _parts(f).values()} - {own})
+
+
 @functools.lru_cache(maxsize=None)
 def _compiled(f):
+    """numba's njit of `f` with its parts compiled in; cached on disk by numba unless a part
+    comes from another module (numba's cache checks the kernel's own file only: an edit of
+    the part's file would go unseen)."""
     import numba
-    parts = {name: _compiled_part(g) for name, g in f.__globals__.items()
-             if getattr(g, "kernel_part", False)}
+    parts = {name: _compiled_part(g) for name, g in _parts(f).items()}
+    cache = len(_sources(f)) == 1
     if parts:
         f = types.FunctionType(f.__code__, {**f.__globals__, **parts}, f.__name__,
                                f.__defaults__, f.__closure__)
-    return numba.njit(cache=True, nogil=True)(f)
+    return numba.njit(cache=cache, nogil=True)(f)
 
 
 @functools.lru_cache(maxsize=None)

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .compiled import kernel, part
+
 
 @dataclass
 class Hierarchy:
@@ -56,10 +58,31 @@ def build_hierarchy(coarse, levels):
 def barycentric(points, corners):
     """Barycentric coordinates of points (c, m, 2) in triangles with corners (c, 3, 2):
     shape (c, m, 3) (in a parent cell: the vertices of its children, multiples of 1/2)."""
-    v0 = corners[:, 0]
-    e1, e2 = corners[:, 1] - v0, corners[:, 2] - v0                          # (c, 2)
-    det = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])[:, None]
-    d = points - v0[:, None]                                                 # (c, m, 2)
-    xi1 = (d[..., 0] * e2[:, None, 1] - d[..., 1] * e2[:, None, 0]) / det   # Cramer's rule
-    xi2 = (e1[:, None, 0] * d[..., 1] - e1[:, None, 1] * d[..., 0]) / det
-    return np.stack([1.0 - xi1 - xi2, xi1, xi2], axis=2)
+    points, corners = np.ascontiguousarray(points, float), np.ascontiguousarray(corners, float)
+    out = np.empty(points.shape[:2] + (3,))
+    _barycentric(points, corners, out)
+    return out
+
+
+@part
+def barycentric_point(x, y, v0x, v0y, v1x, v1y, v2x, v2y):
+    """The barycentric coordinates (w0, w1, w2) of the point (x, y) in the triangle v0 v1 v2:
+    Cramer's rule on its edges e1 = v1 - v0, e2 = v2 - v0 (the one formula: `barycentric`
+    and the prolongation's compiled pass, membranes.nested, call it)."""
+    e1x, e1y, e2x, e2y = v1x - v0x, v1y - v0y, v2x - v0x, v2y - v0y
+    det = e1x * e2y - e1y * e2x
+    dx, dy = x - v0x, y - v0y
+    xi1 = (dx * e2y - dy * e2x) / det
+    xi2 = (e1x * dy - e1y * dx) / det
+    return 1.0 - xi1 - xi2, xi1, xi2
+
+
+@kernel
+def _barycentric(points, corners, out):
+    """out[c, i] = barycentric_point of points[c, i] in the triangle corners[c]."""
+    for c in range(points.shape[0]):
+        v = corners[c]
+        for i in range(points.shape[1]):
+            out[c, i, 0], out[c, i, 1], out[c, i, 2] = barycentric_point(
+                points[c, i, 0], points[c, i, 1], v[0, 0], v[0, 1], v[1, 0], v[1, 1],
+                v[2, 0], v[2, 1])

@@ -40,7 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .compiled import kernel
-from .hierarchy import Hierarchy
+from .hierarchy import Hierarchy, barycentric_point
 from .meshes import p1_cells
 
 SNAP = 1e-8      # barycentric weights farther than this from {0, 1/2, 1}: not a Plaza refinement
@@ -88,7 +88,7 @@ def _interpolation_rows(fine_cells, fine_nodes, fine_x, coarse_cells, coarse_nod
     """The CSR rows of the prolongation, one per fine vertex (the P1 dofs `fine_cells`, the
     geometry nodes `fine_nodes` of the same cells and local order, coordinates `fine_x`): in
     the parent of one fine cell that holds the vertex (the last listed, as `holding_cells`),
-    its barycentric weights (`hierarchy.barycentric`'s formula: Cramer's rule on the parent's
+    its barycentric weights (`hierarchy.barycentric_point`: Cramer's rule on the parent's
     edges) snapped to {0, 1/2, 1} (the nearest multiple of 1/2), the nonzero ones stored with
     their coarse dofs in increasing order, rows written one after the other (out_indptr[v + 1]
     where row v ends). False if a weight is farther than `snap` from its snapped value, or the
@@ -109,12 +109,8 @@ def _interpolation_rows(fine_cells, fine_nodes, fine_x, coarse_cells, coarse_nod
         x = fine_x[fine_nodes[c, local[v]]]
         v0, v1, v2 = (coarse_x[coarse_nodes[p, 0]], coarse_x[coarse_nodes[p, 1]],
                       coarse_x[coarse_nodes[p, 2]])
-        e1x, e1y, e2x, e2y = v1[0] - v0[0], v1[1] - v0[1], v2[0] - v0[0], v2[1] - v0[1]
-        det = e1x * e2y - e1y * e2x
-        dx, dy = x[0] - v0[0], x[1] - v0[1]
-        xi1 = (dx * e2y - dy * e2x) / det
-        xi2 = (e1x * dy - e1y * dx) / det
-        w[0], w[1], w[2] = 1.0 - xi1 - xi2, xi1, xi2
+        w[0], w[1], w[2] = barycentric_point(x[0], x[1], v0[0], v0[1], v1[0], v1[1], v2[0],
+                                             v2[1])
         total = 0.0
         start = stored
         for a in range(3):

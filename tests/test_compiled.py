@@ -96,3 +96,15 @@ def test_a_failed_build_is_not_tried_again(tmp_path, monkeypatch):
     again = _kernel_module(tmp_path, write=False)                     # a new module object
     assert again.scaled_sum(a, 2.0) == 20.0
     assert len(tries) == 1                                             # the marker: no retry
+
+
+def test_an_edited_source_replaces_its_kept_module(tmp_path):
+    module = _kernel_module(tmp_path)
+    a = np.arange(5.0)
+    assert module.scaled_sum(a, 2.0) == 20.0
+    before = _kept(tmp_path)
+    (tmp_path / "kernel_module.py").write_text(KERNEL_MODULE + "\n# edited\n")
+    edited = _kernel_module(tmp_path, write=False)
+    assert edited.scaled_sum(a, 2.0) == 20.0
+    after = _kept(tmp_path)
+    assert len(before) == len(after) == 1 and before != after       # rebuilt, the old one gone
