@@ -38,8 +38,8 @@ import scipy.sparse.linalg as spla
 from .compiled import kernel
 from .discretisation import boundary_dofs
 from .equilibration import (_C3, _MINV_REF, Geometry, Lifting, PatchSpace,
-                            _local_index_type, _rt_element, rt_signs, translation_classes,
-                            vertex_patches)
+                            _local_index_type, _rt_element, perm_number, rt_signs,
+                            translation_classes, vertex_patches)
 from .hierarchy import barycentric
 from .parallel import one_blas_thread
 
@@ -84,11 +84,19 @@ _W_TABLE = _reference_tables()
 
 
 def _perm_code(pi):
-    """The number of the permutation P_π with P_π(ê_i') = ê_π(i') that maps the
-    representative's vertex order onto the patch cell's (pi: patch vertex i -> rep vertex
-    pi[i]; so π = pi⁻¹), for pi of shape (..., 3)."""
-    inv = _inverse_permutation(pi)
-    return (inv[..., 0] * 2 + (inv[..., 1] > inv[..., 2])).astype(np.int64)
+    """`equilibration.perm_number` of each vertex map pi[..., :] (patch vertex i -> rep
+    vertex pi[..., i]), for pi of shape (..., 3): int64 of shape pi.shape[:-1]."""
+    pi = np.asarray(pi)
+    out = np.empty(pi.shape[:-1], dtype=np.int64)
+    _perm_numbers(np.ascontiguousarray(pi).reshape(-1, 3), out.reshape(-1))
+    return out
+
+
+@kernel
+def _perm_numbers(pi, out):
+    """out[r] = perm_number(pi[r]) for the rows r of pi (n, 3)."""
+    for r in range(pi.shape[0]):
+        out[r] = perm_number(pi[r, 0], pi[r, 1], pi[r, 2])
 
 
 def _inverse_permutation(pi):

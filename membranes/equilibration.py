@@ -837,6 +837,19 @@ def _class_cell_data(x, cells, exterior, cent, bits):
             + (4 if exterior[c, 2] else 0)
 
 
+@part
+def perm_number(p0, p1, p2):
+    """The number 2 i_0 + (i_1 > i_2) (0 … 5) of the permutation P_π with P_π(ê_i') = ê_π(i')
+    that maps a representative's vertex order onto a patch cell's, for the vertex map
+    pi = (p0, p1, p2) (patch vertex i -> representative vertex p_i; π = pi⁻¹, i_v the i with
+    p_i = v): the index of the change-of-basis tables (algebraic_flux._W_TABLE), for the
+    members' maps here and the multilevel flux's (algebraic_flux._perm_code)."""
+    i0 = 0 if p0 == 0 else (1 if p1 == 0 else 2)
+    i1 = 0 if p0 == 1 else (1 if p1 == 1 else 2)
+    i2 = 0 if p0 == 2 else (1 if p1 == 2 else 2)
+    return 2 * i0 + (1 if i1 > i2 else 0)
+
+
 @kernel
 def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt_cells, cells,
                  cell, base, part, redges, lr, first, PATCH_DOF, TOP, COEF, EDGE_BITS, PERMS, SYM,
@@ -845,7 +858,7 @@ def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt
     each member patch in the outputs, -1 for the others, and the tables of `_representatives`
     and `_class_tables` unpacked): 0, or 1 if a member keeps other edges
     than its representative, 2 if a retained dof maps to a dropped one. Per member cell, the
-    number π of the vertex permutation (as algebraic_flux._perm_code: from pi's inverse) and
+    number π of the vertex permutation (`perm_number`) and
     the kept edges as bits (those not opposite a and not on ∂Ω, and for a boundary vertex
     those on ∂Ω); per retained dof i, in slot l of the representative's cell c with
     reflections ρ_r, the table entry u = 384 ρ_r + 64 π_c + 8 ρ_p + l (ρ_p the member cell's
@@ -861,16 +874,7 @@ def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt
         if q < 0:
             continue
         for j in range(n):
-            i0, i1, i2 = 0, 0, 0                               # pi⁻¹: rep vertex v -> i_v
-            for i in range(3):
-                v = pi[p, j, i]
-                if v == 0:
-                    i0 = i
-                elif v == 1:
-                    i1 = i
-                else:
-                    i2 = i
-            perm[j] = 2 * i0 + (1 if i1 > i2 else 0)
+            perm[j] = perm_number(pi[p, j, 0], pi[p, j, 1], pi[p, j, 2])
             cu[j] = 64 * perm[j] + 8 * reflections[CF[p, j]]
             ext = ext_bits[CF[p, j]]
             bits = 7 & ~(1 << KF[p, j]) & ~ext
