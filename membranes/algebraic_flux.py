@@ -38,49 +38,10 @@ import scipy.sparse.linalg as spla
 from .compiled import kernel
 from .discretisation import boundary_dofs
 from .equilibration import (_C3, _MINV_REF, Geometry, Lifting, PatchSpace,
-                            _local_index_type, _rt_element, perm_number, rt_signs,
-                            translation_classes, vertex_patches)
+                            _local_index_type, _rt_element, change_of_basis_tables,
+                            perm_number, rt_signs, translation_classes, vertex_patches)
 from .hierarchy import barycentric
 from .parallel import one_blas_thread
-
-
-def _reference_tables():
-    """_W_TABLE[(ρ' * 6 + π) * 8 + ρ] = R_ρ' M_π R_ρ (8 × 8, entries 0, ±1): R_ρ the product of
-    basix's base transformations of RT_1 (degree 2) for the edges whose bit is set in ρ (each
-    swaps an edge's two dofs and flips their signs), M_π the reference basis pushed forward by
-    the affine map P_π with P_π(ê_i) = ê_π(i) (contravariant Piola), written in the reference
-    basis: P_π*ψ̂_k = Σ_l M_π[k, l] ψ̂_l. Permutations are numbered as itertools lists them."""
-    import itertools
-    import basix
-    # tests/test_algebraic_flux checks the whole construction against patch problems assembled
-    # by dolfinx
-    e = _rt_element()
-    X = basix.make_quadrature(basix.CellType.triangle, 4)[0]
-    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
-    base = e.tabulate(0, X)[0].transpose(1, 0, 2).reshape(8, -1)          # (8, npts * 2)
-    M = []
-    for perm in itertools.permutations(range(3)):
-        o = corners[perm[0]]
-        Jp = np.stack([corners[perm[1]] - o, corners[perm[2]] - o], axis=1)
-        pulled = np.linalg.solve(Jp, (X - o).T).T
-        vals = np.einsum("ij,pkj->kpi", Jp, e.tabulate(0, pulled)[0]) / np.linalg.det(Jp)
-        Mp = np.linalg.lstsq(base.T, vals.reshape(8, -1).T, rcond=None)[0].T
-        M.append(np.round(Mp))
-        if np.abs(Mp - M[-1]).max() > 1e-10:
-            raise RuntimeError("RT_1 reference basis not mapped to itself by a permutation")
-    T = e.base_transformations()
-    R = []
-    for rho in range(8):
-        Rr = np.eye(8)
-        for edge in range(3):
-            if rho >> edge & 1:
-                Rr = Rr @ T[edge]
-        R.append(np.round(Rr))
-    table = np.array([R[a] @ M[p] @ R[b] for a in range(8) for p in range(6) for b in range(8)])
-    return table.astype(np.int8)
-
-
-_W_TABLE = _reference_tables()
 
 
 def _perm_code(pi):
@@ -209,22 +170,6 @@ def _scatter_products(SR, L, C, ret, out):
                     out[r, f] += c1 * SR[f, p, l1]
 
 
-def _top_tables():
-    """For every code of _W_TABLE: the rows l with W[l, k] ≠ 0 of each column k (at most two:
-    the dofs of one entity) and their entries, (codes, 8 (k), 2) each (entry 0: no second
-    row)."""
-    W = _W_TABLE.astype(np.int64)
-    top = np.argsort(-np.abs(W), axis=1, kind="stable")[:, :2, :]
-    coef = np.take_along_axis(W, top, axis=1)
-    if np.abs(W).sum(axis=1).max() > 2 or not np.array_equal(
-            np.abs(coef).sum(axis=1), np.abs(W).sum(axis=1)):
-        raise RuntimeError("RT change of basis with more than two entries per column")
-    return (np.ascontiguousarray(t.transpose(0, 2, 1)).astype(np.int8) for t in (top, coef))
-
-
-_W_TOP, _W_COEF = _top_tables()
-
-
 def local_numbering(space, CF, boundary):
     """The retained RT dofs of patches of cells CF (P, m) (boundary flags (P,) or one):
     glob (P, 8 m) per cell (-1 dropped), RET (P, nr) the sorted retained dofs of each patch
@@ -268,8 +213,9 @@ def basis_change(refl, loc, pi, rep_refl, rep_loc, nr):
     # W[c, l, k] ≠ 0, at the representative's local numbers; retained dofs only
     ok = np.flatnonzero(loc.reshape(-1) >= 0)                            # (p m + c) 8 + k
     cell, k = ok >> 3, ok & 7
-    top = _W_TOP[code[cell], k]                                         # (n, 2)
-    coef = _W_COEF[code[cell], k]
+    _, W_top, W_coef = change_of_basis_tables()
+    top = W_top[code[cell], k]                                          # (n, 2)
+    coef = W_coef[code[cell], k]
     base = cell if rep_loc.shape[0] == P else cell % m                    # one rep for all
     tgt = np.ascontiguousarray(rep_loc).reshape(-1)[(base * 8)[:, None] + top]
     if (tgt[coef != 0] < 0).any():

@@ -842,7 +842,7 @@ def perm_number(p0, p1, p2):
     """The number 2 i_0 + (i_1 > i_2) (0 … 5) of the permutation P_π with P_π(ê_i') = ê_π(i')
     that maps a representative's vertex order onto a patch cell's, for the vertex map
     pi = (p0, p1, p2) (patch vertex i -> representative vertex p_i; π = pi⁻¹, i_v the i with
-    p_i = v): the index of the change-of-basis tables (algebraic_flux._W_TABLE), for the
+    p_i = v): the index of the change-of-basis tables (`change_of_basis_tables`), for the
     members' maps here and the multilevel flux's (algebraic_flux._perm_code)."""
     i0 = 0 if p0 == 0 else (1 if p1 == 0 else 2)
     i1 = 0 if p0 == 1 else (1 if p1 == 1 else 2)
@@ -905,9 +905,69 @@ def _member_maps(row, bi, CF, KF, pi, boundary, verts, ext_bits, reflections, rt
 
 
 @functools.lru_cache(maxsize=None)
+def change_of_basis_tables():
+    """The changes of RT_1 basis between a cell and its image under a vertex permutation and
+    edge reflections (DESIGN §5: the translation classes, and the multilevel flux's shared
+    patch operators, algebraic_flux): W (384, 8, 8) int8 (`_reference_table`), and TOP, COEF
+    (384, 8, 2) int8, the (at most two) nonzero rows of each column of W and their entries
+    (`_top_tables`); computed at first use."""
+    W = _reference_table()
+    return (W, *_top_tables(W))
+
+
+def _reference_table():
+    """W[(ρ' * 6 + π) * 8 + ρ] = R_ρ' M_π R_ρ (8 × 8, entries 0, ±1): R_ρ the product of
+    basix's base transformations of RT_1 (degree 2) for the edges whose bit is set in ρ (each
+    swaps an edge's two dofs and flips their signs), M_π the reference basis pushed forward by
+    the affine map P_π with P_π(ê_i) = ê_π(i) (contravariant Piola), written in the reference
+    basis: P_π*ψ̂_k = Σ_l M_π[k, l] ψ̂_l. Permutations are numbered as itertools lists them."""
+    import basix
+    # tests/test_algebraic_flux checks the whole construction against patch problems assembled
+    # by dolfinx
+    e = _rt_element()
+    X = basix.make_quadrature(basix.CellType.triangle, 4)[0]
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    base = e.tabulate(0, X)[0].transpose(1, 0, 2).reshape(8, -1)          # (8, npts * 2)
+    M = []
+    for perm in itertools.permutations(range(3)):
+        o = corners[perm[0]]
+        Jp = np.stack([corners[perm[1]] - o, corners[perm[2]] - o], axis=1)
+        pulled = np.linalg.solve(Jp, (X - o).T).T
+        vals = np.einsum("ij,pkj->kpi", Jp, e.tabulate(0, pulled)[0]) / np.linalg.det(Jp)
+        Mp = np.linalg.lstsq(base.T, vals.reshape(8, -1).T, rcond=None)[0].T
+        M.append(np.round(Mp))
+        if np.abs(Mp - M[-1]).max() > 1e-10:
+            raise RuntimeError("RT_1 reference basis not mapped to itself by a permutation")
+    T = e.base_transformations()
+    R = []
+    for rho in range(8):
+        Rr = np.eye(8)
+        for edge in range(3):
+            if rho >> edge & 1:
+                Rr = Rr @ T[edge]
+        R.append(np.round(Rr))
+    table = np.array([R[a] @ M[p] @ R[b] for a in range(8) for p in range(6) for b in range(8)])
+    return table.astype(np.int8)
+
+
+
+def _top_tables(W):
+    """For every code of the table W (`change_of_basis_tables`): the rows l with W[l, k] ≠ 0 of each column k (at most two:
+    the dofs of one entity) and their entries, (codes, 8 (k), 2) each (entry 0: no second
+    row)."""
+    W = W.astype(np.int64)
+    top = np.argsort(-np.abs(W), axis=1, kind="stable")[:, :2, :]
+    coef = np.take_along_axis(W, top, axis=1)
+    if np.abs(W).sum(axis=1).max() > 2 or not np.array_equal(
+            np.abs(coef).sum(axis=1), np.abs(W).sum(axis=1)):
+        raise RuntimeError("RT change of basis with more than two entries per column")
+    return (np.ascontiguousarray(t.transpose(0, 2, 1)).astype(np.int8) for t in (top, coef))
+
+
+@functools.lru_cache(maxsize=None)
 def _class_tables(slots):
-    """For the change of RT basis from a class representative to a translate (algebraic_flux:
-    `_W_TABLE`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2), the (at most
+    """For the change of RT basis from a class representative to a translate (W of
+    `change_of_basis_tables`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2), the (at most
     two) representative dofs l of the cell with W[l, k] ≠ 0 for each patch dof k, and their
     coefficients; with the patch dof k in the slot of the entity that corresponds to the
     representative dof l's entity (edge e of the patch ↦ edge pi[e] of the representative;
@@ -915,7 +975,7 @@ def _class_tables(slots):
     PATCH_DOF (3072,) the k, TOP, COEF (2, 3072) the rows and coefficients of column k; and
     EDGE_BITS (6, 8): a set of patch cell edges (bit e: edge e) as the set of the
     corresponding representative's edges."""
-    from .algebraic_flux import _W_COEF, _W_TOP
+    _, W_top, W_coef = change_of_basis_tables()
     slots = np.array(slots)
     anchor = np.empty((6, 8), dtype=np.int64)
     bits = np.zeros((6, 8), dtype=np.int8)
@@ -929,8 +989,8 @@ def _class_tables(slots):
     # the patch dof k, and TOP, COEF of its column
     u = np.arange(384 * 8)
     k = np.argsort(anchor, axis=1)[u // 64 % 6, u % 8]
-    return (k, np.ascontiguousarray(_W_TOP[u // 8, k].T.astype(np.int64)),
-            np.ascontiguousarray(_W_COEF[u // 8, k].T), bits)
+    return (k, np.ascontiguousarray(W_top[u // 8, k].T.astype(np.int64)),
+            np.ascontiguousarray(W_coef[u // 8, k].T), bits)
 
 
 class FluxEquilibration:
@@ -1088,7 +1148,7 @@ class FluxEquilibration:
         With F_K the affine map of a cell K in its dolfinx vertex order and R_K its edge
         reflections, the local RT basis is R_K F_K*ψ̂; the representative's cell K' = K + shift
         has F_K' = shift ∘ F_K ∘ P_π, hence its basis is W = R_K' M_π R_K times K's
-        (algebraic_flux._W_TABLE, entries 0, ±1, at most two per column: the dofs of one
+        (`change_of_basis_tables`, entries 0, ±1, at most two per column: the dofs of one
         entity). The representative's local dof i, in slot l of its cell c, is the patch's dof
         in the same slot of the corresponding entity of cell c (one number per global dof: a
         dof has one slot in every cell that has its entity); each cell's kept edges are checked
