@@ -304,22 +304,19 @@ class Discretisation:
         return out
 
 
-def boundary_dofs(V, facets=True):
+def boundary_dofs(V):
     """The dofs of the P1 space V on the boundary of its mesh (Dirichlet vertices), increasing:
     the two vertices of every edge that lies in one cell only, counted over the cells in one
     compiled pass (`_boundary_vertices`), which needs no mesh entities. dolfinx's exterior
     facets (locate_dofs_topological on exterior_facet_indices, still taken on a mesh shared by
     several processes, where an edge of a ghost cell may lie in one local cell) need the mesh's
-    edges and their cells: 0.65 s at 9.3e5 vertices, the count 0.03 s. facets=True creates
-    that edge-to-cell connectivity all the same, as boundary_dofs always did: the flux
-    equilibration (equilibration.PatchSpace) reads dolfinx's exterior facets of the same mesh
-    and relies on it; facets=False leaves it out (process 0 of a run on several processes, which
-    sets up no estimators, membranes.pipeline)."""
+    edges and their cells: 0.65 s at 9.3e5 vertices, the count 0.03 s (the flux equilibration,
+    equilibration.PatchSpace, creates them where it sets up, as it reads dolfinx's exterior
+    facets)."""
     from dolfinx import fem, mesh as dmesh
     mesh = V.mesh
-    if facets or mesh.comm.size > 1:
-        mesh.topology.create_connectivity(1, 2)
     if mesh.comm.size > 1:
+        mesh.topology.create_connectivity(1, 2)
         return fem.locate_dofs_topological(V, 1, dmesh.exterior_facet_indices(mesh.topology))
     cells = p1_cells(V)
     n = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
@@ -362,14 +359,13 @@ def _boundary_vertices(cells, n):
     return boundary
 
 
-def discretise(problem, stiffness=True, facets=True):
+def discretise(problem, stiffness=True):
     """Assemble S1, S2, D, F1, F2 and the boundary vertices of `problem` (DESIGN §2). The
     stiffness matrix S is assembled once and scaled: S_α = μ_α S, on S's own index arrays (S
     itself where μ_α = 1, S1 = S2 where μ1 = μ2: the same numbers, and no copies: two took
     0.33 s at 9.3e5 vertices; nothing changes the matrices in place). stiffness=False: no S
     (S1 = S2 = None), for the estimator processes of a run on several processes
-    (membranes.pipeline), whose estimators read the loads, the space and the boundary.
-    facets: see `boundary_dofs` (False where no estimators are set up on this process)."""
+    (membranes.pipeline), whose estimators read the loads, the space and the boundary."""
     from dolfinx import fem
     mesh = problem.mesh
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
@@ -380,7 +376,7 @@ def discretise(problem, stiffness=True, facets=True):
     f1, f2 = (load(f, mesh) for f in (problem.f1, problem.f2))
     F1 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f1, v, dx)))
     F2 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f2, v, dx)))
-    boundary = boundary_dofs(V, facets)
+    boundary = boundary_dofs(V)
     n = V.dofmap.index_map.size_local
     S1 = S2 = None
     if S is not None:

@@ -508,7 +508,7 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     if remote:      # first: the estimator processes set this level up meanwhile
         from .pipeline import RemoteEstimates
         est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive")
-    disc = discretise(problem, facets=not remote)   # remote: no flux set-up on this process
+    disc = discretise(problem)
     rows = linear_rows(disc)
     if remote:      # X^0's residual and the data oscillation come from here
         est.discretised(disc, rows)

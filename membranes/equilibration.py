@@ -298,6 +298,7 @@ class PatchSpace:
         self.c2e = mesh.topology.connectivity(2, 1).array.reshape(nc, 3)
         nedges = mesh.topology.index_map(1).size_local + mesh.topology.index_map(1).num_ghosts
         exterior = np.zeros(nedges, dtype=bool)
+        mesh.topology.create_connectivity(1, 2)          # the exterior facets read it
         exterior[dmesh.exterior_facet_indices(mesh.topology)] = True
         self.exterior_edge = exterior[self.c2e]
         self.nrt = self.RT.dofmap.index_map.size_local

@@ -27,21 +27,33 @@ def test_boundary_vertices_are_those_of_exterior_facets(mesh_of):
     from dolfinx import fem
     mesh = mesh_of()
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
-    ours = boundary_dofs(V, facets=False)
+    ours = boundary_dofs(V)
     assert ours.dtype == np.int32
     assert np.array_equal(ours, _exterior_facet_dofs(V))
 
 
-def test_facets_false_leaves_the_mesh_edges_alone():
-    """facets=False computes no mesh entities (process 0 of a multi-process run); the default
-    creates the edge-to-cell connectivity the flux equilibration reads."""
+def test_boundary_dofs_leave_the_mesh_edges_alone():
+    """The boundary count computes no mesh entities (process 0 of a multi-process run sets
+    up no estimators and never needs them); the flux equilibration creates the edge-to-cell
+    connectivity where it reads dolfinx's exterior facets, and its exterior edges are then
+    those of the boundary vertices."""
     from dolfinx import fem
+    from membranes.equilibration import PatchSpace
     mesh = meshes.unit_disk(0.4)
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
-    boundary_dofs(V, facets=False)
+    boundary = boundary_dofs(V)
     assert mesh.topology.connectivity(1, 2) is None
-    boundary_dofs(V)
+    space = PatchSpace(V)
     assert mesh.topology.connectivity(1, 2) is not None
+    cells = space.geo.cells
+    on = np.zeros(len(V.tabulate_dof_coordinates()), dtype=bool)
+    on[boundary] = True
+    # edge e of a cell is opposite its vertex e: both other vertices are boundary vertices
+    for e in range(3):
+        ends = np.delete(cells, e, axis=1)
+        assert np.all(on[ends[space.exterior_edge[:, e]]])
+    # a closed polygon: as many boundary edges as boundary vertices
+    assert space.exterior_edge.sum() == len(boundary)
 
 
 def test_membrane_stiffness_is_mu_times_s():
