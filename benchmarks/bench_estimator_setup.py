@@ -3,8 +3,9 @@
 the disk scene, with the time of its pieces, old tree against new.
 
 It replaces bench_flux_setup.py (the flux set-up alone, `FluxEquilibration`, is one of the
-pieces timed here). Each measurement is a fresh process that builds `scenes.disk(h=H0, levels=J)`, discretises it, sets up the estimators on a small mesh
-first (forms and kernels loaded off the clock), then times `Estimators(disc)` with BLAS on one
+pieces timed here). Each measurement is a fresh process that builds
+`scenes.disk(h=H0, levels=J)`, discretises it, sets up the estimators on a small mesh first
+(forms and kernels loaded off the clock), then times `Estimators(disc)` with BLAS on one
 thread; with `--tree OLD` the two trees are measured alternately `--repeat` times each and the
 medians compared (wall and CPU time). The results are compared between the trees: σ_disc of
 fixed random data, η_osc per cell, and η and η_K at a random iterate (bitwise, or the largest

@@ -637,9 +637,10 @@ def translation_classes(xa, CF, KF, boundary, geo, cent, scale, translates=True,
     pi[p, c, i] of the representative's cell c sits where vertex i of the patch's cell c does
     (relative to xa). Patches are classed by their offsets rounded to 1e-6 scale (through a
     64-bit hash of the rounded signature; each patch is checked against its representative:
-    boundary flag, vertices, ∂Ω edges), and are translates to round-off only: a patch whose vertices (relative
-    to xa) do not match its representative's within 1e-13 of the largest coordinate (a
-    coincidence of the rounded keys: a near-translate) is classed again among such patches.
+    boundary flag, vertices, ∂Ω edges), and are translates to round-off only: a patch whose
+    vertices (relative to xa) do not match its representative's within 1e-13 of the largest
+    coordinate (a coincidence of the rounded keys: a near-translate) is classed again among
+    such patches.
     `exterior` (ncells, 3): the cells' edges on ∂Ω (edge e opposite vertex e); boundary
     patches are then told apart by where their ∂Ω edges sit (the midpoints' offsets, per
     cell): two patches of boundary vertices with the same cells keep different RT dofs when
@@ -953,9 +954,9 @@ def _reference_table():
 
 
 def _top_tables(W):
-    """For every code of the table W (`change_of_basis_tables`): the rows l with W[l, k] ≠ 0 of each column k (at most two:
-    the dofs of one entity) and their entries, (codes, 8 (k), 2) each (entry 0: no second
-    row)."""
+    """For every code of the table W (`change_of_basis_tables`): the rows l with W[l, k] ≠ 0
+    of each column k (at most two: the dofs of one entity) and their entries, (codes, 8 (k),
+    2) each (entry 0: no second row)."""
     W = W.astype(np.int64)
     top = np.argsort(-np.abs(W), axis=1, kind="stable")[:, :2, :]
     coef = np.take_along_axis(W, top, axis=1)
@@ -968,9 +969,9 @@ def _top_tables(W):
 @functools.lru_cache(maxsize=None)
 def _class_tables(slots):
     """For the change of RT basis from a class representative to a translate (W of
-    `change_of_basis_tables`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2), the (at most
-    two) representative dofs l of the cell with W[l, k] ≠ 0 for each patch dof k, and their
-    coefficients; with the patch dof k in the slot of the entity that corresponds to the
+    `change_of_basis_tables`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2),
+    the (at most two) representative dofs l of the cell with W[l, k] ≠ 0 for each patch dof
+    k, and their coefficients; with the patch dof k in the slot of the entity that corresponds to the
     representative dof l's entity (edge e of the patch ↦ edge pi[e] of the representative;
     `slots` as in PatchSpace) these are tabulated by u = ((ρ_r * 6 + perm) * 8 + ρ_p) * 8 + l:
     PATCH_DOF (3072,) the k, TOP, COEF (2, 3072) the rows and coefficients of column k; and

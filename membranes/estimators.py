@@ -126,7 +126,7 @@ def _lifted_squares(area, cells, cpv, R1, R2, shift):
                     if alpha == 0:
                         r[i] -= shift[cells[K, i]]
                     else:
-                        r[i] -= -shift[cells[K, i]]
+                        r[i] += shift[cells[K, i]]
             out[alpha, K] = _p1_product(area[K], r[0], r[1], r[2], r[0], r[1], r[2])
     return out
 
@@ -294,14 +294,15 @@ class Estimators:
         sq = _lifted_squares(geo.area, geo.cells, geo.cells_per_vertex, R[:n], R[n:2 * n],
                              np.zeros(0) if lam_shift is None else lam_shift)
         total = 0.0
-        for alpha in range(2):
+        for alpha in range(2):      # ‖ρ_α‖ first, then squared: the sums of the code before
             total += np.sqrt(np.sum(sq[alpha])) ** 2 / self.mu[alpha]
         return float(self.cpf * np.sqrt(total))
 
     def sigma_disc(self, X, R=None):
         """(σ_1,disc, σ_2,disc) at X with algebraic residual R (RT_1 coefficients, read-only;
-        FluxEquilibration.sigmas, both membranes in one pass). The last two are kept and given again for the same X and R (equal entries; every
-        process of a run has the same iterates, so all of them compute or none)."""
+        FluxEquilibration.sigmas, both membranes in one pass). The last two are kept and given
+        again for the same X and R (equal entries; every process of a run has the same
+        iterates, so all of them compute or none)."""
         for (Xk, Rk), sigma in self._recent:
             if np.array_equal(Xk, X) and (Rk is None if R is None else
                                           Rk is not None and np.array_equal(Rk, R)):

@@ -20,9 +20,10 @@ each is: at 9.3e5 vertices (disk, J = 6, 2 processes) process 0 is, since the es
 set-up and evaluations were compiled: on the finest level the estimator process has the
 level set up, data oscillation included (1.1 s of discretisation, 3.4 s of set-up), 2.4 s
 before process 0 hands out X¹ (disc. 1.3 s, rows and prolongation 0.4 s, the first step with
-both AMG set-ups 4.1 s; measured 2026-11-21, BENCHMARKS.md). The data oscillation is therefore computed where the estimators
-are set up, from the load moments the flux set-up has anyway (when process 0 computed it,
-with moments of its own, 2.9 s of its time, the finest level took 15.6 s instead of 14.0 s).
+both AMG set-ups 4.1 s; measured 2026-11-21, BENCHMARKS.md). The data oscillation is
+therefore computed where the estimators are set up, from the load moments the flux set-up
+has anyway (when process 0 computed it, with moments of its own, 2.9 s of its time, the
+finest level took 15.6 s instead of 14.0 s).
 Only what the method decides from the estimates waits for them:
 
 * exact and inexact Newton never wait (their stopping tests are the residual's); the

@@ -42,8 +42,8 @@ def setup(request):
 
 
 def _iterate(run, which):
-    """(X, R): the converged iterate, the first GMRES iterate X^{1,1} of the first Newton step (its true
-    residual R = B - A X), or an arbitrary perturbation X with R = F - E X."""
+    """(X, R): the converged iterate, the first GMRES iterate X^{1,1} of the first Newton step
+    (its true residual R = B - A X), or an arbitrary perturbation X with R = F - E X."""
     d = run.disc
     rows = linear_rows(d)
     if which == "converged":
