@@ -83,6 +83,18 @@ for _k in range(3):
         for _i in range(3):
             _C3[_k, _l, _i] = {1: 1 / 10, 2: 1 / 30, 3: 1 / 60}[len({_k, _l, _i})]
 _MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
+
+
+@part
+def p1_mass_solve(area, l0, l1, l2):
+    """The P1 coefficients (p_0, p_1, p_2) on a cell of area |K| with (p, φ_i)_K = l_i:
+    p = (3/|K|) _MINV_REF l (the inverse of the cell's P1 mass matrix |K|/12 (I + 1 1ᵀ)), for
+    the compiled passes (the L² projection of the loads, `_data_moments`, and the lifting's
+    cell values, estimators._lifted_squares; `Lifting` is the same map for numpy)."""
+    scale = 3.0 / area
+    # the terms in column order, as the product with _MINV_REF adds them
+    return (scale * (3.0 * l0 - l1 - l2), scale * (-l0 + 3.0 * l1 - l2),
+            scale * (-l0 - l1 + 3.0 * l2))
 # the symmetric pairs (i, k) of a cell's 3 × 3 load moments, numbered as ik = 00, 01, 02, 11,
 # 12, 22 (load_moments keeps these six)
 _SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
@@ -785,23 +797,21 @@ def load_moments(disc, geo):
             c = cells[s:s + block]
             fv = values[:len(c)]
             expr.eval(c, fv)
-            _data_moments(c, fv, w, np.ascontiguousarray(hat), products, geo.area, _MINV_REF,
-                          W, sq)
+            _data_moments(c, fv, w, np.ascontiguousarray(hat), products, geo.area, W, sq)
     return W, sq
 
 
 @kernel
-def _data_moments(cells, fv, w, hat, products, area, minv, W, sq):
+def _data_moments(cells, fv, w, hat, products, area, W, sq):
     """`load_moments` on the given cells, with f_α at the rule's points fv (c, 2 q) (point by
     point, f_1 then f_2; weights w, hat values φ_k(X_q) (q, 3), products (q, 6) φ_i φ_k for
     ik = 00, 01, 02, 11, 12, 22): for α = 1, 2, W[K, ik, α] = |det J| Σ_q w_q f_q φ_i φ_k
     (|det J| = 2 |K|), the loads l_i = Σ_k W[α, K, i, k] = (f, φ_i)_K, Π_P1 f = Σ_k p_k φ_k
-    with p = (3/|K|) minv l, and sq[α, K] = |det J| Σ_q w_q (f_q - Π_P1 f(x_q))²."""
+    with p = `p1_mass_solve`(|K|, l), and sq[α, K] = |det J| Σ_q w_q (f_q - Π_P1 f(x_q))²."""
     nq = len(w)
     for j in range(len(cells)):
         K = cells[j]
         det = 2.0 * area[K]
-        scale = 3.0 / area[K]
         for a in range(2):
             m00 = m01 = m02 = m11 = m12 = m22 = 0.0
             for q in range(nq):
@@ -817,9 +827,7 @@ def _data_moments(cells, fv, w, hat, products, area, minv, W, sq):
             W[K, 0, a], W[K, 1, a], W[K, 2, a] = m00, m01, m02
             W[K, 3, a], W[K, 4, a], W[K, 5, a] = m11, m12, m22
             l0, l1, l2 = m00 + m01 + m02, m01 + m11 + m12, m02 + m12 + m22
-            p0 = scale * (minv[0, 0] * l0 + minv[0, 1] * l1 + minv[0, 2] * l2)
-            p1 = scale * (minv[1, 0] * l0 + minv[1, 1] * l1 + minv[1, 2] * l2)
-            p2 = scale * (minv[2, 0] * l0 + minv[2, 1] * l1 + minv[2, 2] * l2)
+            p0, p1, p2 = p1_mass_solve(area[K], l0, l1, l2)
             e2 = 0.0
             for q in range(nq):
                 e = fv[j, 2 * q + a] - (p0 * hat[q, 0] + p1 * hat[q, 1] + p2 * hat[q, 2])

@@ -50,7 +50,8 @@ is the later iterate of the one before; `sigma_disc` keeps the last two.
 import numpy as np
 
 from .compiled import kernel, part
-from .equilibration import FluxEquilibration, _rt_element, cell_reflections, rt_signs
+from .equilibration import (FluxEquilibration, _rt_element, cell_reflections, p1_mass_solve,
+                            rt_signs)
 from .meshes import cell_diameters
 from .newton_system import split
 
@@ -105,22 +106,17 @@ def _constraint_parts(area, cells, grad, u1, u2, lam, mu1, mu2):
 def _lifted_squares(area, cells, cpv, R1, R2, shift):
     """‖ρ_α‖_K² for α = 1, 2 on every cell K ((2, ncells)): ρ_α = r_αh the lifting of R_α
     (equilibration.Lifting: r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l,
-    its terms added in column order as the product of the lifting does), minus λ'_h - λ_h
+    `equilibration.p1_mass_solve`), minus λ'_h - λ_h
     for α = 1 and plus it for α = 2 where `shift` (nodal) has entries; exact P1 products."""
     out = np.empty((2, len(area)))
     r = np.empty(3)
     v = np.empty(3)
     for K in range(len(area)):
-        scale = 3.0 / area[K]
         for alpha in range(2):
             R = R1 if alpha == 0 else R2
             for k in range(3):
                 v[k] = R[cells[K, k]] / cpv[cells[K, k]]
-            for i in range(3):
-                acc = 0.0
-                for k in range(3):
-                    acc += v[k] * (3.0 if k == i else -1.0)
-                r[i] = scale * acc
+            r[0], r[1], r[2] = p1_mass_solve(area[K], v[0], v[1], v[2])
             if len(shift):
                 for i in range(3):
                     if alpha == 0:
