@@ -25,13 +25,10 @@ import subprocess
 import sys
 import time
 
+from bench_scaling import _size     # 'J' or 'J:H0' (H0 = 0.2), as bench_scaling reads sizes
+
 OPTIONS = {"newton": "adaptive", "cfun": "min", "system": "eliminated",
            "petsc_options": {"pc_type": "vertex_amg"}, "alg_flux": "nu"}
-
-
-def _size(arg):
-    j, _, h0 = str(arg).partition(":")
-    return int(j), float(h0) if h0 else 0.2
 
 
 def child(size):
