@@ -37,10 +37,10 @@ Poincaré constant of the domain).
 import dataclasses
 
 import numpy as np
-import scipy.sparse as sp
 
 from .compiled import kernel
 from .hierarchy import Hierarchy, barycentric_point
+from .linear_solve import written_csr
 from .meshes import p1_cells
 
 SNAP = 1e-8      # barycentric weights farther than this from {0, 1/2, 1}: not a Plaza refinement
@@ -77,9 +77,7 @@ def prolongation(V_coarse, V_fine, parent_cells):
             parent_cells, SNAP, indptr, indices, data):
         raise ValueError("the fine mesh is not a uniform refinement of the coarse one (a fine "
                          "vertex is neither a coarse vertex nor an edge midpoint)")
-    P = sp.csr_matrix((data[:indptr[-1]], indices[:indptr[-1]], indptr), shape=(n_f, n_c))
-    P.has_sorted_indices = True
-    return P
+    return written_csr(indptr, indices, data, (n_f, n_c))
 
 
 @kernel

@@ -46,7 +46,7 @@ import scipy.sparse as sp
 
 from . import cfunctions
 from .compiled import kernel
-from .linear_solve import scaled_rows
+from .linear_solve import scaled_rows, written_csr
 
 
 @dataclass
@@ -123,9 +123,7 @@ def _membrane_rows(disc):
     if not _membrane_entries(S1.indptr, S1.indices, S1.data, S2.indptr, S2.indices, S2.data,
                              interior, slot, indptr, indices, data):
         raise ValueError("a stiffness matrix without its diagonal entry in a boundary row")
-    E = sp.csr_matrix((data[:indptr[-1]], indices[:indptr[-1]], indptr), shape=(2 * n, 3 * n))
-    E.has_sorted_indices = True
-    return E
+    return written_csr(indptr, indices, data, (2 * n, 3 * n))
 
 
 def _row_buffers(bound):
@@ -314,6 +312,5 @@ def eliminated_system(rows, alpha, beta, B3, weighted=False):
     indptr = np.zeros(2 * n + 1, dtype=np.int64)
     indices, data = _row_buffers(2 * E.nnz)
     _product_entries(E.indptr, E.indices, E.data, n, *elim.coefficients, indptr, indices, data)
-    A = sp.csr_matrix((data[:indptr[-1]], indices[:indptr[-1]], indptr), shape=(2 * n, 2 * n))
-    A.has_sorted_indices = True
+    A = written_csr(indptr, indices, data, (2 * n, 2 * n))
     return A, F - E @ elim.t, elim
