@@ -27,17 +27,18 @@ def petsc_matrix(A, copy=True):
 
 
 def written_csr(indptr, indices, data, shape):
-    """The CSR matrix of rows a compiled pass wrote one after the other into buffers longer
-    than it needed (`indptr[-1]` entries written): views of the written prefix of `indices`
-    and `data`, its sorted columns trusted. scipy's own constructor would copy a prefix
-    shorter than half its buffer (its `prune`): at 9.3e5 vertices the eliminated Newton
-    matrix took 0.2 s a step for that copy, the first touch of new memory included. The row
-    pointers take the column indices' type (int32 as PETSc's), as scipy's constructor gives
-    them."""
+    """The CSR matrix of rows a compiled pass wrote one after the other into the buffers
+    `indices` and `data` (arrays of their own, longer than needed: `indptr[-1]` entries
+    written; no other array may view them), its columns sorted. The buffers are shrunk in
+    place to the written entries (`ndarray.resize`: a realloc, which gives a large block's
+    tail back without moving its head): the matrix holds them, not views of a prefix, which
+    scipy copies wherever it makes a matrix of them (its `prune`, when the prefix is shorter
+    than half the buffer: at 9.3e5 vertices 0.2 s a step for the eliminated Newton matrix,
+    the first touch of the new memory included)."""
     nnz = int(indptr[-1])
-    A = sp.csr_matrix(shape, dtype=data.dtype)
-    A.indptr = indptr.astype(indices.dtype, copy=False)
-    A.indices, A.data = indices[:nnz], data[:nnz]
+    indices.resize(nnz, refcheck=False)
+    data.resize(nnz, refcheck=False)
+    A = sp.csr_matrix((data, indices, indptr), shape=shape)
     A.has_sorted_indices = True
     return A
 

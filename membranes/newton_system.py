@@ -129,8 +129,8 @@ def _membrane_rows(disc):
 def _row_buffers(bound):
     """Column indices (int32) and values for at most `bound` entries of a CSR matrix that a
     compiled pass writes row after row, its row pointers with them (one pass, where counting
-    the entries first took a second one; the matrix then holds views of the written prefix:
-    the pages of the tail are never touched, and so never allocated)."""
+    the entries first took a second one; `linear_solve.written_csr` then shrinks them to the
+    written entries: the pages of the tail are never touched, and so never allocated)."""
     return np.empty(bound, dtype=np.int32), np.empty(bound)
 
 
