@@ -245,24 +245,47 @@ def p1_stiffness_and_weights(V):
     sorted, zeros stored), FFCx's arithmetic of the P1 kernels (one Gauss point of weight 1/2;
     the Jacobian summed from the reference gradients (-1, 1, 0), (-1, 0, 1) as FFCx's code
     sums them, then its inverse, |det J| and the products in FFCx's order) and the cell
-    contributions summed in the cells' order, as dolfinx adds them. At 9.3e5 vertices dolfinx
-    took 0.56 s for S (sparsity pattern, its assembly and the kernel's) and 0.13 s for D."""
+    contributions summed in the cells' order, as dolfinx adds them. The values of ψ_a at the
+    Gauss point are those of the form's own compiled kernel (`reference_element_vector`):
+    basix's tabulation gives 1 - 1/3 - 1/3 as 0.3333333333333334 or 0.3333333333333333
+    depending on how the mesh's coordinate element was made. At 9.3e5 vertices dolfinx took
+    0.56 s for S (sparsity pattern, its assembly and the kernel's) and 0.13 s for D, the
+    compiled pass 0.26 s for both."""
     mesh = V.mesh
+    centroid_values = 2.0 * reference_element_vector(contact_weight(ufl.TestFunction(V)))
     n = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
     ncells = mesh.topology.index_map(2).size_local
     geometry = mesh.geometry.dofmap.array.reshape(-1, 3)[:ncells]
-    indptr, indices, data, D = _p1_entries(mesh.geometry.x, geometry, p1_cells(V), n)
+    indptr, indices, data, D = _p1_entries(mesh.geometry.x, geometry, p1_cells(V), n,
+                                            centroid_values)
     S = sp.csr_matrix((data, indices, indptr), shape=(n, n))
     S.has_sorted_indices = True
     return S, D
 
 
+def reference_element_vector(ufl_form):
+    """The element vector of a linear cell form (one cell integral) on the reference triangle
+    (0, 0), (1, 0), (0, 1), computed by its compiled kernel (`form`'s)."""
+    form(ufl_form)
+    ufcx_form, module, _ = _KERNELS[form_signature(ufl_form)]
+    integral, = (ufcx_form.integrals(module.lib.cell)[i]
+                 for i in range(ufcx_form.num_integrals(module.lib.cell)))
+    ffi = module.ffi
+    values = np.zeros(3)
+    corners = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+    integral.tabulate_tensor_float64(ffi.cast("double *", values.ctypes.data), ffi.NULL,
+                                     ffi.NULL, ffi.cast("double *", corners.ctypes.data),
+                                     ffi.NULL, ffi.NULL)
+    return values
+
+
 @kernel
-def _p1_entries(x, geometry, cells, n):
+def _p1_entries(x, geometry, cells, n, centroid_values):
     """The CSR arrays of the P1 stiffness matrix and the vector of (ψ_a, 1) for the `cells`
     (their dofs, (c, 3)) with vertex coordinates x[geometry] (`p1_stiffness_and_weights`):
     the cells of each vertex (a counting sort), each row's columns (the vertices of those
-    cells, sorted by insertion), then every cell's element matrix and vector added in."""
+    cells, sorted by insertion), then every cell's element matrix and vector added in;
+    `centroid_values`: ψ_0, ψ_1, ψ_2 at the Gauss point, as the kernel of D has them."""
     start = np.zeros(n + 1, dtype=np.int64)
     for c in range(cells.shape[0]):
         for k in range(3):
@@ -333,7 +356,7 @@ def _p1_entries(x, geometry, cells, n):
         w = size * 0.5
         for i in range(3):
             a = cells[c, i]
-            weights[a] += w * 0.3333333333333333
+            weights[a] += w * centroid_values[i]
             for j in range(3):
                 b = cells[c, j]
                 q = indptr[a]

@@ -70,3 +70,27 @@ def test_membrane_stiffness_is_mu_times_s():
     assert np.array_equal(d.S2.indices, d.S1.indices)
     # a constant has zero energy: the rows of S sum to zero (round-off of the entries)
     assert np.abs(d.S1 @ np.ones(d.n)).max() < 1e-12 * np.abs(d.S1.data).max()
+
+
+@pytest.mark.parametrize("mesh_of", [
+    lambda: scene("disk", 0.3, levels=2).mesh,                      # refined hierarchy
+    lambda: scene("square", 0.25).mesh,
+    lambda: meshes.structured_square(7, 3, grading=2.0),             # right angles: zeros
+])
+def test_compiled_stiffness_and_weights_are_dolfinx_assembly(mesh_of):
+    """The compiled pass gives dolfinx's assembly of S = (∇ψ_b, ∇ψ_a) and D = (ψ_a, 1) bit for
+    bit: the same sparsity (stored zeros included), the same arithmetic, the same order of
+    the cells' sums."""
+    import ufl
+    from dolfinx import fem
+    from forms.membrane import contact_weight, membrane_bilinear
+    from membranes.discretisation import (assemble_matrix_csr, assemble_vector_array,
+                                          p1_stiffness_and_weights)
+    V = fem.FunctionSpace(mesh_of(), ("Lagrange", 1))
+    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    S, D = p1_stiffness_and_weights(V)
+    reference = assemble_matrix_csr(membrane_bilinear(1.0, u, v))
+    for name in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(S, name), getattr(reference, name)), name
+    assert S.shape == reference.shape
+    assert np.array_equal(D, assemble_vector_array(contact_weight(v)))
