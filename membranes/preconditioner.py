@@ -178,42 +178,56 @@ def gap_scales(A):
 
 
 @kernel
-def _split_entries(indptr, indices, data, n, rtol):
+def _split_entries(indptr, indices, data, n, rtol, ref_indptr, ref_indices, ref_data):
     """The mean/gap model of `mean_gap_split` read off the CSR arrays of A (2N × 2N) in one
-    pass over the entries, and checked entry by entry in a second: (ok, S's indptr, indices
-    and data (A[:N, :N], in A's order), a, b). ok is False where a first-block row has an
-    entry outside its own columns S and N + l, where S has a zero diagonal entry, or where a
-    second-block row differs from the model by more than rtol max |S| in some column."""
+    pass over the entries, and checked entry by entry in a second: (ok, same, S's indptr,
+    indices and data (A[:N, :N], in A's order), a, b). ok is False where a first-block row has
+    an entry outside its own columns S and N + l, where S has a zero diagonal entry, or where
+    a second-block row differs from the model by more than rtol max |S| in some column.
+    `same`: A[:N, :N] is the reference matrix (its CSR arrays ref_*; empty arrays: none),
+    entry for entry and in the same order; S's arrays are then the reference's, not copies."""
     a, b, diagonal = np.zeros(n), np.zeros(n), np.zeros(n)
     S_indptr = np.zeros(n + 1, dtype=np.int64)
     ok = True
+    same = ref_indptr.size == n + 1
     for i in range(n):
+        m = ref_indptr[i] if same else 0
         for k in range(indptr[i], indptr[i + 1]):
             c = indices[k]
             if c < n:
                 S_indptr[i + 1] += 1
                 if c == i:
                     diagonal[i] += data[k]
+                if same:
+                    same = m < ref_indptr[i + 1] and ref_indices[m] == c and \
+                        ref_data[m] == data[k]
+                    m += 1
             elif c == n + i:
                 a[i] -= data[k]
             elif data[k] != 0.0:
                 ok = False
+        same = same and m == ref_indptr[i + 1]
         for k in range(indptr[n + i], indptr[n + i + 1]):
             if indices[k] == n + i:
                 b[i] += data[k]
         if diagonal[i] == 0.0:
             ok = False
         S_indptr[i + 1] += S_indptr[i]
-    S_indices = np.empty(S_indptr[n], dtype=indices.dtype)
-    S_data = np.empty(S_indptr[n])
     largest = 0.0
-    for i in range(n):
-        m = S_indptr[i]
-        for k in range(indptr[i], indptr[i + 1]):
-            if indices[k] < n:
-                S_indices[m], S_data[m] = indices[k], data[k]
-                largest = max(largest, abs(data[k]))
-                m += 1
+    if same:
+        S_indptr, S_indices, S_data = ref_indptr.astype(np.int64), ref_indices, ref_data
+        for k in range(S_data.size):
+            largest = max(largest, abs(S_data[k]))
+    else:
+        S_indices = np.empty(S_indptr[n], dtype=indices.dtype)
+        S_data = np.empty(S_indptr[n])
+        for i in range(n):
+            m = S_indptr[i]
+            for k in range(indptr[i], indptr[i + 1]):
+                if indices[k] < n:
+                    S_indices[m], S_data[m] = indices[k], data[k]
+                    largest = max(largest, abs(data[k]))
+                    m += 1
     # second block: row N + l of A minus the model (S_lj in column j at contact vertices j,
     # N + j at free ones; b_l in column N + l at a contact vertex l), scattered into `work`
     tol = rtol * largest
@@ -238,10 +252,10 @@ def _split_entries(indptr, indices, data, n, rtol):
             work[c] = 0.0
         ok = ok and abs(work[n + i]) <= tol
         work[n + i] = 0.0
-    return ok, S_indptr, S_indices, S_data, a, b
+    return ok, same, S_indptr, S_indices, S_data, a, b
 
 
-def mean_gap_split(A, rtol=1e-10):
+def mean_gap_split(A, rtol=1e-10, reference=None):
     """(S, a, b) if A is a min system with equally weighted rows (module notes, the mean/gap
     split): A = [[S, -diag a], [S (u2 → u1 where a ≠ 0), diag b]], i.e. for Y = (p, q)
 
@@ -252,10 +266,17 @@ def mean_gap_split(A, rtol=1e-10):
     else None. The second block is compared with this model entry by entry, to rtol of the
     largest entry of S (`_split_entries`: two passes over A's entries, where a product with a
     random vector, the check this replaces, took three sparse products, the diagonals and a
-    slicing, 0.26 s at 9.3e5 vertices against 0.10 s): any other matrix fails it."""
+    slicing, 0.26 s at 9.3e5 vertices against 0.10 s): any other matrix fails it.
+    `reference`: a sorted CSR matrix (the S of an earlier step, whose AMG `MeanGapAMG` keeps);
+    where A[:N, :N] holds the same entries, S is `reference` itself, not a copy (the same
+    numbers; at 9.3e5 vertices a copy is 6.5e6 entries of new memory every Newton step)."""
     A = sp.csr_matrix(A)
     n = A.shape[0] // 2
-    ok, indptr, indices, data, a, b = _split_entries(A.indptr, A.indices, A.data, n, rtol)
+    ref = reference if reference is not None and reference.shape == (n, n) else None
+    ref_arrays = (ref.indptr.astype(np.int64), ref.indices, ref.data) if ref is not None \
+        else (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=A.indices.dtype), np.zeros(0))
+    ok, same, indptr, indices, data, a, b = _split_entries(A.indptr, A.indices, A.data, n,
+                                                           rtol, *ref_arrays)
     if not ok:
         return None
     contact = a != 0
@@ -263,6 +284,8 @@ def mean_gap_split(A, rtol=1e-10):
     theta = a[contact] / np.where(ab != 0, ab, 1.0)
     if np.any(ab == 0) or (theta.size and np.ptp(theta) > rtol * np.abs(theta).max()):
         return None
+    if same:
+        return ref, a, b
     S = sp.csr_matrix((data, indices, indptr), shape=(n, n))
     S.sort_indices()
     return S, a, b
@@ -463,7 +486,7 @@ class MeanGapAMG:
 
 def same_matrix(M, N):
     """M and N (sorted CSR) hold the same entries."""
-    return M.shape == N.shape and np.array_equal(M.indptr, N.indptr) and \
+    return M is N or M.shape == N.shape and np.array_equal(M.indptr, N.indptr) and \
         np.array_equal(M.indices, N.indices) and np.array_equal(M.data, N.data)
 
 
@@ -473,7 +496,8 @@ def vertex_amg(A, inner=None, cache=None):
     (the mean's inner PC)."""
     A = sp.csr_matrix(A)
     check_shape(A)
-    split = mean_gap_split(A)
+    mean = (cache or {}).get("mean")
+    split = mean_gap_split(A, reference=mean.M if mean is not None else None)
     if split is not None:
         return MeanGapAMG(*split, inner=inner, cache=cache)
     return VertexAMG(A, inner)

@@ -176,6 +176,31 @@ def test_mean_gap_split_recognised():
     assert all(mean_gap_split(step.A) is None for step, _, _ in _steps("fb", 4)[1:])
 
 
+def test_mean_gap_split_reference():
+    """Given the S of an earlier step on the same mesh, the split returns that matrix itself
+    (the same entries: no copy) with the a, b it finds without one; a reference that differs
+    (another mesh's S, or S with one entry changed) is not taken, and the split is the same
+    as without a reference."""
+    steps = [s for s, _, _ in _steps("min", 3)]
+    first, _, _ = mean_gap_split(steps[0].A)
+    for step in steps[1:]:
+        S, a, b = mean_gap_split(step.A)
+        R, a_ref, b_ref = mean_gap_split(step.A, reference=first)
+        assert R is first and np.array_equal(a_ref, a) and np.array_equal(b_ref, b)
+        assert (S != R).nnz == 0
+    changed = first.copy()
+    changed.data[7] += 1e-3 * abs(changed.data).max()
+    other = mean_gap_split(_square_steps(2)[1][0].A)[0]
+    for reference in (changed, other):
+        S, a, b = mean_gap_split(steps[1].A, reference=reference)
+        assert S is not reference
+        expected = mean_gap_split(steps[1].A)
+        for x, y in zip((S.indptr, S.indices, S.data, a, b),
+                        (*(getattr(expected[0], k) for k in ("indptr", "indices", "data")),
+                         *expected[1:])):
+            assert np.array_equal(x, y)
+
+
 def test_mean_gap_split_is_exact():
     """With exact inner solves (LU) the split is Ã⁻¹ itself: FGMRES meets 1e-10 after one
     iteration, also for μ1 ≠ μ2."""
