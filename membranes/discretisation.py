@@ -237,30 +237,33 @@ def assemble_matrix_csr(a):
     return out
 
 
-def p1_stiffness_and_weights(V):
-    """S = (∇ψ_b, ∇ψ_a) (scipy CSR) and D = (ψ_a, 1) of a serial P1 space V (DESIGN §2) in
-    one compiled pass over the cells (`_p1_entries`), bit for bit dolfinx's assembly of
-    forms.membrane.membrane_bilinear(1, u, v) and contact_weight(v) (assemble_matrix_csr,
-    assemble_vector_array): the same sparsity (every pair of vertices of a cell, columns
-    sorted, zeros stored), FFCx's arithmetic of the P1 kernels (one Gauss point of weight 1/2;
-    the Jacobian summed from the reference gradients (-1, 1, 0), (-1, 0, 1) as FFCx's code
-    sums them, then its inverse, |det J| and the products in FFCx's order) and the cell
-    contributions summed in the cells' order, as dolfinx adds them. The values of ψ_a at the
-    Gauss point are those of the form's own compiled kernel (`reference_element_vector`):
-    basix's tabulation gives 1 - 1/3 - 1/3 as 0.3333333333333334 or 0.3333333333333333
-    depending on how the mesh's coordinate element was made. At 9.3e5 vertices dolfinx took
-    0.56 s for S (sparsity pattern, its assembly and the kernel's) and 0.13 s for D, the
-    compiled pass 0.26 s for both."""
+def p1_assembly(V):
+    """(S, D, boundary) of a serial P1 space V: S = (∇ψ_b, ∇ψ_a) (scipy CSR), D = (ψ_a, 1)
+    (DESIGN §2) and `boundary_dofs`, in two compiled passes: the neighbours of every vertex,
+    which give S's sparsity and the boundary (`_vertex_neighbours`), then one over the cells
+    (`_p1_entries`), bit for bit dolfinx's assembly of forms.membrane.membrane_bilinear(1, u,
+    v) and contact_weight(v) (assemble_matrix_csr, assemble_vector_array): the same sparsity
+    (every pair of vertices of a cell, columns sorted, zeros stored), FFCx's arithmetic of
+    the P1 kernels (one Gauss point of weight 1/2; the Jacobian summed from the reference
+    gradients (-1, 1, 0), (-1, 0, 1) as FFCx's code sums them, then its inverse, |det J| and
+    the products in FFCx's order) and the cell contributions summed in the cells' order, as
+    dolfinx adds them. The values of ψ_a at the Gauss point are those of the form's own
+    compiled kernel (`reference_element_vector`): basix's tabulation gives 1 - 1/3 - 1/3 as
+    0.3333333333333334 or 0.3333333333333333 depending on how the mesh's coordinate element
+    was made. At 9.3e5 vertices dolfinx took 0.56 s for S (sparsity pattern, its assembly and
+    the kernel's) and 0.13 s for D, the boundary count 0.16 s; the compiled passes take
+    0.26 s for all three."""
     mesh = V.mesh
     centroid_values = 2.0 * reference_element_vector(contact_weight(ufl.TestFunction(V)))
     n = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
     ncells = mesh.topology.index_map(2).size_local
     geometry = mesh.geometry.dofmap.array.reshape(-1, 3)[:ncells]
-    indptr, indices, data, D = _p1_entries(mesh.geometry.x, geometry, p1_cells(V), n,
-                                            centroid_values)
+    cells = p1_cells(V)
+    boundary, indptr, indices = _vertex_neighbours(cells, n, True)
+    data, D = _p1_entries(mesh.geometry.x, geometry, cells, indptr, indices, centroid_values)
     S = sp.csr_matrix((data, indices, indptr), shape=(n, n))
     S.has_sorted_indices = True
-    return S, D
+    return S, D, np.flatnonzero(boundary).astype(np.int32)
 
 
 def reference_element_vector(ufl_form):
@@ -280,56 +283,13 @@ def reference_element_vector(ufl_form):
 
 
 @kernel
-def _p1_entries(x, geometry, cells, n, centroid_values):
-    """The CSR arrays of the P1 stiffness matrix and the vector of (ψ_a, 1) for the `cells`
-    (their dofs, (c, 3)) with vertex coordinates x[geometry] (`p1_stiffness_and_weights`):
-    the cells of each vertex (a counting sort), each row's columns (the vertices of those
-    cells, sorted by insertion), then every cell's element matrix and vector added in;
-    `centroid_values`: ψ_0, ψ_1, ψ_2 at the Gauss point, as the kernel of D has them."""
-    start = np.zeros(n + 1, dtype=np.int64)
-    for c in range(cells.shape[0]):
-        for k in range(3):
-            start[cells[c, k] + 1] += 1
-    for a in range(n):
-        start[a + 1] += start[a]
-    fill = start[:-1].copy()
-    holding = np.empty(start[n], dtype=np.int64)
-    for c in range(cells.shape[0]):
-        for k in range(3):
-            a = cells[c, k]
-            holding[fill[a]] = c
-            fill[a] += 1
-    seen = np.zeros(n, dtype=np.bool_)
-    indptr = np.zeros(n + 1, dtype=np.int32)
-    for a in range(n):
-        m = 0
-        for p in range(start[a], start[a + 1]):
-            for k in range(3):
-                b = cells[holding[p], k]
-                if not seen[b]:
-                    seen[b] = True
-                    m += 1
-        for p in range(start[a], start[a + 1]):
-            for k in range(3):
-                seen[cells[holding[p], k]] = False
-        indptr[a + 1] = indptr[a] + m
-    indices = np.empty(indptr[n], dtype=np.int32)
-    for a in range(n):
-        m = indptr[a]
-        for p in range(start[a], start[a + 1]):
-            for k in range(3):
-                b = cells[holding[p], k]
-                if not seen[b]:
-                    seen[b] = True
-                    q = m                       # insertion into the sorted columns of row a
-                    while q > indptr[a] and indices[q - 1] > b:
-                        indices[q] = indices[q - 1]
-                        q -= 1
-                    indices[q] = b
-                    m += 1
-        for p in range(start[a], start[a + 1]):
-            for k in range(3):
-                seen[cells[holding[p], k]] = False
+def _p1_entries(x, geometry, cells, indptr, indices, centroid_values):
+    """The CSR data of the P1 stiffness matrix on the pattern (indptr, indices) of
+    `_vertex_neighbours` and the vector of (ψ_a, 1), for the `cells` (their dofs, (c, 3)) with
+    vertex coordinates x[geometry] (`p1_assembly`): every cell's element matrix and vector
+    added in, in the cells' order; `centroid_values`: ψ_0, ψ_1, ψ_2 at the Gauss point, as
+    the kernel of D has them."""
+    n = indptr.size - 1
     data = np.zeros(indptr[n])
     weights = np.zeros(n)
     d10 = np.array([-1.0, 1.0, 0.0])           # FFCx's reference gradients of ψ_0, ψ_1, ψ_2
@@ -363,7 +323,7 @@ def _p1_entries(x, geometry, cells, n, centroid_values):
                 while indices[q] != b:
                     q += 1
                 data[q] += d10[j] * t0[i] + d01[j] * t1[i]
-    return indptr, indices, data, weights
+    return data, weights
 
 
 def release_memory():
@@ -436,7 +396,7 @@ class Discretisation:
 def boundary_dofs(V):
     """The dofs of the P1 space V on the boundary of its mesh (Dirichlet vertices), increasing:
     the two vertices of every edge that lies in one cell only, counted over the cells in one
-    compiled pass (`_boundary_vertices`), which needs no mesh entities. dolfinx's exterior
+    compiled pass (`_vertex_neighbours`), which needs no mesh entities. dolfinx's exterior
     facets (locate_dofs_topological on exterior_facet_indices, still taken on a mesh shared by
     several processes, where an edge of a ghost cell may lie in one local cell) need the mesh's
     edges and their cells: 0.65 s at 9.3e5 vertices, the count 0.03 s (the flux equilibration,
@@ -449,14 +409,17 @@ def boundary_dofs(V):
         return fem.locate_dofs_topological(V, 1, dmesh.exterior_facet_indices(mesh.topology))
     cells = p1_cells(V)
     n = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
-    return np.flatnonzero(_boundary_vertices(cells, n)).astype(np.int32)
+    return np.flatnonzero(_vertex_neighbours(cells, n, False)[0]).astype(np.int32)
 
 
 @kernel
-def _boundary_vertices(cells, n):
-    """A mask of the n vertices: those of an edge that only one of the `cells` (c, 3) has.
-    The cells of each vertex a (a counting sort), then for each a the number of its cells that
-    hold each neighbour b: the edge ab lies in one cell if that number is 1."""
+def _vertex_neighbours(cells, n, columns):
+    """(boundary, indptr, indices) for the n vertices of the `cells` (c, 3): a mask of those
+    of an edge that only one cell has, and (with `columns`; else an empty `indices`) the CSR
+    pattern of the P1 matrices, row a the vertices of a's cells, sorted (by insertion: a row
+    has a handful). The cells of each vertex a (a counting sort), then for each a the number
+    of its cells that hold each neighbour b: the edge ab lies in one cell if that number is 1;
+    the neighbours with a nonzero count are row a's columns."""
     start = np.zeros(n + 1, dtype=np.int64)
     for c in range(cells.shape[0]):
         for k in range(3):
@@ -472,10 +435,15 @@ def _boundary_vertices(cells, n):
             fill[a] += 1
     count = np.zeros(n, dtype=np.int64)
     boundary = np.zeros(n, dtype=np.bool_)
+    indptr = np.zeros(n + 1, dtype=np.int32)
     for a in range(n):
+        m = 0
         for p in range(start[a], start[a + 1]):
             for k in range(3):
-                count[cells[holding[p], k]] += 1
+                b = cells[holding[p], k]
+                if count[b] == 0:
+                    m += 1
+                count[b] += 1
         for p in range(start[a], start[a + 1]):
             for k in range(3):
                 b = cells[holding[p], k]
@@ -485,7 +453,27 @@ def _boundary_vertices(cells, n):
         for p in range(start[a], start[a + 1]):
             for k in range(3):
                 count[cells[holding[p], k]] = 0
-    return boundary
+        indptr[a + 1] = indptr[a] + m
+    indices = np.empty(indptr[n] if columns else 0, dtype=np.int32)
+    if not columns:
+        return boundary, indptr, indices
+    for a in range(n):
+        m = indptr[a]
+        for p in range(start[a], start[a + 1]):
+            for k in range(3):
+                b = cells[holding[p], k]
+                if count[b] == 0:
+                    count[b] = 1
+                    q = m                       # insertion into the sorted columns of row a
+                    while q > indptr[a] and indices[q - 1] > b:
+                        indices[q] = indices[q - 1]
+                        q -= 1
+                    indices[q] = b
+                    m += 1
+        for p in range(start[a], start[a + 1]):
+            for k in range(3):
+                count[cells[holding[p], k]] = 0
+    return boundary, indptr, indices
 
 
 def discretise(problem, stiffness=True):
@@ -500,15 +488,15 @@ def discretise(problem, stiffness=True):
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
     if mesh.comm.size == 1 and stiffness:
-        S, D = p1_stiffness_and_weights(V)
+        S, D, boundary = p1_assembly(V)
     else:
         S = assemble_matrix_csr(membrane_bilinear(1.0, u, v)) if stiffness else None
         D = assemble_vector_array(contact_weight(v))
+        boundary = boundary_dofs(V)
     dxd = data_measures(mesh, problem.interface)
     f1, f2 = (load(f, mesh) for f in (problem.f1, problem.f2))
     F1 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f1, v, dx)))
     F2 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f2, v, dx)))
-    boundary = boundary_dofs(V)
     n = V.dofmap.index_map.size_local
     S1 = S2 = None
     if S is not None:

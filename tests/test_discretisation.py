@@ -77,20 +77,21 @@ def test_membrane_stiffness_is_mu_times_s():
     lambda: scene("square", 0.25).mesh,
     lambda: meshes.structured_square(7, 3, grading=2.0),             # right angles: zeros
 ])
-def test_compiled_stiffness_and_weights_are_dolfinx_assembly(mesh_of):
-    """The compiled pass gives dolfinx's assembly of S = (∇ψ_b, ∇ψ_a) and D = (ψ_a, 1) bit for
-    bit: the same sparsity (stored zeros included), the same arithmetic, the same order of
-    the cells' sums."""
+def test_compiled_assembly_is_dolfinx_assembly(mesh_of):
+    """The compiled passes give dolfinx's assembly of S = (∇ψ_b, ∇ψ_a) and D = (ψ_a, 1) bit
+    for bit (the same sparsity, stored zeros included, the same arithmetic, the same order of
+    the cells' sums) and dolfinx's exterior-facet dofs."""
     import ufl
     from dolfinx import fem
     from forms.membrane import contact_weight, membrane_bilinear
     from membranes.discretisation import (assemble_matrix_csr, assemble_vector_array,
-                                          p1_stiffness_and_weights)
+                                          p1_assembly)
     V = fem.FunctionSpace(mesh_of(), ("Lagrange", 1))
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-    S, D = p1_stiffness_and_weights(V)
+    S, D, boundary = p1_assembly(V)
     reference = assemble_matrix_csr(membrane_bilinear(1.0, u, v))
     for name in ("indptr", "indices", "data"):
         assert np.array_equal(getattr(S, name), getattr(reference, name)), name
     assert S.shape == reference.shape
     assert np.array_equal(D, assemble_vector_array(contact_weight(v)))
+    assert boundary.dtype == np.int32 and np.array_equal(boundary, _exterior_facet_dofs(V))
