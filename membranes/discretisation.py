@@ -19,7 +19,11 @@ structure, on any mesh, gets a dolfinx Form of that kernel at the cost of a chea
 turns every number of a custom quadrature rule into a string: a load on the data measures
 took 9 ms in fem.form, 0.8 ms in `form` (disk, T_0). Other modules' forms may use it too.
 
-Serial: the matrices are handed to the driver as scipy CSR (owned rows = all rows).
+Serial: the matrices are handed to the driver as scipy CSR (owned rows = all rows). S, D and
+the boundary vertices then come from two compiled passes (`p1_assembly`: the neighbours of each
+vertex, then the cells), bit for bit what dolfinx assembles from the forms above: 0.25 s where
+dolfinx took 0.85 s at 9.3e5 vertices. On several processes (ghosts, global numbers), and for
+the loads, dolfinx assembles.
 """
 
 import functools
