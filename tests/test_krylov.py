@@ -20,7 +20,7 @@ from membranes import solve
 from membranes import newton_system as ns
 from membranes.cli import main
 from membranes.krylov import DEFAULT_OPTIONS, Krylov, parse_petsc_options, with_diagonal
-from membranes.linear_solve import petsc_matrix
+from membranes.linear_solve import petsc_matrix, written_csr
 from membranes.newton import EXACT_LINEAR_TOL, linear_step, semismooth_newton
 
 from .conftest import cli_bad_input, scene, solved_with
@@ -207,6 +207,24 @@ def test_matrix_builders():
     assert np.array_equal(sp.csr_matrix((data, indices, indptr), shape=A.shape).toarray(),
                           A.toarray())
     M.destroy()
+
+
+def test_written_csr_holds_its_buffers():
+    """written_csr: the matrix of the rows written into longer buffers, on the buffers
+    themselves (shrunk to the entries written, no copy), and so are the matrices scipy makes
+    of it (a view of a prefix shorter than half its buffer would be copied by each)."""
+    A = sp.random(50, 60, density=0.1, format="csr", random_state=3)
+    A.sort_indices()
+    bound = 4 * A.nnz                               # the written entries: a quarter
+    indices, data = np.empty(bound, dtype=np.int32), np.empty(bound)
+    indices[:A.nnz], data[:A.nnz] = A.indices, A.data
+    address = data.ctypes.data
+    W = written_csr(A.indptr.astype(np.int64), indices, data, A.shape)
+    assert np.array_equal(W.toarray(), A.toarray())
+    assert data.size == indices.size == A.nnz
+    for M in (W, sp.csr_matrix(W)):
+        assert np.shares_memory(M.data, data) and np.shares_memory(M.indices, indices)
+        assert M.data.ctypes.data == address
 
 
 def test_parse_petsc_options():
