@@ -1030,6 +1030,7 @@ class FluxEquilibration:
         _class_cell_data(geo.x, geo.cells, space.exterior_edge, self._cent, self._exterior_bits)
         self._scale = np.sqrt(geo.area.mean())
         self._pending = []
+        self._class_sums = None            # the classes' sums of `sigmas`, zero between calls
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
         level, alone = [], []
@@ -1317,36 +1318,52 @@ class FluxEquilibration:
         together: σ_f,α, plus μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on
         their own, plus the classes' part: `algebraic_flux._apply_buckets` on the data
         [μ_α ∇u_h per cell | R_l / N_l per vertex | ±λ] of all fields side by side
-        (`_class_data`, compiled), with the changes of basis kept by the set-up; each σ the
-        same to the bit as alone."""
+        (`_class_data`, compiled), with the changes of basis kept by the set-up, into a buffer
+        kept between evaluations; one compiled pass (`_add_classes`) adds σ_f,α and clears the
+        buffer for the next call (no array of all RT dofs per field is allocated or zeroed
+        for the sums). The σ are the rows of one array; each the same to the bit as alone."""
         p = self.disc.problem
         mus = np.array([p.mu1 if alpha == 1 else p.mu2 for alpha, _, _ in fields])
         signs = np.array([1.0 if alpha == 1 else -1.0 for alpha, _, _ in fields])
         rows = self.touched
-        if self.classes is not None:
+        k, size = len(fields), self.sigma_f.shape[1]
+        out = np.empty((k, size))
+        if self.classes is None:
+            for f, (alpha, _, _) in enumerate(fields):
+                out[f] = self.sigma_f[alpha - 1]
+        else:
             from .algebraic_flux import _apply_buckets
             geo = self.geo
-            data = np.empty((2 * geo.ncells + 2 * len(lam), len(fields)))
+            data = np.empty((2 * geo.ncells + 2 * len(lam), k))
             given = any(R is not None for _, _, R in fields)
             Rs = np.array([np.zeros(len(lam)) if R is None else R for _, _, R in fields]
                           if given else np.zeros((len(fields), 0)))
             _class_data(geo.cells, geo.grad, geo.cells_per_vertex, mus, signs,
                         np.array([u for _, u, _ in fields]), lam, Rs, data)
-            classes = _apply_buckets(self.classes, data, self.sigma_f.shape[1])
-        out = []
+            if self._class_sums is None or self._class_sums.shape[1] != k:
+                self._class_sums = np.zeros((size, k))
+            classes = _apply_buckets(self.classes, data, size, self._class_sums)
+            at_rows = classes[rows]
+            _add_classes(self.sigma_f, np.array([alpha - 1 for alpha, _, _ in fields]),
+                         classes, out)
         for f, (alpha, u, R) in enumerate(fields):
             base = self.sigma_f[alpha - 1]
             at = mus[f] * (self.G_u @ u) + signs[f] * (self.G_lam @ lam) + base[rows]
             if R is not None:
                 at += self.G_R @ R
-            if self.classes is None:
-                s = base.copy()
-                s[rows] = at
-            else:
-                s = base + classes[:, f]
-                s[rows] = at + classes[rows, f]
-            out.append(s)
-        return out
+            out[f, rows] = at if self.classes is None else at + at_rows[:, f]
+        return list(out)
+
+
+@kernel
+def _add_classes(sigma_f, which, classes, out):
+    """out[f] = σ_f[which[f]] + classes[:, f] for the fields f of classes (size, k) (the
+    classes' sums of FluxEquilibration.sigmas), and classes set to zero, in one pass."""
+    k = out.shape[0]
+    for i in range(out.shape[1]):
+        for f in range(k):
+            out[f, i] = sigma_f[which[f], i] + classes[i, f]
+            classes[i, f] = 0.0
 
 
 @kernel
