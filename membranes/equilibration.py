@@ -222,23 +222,17 @@ def rt_numbering(c2e, slots, nedges):
     """The global RT_1 dofs of each cell (ncells, 8) int32, and their number: the two dofs of
     edge E are 2 E, 2 E + 1 (in slot order, the same in both cells of the edge), those of
     cell c's interior 2 nedges + 2 c, 2 nedges + 2 c + 1 (c2e (ncells, 3) the cells' edges,
-    slots as `_rt_slots`); one compiled pass (`_rt_cells`)."""
+    slots as `_rt_slots`)."""
     nc = len(c2e)
     if 2 * nedges + 2 * nc >= 2 ** 31:
         raise ValueError("more RT dofs than int32 numbers")
     rt = np.empty((nc, 8), dtype=np.int32)
-    _rt_cells(c2e, slots, nedges, rt)
-    return rt, 2 * nedges + 2 * nc
-
-
-@kernel
-def _rt_cells(c2e, slots, nedges, rt):
-    """The loop of `rt_numbering`, into rt (ncells, 8)."""
-    for c in range(rt.shape[0]):
+    for e in range(3):
         for t in range(2):
-            for e in range(3):
-                rt[c, slots[e, t]] = 2 * c2e[c, e] + t
-            rt[c, slots[3, t]] = 2 * nedges + 2 * c + t
+            rt[:, slots[e][t]] = 2 * c2e[:, e] + t
+    for t in range(2):
+        rt[:, slots[3][t]] = 2 * nedges + 2 * np.arange(nc, dtype=np.int32) + t
+    return rt, 2 * nedges + 2 * nc
 
 
 def graph_colouring(pairs, n, seed=0):
