@@ -315,10 +315,8 @@ class MultilevelFlux:
         self.prolong = [None, None] + [
             Prolongation(spaces[j - 1], spaces[j], self._parents[j], self.Bp2[j])
             for j in range(2, J + 1)]
-        # what an evaluation needs: the coarse geometry, the fine areas, the RT dimensions;
-        # the finest level's RT numbering (PatchSpace.rt_numbering: the flux equilibration's
-        # on the same mesh)
-        self.rt_cells = spaces[J].rt_cells
+        # what an evaluation needs: the coarse geometry, the fine areas, the RT dimensions
+        self.RT = spaces[J].RT
         self.areas = [g.area for g in self.geo]
         self.geo = [self.geo[0]]
 

@@ -210,31 +210,6 @@ def _rt_reference():
     return mass, div, moment, sign
 
 
-@functools.lru_cache(maxsize=None)
-def _rt_slots():
-    """The local dofs of the RT_1 element (dolfinx's ("RT", 2): basix's, `_rt_element`) on
-    each entity, (4, 2): edges 0, 1, 2 (edge e opposite vertex e), then the interior."""
-    dofs = _rt_element().entity_dofs
-    return np.array([dofs[1][e] for e in range(3)] + [dofs[2][0]])
-
-
-def rt_numbering(c2e, slots, nedges):
-    """The global RT_1 dofs of each cell (ncells, 8) int32, and their number: the two dofs of
-    edge E are 2 E, 2 E + 1 (in slot order, the same in both cells of the edge), those of
-    cell c's interior 2 nedges + 2 c, 2 nedges + 2 c + 1 (c2e (ncells, 3) the cells' edges,
-    slots as `_rt_slots`)."""
-    nc = len(c2e)
-    if 2 * nedges + 2 * nc >= 2 ** 31:
-        raise ValueError("more RT dofs than int32 numbers")
-    rt = np.empty((nc, 8), dtype=np.int32)
-    for e in range(3):
-        for t in range(2):
-            rt[:, slots[e][t]] = 2 * c2e[:, e] + t
-    for t in range(2):
-        rt[:, slots[3][t]] = 2 * nedges + 2 * np.arange(nc, dtype=np.int32) + t
-    return rt, 2 * nedges + 2 * nc
-
-
 def graph_colouring(pairs, n, seed=0):
     """Colours of n nodes such that the two ends of every pair (m, 2) differ (Jones–Plassmann:
     in each round the nodes whose random priority beats their uncoloured neighbours take the
@@ -308,28 +283,29 @@ class PatchSpace:
     """RT_1 × DG1 on one mesh, with the per-cell blocks that every patch problem is made of:
     Me[K] = (φ_j, φ_i)_K (RT mass), Be[K] = (∇·φ_j, q_i)_K and Ce[K] = (φ_k e_d, φ_j)_K, in
     the global RT basis (dof transformations applied as dolfinx does), computed from the
-    cells' geometry (`element_blocks`, `vector_moments`) for the cells asked for.
-
-    The global RT basis functions are dolfinx's ("RT", 2), numbered here from the mesh's
-    edges and cells (`rt_numbering`) rather than by dolfinx's dofmap: making dolfinx's space
-    costs its dofmap and that map's reordering (0.5 s on 1.9e6 cells, a tenth of the flux
-    set-up), and the set-up and evaluation need no dolfinx function of it. `RT` (dolfinx's
-    space, made at first use), `dolfinx_dofs` and `function` give one where tests and pictures
-    want it."""
+    cells' geometry (`element_blocks`, `vector_moments`) for the cells asked for."""
 
     def __init__(self, V, blocks=True):
-        from dolfinx import mesh as dmesh
+        from dolfinx import fem, mesh as dmesh
         mesh = V.mesh
         self.V = V
         self.geo = geo = Geometry(V)
         nc = geo.ncells
+        self.RT = fem.FunctionSpace(mesh, ("RT", 2))
+        # dolfinx's int32 arrays as they are (no int64 copies of O(ncells) entries; the
+        # products that need 64 bits are formed in int64 where they are made)
+        self.rt_cells = self.RT.dofmap.list.array.reshape(nc, -1)
         _check_vertex_order(V)
-        # edge e of a cell is opposite its vertex e (basix); slot[e] (3 edges, then the
-        # interior): the entity's dofs in basix's order (dolfinx's dof layout of the element)
-        self.slots = _rt_slots()
+        # edge e of a cell is opposite its vertex e (basix); which RT dofs sit on which edge
+        layout = self.RT.dofmap.dof_layout
         self.edge_of_dof = np.full(8, -1)
         for e in range(3):
-            self.edge_of_dof[self.slots[e]] = e
+            self.edge_of_dof[layout.entity_dofs(1, e)] = e
+        # slot[e] (3 edges, then the interior): the entity's dofs in their order; a dof's
+        # slot is the same in every cell that has the entity (dolfinx numbers the dofs of an
+        # entity once and carries orientations in the dof transformations)
+        self.slots = np.array([layout.entity_dofs(1, e) for e in range(3)]
+                              + [layout.entity_dofs(2, 0)])
         mesh.topology.create_connectivity(2, 1)
         self.c2e = mesh.topology.connectivity(2, 1).array.reshape(nc, 3)
         nedges = mesh.topology.index_map(1).size_local + mesh.topology.index_map(1).num_ghosts
@@ -337,42 +313,11 @@ class PatchSpace:
         mesh.topology.create_connectivity(1, 2)          # the exterior facets read it
         exterior[dmesh.exterior_facet_indices(mesh.topology)] = True
         self.exterior_edge = exterior[self.c2e]
-        self.rt_cells, self.nrt = rt_numbering(self.c2e, self.slots, nedges)
+        self.nrt = self.RT.dofmap.index_map.size_local
         self.reflections = cell_reflections(mesh, nc).astype(np.int64)
         self.Me = self.Be = None
         if blocks:
             self.Me, self.Be = self.element_blocks(np.arange(nc))
-
-    @functools.cached_property
-    def RT(self):
-        """dolfinx's ("RT", 2) on the mesh, made at first use (tests and pictures make
-        functions of it: `function`)."""
-        from dolfinx import fem
-        return fem.FunctionSpace(self.V.mesh, ("RT", 2))
-
-    @functools.cached_property
-    def dolfinx_dofs(self):
-        """dolfinx's number (in `RT`) of each RT dof of this numbering, (nrt,): the same basis
-        function (dolfinx numbers an entity's dofs in the layout's order too, and carries the
-        orientations in the dof transformations); checked to be a permutation that maps every
-        cell's dofs onto dolfinx's."""
-        nc = self.geo.ncells
-        theirs = self.RT.dofmap.list.array.reshape(-1, 8)[:nc]
-        if self.RT.dofmap.index_map.size_local != self.nrt:
-            raise RuntimeError("dolfinx's RT space has another dimension")
-        perm = np.full(self.nrt, -1, dtype=np.int64)
-        perm[self.rt_cells] = theirs
-        if not (np.array_equal(perm[self.rt_cells], theirs)
-                and np.array_equal(np.sort(perm), np.arange(self.nrt))):
-            raise RuntimeError("the RT numbering is not a renumbering of dolfinx's")
-        return perm
-
-    def function(self, coefficients):
-        """The dolfinx Function of `RT` with these coefficients (in this numbering)."""
-        from dolfinx import fem
-        f = fem.Function(self.RT)
-        f.x.array[self.dolfinx_dofs] = coefficients
-        return f
 
     @functools.cached_property
     def DG(self):
@@ -1070,6 +1015,7 @@ class FluxEquilibration:
         self.disc = disc
         space = self.space = PatchSpace(disc.V, blocks=False)
         self.geo = geo = space.geo
+        self.RT = space.RT
         self.lift = Lifting(geo)
         on_boundary = np.zeros(geo.n, dtype=bool)
         on_boundary[disc.boundary] = True
@@ -1108,7 +1054,7 @@ class FluxEquilibration:
             self._class_load(level, wf)
         # what the evaluation does not need goes
         del self._pending
-        space.c2e = space.exterior_edge = None     # rt_cells, reflections: CellFluxNorms
+        space.rt_cells = space.c2e = space.exterior_edge = space.reflections = None
 
     def _classes(self, verts, CS, KA, boundary, level):
         """The patches of P vertices (cells CS (P, n), a's local index KA) that are translates

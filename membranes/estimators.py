@@ -50,7 +50,8 @@ is the later iterate of the one before; `sigma_disc` keeps the last two.
 import numpy as np
 
 from .compiled import kernel, part
-from .equilibration import FluxEquilibration, _rt_element, p1_mass_solve, rt_signs
+from .equilibration import (FluxEquilibration, _rt_element, cell_reflections, p1_mass_solve,
+                            rt_signs)
 from .meshes import cell_diameters
 from .newton_system import split
 
@@ -128,8 +129,8 @@ def _lifted_squares(area, cells, cpv, R1, R2, shift):
 
 class CellFluxNorms:
     """‖a + c σ‖_K² on every cell K at once, for a = b ∇u_h (u_h ∈ P1 by its nodal values, b a
-    factor), a factor c and σ ∈ RT_1 given by its global coefficients (dolfinx's ("RT", 2) basis on
-    `space`, a PatchSpace, in its numbering), without assembly (DESIGN §7: η_F and η_alg, with b = μ^{1/2} and
+    factor), a factor c and σ ∈ RT_1 given by its global coefficients (dolfinx's ("RT", 2) on
+    `space`, a PatchSpace), without assembly (DESIGN §7: η_F and η_alg, with b = μ^{1/2} and
     c = μ^{-1/2}). On K, σ = (1/det J) J Σ_j s_j c_j ψ̂_j ∘ F_K⁻¹: the contravariant Piola map
     of basix's reference basis ψ̂ (RT_1, Legendre variant) with the cell's dof signs s (its
     edge reflections), as in PatchSpace.element_blocks. Its components are polynomials of
@@ -146,13 +147,15 @@ class CellFluxNorms:
 
     def __init__(self, space):
         import basix
-        self.geo = space.geo
-        self.reflections = space.reflections.astype(np.int8)
+        self.geo = geo = space.geo
+        nc = geo.ncells
+        self.reflections = cell_reflections(space.RT.mesh, nc).astype(np.int8)
         X, self.w = basix.make_quadrature(basix.CellType.triangle, 4)
         psi = _rt_element().tabulate(0, X)[0]                             # (q, 8, 2)
         psi = psi.transpose(2, 0, 1).reshape(-1, 8)                       # (2 q, 8)
         self.psi = np.ascontiguousarray(psi[None] * rt_signs(np.arange(8))[:, None, :])  # ρ
-        self.rt_cells = space.rt_cells                                    # (nc, 8) int32
+        self.rt_cells = np.ascontiguousarray(space.RT.dofmap.list.array.reshape(-1, 8)[:nc],
+                                             dtype=np.int32)       # dolfinx's, no copy
 
     def squared(self, u, sigma, tau=None, b=1.0, c=1.0, out=None):
         """∫_K |b ∇u_h + c σ|² for every cell K; with τ ∈ RT_1 also ∫_K |b ∇u_h + c σ + c τ|²

@@ -83,7 +83,8 @@ def test_divergence_and_normal_continuity(setup, which):
     lam_h.x.array[:] = lam
     dg_cells = DG.dofmap.list.array.reshape(-1, 3)
     for alpha, u, Ra, f in ((1, u1, R[:n], problem.f1), (2, u2, R[n:2 * n], problem.f2)):
-        sigma = eq.space.function(eq.sigma(alpha, u, lam, Ra))
+        sigma = fem.Function(eq.RT)
+        sigma.x.array[:] = eq.sigma(alpha, u, lam, Ra)
         r = fem.Function(DG)
         r.x.array[dg_cells.ravel()] = eq.lift @ Ra
         sign = 1.0 if alpha == 1 else -1.0
@@ -194,25 +195,6 @@ def _assembled_blocks(space, form, rows, cols, colours=True):
     return out
 
 
-@pytest.mark.parametrize("kind", ["disk-refined", "structured", "square"])
-def test_rt_numbering_renumbers_dolfinx_dofmap(kind):
-    """PatchSpace numbers the RT_1 dofs from the edges and cells (rt_numbering); each of its
-    dofs is one of dolfinx's ("RT", 2) (the two of an edge, in the layout's order, in both
-    cells of the edge): dolfinx_dofs is a permutation that takes every cell's dofs onto
-    dolfinx's dofmap, and `function` puts the coefficients where dolfinx has them."""
-    from membranes.equilibration import PatchSpace
-    d = _discretisation(kind)
-    space = PatchSpace(d.V, blocks=False)
-    nc = space.geo.ncells
-    theirs = space.RT.dofmap.list.array.reshape(-1, 8)[:nc]
-    perm = space.dolfinx_dofs
-    assert space.nrt == space.RT.dofmap.index_map.size_local
-    assert np.array_equal(np.sort(perm), np.arange(space.nrt))
-    assert np.array_equal(perm[space.rt_cells], theirs)
-    c = np.random.default_rng(3).standard_normal(space.nrt)
-    assert np.array_equal(space.function(c).x.array[theirs], c[space.rt_cells])
-
-
 @pytest.mark.parametrize("kind", ["disk-refined", "structured"])
 def test_element_blocks_match_dolfinx_assembly(kind):
     """The per-cell RT_1 × DG1 blocks computed from reference integrals and the Piola map (with
@@ -230,7 +212,7 @@ def test_element_blocks_match_dolfinx_assembly(kind):
     assert len(np.unique(space.reflections)) > 1         # some edges are reflected
     sig, tau = ufl.TrialFunction(space.RT), ufl.TestFunction(space.RT)
     p, q = ufl.TrialFunction(space.DG), ufl.TestFunction(space.DG)
-    rt, dg = space.dolfinx_dofs[space.rt_cells], space.dg_cells.astype(np.int64)
+    rt, dg = space.rt_cells, space.dg_cells.astype(np.int64)
     W = fem.VectorFunctionSpace(d.V.mesh, ("DG", 1))
     wc = W.dofmap.list.array.reshape(nc, -1).astype(np.int64)
     wcols = (2 * wc[:, :, None] + np.arange(2)).reshape(nc, 6)          # (k, d) -> 2k + d
@@ -270,11 +252,10 @@ def _patchwise_sigma(d, alpha, u, lam, R):
     uh, r = fem.Function(d.V), fem.Function(space.DG)
     uh.x.array[:] = u
     r.x.array[space.dg_cells.ravel()] = lifting(geo) @ R
-    P = space.dolfinx_dofs                       # the RT rows and columns in the space's order
-    M = assemble_matrix_csr(rt_mass(sig, tau)).toarray()[np.ix_(P, P)]
-    B = assemble_matrix_csr(divergence(sig, q)).toarray()[:, P]
+    M = assemble_matrix_csr(rt_mass(sig, tau)).toarray()
+    B = assemble_matrix_csr(divergence(sig, q)).toarray()
     mass_q = assemble_vector_array(q * ufl.dx)                               # (1, q_i)
-    G = assemble_matrix_csr(-psi * mu * ufl.inner(ufl.grad(uh), tau) * ufl.dx).toarray()[P]
+    G = assemble_matrix_csr(-psi * mu * ufl.inner(ufl.grad(uh), tau) * ufl.dx).toarray()
     g = assemble_matrix_csr(over(d.dx_data, lambda dx: (psi * (f - r) - mu * ufl.inner(
         ufl.grad(uh), ufl.grad(psi))) * q * dx)).toarray()
     g_lam = assemble_matrix_csr(psi * q * ufl.dx).toarray()                 # (ψ_a, q)
