@@ -1030,7 +1030,8 @@ class FluxEquilibration:
         _class_cell_data(geo.x, geo.cells, space.exterior_edge, self._cent, self._exterior_bits)
         self._scale = np.sqrt(geo.area.mean())
         self._pending = []
-        self._class_sums = None            # the classes' sums of `sigmas`, zero between calls
+        # the classes' data and sums of `sigmas`, kept between calls (the sums zero)
+        self._class_sums = self._class_input = None
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
         level, alone = [], []
@@ -1319,7 +1320,7 @@ class FluxEquilibration:
         their own, plus the classes' part: `algebraic_flux._apply_buckets` on the data
         [μ_α ∇u_h per cell | R_l / N_l per vertex | ±λ] of all fields side by side
         (`_class_data`, compiled), with the changes of basis kept by the set-up, into a buffer
-        kept between evaluations; one compiled pass (`_add_classes`) adds σ_f,α and clears the
+        kept between evaluations (as the data are: no fresh pages per call); one compiled pass (`_add_classes`) adds σ_f,α and clears the
         buffer for the next call (no array of all RT dofs per field is allocated or zeroed
         for the sums). The σ are the rows of one array; each the same to the bit as alone."""
         p = self.disc.problem
@@ -1334,14 +1335,15 @@ class FluxEquilibration:
         else:
             from .algebraic_flux import _apply_buckets
             geo = self.geo
-            data = np.empty((2 * geo.ncells + 2 * len(lam), k))
+            if self._class_sums is None or self._class_sums.shape[1] != k:
+                self._class_sums = np.zeros((size, k))
+                self._class_input = np.empty((2 * geo.ncells + 2 * len(lam), k))
+            data = self._class_input                  # every entry written by _class_data
             given = any(R is not None for _, _, R in fields)
             Rs = np.array([np.zeros(len(lam)) if R is None else R for _, _, R in fields]
                           if given else np.zeros((len(fields), 0)))
             _class_data(geo.cells, geo.grad, geo.cells_per_vertex, mus, signs,
                         np.array([u for _, u, _ in fields]), lam, Rs, data)
-            if self._class_sums is None or self._class_sums.shape[1] != k:
-                self._class_sums = np.zeros((size, k))
             classes = _apply_buckets(self.classes, data, size, self._class_sums)
             at_rows = classes[rows]
             _add_classes(self.sigma_f, np.array([alpha - 1 for alpha, _, _ in fields]),
