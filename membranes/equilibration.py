@@ -112,7 +112,7 @@ class Geometry:
         self.n = V.dofmap.index_map.size_local
         self.x = x = np.ascontiguousarray(V.tabulate_dof_coordinates()[:, :2])
         self.area = np.empty(self.ncells)
-        self.grad = np.empty((self.ncells, 3, 2))              # (ncells, 3, 2)
+        self.grad = populated_empty((self.ncells, 3, 2), float)  # (ncells, 3, 2)
         _cell_geometry(x, self.cells, self.area, self.grad)
         self.cells_per_vertex = np.bincount(self.cells.ravel(), minlength=self.n)
 
@@ -160,17 +160,19 @@ class Lifting:
         return (self.scale * (v @ _MINV_REF.T)).ravel()
 
 
-def populated_empty(shape, dtype):
-    """np.empty(shape, dtype), for a large array (16 MB or more) in pages that the kernel maps
-    at once (an anonymous private mmap with MAP_POPULATE) instead of at the first write to
-    each: where page faults are dear (a gVisor sandbox: 0.5-0.7 s per 360 MB of fresh pages
-    written, against 0.14 s populated), for the set-up's arrays of O(N) rows that a compiled
-    pass then writes in a scattered order (`_member_maps`)."""
+def populated_empty(shape, dtype, zero=False):
+    """np.empty(shape, dtype) (np.zeros with zero=True), for a large array (16 MB or more) in
+    pages that the kernel maps at once (an anonymous private mmap with MAP_POPULATE: zero
+    pages) instead of at the first write to each: where page faults are dear (a gVisor
+    sandbox: 0.5-0.7 s per 360 MB of fresh pages written, against 0.14 s populated), for the
+    arrays of O(N) entries that the set-up and the evaluation make (the members' maps that
+    `_member_maps` writes in a scattered order, the cells' gradients, σ_f, the classes' data
+    and sums, the σ of `sigmas`)."""
     import mmap
     dtype = np.dtype(dtype)
     size = int(np.prod(shape)) * dtype.itemsize
     if size < 1 << 24 or not hasattr(mmap, "MAP_POPULATE"):
-        return np.empty(shape, dtype)
+        return (np.zeros if zero else np.empty)(shape, dtype)
     buf = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | mmap.MAP_POPULATE)
     return np.frombuffer(buf, dtype=dtype).reshape(shape)
 
@@ -1038,7 +1040,7 @@ class FluxEquilibration:
         # their own touch a few thousand where the classes take all others
         self.touched = np.zeros(0, dtype=np.int64)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix((0, geo.n)) for _ in range(3))
-        self.sigma_f = np.zeros((2, space.nrt))
+        self.sigma_f = populated_empty((2, space.nrt), float, zero=True)
         # the cells' centroids (translation_classes) and ∂Ω edges as bits (_translates)
         self._cent = np.empty((geo.ncells, 2))
         self._exterior_bits = np.empty(geo.ncells, dtype=np.int64)
@@ -1343,7 +1345,7 @@ class FluxEquilibration:
         signs = np.array([1.0 if alpha == 1 else -1.0 for alpha, _, _ in fields])
         rows = self.touched
         k, size = len(fields), self.sigma_f.shape[1]
-        out = np.empty((k, size))
+        out = populated_empty((k, size), float)
         if self.classes is None:
             for f, (alpha, _, _) in enumerate(fields):
                 out[f] = self.sigma_f[alpha - 1]
@@ -1351,8 +1353,8 @@ class FluxEquilibration:
             from .algebraic_flux import _apply_buckets
             geo = self.geo
             if self._class_sums is None or self._class_sums.shape[1] != k:
-                self._class_sums = np.zeros((size, k))
-                self._class_input = np.empty((2 * geo.ncells + 2 * len(lam), k))
+                self._class_sums = populated_empty((size, k), float, zero=True)
+                self._class_input = populated_empty((2 * geo.ncells + 2 * len(lam), k), float)
             data = self._class_input                  # every entry written by _class_data
             given = any(R is not None for _, _, R in fields)
             Rs = np.array([np.zeros(len(lam)) if R is None else R for _, _, R in fields]
