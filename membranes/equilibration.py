@@ -167,7 +167,8 @@ def populated_empty(shape, dtype, zero=False):
     sandbox: 0.5-0.7 s per 360 MB of fresh pages written, against 0.14 s populated), for the
     arrays of O(N) entries that the set-up and the evaluation make (the members' maps that
     `_member_maps` writes in a scattered order, the cells' gradients, σ_f, the classes' data
-    and sums, the σ of `sigmas`)."""
+    and sums that `sigmas` keeps; not the σ that each call returns: freed pages of earlier
+    calls serve those as cheaply, populating them again costs more)."""
     import mmap
     dtype = np.dtype(dtype)
     size = int(np.prod(shape)) * dtype.itemsize
@@ -1345,7 +1346,7 @@ class FluxEquilibration:
         signs = np.array([1.0 if alpha == 1 else -1.0 for alpha, _, _ in fields])
         rows = self.touched
         k, size = len(fields), self.sigma_f.shape[1]
-        out = populated_empty((k, size), float)
+        out = np.empty((k, size))
         if self.classes is None:
             for f, (alpha, _, _) in enumerate(fields):
                 out[f] = self.sigma_f[alpha - 1]
