@@ -53,7 +53,9 @@ centroids and ∂Ω edges (`_class_cell_data`), the classes from the patches' ro
 offsets (`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
 `_match`: a check of the vertices, each cell's canonical vertex order computed at its first
 use), and each member's change of basis and data indices from tables per representative dof
-(`_member_maps`, in the patches' order).
+(`_member_maps`, in the patches' order). The arrays of O(N) entries
+that the set-up keeps are made in populated pages (`populated_empty`): where a page's first
+write is dear (a gVisor sandbox), one mapping call for all of them instead of a fault per page.
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures; `load_moments`: f_α evaluated once at the points of
