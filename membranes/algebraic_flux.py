@@ -89,11 +89,13 @@ def _buckets(groups):
     return buckets, ret
 
 
-def _apply_buckets(level, flat, size):
+def _apply_buckets(level, flat, size, out=None):
     """Σ_a σ^a over the patches of `level` (global RT coefficients, length `size`; for
     MultilevelFlux all levels' RT spaces one after the other) from the flat array of their
     data moments; with flat of shape (n, k), k fields at once (their data side by side, as
-    FluxEquilibration.sigmas gives both membranes' data), returned as (size, k). Per bucket, a
+    FluxEquilibration.sigmas gives both membranes' data), returned as (size, k), into `out`
+    if given (zero on entry: a buffer that the caller keeps and clears, so that no array of
+    size k entries is allocated per call, FluxEquilibration.sigmas). Per bucket, a
     few classes at a time (about ROWS patches: the temporaries stay in cache): the data of
     their patches, all fields (`_gather`, compiled: one read of the indices, one cache line
     for the fields of a datum), one product per class and field with its representative's
@@ -107,7 +109,8 @@ def _apply_buckets(level, flat, size):
     one = flat.ndim == 1
     flat = flat.reshape(len(flat), -1)
     k = flat.shape[1]
-    out = np.zeros((size, k))
+    if out is None:
+        out = np.zeros((size, k))
     for (S, G, L, C), ret in zip(buckets, rets):
         g, nr, nq = S.shape
         per = G.shape[0] // g                          # the patches of each class

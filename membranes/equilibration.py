@@ -53,7 +53,9 @@ centroids and ∂Ω edges (`_class_cell_data`), the classes from the patches' ro
 offsets (`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
 `_match`: a check of the vertices, each cell's canonical vertex order computed at its first
 use), and each member's change of basis and data indices from tables per representative dof
-(`_member_maps`, in the patches' order).
+(`_member_maps`, in the patches' order). The arrays of O(N) entries
+that the set-up keeps are made in populated pages (`populated_empty`): where a page's first
+write is dear (a gVisor sandbox), one mapping call for all of them instead of a fault per page.
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures; `load_moments`: f_α evaluated once at the points of
@@ -112,7 +114,7 @@ class Geometry:
         self.n = V.dofmap.index_map.size_local
         self.x = x = np.ascontiguousarray(V.tabulate_dof_coordinates()[:, :2])
         self.area = np.empty(self.ncells)
-        self.grad = np.empty((self.ncells, 3, 2))              # (ncells, 3, 2)
+        self.grad = populated_empty((self.ncells, 3, 2), float)  # (ncells, 3, 2)
         _cell_geometry(x, self.cells, self.area, self.grad)
         self.cells_per_vertex = np.bincount(self.cells.ravel(), minlength=self.n)
 
@@ -158,6 +160,24 @@ class Lifting:
     def __matmul__(self, R):
         v = (R / self.geo.cells_per_vertex)[self.geo.cells]
         return (self.scale * (v @ _MINV_REF.T)).ravel()
+
+
+def populated_empty(shape, dtype, zero=False):
+    """np.empty(shape, dtype) (np.zeros with zero=True), for a large array (16 MB or more) in
+    pages that the kernel maps at once (an anonymous private mmap with MAP_POPULATE: zero
+    pages) instead of at the first write to each: where page faults are dear (a gVisor
+    sandbox: 0.5-0.7 s per 360 MB of fresh pages written, against 0.14 s populated), for the
+    arrays of O(N) entries that the set-up and the evaluation make (the members' maps that
+    `_member_maps` writes in a scattered order, the cells' gradients, σ_f, the classes' data
+    and sums that `sigmas` keeps; not the σ that each call returns: freed pages of earlier
+    calls serve those as cheaply, populating them again costs more)."""
+    import mmap
+    dtype = np.dtype(dtype)
+    size = int(np.prod(shape)) * dtype.itemsize
+    if size < 1 << 24 or not hasattr(mmap, "MAP_POPULATE"):
+        return (np.zeros if zero else np.empty)(shape, dtype)
+    buf = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | mmap.MAP_POPULATE)
+    return np.frombuffer(buf, dtype=dtype).reshape(shape)
 
 
 def _local_index_type(n):
@@ -1023,13 +1043,15 @@ class FluxEquilibration:
         # their own touch a few thousand where the classes take all others
         self.touched = np.zeros(0, dtype=np.int64)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix((0, geo.n)) for _ in range(3))
-        self.sigma_f = np.zeros((2, space.nrt))
+        self.sigma_f = populated_empty((2, space.nrt), float, zero=True)
         # the cells' centroids (translation_classes) and ∂Ω edges as bits (_translates)
         self._cent = np.empty((geo.ncells, 2))
         self._exterior_bits = np.empty(geo.ncells, dtype=np.int64)
         _class_cell_data(geo.x, geo.cells, space.exterior_edge, self._cent, self._exterior_bits)
         self._scale = np.sqrt(geo.area.mean())
         self._pending = []
+        # the classes' data and sums of `sigmas`, kept between calls (the sums zero)
+        self._class_sums = self._class_input = None
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
         level, alone = [], []
@@ -1107,11 +1129,11 @@ class FluxEquilibration:
             mem = np.flatnonzero(member & (batch[rep] >= 0))
             mem = mem[np.lexsort((rep[mem], size[rep[mem]]))]
             Pm = len(mem)
-            RETm = np.empty((Pm, nr), dtype=np.int32)
-            L = np.empty((Pm, nr, 2), dtype=_local_index_type(nr))
-            C = np.empty((Pm, nr, 2), dtype=np.int8)
-            G = np.empty((Pm, 2 * n + m + 1), dtype=self._index_type())
-            GF = np.empty((Pm, 3 * n), dtype=G.dtype)
+            RETm = populated_empty((Pm, nr), np.int32)
+            L = populated_empty((Pm, nr, 2), _local_index_type(nr))
+            C = populated_empty((Pm, nr, 2), np.int8)
+            G = populated_empty((Pm, 2 * n + m + 1), self._index_type())
+            GF = populated_empty((Pm, 3 * n), G.dtype)
             tables = self._representatives(CR, loc)
             self._translates(mem, batch[rep], CF, KF, pi, boundary, verts, tables,
                              first, (RETm, L, C, G, GF))
@@ -1317,36 +1339,53 @@ class FluxEquilibration:
         together: σ_f,α, plus μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on
         their own, plus the classes' part: `algebraic_flux._apply_buckets` on the data
         [μ_α ∇u_h per cell | R_l / N_l per vertex | ±λ] of all fields side by side
-        (`_class_data`, compiled), with the changes of basis kept by the set-up; each σ the
-        same to the bit as alone."""
+        (`_class_data`, compiled), with the changes of basis kept by the set-up, into a buffer
+        kept between evaluations (as the data are: no fresh pages per call); one compiled pass (`_add_classes`) adds σ_f,α and clears the
+        buffer for the next call (no array of all RT dofs per field is allocated or zeroed
+        for the sums). The σ are the rows of one array; each the same to the bit as alone."""
         p = self.disc.problem
         mus = np.array([p.mu1 if alpha == 1 else p.mu2 for alpha, _, _ in fields])
         signs = np.array([1.0 if alpha == 1 else -1.0 for alpha, _, _ in fields])
         rows = self.touched
-        if self.classes is not None:
+        k, size = len(fields), self.sigma_f.shape[1]
+        out = np.empty((k, size))
+        if self.classes is None:
+            for f, (alpha, _, _) in enumerate(fields):
+                out[f] = self.sigma_f[alpha - 1]
+        else:
             from .algebraic_flux import _apply_buckets
             geo = self.geo
-            data = np.empty((2 * geo.ncells + 2 * len(lam), len(fields)))
+            if self._class_sums is None or self._class_sums.shape[1] != k:
+                self._class_sums = populated_empty((size, k), float, zero=True)
+                self._class_input = populated_empty((2 * geo.ncells + 2 * len(lam), k), float)
+            data = self._class_input                  # every entry written by _class_data
             given = any(R is not None for _, _, R in fields)
             Rs = np.array([np.zeros(len(lam)) if R is None else R for _, _, R in fields]
                           if given else np.zeros((len(fields), 0)))
             _class_data(geo.cells, geo.grad, geo.cells_per_vertex, mus, signs,
                         np.array([u for _, u, _ in fields]), lam, Rs, data)
-            classes = _apply_buckets(self.classes, data, self.sigma_f.shape[1])
-        out = []
+            classes = _apply_buckets(self.classes, data, size, self._class_sums)
+            at_rows = classes[rows]
+            _add_classes(self.sigma_f, np.array([alpha - 1 for alpha, _, _ in fields]),
+                         classes, out)
         for f, (alpha, u, R) in enumerate(fields):
             base = self.sigma_f[alpha - 1]
             at = mus[f] * (self.G_u @ u) + signs[f] * (self.G_lam @ lam) + base[rows]
             if R is not None:
                 at += self.G_R @ R
-            if self.classes is None:
-                s = base.copy()
-                s[rows] = at
-            else:
-                s = base + classes[:, f]
-                s[rows] = at + classes[rows, f]
-            out.append(s)
-        return out
+            out[f, rows] = at if self.classes is None else at + at_rows[:, f]
+        return list(out)
+
+
+@kernel
+def _add_classes(sigma_f, which, classes, out):
+    """out[f] = σ_f[which[f]] + classes[:, f] for the fields f of classes (size, k) (the
+    classes' sums of FluxEquilibration.sigmas), and classes set to zero, in one pass."""
+    k = out.shape[0]
+    for i in range(out.shape[1]):
+        for f in range(k):
+            out[f, i] = sigma_f[which[f], i] + classes[i, f]
+            classes[i, f] = 0.0
 
 
 @kernel
