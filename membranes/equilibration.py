@@ -53,9 +53,9 @@ centroids and ∂Ω edges (`_class_cell_data`), the classes from the patches' ro
 offsets (`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
 `_match`: a check of the vertices, each cell's canonical vertex order computed at its first
 use), and each member's change of basis and data indices from tables per representative dof
-(`_member_maps`, in the patches' order). The arrays of O(N) entries
-that the set-up keeps are made in populated pages (`populated_empty`): where a page's first
-write is dear (a gVisor sandbox), one mapping call for all of them instead of a fault per page.
+(`_member_maps`, in the patches' order). The arrays of O(N) entries that the set-up keeps are
+made in populated pages (`populated_empty`): where a page's first write is dear (this machine's
+virtual machine), one mapping call for all of them instead of a fault per page.
 
 The right-hand sides use exact integrals of P1 products on each cell; only (ψ_a f_α, q) needs
 quadrature (the scene's data measures; `load_moments`: f_α evaluated once at the points of
@@ -165,12 +165,12 @@ class Lifting:
 def populated_empty(shape, dtype, zero=False):
     """np.empty(shape, dtype) (np.zeros with zero=True), for a large array (16 MB or more) in
     pages that the kernel maps at once (an anonymous private mmap with MAP_POPULATE: zero
-    pages) instead of at the first write to each: where page faults are dear (a gVisor
-    sandbox: 0.5-0.7 s per 360 MB of fresh pages written, against 0.14 s populated), for the
-    arrays of O(N) entries that the set-up and the evaluation make (the members' maps that
-    `_member_maps` writes in a scattered order, the cells' gradients, σ_f, the classes' data
-    and sums that `sigmas` keeps; not the σ that each call returns: freed pages of earlier
-    calls serve those as cheaply, populating them again costs more)."""
+    pages) instead of at the first write to each: where page faults are dear (this machine's
+    virtual machine: 0.5-0.7 s per 360 MB of fresh pages written, against 0.14 s populated),
+    for the arrays of O(N) entries that the set-up and the evaluation make (the members' maps
+    that `_member_maps` writes in a scattered order, the cells' gradients, σ_f, the classes'
+    data and sums that `sigmas` keeps; not the σ that each call returns: freed pages of
+    earlier calls serve those as cheaply, populating them again costs more)."""
     import mmap
     dtype = np.dtype(dtype)
     size = int(np.prod(shape)) * dtype.itemsize
@@ -1340,9 +1340,10 @@ class FluxEquilibration:
         their own, plus the classes' part: `algebraic_flux._apply_buckets` on the data
         [μ_α ∇u_h per cell | R_l / N_l per vertex | ±λ] of all fields side by side
         (`_class_data`, compiled), with the changes of basis kept by the set-up, into a buffer
-        kept between evaluations (as the data are: no fresh pages per call); one compiled pass (`_add_classes`) adds σ_f,α and clears the
-        buffer for the next call (no array of all RT dofs per field is allocated or zeroed
-        for the sums). The σ are the rows of one array; each the same to the bit as alone."""
+        kept between evaluations (as the data are: no fresh pages per call); one compiled pass
+        (`_add_classes`) adds σ_f,α and clears the buffer for the next call (no array of all
+        RT dofs per field is allocated or zeroed for the sums). The σ are the rows of one
+        array; each the same to the bit as alone."""
         p = self.disc.problem
         mus = np.array([p.mu1 if alpha == 1 else p.mu2 for alpha, _, _ in fields])
         signs = np.array([1.0 if alpha == 1 else -1.0 for alpha, _, _ in fields])
