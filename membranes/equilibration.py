@@ -119,7 +119,8 @@ class Geometry:
         self.cells_per_vertex = np.bincount(self.cells.ravel(), minlength=self.n)
 
     def gradient(self, u):
-        """∇u_h per cell, shape (ncells, 2), for nodal P1 values u."""
+        """∇u_h per cell, shape (ncells, 2), for nodal P1 values u (numpy; compiled passes
+        take `cell_gradient`)."""
         return np.einsum("ck,ckd->cd", u[self.cells], self.grad)
 
     def jacobians(self, cells):
@@ -127,6 +128,23 @@ class Geometry:
         reference triangle, shape (c, 2, 2)."""
         p = self.x[self.cells[cells]]
         return np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)
+
+
+@part
+def cell_gradient(grad, K, v0, v1, v2):
+    """∇v_h on the cell K for the P1 values v0, v1, v2 at its vertices: Σ_k v_k ∇φ_k (grad:
+    the cells' hat gradients, Geometry.grad), the terms added in the order k = 0, 1, 2 (the
+    one formula of the compiled passes: the classes' data of `sigmas`, the flux norms and the
+    constraint parts of membranes.estimators)."""
+    g0 = 0.0
+    g1 = 0.0
+    g0 += v0 * grad[K, 0, 0]
+    g1 += v0 * grad[K, 0, 1]
+    g0 += v1 * grad[K, 1, 0]
+    g1 += v1 * grad[K, 1, 1]
+    g0 += v2 * grad[K, 2, 0]
+    g1 += v2 * grad[K, 2, 1]
+    return g0, g1
 
 
 @kernel
@@ -1396,11 +1414,8 @@ def _class_data(cells, grad, cpv, mus, signs, U, lam, R, data):
     nc, nv, k = cells.shape[0], len(lam), U.shape[0]
     for c in range(nc):
         for f in range(k):
-            g0 = 0.0
-            g1 = 0.0
-            for i in range(3):
-                g0 += U[f, cells[c, i]] * grad[c, i, 0]
-                g1 += U[f, cells[c, i]] * grad[c, i, 1]
+            g0, g1 = cell_gradient(grad, c, U[f, cells[c, 0]], U[f, cells[c, 1]],
+                                   U[f, cells[c, 2]])
             data[2 * c, f] = mus[f] * g0
             data[2 * c + 1, f] = mus[f] * g1
     for v in range(nv):

@@ -50,8 +50,8 @@ is the later iterate of the one before; `sigma_disc` keeps the last two.
 import numpy as np
 
 from .compiled import kernel, part
-from .equilibration import (FluxEquilibration, _rt_element, cell_reflections, p1_mass_solve,
-                            rt_signs)
+from .equilibration import (FluxEquilibration, _rt_element, cell_gradient, cell_reflections,
+                            p1_mass_solve, rt_signs)
 from .meshes import cell_diameters
 from .newton_system import split
 
@@ -79,22 +79,21 @@ def _constraint_parts(area, cells, grad, u1, u2, lam, mu1, mu2):
     d = np.empty(3)
     lp = np.empty(3)
     ln = np.empty(3)
+    e1 = np.empty(3)
+    e2 = np.empty(3)
     for K in range(len(area)):
-        a0 = a1 = b0 = b1 = 0.0
         for k in range(3):
             v = cells[K, k]
             x, y, z = u1[v], u2[v], lam[v]
             d[k] = x - y
             lp[k] = z if z >= 0.0 else 0.0
             ln[k] = z if z <= 0.0 else 0.0
-            e1 = e2 = 0.0
+            e1[k] = e2[k] = 0.0
             if x < y:
                 m = 0.5 * (x + y)
-                e1, e2 = m - x, m - y
-            a0 += e1 * grad[K, k, 0]
-            a1 += e1 * grad[K, k, 1]
-            b0 += e2 * grad[K, k, 0]
-            b1 += e2 * grad[K, k, 1]
+                e1[k], e2[k] = m - x, m - y
+        a0, a1 = cell_gradient(grad, K, e1[0], e1[1], e1[2])
+        b0, b1 = cell_gradient(grad, K, e2[0], e2[1], e2[2])
         out[0, K] = _p1_product(area[K], d[0], d[1], d[2], lp[0], lp[1], lp[2])
         out[1, K] = area[K] * (mu1 * (a0 * a0 + a1 * a1) + mu2 * (b0 * b0 + b1 * b1))
         out[2, K] = _p1_product(area[K], lp[0], lp[1], lp[2], lp[0], lp[1], lp[2])
@@ -209,10 +208,7 @@ def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u1, u2, b, sigma1, 
             for j in range(8):
                 s[j] = c[f] * sigma[rt_cells[K, j]]
                 t[j] = c[f] * tau[rt_cells[K, j]]
-            a0 = a1 = 0.0
-            for i in range(3):
-                a0 += u[cells[K, i]] * grad[K, i, 0]
-                a1 += u[cells[K, i]] * grad[K, i, 1]
+            a0, a1 = cell_gradient(grad, K, u[cells[K, 0]], u[cells[K, 1]], u[cells[K, 2]])
             a0 *= b[f]
             a1 *= b[f]
             e_sum = 0.0
