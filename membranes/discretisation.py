@@ -19,11 +19,11 @@ structure, on any mesh, gets a dolfinx Form of that kernel at the cost of a chea
 turns every number of a custom quadrature rule into a string: a load on the data measures
 took 9 ms in fem.form, 0.8 ms in `form` (disk, T_0). Other modules' forms may use it too.
 
-Serial: the matrices are handed to the driver as scipy CSR (owned rows = all rows). S, D and
-the boundary vertices then come from two compiled passes (`p1_assembly`: the neighbours of each
-vertex, then the cells), bit for bit what dolfinx assembles from the forms above: 0.25 s where
-dolfinx took 0.85 s at 9.3e5 vertices. On several processes (ghosts, global numbers), and for
-the loads, dolfinx assembles.
+Serial: the matrices are handed to the driver as scipy CSR (owned rows = all rows). S, D and the
+boundary vertices then come from compiled passes (`p1_assembly`: the cells of each vertex, their
+neighbours, then the cells), bit for bit what dolfinx assembles from the forms above: 0.25 s where
+dolfinx took 0.85 s at 9.3e5 vertices. On several processes (ghosts, global numbers), and for the
+loads, dolfinx assembles.
 """
 
 import functools
@@ -38,7 +38,7 @@ from forms.membrane import (contact_weight, energy_error_expansion, energy_norm_
                             membrane_bilinear, membrane_linear)
 
 from .compiled import kernel
-from .meshes import holding_cells, p1_cells
+from .meshes import cells_by_vertex, holding_cells, p1_cells
 from .problem import as_builder
 
 DATA_DEGREE = 6          # Gauss degree for data on cells the interface does not cut
@@ -242,28 +242,28 @@ def assemble_matrix_csr(a):
 
 
 def p1_assembly(V):
-    """(S, D, boundary) of a serial P1 space V: S = (∇ψ_b, ∇ψ_a) (scipy CSR), D = (ψ_a, 1)
-    (DESIGN §2) and `boundary_dofs`, in two compiled passes: the neighbours of every vertex,
-    which give S's sparsity and the boundary (`_vertex_neighbours`), then one over the cells
-    (`_p1_entries`), bit for bit dolfinx's assembly of forms.membrane.membrane_bilinear(1, u,
-    v) and contact_weight(v) (assemble_matrix_csr, assemble_vector_array): the same sparsity
-    (every pair of vertices of a cell, columns sorted, zeros stored), FFCx's arithmetic of
-    the P1 kernels (one Gauss point of weight 1/2; the Jacobian summed from the reference
-    gradients (-1, 1, 0), (-1, 0, 1) as FFCx's code sums them, then its inverse, |det J| and
-    the products in FFCx's order) and the cell contributions summed in the cells' order, as
-    dolfinx adds them. The values of ψ_a at the Gauss point are those of the form's own
-    compiled kernel (`reference_element_vector`): basix's tabulation gives 1 - 1/3 - 1/3 as
-    0.3333333333333334 or 0.3333333333333333 depending on how the mesh's coordinate element
-    was made. At 9.3e5 vertices dolfinx took 0.56 s for S (sparsity pattern, its assembly and
-    the kernel's) and 0.13 s for D, the boundary count 0.16 s; the compiled passes take
-    0.26 s for all three."""
+    """(S, D, boundary) of a serial P1 space V: S = (∇ψ_b, ∇ψ_a) (scipy CSR), D = (ψ_a, 1) (DESIGN
+    §2) and `boundary_dofs`, in compiled passes: the neighbours of every vertex
+    (`vertex_neighbours`: its cells, meshes.cells_by_vertex, then their vertices), which give S's
+    sparsity and the boundary, then one over the cells (`_p1_entries`), bit for bit dolfinx's
+    assembly of forms.membrane.membrane_bilinear(1, u, v) and contact_weight(v)
+    (assemble_matrix_csr, assemble_vector_array): the same sparsity (every pair of vertices of a
+    cell, columns sorted, zeros stored), FFCx's arithmetic of the P1 kernels (one Gauss point of
+    weight 1/2; the Jacobian summed from the reference gradients (-1, 1, 0), (-1, 0, 1) as FFCx's
+    code sums them, then its inverse, |det J| and the products in FFCx's order) and the cell
+    contributions summed in the cells' order, as dolfinx adds them. The values of ψ_a at the Gauss
+    point are those of the form's own compiled kernel (`reference_element_vector`): basix's
+    tabulation gives 1 - 1/3 - 1/3 as 0.3333333333333334 or 0.3333333333333333 depending on how the
+    mesh's coordinate element was made. At 9.3e5 vertices dolfinx took 0.56 s for S (sparsity
+    pattern, its assembly and the kernel's) and 0.13 s for D, the boundary count 0.16 s; the
+    compiled passes take 0.26 s for all three."""
     mesh = V.mesh
     centroid_values = 2.0 * reference_element_vector(contact_weight(ufl.TestFunction(V)))
     n = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
     ncells = mesh.topology.index_map(2).size_local
     geometry = mesh.geometry.dofmap.array.reshape(-1, 3)[:ncells]
     cells = p1_cells(V)
-    boundary, indptr, indices = _vertex_neighbours(cells, n, True)
+    boundary, indptr, indices = vertex_neighbours(cells, n, True)
     data, D = _p1_entries(mesh.geometry.x, geometry, cells, indptr, indices, centroid_values)
     S = sp.csr_matrix((data, indices, indptr), shape=(n, n))
     S.has_sorted_indices = True
@@ -399,8 +399,8 @@ class Discretisation:
 
 def boundary_dofs(V):
     """The dofs of the P1 space V on the boundary of its mesh (Dirichlet vertices), increasing:
-    the two vertices of every edge that lies in one cell only, counted over the cells in one
-    compiled pass (`_vertex_neighbours`), which needs no mesh entities. dolfinx's exterior
+    the two vertices of every edge that lies in one cell only, counted over the cells of each
+    vertex by compiled passes (`vertex_neighbours`), which need no mesh entities. dolfinx's exterior
     facets (locate_dofs_topological on exterior_facet_indices, still taken on a mesh shared by
     several processes, where an edge of a ghost cell may lie in one local cell) need the mesh's
     edges and their cells: 0.65 s at 9.3e5 vertices, the count 0.03 s (the flux equilibration,
@@ -413,30 +413,26 @@ def boundary_dofs(V):
         return fem.locate_dofs_topological(V, 1, dmesh.exterior_facet_indices(mesh.topology))
     cells = p1_cells(V)
     n = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
-    return np.flatnonzero(_vertex_neighbours(cells, n, False)[0]).astype(np.int32)
+    return np.flatnonzero(vertex_neighbours(cells, n, False)[0]).astype(np.int32)
+
+
+def vertex_neighbours(cells, n, columns):
+    """(boundary, indptr, indices) of `_vertex_neighbours` for the n vertices of the `cells`
+    (c, 3), from their cells grouped by vertex (`meshes.cells_by_vertex`)."""
+    start, order = cells_by_vertex(cells, np.bincount(cells.reshape(-1), minlength=n))
+    return _vertex_neighbours(cells, order // 3, start, columns)
 
 
 @kernel
-def _vertex_neighbours(cells, n, columns):
-    """(boundary, indptr, indices) for the n vertices of the `cells` (c, 3): a mask of those
-    of an edge that only one cell has, and (with `columns`; else an empty `indices`) the CSR
-    pattern of the P1 matrices, row a the vertices of a's cells, sorted (by insertion: a row
-    has a handful). The cells of each vertex a (a counting sort), then for each a the number
-    of its cells that hold each neighbour b: the edge ab lies in one cell if that number is 1;
-    the neighbours with a nonzero count are row a's columns."""
-    start = np.zeros(n + 1, dtype=np.int64)
-    for c in range(cells.shape[0]):
-        for k in range(3):
-            start[cells[c, k] + 1] += 1
-    for a in range(n):
-        start[a + 1] += start[a]
-    fill = start[:-1].copy()
-    holding = np.empty(start[n], dtype=np.int64)
-    for c in range(cells.shape[0]):
-        for k in range(3):
-            a = cells[c, k]
-            holding[fill[a]] = c
-            fill[a] += 1
+def _vertex_neighbours(cells, holding, start, columns):
+    """(boundary, indptr, indices) for the n vertices of the `cells` (c, 3), vertex a in the
+    cells holding[start[a]:start[a + 1]] (`meshes.cells_by_vertex`, positions // 3):
+    a mask of those of an edge that only one cell has, and (with `columns`; else an empty
+    `indices`) the CSR pattern of the P1 matrices, row a the vertices of a's cells, sorted
+    (by insertion: a row has a handful). For each a the number of its cells that hold each
+    neighbour b: the edge ab lies in one cell if that number is 1; the neighbours with a
+    nonzero count are row a's columns."""
+    n = start.size - 1
     count = np.zeros(n, dtype=np.int64)
     boundary = np.zeros(n, dtype=np.bool_)
     indptr = np.zeros(n + 1, dtype=np.int32)

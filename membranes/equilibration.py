@@ -47,7 +47,7 @@ batches of one shape), so that its cost is a few passes over arrays of O(N) entr
 passes whose per-item work is a few dozen table look-ups are compiled loops (`compiled.kernel`)
 that touch each item once, where numpy made many temporaries of O(N) entries each (DESIGN
 §5): the cells' areas and gradients (`_cell_geometry`), the patches' cells
-(`_counting_sort`, `_patch_cells`), the patch matrices (`_assemble_patches`: each cell's
+(`meshes.cells_by_vertex`, `_patch_cells`), the patch matrices (`_assemble_patches`: each cell's
 blocks added where its retained dofs sit, no index arrays of P n 64 entries), the cells'
 centroids and ∂Ω edges (`_class_cell_data`), the classes from the patches' rounded centroid
 offsets (`_signatures`: a sort of each patch's m keys; a hash and numpy's sort of the hashes;
@@ -76,7 +76,7 @@ import scipy.sparse as sp
 
 from .compiled import kernel, part
 from .discretisation import load
-from .meshes import p1_cells
+from .meshes import cells_by_vertex, p1_cells
 
 # ∫_K φ_k φ_l φ_i / |K| for barycentric φ: 1/10 (k = l = i), 1/30 (two equal), 1/60 (distinct)
 _C3 = np.empty((3, 3, 3))
@@ -494,25 +494,10 @@ def _assemble_patches(loc, Me, Be, nr, A):
                         A[p, lj, q] = -Be[p, j, i, l]
 
 
-@kernel
-def _counting_sort(keys, ptr):
-    """The positions 0 .. len(keys) - 1 grouped by key, ascending within each group (a stable
-    counting sort; ptr (n + 1,) the groups' offsets, from the counts of the keys), as int32
-    (3 ncells < 2^31: half the memory of int64)."""
-    at = ptr[:-1].copy()
-    order = np.empty(len(keys), dtype=np.int32)
-    for i in range(len(keys)):
-        order[at[keys[i]]] = i
-        at[keys[i]] += 1
-    return order
-
-
 def vertex_patches(geo, owned=None):
     """For every vertex a (or every vertex of the mask `owned`): its cells (grouped by count)
     and a's local index in each. Yields (vertices (P,), CS (P, n), KA (P, n))."""
-    # the positions in geo.cells grouped by vertex, ascending
-    ptr = np.concatenate([[0], np.cumsum(geo.cells_per_vertex)])
-    order = _counting_sort(geo.cells.ravel(), ptr)
+    ptr, order = cells_by_vertex(geo.cells, geo.cells_per_vertex)
     count = geo.cells_per_vertex if owned is None else np.where(owned, geo.cells_per_vertex, 0)
     for n in np.unique(count[count > 0]):
         verts = np.flatnonzero(count == n)
@@ -522,7 +507,7 @@ def vertex_patches(geo, owned=None):
 @kernel
 def _patch_cells(order, ptr, verts, n):
     """The cells CS (P, n) and local indices KA (P, n) of the vertices verts, each in n cells,
-    from the positions in the cells' array grouped by vertex (`_counting_sort`)."""
+    from the positions in the cells' array grouped by vertex (`meshes.cells_by_vertex`)."""
     CS = np.empty((len(verts), n), dtype=np.int64)
     KA = np.empty((len(verts), n), dtype=np.int64)
     for p in range(len(verts)):

@@ -151,6 +151,30 @@ def holding_cells(cells, n):
     return holder
 
 
+def cells_by_vertex(cells, counts):
+    """(ptr, order): the positions in the cells' array (cells (c, 3), flat: position 3 c + k
+    is vertex k of cell c) grouped by vertex, ascending within each group, those of vertex a
+    at order[ptr[a]:ptr[a + 1]] (counts: the number of cells at each vertex); a stable
+    counting sort (`_counting_sort`), for the vertex patches of the flux equilibration and
+    the P1 sparsity and boundary of discretisation.p1_assembly."""
+    ptr = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    return ptr, _counting_sort(np.ascontiguousarray(cells).reshape(-1), ptr)
+
+
+@kernel
+def _counting_sort(keys, ptr):
+    """The positions 0 .. len(keys) - 1 grouped by key, ascending within each group (a stable
+    counting sort; ptr (n + 1,) the groups' offsets, from the counts of the keys), as int32
+    (3 ncells < 2^31: half the memory of int64)."""
+    at = ptr[:-1].copy()
+    order = np.empty(len(keys), dtype=np.int32)
+    for i in range(len(keys)):
+        order[at[keys[i]]] = i
+        at[keys[i]] += 1
+    return order
+
+
 def _cell_vertices(mesh):
     """(ncells, 3, 2): the vertex coordinates of every local cell."""
     x = mesh.geometry.x[:, :2]
