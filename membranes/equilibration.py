@@ -983,7 +983,6 @@ def _reference_table():
     return table.astype(np.int8)
 
 
-
 def _top_tables(W):
     """For every code of the table W (`change_of_basis_tables`): the rows l with W[l, k] ≠ 0
     of each column k (at most two: the dofs of one entity) and their entries, (codes, 8 (k),
@@ -1000,14 +999,14 @@ def _top_tables(W):
 @functools.lru_cache(maxsize=None)
 def _class_tables(slots):
     """For the change of RT basis from a class representative to a translate (W of
-    `change_of_basis_tables`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2),
-    the (at most two) representative dofs l of the cell with W[l, k] ≠ 0 for each patch dof
-    k, and their coefficients; with the patch dof k in the slot of the entity that corresponds to the
-    representative dof l's entity (edge e of the patch ↦ edge pi[e] of the representative;
-    `slots` as in PatchSpace) these are tabulated by u = ((ρ_r * 6 + perm) * 8 + ρ_p) * 8 + l:
-    PATCH_DOF (3072,) the k, TOP, COEF (2, 3072) the rows and coefficients of column k; and
-    EDGE_BITS (6, 8): a set of patch cell edges (bit e: edge e) as the set of the
-    corresponding representative's edges."""
+    `change_of_basis_tables`, indexed by (ρ_r * 6 + perm) * 8 + ρ_p): TOP, COEF (384, 8, 2), the (at
+    most two) representative dofs l of the cell with W[l, k] ≠ 0 for each patch dof k, and their
+    coefficients; with the patch dof k in the slot of the entity that corresponds to the
+    representative dof l's entity (edge e of the patch ↦ edge pi[e] of the representative; `slots`
+    as in PatchSpace) these are tabulated by u = ((ρ_r * 6 + perm) * 8 + ρ_p) * 8 + l: PATCH_DOF
+    (3072,) the k, TOP, COEF (2, 3072) the rows and coefficients of column k; and EDGE_BITS (6, 8):
+    a set of patch cell edges (bit e: edge e) as the set of the corresponding representative's
+    edges."""
     _, W_top, W_coef = change_of_basis_tables()
     slots = np.array(slots)
     anchor = np.empty((6, 8), dtype=np.int64)

@@ -26,6 +26,14 @@ def petsc_matrix(A, copy=True):
     return M
 
 
+def row_buffers(bound):
+    """Column indices (int32) and values for at most `bound` entries of a CSR matrix that a
+    compiled pass writes row after row, its row pointers with them (one pass, where counting
+    the entries first took a second one; `written_csr` then shrinks them to the written
+    entries: the pages of the tail are never touched, and so never allocated)."""
+    return np.empty(bound, dtype=np.int32), np.empty(bound)
+
+
 def written_csr(indptr, indices, data, shape):
     """The CSR matrix of rows a compiled pass wrote one after the other into the buffers
     `indices` and `data` (arrays of their own, longer than needed: `indptr[-1]` entries

@@ -40,7 +40,7 @@ import numpy as np
 
 from .compiled import kernel
 from .hierarchy import Hierarchy, barycentric_point
-from .linear_solve import written_csr
+from .linear_solve import row_buffers, written_csr
 from .meshes import p1_cells
 
 SNAP = 1e-8      # barycentric weights farther than this from {0, 1/2, 1}: not a Plaza refinement
@@ -70,7 +70,7 @@ def prolongation(V_coarse, V_fine, parent_cells):
         raise ValueError(f"{len(parent_cells)} parent cells for {len(fine_cells)} fine cells")
     fine, coarse = V_fine.mesh, V_coarse.mesh
     indptr = np.zeros(n_f + 1, dtype=np.int64)
-    indices, data = np.empty(2 * n_f, dtype=np.int32), np.empty(2 * n_f)
+    indices, data = row_buffers(2 * n_f)
     if not _interpolation_rows(
             fine_cells, fine.geometry.dofmap.array.reshape(-1, 3), fine.geometry.x,
             coarse_cells, coarse.geometry.dofmap.array.reshape(-1, 3), coarse.geometry.x,

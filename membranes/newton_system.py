@@ -46,7 +46,7 @@ import scipy.sparse as sp
 
 from . import cfunctions
 from .compiled import kernel
-from .linear_solve import scaled_rows, written_csr
+from .linear_solve import row_buffers, scaled_rows, written_csr
 
 
 @dataclass
@@ -119,19 +119,11 @@ def _membrane_rows(disc):
     interior = disc.interior
     slot = np.where(interior, disc.D, 0.0)
     indptr = np.zeros(2 * n + 1, dtype=np.int64)
-    indices, data = _row_buffers(S1.nnz + S2.nnz + 2 * n)
+    indices, data = row_buffers(S1.nnz + S2.nnz + 2 * n)
     if not _membrane_entries(S1.indptr, S1.indices, S1.data, S2.indptr, S2.indices, S2.data,
                              interior, slot, indptr, indices, data):
         raise ValueError("a stiffness matrix without its diagonal entry in a boundary row")
     return written_csr(indptr, indices, data, (2 * n, 3 * n))
-
-
-def _row_buffers(bound):
-    """Column indices (int32) and values for at most `bound` entries of a CSR matrix that a
-    compiled pass writes row after row, its row pointers with them (one pass, where counting
-    the entries first took a second one; `linear_solve.written_csr` then shrinks them to the
-    written entries: the pages of the tail are never touched, and so never allocated)."""
-    return np.empty(bound, dtype=np.int32), np.empty(bound)
 
 
 @kernel
@@ -310,7 +302,7 @@ def eliminated_system(rows, alpha, beta, B3, weighted=False):
     E, F = (rows.weighted_E, rows.weights * rows.F) if weighted else (rows.E, rows.F)
     n = rows.n
     indptr = np.zeros(2 * n + 1, dtype=np.int64)
-    indices, data = _row_buffers(2 * E.nnz)
+    indices, data = row_buffers(2 * E.nnz)
     _product_entries(E.indptr, E.indices, E.data, n, *elim.coefficients, indptr, indices, data)
     A = written_csr(indptr, indices, data, (2 * n, 2 * n))
     return A, F - E @ elim.t, elim
