@@ -21,7 +21,7 @@ took 9 ms in fem.form, 0.8 ms in `form` (disk, T_0). Other modules' forms may us
 
 Serial: the matrices are handed to the driver as scipy CSR (owned rows = all rows). S, D and the
 boundary vertices then come from compiled passes (`p1_assembly`: the cells of each vertex, their
-neighbours, then the cells), bit for bit what dolfinx assembles from the forms above: 0.25 s where
+neighbours, then the cells), bit for bit what dolfinx assembles from the forms above: 0.27 s where
 dolfinx took 0.85 s at 9.3e5 vertices. On several processes (ghosts, global numbers), and for the
 loads, dolfinx assembles.
 """
@@ -256,7 +256,7 @@ def p1_assembly(V):
     tabulation gives 1 - 1/3 - 1/3 as 0.3333333333333334 or 0.3333333333333333 depending on how the
     mesh's coordinate element was made. At 9.3e5 vertices dolfinx took 0.56 s for S (sparsity
     pattern, its assembly and the kernel's) and 0.13 s for D, the boundary count 0.16 s; the
-    compiled passes take 0.26 s for all three."""
+    compiled passes take 0.27 s for all three (least of 4, 2026-11-22)."""
     mesh = V.mesh
     centroid_values = 2.0 * reference_element_vector(contact_weight(ufl.TestFunction(V)))
     n = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
