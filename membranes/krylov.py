@@ -207,6 +207,7 @@ def _install(ksp, A, inner, cache=None):
     pc = ksp.getPC()
     pc.setType(PETSc.PC.Type.PYTHON)
     pc.setPythonContext(context)
+    return context
 
 
 @dataclass
@@ -259,11 +260,13 @@ class Krylov:
             if cancel is not None and cancel():     # dropped before its preconditioner is set up
                 failed = False
                 return np.array(x0, dtype=float), b - A @ np.asarray(x0, dtype=float), 0
+            bound = tol * scale
             if self._vertex_amg is not None:
-                _install(ksp, A, self._vertex_amg, self._cache)
+                context = _install(ksp, A, self._vertex_amg, self._cache)
+                if hasattr(context, "settle_mean"):       # the mean/gap split
+                    context.settle_mean(b - A @ np.asarray(x0, dtype=float), bound)
             ksp.setTolerances(max_it=self.max_linear_its)
             ksp.setInitialGuessNonzero(True)
-            bound = tol * scale
             test = _StoppingTest(A, b, work, bound, test_every, self.nu, on_iterate, cancel)
             ksp.setConvergenceTest(test)
             try:

@@ -22,7 +22,7 @@ from membranes.krylov import Krylov
 from membranes.linear_solve import solve_direct
 from membranes.newton import EXACT_LINEAR_TOL, linear_step
 from membranes.discretisation import discretise
-from membranes.preconditioner import VertexAMG, gap_scales, mean_gap_split, slaves
+from membranes.preconditioner import MeanGapAMG, VertexAMG, gap_scales, mean_gap_split, slaves
 
 from .conftest import scene
 
@@ -220,3 +220,59 @@ def test_mean_amg_kept_per_mesh():
         krylov.solve(step.A, step.b, step.guess, 1e-10, np.linalg.norm(step.b))
         kept.append(krylov._cache["mean"])
     assert kept[0] is kept[1] is kept[2] and kept[3] is not kept[2]
+
+
+def _settled(monkeypatch):
+    """Record (N, mean_settled) of every solve's mean/gap split."""
+    seen = []
+    settle = MeanGapAMG.settle_mean
+
+    def spy(self, r, bound):
+        settle(self, r, bound)
+        seen.append((self.S.shape[0], self.mean_settled))
+    monkeypatch.setattr(MeanGapAMG, "settle_mean", spy)
+    return seen
+
+
+def test_settled_mean(monkeypatch):
+    """A correction with m = 0 leaves the mean part ρ = (1 - θ) r1 + θ r2 of the residual
+    unchanged (round-off: 1e-12 of the correction's residual). From the solution plus such a
+    correction (ρ at round-off) the solve leaves the mean's V-cycles out and still meets its
+    bound; from the solution plus a change of the mean it does not leave them out."""
+    seen = _settled(monkeypatch)
+    krylov = Krylov(dict(VAMG))
+    rng = np.random.default_rng(1)
+    for step, contact, _ in _steps("min", 3)[1:]:
+        S, a, b = mean_gap_split(step.A)
+        n, theta = S.shape[0], (a / (a + b))[contact][0]
+        x = krylov.solve(step.A, step.b, step.guess, 1e-13, np.linalg.norm(step.b))[0]
+        delta = np.where(contact, 0.0, rng.standard_normal(n))
+        gap_only = np.concatenate([-theta * delta, np.where(contact, rng.standard_normal(n),
+                                                            (1 - theta) * delta)])
+        moved = step.A @ gap_only
+        rho = (1 - theta) * moved[:n] + theta * moved[n:]
+        assert np.linalg.norm(rho) <= 1e-12 * np.linalg.norm(moved)
+        bound = 1e-10 * np.linalg.norm(step.b)
+        for change, settled in ((1e-3 * gap_only, True),
+                                (1e-3 * np.concatenate([np.ones(n), np.where(contact, 0, 1)]),
+                                 False)):
+            seen.clear()
+            _, r, its = krylov.solve(step.A, step.b, x + change, 1e-10, np.linalg.norm(step.b))
+            assert seen == [(n, settled)] and its >= 1 and np.linalg.norm(r) <= bound
+
+
+def test_mean_settled_at_the_third_step_of_a_level(monkeypatch):
+    """In a nested adaptive run the mean is settled at the third Newton step of a level (the
+    second solved it, and the vertices whose contact status still changes had u2 ≈ u1) and at
+    no first or second step (the prolonged guess does not solve the fine mean's equation, and
+    the first step's changes of contact put jumps into it). Disk, h0 = 0.2, J = 2: 3, 2, 3 steps."""
+    seen = _settled(monkeypatch)
+    run = solve(scene("disk", 0.2, levels=2), newton="adaptive", cfun="min",
+                system="eliminated", petsc_options=dict(VAMG), alg_flux="nu")
+    per_level = [lvl["newton_iterations"] for lvl in run.per_level]
+    assert len(seen) == sum(per_level) and 3 in per_level
+    at = np.cumsum([0] + per_level)
+    for j, (level, steps) in enumerate(zip(run.per_level, per_level)):
+        settled = [s for n, s in seen[at[j]:at[j + 1]]]
+        assert {n for n, _ in seen[at[j]:at[j + 1]]} == {level["n_vertices"]}
+        assert settled == [False, False, True][:steps]
