@@ -92,7 +92,7 @@ Keeping the mean's AMG costs memory: the run's peak was 4.41 GiB, 4.11 GiB when 
 anew at every step (Krylov 11.2 s) and 4.23 GiB with 1.–4.; the PETSc matrices of the inner
 PCs are built on the scipy arrays (no copy).
 Where the mean part of the initial residual is already below half the solve's bound (the
-third Newton step of a level), the solve leaves the mean's V-cycles out (`settle_mean`).
+later Newton steps of a level), the solve leaves the mean's V-cycles out (`settle_mean`).
 
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
 bench_preconditioner.py; BENCHMARKS.md has the table; with PETSc's BoomerAMG defaults, before
@@ -477,12 +477,13 @@ class MeanGapAMG:
         ‖ρ‖ / √(θ² + (1 - θ)²), and GMRES can reach that floor as the gap converges. Where the
         floor is at most MEAN_SETTLED · bound, the gap alone has to reach √(1 - 0.25) of the
         bound, and V-cycles on the mean would only move its residual within round-off. That is
-        the third Newton step of a level (disk, J = 5: ‖ρ‖ 1e-3 … 1e-1 of the bound; the
-        vertices whose contact status still changes there had u2 ≈ u1), not the first (the
-        prolonged guess does not solve the fine mean's equation) nor the second (the first
-        step's changes of contact put jumps into ρ: 1e5 … 1e8 of the bound). The same GMRES
-        iterations; at 9.3e5 vertices (h0 = 0.132, J = 6) the finest level took 15.4 s instead
-        of 15.9 s."""
+        the case from the second Newton step of a level on, whose guess keeps the mean of the
+        iterate before (newton.mean_keeping_shift): ρ is then what the last solve left (disk,
+        J = 5: 0.15 … 0.74 of the bound; settled at 9 of the 11 later steps), not at the
+        first (the prolonged guess does not solve the fine mean's equation: 1e9 … 1e11 of the
+        bound). The same Newton steps; at 9.3e5 vertices (h0 = 0.132, J = 6) the finest level
+        took 15.0 s instead of 15.9 s, with 137 GMRES iterations instead of 142 in the run
+        (the shifted guess)."""
         n = self.S.shape[0]
         theta = self.theta
         rho = (1.0 - theta) * r[:n] + theta * r[n:]

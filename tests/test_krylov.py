@@ -130,19 +130,30 @@ def test_krylov_rows_every_nu_iterations(nu):
     assert times == sorted(times)
 
 
-@pytest.mark.parametrize("cfun", ["min", "fb"])
-def test_eliminated_step_starts_from_the_previous_iterate(cfun):
-    """The guess Y keeps X^{k-1}'s u1 and, per vertex, the unknown not eliminated."""
-    rows = ns.linear_rows(solved_with("disk", 0.1, linear_solver="direct").disc)
+@pytest.mark.parametrize("name,cfun", [("disk", "min"), ("disk", "fb"), ("square", "min"),
+                                       ("square", "fb")])
+def test_eliminated_step_starts_from_the_previous_iterate(name, cfun):
+    """The guess keeps X^{k-1}'s λ where λ stays an unknown and its u1, u2 where u2 does; where
+    u2 is eliminated it keeps the mean (μ1 u1 + μ2 u2)/(μ1 + μ2) (round-off) and λ, and its u2
+    is the one the complementarity row gives (disk: μ1 = μ2; square: μ1 = 1, μ2 = 2)."""
+    rows = ns.linear_rows(solved_with(name, 0.1, linear_solver="direct").disc)
+    mu1, mu2 = (solved_with(name, 0.1, linear_solver="direct").problem.mu1,
+                solved_with(name, 0.1, linear_solver="direct").problem.mu2)
     n = rows.n
     X = np.random.default_rng(1).uniform(-1, 1, 3 * n)
     step = linear_step(rows, cfun, "eliminated", X)
-    alpha, beta, _ = ns.complementarity_rows(rows, cfun, X)
-    lam_out = np.abs(beta) >= np.abs(alpha)
+    alpha, beta, B3 = ns.complementarity_rows(rows, cfun, X)
+    lam_out = np.abs(beta) >= rows.kappa * np.abs(alpha)
     (u1, u2, lam), (g1, g2, glam) = ns.split(X, n), ns.split(step.expand(step.guess), n)
     assert 0 < lam_out.sum() < n
-    assert np.all(g1 == u1)
-    assert np.all(g2[lam_out] == u2[lam_out]) and np.all(glam[~lam_out] == lam[~lam_out])
+    assert np.all(g1[lam_out] == u1[lam_out]) and np.all(g2[lam_out] == u2[lam_out])
+    out = ~lam_out
+    assert np.all(glam[out] == lam[out])
+    mean = (mu1 * u1 + mu2 * u2) / (mu1 + mu2)
+    assert np.allclose(((mu1 * g1 + mu2 * g2) / (mu1 + mu2))[out], mean[out], rtol=0,
+                       atol=1e-15 * np.abs(X).max() * 4)
+    assert np.allclose((alpha * (g1 - g2) + beta * glam)[out], B3[out], rtol=0,
+                       atol=1e-15 * np.abs(X).max() * 8)
 
 
 def test_petsc_options_override_and_do_not_leak():

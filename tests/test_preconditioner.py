@@ -261,18 +261,23 @@ def test_settled_mean(monkeypatch):
             assert seen == [(n, settled)] and its >= 1 and np.linalg.norm(r) <= bound
 
 
-def test_mean_settled_at_the_third_step_of_a_level(monkeypatch):
-    """In a nested adaptive run the mean is settled at the third Newton step of a level (the
-    second solved it, and the vertices whose contact status still changes had u2 ≈ u1) and at
-    no first or second step (the prolonged guess does not solve the fine mean's equation, and
-    the first step's changes of contact put jumps into it). Disk, h0 = 0.2, J = 2: 3, 2, 3 steps."""
+def test_mean_settled_after_the_first_step_of_a_level(monkeypatch):
+    """In a nested adaptive run the mean is not settled at the first Newton step of a level
+    (the prolonged guess does not solve the fine mean's equation) and settled at the later
+    steps of most levels: the guess keeps the mean of the iterate before
+    (newton.mean_keeping_shift), so what is left is the mean part of the last solve's
+    residual, settled where that is below half the bound. Disk, h0 = 0.2, J = 2: 3, 2, 3
+    steps; the first level's later steps settle (its mean part is 0.35 of the bound)."""
     seen = _settled(monkeypatch)
     run = solve(scene("disk", 0.2, levels=2), newton="adaptive", cfun="min",
                 system="eliminated", petsc_options=dict(VAMG), alg_flux="nu")
     per_level = [lvl["newton_iterations"] for lvl in run.per_level]
-    assert len(seen) == sum(per_level) and 3 in per_level
+    assert len(seen) == sum(per_level)
     at = np.cumsum([0] + per_level)
-    for j, (level, steps) in enumerate(zip(run.per_level, per_level)):
-        settled = [s for n, s in seen[at[j]:at[j + 1]]]
+    later = []
+    for j, level in enumerate(run.per_level):
         assert {n for n, _ in seen[at[j]:at[j + 1]]} == {level["n_vertices"]}
-        assert settled == [False, False, True][:steps]
+        settled = [s for _, s in seen[at[j]:at[j + 1]]]
+        assert not settled[0]
+        later += settled[1:]
+    assert seen[1][1] and seen[2][1] and sum(later) >= len(later) / 2
