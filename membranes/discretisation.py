@@ -26,6 +26,7 @@ dolfinx took 0.85 s at 9.3e5 vertices. On several processes (ghosts, global numb
 loads, dolfinx assembles.
 """
 
+import contextlib
 import functools
 import hashlib
 from dataclasses import dataclass
@@ -338,6 +339,39 @@ def release_memory():
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass
+
+
+@contextlib.contextmanager
+def plain_pages():
+    """Large numpy arrays on ordinary pages inside the block. NumPy (1.20 and later, on Linux)
+    advises the kernel to back every array of 4 MiB or more with transparent huge pages
+    (madvise MADV_HUGEPAGE); where the kernel's THP defragmentation is "madvise", each fault on
+    such an array may compact memory first. Measured on the machine of BENCHMARKS.md (THP
+    enabled and defrag "madvise", a virtual machine): writing 1.5 GiB of fresh memory took
+    3.2 s with the advice and 0.64 s without; the J = 6 disk run of bench_scaling.py (peak
+    3.8 GiB) took 18.6-19.5 s without it (5 runs; a sixth, 25 s, slow in every phase, left
+    out) against 19.4-20.1 s with it (5 runs). `membranes.solve` and
+    report.run_peer (the PETSc peer) run inside this block; NUMPY_MADVISE_HUGEPAGE=0 does the
+    same for a whole process. Restores numpy's setting on exit."""
+    try:
+        from numpy.core import multiarray
+        before = multiarray._set_madvise_hugepage(False)
+    except (ImportError, AttributeError):     # another numpy: its own default
+        yield
+        return
+    try:
+        yield
+    finally:
+        multiarray._set_madvise_hugepage(before)
+
+
+def on_plain_pages(function):
+    """`function` run inside `plain_pages` (its name, notes and signature kept)."""
+    @functools.wraps(function)
+    def run(*args, **kwargs):
+        with plain_pages():
+            return function(*args, **kwargs)
+    return run
 
 
 def assemble_vector_array(L):

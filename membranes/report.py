@@ -34,6 +34,7 @@ import time
 
 import numpy as np
 
+from .discretisation import on_plain_pages
 from .outputs import staged_folder, write_history
 
 METHODS = ("exact", "inexact", "adaptive")
@@ -65,6 +66,7 @@ def run_methods(problem, say):
     return runs
 
 
+@on_plain_pages
 def run_peer(problem, say):
     """SNES vinewtonrsls (CG + BoomerAMG) on the decoupled problem: (result, records), one
     record per SNES iterate (its 0: the initial guess) with its wall time, discretisation

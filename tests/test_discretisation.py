@@ -95,3 +95,30 @@ def test_compiled_assembly_is_dolfinx_assembly(mesh_of):
     assert S.shape == reference.shape
     assert np.array_equal(D, assemble_vector_array(contact_weight(v)))
     assert boundary.dtype == np.int32 and np.array_equal(boundary, _exterior_facet_dofs(V))
+
+
+def test_plain_pages_inside_solve_and_restored(monkeypatch):
+    """Inside `solve` numpy gives large arrays no huge-page advice (discretisation.plain_pages);
+    numpy's own setting, either way, is back afterwards, also when the run raises."""
+    from numpy.core import multiarray
+    from membranes import driver, solve
+    seen = []
+    real = driver._solve_nested
+
+    def spy(*args, **kwargs):
+        seen.append(multiarray._get_madvise_hugepage())
+        return real(*args, **kwargs)
+    monkeypatch.setattr(driver, "_solve_nested", spy)
+    before = multiarray._get_madvise_hugepage()
+    try:
+        for setting in (True, False):
+            multiarray._set_madvise_hugepage(setting)
+            solve(scene("disk", 0.4, levels=1), newton="adaptive", cfun="min",
+                  system="eliminated")
+            assert multiarray._get_madvise_hugepage() is setting
+            with pytest.raises(ValueError):
+                solve(scene("disk", 0.4), newton="nonsense")
+            assert multiarray._get_madvise_hugepage() is setting
+        assert seen == [False, False]
+    finally:
+        multiarray._set_madvise_hugepage(before)
