@@ -97,6 +97,8 @@ def p1_mass_solve(area, l0, l1, l2):
     # the terms in column order, as the product with _MINV_REF adds them
     return (scale * (3.0 * l0 - l1 - l2), scale * (-l0 + 3.0 * l1 - l2),
             scale * (-l0 - l1 + 3.0 * l2))
+
+
 # the symmetric pairs (i, k) of a cell's 3 × 3 load moments, numbered as ik = 00, 01, 02, 11,
 # 12, 22 (load_moments keeps these six)
 _SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])

@@ -460,7 +460,6 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         test_every = 1 if variant != "inexact" else krylov.nu
         fb_steps = state["cfun"] == "fb" and not adaptive
         before, r_new, t, same_as, accepted = 0, None, None, None, []
-        step = None
         if fb_steps and state["decreased"]:
             # the active-set step of the module notes, kept if it decreases the merit (a
             # solve that fails is rejected as well: the FB step may still be solved)
