@@ -26,10 +26,11 @@ from .discretisation import EnergyError, discretise, on_plain_pages
 from .estimators import ALG_ROUNDOFF, Estimators
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
 from .krylov import DEFAULT_MAX_LINEAR_ITS, DEFAULT_NU, Krylov
+from .mean import LevelMean, exact_mean, mean_bound, theta
 from .meshes import mesh_size
 from .newton import (DEFAULT_GAMMA, DEFAULT_TOL, check_choice, check_gamma, check_method,
-                     semismooth_newton)
-from .newton_system import initial_residual, linear_rows, split
+                     linear_tolerance, semismooth_newton)
+from .newton_system import initial_guess as paper_guess, initial_residual, linear_rows, split
 
 LINEAR_SOLVERS = ("gmres", "direct")
 ALG_FLUXES = ("nu", "multilevel")
@@ -454,6 +455,14 @@ class _Method:
     say: object
     link: object = None      # process 0's link to the estimator processes (pipeline), or None
 
+    @property
+    def mean_options(self):
+        """vertex_amg's inner options where the steps take the mesh's exact mean
+        (membranes.mean: Krylov with vertex_amg on the eliminated system), else None."""
+        if self.system != "eliminated" or self.krylov is None:
+            return None
+        return self.krylov.vertex_amg
+
 
 @dataclass
 class _EstimatorTimes:
@@ -508,7 +517,8 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     remote = method.link is not None and alg_flux is not None
     if remote:      # first: the estimator processes set this level up meanwhile
         from .pipeline import RemoteEstimates
-        est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive")
+        est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive",
+                              method.mean_options)
     disc = discretise(problem)
     rows = linear_rows(disc)
     if remote:      # X^0's residual and the data oscillation come from here
@@ -518,6 +528,19 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     X0 = _initial_guess(initial_guess, disc)   # first: a nested run then frees the level below
     if timed_guess:
         setup_time += time.perf_counter() - t
+    mean = None
+    if method.mean_options is not None:
+        guess = paper_guess(rows, problem.g) if X0 is None else np.asarray(X0, float)
+        if guess.shape == (3 * disc.n,) and np.all(np.isfinite(guess)):  # else Newton says
+            bound = mean_bound(rows, linear_tolerance(
+                "adaptive" if method.tol is None else "exact", method.tol, None))
+            if remote:      # an estimator process solves for M meanwhile
+                mean = est.exact_mean(guess, theta(problem), bound)
+            else:
+                t = time.perf_counter()
+                M = exact_mean(disc, guess, bound, method.mean_options)
+                mean = LevelMean(theta(problem), lambda: M)
+                setup_time += time.perf_counter() - t
     error = EnergyError(disc) if problem.exact is not None else None
     if not remote:
         est = IterateEstimates(disc, rows, alg_flux) if alg_flux is not None else None
@@ -552,7 +575,8 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     result = semismooth_newton(rows, problem.g, cfun=method.cfun, system=method.system,
                                variant=method.newton, krylov=method.krylov, tol=method.tol,
                                max_it=method.max_newton, X0=X0, monitor=monitor, estimate=est,
-                               gamma_lin=method.gamma_lin, gamma_alg=method.gamma_alg)
+                               gamma_lin=method.gamma_lin, gamma_alg=method.gamma_alg,
+                               mean=mean)
     if est is not None:
         est.finish()
     return _LevelRun(level, disc, result, est, result.history[-1]["wall_time_s"] - offset)

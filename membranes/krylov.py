@@ -239,14 +239,22 @@ class Krylov:
         finally:
             ksp.destroy()
 
-    def solve(self, A, b, x0, tol, scale, test_every=1, on_iterate=None, cancel=None):
+    @property
+    def vertex_amg(self):
+        """The inner options of ``pc_type vertex_amg`` (a dict), or None for another PC."""
+        return self._vertex_amg
+
+    def solve(self, A, b, x0, tol, scale, test_every=1, on_iterate=None, cancel=None,
+              mean_theta=None):
         """Solve A x = b from x0 until ‖b - A x‖ ≤ tol · scale (tested after iterations
         test_every, 2 test_every, ...) or until on_iterate says stop. Every ν iterations that
         do not meet the test, on_iterate(its, current) is called; current() returns
         (x, b - A x) at that iterate; a true return value stops the solve at that iterate.
         `cancel()`, asked before the preconditioner is set up and after every iteration,
         stops the solve at once when true (a step computed ahead that will be dropped,
-        membranes.newton); its iterate is returned.
+        membranes.newton); its iterate is returned. `mean_theta`: the θ of the mean the
+        caller keeps (membranes.mean), for vertex_amg's mean/gap split where the system alone
+        does not fix it (no contact vertex).
         Returns (x, b - A x, its); raises LinearSolveError (with `its`) if the KSP stops
         before either happens (e.g. at max_linear_its)."""
         M = petsc_matrix(with_diagonal(A), copy=False)   # A is the step's: not changed here
@@ -264,7 +272,8 @@ class Krylov:
             if self._vertex_amg is not None:
                 context = _install(ksp, A, self._vertex_amg, self._cache)
                 if hasattr(context, "settle_mean"):       # the mean/gap split
-                    context.settle_mean(b - A @ np.asarray(x0, dtype=float), bound)
+                    context.settle_mean(b - A @ np.asarray(x0, dtype=float), bound,
+                                        mean_theta)
             ksp.setTolerances(max_it=self.max_linear_its)
             ksp.setInitialGuessNonzero(True)
             test = _StoppingTest(A, b, work, bound, test_every, self.nu, on_iterate, cancel)

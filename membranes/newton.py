@@ -142,6 +142,7 @@ from typing import Callable
 import numpy as np
 
 from . import cfunctions
+from . import mean as mean_module
 from . import newton_system as ns
 from .linear_solve import LinearSolveError, scaled_rows, solve_direct
 
@@ -196,6 +197,7 @@ class LinearStep:
     norm_B: float
     expand: Callable
     pad: Callable
+    z_is_u2: np.ndarray = None    # eliminated system: where the second unknown z is u2 (not λ)
 
 
 def linear_step(rows, cfun, system, X, at_projection=False):
@@ -217,7 +219,8 @@ def linear_step(rows, cfun, system, X, at_projection=False):
     guess = np.concatenate([u1, np.where(elim.eliminate_lambda, u2, lam)])
     guess[:rows.n] += mean_keeping_shift(rows, elim, u2, guess)
     return LinearStep(A, b, guess, norm_B, elim.expand,
-                      lambda r: rows.unweighted(np.concatenate([r, np.zeros(rows.n)])))
+                      lambda r: rows.unweighted(np.concatenate([r, np.zeros(rows.n)])),
+                      elim.eliminate_lambda)
 
 
 def mean_keeping_shift(rows, elim, u2, guess):
@@ -261,15 +264,31 @@ def newton_criterion(record, gamma_lin):
     return record["eta_lin"] <= gamma_lin * record["eta_disc"]
 
 
-def solve_step(step, krylov, tol, test_every, on_iterate, cancel=None):
+def solve_step(step, krylov, tol, test_every, on_iterate, cancel=None, mean=None):
     """X^k, its residual R (3N) and the linear iterations of one step (`cancel`: see
-    Krylov.solve)."""
+    Krylov.solve). `mean` (membranes.mean.LevelMean; eliminated system, Krylov solver): the
+    step is solved for the gap and λ (the mean part of its initial residual taken out of the
+    right side, to GAP_SHARE of the tolerance: M's own residual takes the rest) and X^k gets
+    the mean M; R is b - A y of that y, in the step's own system."""
     if krylov is None:
         y, its = solve_direct(step.A, step.b)
         r = step.b - step.A @ y
-    else:
+    elif mean is None or step.z_is_u2 is None:
         y, r, its = krylov.solve(step.A, step.b, step.guess, tol, step.norm_B, test_every,
                                  on_iterate, cancel)
+    else:
+        def meaned(y):
+            y = mean_module.with_mean(y, mean.value(), mean.theta, step.expand, step.z_is_u2)
+            return y, step.b - step.A @ y
+
+        def on_meaned_iterate(its, current):
+            return on_iterate(its, lambda: meaned(current()[0]))
+        b = mean_module.without_mean_residual(step.A, step.b, step.guess, mean.theta)
+        y, _, its = krylov.solve(step.A, b, step.guess, mean_module.GAP_SHARE * tol,
+                                 step.norm_B, test_every,
+                                 None if on_iterate is None else on_meaned_iterate, cancel,
+                                 mean.theta)
+        y, r = meaned(y)
     return step.expand(y), step.pad(r), its
 
 
@@ -324,10 +343,12 @@ def line_search(rows, cfun, X, X_full, residual, reference, t=1.0):
 
 def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylov=None,
                       tol=DEFAULT_TOL, max_it=100, X0=None, monitor=None, estimate=None,
-                      gamma_lin=DEFAULT_GAMMA, gamma_alg=DEFAULT_GAMMA):
+                      gamma_lin=DEFAULT_GAMMA, gamma_alg=DEFAULT_GAMMA, mean=None):
     """Semismooth Newton from X0 (default (g, 0, 0)); krylov=None: MUMPS (exact only).
     tol: the Newton tolerance of exact and inexact; gamma_lin, gamma_alg: the adaptive
-    criteria's; `estimate` and `monitor`: see the module notes (adaptive needs `estimate`)."""
+    criteria's; `estimate` and `monitor`: see the module notes (adaptive needs `estimate`);
+    `mean`: the mesh's exact mean (membranes.mean.LevelMean), which the steps then take
+    (`solve_step`)."""
     check_method(system, variant, krylov)
     cfunctions.get(cfun)
     adaptive = variant == "adaptive"
@@ -467,7 +488,7 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
             step = linear_step(rows, "fb", system, X, at_projection=True)
             try:
                 X_new, R, its = solve_step(step, krylov, lin_tol, test_every,
-                                           hand_out(k, step, done, accepted))
+                                           hand_out(k, step, done, accepted), mean=mean)
                 r_new = rows.relative_residual("fb", X_new) \
                     if np.all(np.isfinite(X_new)) else np.inf
             except LinearSolveError as e:
@@ -487,7 +508,7 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                                            hand_out(k, step, done, accepted, before, unsettled),
                                            None if unsettled is None else
                                            lambda: not deferred(unsettled) and
-                                           stopping(unsettled)[0])
+                                           stopping(unsettled)[0], mean)
         except LinearSolveError as e:
             if settled_at(unsettled):
                 break

@@ -24,6 +24,15 @@ both AMG set-ups 4.1 s; measured 2026-11-21, BENCHMARKS.md). The data oscillatio
 therefore computed where the estimators are set up, from the load moments the flux set-up
 has anyway (when process 0 computed it, with moments of its own, 2.9 s of its time, the
 finest level took 15.6 s instead of 14.0 s).
+
+**The exact mean** (membranes.mean; vertex_amg on the eliminated system): the leader
+discretises with the stiffness matrix and sets up the mean's AMG when a level starts, solves
+for M when process 0 sends the mean of X⁰ (which it does at once), replies M (through a file
+in shared memory, as below) and only then sets up the estimators. Process 0 computes the
+first step's gap and λ meanwhile, which do not need M, and waits for M only when that step is
+done (at 9.3e5 vertices M was there 1.6 s earlier). Both sides compute M by the same code
+from the same data as one process does: the iterates stay those of one process.
+
 Only what the method decides from the estimates waits for them:
 
 * exact and inexact Newton never wait (their stopping tests are the residual's); the
@@ -144,11 +153,11 @@ class Link:
         return self.comm.Iprobe(source=LEADER, tag=REPLY)
 
     def receive(self):
-        """The next reply; RuntimeError if the estimator processes failed."""
+        """The next reply, (kind, payload); RuntimeError if the estimator processes failed."""
         kind, payload = self.comm.recv(source=LEADER, tag=REPLY)
         if kind == "error":
             raise RuntimeError(f"estimator processes: {payload}")
-        return payload
+        return kind, payload
 
     def close(self):
         """End the estimator processes' loop; remove any file they did not read."""
@@ -166,13 +175,31 @@ class RemoteEstimates:
     estimates are back (`awaiting`, `resolve`); an adaptive run's Krylov iterates wait for
     theirs (the criterion that stops GMRES reads them at once)."""
 
-    def __init__(self, link, level, alg_flux, adaptive):
+    def __init__(self, link, level, alg_flux, adaptive, mean_options=None):
         self.link, self.adaptive = link, adaptive
         self.multilevel = True if alg_flux == "multilevel" else None
         self.setup_time, self.time, self.eta_K = 0.0, 0.0, None
         self.rows = None            # the level's LinearRows, once process 0 has them
         self.ids, self.waiting, self.then, self.calls, self.replied = {}, {}, {}, 0, 0
-        link.post("level", level, alg_flux)
+        self.M = None               # the level's exact mean, once it is here
+        link.post("level", level, alg_flux, mean_options, link.directory)
+
+    def exact_mean(self, guess, th, bound):
+        """The level's exact mean (membranes.mean, to ‖ρ‖ ≤ bound), solved by the leader from
+        the mean of the guess X^0 while process 0 goes on: a LevelMean whose value() waits
+        for it."""
+        from .mean import LevelMean, mean_of
+        self.link.post("mean", bound, arrays=(mean_of(guess, len(guess) // 3, th),))
+        return LevelMean(th, self._mean_value)
+
+    def _mean_value(self):
+        while self.M is None:
+            kind, payload = self.link.receive()
+            if kind == "mean":
+                self.M = _unpack(payload)[0]
+            else:           # estimates (none come before the mean: the leader sends it first)
+                self._apply(payload)
+        return self.M
 
     def __call__(self, rec, X, R, same_as=None):
         if R is None:       # X^0: its residual needs E, which the estimator processes lack
@@ -229,7 +256,16 @@ class RemoteEstimates:
 
     def _take(self):
         """Apply the next reply: (its call number or 'finish', the records it completed)."""
-        call, values, ready, extra = self.link.receive()
+        while True:
+            kind, payload = self.link.receive()
+            if kind != "mean":
+                return self._apply(payload)
+            self.M = _unpack(payload)[0]
+
+    def _apply(self, payload):
+        """Apply a reply's estimates: (its call number or 'finish', the records it
+        completed)."""
+        call, values, ready, extra = payload
         if call != "finish":
             self.replied = call
         done = []
@@ -254,11 +290,13 @@ def serve(problem, comm, est_comm):
     none) when process 0 ends the run."""
     from .discretisation import discretise
     from .driver import RECORD_KEYS, IterateEstimates
+    from .mean import MeanSolve
     from .nested import level_problem
     from .newton_system import linear_rows
     leader = est_comm.rank == 0
     shared = est_comm if est_comm.size > 1 else None
-    est = disc = failed = level = None
+    est = disc = failed = level = mean_solve = None
+    replied_files = []
 
     def reply(call, ready, extra=None):
         # every record handed in is complete after a call, except the one IterateEstimates
@@ -278,6 +316,9 @@ def serve(problem, comm, est_comm):
             message = shared.bcast(message, root=0)
         kind, payload, packed = message
         if kind == "end":
+            for path in replied_files:      # a mean process 0 did not read (it failed)
+                if os.path.exists(path):
+                    os.unlink(path)
             return level, disc
         arrays = _unpack(packed) if leader else None    # read (and remove) the file first
         if shared is not None:
@@ -288,13 +329,30 @@ def serve(problem, comm, est_comm):
             continue
         try:
             if kind == "level":
-                level, alg_flux = payload
+                level, alg_flux, mean_options, directory = payload
                 est = None          # the level below: freed before this one is built
-                # no stiffness matrix: E's residuals come made (RemoteEstimates)
+                # no stiffness matrix (E's residuals come made: RemoteEstimates), except on
+                # the leader where it solves for the exact mean (membranes.mean)
                 pj = problem if level == problem.levels else level_problem(problem, level)
-                disc = discretise(pj, stiffness=False)
-                est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
+                mean_here = leader and mean_options is not None
+                disc = discretise(pj, stiffness=mean_here)
+                mean_solve = MeanSolve(disc, mean_options) if mean_here else None
+                if mean_options is None:
+                    est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
                 recs, rid_of, unsent, calls = {}, {}, {}, 0
+                parallel.agree(shared)
+            elif kind == "mean":
+                # the guess's mean has come: M first (process 0 waits for it at the end of
+                # its first step), then the estimators
+                if mean_solve is not None:
+                    M = mean_solve.solve(arrays[0], payload[0])
+                    mean_solve.destroy()
+                    mean_solve, disc.S1, disc.S2 = None, None, None
+                    packed = ("inline", [M]) if directory is None else \
+                        _pack([M], directory, f"membranes-{os.getpid()}-mean-{level}")
+                    replied_files += packed[1:2] if packed[0] == "file" else []
+                    comm.send(("mean", packed), dest=0, tag=REPLY)
+                est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
                 parallel.agree(shared)
             elif kind == "call":
                 rid, rec, same_as = payload

@@ -72,9 +72,10 @@ free vertices:
     λ_l = (r2 - r1 - S δ)_l / (a_l + b_l)         (contact vertices)
 
 and u1 = m - θ δ, u2 = m + (1 - θ) δ. Two Laplacians, one V-cycle on each per application.
-S does not depend on the iterate: its AMG is set up on the first Newton step of a mesh and
-kept (`Krylov`'s cache; reused while Ã[:N, :N] is the same matrix, entry for entry), so a step
-sets up only the gap's, on the N_f free vertices (~55 % of N on the disk), where 1.–4. set up
+S does not depend on the iterate: its AMG is set up by the first Newton step of a mesh that
+needs it and kept (`Krylov`'s cache; reused while Ã[:N, :N] is the same matrix, entry for
+entry; with the exact mean of membranes.mean no step needs it), so a step sets up only the
+gap's, on the N_f free vertices (~55 % of N on the disk), where 1.–4. set up
 K (N + N_f rows; the glued rows of the contact vertices give it operator complexity 2.66, the
 hierarchy above). a, b, θ and S are read off Ã, and Ã is compared with the model of the
 identity above entry by entry (to 1e-10 of S's largest entry; one compiled pass over Ã's
@@ -360,9 +361,9 @@ def _mean_gap_combine(r, m, gap, theta, free, contact, ab, indptr, indices, data
 class InnerAMG:
     """The inner PC (BoomerAMG by default, `DEFAULT_INNER`; `inner` the user's options) set up
     on the scipy matrix M, applied to arrays (`solve`, or `b` → `apply` → `x`). The PETSc
-    matrix is built on M's own arrays (M is the caller's fresh matrix, kept unchanged as `M`:
-    `MeanGapAMG` compares it with the next step's), one copy of it less in memory; the right
-    side and the solution are PETSc vectors on the arrays `b` and `x`."""
+    matrix is built on M's own arrays (M, the caller's matrix, is kept as `M` and must not
+    change), one copy of it less in memory; the right side and the solution are PETSc vectors
+    on the arrays `b` and `x`."""
 
     def __init__(self, M, inner=None):
         self.M = M
@@ -443,9 +444,12 @@ MEAN_SETTLED = 0.5     # `MeanGapAMG.settle_mean`: the mean's residual floor, as
 
 class MeanGapAMG:
     """The exact mean/gap split of a min system (module notes) as a petsc4py Python PC context:
-    (S, a, b) from `mean_gap_split`, one inner PC on S (the mean; taken from cache["mean"] when
-    it was set up on the same S, and left there for the next step) and one on S restricted to
-    the free vertices (the gap)."""
+    (S, a, b) from `mean_gap_split`, one inner PC on S (the mean) and one on S restricted to
+    the free vertices (the gap). The mean's PC is set up only where a solve needs it (not
+    where `settle_mean` finds the mean settled: every step of a run whose iterates hold the
+    exact mean, membranes.mean); it is taken from cache["mean"] when that was set up on the
+    same S, and left there for the next step. cache["S"] keeps S itself (`mean_gap_split`'s
+    reference: the next step's S is then this matrix, not a copy)."""
 
     def __init__(self, S, a, b, inner=None, cache=None):
         contact = a != 0
@@ -453,22 +457,30 @@ class MeanGapAMG:
         # without contact the membranes are uncoupled, and any θ splits them exactly
         self.theta = a[contact][0] / (a + b)[contact][0] if self.contact.size else 0.5
         self.ab = (a + b)[contact]
-        self.S = S
-        mean = (cache or {}).get("mean")
-        if mean is None or not same_matrix(mean.M, S):
+        self.S, self.inner, self.cache = S, inner, cache
+        if cache is not None and cache.get("S") is not S:
+            mean = cache.pop("mean", None)
             if mean is not None:
-                del cache["mean"]
                 mean.destroy()
-            mean = InnerAMG(S, inner)
-            if cache is not None:
-                cache["mean"] = mean
-        self.mean, self.owns_mean = mean, cache is None
+            cache["S"] = S
+        self.mean, self.owns_mean = None, cache is None
         self.gap = InnerAMG(principal_submatrix(S, self.free), inner) if self.free.size \
             else None
         self.delta = np.zeros(S.shape[0])
+        self.mean_rhs, self.no_mean = np.zeros(S.shape[0]), np.zeros(S.shape[0])
         self.mean_settled = False
 
-    def settle_mean(self, r, bound):
+    def _mean_amg(self):
+        """The mean's inner PC: the cache's, else set up now (and kept there)."""
+        if self.mean is None:
+            self.mean = (self.cache or {}).get("mean")
+            if self.mean is None:
+                self.mean = InnerAMG(self.S, self.inner)
+                if self.cache is not None:
+                    self.cache["mean"] = self.mean
+        return self.mean
+
+    def settle_mean(self, r, bound, theta=None):
         """Before a solve from the residual r = b - A x0 to ‖b - A x‖ ≤ bound: leave the mean's
         V-cycles out of it (m = 0 in every application) where the mean part of r is already
         settled. The mean's equation is S m = ρ, ρ = (1 - θ) r1 + θ r2, and a correction with
@@ -477,37 +489,45 @@ class MeanGapAMG:
         ‖ρ‖ / √(θ² + (1 - θ)²), and GMRES can reach that floor as the gap converges. Where the
         floor is at most MEAN_SETTLED · bound, the gap alone has to reach √(1 - 0.25) of the
         bound, and V-cycles on the mean would only move its residual within round-off. That is
-        the case from the second Newton step of a level on, whose guess keeps the mean of the
+        the case at every step of a run whose iterates hold the level's exact mean
+        (membranes.mean: the step is solved with ρ taken out of its right side), and
+        otherwise from the second Newton step of a level on, whose guess keeps the mean of the
         iterate before (newton.mean_keeping_shift): ρ is then what the last solve left (disk,
         J = 5: 0.15 … 0.74 of the bound; settled at 9 of the 11 later steps), not at the
         first (the prolonged guess does not solve the fine mean's equation: 1e9 … 1e11 of the
         bound). The same Newton steps; at 9.3e5 vertices (h0 = 0.132, J = 6) the finest level
         took 15.0 s instead of 15.9 s, with 137 GMRES iterations instead of 142 in the run
-        (the shifted guess)."""
+        (the shifted guess). A settled mean's inner PC is not set up. `theta`: the caller's
+        θ, taken where no vertex is in contact (the membranes are uncoupled then, and any θ
+        splits them exactly)."""
         n = self.S.shape[0]
+        if theta is not None and not self.contact.size:
+            self.theta = theta
         theta = self.theta
         rho = (1.0 - theta) * r[:n] + theta * r[n:]
         floor = np.linalg.norm(rho) / np.hypot(theta, 1.0 - theta)
         self.mean_settled = bool(floor <= MEAN_SETTLED * bound)
-        if self.mean_settled:
-            self.mean.x[:] = 0.0
 
     def apply(self, pc, x, y):
         """y = M⁻¹ x: m = S⁻¹((1 - θ) r1 + θ r2), δ_free = S_ff⁻¹ (r2 - r1)_free (δ = 0 at
         contact), u1 = m - θ δ, u2 = m + (1 - θ) δ, λ_contact = (r2 - r1 - S δ)/(a + b)
         (`_mean_gap_right_sides`, `_mean_gap_combine`: one compiled pass each side of the
-        V-cycles, where numpy made a dozen temporaries of size N)."""
+        V-cycles, where numpy made a dozen temporaries of size N); m = 0 where the mean is
+        settled."""
         r = x.array_r
         gap = self.gap.b if self.gap is not None else self.delta[:0]
-        _mean_gap_right_sides(r, self.theta, self.free, self.mean.b, gap)
-        if not self.mean_settled:
-            self.mean.apply()
+        mean = None if self.mean_settled else self._mean_amg()
+        _mean_gap_right_sides(r, self.theta, self.free,
+                              self.mean_rhs if mean is None else mean.b, gap)
+        if mean is not None:
+            mean.apply()
         if self.gap is not None:
             self.gap.apply()
             gap = self.gap.x
         S = self.S
-        _mean_gap_combine(r, self.mean.x, gap, self.theta, self.free, self.contact, self.ab,
-                          S.indptr, S.indices, S.data, self.delta, y.array)
+        _mean_gap_combine(r, self.no_mean if mean is None else mean.x, gap, self.theta,
+                          self.free, self.contact, self.ab, S.indptr, S.indices, S.data,
+                          self.delta, y.array)
 
     def destroy(self, pc=None):
         """Free the PETSc objects, except the mean's inner PC when the cache keeps it."""
@@ -516,20 +536,13 @@ class MeanGapAMG:
                 amg.destroy()
 
 
-def same_matrix(M, N):
-    """M and N (sorted CSR) hold the same entries."""
-    return M is N or M.shape == N.shape and np.array_equal(M.indptr, N.indptr) and \
-        np.array_equal(M.indices, N.indices) and np.array_equal(M.data, N.data)
-
-
 def vertex_amg(A, inner=None, cache=None):
     """The Python PC context for the eliminated system A: `MeanGapAMG` where `mean_gap_split`
     finds a min system, else `VertexAMG`; `cache`: a dict kept from one Newton step to the next
     (the mean's inner PC)."""
     A = sp.csr_matrix(A)
     check_shape(A)
-    mean = (cache or {}).get("mean")
-    split = mean_gap_split(A, reference=mean.M if mean is not None else None)
+    split = mean_gap_split(A, reference=(cache or {}).get("S"))
     if split is not None:
         return MeanGapAMG(*split, inner=inner, cache=cache)
     return VertexAMG(A, inner)

@@ -20,7 +20,7 @@ from membranes import newton_system as ns
 from membranes import solve
 from membranes.krylov import Krylov
 from membranes.linear_solve import solve_direct
-from membranes.newton import EXACT_LINEAR_TOL, linear_step
+from membranes.newton import EXACT_LINEAR_TOL, linear_step, semismooth_newton
 from membranes.discretisation import discretise
 from membranes.preconditioner import MeanGapAMG, VertexAMG, gap_scales, mean_gap_split, slaves
 
@@ -212,14 +212,19 @@ def test_mean_gap_split_is_exact():
 
 
 def test_mean_amg_kept_per_mesh():
-    """The mean's AMG is set up once per mesh: the next step on the same mesh reuses it, a
-    system of another mesh replaces it."""
+    """The mean's AMG is set up once per mesh, by the first solve that needs it (the first
+    step, from X^0 = (g, 0, 0)): the next steps on the same mesh keep it (their mean is settled:
+    they leave it out), a system of another mesh drops it, and sets up its own only where its
+    mean is not settled (the square's step from a direct solve's iterate is; its step from
+    (g, 0, 0) is not)."""
     krylov = Krylov(dict(VAMG))
     kept = []
-    for step in [s for s, _, _ in _steps("min", 3)] + [_square_steps(2)[1][0]]:
+    for step in [s for s, _, _ in _steps("min", 3)] + [_square_steps(2)[1][0],
+                                                         _square_steps(2)[0][0]]:
         krylov.solve(step.A, step.b, step.guess, 1e-10, np.linalg.norm(step.b))
-        kept.append(krylov._cache["mean"])
-    assert kept[0] is kept[1] is kept[2] and kept[3] is not kept[2]
+        kept.append(krylov._cache.get("mean"))
+    assert kept[0] is not None and kept[0] is kept[1] is kept[2]
+    assert kept[3] is None and kept[4] is not None and kept[4] is not kept[0]
 
 
 def _settled(monkeypatch):
@@ -227,8 +232,8 @@ def _settled(monkeypatch):
     seen = []
     settle = MeanGapAMG.settle_mean
 
-    def spy(self, r, bound):
-        settle(self, r, bound)
+    def spy(self, r, bound, theta=None):
+        settle(self, r, bound, theta)
         seen.append((self.S.shape[0], self.mean_settled))
     monkeypatch.setattr(MeanGapAMG, "settle_mean", spy)
     return seen
@@ -261,23 +266,17 @@ def test_settled_mean(monkeypatch):
             assert seen == [(n, settled)] and its >= 1 and np.linalg.norm(r) <= bound
 
 
-def test_mean_settled_after_the_first_step_of_a_level(monkeypatch):
-    """In a nested adaptive run the mean is not settled at the first Newton step of a level
-    (the prolonged guess does not solve the fine mean's equation) and settled at the later
-    steps of most levels: the guess keeps the mean of the iterate before
+def test_mean_settled_after_the_first_step(monkeypatch):
+    """Solving whole Newton steps (no exact mean given, membranes.mean), the mean is not
+    settled at the first step from (g, 0, 0), whose guess does not solve the mean's equation,
+    and settled at most later steps: their guess keeps the mean of the iterate before
     (newton.mean_keeping_shift), so what is left is the mean part of the last solve's
-    residual, settled where that is below half the bound. Disk, h0 = 0.2, J = 2: 3, 2, 3
-    steps; the first level's later steps settle (its mean part is 0.35 of the bound)."""
+    residual, settled where that is below half the bound. Disk, h = 0.05, exact Newton."""
     seen = _settled(monkeypatch)
-    run = solve(scene("disk", 0.2, levels=2), newton="adaptive", cfun="min",
-                system="eliminated", petsc_options=dict(VAMG), alg_flux="nu")
-    per_level = [lvl["newton_iterations"] for lvl in run.per_level]
-    assert len(seen) == sum(per_level)
-    at = np.cumsum([0] + per_level)
-    later = []
-    for j, level in enumerate(run.per_level):
-        assert {n for n, _ in seen[at[j]:at[j + 1]]} == {level["n_vertices"]}
-        settled = [s for _, s in seen[at[j]:at[j + 1]]]
-        assert not settled[0]
-        later += settled[1:]
-    assert seen[1][1] and seen[2][1] and sum(later) >= len(later) / 2
+    problem = scene("disk", 0.05)
+    rows = ns.linear_rows(discretise(problem))
+    result = semismooth_newton(rows, problem.g, "min", "eliminated", "exact", Krylov(dict(VAMG)))
+    assert result.converged and result.newton_iterations >= 3
+    settled = [s for _, s in seen]
+    assert len(settled) == result.newton_iterations and not settled[0]
+    assert sum(settled[1:]) >= len(settled[1:]) / 2

@@ -1,0 +1,157 @@
+"""The mean of the two membranes: one Poisson solve per mesh instead of a part of every Newton
+step (DESIGN §2–§3; used with ``pc_type vertex_amg`` on the eliminated system).
+
+**The mean does not see the contact.** Weighted by W (1/μ_α on interior rows, newton_system),
+the two membrane rows of a vertex (DESIGN §2) combine with θ = μ2/(μ1 + μ2) into
+
+    (1 - θ) r1 + θ r2 = (F1 + F2)/(μ1 + μ2) - S m,    m = (μ1 u1 + μ2 u2)/(μ1 + μ2),
+
+λ cancelling; on a boundary vertex the Dirichlet rows give m = μ1 g/(μ1 + μ2). So the mean of
+the discrete solution, and of every iterate that satisfies the membrane rows, is the solution
+M of one Poisson problem,
+
+    (μ1 + μ2) S M = F1 + F2 (interior vertices),   M = μ1 g/(μ1 + μ2) (boundary),
+
+whatever the C-function and the contact set. The C-functions read u1 - u2 and λ only (DESIGN
+§3), and a change of the mean alone (u1 and u2 moved by the same s, λ kept: in the eliminated
+system, u1 and z moved by s where z = u2, u1 alone where z = λ, since u2 = u1 + d λ + const
+there) changes only that combination of the residual, by S s. A Newton step therefore
+splits exactly: its gap u2 - u1 and λ do not depend on the mean of X^{k-1}, and its mean is
+M. `solve_step` (membranes.newton) uses that: it solves the step's system with the mean part
+ρ = (1 - θ) r1 + θ r2 of the initial residual taken out of the right side (the solve then
+starts with its mean settled, and vertex_amg's mean/gap split leaves the mean's V-cycles out:
+`preconditioner.MeanGapAMG.settle_mean`, whose AMG on S is then never set up), and gives the
+result the mean M (`with_mean`); its residual is computed anew from the system's own right
+side, so whatever M lacks shows in R_alg (DESIGN §4) and the estimators.
+
+**Why.** The mean's AMG (a Laplacian on all N vertices) was the dearest single part of a
+level's first Newton step: at 9.3e5 vertices 0.86 s of its 3.3 s. M is solved once per level
+here (`MeanSolve`: conjugate gradients with the same BoomerAMG V-cycle, from the mean of the
+level's initial guess, until ‖ρ(M)‖ is MEAN_FRACTION of the bound the Newton steps' linear
+solves meet, `mean_bound`), and the Newton steps solve for the gap and λ only. On several processes (membranes.pipeline) an estimator process solves for M while
+process 0 computes the first Newton step's gap and λ, which do not need it: process 0 waits
+for M only when the step is done.
+
+This is one of the choices DESIGN.md leaves open (README): the Newton iterates are those of
+DESIGN §3 with the mean of every step solved exactly, not those of GMRES on the whole step
+from X^{k-1} (§8), which reaches the same mean to its tolerance.
+"""
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from petsc4py import PETSc
+
+MEAN_FRACTION = 0.01    # ‖ρ(M)‖ ≤ MEAN_FRACTION · the Newton steps' tightest linear bound
+GAP_SHARE = 1.0 - np.sqrt(2.0) * MEAN_FRACTION   # what a step's solve leaves the gap and λ:
+# M adds (ρ, ρ) to the residual, of norm √2 ‖ρ‖, so the step still meets its bound
+MEAN_MAX_ITS = 200
+
+
+def theta(problem):
+    """θ = μ2/(μ1 + μ2): m = (1 - θ) u1 + θ u2."""
+    return problem.mu2 / (problem.mu1 + problem.mu2)
+
+
+def mean_of(X, n, th):
+    """m = (1 - θ) u1 + θ u2 of X = (u1, u2, λ) (N values)."""
+    return (1.0 - th) * X[:n] + th * X[n:2 * n]
+
+
+class MeanSolve:
+    """The Poisson problem of the module notes on `disc` (which needs its stiffness matrices):
+    the interior block K = ((μ1 + μ2) S)_II and its right side, set up with one BoomerAMG
+    (`preconditioner.InnerAMG`, `inner`: vertex_amg's inner options); `solve(m0)` gives M
+    from the guess m0 (N values)."""
+
+    def __init__(self, disc, inner=None):
+        from .preconditioner import InnerAMG, principal_submatrix
+        p = disc.problem
+        n = disc.n
+        interior = disc.interior
+        self.n, self.inner_index = n, np.flatnonzero(interior)
+        self.mu = p.mu1 + p.mu2
+        self.boundary_value = np.zeros(n)
+        self.boundary_value[disc.boundary] = p.mu1 * p.g / (p.mu1 + p.mu2)
+        S = disc.S1 if disc.S2 is disc.S1 else disc.S1 + disc.S2
+        factor = 2.0 if disc.S2 is disc.S1 else 1.0        # S1 + S2 = (μ1 + μ2) S
+        rhs = disc.F1 + disc.F2 - factor * (S @ self.boundary_value)
+        self.rhs = rhs[self.inner_index]
+        K = principal_submatrix(S, self.inner_index)
+        if factor != 1.0:
+            K.data *= factor
+        self.amg = InnerAMG(K, inner)
+
+    def solve(self, m0, bound):
+        """M from the guess m0: CG preconditioned by one V-cycle (symmetric: forward and
+        backward sweeps, preconditioner.DEFAULT_INNER) until ‖ρ‖ ≤ bound, ρ = (F1 + F2 -
+        (μ1 + μ2) S M)/(μ1 + μ2) the mean part of the weighted residual (module notes), at most
+        MEAN_MAX_ITS iterations (where round-off stops it earlier, M is what CG reached: the
+        Newton steps then also correct the mean)."""
+        ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+        x = np.array(m0, dtype=float)[self.inner_index]
+        b, xv = (PETSc.Vec().createWithArray(v, comm=PETSc.COMM_SELF) for v in (self.rhs, x))
+        try:
+            ksp.setType(PETSc.KSP.Type.CG)
+            ksp.setOperators(self.amg.mat)
+            ksp.setPC(self.amg.pc)
+            ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+            ksp.setTolerances(rtol=1e-30, atol=bound * self.mu, max_it=MEAN_MAX_ITS)
+            ksp.setInitialGuessNonzero(True)
+            ksp.solve(b, xv)
+            self.its = ksp.getIterationNumber()
+        finally:
+            for obj in (b, xv, ksp):
+                obj.destroy()
+        M = self.boundary_value.copy()
+        M[self.inner_index] = x
+        return M
+
+    def destroy(self):
+        self.amg.destroy()
+
+
+def mean_bound(rows, linear_tol):
+    """The bound MeanSolve.solve meets: MEAN_FRACTION · linear_tol · ‖W F‖, linear_tol the
+    tightest ‖R_alg‖/‖B‖ the Newton steps solve to (‖B‖ ≥ ‖W F‖): ρ(M) is then far below
+    what `MeanGapAMG.settle_mean` takes as settled (MEAN_SETTLED = 0.5 of a step's bound)."""
+    return MEAN_FRACTION * linear_tol * rows.norm_F
+
+
+def exact_mean(disc, X0, bound, inner=None):
+    """M of the module notes on `disc`, from the mean of the guess X0 (3N values), to ‖ρ‖ ≤
+    bound."""
+    solver = MeanSolve(disc, inner)
+    try:
+        return solver.solve(mean_of(X0, disc.n, theta(disc.problem)), bound)
+    finally:
+        solver.destroy()
+
+
+@dataclass
+class LevelMean:
+    """What a Newton run needs of the mean: θ, and M when `value()` is called (on several
+    processes it may still be on its way then: `value` waits for it)."""
+    theta: float
+    value: Callable
+
+
+def without_mean_residual(A, b, guess, th):
+    """b - (ρ, ρ), ρ = (1 - θ) r1 + θ r2 of r = b - A guess: the right side whose residual at
+    the guess has no mean part (module notes)."""
+    r = b - A @ guess
+    n = r.size // 2
+    rho = (1.0 - th) * r[:n] + th * r[n:]
+    return b - np.concatenate([rho, rho])
+
+
+def with_mean(y, M, th, expand, z_is_u2):
+    """The eliminated unknowns y (u1, z) moved by the mean change s = M - m(y) (u1 by s, z by
+    s where z = u2; λ and the gap unchanged, module notes)."""
+    n = y.size // 2
+    s = M - mean_of(expand(y), n, th)
+    out = np.array(y, dtype=float)
+    out[:n] += s
+    out[n:] += np.where(z_is_u2, s, 0.0)
+    return out
