@@ -9,7 +9,7 @@ from membranes import solve
 from membranes.discretisation import discretise
 from membranes.krylov import Krylov
 from membranes.linear_solve import solve_direct
-from membranes.newton import EXACT_LINEAR_TOL, linear_step, solve_step
+from membranes.newton import linear_step, solve_step
 from membranes.preconditioner import MeanGapAMG
 
 from .conftest import scene
