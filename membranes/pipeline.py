@@ -15,14 +15,17 @@ and the work is split by kind, not by mesh:
 The two kinds overlap. The set-up of a level's estimators runs while process 0 discretises
 that level and takes the first Newton steps, and an iterate's estimates are computed while
 process 0 already computes the next Newton step. The estimator processes assemble no stiffness
-matrix (X⁰'s residual comes with X⁰). Which side is the critical path depends on how fast
-each is: at 9.3e5 vertices (disk, J = 6, 2 processes) process 0 is, since the estimators'
-set-up and evaluations were compiled: on the finest level the estimator process has the
-level set up, data oscillation included (1.1 s of discretisation, 3.4 s of set-up), 2.4 s
-before process 0 hands out X¹ (disc. 1.3 s, rows and prolongation 0.4 s, the first step with
-both AMG set-ups 4.1 s; measured 2026-11-21, BENCHMARKS.md). The data oscillation is
-therefore computed where the estimators are set up, from the load moments the flux set-up
-has anyway (when process 0 computed it, with moments of its own, 2.9 s of its time, the
+matrix (X⁰'s residual comes with X⁰; the leader does where it solves for the exact mean,
+below). Which side is the critical path depends on how fast each is. At 9.3e5 vertices (disk,
+J = 6, 2 processes, a scene run without its exact solution) it is now the estimator process
+on the finest level: discretisation 0.9 s, the mean's AMG 0.8 s and CG 1.1 s, the estimators'
+set-up 2.8 s, then X¹'s estimate 0.9 s, while process 0 has X² 1.6 s before that estimate
+(disc. 0.9 s, rows and prolongation 0.2 s, the first step without the mean 2.1 s, the second
+1.6 s) and waits for it: it computes one step ahead of the test, not two (measured
+2026-11-22, BENCHMARKS.md). Before the mean moved there, process 0 was the critical path
+(the first step with both AMG set-ups took 4.1 s). The data oscillation is computed where
+the estimators are set up, from the load moments the flux set-up has anyway (when process 0
+computed it, with moments of its own, 2.9 s of its time, the
 finest level took 15.6 s instead of 14.0 s).
 
 **The exact mean** (membranes.mean; vertex_amg on the eliminated system): the leader
@@ -30,7 +33,7 @@ discretises with the stiffness matrix and sets up the mean's AMG when a level st
 for M when process 0 sends the mean of X⁰ (which it does at once), replies M (through a file
 in shared memory, as below) and only then sets up the estimators. Process 0 computes the
 first step's gap and λ meanwhile, which do not need M, and waits for M only when that step is
-done (at 9.3e5 vertices M was there 1.6 s earlier). Both sides compute M by the same code
+done (at 9.3e5 vertices M was there 0.5 s before). Both sides compute M by the same code
 from the same data as one process does: the iterates stay those of one process.
 
 Only what the method decides from the estimates waits for them:
