@@ -28,9 +28,10 @@ side, so whatever M lacks shows in R_alg (DESIGN §4) and the estimators.
 level's first Newton step: at 9.3e5 vertices 0.86 s of its 3.3 s. M is solved once per level
 here (`MeanSolve`: conjugate gradients with the same BoomerAMG V-cycle, from the mean of the
 level's initial guess, until ‖ρ(M)‖ is MEAN_FRACTION of the bound the Newton steps' linear
-solves meet, `mean_bound`), and the Newton steps solve for the gap and λ only. On several processes (membranes.pipeline) an estimator process solves for M while
-process 0 computes the first Newton step's gap and λ, which do not need it: process 0 waits
-for M only when the step is done.
+solves meet, `mean_bound`), and the Newton steps solve for the gap and λ only. On several
+processes (membranes.pipeline) an estimator process solves for M while process 0 computes
+the first Newton step's gap and λ, which do not need it: process 0 waits for M only when the
+step is done.
 
 This is one of the choices DESIGN.md leaves open (README): the Newton iterates are those of
 DESIGN §3 with the mean of every step solved exactly, not those of GMRES on the whole step
@@ -73,14 +74,13 @@ class MeanSolve:
         self.n, self.inner_index = n, np.flatnonzero(interior)
         self.mu = p.mu1 + p.mu2
         self.boundary_value = np.zeros(n)
-        self.boundary_value[disc.boundary] = p.mu1 * p.g / (p.mu1 + p.mu2)
-        S = disc.S1 if disc.S2 is disc.S1 else disc.S1 + disc.S2
-        factor = 2.0 if disc.S2 is disc.S1 else 1.0        # S1 + S2 = (μ1 + μ2) S
+        self.boundary_value[disc.boundary] = p.mu1 * p.g / self.mu
+        # S1 + S2 = (μ1 + μ2) S; where S2 is S1 (μ1 = μ2), 2 S1 without a second matrix
+        S, factor = (disc.S1, 2.0) if disc.S2 is disc.S1 else (disc.S1 + disc.S2, 1.0)
         rhs = disc.F1 + disc.F2 - factor * (S @ self.boundary_value)
         self.rhs = rhs[self.inner_index]
         K = principal_submatrix(S, self.inner_index)
-        if factor != 1.0:
-            K.data *= factor
+        K.data *= factor
         self.amg = InnerAMG(K, inner)
 
     def solve(self, m0, bound):

@@ -197,11 +197,7 @@ class RemoteEstimates:
 
     def _mean_value(self):
         while self.M is None:
-            kind, payload = self.link.receive()
-            if kind == "mean":
-                self.M = _unpack(payload)[0]
-            else:           # estimates (none come before the mean: the leader sends it first)
-                self._apply(payload)
+            self._next()
         return self.M
 
     def __call__(self, rec, X, R, same_as=None):
@@ -258,16 +254,20 @@ class RemoteEstimates:
                 return
 
     def _take(self):
-        """Apply the next reply: (its call number or 'finish', the records it completed)."""
-        while True:
-            kind, payload = self.link.receive()
-            if kind != "mean":
-                return self._apply(payload)
-            self.M = _unpack(payload)[0]
-
-    def _apply(self, payload):
-        """Apply a reply's estimates: (its call number or 'finish', the records it
+        """Apply the next reply of estimates: (its call number or 'finish', the records it
         completed)."""
+        while True:
+            taken = self._next()
+            if taken is not None:
+                return taken
+
+    def _next(self):
+        """Read one reply: the level's mean is kept (None returned; the leader sends it
+        before any estimates of the level), estimates are applied (`_take`'s result)."""
+        kind, payload = self.link.receive()
+        if kind == "mean":
+            self.M = _unpack(payload)[0]
+            return None
         call, values, ready, extra = payload
         if call != "finish":
             self.replied = call
