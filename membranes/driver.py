@@ -517,8 +517,7 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     remote = method.link is not None and alg_flux is not None
     if remote:      # first: the estimator processes set this level up meanwhile
         from .pipeline import RemoteEstimates
-        est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive",
-                              method.mean_options)
+        est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive")
     disc = discretise(problem)
     rows = linear_rows(disc)
     if remote:      # X^0's residual and the data oscillation come from here
@@ -534,13 +533,10 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
         if guess.shape == (3 * disc.n,) and np.all(np.isfinite(guess)):  # else Newton says
             bound = mean_bound(rows, linear_tolerance(
                 "adaptive" if method.tol is None else "exact", method.tol, None))
-            if remote:      # an estimator process solves for M meanwhile
-                mean = est.exact_mean(guess, theta(problem), bound)
-            else:
-                t = time.perf_counter()
-                M = exact_mean(disc, guess, bound, method.mean_options)
-                mean = LevelMean(theta(problem), lambda: M)
-                setup_time += time.perf_counter() - t
+            t = time.perf_counter()
+            M = exact_mean(disc, guess, bound, method.mean_options)
+            mean = LevelMean(theta(problem), M)
+            setup_time += time.perf_counter() - t
     error = EnergyError(disc) if problem.exact is not None else None
     if not remote:
         est = IterateEstimates(disc, rows, alg_flux) if alg_flux is not None else None

@@ -29,9 +29,8 @@ level's first Newton step: at 9.3e5 vertices 0.86 s of its 3.3 s. M is solved on
 here (`MeanSolve`: conjugate gradients with the same BoomerAMG V-cycle, from the mean of the
 level's initial guess, until ‖ρ(M)‖ is MEAN_FRACTION of the bound the Newton steps' linear
 solves meet, `mean_bound`), and the Newton steps solve for the gap and λ only. On several
-processes (membranes.pipeline) an estimator process solves for M while process 0 computes
-the first Newton step's gap and λ, which do not need it: process 0 waits for M only when the
-step is done.
+processes (membranes.pipeline) process 0 solves for M too, while the estimator processes set
+up the level's estimators.
 
 This is one of the choices DESIGN.md leaves open (README): the Newton iterates are those of
 DESIGN §3 with the mean of every step solved exactly, not those of GMRES on the whole step
@@ -39,8 +38,6 @@ from X^{k-1} (§8), which reaches the same mean to its tolerance.
 """
 
 from dataclasses import dataclass
-from typing import Callable
-
 import numpy as np
 from petsc4py import PETSc
 
@@ -131,10 +128,9 @@ def exact_mean(disc, X0, bound, inner=None):
 
 @dataclass
 class LevelMean:
-    """What a Newton run needs of the mean: θ, and M when `value()` is called (on several
-    processes it may still be on its way then: `value` waits for it)."""
+    """What a Newton run needs of the mean: θ and M (N values)."""
     theta: float
-    value: Callable
+    M: np.ndarray
 
 
 def without_mean_residual(A, b, guess, th):

@@ -278,7 +278,7 @@ def solve_step(step, krylov, tol, test_every, on_iterate, cancel=None, mean=None
                                  on_iterate, cancel)
     else:
         def meaned(y):
-            y = mean_module.with_mean(y, mean.value(), mean.theta, step.expand, step.z_is_u2)
+            y = mean_module.with_mean(y, mean.M, mean.theta, step.expand, step.z_is_u2)
             return y, step.b - step.A @ y
 
         def on_meaned_iterate(its, current):

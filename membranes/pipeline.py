@@ -13,28 +13,22 @@ and the work is split by kind, not by mesh:
   the cut included.
 
 The two kinds overlap. The set-up of a level's estimators runs while process 0 discretises
-that level and takes the first Newton steps, and an iterate's estimates are computed while
+that level, solves for its exact mean (membranes.mean, with vertex_amg on the eliminated
+system) and takes the first Newton step, and an iterate's estimates are computed while
 process 0 already computes the next Newton step. The estimator processes assemble no stiffness
-matrix (X⁰'s residual comes with X⁰; the leader does where it solves for the exact mean,
-below). Which side is the critical path depends on how fast each is. At 9.3e5 vertices (disk,
-J = 6, 2 processes, a scene run without its exact solution) it is now the estimator process
-on the finest level: discretisation 0.9 s, the mean's AMG 0.8 s and CG 1.1 s, the estimators'
-set-up 2.8 s, then X¹'s estimate 0.9 s, while process 0 has X² 1.6 s before that estimate
-(disc. 0.9 s, rows and prolongation 0.2 s, the first step without the mean 2.1 s, the second
-1.6 s) and waits for it: it computes one step ahead of the test, not two (measured
-2026-11-22, BENCHMARKS.md). Before the mean moved there, process 0 was the critical path
-(the first step with both AMG set-ups took 4.1 s). The data oscillation is computed where
-the estimators are set up, from the load moments the flux set-up has anyway (when process 0
-computed it, with moments of its own, 2.9 s of its time, the
-finest level took 15.6 s instead of 14.0 s).
-
-**The exact mean** (membranes.mean; vertex_amg on the eliminated system): the leader
-discretises with the stiffness matrix and sets up the mean's AMG when a level starts, solves
-for M when process 0 sends the mean of X⁰ (which it does at once), replies M (through a file
-in shared memory, as below) and only then sets up the estimators. Process 0 computes the
-first step's gap and λ meanwhile, which do not need M, and waits for M only when that step is
-done (at 9.3e5 vertices M was there 0.5 s before). Both sides compute M by the same code
-from the same data as one process does: the iterates stay those of one process.
+matrix (X⁰'s residual comes with X⁰). Which side is the critical path depends on how fast
+each is; at 9.3e5 vertices (disk, J = 6, 2 processes, a scene run without its exact
+solution) it is process 0 on the finest level: discretisation 0.9-1.1 s, rows and
+prolongation 0.2 s, the mean 1.8-2.2 s (its AMG set-up and CG), then three steps of 1.5-2.2 s
+each (the first dearest: its AMG set-ups), and the last step's estimate (1.1-1.2 s) ends the
+level; the estimator process has its estimators set up (discretisation 0.8 s, set-up 3.0 s)
+1-2 s before X¹ comes (measured 2026-11-22, BENCHMARKS.md). Session 17 had the leader solve
+for the mean before its set-up while process 0 computed the first step's gap and λ (which
+do not need M): the estimator process was then the critical path (discretisation with the
+stiffness matrix 0.9 s, the mean 1.8 s, set-up 2.8-3.3 s before X¹'s estimate), and the run
+took 14.6-18.7 s where this one takes 13.7-15.7 s (five alternating runs each). The data oscillation is computed where the estimators are set up, from the load
+moments the flux set-up has anyway (when process 0 computed it, with moments of its own,
+2.9 s of its time, the finest level took 15.6 s instead of 14.0 s).
 
 Only what the method decides from the estimates waits for them:
 
@@ -156,11 +150,11 @@ class Link:
         return self.comm.Iprobe(source=LEADER, tag=REPLY)
 
     def receive(self):
-        """The next reply, (kind, payload); RuntimeError if the estimator processes failed."""
+        """The next reply's estimates; RuntimeError if the estimator processes failed."""
         kind, payload = self.comm.recv(source=LEADER, tag=REPLY)
         if kind == "error":
             raise RuntimeError(f"estimator processes: {payload}")
-        return kind, payload
+        return payload
 
     def close(self):
         """End the estimator processes' loop; remove any file they did not read."""
@@ -178,27 +172,13 @@ class RemoteEstimates:
     estimates are back (`awaiting`, `resolve`); an adaptive run's Krylov iterates wait for
     theirs (the criterion that stops GMRES reads them at once)."""
 
-    def __init__(self, link, level, alg_flux, adaptive, mean_options=None):
+    def __init__(self, link, level, alg_flux, adaptive):
         self.link, self.adaptive = link, adaptive
         self.multilevel = True if alg_flux == "multilevel" else None
         self.setup_time, self.time, self.eta_K = 0.0, 0.0, None
         self.rows = None            # the level's LinearRows, once process 0 has them
         self.ids, self.waiting, self.then, self.calls, self.replied = {}, {}, {}, 0, 0
-        self.M = None               # the level's exact mean, once it is here
-        link.post("level", level, alg_flux, mean_options, link.directory)
-
-    def exact_mean(self, guess, th, bound):
-        """The level's exact mean (membranes.mean, to ‖ρ‖ ≤ bound), solved by the leader from
-        the mean of the guess X^0 while process 0 goes on: a LevelMean whose value() waits
-        for it."""
-        from .mean import LevelMean, mean_of
-        self.link.post("mean", bound, arrays=(mean_of(guess, len(guess) // 3, th),))
-        return LevelMean(th, self._mean_value)
-
-    def _mean_value(self):
-        while self.M is None:
-            self._next()
-        return self.M
+        link.post("level", level, alg_flux)
 
     def __call__(self, rec, X, R, same_as=None):
         if R is None:       # X^0: its residual needs E, which the estimator processes lack
@@ -256,19 +236,7 @@ class RemoteEstimates:
     def _take(self):
         """Apply the next reply of estimates: (its call number or 'finish', the records it
         completed)."""
-        while True:
-            taken = self._next()
-            if taken is not None:
-                return taken
-
-    def _next(self):
-        """Read one reply: the level's mean is kept (None returned; the leader sends it
-        before any estimates of the level), estimates are applied (`_take`'s result)."""
-        kind, payload = self.link.receive()
-        if kind == "mean":
-            self.M = _unpack(payload)[0]
-            return None
-        call, values, ready, extra = payload
+        call, values, ready, extra = self.link.receive()
         if call != "finish":
             self.replied = call
         done = []
@@ -293,13 +261,11 @@ def serve(problem, comm, est_comm):
     none) when process 0 ends the run."""
     from .discretisation import discretise
     from .driver import RECORD_KEYS, IterateEstimates
-    from .mean import MeanSolve
     from .nested import level_problem
     from .newton_system import linear_rows
     leader = est_comm.rank == 0
     shared = est_comm if est_comm.size > 1 else None
-    est = disc = failed = level = mean_solve = None
-    replied_files = []
+    est = disc = failed = level = None
 
     def reply(call, ready, extra=None):
         # every record handed in is complete after a call, except the one IterateEstimates
@@ -319,9 +285,6 @@ def serve(problem, comm, est_comm):
             message = shared.bcast(message, root=0)
         kind, payload, packed = message
         if kind == "end":
-            for path in replied_files:      # a mean process 0 did not read (it failed)
-                if os.path.exists(path):
-                    os.unlink(path)
             return level, disc
         arrays = _unpack(packed) if leader else None    # read (and remove) the file first
         if shared is not None:
@@ -332,30 +295,13 @@ def serve(problem, comm, est_comm):
             continue
         try:
             if kind == "level":
-                level, alg_flux, mean_options, directory = payload
+                level, alg_flux = payload
                 est = None          # the level below: freed before this one is built
-                # no stiffness matrix (E's residuals come made: RemoteEstimates), except on
-                # the leader where it solves for the exact mean (membranes.mean)
+                # no stiffness matrix: E's residuals come made (RemoteEstimates)
                 pj = problem if level == problem.levels else level_problem(problem, level)
-                mean_here = leader and mean_options is not None
-                disc = discretise(pj, stiffness=mean_here)
-                mean_solve = MeanSolve(disc, mean_options) if mean_here else None
-                if mean_options is None:
-                    est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
-                recs, rid_of, unsent, calls = {}, {}, {}, 0
-                parallel.agree(shared)
-            elif kind == "mean":
-                # the guess's mean has come: M first (process 0 waits for it at the end of
-                # its first step), then the estimators
-                if mean_solve is not None:
-                    M = mean_solve.solve(arrays[0], payload[0])
-                    mean_solve.destroy()
-                    mean_solve, disc.S1, disc.S2 = None, None, None
-                    packed = ("inline", [M]) if directory is None else \
-                        _pack([M], directory, f"membranes-{os.getpid()}-mean-{level}")
-                    replied_files += packed[1:2] if packed[0] == "file" else []
-                    comm.send(("mean", packed), dest=0, tag=REPLY)
+                disc = discretise(pj, stiffness=False)
                 est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
+                recs, rid_of, unsent, calls = {}, {}, {}, 0
                 parallel.agree(shared)
             elif kind == "call":
                 rid, rec, same_as = payload

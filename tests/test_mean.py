@@ -72,7 +72,7 @@ def test_step_with_the_mean(monkeypatch):
     rows, X = _square("min")
     disc = discretise(scene("square", 0.1))
     M = mean_module.exact_mean(disc, X[0], TIGHT * rows.norm_F)
-    level = mean_module.LevelMean(mean_module.theta(disc.problem), lambda: M)
+    level = mean_module.LevelMean(mean_module.theta(disc.problem), M)
     krylov = Krylov(dict(VAMG))
     settled = []
     original = MeanGapAMG.settle_mean
