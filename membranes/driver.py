@@ -26,7 +26,7 @@ from .discretisation import EnergyError, discretise, on_plain_pages
 from .estimators import ALG_ROUNDOFF, Estimators
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
 from .krylov import DEFAULT_MAX_LINEAR_ITS, DEFAULT_NU, Krylov
-from .mean import LevelMean, exact_mean, mean_bound, theta
+from .mean import LevelMean, MeanSolve, mean_bound, mean_of, theta
 from .meshes import mesh_size
 from .newton import (DEFAULT_GAMMA, DEFAULT_TOL, check_choice, check_gamma, check_method,
                      linear_tolerance, semismooth_newton)
@@ -479,6 +479,7 @@ class _LevelRun:
     result: object
     est: object
     wall_time_s: float      # this level's own: set-up, prolongation (nested) and Newton
+    mean: object = None     # its MeanSolve, kept for the next level's (keep_mean)
     _record: dict = None    # the figures, once `release` dropped what they come from
 
     def release(self):
@@ -507,12 +508,14 @@ class _LevelRun:
 
 
 def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_offset=0,
-              timed_guess=False, tag="", started=None):
+              timed_guess=False, tag="", started=None, keep_mean=False):
     """Semismooth Newton on problem.mesh (the finest mesh of its hierarchy). The records get
     `level`; their wall times and cumulative linear iterations start at `offset` and
     `its_offset` (the earlier levels of a nested run). `timed_guess`: the initial guess is part
     of the method (a nested run's prolongation) and its time counts. `started`: the clock's
-    start (perf_counter) where it is earlier than this call (`solve`'s)."""
+    start (perf_counter) where it is earlier than this call (`solve`'s). Where the steps take
+    the exact mean, its solver is kept on the returned run with `keep_mean` (the next level of
+    a nested run builds its multigrid on it: membranes.mean.MeanSolve)."""
     t0 = time.perf_counter() if started is None else started
     remote = method.link is not None and alg_flux is not None
     if remote:      # first: the estimator processes set this level up meanwhile
@@ -527,15 +530,24 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     X0 = _initial_guess(initial_guess, disc)   # first: a nested run then frees the level below
     if timed_guess:
         setup_time += time.perf_counter() - t
-    mean = None
+    mean = mean_solve = None
     if method.mean_options is not None:
         guess = paper_guess(rows, problem.g) if X0 is None else np.asarray(X0, float)
         if guess.shape == (3 * disc.n,) and np.all(np.isfinite(guess)):  # else Newton says
             bound = mean_bound(rows, linear_tolerance(
                 "adaptive" if method.tol is None else "exact", method.tol, None))
             t = time.perf_counter()
-            M = exact_mean(disc, guess, bound, method.mean_options)
-            mean = LevelMean(theta(problem), M)
+            below = initial_guess.below if isinstance(initial_guess, _Prolonged) else None
+            if below is not None and below.mean is not None:    # multigrid on T_0..T_j
+                mean_solve = MeanSolve(disc, method.mean_options, below.mean, initial_guess.P)
+                below.mean = None       # its levels are mean_solve's now
+            else:
+                mean_solve = MeanSolve(disc, method.mean_options)
+            th = theta(problem)
+            mean = LevelMean(th, mean_solve.solve(mean_of(guess, disc.n, th), bound))
+            if not keep_mean:
+                mean_solve.destroy()
+                mean_solve = None
             setup_time += time.perf_counter() - t
     error = EnergyError(disc) if problem.exact is not None else None
     if not remote:
@@ -575,7 +587,24 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
                                mean=mean)
     if est is not None:
         est.finish()
-    return _LevelRun(level, disc, result, est, result.history[-1]["wall_time_s"] - offset)
+    return _LevelRun(level, disc, result, est, result.history[-1]["wall_time_s"] - offset,
+                     mean_solve)
+
+
+class _Prolonged:
+    """The initial guess of level j of a nested run, called with the level's discretisation:
+    the solution of level j-1 (`below`, a _LevelRun, released then) prolonged; keeps the
+    prolongation P (the mean's multigrid uses it)."""
+
+    def __init__(self, below, parent_cells):
+        self.below, self.parent_cells, self.P = below, parent_cells, None
+
+    def __call__(self, disc):
+        from .nested import prolong, prolongation
+        self.P = prolongation(self.below.disc.V, disc.V, self.parent_cells)
+        X0 = prolong(self.P, self.below.result.X)
+        self.below.release()       # its discretisation and estimators are not needed again
+        return X0
 
 
 def _solve_nested(problem, method, alg_flux, estimators, initial_guess, started):
@@ -587,7 +616,7 @@ def _solve_nested(problem, method, alg_flux, estimators, initial_guess, started)
     (disk h0 = 0.2, J = 5: 64 s against 51 s, the same Newton and GMRES counts and the same
     final iterate). Level 0's time runs from `started` (solve's clock). Returns the
     _LevelRuns."""
-    from .nested import level_problem, prolong, prolongation
+    from .nested import level_problem
     runs, offset, its = [], 0.0, 0
     J = problem.levels
     for j in range(J + 1):
@@ -599,19 +628,12 @@ def _solve_nested(problem, method, alg_flux, estimators, initial_guess, started)
             flux = "nu"
         else:
             flux = alg_flux
-        if j == 0:
-            guess = initial_guess
-        else:
-            below = runs[-1]
-
-            def guess(disc, below=below, j=j):
-                P = prolongation(below.disc.V, disc.V, problem.hierarchy.parent_cells[j - 1])
-                X0 = prolong(P, below.result.X)
-                below.release()       # its discretisation and estimators are not needed again
-                return X0
+        guess = initial_guess if j == 0 else \
+            _Prolonged(runs[-1], problem.hierarchy.parent_cells[j - 1])
         before = time.perf_counter() - t       # the level's problem: counts for the level
         run = _solve_on(pj, method, flux, guess, level=j, offset=offset + before,
-                        its_offset=its, timed_guess=j > 0, tag=f"level {j}  ")
+                        its_offset=its, timed_guess=j > 0, tag=f"level {j}  ",
+                        keep_mean=j < J)
         run.wall_time_s += before
         runs.append(run)
         offset += run.wall_time_s
