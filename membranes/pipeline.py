@@ -17,18 +17,21 @@ that level, solves for its exact mean (membranes.mean, with vertex_amg on the el
 system) and takes the first Newton step, and an iterate's estimates are computed while
 process 0 already computes the next Newton step. The estimator processes assemble no stiffness
 matrix (X⁰'s residual comes with X⁰). Which side is the critical path depends on how fast
-each is; at 9.3e5 vertices (disk, J = 6, 2 processes, a scene run without its exact
-solution) it is process 0 on the finest level: discretisation 0.9-1.1 s, rows and
-prolongation 0.2 s, the mean 1.8-2.2 s (its AMG set-up and CG), then three steps of 1.5-2.2 s
-each (the first dearest: its AMG set-ups), and the last step's estimate (1.1-1.2 s) ends the
-level; the estimator process has its estimators set up (discretisation 0.8 s, set-up 3.0 s)
-1-2 s before X¹ comes (measured 2026-11-22, BENCHMARKS.md). Session 17 had the leader solve
-for the mean before its set-up while process 0 computed the first step's gap and λ (which
-do not need M): the estimator process was then the critical path (discretisation with the
-stiffness matrix 0.9 s, the mean 1.8 s, set-up 2.8-3.3 s before X¹'s estimate), and the run
-took 14.6-18.7 s where this one takes 13.7-15.7 s (five alternating runs each). The data oscillation is computed where the estimators are set up, from the load
-moments the flux set-up has anyway (when process 0 computed it, with moments of its own,
-2.9 s of its time, the finest level took 15.6 s instead of 14.0 s).
+each is. At 9.3e5 vertices (disk, J = 6, 2 processes, a scene run without its exact
+solution) the two are about even on the finest level (8.9 s): process 0 has discretisation
+0.9 s, rows and prolongation 0.2 s, the mean 0.8 s (multigrid), then three steps of 2.1, 1.6
+and 1.5 s (the first dearest: its AMG set-ups), and the last step's estimate (1.05 s, while
+process 0 computes a step ahead) ends the level, process 0 seeing it 0.3 s later (the step
+ahead is dropped at its next GMRES iteration: its matrix and AMG set-up are not
+interrupted); the estimator process has its estimators set up (discretisation 0.8 s, set-up
+2.8 s) 0.5 s before X¹ comes, and each estimate (1.05-1.1 s) before the next iterate
+(measured 2026-11-22). Session 17 had the leader solve for the mean (then 1.8 s with its own
+AMG) before its set-up while process 0 computed the first step's gap and λ (which do not
+need M): the estimator process was then the critical path, and the run took 14.6-18.7 s
+where the same mean on process 0 took 13.7-15.7 s (five alternating runs each). The data
+oscillation is computed where the estimators are set up, from the load moments the flux
+set-up has anyway (when process 0 computed it, with moments of its own, 2.9 s of its time,
+the finest level took 15.6 s instead of 14.0 s).
 
 Only what the method decides from the estimates waits for them:
 

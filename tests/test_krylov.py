@@ -17,6 +17,7 @@ import scipy.sparse as sp
 from petsc4py import PETSc
 
 from membranes import solve
+from membranes import krylov as krylov_module
 from membranes import newton_system as ns
 from membranes.cli import main
 from membranes.krylov import DEFAULT_OPTIONS, Krylov, parse_petsc_options, with_diagonal
@@ -283,3 +284,32 @@ CLI_CASES = {
 @pytest.mark.parametrize("case", sorted(CLI_CASES))
 def test_cli_bad_krylov_options(case, tmp_path, capsys):
     cli_bad_input(CLI_CASES[case], tmp_path / "out", capsys)
+
+
+@pytest.mark.parametrize("cancel_at,its", [(1, 0), (2, 0), (3, 1), (5, 3)])
+def test_cancel_stops_the_solve_at_once(cancel_at, its, monkeypatch):
+    """`cancel` (a step computed ahead, dropped: membranes.newton) is asked before the
+    preconditioner is set up (call 1), before the first iteration (call 2) and after every
+    iteration (call 2 + i after iteration i): the solve stops at the first true answer with
+    that many iterations, and returns its iterate with the true residual b - A x (round-off);
+    call 1 returns the guess without a preconditioner."""
+    rows = ns.linear_rows(solved_with("disk", 0.1, linear_solver="direct").disc)
+    step = linear_step(rows, "min", "eliminated", ns.initial_guess(rows, 0.1))
+    calls, installed = [], []
+
+    def cancel():
+        calls.append(len(calls) + 1)
+        return len(calls) >= cancel_at
+    install = krylov_module._install
+
+    def spy(*args):
+        installed.append(True)
+        return install(*args)
+    krylov = Krylov({"pc_type": "vertex_amg"})     # (checks its options with a 2 x 2 install)
+    monkeypatch.setattr(krylov_module, "_install", spy)
+    x, r, done = krylov.solve(step.A, step.b, step.guess, 1e-14, step.norm_B, cancel=cancel)
+    assert done == its and calls[-1] == cancel_at
+    assert np.linalg.norm(r - (step.b - step.A @ x)) <= 1e-12 * step.norm_B
+    if its == 0:
+        assert np.array_equal(x, step.guess)
+    assert installed == ([] if cancel_at == 1 else [True])
