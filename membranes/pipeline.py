@@ -39,7 +39,8 @@ Only what the method decides from the estimates waits for them:
   estimates of a level are collected when its Newton run ends (`RemoteEstimates.finish`);
 * adaptive Newton's stopping test at X^{k-1} needs η_lin, η_disc of X^{k-1}: process 0
   computes step k meanwhile (membranes.newton: a step computed ahead) and takes the test
-  when they come; if it is met, step k is dropped. The criterion that stops GMRES needs the
+  when they come; if it is met, step k is dropped. Where the test is likely met (the
+  ratio η_lin/η_disc of the iterates before contracts below a bound) process 0 waits instead. The criterion that stops GMRES needs the
   estimates of the Krylov iterate it is made on, so a Krylov iterate handed out every ν
   steps waits for its estimates (with vertex_amg, GMRES reaches round-off before ν: none
   is handed out).
