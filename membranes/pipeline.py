@@ -28,8 +28,13 @@ interrupted); the estimator process has its estimators set up (discretisation 0.
 (measured 2026-11-22). Session 17 had the leader solve for the mean (then 1.8 s with its own
 AMG) before its set-up while process 0 computed the first step's gap and λ (which do not
 need M): the estimator process was then the critical path, and the run took 14.6-18.7 s
-where the same mean on process 0 took 13.7-15.7 s (five alternating runs each). The data
-oscillation is computed where the estimators are set up, from the load moments the flux
+where the same mean on process 0 took 13.7-15.7 s (five alternating runs each). With the
+mean's multigrid (0.8 s) the leader's way was tried again: the leader then discretised with
+the stiffness matrix (1.2 s instead of 0.8 s) and solved M (0.9 s) before its set-up
+(2.9 s), so X¹'s estimate started 5.1 s into the finest level, and process 0, without the
+mean, had X² 0.7 s before that estimate was in and waited for it; the level took 9.1 s
+against 8.2-8.4 s (a process 0 that computed two steps ahead of the test would have saved
+the wait: about 0.2 s left, not pursued). The data oscillation is computed where the estimators are set up, from the load moments the flux
 set-up has anyway (when process 0 computed it, with moments of its own, 2.9 s of its time,
 the finest level took 15.6 s instead of 14.0 s).
 
