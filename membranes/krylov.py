@@ -251,8 +251,8 @@ class Krylov:
         do not meet the test, on_iterate(its, current) is called; current() returns
         (x, b - A x) at that iterate; a true return value stops the solve at that iterate.
         `cancel()`, asked before the preconditioner is set up, before the first iteration and
-        after every iteration, stops the solve at once when true (a step computed ahead that will be dropped,
-        membranes.newton); its iterate is returned. `mean_theta`: the θ of the mean the
+        after every iteration, stops the solve at once when true (a step computed ahead that
+        will be dropped, membranes.newton); its iterate is returned. `mean_theta`: the θ of the mean the
         caller keeps (membranes.mean), for vertex_amg's mean/gap split where the system alone
         does not fix it (no contact vertex).
         Returns (x, b - A x, its); raises LinearSolveError (with `its`) if the KSP stops

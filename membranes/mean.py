@@ -41,7 +41,9 @@ from X^{k-1} (§8), which reaches the same mean to its tolerance.
 """
 
 from dataclasses import dataclass
+
 import numpy as np
+import scipy.sparse as sp
 from petsc4py import PETSc
 
 MEAN_FRACTION = 0.01    # ‖ρ(M)‖ ≤ MEAN_FRACTION · the Newton steps' tightest linear bound
@@ -148,7 +150,6 @@ def interior_prolongation(P, fine_inner, coarse_inner):
     """P[fine_inner][:, coarse_inner] (CSR): the prolongation between the interior vertices
     (a coarse function that vanishes on the boundary prolongs to one that does: the fine
     boundary vertices lie on the coarse boundary edges)."""
-    import scipy.sparse as sp
     rows = P[fine_inner]
     column = np.full(P.shape[1], -1, dtype=np.int64)
     column[coarse_inner] = np.arange(len(coarse_inner))

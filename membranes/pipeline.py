@@ -18,25 +18,28 @@ system) and takes the first Newton step, and an iterate's estimates are computed
 process 0 already computes the next Newton step. The estimator processes assemble no stiffness
 matrix (X⁰'s residual comes with X⁰). Which side is the critical path depends on how fast
 each is. At 9.3e5 vertices (disk, J = 6, 2 processes, a scene run without its exact
-solution) the two are about even on the finest level (8.9 s): process 0 has discretisation
-0.9 s, rows and prolongation 0.2 s, the mean 0.8 s (multigrid), then three steps of 2.1, 1.6
-and 1.5 s (the first dearest: its AMG set-ups), and the last step's estimate (1.05 s, while
-process 0 computes a step ahead) ends the level, process 0 seeing it 0.3 s later (the step
-ahead is dropped at its next GMRES iteration: its matrix and AMG set-up are not
-interrupted); the estimator process has its estimators set up (discretisation 0.8 s, set-up
-2.8 s) 0.5 s before X¹ comes, and each estimate (1.05-1.1 s) before the next iterate
-(measured 2026-11-22). Session 17 had the leader solve for the mean (then 1.8 s with its own
-AMG) before its set-up while process 0 computed the first step's gap and λ (which do not
-need M): the estimator process was then the critical path, and the run took 14.6-18.7 s
-where the same mean on process 0 took 13.7-15.7 s (five alternating runs each). With the
-mean's multigrid (0.8 s) the leader's way was tried again: the leader then discretised with
-the stiffness matrix (1.2 s instead of 0.8 s) and solved M (0.9 s) before its set-up
-(2.9 s), so X¹'s estimate started 5.1 s into the finest level, and process 0, without the
-mean, had X² 0.7 s before that estimate was in and waited for it; the level took 9.1 s
-against 8.2-8.4 s (a process 0 that computed two steps ahead of the test would have saved
-the wait: about 0.2 s left, not pursued). The data oscillation is computed where the estimators are set up, from the load moments the flux
-set-up has anyway (when process 0 computed it, with moments of its own, 2.9 s of its time,
-the finest level took 15.6 s instead of 14.0 s).
+solution) it is process 0 on the finest level (8.2-8.4 s): discretisation 0.9 s, rows and
+prolongation 0.2 s, the mean 0.8 s (multigrid), three steps of 2.0, 1.5 and 1.5 s (matrix and
+solve; the first dearest), then the estimate of X³ (1.05 s, begun 0.15 s after the step: its
+residual and the transfer), which process 0 waits for (membranes.newton: likely met). The
+estimator process has its estimators set up (discretisation 0.8 s, set-up 2.8 s) 0.3-0.4 s
+before X¹ comes, and each estimate (0.9-1.05 s) before the next iterate (measured
+2026-11-22).
+
+Where the exact mean is solved was measured. Session 17 had the leader solve for
+it (then 1.8 s with its own AMG) before its set-up while process 0 computed the first step's
+gap and λ (which do not need M): the estimator process was then the critical path, and the
+run took 14.6-18.7 s where the same mean on process 0 took 13.7-15.7 s (five alternating
+runs each). With the mean's multigrid (0.8 s) the leader's way was tried again: the leader
+then discretised with the stiffness matrix (1.2 s instead of 0.8 s) and solved M (0.9 s)
+before its set-up (2.9 s), so X¹'s estimate started 5.1 s into the finest level, and process
+0, without the mean, had X² 0.7 s before that estimate was in and waited for it; the level
+took 9.1 s against 8.2-8.4 s (a process 0 that computed two steps ahead of the test would
+have saved the wait: about 0.2 s left, not pursued).
+
+The data oscillation is computed where the estimators are set up, from the load moments the
+flux set-up has anyway (when process 0 computed it, with moments of its own, 2.9 s of its
+time, the finest level took 15.6 s instead of 14.0 s).
 
 Only what the method decides from the estimates waits for them:
 
@@ -45,9 +48,9 @@ Only what the method decides from the estimates waits for them:
 * adaptive Newton's stopping test at X^{k-1} needs η_lin, η_disc of X^{k-1}: process 0
   computes step k meanwhile (membranes.newton: a step computed ahead) and takes the test
   when they come; if it is met, step k is dropped. Where the test is likely met (the
-  ratio η_lin/η_disc of the iterates before contracts below a bound) process 0 waits instead. The criterion that stops GMRES needs the
-  estimates of the Krylov iterate it is made on, so a Krylov iterate handed out every ν
-  steps waits for its estimates (with vertex_amg, GMRES reaches round-off before ν: none
+  ratio η_lin/η_disc of the iterates before contracts below a bound) process 0 waits
+  instead. The criterion that stops GMRES needs the estimates of the Krylov iterate it is
+  made on, so a Krylov iterate handed out every ν steps waits for its estimates (with vertex_amg, GMRES reaches round-off before ν: none
   is handed out).
 
 Every process runs the same code on the same data as a serial run, in the same order: with
