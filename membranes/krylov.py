@@ -252,9 +252,9 @@ class Krylov:
         (x, b - A x) at that iterate; a true return value stops the solve at that iterate.
         `cancel()`, asked before the preconditioner is set up, before the first iteration and
         after every iteration, stops the solve at once when true (a step computed ahead that
-        will be dropped, membranes.newton); its iterate is returned. `mean_theta`: the θ of the mean the
-        caller keeps (membranes.mean), for vertex_amg's mean/gap split where the system alone
-        does not fix it (no contact vertex).
+        will be dropped, membranes.newton); its iterate is returned. `mean_theta`: the θ of
+        the mean the caller keeps (membranes.mean), for vertex_amg's mean/gap split where the
+        system alone does not fix it (no contact vertex).
         Returns (x, b - A x, its); raises LinearSolveError (with `its`) if the KSP stops
         before either happens (e.g. at max_linear_its)."""
         M = petsc_matrix(with_diagonal(A), copy=False)   # A is the step's: not changed here

@@ -26,8 +26,8 @@ estimator process has its estimators set up (discretisation 0.8 s, set-up 2.8 s)
 before X¹ comes, and each estimate (0.9-1.05 s) before the next iterate (measured
 2026-11-22).
 
-Where the exact mean is solved was measured. Session 17 had the leader solve for
-it (then 1.8 s with its own AMG) before its set-up while process 0 computed the first step's
+Where to solve the exact mean was measured. Session 17 had the leader solve for it (then
+1.8 s with its own AMG) before its set-up while process 0 computed the first step's
 gap and λ (which do not need M): the estimator process was then the critical path, and the
 run took 14.6-18.7 s where the same mean on process 0 took 13.7-15.7 s (five alternating
 runs each). With the mean's multigrid (0.8 s) the leader's way was tried again: the leader
@@ -50,7 +50,8 @@ Only what the method decides from the estimates waits for them:
   when they come; if it is met, step k is dropped. Where the test is likely met (the
   ratio η_lin/η_disc of the iterates before contracts below a bound) process 0 waits
   instead. The criterion that stops GMRES needs the estimates of the Krylov iterate it is
-  made on, so a Krylov iterate handed out every ν steps waits for its estimates (with vertex_amg, GMRES reaches round-off before ν: none
+  made on, so a Krylov iterate handed out every ν steps waits for its estimates (with
+  vertex_amg, GMRES reaches round-off before ν: none
   is handed out).
 
 Every process runs the same code on the same data as a serial run, in the same order: with
