@@ -517,6 +517,14 @@ def discretise(problem, stiffness=True):
     0.33 s at 9.3e5 vertices; nothing changes the matrices in place). stiffness=False: no S
     (S1 = S2 = None), for the estimator processes of a run on several processes
     (membranes.pipeline), whose estimators read the loads, the space and the boundary."""
+    return completed(discretise_in_parts(problem, stiffness))
+
+
+def discretise_in_parts(problem, stiffness=True):
+    """`discretise` as a generator that yields between its parts (S, D and the boundary; the
+    data measures and loads; F1; F2: each 0.1-0.4 s at 9.3e5 vertices) and returns the
+    Discretisation: process 0 of a run on several processes discretises the next level of a
+    nested run a part at a time while it waits for estimates (membranes.driver, `_Ahead`)."""
     from dolfinx import fem
     mesh = problem.mesh
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
@@ -527,9 +535,12 @@ def discretise(problem, stiffness=True):
         S = assemble_matrix_csr(membrane_bilinear(1.0, u, v)) if stiffness else None
         D = assemble_vector_array(contact_weight(v))
         boundary = boundary_dofs(V)
+    yield
     dxd = data_measures(mesh, problem.interface)
     f1, f2 = (load(f, mesh) for f in (problem.f1, problem.f2))
+    yield
     F1 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f1, v, dx)))
+    yield
     F2 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f2, v, dx)))
     n = V.dofmap.index_map.size_local
     S1 = S2 = None
@@ -538,6 +549,15 @@ def discretise(problem, stiffness=True):
         S2 = S1 if problem.mu2 == problem.mu1 else scaled(S, problem.mu2)
     return Discretisation(problem, V, S1, S2, D[:n], F1[:n], F2[:n],
                           np.asarray(boundary[boundary < n], dtype=np.int32), dxd)
+
+
+def completed(parts):
+    """What the generator `parts` returns, all its parts run."""
+    while True:
+        try:
+            next(parts)
+        except StopIteration as done:
+            return done.value
 
 
 def scaled(S, mu):

@@ -22,12 +22,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import cfunctions, parallel
-from .discretisation import EnergyError, discretise, on_plain_pages
+from .discretisation import EnergyError, discretise, discretise_in_parts, on_plain_pages
 from .estimators import ALG_ROUNDOFF, Estimators
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
 from .krylov import DEFAULT_MAX_LINEAR_ITS, DEFAULT_NU, Krylov
 from .mean import LevelMean, MeanSolve, mean_bound, mean_of, theta
 from .meshes import mesh_size
+from .nested import level_problem, prolong, prolongation
 from .newton import (DEFAULT_GAMMA, DEFAULT_TOL, check_choice, check_gamma, check_method,
                      linear_tolerance, semismooth_newton)
 from .newton_system import initial_guess as paper_guess, initial_residual, linear_rows, split
@@ -479,7 +480,6 @@ class _LevelRun:
     result: object
     est: object
     wall_time_s: float      # this level's own: set-up, prolongation (nested) and Newton
-    mean: object = None     # its MeanSolve, kept for the next level's (keep_mean)
     _record: dict = None    # the figures, once `release` dropped what they come from
 
     def release(self):
@@ -507,48 +507,167 @@ class _LevelRun:
                 ("multilevel" if self.est.multilevel is not None else "nu")}
 
 
+@dataclass
+class _Level:
+    """What a level's Newton run needs that no iterate decides: the level's problem, its
+    discretisation and linear rows; on T_j, j ≥ 1, of a nested run the prolongation P from
+    T_{j-1}; where the steps take the exact mean (membranes.mean), M, and its MeanSolve
+    while the next level may still build its multigrid on it."""
+    problem: object
+    disc: object
+    rows: object
+    P: object = None
+    mean: object = None          # LevelMean, or None
+    mean_solve: object = None
+
+
+def _mean_bound(method, rows):
+    """The bound M is solved to (membranes.mean.mean_bound) for the run's Newton steps."""
+    return mean_bound(rows, linear_tolerance("adaptive" if method.tol is None else "exact",
+                                             method.tol, None))
+
+
+def _first_level(problem, method, initial_guess, keep_mean):
+    """The _Level of a single-mesh run, or of T_0 of a nested one, with X^0 (None for the
+    paper's) and the seconds X^0 took (`initial_guess` is the caller's: not the method's
+    time). M is solved from the mean of X^0 where X^0 is 3N finite values (else Newton says
+    what is wrong with it); its MeanSolve is kept with `keep_mean` (T_0 of a nested run: the
+    finer levels' multigrid is built on it)."""
+    disc = discretise(problem)
+    made = _Level(problem, disc, linear_rows(disc))
+    t = time.perf_counter()
+    X0 = _initial_guess(initial_guess, disc)
+    guess_time = time.perf_counter() - t
+    if method.mean_options is not None:
+        guess = paper_guess(made.rows, problem.g) if X0 is None else np.asarray(X0, float)
+        if guess.shape == (3 * disc.n,) and np.all(np.isfinite(guess)):
+            th = theta(problem)
+            made.mean_solve = MeanSolve(disc, method.mean_options)
+            made.mean = LevelMean(th, made.mean_solve.solve(mean_of(guess, disc.n, th),
+                                                            _mean_bound(method, made.rows)))
+            if not keep_mean:
+                made.mean_solve.destroy()
+                made.mean_solve = None
+    return made, X0, guess_time
+
+
+def _level_parts(problem, j, below):
+    """Level j ≥ 1 of a nested run (its _Level, without the mean) made after `below`, the
+    _Level of T_{j-1}: a generator that yields between the parts (`_Ahead`): the problem on
+    T_j, its discretisation (discretise_in_parts), linear rows and the prolongation P from
+    T_{j-1}."""
+    pj = level_problem(problem, j)
+    disc = yield from discretise_in_parts(pj)
+    yield
+    rows = linear_rows(disc)
+    P = prolongation(below.disc.V, disc.V, problem.hierarchy.parent_cells[j - 1])
+    return _Level(pj, disc, rows, P)
+
+
+def _level_mean(made, below, method, last):
+    """Where the steps take the exact mean: level j's multigrid on T_0 ⊂ … ⊂ T_j (on the
+    MeanSolve of `below`, the _Level of T_{j-1}, which is done with then) and M, by CG from
+    P M_{j-1}. M_{j-1} is the mean of every Newton iterate of level j-1 from its first step on
+    (membranes.mean), so P M_{j-1} is the mean of the prolonged solution. `last`: level j is
+    T_J (its MeanSolve is freed)."""
+    if below.mean is None:
+        return
+    made.mean_solve = MeanSolve(made.disc, method.mean_options, below.mean_solve, made.P)
+    below.mean_solve = None
+    M = made.mean_solve.solve(made.P @ below.mean.M, _mean_bound(method, made.rows))
+    made.mean = LevelMean(below.mean.theta, M)
+    if last:
+        made.mean_solve.destroy()
+        made.mean_solve = None
+
+
+class _Ahead:
+    """Levels 1 … J of a nested run, each made (`_level_parts`) before its Newton run where
+    there is time: `step()` makes one part of the first level not made yet, `level(j)` hands
+    out level j, its parts not made yet made then, and `run` solves its mean. One process makes
+    each level when its Newton run begins; process 0 of several makes the finer levels' parts
+    also while it waits for estimates (membranes.pipeline, Link.meanwhile): their
+    discretisation, rows and prolongation are then ready, in part or whole, when their turn
+    comes. The mean is solved when the level begins, from the mean of the level below (the
+    estimator processes set up the level's estimators meanwhile, which takes longer). Nothing
+    of it depends on when it is made: the iterates are the same either way."""
+
+    def __init__(self, problem, method):
+        self.problem, self.method = problem, method
+        self.running = self.last = self.parts = None
+        self.made = {}
+
+    def start(self, first):
+        """Begin with T_0's _Level (level 0 running)."""
+        self.running = self.last = first
+
+    def step(self):
+        """Make one part of the first level not made yet; False once all are made."""
+        if self.last is None or _level_of(self.last) == self.problem.levels:
+            return False
+        if self.parts is None:
+            self.parts = _level_parts(self.problem, _level_of(self.last) + 1, self.last)
+        try:
+            next(self.parts)
+        except StopIteration as done:
+            self.last, self.parts = done.value, None
+            self.made[_level_of(self.last)] = self.last
+        return True
+
+    def level(self, j):
+        """Level j (≥ 1), the one after the one running, its parts made to the end."""
+        if self.running is None or j != _level_of(self.running) + 1:
+            raise ValueError(f"level {j} does not follow the one running")
+        while j not in self.made:
+            self.step()
+        return self.made.pop(j)
+
+    def run(self, made):
+        """Level `made` (from `level`) runs now: its mean solved from the one that ran."""
+        _level_mean(made, self.running, self.method,
+                    _level_of(made) == self.problem.levels)
+        self.running = made
+
+
+def _level_of(made):
+    """The level of a _Level."""
+    return len(made.problem.hierarchy.meshes) - 1
+
+
 def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_offset=0,
-              timed_guess=False, tag="", started=None, keep_mean=False):
+              tag="", started=None, ahead=None, then=None):
     """Semismooth Newton on problem.mesh (the finest mesh of its hierarchy). The records get
     `level`; their wall times and cumulative linear iterations start at `offset` and
-    `its_offset` (the earlier levels of a nested run). `timed_guess`: the initial guess is part
-    of the method (a nested run's prolongation) and its time counts. `started`: the clock's
-    start (perf_counter) where it is earlier than this call (`solve`'s). Where the steps take
-    the exact mean, its solver is kept on the returned run with `keep_mean` (the next level of
-    a nested run builds its multigrid on it: membranes.mean.MeanSolve)."""
+    `its_offset` (the earlier levels of a nested run). `started`: the clock's start
+    (perf_counter) where it is earlier than this call (`solve`'s). `ahead`: the _Ahead of a
+    nested run: level 0 starts it; a level j ≥ 1 takes its _Level from it and its initial
+    guess from `initial_guess`, a _Prolonged (the prolongation is the method's: its time
+    counts, where the user's initial guess on a single mesh or T_0 does not). `then`: the
+    level whose estimators come next (nested), which the estimator processes of a run on
+    several processes discretise meanwhile where they wait (membranes.pipeline)."""
     t0 = time.perf_counter() if started is None else started
     remote = method.link is not None and alg_flux is not None
     if remote:      # first: the estimator processes set this level up meanwhile
         from .pipeline import RemoteEstimates
         est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive")
-    disc = discretise(problem)
-    rows = linear_rows(disc)
+        if then is not None:
+            method.link.post("ahead", then)
+    if ahead is None or level == 0:
+        made, X0, guess_time = _first_level(problem, method, initial_guess,
+                                            keep_mean=ahead is not None)
+        if ahead is not None:
+            ahead.start(made)
+            if method.link is not None:     # the finer levels made while process 0 waits
+                method.link.meanwhile = ahead.step
+    else:
+        made = ahead.level(level)
+        X0, guess_time = initial_guess(made), 0.0      # the level below released: first
+        ahead.run(made)
+        problem = made.problem
+    disc, rows, mean = made.disc, made.rows, made.mean
     if remote:      # X^0's residual and the data oscillation come from here
         est.discretised(disc, rows)
-    setup_time = time.perf_counter() - t0
-    t = time.perf_counter()
-    X0 = _initial_guess(initial_guess, disc)   # first: a nested run then frees the level below
-    if timed_guess:
-        setup_time += time.perf_counter() - t
-    mean = mean_solve = None
-    if method.mean_options is not None:
-        guess = paper_guess(rows, problem.g) if X0 is None else np.asarray(X0, float)
-        if guess.shape == (3 * disc.n,) and np.all(np.isfinite(guess)):  # else Newton says
-            bound = mean_bound(rows, linear_tolerance(
-                "adaptive" if method.tol is None else "exact", method.tol, None))
-            t = time.perf_counter()
-            below = initial_guess.below if isinstance(initial_guess, _Prolonged) else None
-            if below is not None and below.mean is not None:    # multigrid on T_0..T_j
-                mean_solve = MeanSolve(disc, method.mean_options, below.mean, initial_guess.P)
-                below.mean = None       # its levels are mean_solve's now
-            else:
-                mean_solve = MeanSolve(disc, method.mean_options)
-            th = theta(problem)
-            mean = LevelMean(th, mean_solve.solve(mean_of(guess, disc.n, th), bound))
-            if not keep_mean:
-                mean_solve.destroy()
-                mean_solve = None
-            setup_time += time.perf_counter() - t
+    setup_time = time.perf_counter() - t0 - guess_time
     error = EnergyError(disc) if problem.exact is not None else None
     if not remote:
         est = IterateEstimates(disc, rows, alg_flux) if alg_flux is not None else None
@@ -587,22 +706,18 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
                                mean=mean)
     if est is not None:
         est.finish()
-    return _LevelRun(level, disc, result, est, result.history[-1]["wall_time_s"] - offset,
-                     mean_solve)
+    return _LevelRun(level, disc, result, est, result.history[-1]["wall_time_s"] - offset)
 
 
 class _Prolonged:
-    """The initial guess of level j of a nested run, called with the level's discretisation:
-    the solution of level j-1 (`below`, a _LevelRun, released then) prolonged; keeps the
-    prolongation P (the mean's multigrid uses it)."""
+    """The initial guess of level j ≥ 1 of a nested run, called with the level's _Level: the
+    solution of level j-1 (`below`, a _LevelRun, released then) prolonged by its P."""
 
-    def __init__(self, below, parent_cells):
-        self.below, self.parent_cells, self.P = below, parent_cells, None
+    def __init__(self, below):
+        self.below = below
 
-    def __call__(self, disc):
-        from .nested import prolong, prolongation
-        self.P = prolongation(self.below.disc.V, disc.V, self.parent_cells)
-        X0 = prolong(self.P, self.below.result.X)
+    def __call__(self, made):
+        X0 = prolong(made.P, self.below.result.X)
         self.below.release()       # its discretisation and estimators are not needed again
         return X0
 
@@ -610,34 +725,37 @@ class _Prolonged:
 def _solve_nested(problem, method, alg_flux, estimators, initial_guess, started):
     """Nested iteration (membranes.nested): solve on T_0, ..., T_J in turn, each level from the
     prolonged solution of the one below (level 0 from `initial_guess`), each with the variant's
-    own stopping test. Estimators run on the levels below J only where the method uses them
-    (adaptive); there they take the ν flux, and the multilevel flux (when asked for) is set
-    up for T_J alone: its set-up on every level cost more than the ν flux's extra GMRES steps
-    (disk h0 = 0.2, J = 5: 64 s against 51 s, the same Newton and GMRES counts and the same
-    final iterate). Level 0's time runs from `started` (solve's clock). Returns the
-    _LevelRuns."""
-    from .nested import level_problem
+    own stopping test; the levels' set-up is made by an _Ahead. Estimators run on the levels
+    below J only where the method uses them (adaptive); there they take the ν flux, and the
+    multilevel flux (when asked for) is set up for T_J alone: its set-up on every level cost
+    more than the ν flux's extra GMRES steps (disk h0 = 0.2, J = 5: 64 s against 51 s, the
+    same Newton and GMRES counts and the same final iterate). Level 0's time runs from
+    `started` (solve's clock). Returns the _LevelRuns."""
     runs, offset, its = [], 0.0, 0
     J = problem.levels
-    for j in range(J + 1):
-        t = started if j == 0 else time.perf_counter()
-        pj = level_problem(problem, j)
-        if j < J and method.newton != "adaptive":
-            flux = None
-        elif j < J and alg_flux == "multilevel":
-            flux = "nu"
-        else:
-            flux = alg_flux
-        guess = initial_guess if j == 0 else \
-            _Prolonged(runs[-1], problem.hierarchy.parent_cells[j - 1])
-        before = time.perf_counter() - t       # the level's problem: counts for the level
-        run = _solve_on(pj, method, flux, guess, level=j, offset=offset + before,
-                        its_offset=its, timed_guess=j > 0, tag=f"level {j}  ",
-                        keep_mean=j < J)
-        run.wall_time_s += before
-        runs.append(run)
-        offset += run.wall_time_s
-        its += run.result.linear_iterations
+    fluxes = [None if j < J and method.newton != "adaptive" else
+              "nu" if j < J and alg_flux == "multilevel" else alg_flux for j in range(J + 1)]
+    served = [j for j in range(J + 1) if fluxes[j] is not None]  # levels with estimators
+    ahead = _Ahead(problem, method)
+    if method.link is not None and served and served[0] > 0:
+        method.link.post("ahead", served[0])
+    try:
+        for j in range(J + 1):
+            then = next((i for i in served if i > j), None)
+            if j == 0:
+                run = _solve_on(level_problem(problem, 0), method, fluxes[0], initial_guess,
+                                level=0, tag="level 0  ", started=started, ahead=ahead,
+                                then=then)
+            else:
+                run = _solve_on(problem, method, fluxes[j], _Prolonged(runs[-1]), level=j,
+                                offset=offset, its_offset=its, tag=f"level {j}  ",
+                                ahead=ahead, then=then)
+            runs.append(run)
+            offset += run.wall_time_s
+            its += run.result.linear_iterations
+    finally:
+        if method.link is not None:
+            method.link.meanwhile = None
     return runs
 
 

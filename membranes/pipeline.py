@@ -12,19 +12,39 @@ and the work is split by kind, not by mesh:
   themselves (`parallel.owned_vertices`, `parallel.Summation`), patches on either side of
   the cut included.
 
-The two kinds overlap. The set-up of a level's estimators runs while process 0 discretises
-that level, solves for its exact mean (membranes.mean, with vertex_amg on the eliminated
-system) and takes the first Newton step, and an iterate's estimates are computed while
-process 0 already computes the next Newton step. The estimator processes assemble no stiffness
-matrix (X⁰'s residual comes with X⁰). Which side is the critical path depends on how fast
-each is. At 9.3e5 vertices (disk, J = 6, 2 processes, a scene run without its exact
-solution) it is process 0 on the finest level (8.2-8.4 s): discretisation 0.9 s, rows and
-prolongation 0.2 s, the mean 0.8 s (multigrid), three steps of 2.0, 1.5 and 1.5 s (matrix and
-solve; the first dearest), then the estimate of X³ (1.05 s, begun 0.15 s after the step: its
-residual and the transfer), which process 0 waits for (membranes.newton: likely met). The
-estimator process has its estimators set up (discretisation 0.8 s, set-up 2.8 s) 0.3-0.4 s
-before X¹ comes, and each estimate (0.9-1.05 s) before the next iterate (measured
-2026-11-22).
+The two kinds overlap. The set-up of a level's estimators runs while process 0 solves for
+the level's exact mean (membranes.mean, with vertex_amg on the eliminated system) and takes
+the first Newton step, and an iterate's estimates are computed while process 0 already
+computes the next Newton step. The estimator processes assemble no stiffness matrix (X⁰'s
+residual comes with X⁰).
+
+**Waits filled.** Each side fills its waits with the mesh-only work of the levels to come
+of a nested run, a part at a time (0.1-0.4 s each at 9.3e5 vertices):
+
+* process 0, while it waits for estimates, makes the finer levels in turn: their
+  discretisation (discretisation.discretise_in_parts), linear rows and prolongation
+  (`Link.meanwhile`, membranes.driver._Ahead); it solves a level's mean when the level
+  begins, and makes no part while it waits for the 'finish' reply, which is on its way;
+* the estimator processes, when no message is waiting, discretise the level they serve
+  next, which process 0 names ('ahead').
+
+A part once begun runs to its end, so a message that comes meanwhile waits for it. The parts
+lengthen the lower levels (rank 1 then waits for iterates) but shorten the finest, where
+process 0 was the critical path. At 9.3e5 vertices (disk, J = 6, 2 processes, a scene run
+without its exact solution):
+
+* Before (8.2-8.4 s for the finest level), process 0 spent 0.9 s discretising, 0.2 s on rows
+  and prolongation and 0.8 s on the mean before its first step. Then came steps of 2.0, 1.5
+  and 1.5 s, and the wait for X³'s estimate (1.05 s). The estimator process was set up
+  (0.8 s discretisation + 2.8 s) 0.3-0.4 s before X¹ came.
+* Now the finest level takes 7.0 s. Process 0 begins it with its parts made and solves M
+  (0.6-0.8 s with the last part). The estimator process, its discretisation made, sets up in
+  2.8 s and is ready about when X¹ comes (0.2 s after). Levels 0-5 take 3.5 s instead of 3.0-3.2 s.
+* The whole run: 10.75-11.1 s against 11.3-11.7 s (alternating runs, 2026-11-22).
+
+Both kinds are now busy most of the finest level: process 0 computes X³ only once X¹'s
+estimate is in (one step ahead of the test), and the estimator process sets up for 2.8 s
+first.
 
 Where to solve the exact mean was measured. Session 17 had the leader solve for it (then
 1.8 s with its own AMG) before its set-up while process 0 computed the first step's
@@ -78,7 +98,9 @@ moves a large message only while both sides are inside MPI calls (measured with 
 here: an `Isend` of 22 MB completed 2.9 s later, when the sender next called MPI), and
 process 0 is in PETSc then. So where the processes share a node, the arrays go through a file
 in shared memory (/dev/shm) that the receiver reads and removes, and the message that names
-it is small (it leaves at once); across nodes they go in the message itself.
+it is small (it leaves at once); across nodes they go in the message itself. Whether a
+message is here is asked twice (`_here`): Open MPI's Iprobe looks before it takes in what has
+come, and one look missed messages 0.1-0.35 s old.
 """
 
 import os
@@ -117,6 +139,14 @@ def _same_node(comm):
     return comm.allreduce(same, op=MPI.LAND)
 
 
+def _here(comm, source, tag):
+    """Whether a message from source with tag is here. Open MPI's Iprobe (4.1, ob1) looks
+    among the messages it has taken in, and only then takes in what has come since: a message
+    that came while this process computed is found by the second look (measured: one look
+    missed messages 0.1-0.35 s old)."""
+    return comm.Iprobe(source=source, tag=tag) or comm.Iprobe(source=source, tag=tag)
+
+
 def _pack(arrays, directory, name):
     """The arrays (None allowed) written to one file; returns what `_unpack` needs."""
     sizes = [None if a is None else len(a) for a in arrays]
@@ -145,6 +175,8 @@ class Link:
         self.comm = comm
         self.directory = _shm_dir() if same_node else None
         self.requests, self.files, self.count = [], set(), 0
+        self.meanwhile = None   # work for the waits: a call that does a part, False if none
+
 
     def post(self, kind, *payload, arrays=()):
         """Send (kind, payload, arrays) without waiting for the receiver."""
@@ -160,10 +192,15 @@ class Link:
 
     def ready(self):
         """Whether a reply is here."""
-        return self.comm.Iprobe(source=LEADER, tag=REPLY)
+        return _here(self.comm, LEADER, REPLY)
 
-    def receive(self):
-        """The next reply's estimates; RuntimeError if the estimator processes failed."""
+    def receive(self, meanwhile=True):
+        """The next reply's estimates; RuntimeError if the estimator processes failed. Until
+        it is here, the `meanwhile` parts are done (`meanwhile`: a nested run's next level
+        made ahead, membranes.driver._Ahead), one at a time while none has come."""
+        while meanwhile and self.meanwhile is not None and not self.ready():
+            if not self.meanwhile():
+                self.meanwhile = None
         kind, payload = self.comm.recv(source=LEADER, tag=REPLY)
         if kind == "error":
             raise RuntimeError(f"estimator processes: {payload}")
@@ -241,15 +278,15 @@ class RemoteEstimates:
     def finish(self):
         """Estimate the iterate still waiting for a later one, and collect every estimate."""
         self.link.post("finish")
-        while True:
-            call, _ = self._take()
+        while True:     # no part meanwhile: the reply is on its way
+            call, _ = self._take(meanwhile=False)
             if call == "finish":
                 return
 
-    def _take(self):
+    def _take(self, meanwhile=True):
         """Apply the next reply of estimates: (its call number or 'finish', the records it
         completed)."""
-        call, values, ready, extra = self.link.receive()
+        call, values, ready, extra = self.link.receive(meanwhile)
         if call != "finish":
             self.replied = call
         done = []
@@ -272,13 +309,14 @@ def serve(problem, comm, est_comm):
     process 0 starts the level, evaluate them at the iterates it sends, reply with the
     estimates; returns (level, discretisation) of the last level served ((None, None) if
     none) when process 0 ends the run."""
-    from .discretisation import discretise
+    from .discretisation import completed, discretise, discretise_in_parts
     from .driver import RECORD_KEYS, IterateEstimates
     from .nested import level_problem
     from .newton_system import linear_rows
     leader = est_comm.rank == 0
     shared = est_comm if est_comm.size > 1 else None
     est = disc = failed = level = None
+    ahead = parts = made = None     # the level served next, its discretisation's parts, it
 
     def reply(call, ready, extra=None):
         # every record handed in is complete after a call, except the one IterateEstimates
@@ -293,26 +331,41 @@ def serve(problem, comm, est_comm):
                       dest=0, tag=REPLY)
 
     while True:
-        message = comm.recv(source=0, tag=WORK) if leader else None
+        if leader:      # no message waiting: a part of the next level's discretisation
+            idle = parts is not None and not _here(comm, 0, WORK)
+            message = ("part", None, None) if idle else comm.recv(source=0, tag=WORK)
+        else:
+            message = None
         if shared is not None:
             message = shared.bcast(message, root=0)
         kind, payload, packed = message
         if kind == "end":
             return level, disc
-        arrays = _unpack(packed) if leader else None    # read (and remove) the file first
-        if shared is not None:
+        arrays = _unpack(packed) if leader and kind != "part" else None  # the file first
+        if shared is not None and kind != "part":
             arrays = shared.bcast(arrays, root=0)
         if failed is not None:
             if leader and kind in ("call", "finish"):
                 comm.send(("error", failed), dest=0, tag=REPLY)
             continue
         try:
-            if kind == "level":
+            if kind == "ahead":
+                ahead, made = payload[0], None
+                parts = discretise_in_parts(level_problem(problem, ahead), stiffness=False)
+            elif kind == "part":
+                try:
+                    next(parts)
+                except StopIteration as done:
+                    made, parts = done.value, None
+            elif kind == "level":
                 level, alg_flux = payload
                 est = None          # the level below: freed before this one is built
                 # no stiffness matrix: E's residuals come made (RemoteEstimates)
-                pj = problem if level == problem.levels else level_problem(problem, level)
-                disc = discretise(pj, stiffness=False)
+                if ahead == level:
+                    disc = made if parts is None else completed(parts)
+                else:
+                    disc = discretise(level_problem(problem, level), stiffness=False)
+                ahead = parts = made = None
                 est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
                 recs, rid_of, unsent, calls = {}, {}, {}, 0
                 parallel.agree(shared)
@@ -332,6 +385,7 @@ def serve(problem, comm, est_comm):
         except Exception as e:
             # agree on the failure with the partners (P ≥ 3: they may be waiting in a
             # collective for this process), tell process 0, then wait for its end
+            parts = made = None
             failed = str(e) if isinstance(e, parallel.PartnerFailed) else \
                 f"estimator process {comm.rank}: {type(e).__name__}: {e}"
             if not isinstance(e, parallel.PartnerFailed):

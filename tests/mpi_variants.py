@@ -22,6 +22,10 @@ VARIANTS = [
      {"newton": "adaptive", "cfun": "fb", "system": "eliminated",
       "petsc_options": {"pc_type": "vertex_amg"}}),
     ("adaptive-min-nu", {"h": 0.2}, {"newton": "adaptive"}),
+    # three levels: process 0 makes levels 1 and 2 while it waits, the estimator process
+    # discretises the level it serves next while it waits (membranes.pipeline)
+    ("adaptive-min-amg-3", {"h": 0.3, "levels": 2},
+     {"newton": "adaptive", "system": "eliminated", "petsc_options": {"pc_type": "vertex_amg"}}),
 ]
 
 
