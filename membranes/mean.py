@@ -26,14 +26,16 @@ side, so whatever M lacks shows in R_alg (DESIGN §4) and the estimators.
 
 **Why.** The mean's AMG (a Laplacian on all N vertices) was the dearest single part of a
 level's first Newton step: at 9.3e5 vertices 0.86 s of its 3.3 s. M is solved once per level
-here (`MeanSolve`: conjugate gradients, from the mean of the level's initial guess, until
-‖ρ(M)‖ is MEAN_FRACTION of the bound the Newton steps' linear solves meet, `mean_bound`),
-and the Newton steps solve for the gap and λ only. A Poisson problem on a nested hierarchy
-needs no algebraic multigrid: on T_j, j ≥ 1, of a nested run CG takes one V-cycle of
-geometric multigrid on T_0 ⊂ … ⊂ T_j with T_0's BoomerAMG at the bottom, and nothing is set
-up on the new mesh (9.3e5 vertices: 0.7 s for M instead of 1.8 s; the whole serial run
-17.7 s instead of 18.6-19.2 s). On several processes (membranes.pipeline) process 0 solves
-for M too, while the estimator processes set up the level's estimators.
+here (`MeanSolve`: conjugate gradients, from the mean of the initial guess, on T_j, j ≥ 1, of
+a nested run from P M_{j-1}, which is the mean of the prolonged solution and needs no wait
+for level j-1's Newton run (membranes.driver), until ‖ρ(M)‖ is MEAN_FRACTION of the bound
+the Newton steps' linear solves meet, `mean_bound`), and the Newton steps solve for the gap
+and λ only. A Poisson problem on a nested hierarchy needs no algebraic multigrid: on T_j,
+j ≥ 1, of a nested run CG takes one V-cycle of geometric multigrid on T_0 ⊂ … ⊂ T_j with
+T_0's BoomerAMG at the bottom, and nothing is set up on the new mesh (9.3e5 vertices: 0.7 s
+for M instead of 1.8 s; the whole serial run 17.7 s instead of 18.6-19.2 s). On several
+processes (membranes.pipeline) process 0 solves for M too, while the estimator processes set
+up the level's estimators.
 
 This is one of the choices DESIGN.md leaves open (README): the Newton iterates are those of
 DESIGN §3 with the mean of every step solved exactly, not those of GMRES on the whole step
