@@ -46,6 +46,20 @@ Both kinds are now busy most of the finest level: process 0 computes X³ only on
 estimate is in (one step ahead of the test), and the estimator process sets up for 2.8 s
 first.
 
+What is made ahead was measured (J = 6, 2 processes). More ahead lengthens the lower
+levels by more than it saves:
+
+* Process 0 making each level's mean too, as its last part, and making parts in the wait
+  for 'finish' as well: 10.81-10.83 s. The finest mean is a 0.6 s part that outlasts the
+  wait, and the estimator process becomes the critical path.
+* The next level's mean only, made once every finer level's parts are made: 10.93 s. The
+  finest level began 0.6 s late, and the estimator process's set-up with it.
+* The estimator process discretising every level it will serve from the start: 10.98-11.1
+  s against 10.59-10.98 s (alternating runs). Its 0.2 s parts of the finest level delay the
+  coarse levels' 0.01 s estimates.
+* Making only the next level (none further): 10.75-11.06 s (two runs). Process 0 has
+  little wait on level 5, so most of the finest level's parts are left for its start.
+
 Where to solve the exact mean was measured. Session 17 had the leader solve for it (then
 1.8 s with its own AMG) before its set-up while process 0 computed the first step's
 gap and λ (which do not need M): the estimator process was then the critical path, and the
