@@ -479,7 +479,8 @@ class _LevelRun:
     disc: object
     result: object
     est: object
-    wall_time_s: float      # this level's own: set-up, prolongation (nested) and Newton
+    wall_time_s: float      # this level's own: set-up, prolongation (nested) and Newton (on
+    # several processes, the parts made ahead count in the level whose waits they fill)
     _record: dict = None    # the figures, once `release` dropped what they come from
 
     def release(self):
@@ -564,16 +565,22 @@ def _level_parts(problem, j, below):
     return _Level(pj, disc, rows, P)
 
 
-def _level_mean(made, below, method, last):
-    """Where the steps take the exact mean: level j's multigrid on T_0 ⊂ … ⊂ T_j (on the
-    MeanSolve of `below`, the _Level of T_{j-1}, which is done with then) and M, by CG from
-    P M_{j-1}. M_{j-1} is the mean of every Newton iterate of level j-1 from its first step on
-    (membranes.mean), so P M_{j-1} is the mean of the prolonged solution. `last`: level j is
-    T_J (its MeanSolve is freed)."""
-    if below.mean is None:
-        return
+def _mean_multigrid(made, below, method):
+    """Level j's MeanSolve: the multigrid on T_0 ⊂ … ⊂ T_j, built on the MeanSolve of `below`
+    (the _Level of T_{j-1}, whose M is solved: it is done with then)."""
     made.mean_solve = MeanSolve(made.disc, method.mean_options, below.mean_solve, made.P)
     below.mean_solve = None
+
+
+def _level_mean(made, below, method, last):
+    """Where the steps take the exact mean: level j's M, by CG with its multigrid
+    (`_mean_multigrid`, if not built yet) from P M_{j-1}. M_{j-1} is the mean of every
+    Newton iterate of level j-1 from its first step on (membranes.mean), so P M_{j-1} is the
+    mean of the prolonged solution. `last`: level j is T_J (its MeanSolve is freed)."""
+    if below.mean is None:
+        return
+    if made.mean_solve is None:
+        _mean_multigrid(made, below, method)
     M = made.mean_solve.solve(made.P @ below.mean.M, _mean_bound(method, made.rows))
     made.mean = LevelMean(below.mean.theta, M)
     if last:
@@ -588,9 +595,10 @@ class _Ahead:
     each level when its Newton run begins; process 0 of several makes the finer levels' parts
     also while it waits for estimates (membranes.pipeline, Link.meanwhile): their
     discretisation, rows and prolongation are then ready, in part or whole, when their turn
-    comes. The mean is solved when the level begins, from the mean of the level below (the
-    estimator processes set up the level's estimators meanwhile, which takes longer). Nothing
-    of it depends on when it is made: the iterates are the same either way."""
+    comes, and so is the next level's mean multigrid (it needs the running level's M). The
+    mean is solved when the level begins, from the mean of the level below (the estimator
+    processes set up the level's estimators meanwhile, which takes longer). Nothing of it
+    depends on when it is made: the iterates are the same either way."""
 
     def __init__(self, problem, method):
         self.problem, self.method = problem, method
@@ -602,16 +610,25 @@ class _Ahead:
         self.running = self.last = first
 
     def step(self):
-        """Make one part of the first level not made yet; False once all are made."""
-        if self.last is None or _level_of(self.last) == self.problem.levels:
+        """Make one part of the first level not made yet; once all are made, the multigrid
+        of the next level's mean (the running level's M is solved: `_mean_multigrid`).
+        False when there is nothing left to make."""
+        if self.last is None:
             return False
-        if self.parts is None:
-            self.parts = _level_parts(self.problem, _level_of(self.last) + 1, self.last)
-        try:
-            next(self.parts)
-        except StopIteration as done:
-            self.last, self.parts = done.value, None
-            self.made[_level_of(self.last)] = self.last
+        if _level_of(self.last) < self.problem.levels:
+            if self.parts is None:
+                self.parts = _level_parts(self.problem, _level_of(self.last) + 1, self.last)
+            try:
+                next(self.parts)
+            except StopIteration as done:
+                self.last, self.parts = done.value, None
+                self.made[_level_of(self.last)] = self.last
+            return True
+        following = self.made.get(_level_of(self.running) + 1)
+        if following is None or following.mean_solve is not None or \
+                self.running.mean_solve is None:
+            return False
+        _mean_multigrid(following, self.running, self.method)
         return True
 
     def level(self, j):
@@ -664,6 +681,8 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
         X0, guess_time = initial_guess(made), 0.0      # the level below released: first
         ahead.run(made)
         problem = made.problem
+        if method.link is not None:     # the next level's mean multigrid too
+            method.link.meanwhile = ahead.step
     disc, rows, mean = made.disc, made.rows, made.mean
     if remote:      # X^0's residual and the data oscillation come from here
         est.discretised(disc, rows)

@@ -321,8 +321,10 @@ class RemoteEstimates:
 def serve(problem, comm, est_comm):
     """The estimator processes' loop (module notes): build each level's IterateEstimates when
     process 0 starts the level, evaluate them at the iterates it sends, reply with the
-    estimates; returns (level, discretisation) of the last level served ((None, None) if
-    none) when process 0 ends the run."""
+    estimates; while no message waits, discretise the level process 0 named next ('ahead'),
+    a part at a time (the leader decides, the partners follow: P ≥ 3); returns (level,
+    discretisation) of the last level served ((None, None) if none) when process 0 ends the
+    run."""
     from .discretisation import completed, discretise, discretise_in_parts
     from .driver import RECORD_KEYS, IterateEstimates
     from .nested import level_problem
