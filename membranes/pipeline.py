@@ -23,8 +23,9 @@ of a nested run, a part at a time (0.1-0.4 s each at 9.3e5 vertices):
 
 * process 0, while it waits for estimates, makes the finer levels in turn: their
   discretisation (discretisation.discretise_in_parts), linear rows and prolongation
-  (`Link.meanwhile`, membranes.driver._Ahead); it solves a level's mean when the level
-  begins, and makes no part while it waits for the 'finish' reply, which is on its way;
+  (`Link.meanwhile`, membranes.driver._Ahead), then the next level's mean multigrid (0.18 s:
+  it needs the running level's M); it solves a level's M when the level begins, and makes
+  no part while it waits for the 'finish' reply, which is on its way;
 * the estimator processes, when no message is waiting, discretise the level they serve
   next, which process 0 names ('ahead').
 
@@ -37,9 +38,9 @@ without its exact solution):
   and prolongation and 0.8 s on the mean before its first step. Then came steps of 2.0, 1.5
   and 1.5 s, and the wait for X³'s estimate (1.05 s). The estimator process was set up
   (0.8 s discretisation + 2.8 s) 0.3-0.4 s before X¹ came.
-* Now the finest level takes 7.0 s. Process 0 begins it with its parts made and solves M
-  (0.6-0.8 s with the last part). The estimator process, its discretisation made, sets up in
-  2.8 s and is ready about when X¹ comes (0.2 s after). Levels 0-5 take 3.5 s instead of 3.0-3.2 s.
+* Now the finest level takes 6.5-7.0 s. Process 0 begins it with its parts made and solves
+  M (0.6 s). The estimator process, its discretisation made or nearly, sets up in 2.8 s and
+  is ready about when X¹ comes (0.2 s after). Levels 0-5 take 3.5 s instead of 3.0-3.2 s.
 * The whole run: 10.75-11.1 s against 11.3-11.7 s (alternating runs, 2026-11-22).
 
 Both kinds are now busy most of the finest level: process 0 computes X³ only once X¹'s
@@ -59,6 +60,11 @@ levels by more than it saves:
   coarse levels' 0.01 s estimates.
 * Making only the next level (none further): 10.75-11.06 s (two runs). Process 0 has
   little wait on level 5, so most of the finest level's parts are left for its start.
+* The next level's M itself in parts (conjugate gradients written out, one iteration a
+  part, with parts also in the wait for 'finish'): in one timeline process 0 began the
+  finest level with 0.13 s of M left instead of 0.64 s, but the estimator process's set-up
+  then began late and the level took as long. Not kept: no gain could be shown (the
+  machine's timings drifted by 10-30 % at the time).
 
 Where to solve the exact mean was measured. Session 17 had the leader solve for it (then
 1.8 s with its own AMG) before its set-up while process 0 computed the first step's
