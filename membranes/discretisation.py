@@ -523,8 +523,9 @@ def discretise(problem, stiffness=True):
 def discretise_in_parts(problem, stiffness=True):
     """`discretise` as a generator that yields between its parts (S, D and the boundary; the
     data measures and loads; F1; F2: each 0.1-0.4 s at 9.3e5 vertices) and returns the
-    Discretisation: process 0 of a run on several processes discretises the next level of a
-    nested run a part at a time while it waits for estimates (membranes.driver, `_Ahead`)."""
+    Discretisation: in a run on several processes, process 0 discretises the finer levels of
+    a nested run a part at a time while it waits for estimates (membranes.driver, `_Ahead`),
+    and the estimator processes the level they serve next (membranes.pipeline)."""
     from dolfinx import fem
     mesh = problem.mesh
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))

@@ -30,9 +30,9 @@ of a nested run, a part at a time (0.1-0.4 s each at 9.3e5 vertices):
   next, which process 0 names ('ahead').
 
 A part once begun runs to its end, so a message that comes meanwhile waits for it. The parts
-lengthen the lower levels (rank 1 then waits for iterates) but shorten the finest, where
-process 0 was the critical path. At 9.3e5 vertices (disk, J = 6, 2 processes, a scene run
-without its exact solution):
+lengthen the lower levels (the estimator process then waits for iterates) but shorten the
+finest, where process 0 was the critical path. At 9.3e5 vertices (disk, J = 6, 2
+processes, a scene run without its exact solution):
 
 * Before (8.2-8.4 s for the finest level), process 0 spent 0.9 s discretising, 0.2 s on rows
   and prolongation and 0.8 s on the mean before its first step. Then came steps of 2.0, 1.5
@@ -197,7 +197,6 @@ class Link:
         self.requests, self.files, self.count = [], set(), 0
         self.meanwhile = None   # work for the waits: a call that does a part, False if none
 
-
     def post(self, kind, *payload, arrays=()):
         """Send (kind, payload, arrays) without waiting for the receiver."""
         self.count += 1
@@ -216,7 +215,7 @@ class Link:
 
     def receive(self, meanwhile=True):
         """The next reply's estimates; RuntimeError if the estimator processes failed. Until
-        it is here, the `meanwhile` parts are done (`meanwhile`: a nested run's next level
+        it is here, the `meanwhile` parts are done (`meanwhile`: a nested run's finer levels
         made ahead, membranes.driver._Ahead), one at a time while none has come."""
         while meanwhile and self.meanwhile is not None and not self.ready():
             if not self.meanwhile():

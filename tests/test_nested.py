@@ -195,11 +195,11 @@ def test_nested_solution_is_the_single_mesh_solution(cfun):
 
 def test_levels_made_ahead_give_the_same_run(monkeypatch):
     """Process 0 of a run on several processes makes the finer levels of a nested run (their
-    discretisation, linear rows and prolongation: driver._Ahead) while it waits for
-    estimates, as far as the waits go (membranes.pipeline). Made all before level 1 runs,
-    the run is the same bit for bit as with each level made at its turn: nothing made ahead
-    depends on when it is made (the exact mean, with vertex_amg, chains through the levels
-    too)."""
+    discretisation, linear rows and prolongation, then the next level's mean multigrid:
+    driver._Ahead) while it waits for estimates, as far as the waits go (membranes.pipeline).
+    Made all before level 1 runs, the run is the same bit for bit as with each level made at
+    its turn: nothing made ahead depends on when it is made (the exact mean, with vertex_amg,
+    chains through the levels too)."""
     from membranes import driver, scenes
     problem = scenes.disk(h=0.3, levels=2)
     options = {"newton": "adaptive", "system": "eliminated",
