@@ -82,6 +82,19 @@ def form_signature(ufl_form):
 _KERNELS = {}     # form_signature -> (ufcx form, its cffi module, its code)
 
 
+def _kernel(ufl_form, comm):
+    """(ufcx form, cffi module, code) of a UFL form: the entry of `_KERNELS` under its
+    `form_signature`, compiled by dolfinx.jit.ffcx_jit the first time. The signature is taken
+    before the compilation: when ffcx compiles a form (not when it finds it in its disk cache)
+    it gives the coordinate element of a mesh made with a plain ufl element the variant
+    'equispaced', and the same form's signature afterwards is another."""
+    from dolfinx import jit
+    key = form_signature(ufl_form)
+    if key not in _KERNELS:
+        _KERNELS[key] = jit.ffcx_jit(comm, ufl_form, form_compiler_params={"scalar_type": "double"})
+    return _KERNELS[key]
+
+
 @functools.lru_cache(maxsize=None)
 def _form_class():
     from dolfinx import cpp
@@ -96,17 +109,13 @@ def form(ufl_form):
     argument spaces, the coefficients in the kernel's order, the constants, the subdomain
     tags and the mesh of this form. For every form of the package that is assembled on more
     than one mesh (nested iteration builds each on every level)."""
-    from dolfinx import cpp, jit
+    from dolfinx import cpp
     domain_data, = ufl_form.subdomain_data().items()
     domain, subdomains = domain_data
     mesh = domain.ufl_cargo()
     if mesh is None:
         raise RuntimeError("expecting a mesh in the form")
-    key = form_signature(ufl_form)
-    if key not in _KERNELS:
-        _KERNELS[key] = jit.ffcx_jit(mesh.comm, ufl_form,
-                                     form_compiler_params={"scalar_type": "double"})
-    ufcx_form, module, code = _KERNELS[key]
+    ufcx_form, module, code = _kernel(ufl_form, mesh.comm)
     spaces = [arg.ufl_function_space()._cpp_object for arg in ufl_form.arguments()]
     original = ufl_form.coefficients()
     coefficients = [original[ufcx_form.original_coefficient_position[i]]._cpp_object
@@ -274,8 +283,7 @@ def p1_assembly(V):
 def reference_element_vector(ufl_form):
     """The element vector of a linear cell form (one cell integral) on the reference triangle
     (0, 0), (1, 0), (0, 1), computed by its compiled kernel (`form`'s)."""
-    form(ufl_form)
-    ufcx_form, module, _ = _KERNELS[form_signature(ufl_form)]
+    ufcx_form, module, _ = _kernel(ufl_form, ufl_form.ufl_domain().ufl_cargo().comm)
     integral, = (ufcx_form.integrals(module.lib.cell)[i]
                  for i in range(ufcx_form.num_integrals(module.lib.cell)))
     ffi = module.ffi
