@@ -518,39 +518,52 @@ def _vertex_neighbours(cells, holding, start, columns):
     return boundary, indptr, indices
 
 
-def discretise(problem, stiffness=True):
+def discretise(problem, stiffness=True, given=None):
     """Assemble S1, S2, D, F1, F2 and the boundary vertices of `problem` (DESIGN §2). The
     stiffness matrix S is assembled once and scaled: S_α = μ_α S, on S's own index arrays (S
     itself where μ_α = 1, S1 = S2 where μ1 = μ2: the same numbers, and no copies: two took
     0.33 s at 9.3e5 vertices; nothing changes the matrices in place). stiffness=False: no S
     (S1 = S2 = None), for the estimator processes of a run on several processes
-    (membranes.pipeline), whose estimators read the loads, the space and the boundary."""
-    return completed(discretise_in_parts(problem, stiffness))
+    (membranes.pipeline), whose estimators read the loads, the space and the boundary;
+    `given`: see `discretise_in_parts`."""
+    return completed(discretise_in_parts(problem, stiffness, given))
 
 
-def discretise_in_parts(problem, stiffness=True):
+def discretise_in_parts(problem, stiffness=True, given=None):
     """`discretise` as a generator that yields between its parts (S, D and the boundary; the
     data measures and loads; F1; F2: each 0.1-0.4 s at 9.3e5 vertices) and returns the
     Discretisation: in a run on several processes, process 0 discretises the finer levels of
     a nested run a part at a time while it waits for estimates (membranes.driver, `_Ahead`),
-    and the estimator processes the level they serve next (membranes.pipeline)."""
+    and the estimator processes the level they serve next (membranes.pipeline).
+    `given` (without stiffness): a call that returns (D, F1, F2, boundary) where another
+    process made them already, else None, asked before each part that makes them: the
+    estimator processes take them from process 0, which makes them anyway (the same code on
+    the same mesh: the same numbers)."""
     from dolfinx import fem
     mesh = problem.mesh
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+
+    def shipped(k, make):
+        arrays = None if given is None or stiffness else given()
+        return make() if arrays is None else arrays[k]
+
+    S = D = boundary = None
     if mesh.comm.size == 1 and stiffness:
         S, D, boundary = p1_assembly(V)
-    else:
-        S = assemble_matrix_csr(membrane_bilinear(1.0, u, v)) if stiffness else None
-        D = assemble_vector_array(contact_weight(v))
-        boundary = boundary_dofs(V)
+    elif stiffness:
+        S = assemble_matrix_csr(membrane_bilinear(1.0, u, v))
+    D = shipped(0, lambda: assemble_vector_array(contact_weight(v))) if D is None else D
+    boundary = shipped(3, lambda: boundary_dofs(V)) if boundary is None else boundary
     yield
     dxd = data_measures(mesh, problem.interface)
     f1, f2 = (load(f, mesh) for f in (problem.f1, problem.f2))
     yield
-    F1 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f1, v, dx)))
+    F1 = shipped(1, lambda: assemble_vector_array(over(dxd, lambda dx:
+                                                       membrane_linear(f1, v, dx))))
     yield
-    F2 = assemble_vector_array(over(dxd, lambda dx: membrane_linear(f2, v, dx)))
+    F2 = shipped(2, lambda: assemble_vector_array(over(dxd, lambda dx:
+                                                       membrane_linear(f2, v, dx))))
     n = V.dofmap.index_map.size_local
     S1 = S2 = None
     if S is not None:

@@ -552,13 +552,15 @@ def _first_level(problem, method, initial_guess, keep_mean):
     return made, X0, guess_time
 
 
-def _level_parts(problem, j, below):
+def _level_parts(problem, j, below, ship=None):
     """Level j ≥ 1 of a nested run (its _Level, without the mean) made after `below`, the
     _Level of T_{j-1}: a generator that yields between the parts (`_Ahead`): the problem on
     T_j, its discretisation (discretise_in_parts), linear rows and the prolongation P from
     T_{j-1}."""
     pj = level_problem(problem, j)
     disc = yield from discretise_in_parts(pj)
+    if ship is not None:
+        ship(j, disc)
     yield
     rows = linear_rows(disc)
     P = prolongation(below.disc.V, disc.V, problem.hierarchy.parent_cells[j - 1])
@@ -604,6 +606,7 @@ class _Ahead:
         self.problem, self.method = problem, method
         self.running = self.last = self.parts = None
         self.made = {}
+        self.ship, self.shipped = None, ()    # Link.ship and the levels it is for
 
     def start(self, first):
         """Begin with T_0's _Level (level 0 running)."""
@@ -617,7 +620,9 @@ class _Ahead:
             return False
         if _level_of(self.last) < self.problem.levels:
             if self.parts is None:
-                self.parts = _level_parts(self.problem, _level_of(self.last) + 1, self.last)
+                j = _level_of(self.last) + 1
+                self.parts = _level_parts(self.problem, j, self.last,
+                                          self.ship if j in self.shipped else None)
             try:
                 next(self.parts)
             except StopIteration as done:
@@ -756,6 +761,8 @@ def _solve_nested(problem, method, alg_flux, estimators, initial_guess, started)
               "nu" if j < J and alg_flux == "multilevel" else alg_flux for j in range(J + 1)]
     served = [j for j in range(J + 1) if fluxes[j] is not None]  # levels with estimators
     ahead = _Ahead(problem, method)
+    if method.link is not None:     # the estimator processes take D, F1, F2 from process 0
+        ahead.ship, ahead.shipped = method.link.ship, set(served)
     if method.link is not None and served and served[0] > 0:
         method.link.post("ahead", served[0])
     try:

@@ -72,6 +72,33 @@ def test_membrane_stiffness_is_mu_times_s():
     assert np.abs(d.S1 @ np.ones(d.n)).max() < 1e-12 * np.abs(d.S1.data).max()
 
 
+def test_estimator_process_discretisation_takes_process_0s_arrays():
+    """Without stiffness (the estimator processes, membranes.pipeline), D, F1, F2 and the
+    boundary given by process 0's discretisation (Link.ship) are those it would make itself,
+    bit for bit (the same code on the same mesh), and they are taken, not made again: an
+    array marked as shipped comes back as that very array. An array given only from the
+    third part on (it came meanwhile) is taken from then on."""
+    problem = scene("disk", 0.3, levels=1)
+    full, own = discretise(problem), discretise(problem, stiffness=False)
+    for name in ("D", "F1", "F2", "boundary"):
+        assert np.array_equal(getattr(full, name), getattr(own, name))
+    marked = np.full(full.n, 7.0)
+    given = (full.D, full.F1, marked, full.boundary)
+    shipped = discretise(problem, stiffness=False, given=lambda: given)
+    assert shipped.F2 is not None and np.array_equal(shipped.F2, marked)
+    assert np.array_equal(shipped.F1, own.F1) and np.array_equal(shipped.D, own.D)
+    asked = []
+
+    def late():      # nothing at the first two questions
+        asked.append(1)
+        return given if len(asked) > 2 else None
+    half = discretise(problem, stiffness=False, given=late)
+    assert len(asked) == 4
+    assert np.array_equal(half.D, own.D) and np.array_equal(half.F2, marked)
+    # with stiffness (process 0) nothing is asked
+    assert np.array_equal(discretise(problem, given=late).F2, full.F2) and len(asked) == 4
+
+
 @pytest.mark.parametrize("mesh_of", [
     lambda: scene("disk", 0.3, levels=2).mesh,                      # refined hierarchy
     lambda: scene("square", 0.25).mesh,
