@@ -174,10 +174,15 @@ def _here(comm, source, tag):
 
 
 def _pack(arrays, directory, name):
-    """The arrays (None allowed) written to one file; returns what `_unpack` needs."""
+    """The arrays (None allowed) written to one file, one after the other (a concatenated
+    copy first took 35-140 ms for an iterate and its residual at 9.3e5 vertices, this 20 ms);
+    returns what `_unpack` needs."""
     sizes = [None if a is None else len(a) for a in arrays]
     path = os.path.join(directory, name)
-    np.concatenate([a for a in arrays if a is not None]).astype(np.float64).tofile(path)
+    with open(path, "wb") as f:
+        for a in arrays:
+            if a is not None:
+                np.ascontiguousarray(a, dtype=np.float64).tofile(f)
     return ("file", path, sizes)
 
 
