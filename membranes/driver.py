@@ -671,7 +671,8 @@ def _solve_on(problem, method, alg_flux, initial_guess, level, offset=0.0, its_o
     remote = method.link is not None and alg_flux is not None
     if remote:      # first: the estimator processes set this level up meanwhile
         from .pipeline import RemoteEstimates
-        est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive")
+        est = RemoteEstimates(method.link, level, alg_flux, method.newton == "adaptive",
+                              method.gamma_lin)
         if then is not None:
             method.link.post("ahead", then)
     if ahead is None or level == 0:

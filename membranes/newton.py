@@ -141,6 +141,18 @@ never at an iterate whose test is not met (FB on T_0 at J = 6: 5.6, 3.7, 2.8, 2.
 predicted 2.4, 2.1, then 1.4: waits at the last only); levels of one or two steps have fewer
 than two ratios. The decisions, and so the iterates, are the same either way.
 
+**Two steps ahead.** Where no Krylov iterate has been handed out, step k's result X^k is
+recorded (and sent for its estimates) even while the test at X^{k-1} is still awaited, and
+step k+1 is computed next; the tests are taken in order as their estimates come (`pending`,
+`first_met`), and before X^{k+1} is recorded the test at X^{k-1} is waited for. If the test
+at X^{k-1} is met, X^k leaves the history again (`stop_at`; `estimate.forget`), and the run
+ends at X^{k-1} with its iterate, counts and history, as without steps ahead; the estimator
+processes, which take the same test at every Newton iterate they estimate, skip the
+iterates after one that meets it (membranes.pipeline). Where the estimator process is the
+slower side (its set-up of the finest level takes longer than process 0's mean and first
+step), process 0 no longer waits for X¹'s estimate before step 3: on the finest level of
+the disk at 9.3e5 vertices (J = 6, 2 processes) that wait was 0.33-0.7 s.
+
 Wall times count the method's own work: assembly, linear solves, and what the variant's tests
 use: the nonlinear residual of the Newton iterates (exact, inexact), or the Krylov iterates
 handed out and their estimates (adaptive; with each record's nonlinear residual, one sparse
@@ -409,15 +421,15 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         clock.resume()
         return rec, ready
 
-    def hand_out(k, step, done, accepted, before=0, unsettled=None):
+    def hand_out(k, step, done, accepted, before=0, unsettled=False):
         """The Krylov callback of step k (`done`: the linear iterations of the steps before,
         `before`: those of this step's rejected active-set solve): record X^{k,i}; for
         adaptive, keep in `accepted` the first iterate of this step that meets the linear
-        criterion, and stop GMRES then. `unsettled`: the record of X^{k-1} when step k is
-        computed before its stopping test (module notes): the first handed-out iterate waits
-        for that test, and stops GMRES if it is met (the step is then dropped)."""
+        criterion, and stop GMRES then. `unsettled`: step k is computed before the stopping
+        tests of `pending` records (module notes): the first handed-out iterate waits for
+        those tests, and stops GMRES if one is met (the step is then dropped)."""
         def on_iterate(its, current):
-            if unsettled is not None and stopping(unsettled)[0]:
+            if unsettled and first_met(wait=True) is not None:
                 return True
             if not adaptive:
                 clock.pause()
@@ -462,15 +474,35 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
             return False
         return ratios[-1] * min(ratios[-1] / ratios[-2], 1.0) <= LIKELY_MET
 
-    def settled_at(unsettled):
-        """After a step computed ahead of the test at `unsettled` (the last record): whether
-        that test is met, the step then dropped; the record is complete only now, and its
-        wall time says so."""
-        if unsettled is None or not stopping(unsettled)[0]:
-            return False
-        unsettled["wall_time_s"] += clock.pause() - recorded_at[0]
+    pending = []      # adaptive: records whose stopping test is still to be taken, in order
+    kept = {}         # id(record) -> (X, linear iterations, clock) when it was recorded
+
+    def first_met(wait):
+        """Take the stopping tests of the `pending` records in order, as far as their
+        estimates are in (with `wait`: all, waiting for them): the first record whose test is
+        met (it stays first in `pending`), else None; a record whose test is not met leaves."""
+        while pending:
+            if not wait and deferred(pending[0]):
+                return None
+            if stopping(pending[0])[0]:
+                return pending[0]
+            pending.pop(0)
+        return None
+
+    def stop_at(met):
+        """The run ends at `met`, a pending record whose test is met: the records after it
+        (computed ahead: module notes) leave the history, the estimator forgets them; `met`
+        is complete only now, and its wall time says so. Returns (X, linear iterations) at
+        `met`."""
+        at = next(i for i, r in enumerate(history) if r is met)
+        for r in history[at + 1:]:
+            if hasattr(estimate, "forget"):
+                estimate.forget(r)
+        del history[at + 1:]
+        X_met, done_met, clock_met = kept[id(met)]
+        met["wall_time_s"] += clock.pause() - clock_met
         clock.resume()
-        return True
+        return X_met, done_met
 
     def result(converged, reason, k, done):
         return NewtonResult(X, converged, reason + state["note"], k, done, history)
@@ -479,17 +511,22 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
     watch = None      # FB watchdog: (step, X, residual, full step, its R) at the checkpoint
     damped = False    # FB: True once the watchdog returned to a checkpoint
     rec, done = record("initial", 0, 0, 0, X, None, None)[0], 0
+    met = None
     for k in range(1, max_it + 1):
         # adaptive, with the estimates of X^{k-1} on their way from other processes: compute
         # step k meanwhile, and take the stopping test at X^{k-1} once they are in; but where
         # the test will likely be met, wait for them instead (module notes)
-        unsettled = rec if adaptive and deferred(rec) else None
-        if unsettled is not None and likely_met(unsettled):
-            if settled_at(unsettled):
+        if adaptive:
+            pending.append(rec)
+            kept[id(rec)] = (X, done, recorded_at[0])
+            met = first_met(wait=False)
+            if met is None and pending and likely_met(pending[-1]):
+                met = first_met(wait=True)
+            if met is not None:
                 break
-            unsettled = None
-        if unsettled is None and stopping(rec)[0]:
+        elif stopping(rec)[0]:
             break
+        unsettled = bool(pending)
         if state["cfun"] == "min" and not adaptive:
             signature = active_set(rows, X)
             earlier = seen.get(signature)
@@ -538,16 +575,25 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
                 step = linear_step(rows, state["cfun"], system, X)
                 X_new, R, its = solve_step(step, krylov, lin_tol, test_every,
                                            hand_out(k, step, done, accepted, before, unsettled),
-                                           None if unsettled is None else
-                                           lambda: not deferred(unsettled) and
-                                           stopping(unsettled)[0], mean)
+                                           None if not unsettled else
+                                           lambda: first_met(wait=False) is not None, mean)
         except LinearSolveError as e:
-            if settled_at(unsettled):
+            met = first_met(wait=True)
+            if met is not None:
                 break
             unmet = " before the adaptive criterion was met" if adaptive else ""
             return result(False, f"linear solver failed at Newton step {k}{unmet}: {e}",
                           k - 1, done + before + e.its)
-        if settled_at(unsettled):
+        # the tests still to be taken before X^k is recorded: none, or with estimates
+        # elsewhere and no Krylov iterate handed out, X^{k-1}'s (two steps ahead: module notes)
+        ahead = 1 if hasattr(estimate, "awaiting") and \
+            not any(r["kind"] == "krylov" for r in history) else 0
+        met = first_met(wait=False)
+        while met is None and len(pending) > ahead:
+            met = pending[0] if stopping(pending[0])[0] else None
+            if met is None:
+                pending.pop(0)
+        if met is not None:
             break
         its += before
         done += its
@@ -583,6 +629,11 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         previous, X = rec["residual"], X_new
         rec = record("newton", k, its, done, X, R, step.norm_B, same_as, t, r_new)[0]
         state["decreased"] = rec["residual"] ** 2 <= (1.0 - 2.0 * LS_SIGMA) * previous ** 2
+    if met is None:
+        met = first_met(wait=True)
+    if met is not None:
+        X, done = stop_at(met)
+        rec = met
     met, description = stopping(rec)
     k = rec["newton_it"]
     if met:

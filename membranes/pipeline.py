@@ -49,9 +49,11 @@ processes, a scene run without its exact solution):
   is ready about when X¹ comes (0.2 s after). Levels 0-5 take 3.5 s instead of 3.0-3.2 s.
 * The whole run: 10.75-11.1 s against 11.3-11.7 s (alternating runs, 2026-11-22).
 
-Both kinds are now busy most of the finest level: process 0 computes X³ only once X¹'s
-estimate is in (one step ahead of the test), and the estimator process sets up for 2.8 s
-first.
+Both kinds are now busy most of the finest level. Process 0 computes X³ while X¹'s
+estimate is still to come (two steps ahead of the test: membranes.newton), and the
+estimator process sets up for 2.8-4.2 s first (the longer on machines where the two
+processes slow each other down most: two serial runs side by side took 21.6 s each here,
+against 18.6 s alone).
 
 What is made ahead was measured (J = 6, 2 processes). More ahead lengthens the lower
 levels by more than it saves:
@@ -93,8 +95,12 @@ Only what the method decides from the estimates waits for them:
   estimates of a level are collected when its Newton run ends (`RemoteEstimates.finish`);
 * adaptive Newton's stopping test at X^{k-1} needs η_lin, η_disc of X^{k-1}: process 0
   computes step k meanwhile (membranes.newton: a step computed ahead) and takes the test
-  when they come; if it is met, step k is dropped. Where the test is likely met (the
-  ratio η_lin/η_disc of the iterates before contracts below a bound) process 0 waits
+  when they come; if it is met, step k is dropped. Where no Krylov iterate is handed out,
+  process 0 records X^k while the test at X^{k-1} is still to come and computes step k+1
+  (two steps ahead); the estimator processes take the same test at each Newton iterate
+  they estimate ('level' carries γ_lin) and, once it is met, skip the level's later
+  iterates, which process 0 drops (`RemoteEstimates.forget`). Where the test is likely met
+  (the ratio η_lin/η_disc of the iterates before contracts below a bound) process 0 waits
   instead. The criterion that stops GMRES needs the estimates of the Krylov iterate it is
   made on, so a Krylov iterate handed out every ν steps waits for its estimates (with
   vertex_amg, GMRES reaches round-off before ν: none
@@ -258,13 +264,13 @@ class RemoteEstimates:
     estimates are back (`awaiting`, `resolve`); an adaptive run's Krylov iterates wait for
     theirs (the criterion that stops GMRES reads them at once)."""
 
-    def __init__(self, link, level, alg_flux, adaptive):
+    def __init__(self, link, level, alg_flux, adaptive, gamma_lin=None):
         self.link, self.adaptive = link, adaptive
         self.multilevel = True if alg_flux == "multilevel" else None
         self.setup_time, self.time, self.eta_K = 0.0, 0.0, None
         self.rows = None            # the level's LinearRows, once process 0 has them
         self.ids, self.waiting, self.then, self.calls, self.replied = {}, {}, {}, 0, 0
-        link.post("level", level, alg_flux)
+        link.post("level", level, alg_flux, gamma_lin if adaptive else None)
 
     def __call__(self, rec, X, R, same_as=None):
         if R is None:       # X^0: its residual needs E, which the estimator processes lack
@@ -304,6 +310,13 @@ class RemoteEstimates:
         while self._awaited(rec):
             self._take()
 
+    def forget(self, rec):
+        """rec was dropped (a step computed ahead of a test that was met: membranes.newton):
+        its estimates, if they come, are not applied, and nothing waits for them."""
+        rid = self.ids.get(id(rec))
+        self.waiting.pop(rid, None)
+        self.then.pop(rid, None)
+
     def when_complete(self, rec, action):
         """action(rec) now if rec is complete, else when its estimates come back."""
         if self._awaited(rec):
@@ -327,6 +340,8 @@ class RemoteEstimates:
             self.replied = call
         done = []
         for rid, v in values:
+            if rid not in self.waiting:     # forgotten
+                continue
             rec, X, R = self.waiting.pop(rid)
             rec.update(v)
             done.append((rid, (rec, X, R)))
@@ -337,7 +352,7 @@ class RemoteEstimates:
         if extra is not None:
             self.setup_time, self.time, self.eta_K = extra
         done = dict(done)
-        return call, [done[rid] for rid in ready]
+        return call, [done[rid] for rid in ready if rid in done]
 
 
 def serve(problem, comm, est_comm):
@@ -350,10 +365,12 @@ def serve(problem, comm, est_comm):
     from .discretisation import completed, discretise, discretise_in_parts
     from .driver import RECORD_KEYS, IterateEstimates
     from .nested import level_problem
+    from .newton import newton_criterion
     from .newton_system import linear_rows
     leader = est_comm.rank == 0
     shared = est_comm if est_comm.size > 1 else None
     est = disc = failed = level = None
+    stopped = False
     ahead = parts = made = None     # the level served next, its discretisation's parts, it
     shipped = {}                    # level -> (D, F1, F2, boundary) from process 0 (Link.ship)
 
@@ -404,7 +421,8 @@ def serve(problem, comm, est_comm):
                 except StopIteration as done:
                     made, parts = done.value, None
             elif kind == "level":
-                level, alg_flux = payload
+                level, alg_flux, gamma_lin = payload
+                stopped = False     # adaptive: a Newton iterate of this level met the test
                 est = None          # the level below: freed before this one is built
                 # no stiffness matrix: E's residuals come made (RemoteEstimates)
                 if ahead == level:
@@ -420,11 +438,21 @@ def serve(problem, comm, est_comm):
                 parallel.agree(shared)
             elif kind == "call":
                 rid, rec, same_as = payload
+                calls += 1
+                if stopped:     # process 0 ends the level at an earlier iterate: not estimated
+                    parallel.agree(shared)
+                    reply(calls, [])
+                    continue
                 X, R = arrays
                 recs[rid] = unsent[rid] = rec
                 rid_of[id(rec)] = rid
                 ready = est(rec, X, R, None if same_as is None else recs[same_as])
-                calls += 1
+                # the adaptive test, as process 0 takes it at this level's Newton iterates in
+                # order: once it is met, process 0 stops there (membranes.newton), and the
+                # iterates it computed ahead meanwhile need no estimates
+                stopped = gamma_lin is not None and any(
+                    r["kind"] == "newton" and r.get("eta_lin") is not None and
+                    newton_criterion(r, gamma_lin) for r in [rec] + [t[0] for t in ready])
                 parallel.agree(shared)      # all went well everywhere: then reply
                 reply(calls, ready)
             elif kind == "finish":
