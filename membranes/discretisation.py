@@ -548,13 +548,12 @@ def discretise_in_parts(problem, stiffness=True, given=None):
         arrays = None if given is None or stiffness else given()
         return make() if arrays is None else arrays[k]
 
-    S = D = boundary = None
     if mesh.comm.size == 1 and stiffness:
         S, D, boundary = p1_assembly(V)
-    elif stiffness:
-        S = assemble_matrix_csr(membrane_bilinear(1.0, u, v))
-    D = shipped(0, lambda: assemble_vector_array(contact_weight(v))) if D is None else D
-    boundary = shipped(3, lambda: boundary_dofs(V)) if boundary is None else boundary
+    else:
+        S = assemble_matrix_csr(membrane_bilinear(1.0, u, v)) if stiffness else None
+        D = shipped(0, lambda: assemble_vector_array(contact_weight(v)))
+        boundary = shipped(3, lambda: boundary_dofs(V))
     yield
     dxd = data_measures(mesh, problem.interface)
     f1, f2 = (load(f, mesh) for f in (problem.f1, problem.f2))

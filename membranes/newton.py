@@ -477,16 +477,17 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
     pending = []      # adaptive: records whose stopping test is still to be taken, in order
     kept = {}         # id(record) -> (X, linear iterations, clock) when it was recorded
 
-    def first_met(wait):
+    def first_met(wait, leave=0):
         """Take the stopping tests of the `pending` records in order, as far as their
-        estimates are in (with `wait`: all, waiting for them): the first record whose test is
-        met (it stays first in `pending`), else None; a record whose test is not met leaves."""
-        while pending:
+        estimates are in (with `wait`: all but the last `leave`, waiting for them): the first
+        record whose test is met (it stays first in `pending`), else None; a record whose
+        test is not met leaves (and its iterate with it)."""
+        while len(pending) > leave:
             if not wait and deferred(pending[0]):
                 return None
             if stopping(pending[0])[0]:
                 return pending[0]
-            pending.pop(0)
+            del kept[id(pending.pop(0))]
         return None
 
     def stop_at(met):
@@ -589,10 +590,8 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
         ahead = 1 if hasattr(estimate, "awaiting") and \
             not any(r["kind"] == "krylov" for r in history) else 0
         met = first_met(wait=False)
-        while met is None and len(pending) > ahead:
-            met = pending[0] if stopping(pending[0])[0] else None
-            if met is None:
-                pending.pop(0)
+        if met is None:
+            met = first_met(wait=True, leave=ahead)
         if met is not None:
             break
         its += before
