@@ -359,8 +359,8 @@ def plain_pages():
     3.2 s with the advice and 0.64 s without; the J = 6 disk run of bench_scaling.py (peak
     3.8 GiB) took 18.6-19.5 s without it (5 runs; a sixth, 25 s, slow in every phase, left
     out) against 19.4-20.1 s with it (5 runs). `membranes.solve` and
-    report.run_peer (the PETSc peer) run inside this block; NUMPY_MADVISE_HUGEPAGE=0 does the
-    same for a whole process. Restores numpy's setting on exit."""
+    report.run_peer (the PETSc peer) run inside this block (`as_one_run`);
+    NUMPY_MADVISE_HUGEPAGE=0 does the same for a whole process. Restores numpy's setting on exit."""
     try:
         from numpy.core import multiarray
         before = multiarray._set_madvise_hugepage(False)
@@ -373,11 +373,25 @@ def plain_pages():
         multiarray._set_madvise_hugepage(before)
 
 
-def on_plain_pages(function):
-    """`function` run inside `plain_pages` (its name, notes and signature kept)."""
+def as_one_run(function):
+    """`function` (a whole run: `membranes.solve`, report.run_peer) run on plain pages
+    (`plain_pages`) with BLAS on one thread (parallel.one_blas_thread), its name, notes and
+    signature kept. One BLAS thread makes a run's numbers independent of the machine's cores:
+    PETSc's dot products and norms (GMRES, CG) and numpy's go to OpenBLAS, which splits long
+    vectors among its threads and so sums in another order. Measured: the J = 3 disk run of
+    bench_scaling.py (6.9e3 vertices) gave iterates 5.8e-14 apart (relative) on one process
+    with OpenBLAS's two threads and with one, and so differed from the same run on two
+    processes (each bound to one core), which it now equals bit for bit. The threads saved
+    no time: the J = 6 run (9.3e5 vertices, one process) took 19.0 and 17.7 s with two
+    OpenBLAS threads and 19.2, 18.0 and 18.7 s with one (alternating runs), GMRES on T_6
+    1.73, 1.28, 1.11 and 1.58, 1.16, 1.28 s per Newton step against 1.70, 1.39, 1.32 /
+    1.64, 1.21, 1.12 / 1.68, 1.18, 1.17 s; the idle threads' spinning took 6-8 s of system
+    time on the other core."""
+    from .parallel import one_blas_thread
+
     @functools.wraps(function)
     def run(*args, **kwargs):
-        with plain_pages():
+        with plain_pages(), one_blas_thread():
             return function(*args, **kwargs)
     return run
 

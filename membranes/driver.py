@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import cfunctions, parallel
-from .discretisation import EnergyError, discretise, discretise_in_parts, on_plain_pages
+from .discretisation import EnergyError, as_one_run, discretise, discretise_in_parts
 from .estimators import ALG_ROUNDOFF, Estimators
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
 from .krylov import DEFAULT_MAX_LINEAR_ITS, DEFAULT_NU, Krylov
@@ -322,7 +322,7 @@ class IterateEstimates:
         return rec, X, R
 
 
-@on_plain_pages
+@as_one_run
 def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmres",
           petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
           estimators=True, progress=False, gamma_lin=None, gamma_alg=None, alg_flux=None,

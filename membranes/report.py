@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-from .discretisation import on_plain_pages
+from .discretisation import as_one_run
 from .outputs import staged_folder, write_history
 
 METHODS = ("exact", "inexact", "adaptive")
@@ -66,7 +66,7 @@ def run_methods(problem, say):
     return runs
 
 
-@on_plain_pages
+@as_one_run
 def run_peer(problem, say):
     """SNES vinewtonrsls (CG + BoomerAMG) on the decoupled problem: (result, records), one
     record per SNES iterate (its 0: the initial guess) with its wall time, discretisation

@@ -149,3 +149,20 @@ def test_plain_pages_inside_solve_and_restored(monkeypatch):
         assert seen == [False, False]
     finally:
         multiarray._set_madvise_hugepage(before)
+
+
+def test_a_run_does_not_depend_on_the_blas_threads_around_it():
+    """`solve` runs with BLAS on one thread (discretisation.as_one_run): the same iterate bit
+    for bit whether the caller allows OpenBLAS one thread or two. Without it the two differ
+    (5.8e-14 relative on this run, measured): GMRES's dot products and norms on vectors of
+    more than 10⁴ entries (here 2N ≈ 1.4e4 on T_3) are split among OpenBLAS's threads, which
+    sums in another order. On a machine of one core the test cannot tell the difference."""
+    from threadpoolctl import threadpool_limits
+    from membranes import solve
+    problem = scene("disk", 0.2, levels=3)
+    X = []
+    for threads in (2, 1):
+        with threadpool_limits(limits=threads, user_api="blas"):
+            X.append(solve(problem, newton="adaptive", cfun="min", system="eliminated",
+                           petsc_options={"pc_type": "vertex_amg"}).X)
+    assert np.array_equal(X[0], X[1])
