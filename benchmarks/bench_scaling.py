@@ -23,8 +23,11 @@ peer time, energy error ours / peer, the speed-up of 2 processes (and whether th
 same iterate: largest difference relative to one process), GMRES per Newton step at the
 largest size / at the smallest, the growth exponent of the whole-run time in N.
 
-Usage: `.venv/bin/python benchmarks/bench_scaling.py [J[:H0] ...]` (default 3 5 7; `6:0.132`:
-J = 6 on a coarse mesh of size 0.132, about 1.0e6 vertices).
+Usage: `.venv/bin/python benchmarks/bench_scaling.py [--pairs R] [J[:H0] ...]` (default 3 5 7;
+`6:0.132`: J = 6 on a coarse mesh of size 0.132, about 1.0e6 vertices). With `--pairs R`, R - 1
+more pairs of runs (ours, then ours-2, each in fresh processes) follow each size's four runs,
+and the speed-up of 2 processes is also given pair by pair, with the median: the two runs of a
+pair come one right after the other, while the machine's speed drifts (BENCHMARKS.md).
 """
 
 import json
@@ -118,7 +121,7 @@ def measure(which, levels):
     return json.loads(lines[-1])
 
 
-def main(levels_list):
+def main(levels_list, pairs=1):
     # small runs first, not reported: the disk caches of compiled code (dolfinx's forms, the
     # kept kernels of membranes.compiled) are then warm for every measured process, as for any
     # run after the first. J = 3 and each of our variants: a J = 1 run of `ours` alone left out
@@ -126,12 +129,18 @@ def main(levels_list):
     ms = [measure(which, "3") for which in ("ours", "ours-ml", "ours-2")]
     if any("failed" in r for r in ms):
         print("warm-up failed:", [r.get("failed") for r in ms])
-    results = []
+    results, again = [], {}
     for levels in levels_list:
         for which in ("ours", "ours-ml", "ours-2", "peer"):
             r = measure(which, levels)
             results.append(r)
             print(json.dumps(r), flush=True)
+        # further pairs (ours, ours-2) one right after the other: the machine's speed drifts
+        # by 15-30 % within minutes (BENCHMARKS.md), a pair's two runs see nearly the same
+        for _ in range(pairs - 1):
+            pair = [measure(which, levels) for which in ("ours", "ours-2")]
+            again.setdefault(levels, []).append(pair)
+            print(json.dumps(pair), flush=True)
     print()
     print("| J | vertices | method | Newton (per level) | linear | linear/Newton | method s | "
           "estimators (set-up + evals) s | process s | peak GiB | energy error |")
@@ -166,6 +175,14 @@ def main(levels_list):
                   f"{b['peak_gib']:.2f} GiB per process, {b['peak_total_gib']:.2f} together; "
                   f"iterate differs from one process by "
                   f"{np.abs(X2 - X1).max() / np.abs(X1).max():.1e} (relative)")
+            more = [(c["time"], d["time"]) for c, d in again.get(levels, [])
+                    if "failed" not in c and "failed" not in d]
+            if more:
+                pairs_run = [(a["time"], b["time"])] + more
+                ups = sorted(t1 / t2 for t1, t2 in pairs_run)
+                print(f"J = {levels}: speed-up of each pair (ours s / ours-2 s) " +
+                      ", ".join(f"{t1:.2f} / {t2:.2f} = {t1 / t2:.2f}" for t1, t2 in pairs_run)
+                      + f"; median {float(np.median(ups)):.2f}")
     ours = [ok[("ours", j)] for j in levels_list if ("ours", j) in ok]
     if len(ours) >= 2:
         first, last = ours[0], ours[-1]
@@ -181,4 +198,9 @@ if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         child(sys.argv[2], sys.argv[3])
     else:
-        main(sys.argv[1:] or [str(j) for j in DEFAULT_LEVELS])
+        args, pairs = sys.argv[1:], 1
+        if "--pairs" in args:
+            at = args.index("--pairs")
+            pairs = int(args[at + 1])
+            del args[at:at + 2]
+        main(args or [str(j) for j in DEFAULT_LEVELS], pairs)
