@@ -157,18 +157,23 @@ def main(levels_list, pairs=1):
               f"{est} | {r['process_time']:.1f} | {r['peak_gib']:.2f} | "
               f"{r['energy_error']:.4e} |")
     print()
+    import numpy as np
     ok = {(r["which"], r["levels"]): r for r in results if "failed" not in r}
     for levels in levels_list:
         a, b, m = (ok.get((w, levels)) for w in ("ours", "peer", "ours-ml"))
         if a and b:
+            times = [a["time"]] + [c["time"] for c, _ in again.get(levels, [])
+                                   if "failed" not in c]
+            median = (f" (with the median of our {len(times)} runs, "
+                      f"{float(np.median(times)):.2f} s: "
+                      f"{float(np.median(times)) / b['time']:.3f})" if len(times) > 1 else "")
             print(f"J = {levels} ({a['vertices']} vertices): time ours / peer = "
-                  f"{a['time'] / b['time']:.3f}" +
+                  f"{a['time'] / b['time']:.3f}{median}" +
                   (f" (ours-ml / peer = {m['time'] / b['time']:.3f})" if m else "") +
                   f"; energy error ours / peer = {a['energy_error'] / b['energy_error']:.4f}")
     for levels in levels_list:
         a, b = ok.get(("ours", levels)), ok.get(("ours-2", levels))
         if a and b:
-            import numpy as np
             X1, X2 = (np.load(f"/tmp/bench_scaling_{w}_{levels}.npy") for w in ("ours", "ours-2"))
             print(f"J = {levels}: speed-up of 2 processes = {a['time'] / b['time']:.2f} "
                   f"(whole process {a['process_time'] / b['process_time']:.2f}); peak "
