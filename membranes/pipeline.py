@@ -68,6 +68,12 @@ levels by more than it saves:
   coarse levels' 0.01 s estimates.
 * Making only the next level (none further): 10.75-11.06 s (two runs). Process 0 has
   little wait on level 5, so most of the finest level's parts are left for its start.
+* The estimator process making the finest level's loads (its own discretisation of it,
+  D, F1 and F2 included) from level 1 on, and process 0 taking F1 and F2 made (simulated:
+  read from a file): 12.64 s against 12.77 s on average (five alternating rounds, third
+  session of 2026-11-22; 11.78-12.89 s against 12.10-13.09 s): no gain. The estimator
+  process's first part of it, the space and D, held up a level-2 estimate for 0.7 s, about
+  what process 0 saved on levels 3 and 4.
 * The next level's M itself in parts (conjugate gradients written out, one iteration a
   part, with parts also in the wait for 'finish'): in one timeline process 0 began the
   finest level with 0.13 s of M left instead of 0.64 s, but the estimator process's set-up
