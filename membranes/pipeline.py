@@ -71,9 +71,9 @@ levels by more than it saves:
 * The estimator process making the finest level's loads (its own discretisation of it,
   D, F1 and F2 included) from level 1 on, and process 0 taking F1 and F2 made (simulated:
   read from a file): 12.64 s against 12.77 s on average (five alternating rounds, third
-  session of 2026-11-22; 11.78-12.89 s against 12.10-13.09 s): no gain. The estimator
-  process's first part of it, the space and D, held up a level-2 estimate for 0.7 s, about
-  what process 0 saved on levels 3 and 4.
+  session of 2026-11-22; 11.78-12.89 s against 12.10-13.09 s): no gain. In one timeline
+  level 2 took 1.03 s instead of 0.26 s (the estimator process busy with those parts, its
+  estimates waiting), levels 3 and 4 0.95 s instead of 1.51 s.
 * The next level's M itself in parts (conjugate gradients written out, one iteration a
   part, with parts also in the wait for 'finish'): in one timeline process 0 began the
   finest level with 0.13 s of M left instead of 0.64 s, but the estimator process's set-up
