@@ -237,25 +237,28 @@ class IterateEstimates:
     An adaptive step's Newton record is the accepted Krylov iterate again (`same_as`): it
     takes that record's values. Records get the COLUMNS of the estimators and `bound`
     (RECORD_KEYS), None where not estimated.
+
+    Built and called only inside `solve`, whose BLAS runs on one thread
+    (`discretisation.as_one_run`), as the small dense blocks of the patch problems want
+    (`parallel.one_blas_thread`).
     """
 
     def __init__(self, disc, rows, alg_flux, comm=None):
         t = time.perf_counter()
         self.rows = rows
-        with parallel.one_blas_thread():
-            # with several processes each sets up its own vertices' patches (parallel)
-            self.sum_parts = None if comm is None else parallel.Summation(comm)
-            self.est = Estimators(disc, owned=parallel.owned_vertices(disc.n, comm),
-                                  sum_parts=self.sum_parts)
-            if alg_flux == "multilevel":
-                from .algebraic_flux import MultilevelFlux   # only a run that uses it pays
-                hierarchy = disc.problem.hierarchy
-                owned = None if comm is None else \
-                    [parallel.owned_vertices(m.topology.index_map(0).size_local, comm)
-                     for m in hierarchy.meshes[:-1]]
-                self.multilevel = MultilevelFlux(disc, hierarchy, owned=owned)
-            else:
-                self.multilevel = None
+        # with several processes each sets up its own vertices' patches (parallel)
+        self.sum_parts = None if comm is None else parallel.Summation(comm)
+        self.est = Estimators(disc, owned=parallel.owned_vertices(disc.n, comm),
+                              sum_parts=self.sum_parts)
+        if alg_flux == "multilevel":
+            from .algebraic_flux import MultilevelFlux   # only a run that uses it pays
+            hierarchy = disc.problem.hierarchy
+            owned = None if comm is None else \
+                [parallel.owned_vertices(m.topology.index_map(0).size_local, comm)
+                 for m in hierarchy.meshes[:-1]]
+            self.multilevel = MultilevelFlux(disc, hierarchy, owned=owned)
+        else:
+            self.multilevel = None
         self.setup_time = time.perf_counter() - t
         self.time = 0.0
         self.pending = None        # ('nu') (record, X, R) waiting for its later iterate
@@ -263,10 +266,6 @@ class IterateEstimates:
         self.eta_K = None          # η_K of the Newton iterate (or X^0) estimated last
 
     def __call__(self, rec, X, R, same_as=None):
-        with parallel.one_blas_thread():
-            return self._call(rec, X, R, same_as)
-
-    def _call(self, rec, X, R, same_as):
         t = time.perf_counter()
         if same_as is not None:
             # the accepted iterate is the one estimated last (its estimate met the criterion);

@@ -34,7 +34,8 @@ def one_blas_thread():
     solves and products (tens of unknowns), where BLAS threads cost more than they save, and
     with several processes on the machine they would oversubscribe its cores (measured on the
     disk, h0 = 0.2, J = 2, 2 cores: multilevel flux set-up 4.4 s with two OpenBLAS threads
-    against 1.1 s with one, while other processes ran)."""
+    against 1.1 s with one, while other processes ran). Every run is inside one
+    (discretisation.as_one_run); MultilevelFlux takes one of its own for direct use."""
     with _blas_controller().limit(limits=1, user_api="blas"):
         yield
 
