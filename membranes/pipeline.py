@@ -89,7 +89,10 @@ then discretised with the stiffness matrix (1.2 s instead of 0.8 s) and solved M
 before its set-up (2.9 s), so X¹'s estimate started 5.1 s into the finest level, and process
 0, without the mean, had X² 0.7 s before that estimate was in and waited for it; the level
 took 9.1 s against 8.2-8.4 s (a process 0 that computed two steps ahead of the test would
-have saved the wait: about 0.2 s left, not pursued).
+have saved the wait: about 0.2 s left, not pursued). With process 0 two steps ahead, the
+estimator process making the finest level's mean multigrid and M (0.7 s) before its set-up
+was simulated (fourth session of 2026-11-22, four alternating rounds): 11.73-12.13 s against
+11.31-13.09 s, no gain; the estimator process became the critical path.
 
 The data oscillation is computed where the estimators are set up, from the load moments the
 flux set-up has anyway (when process 0 computed it, with moments of its own, 2.9 s of its
