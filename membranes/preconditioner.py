@@ -94,6 +94,10 @@ anew at every step (Krylov 11.2 s) and 4.23 GiB with 1.–4.; the PETSc matrices
 PCs are built on the scipy arrays (no copy).
 Where the mean part of the initial residual is already below half the solve's bound (the
 later Newton steps of a level), the solve leaves the mean's V-cycles out (`settle_mean`).
+The inner options of 4. were checked again on the gap's S_ff (the same run at 9.3e5 vertices,
+serial, one run each, Krylov time with set-ups | set-ups | GMRES iterations, most in a step):
+the defaults 5.3 | 2.6 s | 137, 8; HMIS, ext+i, P_max 4: 8.6 | 4.8 s | 144, 8; PMIS, ext+i,
+P_max 4: 6.8 | 3.7 s | 163, 10; HMIS, ext+i, P_max 4, agg_nl 1: 8.3 | 2.1 s | 266, 16.
 
 **Measured** (disk, exact Newton, GMRES(30) right-preconditioned, benchmarks/
 bench_preconditioner.py; BENCHMARKS.md has the table; with PETSc's BoomerAMG defaults, before
