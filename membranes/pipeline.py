@@ -28,12 +28,18 @@ of a nested run, a part at a time (0.1-0.4 s each at 9.3e5 vertices):
   no part while it waits for the 'finish' reply, which is on its way;
 * the estimator processes, when no message is waiting, discretise the level they serve
   next, which process 0 names ('ahead'). They take D, F1, F2 and the boundary vertices
-  from process 0 (`Link.ship`, sent as each level's discretisation is made: the same
-  numbers), where those have come, and make only the space and the data measures: at 9.3e5
-  vertices 0.27 s instead of 0.87 s. Before, the estimator process was busy all of level 5
-  and still discretising when the finest level began (0.3 s late for its set-up); J = 6,
-  alternating runs on a machine where the estimator process is the critical path (2026-11-22):
-  10.81-11.22 s against 11.59-12.43 s (four each; serial 17.6-17.9 s).
+  from process 0 (`Link.ship`, sent once each level's discretisation is made: the same
+  numbers) and make only the space and the data measures: at 9.3e5 vertices 0.27 s instead
+  of 0.87 s. Before, the estimator process was busy all of level 5 and still discretising
+  when the finest level began (0.3 s late for its set-up); J = 6, alternating runs on a
+  machine where the estimator process is the critical path (2026-11-22): 10.81-11.22 s
+  against 11.59-12.43 s (four each; serial 17.6-17.9 s). Where the arrays have not come
+  when the space and the data measures are made, the parts wait for them (SHIPMENT: no part
+  of the level runs until the 'disc' message, which comes before the level's 'level'
+  message) instead of making them: at first they made the missing ones, which at the finest
+  level's start was most of the time D, F1 and F2 (0.18-0.28 s parts, some while level 5's
+  iterates waited); waiting, J = 6 took 10.25-10.83 s against 10.70-11.27 s (seven
+  alternating rounds, fourth session of 2026-11-22).
 
 A part once begun runs to its end, so a message that comes meanwhile waits for it. The parts
 lengthen the lower levels (the estimator process then waits for iterates) but shorten the
@@ -371,7 +377,7 @@ def serve(problem, comm, est_comm):
     a part at a time (the leader decides, the partners follow: P ≥ 3); returns (level,
     discretisation) of the last level served ((None, None) if none) when process 0 ends the
     run."""
-    from .discretisation import completed, discretise, discretise_in_parts
+    from .discretisation import SHIPMENT, completed, discretise, discretise_in_parts
     from .driver import RECORD_KEYS, IterateEstimates
     from .nested import level_problem
     from .newton import newton_criterion
@@ -381,6 +387,7 @@ def serve(problem, comm, est_comm):
     est = disc = failed = level = None
     stopped = False
     ahead = parts = made = None     # the level served next, its discretisation's parts, it
+    shipment_due = False            # its parts wait for process 0's arrays (SHIPMENT)
     shipped = {}                    # level -> (D, F1, F2, boundary) from process 0 (Link.ship)
 
     def given(j):
@@ -400,7 +407,9 @@ def serve(problem, comm, est_comm):
 
     while True:
         if leader:      # no message waiting: a part of the next level's discretisation
-            idle = parts is not None and not _here(comm, 0, WORK)
+            # (none while it waits for process 0's arrays: they come as a message)
+            idle = parts is not None and not (shipment_due and ahead not in shipped) and \
+                not _here(comm, 0, WORK)
             message = ("part", None, None) if idle else comm.recv(source=0, tag=WORK)
         else:
             message = None
@@ -421,14 +430,14 @@ def serve(problem, comm, est_comm):
                 D, F1, F2, boundary = arrays
                 shipped[payload[0]] = (D, F1, F2, boundary.astype(np.int32))
             elif kind == "ahead":
-                ahead, made = payload[0], None
+                ahead, made, shipment_due = payload[0], None, False
                 parts = discretise_in_parts(level_problem(problem, ahead), stiffness=False,
                                             given=given(ahead))
             elif kind == "part":
                 try:
-                    next(parts)
+                    shipment_due = next(parts) == SHIPMENT
                 except StopIteration as done:
-                    made, parts = done.value, None
+                    made, parts, shipment_due = done.value, None, False
             elif kind == "level":
                 level, alg_flux, gamma_lin = payload
                 stopped = False     # adaptive: a Newton iterate of this level met the test

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from membranes import meshes
-from membranes.discretisation import boundary_dofs, discretise
+from membranes.discretisation import (SHIPMENT, boundary_dofs, completed, discretise,
+                                      discretise_in_parts)
 
 from .conftest import scene
 
@@ -76,8 +77,9 @@ def test_estimator_process_discretisation_takes_process_0s_arrays():
     """Without stiffness (the estimator processes, membranes.pipeline), D, F1, F2 and the
     boundary given by process 0's discretisation (Link.ship) are those it would make itself,
     bit for bit (the same code on the same mesh), and they are taken, not made again: an
-    array marked as shipped comes back as that very array. An array given only from the
-    third part on (it came meanwhile) is taken from then on."""
+    array marked as shipped comes back as that very array. Where they have not come after
+    the space and the data measures, the parts yield SHIPMENT and take them when resumed;
+    resumed without them, they make all four."""
     problem = scene("disk", 0.3, levels=1)
     full, own = discretise(problem), discretise(problem, stiffness=False)
     for name in ("D", "F1", "F2", "boundary"):
@@ -89,14 +91,22 @@ def test_estimator_process_discretisation_takes_process_0s_arrays():
     assert np.array_equal(shipped.F1, own.F1) and np.array_equal(shipped.D, own.D)
     asked = []
 
-    def late():      # nothing at the first two questions
+    def late():      # nothing at the first question
         asked.append(1)
-        return given if len(asked) > 2 else None
-    half = discretise(problem, stiffness=False, given=late)
-    assert len(asked) == 4
-    assert np.array_equal(half.D, own.D) and np.array_equal(half.F2, marked)
+        return given if len(asked) > 1 else None
+    parts = discretise_in_parts(problem, stiffness=False, given=late)
+    yielded = [next(parts), next(parts)]
+    assert yielded == [None, SHIPMENT] and len(asked) == 1
+    half = completed(parts)
+    assert len(asked) == 2 and np.array_equal(half.F2, marked)
+    assert np.shares_memory(half.D, full.D)          # taken, not made
+    asked.clear()
+    never = discretise(problem, stiffness=False, given=lambda: asked.append(1))
+    assert len(asked) == 2
+    for name in ("D", "F1", "F2", "boundary"):
+        assert np.array_equal(getattr(never, name), getattr(own, name))
     # with stiffness (process 0) nothing is asked
-    assert np.array_equal(discretise(problem, given=late).F2, full.F2) and len(asked) == 4
+    assert np.array_equal(discretise(problem, given=late).F2, full.F2) and len(asked) == 2
 
 
 @pytest.mark.parametrize("mesh_of", [
