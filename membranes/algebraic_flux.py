@@ -89,7 +89,7 @@ def _buckets(groups):
     return buckets, ret
 
 
-def _apply_buckets(level, flat, size, out=None):
+def _apply_buckets(level, flat, size, out=None, pool=None):
     """Σ_a σ^a over the patches of `level` (global RT coefficients, length `size`; for
     MultilevelFlux all levels' RT spaces one after the other) from the flat array of their
     data moments; with flat of shape (n, k), k fields at once (their data side by side, as
@@ -104,28 +104,53 @@ def _apply_buckets(level, flat, size, out=None):
     side by side, by `_scatter_products` (compiled). Every RT dof receives its terms in the
     order of the patches and, within a patch, of the representative's dofs: the sums of the
     sparse matrix that did the change of basis and the scatter before (its rows' entries in
-    column order), to the bit, for each field the same as alone."""
+    column order), to the bit, for each field the same as alone.
+
+    With `pool` (an executor with a thread to spare) the chunks' gathers and products run on
+    the pool, one chunk ahead of the scatters on this thread (two chunks' products at most in
+    flight, each with its own buffer): the scatters keep their order, so the sums are the same
+    to the bit."""
     buckets, rets = level
     one = flat.ndim == 1
     flat = flat.reshape(len(flat), -1)
     k = flat.shape[1]
     if out is None:
         out = np.zeros((size, k))
-    for (S, G, L, C), ret in zip(buckets, rets):
-        g, nr, nq = S.shape
-        per = G.shape[0] // g                          # the patches of each class
-        step = max(1, _ROWS // per)
-        F = np.empty(k * min(step, g) * per * nq)
-        for a in range(0, g, step):
-            b = min(a + step, g)
-            rows = slice(a * per, b * per)
-            # the leading part of one buffer: C-contiguous for a short last chunk too (one
-            # argument type for _gather at every mesh size, so one compiled version of it)
-            Fb = F[:k * (b - a) * per * nq].reshape(k, (b - a) * per, nq)
-            _gather(flat, G[rows], Fb)
-            SR = np.matmul(Fb.reshape(k, b - a, per, nq), S[a:b].transpose(0, 2, 1)[None])
-            _scatter_products(SR.reshape(k, -1, nr), L[rows], C[rows],
-                              ret[a * per * nr:b * per * nr], out)
+
+    def chunks():
+        for (S, G, L, C), ret in zip(buckets, rets):
+            g, nr, nq = S.shape
+            per = G.shape[0] // g                          # the patches of each class
+            step = max(1, _ROWS // per)
+            F = [np.empty(k * min(step, g) * per * nq) for _ in range(1 if pool is None else 2)]
+            for i, a in enumerate(range(0, g, step)):
+                yield S, G, L, C, ret, F[i % len(F)], a, min(a + step, g), per
+
+    def products(S, G, L, C, ret, F, a, b, per):
+        nq = S.shape[2]
+        # the leading part of one buffer: C-contiguous for a short last chunk too (one
+        # argument type for _gather at every mesh size, so one compiled version of it)
+        Fb = F[:k * (b - a) * per * nq].reshape(k, (b - a) * per, nq)
+        _gather(flat, G[a * per:b * per], Fb)
+        return np.matmul(Fb.reshape(k, b - a, per, nq), S[a:b].transpose(0, 2, 1)[None])
+
+    def scatter(SR, S, G, L, C, ret, F, a, b, per):
+        nr = S.shape[1]
+        _scatter_products(SR.reshape(k, -1, nr), L[a * per:b * per], C[a * per:b * per],
+                          ret[a * per * nr:b * per * nr], out)
+
+    if pool is None:
+        for chunk in chunks():
+            scatter(products(*chunk), *chunk)
+    else:
+        before = None
+        for chunk in chunks():
+            made = pool.submit(products, *chunk)
+            if before is not None:
+                scatter(before[0].result(), *before[1])
+            before = made, chunk
+        if before is not None:
+            scatter(before[0].result(), *before[1])
     return out[:, 0] if one else out
 
 

@@ -22,6 +22,10 @@ plain (arrays, Python and numpy scalars: `_type_key`) or the module cannot be bu
 kernel runs as numba's njit (a failed build leaves a marker next to where the module would
 be, so that later processes go straight to njit instead of trying again for seconds).
 
+A kept module releases the GIL while its kernel runs (numba's compiler flag release_gil, which
+njit's nogil sets too; pycc's modules keep the GIL otherwise), so that two threads run kernels
+at once (membranes.pipeline: the estimator process uses process 0's core while it waits).
+
 A kernel calls no other kernel (its wrapper is a Python function). A small formula that
 several kernels share is a `part`: a plain function of scalars, compiled into every kernel
 that has it among its module's globals, defined there or imported (the kernel is compiled with
@@ -131,7 +135,7 @@ def _toolchain():
     and the machine (its code is for this host's CPU)."""
     numba = importlib.util.find_spec("numba")
     return (numba and os.stat(numba.origin).st_mtime_ns, sys.version, os.uname().machine,
-            os.uname().nodename)
+            os.uname().nodename, "gil released")
 
 
 def _build(f, args, path):
@@ -153,7 +157,7 @@ _told = []      # whether this process has said that it builds kernels (`_build`
 
 def _build_module(f, args, path):
     """`_build` without the notice."""
-    from numba.pycc import CC
+    from numba.pycc import CC, compiler
     dispatcher = _compiled(f)
     signature = _signature(dispatcher, args)
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -164,7 +168,12 @@ def _build_module(f, args, path):
         cc.target_cpu = "host"
         cc.verbose = False
         cc.export(f.__name__, signature)(dispatcher.py_func)
-        cc.compile()
+        plain = compiler.Flags
+        compiler.Flags = _GilFreeFlags(plain)
+        try:
+            cc.compile()
+        finally:
+            compiler.Flags = plain
         built, = (os.path.join(tmp, p) for p in os.listdir(tmp) if p.startswith(name + "."))
         os.replace(built, path)
     folder, kept = os.path.split(path)
@@ -176,6 +185,15 @@ def _build_module(f, args, path):
                 os.remove(os.path.join(folder, p))
             except OSError:
                 pass
+
+
+def _GilFreeFlags(plain):
+    """numba's compiler Flags with release_gil set: pycc's modules keep the GIL otherwise."""
+    class Flags(plain):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.release_gil = True
+    return Flags
 
 
 def _signature(dispatcher, args):

@@ -396,9 +396,9 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     link = None
     if comm is not None:        # Newton on process 0, the estimators on the others
         from . import pipeline
-        est_comm, link = pipeline.roles(comm)
+        est_comm, link, lent = pipeline.roles(comm)
         if est_comm is not None:
-            return _on_estimator_process(problem, comm, est_comm)
+            return _on_estimator_process(problem, comm, est_comm, lent)
     method = _Method(newton, cfun, system, krylov, tol, int(max_newton), gamma_lin,
                      gamma_alg, say, link)
     try:
@@ -425,11 +425,11 @@ _SHARED = ("X", "converged", "reason", "newton_iterations", "linear_iterations",
            "per_level")
 
 
-def _on_estimator_process(problem, comm, est_comm):
+def _on_estimator_process(problem, comm, est_comm, lent):
     """An estimator process's part of a run on several processes (membranes.pipeline): serve
     the estimates, then return the Solution that process 0 made."""
     from .pipeline import serve
-    level, disc = serve(problem, comm, est_comm)
+    level, disc = serve(problem, comm, est_comm, lent)
     est_comm.Free()
     shared = comm.bcast(None, root=0)
     if isinstance(shared, tuple):           # process 0 failed: so does this one

@@ -77,6 +77,7 @@ import scipy.sparse as sp
 from .compiled import kernel, part
 from .discretisation import load
 from .meshes import cells_by_vertex, p1_cells
+from .parallel import in_two
 
 # ∫_K φ_k φ_l φ_i / |K| for barycentric φ: 1/10 (k = l = i), 1/30 (two equal), 1/60 (distinct)
 _C3 = np.empty((3, 3, 3))
@@ -1338,7 +1339,7 @@ class FluxEquilibration:
         one membrane."""
         return self.sigmas([(alpha, u, R)], lam)[0]
 
-    def sigmas(self, fields, lam):
+    def sigmas(self, fields, lam, pool=None):
         """[σ_α,disc for (α, u, R) in fields] (RT_1 coefficients, DESIGN §5), the membranes
         together: σ_f,α, plus μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on
         their own, plus the classes' part: `algebraic_flux._apply_buckets` on the data
@@ -1347,7 +1348,9 @@ class FluxEquilibration:
         kept between evaluations (as the data are: no fresh pages per call); one compiled pass
         (`_add_classes`) adds σ_f,α and clears the buffer for the next call (no array of all
         RT dofs per field is allocated or zeroed for the sums). The σ are the rows of one
-        array; each the same to the bit as alone."""
+        array; each the same to the bit as alone. With `pool` (an executor whose thread is
+        spare) the classes' products and scatters run as a pipeline of two, and the additions in
+        two halves: the same numbers (parallel.in_two)."""
         p = self.disc.problem
         mus = np.array([p.mu1 if alpha == 1 else p.mu2 for alpha, _, _ in fields])
         signs = np.array([1.0 if alpha == 1 else -1.0 for alpha, _, _ in fields])
@@ -1369,10 +1372,11 @@ class FluxEquilibration:
                           if given else np.zeros((len(fields), 0)))
             _class_data(geo.cells, geo.grad, geo.cells_per_vertex, mus, signs,
                         np.array([u for _, u, _ in fields]), lam, Rs, data)
-            classes = _apply_buckets(self.classes, data, size, self._class_sums)
+            classes = _apply_buckets(self.classes, data, size, self._class_sums, pool)
             at_rows = classes[rows]
-            _add_classes(self.sigma_f, np.array([alpha - 1 for alpha, _, _ in fields]),
-                         classes, out)
+            which = np.array([alpha - 1 for alpha, _, _ in fields])
+            in_two(pool, size, lambda first, last: _add_classes(self.sigma_f, which, classes,
+                                                                out, first, last))
         for f, (alpha, u, R) in enumerate(fields):
             base = self.sigma_f[alpha - 1]
             at = mus[f] * (self.G_u @ u) + signs[f] * (self.G_lam @ lam) + base[rows]
@@ -1383,11 +1387,12 @@ class FluxEquilibration:
 
 
 @kernel
-def _add_classes(sigma_f, which, classes, out):
-    """out[f] = σ_f[which[f]] + classes[:, f] for the fields f of classes (size, k) (the
-    classes' sums of FluxEquilibration.sigmas), and classes set to zero, in one pass."""
+def _add_classes(sigma_f, which, classes, out, first, last):
+    """out[f, i] = σ_f[which[f], i] + classes[i, f] for the fields f of classes (size, k) (the
+    classes' sums of FluxEquilibration.sigmas) and i = first … last-1, and classes set to zero
+    there, in one pass."""
     k = out.shape[0]
-    for i in range(out.shape[1]):
+    for i in range(first, last):
         for f in range(k):
             out[f, i] = sigma_f[which[f], i] + classes[i, f]
             classes[i, f] = 0.0

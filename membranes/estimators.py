@@ -54,6 +54,7 @@ from .equilibration import (FluxEquilibration, _rt_element, cell_gradient, cell_
                             p1_mass_solve, rt_signs)
 from .meshes import cell_diameters
 from .newton_system import split
+from .parallel import in_two
 
 ALG_ROUNDOFF = 1e-11   # ‖R_alg‖/‖B‖ below which σ_alg = 0 and η_rem carries the bound
 
@@ -69,19 +70,18 @@ def _p1_product(area, p0, p1, p2, q0, q1, q2):
 
 
 @kernel
-def _constraint_parts(area, cells, grad, u1, u2, lam, mu1, mu2):
-    """Per cell K (rows of the result, (4, ncells)): (u1h - u2h, λ^pos)_K, |||s_h - u_h|||_K²
+def _constraint_parts(area, cells, grad, u1, u2, lam, mu1, mu2, out, first, last):
+    """Per cell K of first … last-1 (into out (4, ncells)): (u1h - u2h, λ^pos)_K, |||s_h - u_h|||_K²
     = |K| (μ_1 |∇e_1h|² + μ_2 |∇e_2h|²) with e_αh = s_αh - u_αh (s_h of the module notes,
     vertex by vertex: e_h = 0 where u1h ≥ u2h, else s_αh = (u1h + u2h)/2), ‖λ^pos‖_K² and
     ‖λ^neg‖_K² (λ^pos, λ^neg the nodal max(λ, 0), min(λ, 0)): exact P1 integrals from the
     nodal values at the cell's vertices, one pass for the four."""
-    out = np.empty((4, len(area)))
     d = np.empty(3)
     lp = np.empty(3)
     ln = np.empty(3)
     e1 = np.empty(3)
     e2 = np.empty(3)
-    for K in range(len(area)):
+    for K in range(first, last):
         for k in range(3):
             v = cells[K, k]
             x, y, z = u1[v], u2[v], lam[v]
@@ -98,19 +98,17 @@ def _constraint_parts(area, cells, grad, u1, u2, lam, mu1, mu2):
         out[1, K] = area[K] * (mu1 * (a0 * a0 + a1 * a1) + mu2 * (b0 * b0 + b1 * b1))
         out[2, K] = _p1_product(area[K], lp[0], lp[1], lp[2], lp[0], lp[1], lp[2])
         out[3, K] = _p1_product(area[K], ln[0], ln[1], ln[2], ln[0], ln[1], ln[2])
-    return out
 
 
 @kernel
-def _lifted_squares(area, cells, cpv, R1, R2, shift):
-    """‖ρ_α‖_K² for α = 1, 2 on every cell K ((2, ncells)): ρ_α = r_αh the lifting of R_α
+def _lifted_squares(area, cells, cpv, R1, R2, shift, out, first, last):
+    """‖ρ_α‖_K² for α = 1, 2 on the cells K of first … last-1 (into out (2, ncells)): ρ_α = r_αh the lifting of R_α
     (equilibration.Lifting: r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l,
     `equilibration.p1_mass_solve`), minus λ'_h - λ_h
     for α = 1 and plus it for α = 2 where `shift` (nodal) has entries; exact P1 products."""
-    out = np.empty((2, len(area)))
     r = np.empty(3)
     v = np.empty(3)
-    for K in range(len(area)):
+    for K in range(first, last):
         for alpha in range(2):
             R = R1 if alpha == 0 else R2
             for k in range(3):
@@ -123,7 +121,6 @@ def _lifted_squares(area, cells, cpv, R1, R2, shift):
                     else:
                         r[i] += shift[cells[K, i]]
             out[alpha, K] = _p1_product(area[K], r[0], r[1], r[2], r[0], r[1], r[2])
-    return out
 
 
 class CellFluxNorms:
@@ -166,10 +163,11 @@ class CellFluxNorms:
             return out
         return full[:, 0] if tau is not None else full[0, 0]
 
-    def squares(self, fields, out=None):
+    def squares(self, fields, out=None, pool=None):
         """`squared` for one or two fields (u, σ, τ, b, c) (the two membranes) in one pass over
         the cells, τ None in all or none: out (1 or 3, fields, ncells), each field's values
-        the same to the bit as alone."""
+        the same to the bit as alone (and with `pool`, a thread to spare, in two halves:
+        parallel.in_two)."""
         geo = self.geo
         k = len(fields)
         rows = 1 if fields[0][2] is None else 3
@@ -178,17 +176,19 @@ class CellFluxNorms:
         u, sigma, tau, b, c = zip(*fields)
         tau = tuple(s if t is None else t for s, t in zip(sigma, tau))
         second = 1 if k == 2 else 0
-        _flux_squares(self.psi, self.reflections, self.rt_cells, geo.cells, geo.grad, geo.area,
-                      self.w, u[0], u[second], np.array(b, dtype=float), sigma[0],
-                      sigma[second], tau[0], tau[second], np.array(c, dtype=float), out)
+        b, c = np.array(b, dtype=float), np.array(c, dtype=float)
+        in_two(pool, geo.ncells, lambda first, last: _flux_squares(
+            self.psi, self.reflections, self.rt_cells, geo.cells, geo.grad, geo.area, self.w,
+            u[0], u[second], b, sigma[0], sigma[second], tau[0], tau[second], c, out, first,
+            last))
         return out
 
 
 @kernel
 def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u1, u2, b, sigma1, sigma2, tau1,
-                  tau2, c, out):
-    """CellFluxNorms.squares, out (1 or 3, k, ncells) for k = 1 or 2 fields (u_f, σ_f, τ_f,
-    b[f], c[f]): out[0, f, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|² with a_K = b ∇u_h|_K, and
+                  tau2, c, out, first, last):
+    """CellFluxNorms.squares on the cells first … last-1, out (1 or 3, k, ncells) for k = 1 or
+    2 fields (u_f, σ_f, τ_f, b[f], c[f]): out[0, f, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|² with a_K = b ∇u_h|_K, and
     where out has three rows out[2, f, K] for c τ and out[1, f, K] for a_K + c σ + c τ; σ at
     the points from the table psi[ρ_K] (2 nq, 8) of signed reference values and the Piola
     entries J / det J, which the gradients of the cell's hat functions hold (Geometry:
@@ -199,7 +199,7 @@ def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u1, u2, b, sigma1, 
     k = out.shape[1]
     s = np.empty(8)
     t = np.empty(8)
-    for K in range(len(area)):
+    for K in range(first, last):
         tab = psi[refl[K]]
         F0, F1, F2, F3 = grad[K, 2, 1], -grad[K, 1, 1], -grad[K, 2, 0], grad[K, 1, 0]
         abs_det = 2.0 * area[K]
@@ -259,7 +259,13 @@ class Estimators:
     are set up (FluxEquilibration): σ_disc is then this process's part, and `sum_parts` (a
     callable, e.g. parallel.Summation) takes the pair (σ_1, σ_2) of parts and returns their
     sums over all processes before anything uses them; the rest of the evaluation is the
-    same on every process."""
+    same on every process.
+
+    `helper` (None, or a callable asked before each pass of an evaluation) may give an
+    executor with a thread to spare: the passes then run in two halves or as a pipeline of
+    two (parallel.in_two, algebraic_flux._apply_buckets), with the same numbers. The
+    estimator process of a run on two processes gets one while process 0 waits for its
+    estimates (membranes.pipeline: process 0's core is lent)."""
 
     def __init__(self, disc, owned=None, sum_parts=None):
         self.disc = disc
@@ -274,6 +280,10 @@ class Estimators:
         self.osc = oscillation(disc, self.flux.projection_squares)     # (2, ncells)
         self.flux.projection_squares = None                   # only the oscillation uses it
         self._recent = []                                     # sigma_disc's last two
+        self.helper = None
+
+    def _pool(self):
+        return None if self.helper is None else self.helper()
 
     def remainder(self, R, lam_shift=None):
         """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_α = r_αh (DESIGN §4), or with
@@ -283,8 +293,11 @@ class Estimators:
         Poincaré–Friedrichs. The cells' ‖ρ_α‖_K² in one compiled pass (`_lifted_squares`)."""
         n = self.disc.n
         geo = self.geo
-        sq = _lifted_squares(geo.area, geo.cells, geo.cells_per_vertex, R[:n], R[n:2 * n],
-                             np.zeros(0) if lam_shift is None else lam_shift)
+        sq = np.empty((2, geo.ncells))
+        shift = np.zeros(0) if lam_shift is None else lam_shift
+        in_two(self._pool(), geo.ncells, lambda first, last: _lifted_squares(
+            geo.area, geo.cells, geo.cells_per_vertex, R[:n], R[n:2 * n], shift, sq, first,
+            last))
         total = 0.0
         for alpha in range(2):      # ‖ρ_α‖ first, then squared: the sums of the code before
             total += np.sqrt(np.sum(sq[alpha])) ** 2 / self.mu[alpha]
@@ -302,7 +315,7 @@ class Estimators:
         n = self.disc.n
         u1, u2, lam = split(X, n)
         Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
-        sigma = self.flux.sigmas([(1, u1, Rs[0]), (2, u2, Rs[1])], lam)
+        sigma = self.flux.sigmas([(1, u1, Rs[0]), (2, u2, Rs[1])], lam, self._pool())
         if self.sum_parts is not None:
             sigma = self.sum_parts(sigma)
         for s in sigma:
@@ -340,15 +353,17 @@ class Estimators:
         # η_F,K,α = ‖μ^{1/2} ∇u_h + μ^{-1/2} σ‖_K, η_alg,K,α = ‖μ^{-1/2} σ_alg‖_K
         # cells[:, α]: η_disc,K,α (σ_disc alone), η_F,K,α and η_alg,K,α (with σ_alg)
         roots = [np.sqrt(mu) for mu in self.mu]
-        cells = self.norms.squares([(u, s_disc, None if sigma_alg is None else sigma_alg[alpha],
-                                     roots[alpha], 1.0 / roots[alpha])
-                                    for alpha, (u, s_disc) in
-                                    enumerate(zip((u1, u2), self.sigma_disc(X, R)))])
+        fields = [(u, s_disc, None if sigma_alg is None else sigma_alg[alpha], roots[alpha],
+                   1.0 / roots[alpha])
+                  for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R)))]
+        cells = self.norms.squares(fields, pool=self._pool())
         np.sqrt(cells, out=cells)
         disc_cells = cells[0]
         flux_cells = disc_cells if sigma_alg is None else cells[1]
         # constraint and linearisation parts (exact P1 integrals)
-        parts = _constraint_parts(geo.area, geo.cells, geo.grad, u1, u2, lam, *self.mu)
+        parts = np.empty((4, geo.ncells))
+        in_two(self._pool(), geo.ncells, lambda first, last: _constraint_parts(
+            geo.area, geo.cells, geo.grad, u1, u2, lam, *self.mu, parts, first, last))
         eta_C_K = 2.0 * parts[0]
         lin1_K = np.sqrt(parts[1])
         lam_pos_norm = np.sqrt(max(parts[2].sum(), 0.0))

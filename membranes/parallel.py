@@ -61,6 +61,22 @@ def owned_vertices(n, comm):
     return mask
 
 
+def in_two(pool, n, work):
+    """work(a, b) over the items [0, n) of a pass whose items are independent (each writes
+    its own entries): one call without `pool`; with it (an executor whose thread is spare:
+    membranes.pipeline lends process 0's core to the estimator process while process 0 waits),
+    two, the first half on the pool's thread and the second on this one. The same numbers
+    either way."""
+    if pool is None or n < 2:
+        work(0, n)
+        return
+    first = pool.submit(work, 0, n // 2)
+    try:
+        work(n // 2, n)
+    finally:
+        first.result()
+
+
 class PartnerFailed(RuntimeError):
     """A process of the communicator failed (`agree`): its error message."""
 

@@ -121,6 +121,24 @@ Only what the method decides from the estimates waits for them:
   vertex_amg, GMRES reaches round-off before ν: none
   is handed out).
 
+**Process 0's core lent.** Where the two processes of a run share a node (P = 2), process 0
+that waits for a reply with nothing else to do (no part left: at the finest level, for the
+estimate of the iterate that meets the adaptive test, 1.0-1.2 s at 9.3e5 vertices) tells the
+estimator process so (an IDLE message with the number of replies it has taken) and waits
+asleep, looking for the reply every millisecond: a blocking receive of Open MPI polls and
+keeps its core busy. Until its next reply the estimator process runs the passes of its
+estimates on two threads (`Lent`, Estimators.helper): the cell passes in two halves
+(parallel.in_two), the classes' products a chunk ahead of their scatters
+(algebraic_flux._apply_buckets). The second thread runs on process 0's cores (mpirun binds
+each of two processes to a core of its own), and the compiled kernels release the GIL
+(membranes.compiled). Every item is computed by the same code and every sum keeps its
+order: the numbers are those of one thread. At 9.3e5 vertices (disk, J = 6) the last
+estimate took 0.71-0.77 s instead of 1.01-1.07 s, and the run 10.35-11.48 s against
+11.07-11.80 s (five alternating rounds of six, the sixth in a slow spell of the machine:
+13.37 s against 11.56 s; medians 11.14 s and 11.70 s; fifth session of 2026-11-22). The
+estimator process's set-up and the estimates that run beside Newton steps keep one thread:
+process 0 is busy then.
+
 Every process runs the same code on the same data as a serial run, in the same order: with
 P = 2 the iterates, the estimates and every decision taken from them are those of one
 process bit for bit; with P ≥ 3 the estimates differ from them by the order in which the
@@ -152,6 +170,7 @@ come, and one look missed messages 0.1-0.35 s old.
 
 import os
 import tempfile
+import time
 
 import numpy as np
 
@@ -159,19 +178,34 @@ from . import parallel
 from .newton_system import initial_residual
 
 WORK, REPLY = 71, 72            # message tags: process 0 → estimators, and back
+IDLE = 73                       # process 0 → the leader: it waits, its core is free (`Lent`)
+IDLE_POLL = 0.001               # s between process 0's looks for the reply while it waits idle
 LEADER = 1                      # the estimator process that talks to process 0
 AHEAD = 3                       # iterates process 0 may send before their estimates are back
 
 
 def roles(comm):
-    """(estimator communicator, link): on process 0 (None, its Link to the estimator
-    processes); on the others (their communicator, None). Collective over comm."""
+    """(estimator communicator, link, lent): on process 0 (None, its Link to the estimator
+    processes, None); on the others (their communicator, None, lent). Where there are two
+    processes on one node, process 0 lends its core to the estimator process while it waits:
+    `lent` is then the estimator process's `Lent`, else None. Collective over comm."""
     same_node = _same_node(comm)
+    cores = comm.bcast(_cores(), root=0)
+    lend = same_node and comm.size == 2
     est_comm = comm.Split(0 if comm.rank == 0 else 1, comm.rank)
     if comm.rank == 0:
         est_comm.Free()
-        return None, Link(comm, same_node)
-    return est_comm, None
+        return None, Link(comm, same_node, lend), None
+    return est_comm, None, Lent(comm, cores) if lend else None
+
+
+def _cores():
+    """The cores this process (its calling thread) may run on, None where unknown: mpirun
+    binds each of two processes to a core of its own."""
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return None
 
 
 def _shm_dir():
@@ -223,11 +257,14 @@ def _unpack(packed):
 class Link:
     """Process 0's side of the messages to the estimator processes."""
 
-    def __init__(self, comm, same_node):
+    def __init__(self, comm, same_node, lend=False):
         self.comm = comm
         self.directory = _shm_dir() if same_node else None
         self.requests, self.files, self.count = [], set(), 0
         self.meanwhile = None   # work for the waits: a call that does a part, False if none
+        self.lend = lend        # tell the leader when this process waits idle (`Lent`)
+        self.taken = 0          # replies received
+        self.idle_told = -1     # the value of `taken` when the leader was last told
 
     def post(self, kind, *payload, arrays=()):
         """Send (kind, payload, arrays) without waiting for the receiver."""
@@ -258,7 +295,16 @@ class Link:
         while meanwhile and self.meanwhile is not None and not self.ready():
             if not self.meanwhile():
                 self.meanwhile = None
+        if self.lend and not self.ready():
+            # nothing to do until the reply: the leader may use this core meanwhile (`Lent`),
+            # so wait asleep (a blocking receive of Open MPI polls and keeps the core busy)
+            if self.idle_told != self.taken:
+                self.idle_told = self.taken
+                self.requests.append(self.comm.isend(self.taken, dest=LEADER, tag=IDLE))
+            while not self.ready():
+                time.sleep(IDLE_POLL)
         kind, payload = self.comm.recv(source=LEADER, tag=REPLY)
+        self.taken += 1
         if kind == "error":
             raise RuntimeError(f"estimator processes: {payload}")
         return payload
@@ -271,6 +317,47 @@ class Link:
         for path in self.files:
             if os.path.exists(path):
                 os.unlink(path)
+
+
+class Lent:
+    """The leader's side of process 0's idle core (two processes on one node): called before
+    each pass of an estimate (Estimators.helper), an executor with one thread (then the passes
+    run on two cores: parallel.in_two) while process 0 waits for this process's next reply,
+    else None. Process 0 tells it so (`Link.receive`: an IDLE message with the number of
+    replies it has taken, stale once a later reply is sent); the numbers are those of one
+    thread. The thread runs on process 0's cores (`cores`; mpirun binds each of two processes
+    to one core, and a thread of this process would otherwise share this one)."""
+
+    def __init__(self, comm, cores=None):
+        self.comm, self.cores = comm, cores
+        self.replied = 0        # replies sent
+        self.idle_at = -1       # replies process 0 had taken when it last said it waits
+        self.pool = None
+
+    def __call__(self):
+        while _here(self.comm, 0, IDLE):
+            self.idle_at = self.comm.recv(source=0, tag=IDLE)
+        if self.idle_at != self.replied:
+            return None
+        if self.pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+            self.pool = ThreadPoolExecutor(1, thread_name_prefix="membranes-lent-core",
+                                           initializer=self._to_cores)
+        return self.pool
+
+    def _to_cores(self):
+        if self.cores is not None:
+            try:
+                os.sched_setaffinity(0, self.cores)     # this thread only (Linux)
+            except OSError:
+                pass
+
+    def close(self):
+        """Take the IDLE messages still here (none is left in transit), end the thread."""
+        while _here(self.comm, 0, IDLE):
+            self.comm.recv(source=0, tag=IDLE)
+        if self.pool is not None:
+            self.pool.shutdown()
 
 
 class RemoteEstimates:
@@ -370,13 +457,13 @@ class RemoteEstimates:
         return call, [done[rid] for rid in ready if rid in done]
 
 
-def serve(problem, comm, est_comm):
+def serve(problem, comm, est_comm, lent=None):
     """The estimator processes' loop (module notes): build each level's IterateEstimates when
     process 0 starts the level, evaluate them at the iterates it sends, reply with the
     estimates; while no message waits, discretise the level process 0 named next ('ahead'),
-    a part at a time (the leader decides, the partners follow: P ≥ 3); returns (level,
-    discretisation) of the last level served ((None, None) if none) when process 0 ends the
-    run."""
+    a part at a time (the leader decides, the partners follow: P ≥ 3); with `lent` (`roles`)
+    use process 0's core too while it waits; returns (level, discretisation) of the
+    last level served ((None, None) if none) when process 0 ends the run."""
     from .discretisation import SHIPMENT, completed, discretise, discretise_in_parts
     from .driver import RECORD_KEYS, IterateEstimates
     from .nested import level_problem
@@ -404,6 +491,8 @@ def serve(problem, comm, est_comm):
         if leader:
             comm.send(("values", (call, values, [rid_of[id(r[0])] for r in ready], extra)),
                       dest=0, tag=REPLY)
+            if lent is not None:
+                lent.replied += 1
 
     while True:
         if leader:      # no message waiting: a part of the next level's discretisation
@@ -417,6 +506,8 @@ def serve(problem, comm, est_comm):
             message = shared.bcast(message, root=0)
         kind, payload, packed = message
         if kind == "end":
+            if lent is not None:
+                lent.close()
             return level, disc
         arrays = _unpack(packed) if leader and kind != "part" else None  # the file first
         if shared is not None and kind != "part":
@@ -452,6 +543,7 @@ def serve(problem, comm, est_comm):
                 for j in [j for j in shipped if j <= level]:
                     del shipped[j]
                 est = IterateEstimates(disc, linear_rows(disc), alg_flux, shared)
+                est.est.helper = lent
                 recs, rid_of, unsent, calls = {}, {}, {}, 0
                 parallel.agree(shared)
             elif kind == "call":

@@ -15,6 +15,7 @@
 """
 
 import functools
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -225,7 +226,8 @@ def test_bucket_scatter_sums_in_column_order():
     split across the blocks of `_ROWS` patches, against the sparse matrix of the change of
     basis and scatter (one entry C[p, i, t] at (RET, position of the term), summed by scipy in
     column order) times the concatenated products: equal to the bit, since both add the same
-    terms (the products times 0, ±1, exact) to each RT dof in the same order."""
+    terms (the products times 0, ±1, exact) to each RT dof in the same order; so is the
+    pipeline of a pool's thread (products) and this one (scatters)."""
     import scipy.sparse as sp
 
     from membranes import algebraic_flux
@@ -259,10 +261,15 @@ def test_bucket_scatter_sums_in_column_order():
                                          S.transpose(0, 2, 1)).ravel()
                                for S, G, _, _ in buckets])
     old = algebraic_flux._ROWS
+    pool = ThreadPoolExecutor(1)
     try:
         for rows_per_block in (old, 16):
             algebraic_flux._ROWS = rows_per_block
             got = algebraic_flux._apply_buckets(level, flat, size)
             assert np.array_equal(got, M @ products)
+            # with a thread to spare: products one chunk ahead of the scatters, same bits
+            got = algebraic_flux._apply_buckets(level, flat, size, pool=pool)
+            assert np.array_equal(got, M @ products)
     finally:
         algebraic_flux._ROWS = old
+        pool.shutdown()

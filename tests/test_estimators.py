@@ -11,6 +11,8 @@ does not know.
   (None), never 0.
 """
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 import ufl
@@ -18,7 +20,7 @@ import ufl
 from membranes import solve
 from membranes.estimators import ALG_ROUNDOFF
 
-from .conftest import scene, solved_with
+from .conftest import scene, solved_on, solved_with
 
 DISK_H = (0.1, 0.05, 0.025)
 
@@ -216,3 +218,60 @@ def test_sigma_disc_kept_for_the_same_iterate():
     assert np.array_equal(other[0], est.flux.sigma(1, X[:n], lam, R[:n]))
     assert est.sigma_disc(run.X, R) is first          # the last two are kept
     assert est.sigma_disc(X, None) is not other
+
+
+class _CountingPool(ThreadPoolExecutor):
+    """One thread; counts the work handed to it."""
+
+    def __init__(self):
+        super().__init__(1)
+        self.submitted = 0
+
+    def submit(self, *args, **kwargs):
+        self.submitted += 1
+        return super().submit(*args, **kwargs)
+
+
+@pytest.mark.parametrize("flux", ["roundoff", "nu"])
+def test_a_helper_thread_gives_the_same_bits(flux):
+    """Estimators.evaluate with a thread to spare (`helper`: membranes.pipeline lends process
+    0's idle core) runs its passes in two halves (parallel.in_two) and the classes' products
+    one chunk ahead of their scatters (algebraic_flux._apply_buckets, here in blocks of 16
+    patches so that every bucket has several): every item is computed by the same code and
+    every sum keeps its order, so all values are equal to the bit, with the ν flux
+    (σ_alg from a later iterate and its remainder) and without it (the round-off path and
+    its remainder)."""
+    from membranes import algebraic_flux
+    from membranes.estimators import Estimators
+
+    run = solved_on("disk", 0.3, 2)     # a uniform refinement: classes of patches (buckets)
+    n = run.disc.n
+    rng = np.random.default_rng(5)
+    R, R_later = (rng.standard_normal(3 * n) * 1e-6 for _ in range(2))
+    for r in (R, R_later):
+        r[np.r_[run.disc.boundary, n + run.disc.boundary]] = 0.0
+        r[2 * n:] = 0.0
+    X_later = run.X + 1e-4 * rng.standard_normal(3 * n)
+    pool = _CountingPool()
+    old = algebraic_flux._ROWS
+    values = []
+    try:
+        algebraic_flux._ROWS = 16
+        for helper in (None, lambda: pool):
+            est = Estimators(run.disc)
+            est.helper = helper
+            if flux == "nu":
+                sigma_alg, eta_rem = est.nu_flux(run.X, R, X_later, R_later)
+                values.append(est.evaluate(run.X, R, 1e-3, sigma_alg=sigma_alg,
+                                           eta_rem=eta_rem))
+            else:
+                values.append(est.evaluate(run.X, R * 1e-9, 0.0))
+    finally:
+        algebraic_flux._ROWS = old
+        pool.shutdown()
+    alone, helped = values
+    assert alone["bound"] and helped["bound"]
+    for key, value in alone.items():
+        assert np.array_equal(value, helped[key]), key
+    # the pool did work: the halves of the cell passes and the chunks' products
+    assert est.flux.classes is not None and pool.submitted > 10

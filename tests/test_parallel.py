@@ -99,6 +99,19 @@ def test_several_processes_give_the_results_of_one(tmp_path, processes):
             assert np.allclose(etas2, etas1, rtol=1e-8, atol=0.0, equal_nan=True), name
 
 
+def test_process_0_lends_its_core_while_it_waits(tmp_path):
+    """Two processes on one node (membranes.pipeline, Lent): while process 0 waits for a reply
+    with nothing else to do, the estimator process gets a thread that runs on process 0's
+    cores; once it has replied, none (tests/mpi_lent.py)."""
+    out = tmp_path / "lent.json"
+    proc = _mpirun([os.path.join(HERE, "mpi_lent.py"), str(out)], timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    seen = json.loads(out.read_text())
+    assert seen["lent"]
+    assert seen["thread_cores"] == seen["process_0_cores"]
+    assert seen["after_reply_none"] and seen["end_kind"] == "end"
+
+
 def test_cli_under_mpirun_writes_once(tmp_path):
     out = tmp_path / "run"
     proc = _mpirun(["-m", "membranes.cli", "solve", "--h", "0.3", "--levels", "1",
