@@ -195,11 +195,11 @@ def _split_options(options):
     return outer, inner
 
 
-def _install(ksp, A, inner, cache=None):
-    """The vertex-block AMG of A (`preconditioner.vertex_amg`, with its `cache`) as the KSP's
-    (Python) PC; PETSc frees it with the KSP."""
+def _install(ksp, A, inner, cache=None, contact=None):
+    """The vertex-block AMG of A (`preconditioner.vertex_amg`, with its `cache` and `contact`)
+    as the KSP's (Python) PC; PETSc frees it with the KSP."""
     try:
-        context = vertex_amg(A, inner, cache)
+        context = vertex_amg(A, inner, cache, contact)
     except PETSc.Error as e:
         raise ValueError(f"PETSc options of vertex_amg: {_petsc_message(e)}") from None
     except ValueError as e:        # not the eliminated system: the Newton run reports it
@@ -245,7 +245,7 @@ class Krylov:
         return self._vertex_amg
 
     def solve(self, A, b, x0, tol, scale, test_every=1, on_iterate=None, cancel=None,
-              mean_theta=None):
+              mean_theta=None, contact=None):
         """Solve A x = b from x0 until ‖b - A x‖ ≤ tol · scale (tested after iterations
         test_every, 2 test_every, ...) or until on_iterate says stop. Every ν iterations that
         do not meet the test, on_iterate(its, current) is called; current() returns
@@ -254,7 +254,8 @@ class Krylov:
         after every iteration, stops the solve at once when true (a step computed ahead that
         will be dropped, membranes.newton); its iterate is returned. `mean_theta`: the θ of
         the mean the caller keeps (membranes.mean), for vertex_amg's mean/gap split where the
-        system alone does not fix it (no contact vertex).
+        system alone does not fix it (no contact vertex). `contact`: where a min step on the
+        eliminated system eliminated u2 (newton.LinearStep.contact), for vertex_amg's split.
         Returns (x, b - A x, its); raises LinearSolveError (with `its`) if the KSP stops
         before either happens (e.g. at max_linear_its)."""
         M = petsc_matrix(with_diagonal(A), copy=False)   # A is the step's: not changed here
@@ -270,7 +271,7 @@ class Krylov:
                 return np.array(x0, dtype=float), b - A @ np.asarray(x0, dtype=float), 0
             bound = tol * scale
             if self._vertex_amg is not None:
-                context = _install(ksp, A, self._vertex_amg, self._cache)
+                context = _install(ksp, A, self._vertex_amg, self._cache, contact)
                 if hasattr(context, "settle_mean"):       # the mean/gap split
                     context.settle_mean(b - A @ np.asarray(x0, dtype=float), bound,
                                         mean_theta)

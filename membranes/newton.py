@@ -225,6 +225,12 @@ class LinearStep:
     expand: Callable
     pad: Callable
     z_is_u2: np.ndarray = None    # eliminated system: where the second unknown z is u2 (not λ)
+    min_step: bool = False        # eliminated system of a min step (the mean/gap structure)
+
+    def contact(self):
+        """Where a min step on the eliminated system eliminated u2 (its contact vertices, for
+        vertex_amg's mean/gap split: preconditioner.mean_gap_split), else None."""
+        return ~self.z_is_u2 if self.min_step else None
 
 
 def linear_step(rows, cfun, system, X, at_projection=False):
@@ -247,7 +253,7 @@ def linear_step(rows, cfun, system, X, at_projection=False):
     guess[:rows.n] += mean_keeping_shift(rows, elim, u2, guess)
     return LinearStep(A, b, guess, norm_B, elim.expand,
                       lambda r: rows.unweighted(np.concatenate([r, np.zeros(rows.n)])),
-                      elim.eliminate_lambda)
+                      elim.eliminate_lambda, cfun == "min")
 
 
 def mean_keeping_shift(rows, elim, u2, guess):
@@ -302,7 +308,7 @@ def solve_step(step, krylov, tol, test_every, on_iterate, cancel=None, mean=None
         r = step.b - step.A @ y
     elif mean is None or step.z_is_u2 is None:
         y, r, its = krylov.solve(step.A, step.b, step.guess, tol, step.norm_B, test_every,
-                                 on_iterate, cancel)
+                                 on_iterate, cancel, contact=step.contact())
     else:
         def meaned(y):
             y = mean_module.with_mean(y, mean.M, mean.theta, step.expand, step.z_is_u2)
@@ -314,7 +320,7 @@ def solve_step(step, krylov, tol, test_every, on_iterate, cancel=None, mean=None
         y, _, its = krylov.solve(step.A, b, step.guess, mean_module.GAP_SHARE * tol,
                                  step.norm_B, test_every,
                                  None if on_iterate is None else on_meaned_iterate, cancel,
-                                 mean.theta)
+                                 mean.theta, contact=step.contact())
         y, r = meaned(y)
     return step.expand(y), step.pad(r), its
 

@@ -201,6 +201,35 @@ def test_mean_gap_split_reference():
             assert np.array_equal(x, y)
 
 
+def test_mean_gap_split_vouched_for():
+    """A min step's caller vouches for its structure (newton.LinearStep.contact: u2 eliminated
+    there): the split then reads S, a and b and checks the first block (against the S of an
+    earlier step too) but does not compare the second block with the model, and gives what the
+    full comparison gives, to the bit (disk, μ1 = μ2, and square, μ1 ≠ μ2, several steps each,
+    so the contact set changes; with and without the earlier S). fb steps vouch for nothing;
+    a mask that is not where a ≠ 0 leaves the check to the comparison (here: the square's
+    unweighted system, which the comparison refuses)."""
+    square = _square_steps(4)
+    for steps in ([s for s, _, _ in _steps("min", 4)], [s for s, _ in square]):
+        first, _, _ = mean_gap_split(steps[0].A)
+        for k, step in enumerate(steps):
+            contact = step.contact()
+            assert contact is not None and not contact.all()
+            assert k == 0 or contact.any()          # the guess of step 1 may touch nowhere
+            for reference in (None, first):
+                S, a, b = mean_gap_split(step.A, reference=reference)
+                R, a_vouched, b_vouched = mean_gap_split(step.A, reference=reference,
+                                                         contact=contact)
+                assert (R is first) == (reference is first)
+                for x, y in zip((R.indptr, R.indices, R.data, a_vouched, b_vouched),
+                                (S.indptr, S.indices, S.data, a, b)):
+                    assert np.array_equal(x, y)
+                assert np.array_equal(a != 0, contact)
+    assert all(step.contact() is None for step, _, _ in _steps("fb", 3))
+    step, unweighted = square[1]
+    assert mean_gap_split(unweighted, contact=~step.contact()) is None
+
+
 def test_mean_gap_split_is_exact():
     """With exact inner solves (LU) the split is Ã⁻¹ itself: FGMRES meets 1e-10 after one
     iteration, also for μ1 ≠ μ2."""
