@@ -71,11 +71,11 @@ def _p1_product(area, p0, p1, p2, q0, q1, q2):
 
 @kernel
 def _constraint_parts(area, cells, grad, u1, u2, lam, mu1, mu2, out, first, last):
-    """Per cell K of first … last-1 (into out (4, ncells)): (u1h - u2h, λ^pos)_K, |||s_h - u_h|||_K²
-    = |K| (μ_1 |∇e_1h|² + μ_2 |∇e_2h|²) with e_αh = s_αh - u_αh (s_h of the module notes,
-    vertex by vertex: e_h = 0 where u1h ≥ u2h, else s_αh = (u1h + u2h)/2), ‖λ^pos‖_K² and
-    ‖λ^neg‖_K² (λ^pos, λ^neg the nodal max(λ, 0), min(λ, 0)): exact P1 integrals from the
-    nodal values at the cell's vertices, one pass for the four."""
+    """Per cell K of first … last-1 (into out (4, ncells)): (u1h - u2h, λ^pos)_K,
+    |||s_h - u_h|||_K² = |K| (μ_1 |∇e_1h|² + μ_2 |∇e_2h|²) with e_αh = s_αh - u_αh (s_h of
+    the module notes, vertex by vertex: e_h = 0 where u1h ≥ u2h, else s_αh = (u1h + u2h)/2),
+    ‖λ^pos‖_K² and ‖λ^neg‖_K² (λ^pos, λ^neg the nodal max(λ, 0), min(λ, 0)): exact P1
+    integrals from the nodal values at the cell's vertices, one pass for the four."""
     d = np.empty(3)
     lp = np.empty(3)
     ln = np.empty(3)
@@ -102,10 +102,10 @@ def _constraint_parts(area, cells, grad, u1, u2, lam, mu1, mu2, out, first, last
 
 @kernel
 def _lifted_squares(area, cells, cpv, R1, R2, shift, out, first, last):
-    """‖ρ_α‖_K² for α = 1, 2 on the cells K of first … last-1 (into out (2, ncells)): ρ_α = r_αh the lifting of R_α
-    (equilibration.Lifting: r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]] (R_l / N_l)_l,
-    `equilibration.p1_mass_solve`), minus λ'_h - λ_h
-    for α = 1 and plus it for α = 2 where `shift` (nodal) has entries; exact P1 products."""
+    """‖ρ_α‖_K² for α = 1, 2 on the cells K of first … last-1 (into out (2, ncells)): ρ_α =
+    r_αh the lifting of R_α (equilibration.Lifting: r_K = (3/|K|) [[3,-1,-1],[-1,3,-1],
+    [-1,-1,3]] (R_l / N_l)_l, `equilibration.p1_mass_solve`), minus λ'_h - λ_h for α = 1 and
+    plus it for α = 2 where `shift` (nodal) has entries; exact P1 products."""
     r = np.empty(3)
     v = np.empty(3)
     for K in range(first, last):
@@ -188,12 +188,12 @@ class CellFluxNorms:
 def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u1, u2, b, sigma1, sigma2, tau1,
                   tau2, c, out, first, last):
     """CellFluxNorms.squares on the cells first … last-1, out (1 or 3, k, ncells) for k = 1 or
-    2 fields (u_f, σ_f, τ_f, b[f], c[f]): out[0, f, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|² with a_K = b ∇u_h|_K, and
-    where out has three rows out[2, f, K] for c τ and out[1, f, K] for a_K + c σ + c τ; σ at
-    the points from the table psi[ρ_K] (2 nq, 8) of signed reference values and the Piola
-    entries J / det J, which the gradients of the cell's hat functions hold (Geometry:
-    ∇φ_1 = (J_11, -J_01) / det J, ∇φ_2 = (-J_10, J_00) / det J; |det J| = 2 |K|); the
-    cell's table, Piola entries and dofs read once for the fields."""
+    2 fields (u_f, σ_f, τ_f, b[f], c[f]): out[0, f, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|²
+    with a_K = b ∇u_h|_K, and where out has three rows out[2, f, K] for c τ and out[1, f, K]
+    for a_K + c σ + c τ; σ at the points from the table psi[ρ_K] (2 nq, 8) of signed reference
+    values and the Piola entries J / det J, which the gradients of the cell's hat functions
+    hold (Geometry: ∇φ_1 = (J_11, -J_01) / det J, ∇φ_2 = (-J_10, J_00) / det J;
+    |det J| = 2 |K|); the cell's table, Piola entries and dofs read once for the fields."""
     nq = len(w)
     both = out.shape[0] == 3
     k = out.shape[1]
