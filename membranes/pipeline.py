@@ -133,9 +133,10 @@ estimates on two threads (`Lent`, Estimators.helper): the cell passes in two hal
 each of two processes to a core of its own), and the compiled kernels release the GIL
 (membranes.compiled). Every item is computed by the same code and every sum keeps its
 order: the numbers are those of one thread. At 9.3e5 vertices (disk, J = 6) the last
-estimate took 0.71-0.77 s instead of 1.01-1.07 s, and the run 10.35-11.48 s against
-11.07-11.80 s (five alternating rounds of six, the sixth in a slow spell of the machine:
-13.37 s against 11.56 s; medians 11.14 s and 11.70 s; fifth session of 2026-11-22). The
+estimate took 0.71-0.80 s instead of 1.01-1.07 s, and the run 10.35-11.48 s against
+11.07-11.80 s (six alternating rounds, in two of which one run of the pair fell into a slow
+spell of the machine: 13.37 s, 14.94 s; medians 11.14 s and 11.70 s; fifth session of
+2026-11-22). The
 estimator process's set-up and the estimates that run beside Newton steps keep one thread:
 process 0 is busy then.
 
@@ -264,7 +265,6 @@ class Link:
         self.meanwhile = None   # work for the waits: a call that does a part, False if none
         self.lend = lend        # tell the leader when this process waits idle (`Lent`)
         self.taken = 0          # replies received
-        self.idle_told = -1     # the value of `taken` when the leader was last told
 
     def post(self, kind, *payload, arrays=()):
         """Send (kind, payload, arrays) without waiting for the receiver."""
@@ -297,10 +297,9 @@ class Link:
                 self.meanwhile = None
         if self.lend and not self.ready():
             # nothing to do until the reply: the leader may use this core meanwhile (`Lent`),
-            # so wait asleep (a blocking receive of Open MPI polls and keeps the core busy)
-            if self.idle_told != self.taken:
-                self.idle_told = self.taken
-                self.requests.append(self.comm.isend(self.taken, dest=LEADER, tag=IDLE))
+            # so wait asleep (a blocking receive of Open MPI polls and keeps the core busy);
+            # each call takes one reply, so the leader is told once per reply awaited
+            self.requests.append(self.comm.isend(self.taken, dest=LEADER, tag=IDLE))
             while not self.ready():
                 time.sleep(IDLE_POLL)
         kind, payload = self.comm.recv(source=LEADER, tag=REPLY)
