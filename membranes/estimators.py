@@ -52,6 +52,7 @@ import numpy as np
 from .compiled import kernel, part
 from .equilibration import (FluxEquilibration, _rt_element, cell_gradient, cell_reflections,
                             p1_mass_solve, rt_signs)
+from .kept import KeptArrays
 from .meshes import cell_diameters
 from .newton_system import split
 from .parallel import in_two
@@ -280,6 +281,7 @@ class Estimators:
         self.osc = oscillation(disc, self.flux.projection_squares)     # (2, ncells)
         self.flux.projection_squares = None                   # only the oscillation uses it
         self._recent = []                                     # sigma_disc's last two
+        self._parts = KeptArrays()                            # evaluate's (membranes.kept)
         self.helper = None
 
     def _pool(self):
@@ -361,7 +363,7 @@ class Estimators:
         disc_cells = cells[0]
         flux_cells = disc_cells if sigma_alg is None else cells[1]
         # constraint and linearisation parts (exact P1 integrals)
-        parts = np.empty((4, geo.ncells))
+        parts = self._parts.empty((4, geo.ncells))
         in_two(self._pool(), geo.ncells, lambda first, last: _constraint_parts(
             geo.area, geo.cells, geo.grad, u1, u2, lam, *self.mu, parts, first, last))
         eta_C_K = 2.0 * parts[0]

@@ -520,6 +520,7 @@ def semismooth_newton(rows, g, cfun="min", system="full", variant="exact", krylo
     rec, done = record("initial", 0, 0, 0, X, None, None)[0], 0
     met = None
     for k in range(1, max_it + 1):
+        step = None     # the system before goes first: its buffers make the next one's
         # adaptive, with the estimates of X^{k-1} on their way from other processes: compute
         # step k meanwhile, and take the stopping test at X^{k-1} once they are in; but where
         # the test will likely be met, wait for them instead (module notes)

@@ -46,6 +46,7 @@ import scipy.sparse as sp
 
 from . import cfunctions
 from .compiled import kernel
+from .kept import KeptArrays
 from .linear_solve import row_buffers, scaled_rows, written_csr
 
 
@@ -69,6 +70,18 @@ class LinearRows:
         """W E, formed once (E itself where W = 1, e.g. μ1 = μ2 = 1; else a second matrix of
         E's size, kept with it)."""
         return self.E if np.all(self.weights == 1.0) else scaled_rows(self.E, self.weights)
+
+    @functools.cached_property
+    def product_room(self):
+        """What the eliminated systems of these rows are written into (`eliminated_system`):
+        their row pointers, column indices and values kept from one Newton step to the next
+        (membranes.kept), the compiled pass's dense row accumulator (its flags all False
+        between passes), and the number of E's entries in each column (for the room a product
+        needs)."""
+        n2 = 2 * self.n
+        return ((KeptArrays(), KeptArrays(), KeptArrays()),
+                (np.empty(n2), np.zeros(n2, dtype=np.bool_), np.empty(n2, dtype=np.int64)),
+                np.bincount(self.E.indices, minlength=3 * self.n))
 
     def weighted(self, R):
         """R (2N or 3N) with its first 2N entries (the rows of E) multiplied by W."""
@@ -245,17 +258,17 @@ def eliminate(n, alpha, beta, B3, kappa=1.0):
 
 
 @kernel
-def _product_entries(indptr, indices, data, n, U, H, G, Q, out_indptr, out_indices, out_data):
+def _product_entries(indptr, indices, data, n, U, H, G, Q, out_indptr, out_indices, out_data,
+                     acc, seen, touched):
     """The CSR arrays of E T (E: 2N × 3N, T of `Elimination`) without forming T: an entry v of
     E in column l, N + l or 2N + l goes to columns l and N + l of the product with the factors
     (1, 0), (U_l, H_l) or (G_l, Q_l). Row by row, as scipy's csr_matmat: the products summed
     in E's order in a dense accumulator, zero sums not stored (at most two terms meet in one
     entry, so the sums are those of E @ T, bit for bit); each row's columns sorted (by
     insertion: a row has a dozen). Rows written one after the other, out_indptr[i + 1] where
-    row i ends (at most two entries of the product per entry of E)."""
-    acc = np.zeros(2 * n)
-    seen = np.zeros(2 * n, dtype=np.bool_)
-    touched = np.empty(2 * n, dtype=np.int64)
+    row i ends (an entry of E gives one entry of the product for each of its two factors that
+    is not 0, at most). `acc`, `seen`, `touched`: 2N each, the accumulator, its flags (all
+    False on entry, and so left) and the row's columns."""
     stored = 0
     for i in range(indptr.size - 1):
         m = 0
@@ -297,12 +310,26 @@ def eliminated_system(rows, alpha, beta, B3, weighted=False):
     `_product_entries` (one compiled pass over E's entries; scipy's product, its zero entries
     dropped and its columns sorted for PETSc, took 6 times as long as two such passes at 9.3e5
     vertices, counting and writing; one pass 0.19 s a step, where two took 0.26 s), column
-    indices sorted."""
+    indices sorted. Written into arrays kept from one step to the next (`rows.product_room`,
+    membranes.kept: no fresh pages for them once the step before has let go of its system),
+    with room for the entries the factors of T allow (each nonzero factor of an entry of E
+    gives at most one entry of Ã: for min, E's entries in the u1 and u2 columns and in the λ
+    columns of the vertices where u2 is eliminated, so that the matrix holds more than half
+    of its buffers, and scipy takes their prefixes as they are)."""
     elim = eliminate(rows.n, alpha, beta, B3, rows.kappa)
     E, F = (rows.weighted_E, rows.weights * rows.F) if weighted else (rows.E, rows.F)
     n = rows.n
-    indptr = np.zeros(2 * n + 1, dtype=np.int64)
-    indices, data = row_buffers(2 * E.nnz)
-    _product_entries(E.indptr, E.indices, E.data, n, *elim.coefficients, indptr, indices, data)
-    A = written_csr(indptr, indices, data, (2 * n, 2 * n))
+    kept, scratch, count = rows.product_room
+    U, H, G, Q = elim.coefficients
+    room = int(count[:n].sum() + count[n:2 * n] @ ((U != 0).astype(np.int64) + (H != 0)) +
+               count[2 * n:] @ ((G != 0).astype(np.int64) + (Q != 0)))
+    index = np.int32 if room <= np.iinfo(np.int32).max else np.int64   # as scipy would take
+    indptr = kept[0].empty(2 * n + 1, index)
+    indptr[0] = 0
+    indices, data = kept[1].empty(room, index, at_least=True), kept[2].empty(room, at_least=True)
+    _product_entries(E.indptr, E.indices, E.data, n, U, H, G, Q, indptr, indices, data,
+                     *scratch)
+    nnz = int(indptr[-1])
+    A = sp.csr_matrix((data[:nnz], indices[:nnz], indptr), shape=(2 * n, 2 * n))
+    A.has_sorted_indices = True
     return A, F - E @ elim.t, elim

@@ -100,6 +100,48 @@ def test_full_and_eliminated_systems_agree(cfun):
         assert abs(rf["residual"] - re["residual"]) <= 1e-8 * max(rf["residual"], 1e-6)
 
 
+def _same_csr(A, B):
+    """Whether A and B hold the same row pointers, columns and entries, bit for bit (a plain
+    function: pytest's rewritten asserts would keep references to A's arrays)."""
+    return bool(A.has_sorted_indices and np.array_equal(A.indptr, B.indptr) and
+                np.array_equal(A.indices, B.indices) and np.array_equal(A.data, B.data))
+
+
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_eliminated_system_is_the_product_to_the_bit(cfun):
+    """newton_system.eliminated_system writes Ã = (W E) T row by row into arrays it keeps
+    from one call to the next (membranes.kept): the entries, columns and row pointers of
+    scipy's product with T formed, at every call of a sequence; the same system made again
+    once the first is let go is written into the same arrays, and a system its caller still
+    holds is not written over."""
+    import scipy.sparse as sp
+    from membranes import discretisation, newton_system as ns
+    rows = ns.linear_rows(discretisation.discretise(scene("disk", 0.1)))
+    n = rows.n
+    for k in range(5):
+        X = RNG.normal(size=3 * n)
+        X[2 * n:] *= RNG.uniform(size=n) < 0.5          # about half the vertices without λ
+        alpha, beta, B3 = ns.complementarity_rows(rows, cfun, X)
+        U, H, G, Q = ns.eliminate(n, alpha, beta, B3, rows.kappa).coefficients
+        T = sp.bmat([[sp.identity(n), None], [sp.diags(U), sp.diags(H)],
+                     [sp.diags(G), sp.diags(Q)]], format="csr")
+        P = (rows.weighted_E @ T).tocsr()
+        P.eliminate_zeros()
+        P.sort_indices()
+        A = ns.eliminated_system(rows, alpha, beta, B3, weighted=True)[0]
+        same, address = _same_csr(A, P), A.data.ctypes.data
+        if k == 1:
+            held = (A, A.copy())                        # a system kept by its caller
+        del A
+        again = ns.eliminated_system(rows, alpha, beta, B3, weighted=True)[0]
+        reused = again.data.ctypes.data == address
+        same_again = _same_csr(again, P)
+        del again
+        assert same and same_again
+        assert reused == (k != 1)
+    assert _same_csr(*held)                             # not written over
+
+
 # ## Fischer–Burmeister at the projection (newton: active-set steps)
 
 def test_projection_is_the_nearest_point_of_the_complementarity_set():
