@@ -76,6 +76,7 @@ import scipy.sparse as sp
 
 from .compiled import kernel, part
 from .discretisation import load
+from .kept import KeptArrays
 from .meshes import cells_by_vertex, p1_cells
 from .parallel import in_two
 
@@ -190,8 +191,8 @@ def populated_empty(shape, dtype, zero=False):
     virtual machine: 0.5-0.7 s per 360 MB of fresh pages written, against 0.14 s populated),
     for the arrays of O(N) entries that the set-up and the evaluation make (the members' maps
     that `_member_maps` writes in a scattered order, the cells' gradients, σ_f, the classes'
-    data and sums that `sigmas` keeps; not the σ that each call returns: freed pages of
-    earlier calls serve those as cheaply, populating them again costs more)."""
+    data and sums that `sigmas` keeps; not the σ that each call returns, whose arrays are
+    kept for the calls after: membranes.kept)."""
     import mmap
     dtype = np.dtype(dtype)
     size = int(np.prod(shape)) * dtype.itemsize
@@ -1055,8 +1056,10 @@ class FluxEquilibration:
         _class_cell_data(geo.x, geo.cells, space.exterior_edge, self._cent, self._exterior_bits)
         self._scale = np.sqrt(geo.area.mean())
         self._pending = []
-        # the classes' data and sums of `sigmas`, kept between calls (the sums zero)
+        # the classes' data and sums of `sigmas`, kept between calls (the sums zero), and
+        # the arrays of its results (membranes.kept: Estimators.sigma_disc keeps two)
         self._class_sums = self._class_input = None
+        self._sigmas = KeptArrays(3)
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
         level, alone = [], []
@@ -1356,7 +1359,7 @@ class FluxEquilibration:
         signs = np.array([1.0 if alpha == 1 else -1.0 for alpha, _, _ in fields])
         rows = self.touched
         k, size = len(fields), self.sigma_f.shape[1]
-        out = np.empty((k, size))
+        out = self._sigmas.empty((k, size))
         if self.classes is None:
             for f, (alpha, _, _) in enumerate(fields):
                 out[f] = self.sigma_f[alpha - 1]

@@ -310,20 +310,24 @@ class Estimators:
         FluxEquilibration.sigmas, both membranes in one pass). The last two are kept and given
         again for the same X and R (equal entries; every process of a run has the same
         iterates, so all of them compute or none)."""
-        for (Xk, Rk), sigma in self._recent:
-            if np.array_equal(Xk, X) and (Rk is None if R is None else
-                                          Rk is not None and np.array_equal(Rk, R)):
-                return sigma
+        # (a generator's names, unlike a loop's, do not outlive it: they would hold the older)
+        kept = next((sigma for (Xk, Rk), sigma in self._recent
+                     if np.array_equal(Xk, X) and (Rk is None if R is None else
+                                                   Rk is not None and np.array_equal(Rk, R))),
+                    None)
+        if kept is not None:
+            return kept
         n = self.disc.n
         u1, u2, lam = split(X, n)
         Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
+        self._recent = self._recent[:1]     # the older goes first: its arrays may serve
         sigma = self.flux.sigmas([(1, u1, Rs[0]), (2, u2, Rs[1])], lam, self._pool())
         if self.sum_parts is not None:
             sigma = self.sum_parts(sigma)
         for s in sigma:
             s.flags.writeable = False
         key = (X.copy(), None if R is None else R.copy())
-        self._recent = [(key, sigma)] + self._recent[:1]
+        self._recent = [(key, sigma)] + self._recent
         return sigma
 
     def nu_flux(self, X, R, X_later, R_later):
