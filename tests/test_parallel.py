@@ -42,14 +42,67 @@ def test_owned_vertices_are_a_partition(n, size):
 
 
 def _mpirun(args, timeout=900, processes=2):
+    """`mpirun -n processes python args` (args: a script and its arguments, or -m module ...),
+    run to its end; one still running after `timeout` seconds fails the test with the Python
+    stacks of its processes (tests/mpi_stacks.py), and is ended with all its processes."""
     mpirun = shutil.which("mpirun")
     assert mpirun is not None          # python3-dolfinx depends on Open MPI
     # this process initialised MPI as a singleton: its OMPI_/PMIX_ variables would confuse
     # the new mpirun
     env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    return subprocess.run([mpirun, "--allow-run-as-root", "--oversubscribe", "-n",
-                           str(processes), sys.executable] + args, capture_output=True,
-                          text=True, timeout=timeout, env=env)
+    proc = subprocess.Popen([mpirun, "--allow-run-as-root", "--oversubscribe", "-n",
+                             str(processes), sys.executable, os.path.join(HERE, "mpi_stacks.py")]
+                            + args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"mpirun -n {processes} {' '.join(args)} still ran after {timeout} s; "
+                    f"the stacks of its processes:\n{_stacks_and_end(proc)}")
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def _stacks_and_end(proc):
+    """The stderr of the mpirun `proc` after its processes were asked for their Python stacks
+    (SIGUSR1), once it is ended: SIGTERM (mpirun ends its processes), then SIGKILL for any
+    left (a killed mpirun would leave its processes running)."""
+    import signal
+    import time
+    children = _children(proc.pid)
+    for pid in children:
+        _signal(pid, signal.SIGUSR1)
+        time.sleep(1)              # one after the other: their stacks do not interleave
+    time.sleep(2)
+    proc.terminate()
+    try:
+        _, err = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+    for pid in children:
+        _signal(pid, signal.SIGKILL)
+    return err[-20000:]
+
+
+def _children(pid):
+    """The processes whose parent is pid (Linux: /proc)."""
+    kids = []
+    for entry in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                stat = f.read()
+            if int(stat[stat.rindex(")") + 2:].split()[1]) == pid:
+                kids.append(int(entry))
+        except (OSError, ValueError):
+            continue
+    return kids
+
+
+def _signal(pid, sig):
+    try:
+        os.kill(pid, sig)
+    except ProcessLookupError:
+        pass
 
 
 def _variants():
