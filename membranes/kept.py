@@ -34,30 +34,31 @@ class KeptArrays:
     notes)."""
 
     def __init__(self, kept=2):
-        self.kept, self.arrays = kept, []
+        # flat buffers, each the base of every array handed out from it and of their views
+        self.kept, self.buffers = kept, []
 
-    def empty(self, shape, dtype=float, at_least=False):
-        """An array of `shape` and `dtype`, its entries undefined (as np.empty): a kept one
-        that nothing else refers to, else a new one, kept in place of a free one of another
-        size or while fewer than `kept` are kept. at_least (one dimension): an array of at
-        least `shape` entries (the caller writes a prefix)."""
+    def empty(self, shape, dtype=float):
+        """An array of `shape` and `dtype`, its entries undefined (as np.empty): the first
+        entries of a kept buffer of that dtype that nothing else refers to, else of a new one
+        (np.empty: numpy asks for huge pages for it, which a populated mapping would not get),
+        kept in place of a free one too small or while fewer than `kept` are kept."""
         dtype = np.dtype(dtype)
-        shape = (shape,) if np.isscalar(shape) else tuple(shape)
-        free = [i for i in range(len(self.arrays)) if _unreferenced(self.arrays, i)]
+        shape = (int(shape),) if np.isscalar(shape) else tuple(shape)
+        size = int(np.prod(shape))
+        free = [i for i in range(len(self.buffers)) if _unreferenced(self.buffers, i)]
         for i in free:
-            a = self.arrays[i]
-            if a.dtype == dtype and (a.shape == shape or
-                                     (at_least and a.ndim == 1 and a.size >= shape[0])):
-                return a
-        new = np.empty(shape, dtype)
+            buffer = self.buffers[i]
+            if buffer.dtype == dtype and buffer.size >= size:
+                return buffer[:size].reshape(shape)
+        new = np.empty(size, dtype)
         if free:
-            self.arrays[free[0]] = new
-        elif len(self.arrays) < self.kept:
-            self.arrays.append(new)
-        return new
+            self.buffers[free[0]] = new
+        elif len(self.buffers) < self.kept:
+            self.buffers.append(new)
+        return new[:size].reshape(shape)
 
 
-def _unreferenced(arrays, i):
-    """Whether nothing but the list `arrays` refers to its array i (a view refers to the array
-    it views: numpy's `base`)."""
-    return sys.getrefcount(arrays[i]) == 2      # the list and getrefcount's argument (CPython)
+def _unreferenced(buffers, i):
+    """Whether nothing but the list `buffers` refers to its flat buffer i (an array handed out
+    from it, and any view of that, has it as numpy's `base`)."""
+    return sys.getrefcount(buffers[i]) == 2     # the list and getrefcount's argument (CPython)

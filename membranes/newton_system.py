@@ -326,7 +326,7 @@ def eliminated_system(rows, alpha, beta, B3, weighted=False):
     index = np.int32 if room <= np.iinfo(np.int32).max else np.int64   # as scipy would take
     indptr = kept[0].empty(2 * n + 1, index)
     indptr[0] = 0
-    indices, data = kept[1].empty(room, index, at_least=True), kept[2].empty(room, at_least=True)
+    indices, data = kept[1].empty(room, index), kept[2].empty(room)
     _product_entries(E.indptr, E.indices, E.data, n, U, H, G, Q, indptr, indices, data,
                      *scratch)
     nnz = int(indptr[-1])

@@ -140,6 +140,13 @@ spell of the machine: 13.37 s, 14.94 s; medians 11.14 s and 11.70 s; fifth sessi
 estimator process's set-up and the estimates that run beside Newton steps keep one thread:
 process 0 is busy then.
 
+**Fresh pages.** Two processes side by side pay more for memory they take anew (a page fault
+per 4 KiB at its first write: before, the estimator process spent 2.2 s of a 11.6 s run in
+the kernel). The passes that run at every Newton step or estimate write into arrays kept from
+one call to the next (membranes.kept): the eliminated system, σ_disc and the cell parts. J =
+6 on 2 processes: 9.50-9.94 s against 10.22-10.68 s (six alternating rounds), serial runs
+unchanged.
+
 Every process runs the same code on the same data as a serial run, in the same order: with
 P = 2 the iterates, the estimates and every decision taken from them are those of one
 process bit for bit; with P ≥ 3 the estimates differ from them by the order in which the
