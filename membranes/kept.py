@@ -20,8 +20,11 @@ faster in each), σ's as well, 9.14-9.62 s against 9.34-9.60 s (five); serial ru
 An array is handed out again only where nothing else refers to it (its reference count: no
 matrix, view, PETSc object or caller holds it any more), else a new one is made, and kept if
 fewer than `kept` are: results that callers keep stay theirs, and a pass whose results live
-on (the system before the step's, alive while the next is made) gets arrays of its own. The
-numbers do not change: every entry is written before it is read, as in a fresh np.empty.
+on (σ_disc's last two, which Estimators.sigma_disc keeps; FB's projection step and the step
+after it in one Newton iteration) gets arrays of its own. What is handed out is the first
+entries of a flat buffer, which is the base of it and of every view of it, so that the count
+sees them all (newton.semismooth_newton lets a step's system go before it makes the next).
+The numbers do not change: every entry is written before it is read, as in a fresh np.empty.
 """
 
 import sys
