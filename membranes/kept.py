@@ -7,10 +7,10 @@ Memory that a process takes anew is given to it page by page at its first write:
 for every 4 KiB, the page zeroed by the kernel. glibc's malloc maps a block of more than
 32 MiB anew at every request and unmaps it when it is freed, so a pass that makes such an
 array every time pays the faults every time. At 9.3e5 vertices (disk, J = 6) the eliminated
-system took 27-41 thousand faults a Newton step (up to 0.34 s of system time, besides 0.18-0.2
-s for the product itself), an evaluation of the estimators 33 thousand for its σ and 15
-thousand for its cell parts; where two processes run side by side (membranes.pipeline) the
-faults cost more (the estimator process spent 2.2 s of system time in a 11.6 s run). A kept
+system took 27-41 thousand faults a Newton step (up to 0.34 s of system time, besides
+0.15-0.22 s for the product itself), an evaluation of the estimators 33 thousand for its σ
+and 15 thousand for its cell parts; where two processes run side by side
+(membranes.pipeline) the faults cost more (the estimator process spent 2.2 s of system time in a 11.6 s run). A kept
 array is written again instead: once a pass's arrays are kept, its later runs take no fresh
 pages for them. Measured (J = 6, alternating rounds, 2026-11-22): on 2 processes the system's
 and the cell parts' arrays kept, 9.50-9.94 s against 10.22-10.68 s (six rounds, the kept code
