@@ -164,7 +164,11 @@ raises RuntimeError naming the process and its error, and every process ends the
 it. With P ≥ 3 its partners may be waiting for its partial flux in a collective
 (`parallel.Summation`): the failing process meets them there with its error
 (`parallel.agree`, also the checkpoint at the end of every message), so that they stop too
-instead of waiting for ever (tests/test_parallel.py injects a failure).
+instead of waiting for ever (tests/test_parallel.py injects a failure). The messages that
+come after a failure, up to process 0's 'end', are taken in and not served; the leader
+removes their files unread (process 0 leaves the files it sent to the leader: it once removed
+those not yet read when it ended a run, and a leader that took them in after that failed
+outside the loop, leaving its partner waiting in a broadcast for ever).
 
 **Transport.** An iterate and its residual are 6N numbers (45 MB at 9.3e5 vertices). MPI
 moves a large message only while both sides are inside MPI calls (measured with Open MPI 4.1
@@ -249,6 +253,12 @@ def _pack(arrays, directory, name):
     return ("file", path, sizes)
 
 
+def _discard(packed):
+    """Remove the file of a message not read (`_pack`; none for an inline message)."""
+    if packed[0] == "file":
+        os.unlink(packed[1])
+
+
 def _unpack(packed):
     if packed[0] != "file":
         return packed[1]
@@ -268,7 +278,7 @@ class Link:
     def __init__(self, comm, same_node, lend=False):
         self.comm = comm
         self.directory = _shm_dir() if same_node else None
-        self.requests, self.files, self.count = [], set(), 0
+        self.requests, self.count = [], 0
         self.meanwhile = None   # work for the waits: a call that does a part, False if none
         self.lend = lend        # tell the leader when this process waits idle (`Lent`)
         self.taken = 0          # replies received
@@ -279,7 +289,6 @@ class Link:
         if self.directory is not None and arrays:
             name = f"membranes-{os.getpid()}-{self.count}"
             packed = _pack(arrays, self.directory, name)
-            self.files.add(packed[1])
         else:
             packed = ("inline", list(arrays))
         self.requests.append(self.comm.isend((kind, payload, packed), dest=LEADER, tag=WORK))
@@ -316,13 +325,13 @@ class Link:
         return payload
 
     def close(self):
-        """End the estimator processes' loop; remove any file they did not read."""
+        """End the estimator processes' loop. The leader removes every file it is sent, read
+        or, after a failure, unread (`serve`), in the order of the messages, before 'end': a
+        file removed here could be one it has still to take in (process 0 that fails, or that
+        an estimator process's failure ends, has iterates in transit)."""
         self.post("end")
         for r in self.requests:
             r.Wait()
-        for path in self.files:
-            if os.path.exists(path):
-                os.unlink(path)
 
 
 class Lent:
@@ -515,13 +524,16 @@ def serve(problem, comm, est_comm, lent=None):
             if lent is not None:
                 lent.close()
             return level, disc
+        if failed is not None:      # the run is over: messages are taken in, not served
+            if leader:
+                if kind != "part":
+                    _discard(packed)
+                if kind in ("call", "finish"):
+                    comm.send(("error", failed), dest=0, tag=REPLY)
+            continue
         arrays = _unpack(packed) if leader and kind != "part" else None  # the file first
         if shared is not None and kind != "part":
             arrays = shared.bcast(arrays, root=0)
-        if failed is not None:
-            if leader and kind in ("call", "finish"):
-                comm.send(("error", failed), dest=0, tag=REPLY)
-            continue
         try:
             if kind == "disc":
                 D, F1, F2, boundary = arrays
