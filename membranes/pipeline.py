@@ -254,9 +254,14 @@ def _pack(arrays, directory, name):
 
 
 def _discard(packed):
-    """Remove the file of a message not read (`_pack`; none for an inline message)."""
+    """Remove the file of a message not read (`_pack`; none for an inline message). Called
+    once the run has failed, where nothing may raise (the leader would leave `serve` and its
+    partners waiting): a file already gone is left at that."""
     if packed[0] == "file":
-        os.unlink(packed[1])
+        try:
+            os.unlink(packed[1])
+        except FileNotFoundError:
+            pass
 
 
 def _unpack(packed):
