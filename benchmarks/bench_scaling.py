@@ -21,7 +21,9 @@ evaluations included, shown apart), time of the whole process (mesh hierarchy in
 peak resident memory, final energy error; then the ratios the issue asks for: our time /
 peer time, energy error ours / peer, the speed-up of 2 processes (and whether they found the
 same iterate: largest difference relative to one process), GMRES per Newton step at the
-largest size / at the smallest, the growth exponent of the whole-run time in N.
+largest size / at the smallest, the growth exponent of the whole-run time in N. With them,
+each run's system time and fresh memory (minor page faults) during the method, per process:
+where memory is dear at its first write, they tell a slow run from slow code.
 
 Usage: `.venv/bin/python benchmarks/bench_scaling.py [--pairs R] [J[:H0] ...]` (default 3 5 7;
 `6:0.132`: J = 6 on a coarse mesh of size 0.132, about 1.0e6 vertices). With `--pairs R`, R - 1
@@ -64,6 +66,7 @@ def child(which, size):
     t_mesh = time.perf_counter() - t0
     n = problem.mesh.topology.index_map(0).size_global
     world = MPI.COMM_WORLD
+    before = resource.getrusage(resource.RUSAGE_SELF)
     if which in OURS:
         # the run does not know the exact solution: a scene without one runs the same way.
         # (With it, process 0 of ours-2 sets up the energy error of every level, which the
@@ -96,14 +99,26 @@ def child(which, size):
         out = {"converged": peer.converged, "newton": peer.newton_iterations,
                "linear": peer.linear_iterations, "time": peer.wall_time_s,
                "energy_error": records[-1]["energy_error"]}
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+    after = resource.getrusage(resource.RUSAGE_SELF)
+    peak = after.ru_maxrss / 2 ** 20
     peaks = world.gather(peak, root=0)
+    # the method's system time and fresh pages (minor faults, 4 KiB each), per process: on a
+    # virtual machine whose freed memory goes back to the host, a page's first write costs
+    # several times more than on memory used a moment before (BENCHMARKS.md, seventh session)
+    kernel = world.gather((after.ru_stime - before.ru_stime,
+                           (after.ru_minflt - before.ru_minflt) * 4096 / 2 ** 30), root=0)
     if world.rank > 0:
         return
     out.update({"which": which, "levels": size, "vertices": n, "mesh_time": t_mesh,
                 "process_time": time.perf_counter() - t0,
-                "peak_gib": max(peaks), "peak_total_gib": sum(peaks)})
+                "peak_gib": max(peaks), "peak_total_gib": sum(peaks),
+                "sys_s": [k[0] for k in kernel], "fresh_gib": [k[1] for k in kernel]})
     print(json.dumps(out), flush=True)
+
+
+def _kernel(r):
+    """'sys (fresh)' of a run's processes, '+' between them."""
+    return " + ".join(f"{t:.1f} ({g:.1f})" for t, g in zip(r["sys_s"], r["fresh_gib"]))
 
 
 def measure(which, levels):
@@ -171,6 +186,9 @@ def main(levels_list, pairs=1):
                   f"{a['time'] / b['time']:.3f}{median}" +
                   (f" (ours-ml / peer = {m['time'] / b['time']:.3f})" if m else "") +
                   f"; energy error ours / peer = {a['energy_error'] / b['energy_error']:.4f}")
+            print(f"J = {levels}: system time of the method, s (fresh pages, GiB): " +
+                  ", ".join(f"{w} {_kernel(ok[(w, levels)])}"
+                            for w in ("ours", "ours-ml", "ours-2", "peer") if (w, levels) in ok))
     for levels in levels_list:
         a, b = ok.get(("ours", levels)), ok.get(("ours-2", levels))
         if a and b:
@@ -180,14 +198,18 @@ def main(levels_list, pairs=1):
                   f"{b['peak_gib']:.2f} GiB per process, {b['peak_total_gib']:.2f} together; "
                   f"iterate differs from one process by "
                   f"{np.abs(X2 - X1).max() / np.abs(X1).max():.1e} (relative)")
-            more = [(c["time"], d["time"]) for c, d in again.get(levels, [])
+            more = [(c, d) for c, d in again.get(levels, [])
                     if "failed" not in c and "failed" not in d]
             if more:
-                pairs_run = [(a["time"], b["time"])] + more
-                ups = sorted(t1 / t2 for t1, t2 in pairs_run)
+                pairs_run = [(a, b)] + more
+                ups = sorted(c["time"] / d["time"] for c, d in pairs_run)
                 print(f"J = {levels}: speed-up of each pair (ours s / ours-2 s) " +
-                      ", ".join(f"{t1:.2f} / {t2:.2f} = {t1 / t2:.2f}" for t1, t2 in pairs_run)
+                      ", ".join(f"{c['time']:.2f} / {d['time']:.2f} = "
+                                f"{c['time'] / d['time']:.2f}" for c, d in pairs_run)
                       + f"; median {float(np.median(ups)):.2f}")
+                print(f"J = {levels}: system time of each pair's runs, s (fresh pages, GiB; "
+                      f"ours-2: process 0 + 1) " + ", ".join(
+                          f"{_kernel(c)} / {_kernel(d)}" for c, d in pairs_run))
     ours = [ok[("ours", j)] for j in levels_list if ("ours", j) in ok]
     if len(ours) >= 2:
         first, last = ours[0], ours[-1]
