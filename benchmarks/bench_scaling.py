@@ -99,20 +99,20 @@ def child(which, size):
         out = {"converged": peer.converged, "newton": peer.newton_iterations,
                "linear": peer.linear_iterations, "time": peer.wall_time_s,
                "energy_error": records[-1]["energy_error"]}
+    # per process: the peak, and the method's system time and fresh pages (minor faults, 4 KiB
+    # each): on a virtual machine whose freed memory goes back to the host, a page's first
+    # write costs several times more than on memory used a moment before (BENCHMARKS.md,
+    # seventh session)
     after = resource.getrusage(resource.RUSAGE_SELF)
-    peak = after.ru_maxrss / 2 ** 20
-    peaks = world.gather(peak, root=0)
-    # the method's system time and fresh pages (minor faults, 4 KiB each), per process: on a
-    # virtual machine whose freed memory goes back to the host, a page's first write costs
-    # several times more than on memory used a moment before (BENCHMARKS.md, seventh session)
-    kernel = world.gather((after.ru_stime - before.ru_stime,
-                           (after.ru_minflt - before.ru_minflt) * 4096 / 2 ** 30), root=0)
+    per = world.gather((after.ru_maxrss / 2 ** 20, after.ru_stime - before.ru_stime,
+                        (after.ru_minflt - before.ru_minflt) * 4096 / 2 ** 30), root=0)
     if world.rank > 0:
         return
+    peaks, sys_s, fresh = zip(*per)
     out.update({"which": which, "levels": size, "vertices": n, "mesh_time": t_mesh,
                 "process_time": time.perf_counter() - t0,
                 "peak_gib": max(peaks), "peak_total_gib": sum(peaks),
-                "sys_s": [k[0] for k in kernel], "fresh_gib": [k[1] for k in kernel]})
+                "sys_s": list(sys_s), "fresh_gib": list(fresh)})
     print(json.dumps(out), flush=True)
 
 
