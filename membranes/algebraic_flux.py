@@ -93,9 +93,10 @@ def _apply_buckets(level, flat, size, out=None, pool=None):
     """Σ_a σ^a over the patches of `level` (global RT coefficients, length `size`; for
     MultilevelFlux all levels' RT spaces one after the other) from the flat array of their
     data moments; with flat of shape (n, k), k fields at once (their data side by side, as
-    FluxEquilibration.sigmas gives both membranes' data), returned as (size, k), into `out`
-    if given (zero on entry: a buffer that the caller keeps and clears, so that no array of
-    size k entries is allocated per call, FluxEquilibration.sigmas). Per bucket, a
+    FluxEquilibration.sigmas gives both membranes' data), returned as (size, k); added to
+    `out` (size, k) if given (FluxEquilibration: its result, which holds σ_f, and σ_f,
+    which holds the sums of the patches solved on their own), so that no array of size k
+    entries is allocated per call. Per bucket, a
     few classes at a time (about ROWS patches: the temporaries stay in cache): the data of
     their patches, all fields (`_gather`, compiled: one read of the indices, one cache line
     for the fields of a datum), one product per class and field with its representative's

@@ -78,7 +78,6 @@ from .compiled import kernel, part
 from .discretisation import load
 from .kept import KeptArrays
 from .meshes import cells_by_vertex, p1_cells
-from .parallel import in_two
 
 # ∫_K φ_k φ_l φ_i / |K| for barycentric φ: 1/10 (k = l = i), 1/30 (two equal), 1/60 (distinct)
 _C3 = np.empty((3, 3, 3))
@@ -191,8 +190,8 @@ def populated_empty(shape, dtype, zero=False):
     virtual machine: 0.5-0.7 s per 360 MB of fresh pages written, against 0.14 s populated),
     for the arrays of O(N) entries that the set-up and the evaluation make (the members' maps
     that `_member_maps` writes in a scattered order, the cells' gradients, σ_f, the classes'
-    data and sums that `sigmas` keeps; not the σ that each call returns, whose arrays are
-    kept for the calls after: membranes.kept)."""
+    data that `sigmas` keeps; not the σ that each call returns, whose arrays are kept for
+    the calls after: membranes.kept)."""
     import mmap
     dtype = np.dtype(dtype)
     size = int(np.prod(shape)) * dtype.itemsize
@@ -1049,16 +1048,17 @@ class FluxEquilibration:
         # their own touch a few thousand where the classes take all others
         self.touched = np.zeros(0, dtype=np.int64)
         self.G_u, self.G_R, self.G_lam = (sp.csr_matrix((0, geo.n)) for _ in range(3))
-        self.sigma_f = populated_empty((2, space.nrt), float, zero=True)
+        # σ_f,α in column α: the layout of `sigmas`' results, which start as a copy of it
+        self.sigma_f = populated_empty((space.nrt, 2), float, zero=True)
         # the cells' centroids (translation_classes) and ∂Ω edges as bits (_translates)
         self._cent = np.empty((geo.ncells, 2))
         self._exterior_bits = np.empty(geo.ncells, dtype=np.int64)
         _class_cell_data(geo.x, geo.cells, space.exterior_edge, self._cent, self._exterior_bits)
         self._scale = np.sqrt(geo.area.mean())
         self._pending = []
-        # the classes' data and sums of `sigmas`, kept between calls (the sums zero), and
-        # the arrays of its results (membranes.kept: Estimators.sigma_disc keeps two)
-        self._class_sums = self._class_input = None
+        # the classes' data of `sigmas`, kept between calls, and the arrays of its results
+        # (membranes.kept: Estimators.sigma_disc keeps two)
+        self._class_input = None
         self._sigmas = KeptArrays(3)
         # the classes first, then the load moments and the other patches (the moments and
         # the classes' temporaries are not held at once)
@@ -1224,9 +1224,7 @@ class FluxEquilibration:
         self.classes = ([b for b, _, _ in level], ret)
         load = ([f for _, _, f in level], ret)
         level.clear()
-        both = _apply_buckets(load, wf.reshape(-1, 2), self.sigma_f.shape[1])
-        for alpha in range(2):
-            self.sigma_f[alpha] += both[:, alpha]
+        _apply_buckets(load, wf.reshape(-1, 2), len(self.sigma_f), self.sigma_f)
 
     def _right_hand_sides(self, CS, KA, nr, loc, N):
         """The right-hand sides of P patch problems of one shape (cells CS (P, n), a's local
@@ -1299,7 +1297,7 @@ class FluxEquilibration:
         # those: no pass over all RT dofs per batch)
         dofs, at = np.unique(RET, return_inverse=True)
         for alpha in range(2):
-            self.sigma_f[alpha, dofs] += np.bincount(at.ravel(),
+            self.sigma_f[dofs, alpha] += np.bincount(at.ravel(),
                                                      sol[:, :, 2 * m + 1 + alpha].ravel())
 
     def _add_operators(self):
@@ -1344,30 +1342,31 @@ class FluxEquilibration:
 
     def sigmas(self, fields, lam, pool=None):
         """[σ_α,disc for (α, u, R) in fields] (RT_1 coefficients, DESIGN §5), the membranes
-        together: σ_f,α, plus μ_α G_u u ± G_λ λ + G_R R on the rows of the patches solved on
-        their own, plus the classes' part: `algebraic_flux._apply_buckets` on the data
+        together: σ_f,α, plus the classes' part: `algebraic_flux._apply_buckets` on the data
         [μ_α ∇u_h per cell | R_l / N_l per vertex | ±λ] of all fields side by side
-        (`_class_data`, compiled), with the changes of basis kept by the set-up, into a buffer
-        kept between evaluations (as the data are: no fresh pages per call); one compiled pass
-        (`_add_classes`) adds σ_f,α and clears the buffer for the next call (no array of all
-        RT dofs per field is allocated or zeroed for the sums). The σ are the rows of one
-        array; each the same to the bit as alone. With `pool` (an executor whose thread is
-        spare) the classes' products and scatters run as a pipeline of two, and the additions in
-        two halves: the same numbers (parallel.in_two)."""
+        (`_class_data`, compiled, into a buffer kept between evaluations), with the changes of
+        basis kept by the set-up, added to the result in place; plus μ_α G_u u ± G_λ λ + G_R R
+        on the rows of the patches solved on their own. The σ are the columns of one array
+        (RT dofs × fields, as the classes' scatter writes them: the fields of a dof side by
+        side), which starts as a copy of σ_f (one pass; no array of all RT dofs besides the
+        result is allocated or cleared per call); each σ the same to the bit as alone. With
+        `pool` (an executor whose thread is spare) the classes' products and scatters run as
+        a pipeline of two: the same numbers."""
         p = self.disc.problem
         mus = np.array([p.mu1 if alpha == 1 else p.mu2 for alpha, _, _ in fields])
         signs = np.array([1.0 if alpha == 1 else -1.0 for alpha, _, _ in fields])
-        rows = self.touched
-        k, size = len(fields), self.sigma_f.shape[1]
-        out = self._sigmas.empty((k, size))
-        if self.classes is None:
-            for f, (alpha, _, _) in enumerate(fields):
-                out[f] = self.sigma_f[alpha - 1]
+        which = [alpha - 1 for alpha, _, _ in fields]
+        k, size = len(fields), len(self.sigma_f)
+        out = self._sigmas.empty((size, k))
+        if which == [0, 1]:
+            np.copyto(out, self.sigma_f)
         else:
+            for f, alpha in enumerate(which):
+                out[:, f] = self.sigma_f[:, alpha]
+        if self.classes is not None:
             from .algebraic_flux import _apply_buckets
             geo = self.geo
-            if self._class_sums is None or self._class_sums.shape[1] != k:
-                self._class_sums = populated_empty((size, k), float, zero=True)
+            if self._class_input is None or self._class_input.shape[1] != k:
                 self._class_input = populated_empty((2 * geo.ncells + 2 * len(lam), k), float)
             data = self._class_input                  # every entry written by _class_data
             given = any(R is not None for _, _, R in fields)
@@ -1375,30 +1374,14 @@ class FluxEquilibration:
                           if given else np.zeros((len(fields), 0)))
             _class_data(geo.cells, geo.grad, geo.cells_per_vertex, mus, signs,
                         np.array([u for _, u, _ in fields]), lam, Rs, data)
-            classes = _apply_buckets(self.classes, data, size, self._class_sums, pool)
-            at_rows = classes[rows]
-            which = np.array([alpha - 1 for alpha, _, _ in fields])
-            in_two(pool, size, lambda first, last: _add_classes(self.sigma_f, which, classes,
-                                                                out, first, last))
+            _apply_buckets(self.classes, data, size, out, pool)
+        rows = self.touched
         for f, (alpha, u, R) in enumerate(fields):
-            base = self.sigma_f[alpha - 1]
-            at = mus[f] * (self.G_u @ u) + signs[f] * (self.G_lam @ lam) + base[rows]
+            at = mus[f] * (self.G_u @ u) + signs[f] * (self.G_lam @ lam)
             if R is not None:
                 at += self.G_R @ R
-            out[f, rows] = at if self.classes is None else at + at_rows[:, f]
-        return list(out)
-
-
-@kernel
-def _add_classes(sigma_f, which, classes, out, first, last):
-    """out[f, i] = σ_f[which[f], i] + classes[i, f] for the fields f of classes (size, k) (the
-    classes' sums of FluxEquilibration.sigmas) and i = first … last-1, and classes set to zero
-    there, in one pass."""
-    k = out.shape[0]
-    for i in range(first, last):
-        for f in range(k):
-            out[f, i] = sigma_f[which[f], i] + classes[i, f]
-            classes[i, f] = 0.0
+            out[rows, f] += at
+        return [out[:, f] for f in range(k)]
 
 
 @kernel

@@ -44,7 +44,10 @@ the quadrature points of the scene's data measures gives with the load moments
 
 σ_disc is computed once per iterate: the driver (membranes.driver, IterateEstimates) asks
 for the σ_disc of an iterate in `nu_flux`, in `evaluate`, and in the next `nu_flux` when it
-is the later iterate of the one before; `sigma_disc` keeps the last two.
+is the later iterate of the one before; `sigma_disc` keeps the last two. The ν flux is kept
+as the pair of fluxes it is the difference of (`FluxDifference`): `_flux_squares` forms
+σ_alg = σ_disc(X_later) - σ_disc(X) at each cell's dofs as it reads them, where an array of it
+took 142 MiB of fresh memory per evaluation at 9.3e5 vertices (both membranes).
 """
 
 import numpy as np
@@ -168,30 +171,56 @@ class CellFluxNorms:
         """`squared` for one or two fields (u, σ, τ, b, c) (the two membranes) in one pass over
         the cells, τ None in all or none: out (1 or 3, fields, ncells), each field's values
         the same to the bit as alone (and with `pool`, a thread to spare, in two halves:
-        parallel.in_two)."""
+        parallel.in_two). τ may be a pair (τ⁺, τ⁻) of coefficient arrays, for τ = τ⁺ - τ⁻
+        formed at each dof as the pass reads it (the same numbers as with the array τ⁺ - τ⁻:
+        `FluxDifference`), in all fields or none."""
         geo = self.geo
         k = len(fields)
         rows = 1 if fields[0][2] is None else 3
         if out is None:
             out = np.empty((rows, k, geo.ncells))
         u, sigma, tau, b, c = zip(*fields)
-        tau = tuple(s if t is None else t for s, t in zip(sigma, tau))
+        difference = isinstance(tau[0], tuple)
+        plus = tuple(s if t is None else t[0] if difference else t for s, t in zip(sigma, tau))
+        minus = tuple(t[1] for t in tau) if difference else plus
         second = 1 if k == 2 else 0
         b, c = np.array(b, dtype=float), np.array(c, dtype=float)
         in_two(pool, geo.ncells, lambda first, last: _flux_squares(
             self.psi, self.reflections, self.rt_cells, geo.cells, geo.grad, geo.area, self.w,
-            u[0], u[second], b, sigma[0], sigma[second], tau[0], tau[second], c, out, first,
-            last))
+            u[0], u[second], b, sigma[0], sigma[second], plus[0], plus[second], minus[0],
+            minus[second], difference, c, out, first, last))
         return out
+
+
+class FluxDifference:
+    """The fluxes τ_α = τ⁺_α - τ⁻_α (α = 1, 2; RT_1 coefficients) kept as the two pairs
+    (`Estimators.nu_flux`: σ_alg = σ_disc(X_later) - σ_disc(X)), which `evaluate` hands to
+    `_flux_squares` as they are; τ[α] (or iterating) gives the difference as an array."""
+
+    def __init__(self, plus, minus):
+        self.plus, self.minus = tuple(plus), tuple(minus)
+
+    def __len__(self):
+        return len(self.plus)
+
+    def __getitem__(self, alpha):
+        if not 0 <= alpha < len(self.plus):
+            raise IndexError(alpha)
+        return self.plus[alpha] - self.minus[alpha]
+
+    def pair(self, alpha):
+        """(τ⁺_α, τ⁻_α), for `CellFluxNorms.squares`."""
+        return self.plus[alpha], self.minus[alpha]
 
 
 @kernel
 def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u1, u2, b, sigma1, sigma2, tau1,
-                  tau2, c, out, first, last):
+                  tau2, minus1, minus2, difference, c, out, first, last):
     """CellFluxNorms.squares on the cells first … last-1, out (1 or 3, k, ncells) for k = 1 or
     2 fields (u_f, σ_f, τ_f, b[f], c[f]): out[0, f, K] = |det J_K| Σ_q w_q |a_K + c σ(x_q)|²
     with a_K = b ∇u_h|_K, and where out has three rows out[2, f, K] for c τ and out[1, f, K]
-    for a_K + c σ + c τ; σ at the points from the table psi[ρ_K] (2 nq, 8) of signed reference
+    for a_K + c σ + c τ (τ_f = tau_f - minus_f at each dof where `difference`, else tau_f);
+    σ at the points from the table psi[ρ_K] (2 nq, 8) of signed reference
     values and the Piola entries J / det J, which the gradients of the cell's hat functions
     hold (Geometry: ∇φ_1 = (J_11, -J_01) / det J, ∇φ_2 = (-J_10, J_00) / det J;
     |det J| = 2 |K|); the cell's table, Piola entries and dofs read once for the fields."""
@@ -205,10 +234,12 @@ def _flux_squares(psi, refl, rt_cells, cells, grad, area, w, u1, u2, b, sigma1, 
         F0, F1, F2, F3 = grad[K, 2, 1], -grad[K, 1, 1], -grad[K, 2, 0], grad[K, 1, 0]
         abs_det = 2.0 * area[K]
         for f in range(k):
-            u, sigma, tau = (u1, sigma1, tau1) if f == 0 else (u2, sigma2, tau2)
+            u, sigma, tau, minus = (u1, sigma1, tau1, minus1) if f == 0 else \
+                (u2, sigma2, tau2, minus2)
             for j in range(8):
-                s[j] = c[f] * sigma[rt_cells[K, j]]
-                t[j] = c[f] * tau[rt_cells[K, j]]
+                d = rt_cells[K, j]
+                s[j] = c[f] * sigma[d]
+                t[j] = c[f] * (tau[d] - minus[d]) if difference else c[f] * tau[d]
             a0, a1 = cell_gradient(grad, K, u[cells[K, 0]], u[cells[K, 1]], u[cells[K, 2]])
             a0 *= b[f]
             a1 *= b[f]
@@ -337,17 +368,19 @@ class Estimators:
         Π_P1 f ± λ'_h - r'_h. The unbalanced part with respect to X is r'_h ∓ (λ'_h - λ_h):
         DESIGN §6 writes r^{k,i} - r^{k,i+ν} for the divergence of σ_alg, which holds where λ
         does not change between the two iterates; here λ changes, so its shift joins the
-        remainder. Returns (σ_alg pair, η_rem)."""
+        remainder. Returns (σ_alg, η_rem), σ_alg a `FluxDifference` of the two σ_disc
+        (σ_alg[α] gives the array)."""
         n = self.disc.n
         now, later = self.sigma_disc(X, R), self.sigma_disc(X_later, R_later)
         shift = X_later[2 * n:] - X[2 * n:]
-        return [b - a for a, b in zip(now, later)], self.remainder(R_later, shift)
+        return FluxDifference(later, now), self.remainder(R_later, shift)
 
     def evaluate(self, X, R=None, alg_residual=None, sigma_alg=None, eta_rem=0.0):
         """All estimators at X (DESIGN §7). R: the algebraic residual (3N), None where the
         linear rows hold exactly; alg_residual = ‖R‖/‖B‖; sigma_alg: (σ_1,alg, σ_2,alg) RT
-        coefficients where an algebraic flux was built, with eta_rem the remainder it leaves
-        (0 for the multilevel flux, whose divergence is r_h exactly; `nu_flux` gives both).
+        coefficients (or a FluxDifference) where an algebraic flux was built, with eta_rem
+        the remainder it leaves (0 for the multilevel flux, whose divergence is r_h exactly;
+        `nu_flux` gives both).
 
         Returns a dict with the global values of COLUMNS (None where missing), `bound`
         (whether η is a guaranteed bound) and `eta_K` (the local distribution)."""
@@ -359,8 +392,9 @@ class Estimators:
         # η_F,K,α = ‖μ^{1/2} ∇u_h + μ^{-1/2} σ‖_K, η_alg,K,α = ‖μ^{-1/2} σ_alg‖_K
         # cells[:, α]: η_disc,K,α (σ_disc alone), η_F,K,α and η_alg,K,α (with σ_alg)
         roots = [np.sqrt(mu) for mu in self.mu]
-        fields = [(u, s_disc, None if sigma_alg is None else sigma_alg[alpha], roots[alpha],
-                   1.0 / roots[alpha])
+        difference = isinstance(sigma_alg, FluxDifference)
+        fields = [(u, s_disc, None if sigma_alg is None else sigma_alg.pair(alpha) if difference
+                   else sigma_alg[alpha], roots[alpha], 1.0 / roots[alpha])
                   for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R)))]
         cells = self.norms.squares(fields, pool=self._pool())
         np.sqrt(cells, out=cells)

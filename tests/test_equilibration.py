@@ -125,7 +125,7 @@ def test_operators_are_linear_in_the_data(setup):
     lam, R = RNG.standard_normal(n), RNG.standard_normal(n)
     s_ab = eq.sigma(1, a + b, 2 * lam, 2 * R)
     s_a, s_b = eq.sigma(1, a, lam, R), eq.sigma(1, b, lam, R)
-    assert np.allclose(s_ab - eq.sigma_f[0], s_a + s_b - 2 * eq.sigma_f[0],
+    assert np.allclose(s_ab - eq.sigma_f[:, 0], s_a + s_b - 2 * eq.sigma_f[:, 0],
                        atol=1e-12 * np.abs(s_ab).max())
 
 
