@@ -225,9 +225,23 @@ if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         child(sys.argv[2], sys.argv[3])
     else:
-        args, pairs = sys.argv[1:], 1
-        if "--pairs" in args:
-            at = args.index("--pairs")
-            pairs = int(args[at + 1])
-            del args[at:at + 2]
-        main(args or [str(j) for j in DEFAULT_LEVELS], pairs)
+        import argparse
+        parser = argparse.ArgumentParser(
+            description="Ours against the PETSc SNES VI peer on the disk scene (issue 6); "
+                        "the module notes say what is measured.")
+        parser.add_argument("sizes", nargs="*", metavar="J[:H0]",
+                            help=f"refinements J of the gmsh mesh of size H0 (default "
+                                 f"{H0}); default {' '.join(map(str, DEFAULT_LEVELS))}")
+        parser.add_argument("--pairs", type=int, default=1, metavar="R",
+                            help="R - 1 more (ours, ours-2) pairs per size (default 1)")
+        options = parser.parse_args()
+        for size in options.sizes:
+            try:
+                j, h0 = _size(size)
+                if j < 0 or not h0 > 0:
+                    raise ValueError
+            except ValueError:
+                parser.error(f"size {size!r} is not J or J:H0 (J >= 0, H0 > 0)")
+        if options.pairs < 1:
+            parser.error("--pairs must be at least 1")
+        main(options.sizes or [str(j) for j in DEFAULT_LEVELS], options.pairs)
