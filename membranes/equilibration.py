@@ -1057,7 +1057,7 @@ class FluxEquilibration:
         self._scale = np.sqrt(geo.area.mean())
         self._pending = []
         # the classes' data of `sigmas`, kept between calls, and the arrays of its results
-        # (membranes.kept: Estimators.sigma_disc keeps two)
+        # (membranes.kept: Estimators.sigma_disc keeps two, or none without the ν flux)
         self._class_input = None
         self._sigmas = KeptArrays(3)
         # the classes first, then the load moments and the other patches (the moments and

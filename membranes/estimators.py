@@ -44,7 +44,9 @@ the quadrature points of the scene's data measures gives with the load moments
 
 σ_disc is computed once per iterate: the driver (membranes.driver, IterateEstimates) asks
 for the σ_disc of an iterate in `nu_flux`, in `evaluate`, and in the next `nu_flux` when it
-is the later iterate of the one before; `sigma_disc` keeps the last two. The ν flux is kept
+is the later iterate of the one before; `sigma_disc` keeps the last two (none where
+`evaluate` has no ν flux: that σ is not asked for again, and it is written into the arrays of
+the ones let go, so that such a run holds one σ's arrays). The ν flux is kept
 as the pair of fluxes it is the difference of (`FluxDifference`): `_flux_squares` forms
 σ_alg = σ_disc(X_later) - σ_disc(X) at each cell's dofs as it reads them, where an array of it
 took 142 MiB of fresh memory per evaluation at 9.3e5 vertices (both membranes).
@@ -336,11 +338,15 @@ class Estimators:
             total += np.sqrt(np.sum(sq[alpha])) ** 2 / self.mu[alpha]
         return float(self.cpf * np.sqrt(total))
 
-    def sigma_disc(self, X, R=None):
+    def sigma_disc(self, X, R=None, keep=True):
         """(σ_1,disc, σ_2,disc) at X with algebraic residual R (RT_1 coefficients, read-only;
         FluxEquilibration.sigmas, both membranes in one pass). The last two are kept and given
         again for the same X and R (equal entries; every process of a run has the same
-        iterates, so all of them compute or none)."""
+        iterates, so all of them compute or none). keep=False (`evaluate` without the ν
+        flux): a σ that no later call asks for again; where it is not kept already, the kept
+        ones are let go first and it is computed into their arrays, not kept (one σ's arrays
+        in a run without the ν flux instead of two: 142 MiB at 9.3e5 vertices; a later call
+        for one of them computes it again, the same numbers)."""
         # (a generator's names, unlike a loop's, do not outlive it: they would hold the older)
         kept = next((sigma for (Xk, Rk), sigma in self._recent
                      if np.array_equal(Xk, X) and (Rk is None if R is None else
@@ -351,14 +357,16 @@ class Estimators:
         n = self.disc.n
         u1, u2, lam = split(X, n)
         Rs = (None, None) if R is None else (R[:n], R[n:2 * n])
-        self._recent = self._recent[:1]     # the older goes first: its arrays may serve
+        # the older goes first (all of them where this one is not kept): their arrays may serve
+        self._recent = self._recent[:1] if keep else []
         sigma = self.flux.sigmas([(1, u1, Rs[0]), (2, u2, Rs[1])], lam, self._pool())
         if self.sum_parts is not None:
             sigma = self.sum_parts(sigma)
         for s in sigma:
             s.flags.writeable = False
-        key = (X.copy(), None if R is None else R.copy())
-        self._recent = [(key, sigma)] + self._recent
+        if keep:
+            key = (X.copy(), None if R is None else R.copy())
+            self._recent = [(key, sigma)] + self._recent
         return sigma
 
     def nu_flux(self, X, R, X_later, R_later):
@@ -395,7 +403,8 @@ class Estimators:
         difference = isinstance(sigma_alg, FluxDifference)
         fields = [(u, s_disc, None if sigma_alg is None else sigma_alg.pair(alpha) if difference
                    else sigma_alg[alpha], roots[alpha], 1.0 / roots[alpha])
-                  for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(X, R)))]
+                  for alpha, (u, s_disc) in enumerate(zip((u1, u2), self.sigma_disc(
+                      X, R, keep=difference)))]
         cells = self.norms.squares(fields, pool=self._pool())
         np.sqrt(cells, out=cells)
         disc_cells = cells[0]

@@ -220,6 +220,31 @@ def test_sigma_disc_kept_for_the_same_iterate():
     assert est.sigma_disc(X, None) is not other
 
 
+def test_sigma_disc_not_kept_takes_the_kept_arrays():
+    """sigma_disc(keep=False) (evaluate without the ν flux) gives the same numbers as a kept
+    one, keeps nothing, and lets the kept σ go first, so that it is written into their arrays:
+    a run without the ν flux holds the arrays of one σ, not two."""
+    from membranes.estimators import Estimators
+
+    run = solved_with("disk", 0.1)
+    est = Estimators(run.disc)
+    n = run.disc.n
+    R = np.random.default_rng(4).standard_normal(3 * n) * 1e-6
+    R[np.r_[run.disc.boundary, n + run.disc.boundary]] = 0.0
+    kept = est.sigma_disc(run.X, R)
+    values, address = [s.copy() for s in kept], kept[0].__array_interface__["data"][0]
+    del kept        # (a reference to its arrays would keep them from serving again)
+    X = run.X.copy()
+    X[0] += 1e-3
+    other = est.sigma_disc(X, R, keep=False)
+    assert other[0].__array_interface__["data"][0] == address
+    assert not other[0].flags.writeable
+    assert est.sigma_disc(X, R) is not other              # not kept
+    del other
+    again = est.sigma_disc(run.X, R, keep=False)          # let go: computed again
+    assert all(np.array_equal(a, b) for a, b in zip(again, values))
+
+
 class _CountingPool(ThreadPoolExecutor):
     """One thread; counts the work handed to it."""
 
