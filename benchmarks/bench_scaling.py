@@ -116,7 +116,7 @@ def child(which, size):
     print(json.dumps(out), flush=True)
 
 
-def _kernel(r):
+def _system_time(r):
     """'sys (fresh)' of a run's processes, '+' between them."""
     return " + ".join(f"{t:.1f} ({g:.1f})" for t, g in zip(r["sys_s"], r["fresh_gib"]))
 
@@ -187,7 +187,7 @@ def main(levels_list, pairs=1):
                   (f" (ours-ml / peer = {m['time'] / b['time']:.3f})" if m else "") +
                   f"; energy error ours / peer = {a['energy_error'] / b['energy_error']:.4f}")
             print(f"J = {levels}: system time of the method, s (fresh pages, GiB): " +
-                  ", ".join(f"{w} {_kernel(ok[(w, levels)])}"
+                  ", ".join(f"{w} {_system_time(ok[(w, levels)])}"
                             for w in ("ours", "ours-ml", "ours-2", "peer") if (w, levels) in ok))
     for levels in levels_list:
         a, b = ok.get(("ours", levels)), ok.get(("ours-2", levels))
@@ -209,7 +209,7 @@ def main(levels_list, pairs=1):
                       + f"; median {float(np.median(ups)):.2f}")
                 print(f"J = {levels}: system time of each pair's runs, s (fresh pages, GiB; "
                       f"ours-2: process 0 + 1) " + ", ".join(
-                          f"{_kernel(c)} / {_kernel(d)}" for c, d in pairs_run))
+                          f"{_system_time(c)} / {_system_time(d)}" for c, d in pairs_run))
     ours = [ok[("ours", j)] for j in levels_list if ("ours", j) in ok]
     if len(ours) >= 2:
         first, last = ours[0], ours[-1]
