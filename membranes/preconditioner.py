@@ -475,7 +475,9 @@ class MeanGapAMG:
     the free vertices (the gap). The mean's PC is set up only where a solve needs it (not
     where `settle_mean` finds the mean settled: every step of a run whose iterates hold the
     exact mean, membranes.mean); it is taken from cache["mean"] when that was set up on the
-    same S, and left there for the next step. cache["S"] keeps S itself (`mean_gap_split`'s
+    same S, and left there for the next step. Where the mean is settled, Krylov.solve solves
+    the gap's system S_ff δ = `gap_rhs` alone with the gap's PC and makes the step's
+    correction from δ (`gap_correction`; membranes.krylov, "The gap's own solve"). cache["S"] keeps S itself (`mean_gap_split`'s
     reference: the next step's S is then this matrix, not a copy)."""
 
     def __init__(self, S, a, b, inner=None, cache=None):
@@ -555,6 +557,22 @@ class MeanGapAMG:
         _mean_gap_combine(r, self.no_mean if mean is None else mean.x, gap, self.theta,
                           self.free, self.contact, self.ab, S.indptr, S.indices, S.data,
                           self.delta, y.array)
+
+    def gap_rhs(self, r):
+        """The gap's right side (r2 - r1) on the free vertices, for the residual r (2N)."""
+        n = self.S.shape[0]
+        return r[n + self.free] - r[self.free]
+
+    def gap_correction(self, r, gap):
+        """The correction Y (2N) with the mean 0 and δ = `gap` on the free vertices (0 at
+        contact), λ at the contact vertices from the residual r (`apply`'s second half): with
+        gap = S_ff⁻¹ `gap_rhs(r)` it solves A Y = r exactly where the mean part of r is 0."""
+        S = self.S
+        out = np.empty(2 * S.shape[0])
+        _mean_gap_combine(r, self.no_mean, np.ascontiguousarray(gap, dtype=float), self.theta,
+                          self.free, self.contact, self.ab, S.indptr, S.indices, S.data,
+                          self.delta, out)
+        return out
 
     def destroy(self, pc=None):
         """Free the PETSc objects, except the mean's inner PC when the cache keeps it."""

@@ -295,6 +295,46 @@ def test_settled_mean(monkeypatch):
             assert seen == [(n, settled)] and its >= 1 and np.linalg.norm(r) <= bound
 
 
+def test_gap_solved_alone(monkeypatch):
+    """Where the mean is settled the correction is solved on the gap's own system S_ff δ = g
+    (membranes.krylov, module notes; taken: `_GapSolve` made), with the same iteration counts
+    as GMRES on the 2N system with the mean/gap split as PC (θ = 1/2 on the disk: both
+    minimise the same residual; ±1 for round-off at the test) and the same solution to the
+    tolerance's accuracy (1e-10 here, as in test_independent_of_row_scaling); its residual,
+    that of the 2N system, meets the bound. With a mean not settled the 2N system is solved."""
+    from membranes import krylov as krylov_module
+    made = []
+    original = krylov_module._GapSolve.__init__
+
+    def spy(self, *args):
+        original(self, *args)
+        made.append(self.context.free.size)
+    monkeypatch.setattr(krylov_module._GapSolve, "__init__", spy)
+    rng = np.random.default_rng(2)
+    for step, contact, _ in _steps("min", 3)[1:]:
+        S, a, b = mean_gap_split(step.A)
+        n, theta = S.shape[0], (a / (a + b))[contact][0]
+        assert theta == pytest.approx(0.5, rel=1e-12)
+        x = solve_direct(step.A, step.b)[0]
+        delta = np.where(contact, 0.0, rng.standard_normal(n))
+        guess = x + 1e-3 * np.concatenate([-theta * delta, np.where(
+            contact, rng.standard_normal(n), (1 - theta) * delta)])
+        scale = np.linalg.norm(step.b)
+        made.clear()
+        alone = Krylov(dict(VAMG)).solve(step.A, step.b, guess, 1e-10, scale)
+        assert made == [np.count_nonzero(~contact)]
+        monkeypatch.setattr(krylov_module, "GAP_KSP_TYPES", ())
+        whole = Krylov(dict(VAMG)).solve(step.A, step.b, guess, 1e-10, scale)
+        monkeypatch.setattr(krylov_module, "GAP_KSP_TYPES", ("fgmres", "gmres"))
+        assert len(made) == 1 and alone[2] >= 1 and abs(alone[2] - whole[2]) <= 1
+        assert np.linalg.norm(alone[1]) <= 1e-10 * scale
+        assert np.array_equal(alone[1], step.b - step.A @ alone[0])
+        assert np.linalg.norm(alone[0] - whole[0]) <= 1e-8 * np.linalg.norm(whole[0])
+        made.clear()       # the mean moved: not settled, the 2N system
+        Krylov(dict(VAMG)).solve(step.A, step.b, guess + 1e-3, 1e-10, scale)
+        assert made == []
+
+
 def test_mean_settled_after_the_first_step(monkeypatch):
     """Solving whole Newton steps (no exact mean given, membranes.mean), the mean is not
     settled at the first step from (g, 0, 0), whose guess does not solve the mean's equation,
