@@ -335,6 +335,36 @@ def test_gap_solved_alone(monkeypatch):
         assert made == []
 
 
+def test_gap_solved_alone_with_unequal_moduli(monkeypatch):
+    """θ ≠ 1/2 (the square: μ1 = 1, μ2 = 2, θ = 2/3): the gap's GMRES minimises the gap's
+    residual, not the whole system's, whose test it still takes (gated through bounds on the
+    whole residual: membranes.krylov). An exact Newton run with the exact mean solves every
+    step on the gap's system alone and ends as the run on the 2N systems does: the same
+    Newton steps, GMRES within one iteration a step, iterates 1e-8 apart (relative; the
+    linear solves stop at 2e-12 of ‖B‖ each)."""
+    from membranes import krylov as krylov_module
+    made = []
+    original = krylov_module._GapSolve.__init__
+
+    def spy(self, *args):
+        original(self, *args)
+        made.append(self.context.theta)
+    monkeypatch.setattr(krylov_module._GapSolve, "__init__", spy)
+    problem = scene("square", 0.03)       # 1437 vertices
+    options = dict(newton="exact", cfun="min", system="eliminated",
+                   petsc_options=dict(VAMG), estimators=False)
+    alone = solve(problem, **options)
+    monkeypatch.setattr(krylov_module, "GAP_KSP_TYPES", ())
+    steps = len(made)
+    whole = solve(problem, **options)
+    assert alone.converged and whole.converged and len(made) == steps
+    assert steps == alone.newton_iterations >= 3
+    assert all(theta == pytest.approx(2.0 / 3.0, rel=1e-12) for theta in made)
+    assert alone.newton_iterations == whole.newton_iterations
+    assert abs(alone.linear_iterations - whole.linear_iterations) <= alone.newton_iterations
+    assert np.linalg.norm(alone.X - whole.X) <= 1e-8 * np.linalg.norm(whole.X)
+
+
 def test_mean_settled_after_the_first_step(monkeypatch):
     """Solving whole Newton steps (no exact mean given, membranes.mean), the mean is not
     settled at the first step from (g, 0, 0), whose guess does not solve the mean's equation,
