@@ -272,35 +272,36 @@ class Krylov:
         eliminated system eliminated u2 (newton.LinearStep.contact), for vertex_amg's split.
         Returns (x, b - A x, its); raises LinearSolveError (with `its`) if the KSP stops
         before either happens (e.g. at max_linear_its)."""
-        M = petsc_matrix(with_diagonal(A), copy=False)   # A is the step's: not changed here
         x0 = np.array(x0, dtype=float)
-        rhs = PETSc.Vec().createWithArray(np.array(b, dtype=float), comm=PETSc.COMM_SELF)
-        x = PETSc.Vec().createWithArray(x0.copy(), comm=PETSc.COMM_SELF)
         ksp, work, idle = self._kept_ksp(A.shape[0])
-        gap = None                  # the gap's own solve (module notes), where it is taken
+        M = rhs = x = gap = None    # the 2N system's PETSc objects, or the gap's own solve
         failed = True
         try:
-            ksp.setOperators(M)
             _configure(ksp, self._petsc)
             if cancel is not None and cancel():     # dropped before its preconditioner is set up
                 failed = False
                 return x0, b - A @ x0, 0
             bound = tol * scale
-            test = None
             if self._vertex_amg is not None:
                 context = _install(ksp, A, self._vertex_amg, self._cache, contact)
                 if hasattr(context, "settle_mean"):       # the mean/gap split
                     r0 = b - A @ x0
                     context.settle_mean(r0, bound, mean_theta)
-                    if context.mean_settled and context.gap is not None and \
-                            self._petsc.get("ksp_type") in GAP_KSP_TYPES and \
-                            np.any(context.gap_rhs(r0)):    # (GMRES breaks down on 0)
-                        gap = _GapSolve(context, r0, self._petsc)
-                        test = _GapTest(A, b, gap, bound, test_every, self.nu, on_iterate,
-                                        cancel, x0)
-            solver, rhs_s, x_s = (ksp, rhs, x) if gap is None else (gap.ksp, gap.rhs, gap.x)
-            if test is None:
+                    g = context.gap_rhs(r0) if context.mean_settled and \
+                        context.gap is not None and \
+                        self._petsc.get("ksp_type") in GAP_KSP_TYPES else None
+                    if g is not None and np.any(g):     # (GMRES breaks down on g = 0)
+                        gap = _GapSolve(context, r0, g, self._petsc)
+            if gap is None:
+                M = petsc_matrix(with_diagonal(A), copy=False)   # A is the step's: not changed
+                rhs = PETSc.Vec().createWithArray(np.array(b, dtype=float), comm=PETSc.COMM_SELF)
+                x = PETSc.Vec().createWithArray(x0.copy(), comm=PETSc.COMM_SELF)
+                ksp.setOperators(M)
+                solver, rhs_s, x_s = ksp, rhs, x
                 test = _StoppingTest(A, b, work, bound, test_every, self.nu, on_iterate, cancel)
+            else:
+                solver, rhs_s, x_s = gap.ksp, gap.rhs, gap.x
+                test = _GapTest(A, b, gap, bound, test_every, self.nu, on_iterate, cancel, x0)
             solver.setTolerances(max_it=self.max_linear_its)
             solver.setInitialGuessNonzero(gap is None)
             solver.setConvergenceTest(test)
@@ -333,7 +334,8 @@ class Krylov:
             ksp.setConvergenceTest(None)
             ksp.setOperators(idle)
             for obj in (x, rhs, M):
-                obj.destroy()
+                if obj is not None:
+                    obj.destroy()
             if failed:                 # a PETSc error: the next solve starts afresh
                 self.release()
 
@@ -378,7 +380,8 @@ class _StoppingTest:
         self.its, self._current, self.stopped, self.built = 0, None, False, None
 
     def solution(self, y):
-        """The iterate x of A x = b from the KSP's solution y (the same here)."""
+        """The iterate x of A x = b from the KSP's solution y (y itself here; y is not
+        changed)."""
         return y
 
     def gate(self, rnorm):
@@ -389,7 +392,7 @@ class _StoppingTest:
         """(x, b - A x) at the iterate under test, built once."""
         if self._current is None:
             self.built = self.ksp.buildSolution(self.work).array.copy()
-            x = self.solution(self.built.copy())
+            x = self.solution(self.built)
             self._current = (x, self.b - self.A @ x)
         return self._current
 
@@ -440,12 +443,12 @@ GAP_KSP_TYPES = ("fgmres", "gmres")    # the Krylov methods the gap's own solve 
 class _GapSolve:
     """The gap's own system S_ff δ = g (module notes: a settled mean), its KSP (the step's
     options) with the gap's inner PC (`preconditioner.MeanGapAMG`), and its vectors: the
-    right side g = (r2 - r1) on the free vertices of the step's initial residual r0, the
-    solution δ from 0."""
+    right side g = (r2 - r1) on the free vertices of the step's initial residual r0
+    (`MeanGapAMG.gap_rhs`), the solution δ from 0."""
 
-    def __init__(self, context, r0, options):
+    def __init__(self, context, r0, g, options):
         self.context, self.r0 = context, r0
-        self.rhs = PETSc.Vec().createWithArray(context.gap_rhs(r0), comm=PETSc.COMM_SELF)
+        self.rhs = PETSc.Vec().createWithArray(g, comm=PETSc.COMM_SELF)
         self.x = PETSc.Vec().createWithArray(np.zeros(context.free.size), comm=PETSc.COMM_SELF)
         self.work = PETSc.Vec().createSeq(context.free.size, comm=PETSc.COMM_SELF)
         self.ksp = PETSc.KSP().create(PETSc.COMM_SELF)
@@ -470,8 +473,7 @@ class _GapTest(_StoppingTest):
         super().__init__(A, b, gap.work, bound, test_every, nu, on_iterate, cancel)
         self.gap, self.x0 = gap, x0
         context = gap.context
-        n, theta = A.shape[0] // 2, context.theta
-        rho = (1.0 - theta) * gap.r0[:n] + theta * gap.r0[n:]
+        theta, rho = context.theta, context.rho        # ρ as settle_mean measured it
         self.rho2 = 2.0 * float(rho @ rho)
         self.cross = 2.0 * abs(1.0 - 2.0 * theta) * float(np.linalg.norm(rho[context.free]))
         self.e2 = theta * theta + (1.0 - theta) * (1.0 - theta)

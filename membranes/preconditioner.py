@@ -477,8 +477,9 @@ class MeanGapAMG:
     exact mean, membranes.mean); it is taken from cache["mean"] when that was set up on the
     same S, and left there for the next step. Where the mean is settled, Krylov.solve solves
     the gap's system S_ff δ = `gap_rhs` alone with the gap's PC and makes the step's
-    correction from δ (`gap_correction`; membranes.krylov, "The gap's own solve"). cache["S"] keeps S itself (`mean_gap_split`'s
-    reference: the next step's S is then this matrix, not a copy)."""
+    correction from δ (`gap_correction`; membranes.krylov, "The gap's own solve").
+    cache["S"] keeps S itself (`mean_gap_split`'s reference: the next step's S is then this
+    matrix, not a copy)."""
 
     def __init__(self, S, a, b, inner=None, cache=None):
         contact = a != 0
@@ -497,7 +498,7 @@ class MeanGapAMG:
             else None
         self.delta = np.zeros(S.shape[0])
         self.mean_rhs, self.no_mean = np.zeros(S.shape[0]), np.zeros(S.shape[0])
-        self.mean_settled = False
+        self.mean_settled, self.rho = False, None     # `settle_mean`'s verdict and its ρ
 
     def _mean_amg(self):
         """The mean's inner PC: the cache's, else set up now (and kept there)."""
@@ -528,12 +529,13 @@ class MeanGapAMG:
         took 15.0 s instead of 15.9 s, with 137 GMRES iterations instead of 142 in the run
         (the shifted guess). A settled mean's inner PC is not set up. `theta`: the caller's
         θ, taken where no vertex is in contact (the membranes are uncoupled then, and any θ
-        splits them exactly)."""
+        splits them exactly). ρ is kept (`rho`) for the test of the gap's own solve
+        (membranes.krylov)."""
         n = self.S.shape[0]
         if theta is not None and not self.contact.size:
             self.theta = theta
         theta = self.theta
-        rho = (1.0 - theta) * r[:n] + theta * r[n:]
+        self.rho = rho = (1.0 - theta) * r[:n] + theta * r[n:]
         floor = np.linalg.norm(rho) / np.hypot(theta, 1.0 - theta)
         self.mean_settled = bool(floor <= MEAN_SETTLED * bound)
 
