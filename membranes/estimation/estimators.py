@@ -1,0 +1,370 @@
+"""A posteriori estimators and the guaranteed bound on the distributed mesh (§6, §7).
+
+For an iterate X = (u1h, u2h, λh) with algebraic residual R (§4), per cell K and membrane α:
+
+    η_F,K,α   = ‖μ_α^{1/2} ∇u_αh + μ_α^{-1/2} σ_α‖_K,   σ_α = σ_α,disc + σ_α,alg
+    η_osc,K,α = (h_K/π) μ_α^{-1/2} ‖f_α - Π_P1 f_α‖_K
+    η_C,K     = 2 (u1h - u2h, λ^pos)_K
+    η_lin1,K  = |||s_h - u_h|||_K
+    η_lin2,K  = 2 C_PF h_Ω (1/μ1 + 1/μ2)^{1/2} ‖λ^pos‖_Ω |||s_h - u_h|||_K
+    η_lin3,K  = C_PF h_Ω (1/μ1 + 1/μ2)^{1/2} ‖λ^neg‖_K
+    η_alg,K,α = ‖μ_α^{-1/2} σ_α,alg‖_K
+
+with s_h the nodal projection onto the constraint (s_h = u_h where u1h ≥ u2h, else both
+components (u1h + u2h)/2) and λ^pos, λ^neg the nodal positive and negative parts of λh.
+
+**How the numbers are computed.** Every per-cell integral is a UFL form of
+`forms/estimators.py` tested with a piecewise constant: the quantities of one evaluation are
+the components of one vector-DG0 test function, so one dolfinx assembly over the owned cells
+gives them all on every cell (exact quadrature for the polynomial integrands; the data
+measures for f). The forms are compiled once per mesh with dolfinx Functions as coefficients;
+an evaluation writes the iterate's values into those Functions (nodal values on the owned
+dofs, then `scatter_forward` for the ghosts) and assembles. Global values are sums over the
+owned cells reduced over the communicator: every process returns the same numbers.
+
+**The remainder η_rem** (§6). The flux σ_α = σ_α,disc + σ_α,alg satisfies
+∇·σ_α = Π_P1 f_α ± λh - ρ_α on every cell, with ρ_α the part of the residual it leaves out of
+balance: ρ_α = r_αh without algebraic flux, 0 for the multilevel flux (its divergence is r_αh
+exactly), r'_αh ∓ (λ'_h - λh) for the ν flux (`nu_flux`). In the residual of the energy
+argument behind the bound, ρ enters as Σ_α (ρ_α, v_α), and Poincaré–Friedrichs
+(‖v_α‖ ≤ C_PF h_Ω ‖∇v_α‖, v_α ∈ H¹_0) gives
+
+    |Σ_α (ρ_α, v_α)| ≤ C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} |||v||| = η_rem |||v|||,
+
+a term of the same kind as the flux term ≤ η_1 |||v|||. So η_rem adds to η_1 in the bound, and,
+being algebraic in origin, to η_alg in the stopping criteria (as in Ern & Vohralík, SISC 2013):
+
+    η     = {(η_1 + η_rem + η_lin1 + η_lin3)² + η_lin2 + max(0, Σ_C)}^{1/2}
+    η_alg = (Σ_K Σ_α η_alg,K,α²)^{1/2} + η_rem,
+
+which keeps η ≤ η_disc + η_lin + η_alg. With η_rem = 0 this is §7's formula as written.
+"""
+
+import numpy as np
+import ufl
+from mpi4py import MPI
+
+from forms.estimators import (FLUX_RULE, P1_RULE, cell_norm_squared, contact_estimator,
+                              energy_squared, flux_squared, mass, oscillation_squared,
+                              projection_load, weighted_norm_squared)
+
+from ..fem.quadrature import over
+
+# Components of the per-cell vector of one evaluation (the vector-DG0 test function's index)
+DISC1, DISC2, CONTACT, LIN1, LAM_POS, LAM_NEG = range(6)      # always
+FLUX1, FLUX2, ALG1, ALG2 = range(6, 10)                          # with an algebraic flux
+
+
+def owned_cells(mesh):
+    return mesh.topology.index_map(mesh.topology.dim).size_local
+
+
+class CellForm:
+    """A linear form Σ_i q_i(w[i]) tested with vector DG0 (k components), compiled once: one
+    assembly gives the k integrals on every owned cell, as an array (owned cells, k) in the
+    mesh's cell order."""
+
+    def __init__(self, mesh, k, build):
+        from dolfinx import fem
+        self.W = fem.VectorFunctionSpace(mesh, ("DG", 0), dim=k)
+        self.k = k
+        self.form = fem.form(build(ufl.TestFunction(self.W)))
+        imap = self.W.dofmap.index_map
+        self._b = np.zeros((imap.size_local + imap.num_ghosts) * k)
+        nc = owned_cells(mesh)
+        # the block (one per cell) of each owned cell: DG0 dofs need not follow the cells
+        self._cells = self.W.dofmap.list.array.reshape(-1)[:nc].copy()
+
+    def cells(self):
+        """The k integrals on every owned cell, shape (owned cells, k)."""
+        from dolfinx import fem
+        self._b[:] = 0.0
+        fem.assemble_vector(self._b, self.form)
+        return self._b.reshape(-1, self.k)[self._cells]
+
+
+def global_sums(comm, columns):
+    """Σ over the owned cells of every column, summed over the communicator."""
+    local = np.asarray(columns, dtype=float).sum(axis=0)
+    return comm.allreduce(local, op=MPI.SUM)
+
+
+def dg1_projection(disc, f, DG1):
+    """Π_P1 f: the L² projection of f onto discontinuous P1 (cell by cell), as a DG1 Function.
+    The DG1 mass matrix is block diagonal with every block on the process owning the cell, so
+    block Jacobi with an exact LU of each process's block solves the system exactly."""
+    from dolfinx import fem
+    from dolfinx.fem import petsc
+    from petsc4py import PETSc
+    p, q = ufl.TrialFunction(DG1), ufl.TestFunction(DG1)
+    M = petsc.assemble_matrix(fem.form(mass(p, q, ufl.dx(metadata=P1_RULE))))
+    M.assemble()
+    b = petsc.assemble_vector(fem.form(over(disc.dx_data, lambda dx: projection_load(f, q, dx))))
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    prefix = f"membranes_dg1_projection_{id(M)}_"
+    opts = PETSc.Options()
+    opts[prefix + "ksp_type"] = "preonly"
+    opts[prefix + "pc_type"] = "bjacobi"
+    opts[prefix + "sub_ksp_type"] = "preonly"
+    opts[prefix + "sub_pc_type"] = "lu"
+    ksp = PETSc.KSP().create(disc.comm)
+    ksp.setOptionsPrefix(prefix)
+    ksp.setOperators(M)
+    ksp.setFromOptions()
+    for key in ("ksp_type", "pc_type", "sub_ksp_type", "sub_pc_type"):
+        del opts[prefix + key]
+    pf = fem.Function(DG1)
+    ksp.solve(b, pf.vector)
+    pf.x.scatter_forward()
+    for obj in (ksp, M, b):
+        obj.destroy()
+    return pf
+
+
+def constraint_parts(u1, u2, lam):
+    """Nodal values (on the owned dofs) of λ^pos = max(λ, 0), λ^neg = min(λ, 0) and of
+    e = s_h - u_h: 0 where u1h ≥ u2h, else ((u2h - u1h)/2, (u1h - u2h)/2), which moves both
+    membranes to their mean (§7)."""
+    lam_pos = np.maximum(lam, 0.0)
+    lam_neg = np.minimum(lam, 0.0)
+    half = np.where(u1 < u2, 0.5 * (u2 - u1), 0.0)
+    return lam_pos, lam_neg, half, -half
+
+
+class Estimators:
+    """The estimators of §7 on one mesh: set up once (spaces, Functions, compiled forms, the
+    oscillation), evaluated at any iterate by `evaluate(X, R)`.
+
+    `equilibration`: the σ_α,disc of §5, an object with `sigma(alpha, u, lam, r)` giving
+    σ_α,disc as an RT_1 Function (`membranes.estimation.equilibration.FluxEquilibration`);
+    it is asked only by `sigma_disc` (and so by `evaluate` and `nu_flux`)."""
+
+    def __init__(self, disc, equilibration=None):
+        from dolfinx import fem
+        from petsc4py import PETSc
+        mesh = disc.mesh
+        self.disc, self.equilibration, self.comm = disc, equilibration, disc.comm
+        self.n = disc.n
+        self.mu = (float(disc.mu1), float(disc.mu2))
+        self.cpf = float(disc.poincare)
+        self.kappa = self.cpf * np.sqrt(1.0 / self.mu[0] + 1.0 / self.mu[1])
+        mu = [fem.Constant(mesh, PETSc.ScalarType(m)) for m in self.mu]
+        self._mu = mu
+        V = disc.V
+        self.DG1 = fem.FunctionSpace(mesh, ("DG", 1))
+        self.RT = fem.FunctionSpace(mesh, ("RT", 2))
+        # coefficients the evaluations write into
+        self.u = [fem.Function(V) for _ in range(3)]                    # u1h, u2h, λh
+        self.lam_pos, self.lam_neg, self.e1, self.e2 = (fem.Function(V) for _ in range(4))
+        self.sigma = [fem.Function(self.RT) for _ in range(2)]          # σ_α,disc
+        self.sigma_alg = [fem.Function(self.RT) for _ in range(2)]
+        self.rho = [fem.Function(self.DG1) for _ in range(2)]           # r_αh (lifted R_α)
+        self.dlam = fem.Function(V)                                     # λ'_h - λh (ν flux)
+        self._build_forms()
+        self.osc = self._oscillation()                                  # (cells, 2)
+        self._recent = []                                               # σ_disc's last two
+
+    # ## Set-up
+
+    def _build_forms(self):
+        mesh = self.disc.mesh
+        u1, u2, lam = self.u
+        mu1, mu2 = self._mu
+        dp = ufl.dx(domain=mesh, metadata=P1_RULE)
+        df = ufl.dx(domain=mesh, metadata=FLUX_RULE)
+        s1, s2 = self.sigma
+        a1, a2 = self.sigma_alg
+
+        def base(w):
+            return (flux_squared(mu1, u1, s1, w[DISC1], df)
+                    + flux_squared(mu2, u2, s2, w[DISC2], df)
+                    + contact_estimator(u1, u2, self.lam_pos, w[CONTACT], dp)
+                    + energy_squared(mu1, mu2, self.e1, self.e2, w[LIN1], dp)
+                    + cell_norm_squared(self.lam_pos, w[LAM_POS], dp)
+                    + cell_norm_squared(self.lam_neg, w[LAM_NEG], dp))
+
+        def with_alg(w):
+            return (base(w)
+                    + flux_squared(mu1, u1, s1 + a1, w[FLUX1], df)
+                    + flux_squared(mu2, u2, s2 + a2, w[FLUX2], df)
+                    + weighted_norm_squared(mu1, a1, w[ALG1], df)
+                    + weighted_norm_squared(mu2, a2, w[ALG2], df))
+
+        # ρ_1 = r_1h - δλ, ρ_2 = r_2h + δλ (δλ = λ'_h - λh, zero outside the ν flux; §6)
+        r1, r2 = self.rho
+
+        def remainder(w):
+            return (weighted_norm_squared(mu1, r1 - self.dlam, w[0], dp)
+                    + weighted_norm_squared(mu2, r2 + self.dlam, w[1], dp))
+
+        self.cells_disc = CellForm(mesh, 6, base)
+        self.cells_alg = CellForm(mesh, 10, with_alg)
+        self.cells_rem = CellForm(mesh, 2, remainder)
+
+    def _oscillation(self):
+        """η_osc,K,α for every owned cell (cells, 2): iterate-independent, once per mesh."""
+        disc = self.disc
+        pf = [dg1_projection(disc, f, self.DG1) for f in (disc.f1, disc.f2)]
+        mu1, mu2 = self._mu
+        osc = CellForm(disc.mesh, 2, lambda w: over(disc.dx_data, lambda dx: (
+            oscillation_squared(mu1, disc.f1, pf[0], w[0], dx)
+            + oscillation_squared(mu2, disc.f2, pf[1], w[1], dx))))
+        self.projections = pf
+        return np.sqrt(np.maximum(osc.cells(), 0.0))
+
+    # ## Iterate data
+
+    def _write(self, X):
+        """u1h, u2h, λh and the nodal λ^pos, λ^neg, s_h - u_h of X into the Functions."""
+        n = self.n
+        self.disc.functions(X, out=self.u)
+        u1, u2, lam = (f.x.array[:n] for f in self.u)
+        for f, values in zip((self.lam_pos, self.lam_neg, self.e1, self.e2),
+                             constraint_parts(u1, u2, lam)):
+            f.x.array[:n] = values
+            f.x.scatter_forward()
+
+    def lifted(self, R):
+        """(r_1h, r_2h): the liftings of R_1, R_2 (§4) as DG1 Functions (zero for R None)."""
+        from dolfinx import fem
+        if R is None:
+            return [fem.Function(self.DG1) for _ in range(2)]
+        from .lifting import lift
+        n = self.n
+        a = R.array if hasattr(R, "array") else np.asarray(R)
+        return [lift(self.disc.V, a[k * n:(k + 1) * n]) for k in range(2)]
+
+    def _same(self, a, b):
+        """Whether the iterate-sized arrays a, b are equal on every process (collective)."""
+        local = (a is None and b is None) or (a is not None and b is not None
+                                              and np.array_equal(a, b))
+        return self.comm.allreduce(bool(local), op=MPI.LAND)
+
+    def sigma_disc(self, X, R=None):
+        """(σ_1,disc, σ_2,disc) at X with algebraic residual R (§5), and the lifted residuals
+        (r_1h, r_2h). The last two are kept: `nu_flux` and `evaluate` at the same iterate ask
+        for the same σ (the comparison is collective, so that every process computes or none)."""
+        x = np.array(X.array if hasattr(X, "array") else X)
+        r = None if R is None else np.array(R.array if hasattr(R, "array") else R)
+        for key, value in self._recent:
+            if self._same(key[0], x) and self._same(key[1], r):
+                return value
+        if self.equilibration is None:
+            raise ValueError("σ_disc needs an equilibration (Estimators(disc, equilibration))")
+        u = self.disc.functions(x)
+        rh = self.lifted(r)
+        sigma = tuple(self.equilibration.sigma(alpha, u[alpha - 1], u[2], rh[alpha - 1])
+                      for alpha in (1, 2))
+        self._recent = [((x, r), (sigma, rh))] + self._recent[:1]
+        return sigma, rh
+
+    # ## The remainder and the ν flux (§6)
+
+    def remainder(self, r, dlam=None):
+        """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_1 = r_1 - δλ, ρ_2 = r_2 + δλ
+        (r_α DG1 Functions, δλ = λ'_h - λh given by its owned nodal values, or 0)."""
+        n = self.n
+        for target, source in zip(self.rho, r):
+            target.x.array[:] = source.x.array
+        self.dlam.x.array[:n] = 0.0 if dlam is None else dlam
+        self.dlam.x.scatter_forward()
+        total = global_sums(self.comm, self.cells_rem.cells()).sum()
+        return float(self.cpf * np.sqrt(max(total, 0.0)))
+
+    def nu_flux(self, X, R, X_later, R_later):
+        """The algebraic flux of ν extra iterations (§6) at X (residual R) from the later
+        iterate X_later (residual R_later) of the same linear solve:
+
+            σ_α,alg = σ_α,disc(X_later, R_later) - σ_α,disc(X, R),
+
+        so that σ_α,disc + σ_α,alg = σ_α,disc(X_later), whose divergence is
+        Π_P1 f_α ± λ'_h - r'_αh = Π_P1 f_α ± λh - ρ_α with ρ_α = r'_αh ∓ (λ'_h - λh)
+        (- for α = 1); hence ∇·σ_α,alg = r_αh - r'_αh ± (λ'_h - λh) and the remainder
+        η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2}. Returns ((σ_1,alg, σ_2,alg), η_rem)."""
+        from dolfinx import fem
+        (now, _), (later, r_later) = self.sigma_disc(X, R), self.sigma_disc(X_later, R_later)
+        alg = []
+        for s_now, s_later in zip(now, later):
+            a = fem.Function(s_now.function_space)
+            a.x.array[:] = s_later.x.array - s_now.x.array
+            alg.append(a)
+        n = self.n
+        lam = np.asarray(X.array if hasattr(X, "array") else X)[2 * n:3 * n]
+        lam_later = np.asarray(X_later.array if hasattr(X_later, "array") else X_later)[2 * n:]
+        return tuple(alg), self.remainder(r_later, lam_later - lam)
+
+    # ## Evaluation (§7)
+
+    def _set_flux(self, targets, sources):
+        for target, source in zip(targets, sources):
+            if source.x.array.shape != target.x.array.shape or \
+                    source.function_space.ufl_element() != target.function_space.ufl_element():
+                raise ValueError("σ must be a Function of RT_1 (basix 'RT' of degree 2)")
+            target.x.array[:] = source.x.array
+
+    def evaluate(self, X, R=None, sigma_alg=None, eta_rem=None):
+        """Every estimator at X (§7). R: the algebraic residual in the iterate layout (None:
+        zero); sigma_alg: (σ_1,alg, σ_2,alg) RT_1 Functions, or None; eta_rem: the remainder
+        the flux leaves (§6; module notes). Default: without σ_alg, the Poincaré–Friedrichs
+        bound of the whole lifted residual, C_PF h_Ω (Σ_α μ_α^{-1} ‖r_αh‖²)^{1/2} (0 where
+        R = 0), so that η is a guaranteed bound at every iterate; with σ_alg, 0 (the
+        multilevel flux, whose divergence is r_αh exactly); `nu_flux` returns the ν flux's.
+
+        Returns a dict: the global eta, eta_disc, eta_lin, eta_alg, eta_F, eta_osc, eta_C
+        (Σ_C), eta_lin1, eta_lin2, eta_lin3, eta_rem, eta_1, and eta_K, the local
+        distribution of §7 on the owned cells (in the mesh's cell order)."""
+        sigma, r = self.sigma_disc(X, R)
+        if eta_rem is None:
+            eta_rem = self.remainder(r) if sigma_alg is None and R is not None else 0.0
+        return self.assemble(X, sigma, sigma_alg, eta_rem)
+
+    def assemble(self, X, sigma, sigma_alg=None, eta_rem=0.0):
+        """The estimators at X for the given σ_disc (and σ_alg): `evaluate` without the flux
+        equilibration (module notes for eta_rem)."""
+        self._write(X)
+        self._set_flux(self.sigma, sigma)
+        if sigma_alg is None:
+            q = self.cells_disc.cells()
+            flux = q[:, [DISC1, DISC2]]
+        else:
+            self._set_flux(self.sigma_alg, sigma_alg)
+            q = self.cells_alg.cells()
+            flux = q[:, [FLUX1, FLUX2]]
+        return self._combine(q, flux, sigma_alg is not None, float(eta_rem))
+
+    def _combine(self, q, flux, with_alg, eta_rem):
+        """The global values and η_K from the per-cell integrals q (§7)."""
+        osc = self.osc
+        disc_K = np.sqrt(np.maximum(q[:, [DISC1, DISC2]], 0.0))        # η_disc,K,α
+        flux_K = np.sqrt(np.maximum(flux, 0.0))                         # η_F,K,α
+        lin1_sq = np.maximum(q[:, LIN1], 0.0)                           # η_lin1,K²
+        lin3_sq = self.kappa ** 2 * np.maximum(q[:, LAM_NEG], 0.0)      # η_lin3,K²
+        eta_C_K = q[:, CONTACT]
+        columns = [((flux_K + osc) ** 2).sum(axis=1),                   # η_1²
+                   ((disc_K + osc) ** 2).sum(axis=1),                   # η_disc's flux part²
+                   (flux_K ** 2).sum(axis=1), (osc ** 2).sum(axis=1),   # η_F², η_osc²
+                   eta_C_K, lin1_sq, lin3_sq, q[:, LAM_POS]]            # Σ_C, lin1², lin3², ‖λ^pos‖²
+        if with_alg:
+            columns.append(np.maximum(q[:, ALG1], 0.0) + np.maximum(q[:, ALG2], 0.0))
+        s = global_sums(self.comm, np.stack(columns, axis=1))
+        eta_1, disc_part, eta_F, eta_osc = np.sqrt(np.maximum(s[[0, 1, 2, 3]], 0.0))
+        sum_C = float(s[4])
+        eta_lin1, eta_lin3 = np.sqrt(max(s[5], 0.0)), np.sqrt(max(s[6], 0.0))
+        lam_pos_norm = np.sqrt(max(s[7], 0.0))
+        # η_lin2 = (Σ_K η_lin2,K²)^{1/2} = 2 C_PF h_Ω (1/μ1 + 1/μ2)^{1/2} ‖λ^pos‖ η_lin1: a
+        # product of two energy-norm quantities, which enters η² as it is (§7)
+        eta_lin2 = 2.0 * self.kappa * lam_pos_norm * eta_lin1
+        alg_flux = np.sqrt(max(s[8], 0.0)) if with_alg else 0.0
+        eta = np.sqrt((eta_1 + eta_rem + eta_lin1 + eta_lin3) ** 2 + eta_lin2 + max(0.0, sum_C))
+        eta_K = np.sqrt(((flux_K + osc) ** 2).sum(axis=1) + lin1_sq + lin3_sq
+                        + np.abs(eta_C_K))
+        return {
+            "eta": float(eta),
+            "eta_disc": float(disc_part + np.sqrt(abs(sum_C))),
+            "eta_lin": float(eta_lin1 + eta_lin3 + np.sqrt(eta_lin2)),
+            "eta_alg": float(alg_flux + eta_rem),
+            "eta_F": float(eta_F), "eta_osc": float(eta_osc), "eta_C": sum_C,
+            "eta_lin1": float(eta_lin1), "eta_lin2": float(eta_lin2),
+            "eta_lin3": float(eta_lin3), "eta_rem": float(eta_rem), "eta_1": float(eta_1),
+            "eta_K": eta_K,
+        }

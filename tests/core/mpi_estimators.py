@@ -1,0 +1,136 @@
+"""A small estimator scene for the tests, and the script that evaluates it on P processes.
+
+`scene(comm, N)` builds, on a perturbed N × N square mesh partitioned by dolfinx on `comm`,
+a discretisation with cubic loads and a quadratic exact solution, an iterate X whose values
+are functions of the vertex coordinates (so the same discrete functions on any partition),
+two RT_1 fields σ and σ_alg given by formulas that RT_1 holds exactly, and DG1 residual
+liftings. Run as a script (`mpirun -n P python tests/core/mpi_estimators.py N`) it prints, on
+rank 0, one JSON line with the global estimators, the remainder and the energy error, after
+checking that every rank holds the same numbers.
+"""
+
+import json
+import sys
+
+import numpy as np
+import ufl
+from mpi4py import MPI
+
+MU1, MU2, G = 1.0, 3.0, 0.1
+
+
+def _builders(np_or_ufl):
+    """The scene's formulas in x = (x0, x1), for numpy arrays or UFL."""
+    sin, cos = np_or_ufl.sin, np_or_ufl.cos
+    return {
+        "f1": lambda x: x[0] ** 3 - 2 * x[0] * x[1] + 1,
+        "f2": lambda x: x[1] ** 2 * x[0] + 3 * x[1] ** 3,
+        "exact_u1": lambda x: x[0] ** 2 + x[0] * x[1],
+        "exact_u2": lambda x: x[1] ** 2 - x[0],
+        "u1": lambda x: 0.2 + x[0] * (1 - x[0]) * sin(3 * x[1]),
+        "u2": lambda x: 0.25 - 0.3 * x[1] * x[0],
+        "lam": lambda x: cos(4 * x[0] + x[1]),
+        # RT_1 = P1² + x P̃1 holds these exactly (the same p̃ in both components)
+        "sigma1": lambda x: (x[0] + 2 * x[1] + x[0] * (x[0] - x[1]),
+                             0.5 - x[1] + x[1] * (x[0] - x[1])),
+        "sigma2": lambda x: (0.3 - x[1] + x[0] * (2 * x[0] + x[1]),
+                             2 * x[0] + x[1] * (2 * x[0] + x[1])),
+        "alg1": lambda x: (0.1 * x[1], 0.05 - 0.2 * x[0]),
+        "alg2": lambda x: (0.1 + 0.2 * x[0] + 0.1 * x[0] * (x[0] + x[1]),
+                           0.3 * x[1] + 0.1 * x[1] * (x[0] + x[1])),
+        "r1": lambda x: 0.01 * sin(5 * x[0]) * x[1],
+        "r2": lambda x: 0.02 * cos(2 * x[1]) - 0.01,
+        "dlam": lambda x: 0.05 * x[0] * x[1],
+    }
+
+
+NP = _builders(np)
+UFL = _builders(ufl)
+
+
+class SquareProblem:
+    """What `membranes.fem.discretisation.discretise` and the estimators read of a problem."""
+
+    def __init__(self, mesh, mu1=MU1, mu2=MU2, f1=UFL["f1"], f2=UFL["f2"]):
+        from membranes.problem import ExactSolution
+        self.mesh, self.mu1, self.mu2, self.g = mesh, mu1, mu2, G
+        self.f1, self.f2 = f1, f2
+        self.interface = None
+        self.exact = ExactSolution(UFL["exact_u1"], UFL["exact_u2"], lambda x: 0.0)
+
+    def poincare_constant(self):
+        return 1.0 / (np.pi * np.sqrt(2.0))           # the unit square (§7)
+
+
+def perturbed_square(comm, N):
+    """The unit square cut into N × N × 2 triangles, interior vertices moved by up to h/4
+    (smooth in the coordinates: the same mesh on any partition)."""
+    from dolfinx import mesh as dmesh
+    m = dmesh.create_unit_square(comm, N, N, dmesh.CellType.triangle,
+                                 dmesh.GhostMode.shared_facet)
+    x = m.geometry.x
+    bump = 0.25 / N * np.sin(np.pi * x[:, 0]) * np.sin(np.pi * x[:, 1])
+    x0 = x[:, 0].copy()
+    x[:, 0] += bump * np.cos(9 * x[:, 1])
+    x[:, 1] += bump * np.sin(11 * x0)
+    return m
+
+
+def nodal(V, formula):
+    """Values of a formula at the P1 dofs (owned and ghost)."""
+    return formula(V.tabulate_dof_coordinates()[:, :2].T)
+
+
+def rt_function(RT, formula):
+    from dolfinx import fem
+    s = fem.Function(RT)
+    s.interpolate(lambda x: np.vstack(formula(x)))
+    return s
+
+
+def scene(comm, N):
+    """(disc, X, σ, σ_alg, r, δλ) of the module notes; X a numpy array of the owned values."""
+    from dolfinx import fem
+    from membranes.fem.discretisation import discretise
+    mesh = perturbed_square(comm, N)
+    disc = discretise(SquareProblem(mesh))
+    V, n = disc.V, disc.n
+    X = np.concatenate([nodal(V, NP[k])[:n] for k in ("u1", "u2", "lam")])
+    RT = fem.FunctionSpace(mesh, ("RT", 2))
+    sigma = [rt_function(RT, NP[k]) for k in ("sigma1", "sigma2")]
+    alg = [rt_function(RT, NP[k]) for k in ("alg1", "alg2")]
+    DG1 = fem.FunctionSpace(mesh, ("DG", 1))
+    r = []
+    for k in ("r1", "r2"):
+        f = fem.Function(DG1)
+        f.interpolate(lambda x, k=k: NP[k](x))
+        r.append(f)
+    dlam = nodal(V, NP["dlam"])[:n]
+    return disc, X, sigma, alg, r, dlam
+
+
+def main(N):
+    from membranes.estimation.energy_error import EnergyError
+    from membranes.estimation.estimators import Estimators
+    comm = MPI.COMM_WORLD
+    disc, X, sigma, alg, r, dlam = scene(comm, N)
+    est = Estimators(disc)
+    eta_rem = est.remainder(r, dlam)
+    plain = est.assemble(X, sigma)
+    full = est.assemble(X, sigma, alg, eta_rem)
+    out = {"eta_rem": eta_rem, "energy_error": EnergyError(disc)(X)}
+    for name, values in (("plain", plain), ("full", full)):
+        for key, v in values.items():
+            if key == "eta_K":
+                v = float(np.sqrt(comm.allreduce(float((v ** 2).sum()), op=MPI.SUM)))
+            out[f"{name}.{key}"] = v
+    every = comm.gather(out, root=0)
+    if comm.rank == 0:
+        if any(o != out for o in every):
+            print("ranks disagree", file=sys.stderr)
+            sys.exit(1)
+        print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 12)
