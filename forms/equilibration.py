@@ -36,3 +36,32 @@ def flux_estimator_squared(mu, u, sigma, w, dx=ufl.dx):
 def cell_norm_squared(v, w, dx=ufl.dx):
     """‖v‖_K² per cell (w a DG0 test function)."""
     return ufl.inner(v, v) * w * dx
+
+
+# ## The coloured patch problems of the distributed code (DESIGN §5, §12)
+#
+# Trial (σ, γ) and test (τ, q) functions in RT_1 × DG1. The divergence equation of §5 is
+# negated so that the patch matrix is symmetric (MUMPS then factorises it as LDLᵀ):
+#
+#     (σ, τ) - (γ, ∇·τ) - (∇·σ, q) = -(ψ μ ∇u, τ) - (g̃, q),
+#     g̃ = ψ (f - r) ± Λ - μ ∇u·∇ψ,
+#
+# ψ = Σ_a ψ_a and Λ = Σ_a λ_a ψ_a over the vertices a of one colour: on the patch of a such
+# vertex they are ψ_a and λ_a ψ_a, since no other vertex of the colour touches its cells.
+
+
+def patch_system(sigma, gamma, tau, q, dx=ufl.dx):
+    """(σ, τ) - (γ, ∇·τ) - (∇·σ, q): the symmetric mixed RT_1 × DG1 patch matrix (§5)."""
+    return (ufl.inner(sigma, tau) - gamma * ufl.div(tau) - ufl.div(sigma) * q) * dx
+
+
+def patch_rhs(psi, lam_c, sign, mu, u, r, tau, q, dx=ufl.dx):
+    """The iterate's part of the right-hand side of the coloured patch problems (§5):
+    -(ψ μ ∇u, τ) - (-ψ r ± Λ - μ ∇u·∇ψ, q), `sign` = +1 for α = 1, -1 for α = 2."""
+    g = -psi * r + sign * lam_c - mu * ufl.inner(ufl.grad(u), ufl.grad(psi))
+    return (-mu * psi * ufl.inner(ufl.grad(u), tau) - g * q) * dx
+
+
+def patch_load(psi, f, q, dx=ufl.dx):
+    """The data part -(ψ f, q) of the right-hand side (§5; dx a data measure)."""
+    return -psi * f * q * dx

@@ -1,0 +1,183 @@
+"""The discretisation flux σ_α,disc by patchwise mixed Raviart–Thomas problems (§5, §12).
+
+For each vertex a and membrane α, on the patch ω_a (cells sharing a), RT_1 × DG1:
+
+    (σ_a, τ) - (γ_a, ∇·τ) = -(ψ_a μ_α ∇u_αh, τ)      ∀ τ ∈ V_h^a
+    (∇·σ_a, q)            = (g̃_a, q)                   ∀ q ∈ Q_h^a
+    g̃_a = ψ_a (f_α ± λ_a - r_αh) - μ_α ∇u_αh·∇ψ_a       (+ for α = 1, - for α = 2)
+
+V_h^a: zero normal flux on ∂ω_a \\ ∂Ω; Q_h^a: zero mean if a ∉ ∂Ω. σ_α,disc = Σ_a σ_a, so that
+∇·σ_α,disc = Π_P1 f_α ± λ_h - r_αh on every cell (Σ_a ψ_a = 1, Σ_a λ_a ψ_a = λ_h,
+Σ_a ∇ψ_a = 0).
+
+Distributed set-up (§12): the vertices are coloured so that no two vertices of one colour share
+a cell (`patches.colour_vertices`); the patches of the vertices of colour c are then group c of
+`patches.PatchSystems`, one block-diagonal system factorised once per mesh. Per call and colour
+the right-hand side is ONE dolfinx assembly of `forms.equilibration.patch_rhs` with the P1
+coefficients ψ_c = Σ_{a of colour c} ψ_a and Λ_c = Σ_{a of colour c} λ_a ψ_a (on a patch of
+colour c they are ψ_a and λ_a ψ_a), plus the data part -(ψ_c f, q), which does not change with
+the iterate: it is assembled once per load (`load`, with the data measures). One back-solve per
+colour, and the RT parts of the colours' solutions add up to σ_α,disc.
+"""
+
+import numpy as np
+import ufl
+from petsc4py import PETSc
+
+import forms.equilibration as equilibration_forms
+
+from .patches import PatchSystems, Shared, colour_vertices
+
+
+def boundary_dofs(V):
+    """Bool over the local P1 dofs (owned and ghost): the dof lies on ∂Ω. A facet is on ∂Ω if one
+    cell of the whole mesh has it; its vertices' flags are then or-ed across processes."""
+    mesh = V.mesh
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim, tdim - 1)
+    nc = mesh.topology.index_map(tdim).size_local
+    fmap = mesh.topology.index_map(tdim - 1)
+    c2f = mesh.topology.connectivity(tdim, tdim - 1).array.reshape(-1, 3)[:nc]
+    facets = Shared(fmap, mesh.comm)
+    count = np.bincount(c2f.ravel(), minlength=fmap.size_local + fmap.num_ghosts)
+    count = facets.forward(facets.reverse(count, np.add))
+    # the dofs of local facet i of a triangle are its vertices other than vertex i
+    cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
+    imap = V.dofmap.index_map
+    on = np.zeros(imap.size_local + imap.num_ghosts, dtype=np.int64)
+    for i in range(3):
+        exterior = count[c2f[:, i]] == 1
+        for j in range(3):
+            if j != i:
+                on[cells[exterior, j]] = 1
+    vertices = Shared(imap, mesh.comm)
+    return vertices.forward(vertices.reverse(on, np.maximum)).astype(bool)
+
+
+class Load:
+    """The data part -(ψ_c f, q) of the patch right-hand sides, restricted to each colour's kept
+    dofs: assembled once per load f (and mesh), reused at every call of `sigma`."""
+
+    def __init__(self, eq, f, measures=None):
+        from dolfinx import fem
+        from dolfinx.fem.petsc import assemble_vector
+        from membranes.fem.quadrature import over
+        self.f = f
+        measures = measures if measures is not None else [ufl.dx(domain=eq.mesh)]
+        _, q = ufl.TestFunctions(eq.systems.W)
+        form = fem.form(over(measures, lambda dx: equilibration_forms.patch_load(eq.psi, f, q,
+                                                                                 dx)))
+        self.parts = []
+        for c in range(eq.ncolours):
+            eq.set_colour(c)
+            b = assemble_vector(form)
+            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            self.parts.append(b.array_r[eq.systems.groups[c]["kept"]].copy())
+            b.destroy()
+
+
+class FluxEquilibration:
+    """σ_α,disc on one mesh (§5): colouring, patch systems and factorisations set up once.
+
+    `FluxEquilibration(V_or_disc, measures=None)`: V the P1 space, or a Discretisation (its V and
+    data measures dx_data are used). `sigma(alpha, u, lam, r, f, mu, out=None)` returns σ_α,disc
+    as a Function of `rt_space` (RT_1): u the P1 Function u_αh, lam the P1 Function λ_h (nodal
+    values λ_a), r the DG1 Function r_αh (`lifting.Lifting`), f a UFL expression of f_α or a
+    `Load` from `load(f)` (an expression is turned into a Load at its first use and kept), mu
+    the float μ_α.
+    """
+
+    def __init__(self, V, measures=None):
+        from dolfinx import fem
+        if hasattr(V, "V"):                               # a Discretisation
+            measures = measures if measures is not None else getattr(V, "dx_data", None)
+            V = V.V
+        self.V, self.mesh, self.comm = V, V.mesh, V.mesh.comm
+        self.measures = measures
+        mesh = self.mesh
+        nc = mesh.topology.index_map(mesh.topology.dim).size_local
+        cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
+        imap = V.dofmap.index_map
+        self.colour, self.ncolours, self.colour_rounds = colour_vertices(cells, imap, self.comm)
+        self.on_boundary = boundary_dofs(V)
+        gdofs = np.asarray(imap.local_to_global(np.arange(self.colour.size, dtype=np.int32)),
+                           dtype=np.int64)
+        patches, interior = [], []
+        for c in range(self.ncolours):
+            hit = self.colour[cells] == c                               # ≤ 1 per cell
+            which = np.argmax(hit, axis=1)
+            vertex = cells[np.arange(nc), which]
+            has = hit.any(axis=1)
+            patches.append(np.where(has, gdofs[vertex], -1))
+            interior.append(has & ~self.on_boundary[vertex])
+        self.systems = PatchSystems(mesh, patches, interior)
+        self.rt_space = self.systems.rt_space
+
+        # coefficients of the right-hand side forms, compiled once
+        self.psi, self.lam_c = fem.Function(V), fem.Function(V)
+        self.u, self.lam = fem.Function(V), fem.Function(V)
+        self.r = fem.Function(fem.FunctionSpace(mesh, ("DG", 1)))
+        self.mu = fem.Constant(mesh, 1.0)
+        self.sign = fem.Constant(mesh, 1.0)
+        tau, q = ufl.TestFunctions(self.systems.W)
+        self.rhs_form = fem.form(equilibration_forms.patch_rhs(
+            self.psi, self.lam_c, self.sign, self.mu, self.u, self.r, tau, q))
+        from dolfinx.fem.petsc import create_vector
+        self.b = create_vector(self.rhs_form)
+        self.x = self.b.duplicate()
+        self._loads = {}
+
+    def set_colour(self, c, lam=None):
+        """ψ = indicator of colour c at the P1 dofs (owned and ghost); Λ = λ there."""
+        mask = self.colour == c
+        self.psi.x.array[:] = mask
+        if lam is not None:
+            self.lam_c.x.array[:] = np.where(mask, lam, 0.0)
+
+    def load(self, f, measures=None):
+        """The `Load` of the expression f_α (data measures: `measures`, else the constructor's)."""
+        return Load(self, f, measures if measures is not None else self.measures)
+
+    def _copy(self, target, source):
+        n = target.function_space.dofmap.index_map.size_local
+        target.x.array[:n] = source.x.array[:n]
+        target.x.scatter_forward()
+
+    def sigma(self, alpha, u, lam, r, f, mu, out=None):
+        """σ_α,disc (§5) as an RT_1 Function (written into `out` if given)."""
+        from dolfinx import fem
+        from dolfinx.fem.petsc import assemble_vector
+        if alpha not in (1, 2):
+            raise ValueError(f"alpha must be 1 or 2, got {alpha!r}")
+        if not isinstance(f, Load):
+            key = id(f)
+            if key not in self._loads:
+                self._loads[key] = self.load(f)           # keeps f alive: the id stays unique
+            f = self._loads[key]
+        self.sign.value = 1.0 if alpha == 1 else -1.0
+        self.mu.value = float(mu)
+        self._copy(self.u, u)
+        self._copy(self.r, r)
+        self._copy(self.lam, lam)
+        sigma = out if out is not None else fem.Function(self.rt_space)
+        sigma.x.array[:] = 0.0
+        for c in range(self.ncolours):
+            self.set_colour(c, self.lam.x.array)
+            with self.b.localForm() as local:
+                local.set(0.0)
+            assemble_vector(self.b, self.rhs_form)
+            self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            group = self.systems.groups[c]
+            self.b.array[group["kept"]] += f.parts[c]
+            self.systems.solve(c, self.b, self.x)
+            self.systems.add_flux(self.x, sigma)
+        sigma.x.scatter_forward()
+        return sigma
+
+    def summary(self):
+        """Global facts of the set-up: colours, Jones–Plassmann rounds, unknowns per colour."""
+        return dict(colours=self.ncolours, rounds=self.colour_rounds,
+                    unknowns=self.systems.sizes(),
+                    vertices=self.V.dofmap.index_map.size_global,
+                    processes=self.comm.size)
+

@@ -1,0 +1,64 @@
+"""The lifting of an algebraic residual into a discontinuous P1 function (§4).
+
+A residual R (one value per P1 dof, zero at Dirichlet vertices) is lifted to r_h ∈ DG1: on each
+cell K and each of its vertices a_l,
+
+    (r_h, ψ_{a_l})_K = R_l / N_l,     N_l = number of cells sharing a_l (over all processes),
+
+so that (r_h, ψ_l)_Ω = Σ_{K ∋ a_l} R_l / N_l = R_l and the linear rows of §2 read
+μ1 (∇u1h, ∇ψ_l) = (f1 + λ_l - r1h, ψ_l), μ2 (∇u2h, ∇ψ_l) = (f2 - λ_l - r2h, ψ_l).
+
+On K the P1 mass matrix is M_K = |K|/12 (I + 1 1ᵀ) (vertex order), whose inverse is
+M_K⁻¹ = (3/|K|) (4 I - 1 1ᵀ) = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]]; the DG1 coefficients of
+r_h on K (Lagrange, the same vertex order as P1) are r_K = M_K⁻¹ (R_l / N_l)_{l ∈ K}. This is
+cell-local algebra, vectorised over the owned cells. N_l counts the owned cells at each dof on
+every process, added up on the owner by dolfinx's reverse scatter.
+"""
+
+import numpy as np
+
+MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
+
+
+class Lifting:
+    """R ↦ r_h for the P1 space V (set up once per mesh: cell areas, N_l)."""
+
+    def __init__(self, V):
+        from dolfinx import fem, la
+        mesh = V.mesh
+        self.V = V
+        self.Q = fem.FunctionSpace(mesh, ("DG", 1))
+        self.ncells = nc = mesh.topology.index_map(mesh.topology.dim).size_local
+        self.n = V.dofmap.index_map.size_local
+        self.cells = V.dofmap.list.array.reshape(-1, 3)[:nc].astype(np.int64)
+        self.dg = self.Q.dofmap.list.array.reshape(-1, 3)[:nc].astype(np.int64)
+        x = V.tabulate_dof_coordinates()[:, :2][self.cells]                    # (nc, 3, 2)
+        e1, e2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
+        area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        # N_l over all processes: owned cells counted locally, ghosts added to their owners
+        count = fem.Function(V)
+        count.x.array[:] = np.bincount(self.cells.ravel(), minlength=count.x.array.size)
+        count.x.scatter_reverse(la.ScatterMode.add)
+        count.x.scatter_forward()
+        self.count = count.x.array.copy()
+        # r_K = (3/|K|) MINV_REF (R_l / N_l): the cell factor (3/|K|) / N_l per column
+        self.scale = (3.0 / area)[:, None] / self.count[self.cells]                # (nc, 3)
+        self._R = fem.Function(V)
+
+    def __call__(self, R, out=None):
+        """The DG1 Function r_h of the owned residual R (numpy array of length n, or a PETSc
+        Vec of owned size n), written into `out` if given."""
+        from dolfinx import fem
+        R = R.array_r if hasattr(R, "array_r") else np.asarray(R)
+        self._R.x.array[:self.n] = R[:self.n]
+        self._R.x.scatter_forward()
+        r = out if out is not None else fem.Function(self.Q)
+        values = self._R.x.array[self.cells] * self.scale                          # (nc, 3)
+        r.x.array[self.dg] = values @ MINV_REF                 # MINV_REF is symmetric
+        r.x.scatter_forward()
+        return r
+
+
+def lift(V, R_owned, out=None):
+    """r_h ∈ DG1 with (r_h, ψ_l)_Ω = R_l for every P1 dof l (§4); one-off use of `Lifting`."""
+    return Lifting(V)(R_owned, out)
