@@ -1,0 +1,281 @@
+"""The estimators of §7 (and the remainder of §6, the energy error) against an independent
+computation: numpy quadrature cell by cell (a collapsed Gauss–Legendre rule exact to degree
+14, the P1 basis by barycentric coordinates, the RT_1 fields and the data by their formulas),
+on the scene of `tests/core/mpi_estimators.py`, whose integrands are all polynomials (cubic
+loads, RT_1 fields, P1 and DG1 functions, a quadratic exact solution) so that both sides are
+exact up to round-off: tolerance 1e-11 relative to the largest value of each quantity.
+"""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from membranes.estimation import estimators as est_module
+from membranes.estimation.energy_error import EnergyError
+from membranes.estimation.estimators import Estimators
+from tests.core.mpi_estimators import MU1, MU2, NP, scene
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+TOL = 1e-11
+
+
+def collapsed_rule(n=8):
+    """Points and weights on the reference triangle (0,0), (1,0), (0,1) from an n × n
+    Gauss–Legendre rule on the square through the Duffy map (ξ, η) = (a, b (1 - a)): exact for
+    polynomials of degree ≤ 2n - 2."""
+    g, w = np.polynomial.legendre.leggauss(n)
+    g, w = (g + 1) / 2, w / 2
+    a, b = np.meshgrid(g, g, indexing="ij")
+    wa, wb = np.meshgrid(w, w, indexing="ij")
+    return np.stack([a.ravel(), (b * (1 - a)).ravel()], axis=1), (wa * wb * (1 - a)).ravel()
+
+
+PTS, WTS = collapsed_rule()
+PHI = np.stack([1 - PTS[:, 0] - PTS[:, 1], PTS[:, 0], PTS[:, 1]], axis=1)   # (q, 3)
+DPHI = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
+
+
+def reference(disc, X, sigma_f, alg_f, f_np, r_f=None, dlam=None, exact=None):
+    """Every per-cell quantity by numpy quadrature on the owned cells (mesh order)."""
+    V, n = disc.V, disc.n
+    coords = V.tabulate_dof_coordinates()[:, :2]
+    ghosts = V.dofmap.index_map.num_ghosts
+    # nodal values on owned and ghost dofs from the formulas (not from a scatter)
+    vals = {k: NP[k](coords.T) for k in ("u1", "u2", "lam")}
+    assert np.array_equal(np.concatenate([vals[k][:n] for k in ("u1", "u2", "lam")]), X)
+    u1, u2, lam = vals["u1"], vals["u2"], vals["lam"]
+    lp, ln = np.maximum(lam, 0), np.minimum(lam, 0)
+    half = np.where(u1 < u2, 0.5 * (u2 - u1), 0.0)
+    assert len(u1) == n + ghosts
+    ncells = disc.mesh.topology.index_map(2).size_local
+    mu = (MU1, MU2)
+    out = {k: np.zeros(ncells) for k in ("disc1", "disc2", "F1", "F2", "alg1", "alg2", "osc1",
+                                         "osc2", "C", "lin1", "lp", "ln", "rem", "energy")}
+    M_ref = np.einsum("q,qi,qj->ij", WTS, PHI, PHI)
+    for c in range(ncells):
+        d = V.dofmap.cell_dofs(c)
+        v = coords[d]
+        J = np.column_stack([v[1] - v[0], v[2] - v[0]])
+        det = abs(np.linalg.det(J))
+        grads = DPHI @ np.linalg.inv(J)                      # (3, 2): ∇φ_i
+        x = (v[0][:, None] + J @ PTS.T)                      # (2, q)
+        w = WTS * det
+        h = max(np.linalg.norm(v[i] - v[j]) for i, j in ((0, 1), (1, 2), (2, 0)))
+
+        def p1(values):
+            return PHI @ values[d]
+
+        def grad(values):
+            return values[d] @ grads
+        for a, (u, sig, alg, f) in enumerate(zip((u1, u2), sigma_f, alg_f, f_np)):
+            s = np.array(sig(x))
+            al = np.array(alg(x))
+            gu = grad(u)[:, None]
+            out[f"disc{a + 1}"][c] = w @ ((np.sqrt(mu[a]) * gu + s / np.sqrt(mu[a])) ** 2).sum(0)
+            out[f"F{a + 1}"][c] = w @ ((np.sqrt(mu[a]) * gu + (s + al) / np.sqrt(mu[a])) ** 2
+                                       ).sum(0)
+            out[f"alg{a + 1}"][c] = w @ (al ** 2).sum(0) / mu[a]
+            fx = f(x)
+            coef = np.linalg.solve(M_ref * det, (w * fx) @ PHI)
+            out[f"osc{a + 1}"][c] = (h / np.pi) ** 2 / mu[a] * (w @ (fx - PHI @ coef) ** 2)
+        out["C"][c] = 2 * w @ ((p1(u1) - p1(u2)) * p1(lp))
+        e1, e2 = grad(half), grad(-half)
+        out["lin1"][c] = det / 2 * (MU1 * e1 @ e1 + MU2 * e2 @ e2)
+        out["lp"][c] = w @ p1(lp) ** 2
+        out["ln"][c] = w @ p1(ln) ** 2
+        if r_f is not None:
+            dl = np.zeros(n + ghosts)
+            dl[:] = NP["dlam"](coords.T)
+            # r_α: the DG1 interpolant of its formula (the vertex values of the cell)
+            r1, r2 = (PHI @ rf(v.T) for rf in r_f)
+            out["rem"][c] = w @ (r1 - p1(dl)) ** 2 / MU1 + w @ (r2 + p1(dl)) ** 2 / MU2
+        if exact is not None:
+            g1, g2 = (np.array(gx(x)) for gx in exact)
+            out["energy"][c] = (MU1 * w @ ((g1 - grad(u1)[:, None]) ** 2).sum(0)
+                                + MU2 * w @ ((g2 - grad(u2)[:, None]) ** 2).sum(0))
+    return out
+
+
+EXACT_GRADS = (lambda x: (2 * x[0] + x[1], x[0]), lambda x: (-np.ones_like(x[0]), 2 * x[1]))
+
+
+@pytest.fixture(scope="module")
+def setup():
+    disc, X, sigma, alg, r, dlam = scene(MPI.COMM_WORLD, 5)
+    ref = reference(disc, X, (NP["sigma1"], NP["sigma2"]), (NP["alg1"], NP["alg2"]),
+                    (NP["f1"], NP["f2"]), (NP["r1"], NP["r2"]), dlam, EXACT_GRADS)
+    return disc, X, sigma, alg, r, dlam, ref
+
+
+def close(a, b, tol=TOL):
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    scale = max(np.abs(b).max(initial=0.0), 1e-300)
+    return np.abs(a - b).max(initial=0.0) <= tol * scale
+
+
+def per_cell(est, X, sigma, alg):
+    """The per-cell integrals the estimators assemble, by name."""
+    est.assemble(X, sigma, alg)
+    q = est.cells_alg.cells()
+    E = est_module
+    return {"disc1": q[:, E.DISC1], "disc2": q[:, E.DISC2], "F1": q[:, E.FLUX1],
+            "F2": q[:, E.FLUX2], "alg1": q[:, E.ALG1], "alg2": q[:, E.ALG2],
+            "osc1": est.osc[:, 0] ** 2, "osc2": est.osc[:, 1] ** 2, "C": q[:, E.CONTACT],
+            "lin1": q[:, E.LIN1], "lp": q[:, E.LAM_POS], "ln": q[:, E.LAM_NEG]}
+
+
+def test_per_cell_against_numpy_quadrature(setup):
+    """Each per-cell quantity of §7 equals the numpy quadrature on every cell."""
+    disc, X, sigma, alg, r, dlam, ref = setup
+    got = per_cell(Estimators(disc), X, sigma, alg)
+    for key, value in got.items():
+        assert close(value, ref[key]), key
+    # the scene is not degenerate: every quantity is present on some cell
+    for key in got:
+        assert np.abs(ref[key]).max() > 1e-12, key
+
+
+def test_global_values_and_bound(setup):
+    """The global values and η_K from the independent per-cell values by §7's formulas, with
+    the remainder of §6 against its own quadrature."""
+    disc, X, sigma, alg, r, dlam, ref = setup
+    est = Estimators(disc)
+    cpf = 1 / (np.pi * np.sqrt(2))
+    kappa = cpf * np.sqrt(1 / MU1 + 1 / MU2)
+    eta_rem = est.remainder(r, dlam)
+    assert np.isclose(eta_rem, cpf * np.sqrt(ref["rem"].sum()), rtol=TOL, atol=0)
+    got = est.assemble(X, sigma, alg, eta_rem)
+    osc = np.sqrt(np.stack([ref["osc1"], ref["osc2"]], 1))
+    F = np.sqrt(np.stack([ref["F1"], ref["F2"]], 1))
+    D = np.sqrt(np.stack([ref["disc1"], ref["disc2"]], 1))
+    eta_1 = np.sqrt(((F + osc) ** 2).sum())
+    lin1 = np.sqrt(ref["lin1"].sum())
+    lin2 = 2 * kappa * np.sqrt(ref["lp"].sum()) * lin1
+    lin3 = kappa * np.sqrt(ref["ln"].sum())
+    sum_C = ref["C"].sum()
+    expect = {
+        "eta": np.sqrt((eta_1 + eta_rem + lin1 + lin3) ** 2 + lin2 + max(0, sum_C)),
+        "eta_disc": np.sqrt(((D + osc) ** 2).sum()) + np.sqrt(abs(sum_C)),
+        "eta_lin": lin1 + lin3 + np.sqrt(lin2),
+        "eta_alg": np.sqrt((ref["alg1"] + ref["alg2"]).sum()) + eta_rem,
+        "eta_F": np.sqrt((F ** 2).sum()), "eta_osc": np.sqrt((osc ** 2).sum()),
+        "eta_C": sum_C, "eta_lin1": lin1, "eta_lin2": lin2, "eta_lin3": lin3,
+        "eta_rem": eta_rem, "eta_1": eta_1}
+    for key, value in expect.items():
+        assert np.isclose(got[key], value, rtol=TOL, atol=0), key
+    eta_K = np.sqrt(((F + osc) ** 2).sum(1) + ref["lin1"] + kappa ** 2 * ref["ln"]
+                    + np.abs(ref["C"]))
+    assert close(got["eta_K"], eta_K)
+    # the components bound η (Corollary 5.6 of the paper, §7)
+    assert got["eta"] <= got["eta_disc"] + got["eta_lin"] + got["eta_alg"]
+    # without σ_alg: η_F is η_disc's flux part, no algebraic part
+    plain = est.assemble(X, sigma)
+    assert np.isclose(plain["eta_F"], np.sqrt((D ** 2).sum()), rtol=TOL, atol=0)
+    assert plain["eta_alg"] == 0.0 and plain["eta_rem"] == 0.0
+
+
+def test_energy_error_against_numpy_quadrature(setup):
+    disc, X, sigma, alg, r, dlam, ref = setup
+    error = EnergyError(disc)
+    assert close(error.per_cell(X) ** 2, ref["energy"])
+    assert np.isclose(error(X), np.sqrt(ref["energy"].sum()), rtol=TOL, atol=0)
+
+
+def test_energy_error_needs_exact_solution(setup):
+    disc = setup[0]
+
+    class NoExact:
+        exact = None
+    saved = disc.problem
+    try:
+        disc.problem = NoExact()
+        with pytest.raises(ValueError, match="exact solution"):
+            EnergyError(disc)
+    finally:
+        disc.problem = saved
+
+
+def test_constraint_estimators_vanish_on_a_feasible_iterate(setup):
+    """u1h ≥ u2h, λh ≥ 0 and λh (u1h - u2h) = 0 at every vertex (an iterate satisfying the
+    discrete complementarity exactly, as a discrete solution does): s_h = u_h, λ^neg = 0 and
+    (u1h - u2h) λ^pos = 0 nodally, but not on cells where contact and gap meet: η_lin1 =
+    η_lin2 = η_lin3 = 0 exactly, and Σ_C ≥ 0 (the lumped complementarity leaves a positive
+    product (u1h - u2h, λ^pos)_K on the cells that have both a vertex in contact and one off
+    it). Without contact (λh = 0) Σ_C = 0 too, and η_lin = 0."""
+    disc, X, sigma, alg, r, dlam, ref = setup
+    n = disc.n
+    est = Estimators(disc)
+    coords = disc.V.tabulate_dof_coordinates()[:n, :2].T
+    u2 = NP["u2"](coords)
+    contact = coords[0] < 0.5
+    gap = np.where(contact, 0.0, 0.1 + coords[1] ** 2)
+    lam = np.where(contact, 1.0 + coords[1], 0.0)
+    Xf = np.concatenate([u2 + gap, u2, lam])
+    got = est.assemble(Xf, sigma)
+    assert got["eta_lin1"] == got["eta_lin2"] == got["eta_lin3"] == got["eta_lin"] == 0.0
+    assert got["eta_C"] > 0.0
+    Xn = np.concatenate([u2 + gap, u2, np.zeros(n)])
+    got = est.assemble(Xn, sigma)
+    assert got["eta_C"] == got["eta_lin"] == 0.0
+    # and a negative λ is measured by η_lin3 = κ ‖λ^neg‖ alone
+    Xm = np.concatenate([u2 + gap, u2, -np.ones(n)])
+    got = est.assemble(Xm, sigma)
+    kappa = est.kappa
+    area = disc.comm.allreduce(float(cell_areas(disc).sum()), op=MPI.SUM)
+    assert got["eta_lin1"] == 0.0 and got["eta_C"] == 0.0
+    assert np.isclose(got["eta_lin3"], kappa * np.sqrt(area), rtol=TOL, atol=0)
+
+
+def cell_areas(disc):
+    x = disc.V.tabulate_dof_coordinates()[:, :2]
+    ncells = disc.mesh.topology.index_map(2).size_local
+    d = np.array([disc.V.dofmap.cell_dofs(c) for c in range(ncells)])
+    e1, e2 = x[d[:, 1]] - x[d[:, 0]], x[d[:, 2]] - x[d[:, 0]]
+    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+
+FORMS = ["flux_squared", "weighted_norm_squared", "cell_norm_squared", "contact_estimator",
+         "energy_squared", "oscillation_squared"]
+
+
+@pytest.mark.parametrize("name", FORMS)
+def test_a_changed_form_changes_the_result(setup, monkeypatch, name):
+    """Scaling one form of forms/estimators.py by 1 + 1e-6 moves some per-cell value off the
+    independent quadrature by far more than the tolerance: the comparison sees each form."""
+    disc, X, sigma, alg, r, dlam, ref = setup
+    original = getattr(est_module, name)
+    monkeypatch.setattr(est_module, name, lambda *a, **k: (1 + 1e-6) * original(*a, **k))
+    est = Estimators(disc)
+    got = per_cell(est, X, sigma, alg)
+    rem = est.remainder(r, dlam)
+    moved = [k for k, v in got.items() if not close(v, ref[k], 1e-8)]
+    if name == "weighted_norm_squared":
+        cpf = 1 / (np.pi * np.sqrt(2))
+        moved += [] if np.isclose(rem, cpf * np.sqrt(ref["rem"].sum()), rtol=1e-8) else ["rem"]
+    assert moved, name
+
+
+@pytest.mark.parametrize("procs", [2, 3])
+def test_same_estimators_on_several_processes(procs):
+    """The global values on 2 and 3 processes equal the serial ones to 1e-12 relative (every
+    rank returns the same numbers: the script checks it)."""
+    runs = {}
+    # this process initialised MPI as a singleton: its OMPI_/PMIX_ variables would confuse the
+    # new mpirun
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    for p in (1, procs):
+        cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(p), sys.executable,
+               os.path.join(ROOT, "tests", "core", "mpi_estimators.py"), "16"]
+        done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0, done.stderr[-2000:]
+        runs[p] = json.loads(done.stdout.strip().splitlines()[-1])
+    serial, parallel = runs[1], runs[procs]
+    assert serial.keys() == parallel.keys()
+    for key, value in serial.items():
+        assert abs(parallel[key] - value) <= 1e-12 * abs(value), key
