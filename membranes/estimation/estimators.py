@@ -55,6 +55,11 @@ DISC1, DISC2, CONTACT, LIN1, LAM_POS, LAM_NEG = range(6)      # always
 FLUX1, FLUX2, ALG1, ALG2 = range(6, 10)                          # with an algebraic flux
 
 
+def owned(X):
+    """The owned entries of an iterate-layout PETSc Vec (read-only), or the array itself."""
+    return X.array_r if hasattr(X, "array_r") else np.asarray(X)
+
+
 def owned_cells(mesh):
     return mesh.topology.index_map(mesh.topology.dim).size_local
 
@@ -133,15 +138,18 @@ def constraint_parts(u1, u2, lam):
 
 class Estimators:
     """The estimators of §7 on one mesh: set up once (spaces, Functions, compiled forms, the
-    oscillation), evaluated at any iterate by `evaluate(X, R)`.
+    oscillation, the residual lifting), evaluated at any iterate by `evaluate(X, R)`.
 
-    `equilibration`: the σ_α,disc of §5, an object with `sigma(alpha, u, lam, r)` giving
-    σ_α,disc as an RT_1 Function (`membranes.estimation.equilibration.FluxEquilibration`);
-    it is asked only by `sigma_disc` (and so by `evaluate` and `nu_flux`)."""
+    `equilibration`: the σ_α,disc of §5, a `membranes.estimation.equilibration.
+    FluxEquilibration` (`sigma(alpha, u, lam, r, f, mu, out)`, its RT_1 space `rt_space`);
+    it is asked only by `sigma_disc` (and so by `evaluate` and `nu_flux`). Without it,
+    `assemble` takes σ_disc from the caller."""
 
     def __init__(self, disc, equilibration=None):
         from dolfinx import fem
         from petsc4py import PETSc
+
+        from .lifting import Lifting
         mesh = disc.mesh
         self.disc, self.equilibration, self.comm = disc, equilibration, disc.comm
         self.n = disc.n
@@ -151,8 +159,12 @@ class Estimators:
         mu = [fem.Constant(mesh, PETSc.ScalarType(m)) for m in self.mu]
         self._mu = mu
         V = disc.V
-        self.DG1 = fem.FunctionSpace(mesh, ("DG", 1))
-        self.RT = fem.FunctionSpace(mesh, ("RT", 2))
+        self.lifting = Lifting(V)                                       # R_α ↦ r_αh (§4)
+        self.DG1 = self.lifting.Q
+        self.RT = (equilibration.rt_space if equilibration is not None
+                   else fem.FunctionSpace(mesh, ("RT", 2)))
+        if equilibration is not None:                                   # data parts, once
+            self.loads = [equilibration.load(f) for f in (disc.f1, disc.f2)]
         # coefficients the evaluations write into
         self.u = [fem.Function(V) for _ in range(3)]                    # u1h, u2h, λh
         self.lam_pos, self.lam_neg, self.e1, self.e2 = (fem.Function(V) for _ in range(4))
@@ -163,6 +175,7 @@ class Estimators:
         self._build_forms()
         self.osc = self._oscillation()                                  # (cells, 2)
         self._recent = []                                               # σ_disc's last two
+        self._layouts = {}                                              # `_alike`'s verdicts
 
     # ## Set-up
 
@@ -224,15 +237,18 @@ class Estimators:
             f.x.array[:n] = values
             f.x.scatter_forward()
 
-    def lifted(self, R):
-        """(r_1h, r_2h): the liftings of R_1, R_2 (§4) as DG1 Functions (zero for R None)."""
+    def lifted(self, R, out=None):
+        """(r_1h, r_2h): the liftings of R_1, R_2 (§4) as DG1 Functions (zero for R None),
+        written into `out` (two DG1 Functions) if given."""
         from dolfinx import fem
+        out = out if out is not None else [fem.Function(self.DG1) for _ in range(2)]
         if R is None:
-            return [fem.Function(self.DG1) for _ in range(2)]
-        from .lifting import lift
+            for r in out:
+                r.x.array[:] = 0.0
+            return out
         n = self.n
-        a = R.array if hasattr(R, "array") else np.asarray(R)
-        return [lift(self.disc.V, a[k * n:(k + 1) * n]) for k in range(2)]
+        a = owned(R)
+        return [self.lifting(a[k * n:(k + 1) * n], r) for k, r in enumerate(out)]
 
     def _same(self, a, b):
         """Whether the iterate-sized arrays a, b are equal on every process (collective)."""
@@ -241,21 +257,34 @@ class Estimators:
         return self.comm.allreduce(bool(local), op=MPI.LAND)
 
     def sigma_disc(self, X, R=None):
-        """(σ_1,disc, σ_2,disc) at X with algebraic residual R (§5), and the lifted residuals
-        (r_1h, r_2h). The last two are kept: `nu_flux` and `evaluate` at the same iterate ask
-        for the same σ (the comparison is collective, so that every process computes or none)."""
-        x = np.array(X.array if hasattr(X, "array") else X)
-        r = None if R is None else np.array(R.array if hasattr(R, "array") else R)
-        for key, value in self._recent:
+        """((σ_1,disc, σ_2,disc), (r_1h, r_2h)) at X with algebraic residual R (§4, §5).
+
+        The last two are kept (the ν flux asks for σ_disc at X and at the later iterate, and
+        the later one is the next ν flux's X; `evaluate` at X asks again): an iterate seen
+        before is found by comparing X and R on every process (collectively, so that all
+        processes compute or none), and a new one is written into the Functions of the
+        older kept one."""
+        from dolfinx import fem
+        x = np.array(owned(X))
+        r = None if R is None else np.array(owned(R))
+        for i, (key, value) in enumerate(self._recent):
             if self._same(key[0], x) and self._same(key[1], r):
+                self._recent.insert(0, self._recent.pop(i))
                 return value
-        if self.equilibration is None:
+        eq = self.equilibration
+        if eq is None:
             raise ValueError("σ_disc needs an equilibration (Estimators(disc, equilibration))")
+        if len(self._recent) == 2:
+            sigma, rh = self._recent.pop()[1]
+        else:
+            sigma = tuple(fem.Function(self.RT) for _ in range(2))
+            rh = tuple(fem.Function(self.DG1) for _ in range(2))
         u = self.disc.functions(x)
-        rh = self.lifted(r)
-        sigma = tuple(self.equilibration.sigma(alpha, u[alpha - 1], u[2], rh[alpha - 1])
-                      for alpha in (1, 2))
-        self._recent = [((x, r), (sigma, rh))] + self._recent[:1]
+        self.lifted(r, rh)
+        for alpha in (1, 2):
+            eq.sigma(alpha, u[alpha - 1], u[2], rh[alpha - 1], self.loads[alpha - 1],
+                     self.mu[alpha - 1], out=sigma[alpha - 1])
+        self._recent.insert(0, ((x, r), (sigma, rh)))
         return sigma, rh
 
     # ## The remainder and the ν flux (§6)
@@ -265,6 +294,8 @@ class Estimators:
         (r_α DG1 Functions, δλ = λ'_h - λh given by its owned nodal values, or 0)."""
         n = self.n
         for target, source in zip(self.rho, r):
+            if not self._alike(source.function_space, target.function_space):
+                raise ValueError("r_αh must be a DG1 Function (the lifting's space)")
             target.x.array[:] = source.x.array
         self.dlam.x.array[:n] = 0.0 if dlam is None else dlam
         self.dlam.x.scatter_forward()
@@ -289,18 +320,31 @@ class Estimators:
             a.x.array[:] = s_later.x.array - s_now.x.array
             alg.append(a)
         n = self.n
-        lam = np.asarray(X.array if hasattr(X, "array") else X)[2 * n:3 * n]
-        lam_later = np.asarray(X_later.array if hasattr(X_later, "array") else X_later)[2 * n:]
+        lam, lam_later = (owned(Y)[2 * n:3 * n] for Y in (X, X_later))
         return tuple(alg), self.remainder(r_later, lam_later - lam)
 
     # ## Evaluation (§7)
 
     def _set_flux(self, targets, sources):
+        """Copy the RT_1 Functions `sources` into the forms' coefficients `targets`: the dof
+        arrays where the two spaces number the dofs alike (checked once per space: the same
+        element and cell dofs), else by interpolation (exact between two RT_1 spaces)."""
         for target, source in zip(targets, sources):
-            if source.x.array.shape != target.x.array.shape or \
-                    source.function_space.ufl_element() != target.function_space.ufl_element():
-                raise ValueError("σ must be a Function of RT_1 (basix 'RT' of degree 2)")
-            target.x.array[:] = source.x.array
+            if self._alike(source.function_space, target.function_space):
+                target.x.array[:] = source.x.array
+            else:
+                target.interpolate(source)
+
+    def _alike(self, V, W):
+        key = (id(V), id(W))
+        if key not in self._layouts:
+            same = (V is W) or (
+                V.ufl_element() == W.ufl_element()
+                and V.dofmap.index_map.size_local == W.dofmap.index_map.size_local
+                and V.dofmap.index_map.num_ghosts == W.dofmap.index_map.num_ghosts
+                and np.array_equal(V.dofmap.list.array, W.dofmap.list.array))
+            self._layouts[key] = (self.comm.allreduce(bool(same), op=MPI.LAND), V, W)
+        return self._layouts[key][0]
 
     def evaluate(self, X, R=None, sigma_alg=None, eta_rem=None):
         """Every estimator at X (§7). R: the algebraic residual in the iterate layout (None:

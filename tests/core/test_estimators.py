@@ -279,3 +279,97 @@ def test_same_estimators_on_several_processes(procs):
     assert serial.keys() == parallel.keys()
     for key, value in serial.items():
         assert abs(parallel[key] - value) <= 1e-12 * abs(value), key
+
+
+def residual(disc, X):
+    """R = B - A X on the linear rows (§4): R_1 = F_1 - μ1 S u1 + D λ, R_2 = F_2 - μ2 S u2 - D λ
+    on the interior dofs, 0 at the Dirichlet vertices (numpy, owned entries)."""
+    n = disc.n
+    u1, u2, lam = (disc.S.createVecRight() for _ in range(3))
+    for v, part in zip((u1, u2, lam), disc.split(X)):
+        v.array[:] = part
+    D = disc.D.array_r[:n]
+    R = []
+    for u, F, mu, sign in ((u1, disc.F1, disc.mu1, 1.0), (u2, disc.F2, disc.mu2, -1.0)):
+        Su = disc.S.createVecLeft()
+        disc.S.mult(u, Su)
+        part = F.array_r[:n] - mu * Su.array_r + sign * D * lam.array_r
+        part[disc.boundary_owned] = 0.0
+        R.append(part)
+    return np.concatenate(R + [np.zeros(n)])
+
+
+def iterate(disc, seed):
+    """An iterate with the boundary values of §2 (u1 = g, u2 = λ = 0 on ∂Ω) and values from
+    the coordinates elsewhere (the same on any partition), shifted by `seed`."""
+    n = disc.n
+    x = disc.V.tabulate_dof_coordinates()[:n, :2].T
+    u1 = 0.1 + 0.3 * np.sin(3 * x[0] + seed) * x[1]
+    u2 = 0.05 * np.cos(2 * x[1] - seed) + 0.1 * x[0]
+    lam = np.sin(5 * x[0] * x[1] + seed)
+    b = disc.boundary_owned
+    u1[b], u2[b], lam[b] = disc.g, 0.0, 0.0
+    return np.concatenate([u1, u2, lam])
+
+
+@pytest.fixture(scope="module")
+def equilibrated():
+    from membranes.estimation.equilibration import FluxEquilibration
+    disc = scene(MPI.COMM_WORLD, 6)[0]
+    return disc, Estimators(disc, FluxEquilibration(disc))
+
+
+def test_nu_flux_divergence_and_remainder(equilibrated):
+    """σ_alg = σ_disc(X', R') - σ_disc(X, R) has, on every cell, the divergence
+    ∇·σ_α,alg = r_αh - r'_αh ± (λ'_h - λh) (+ for α = 1; §6) to round-off, and η_rem is
+    C_PF h_Ω (Σ_α μ_α^{-1} ‖r'_αh ∓ (λ'_h - λh)‖²)^{1/2} (against the remainder's own form
+    with the liftings and δλ passed in)."""
+    import ufl
+    from dolfinx import fem
+    disc, est = equilibrated
+    n = disc.n
+    X, X2 = iterate(disc, 0.0), iterate(disc, 0.7)
+    R, R2 = residual(disc, X), residual(disc, X2)
+    alg, eta_rem = est.nu_flux(X, R, X2, R2)
+    r, r2 = est.lifted(R), est.lifted(R2)
+    lam, lam2 = (disc.functions(Y)[2] for Y in (X, X2))
+    W = fem.FunctionSpace(disc.mesh, ("DG", 0))
+    w = ufl.TestFunction(W)
+    ncells = disc.mesh.topology.index_map(2).size_local
+    cells = W.dofmap.list.array[:ncells]
+    dx = ufl.dx(metadata={"quadrature_degree": 2})
+    for a, sign in ((0, 1.0), (1, -1.0)):
+        target = r[a] - r2[a] + sign * (lam2 - lam)
+        defect = fem.assemble_vector(fem.form((ufl.div(alg[a]) - target) ** 2 * w * dx))
+        size = fem.assemble_vector(fem.form(target ** 2 * w * dx))
+        defect, size = defect.array[cells], size.array[cells]
+        assert size.max() > 0
+        assert np.sqrt(defect.max() / size.max()) < 1e-11, np.sqrt(defect.max() / size.max())
+    dlam = X2[2 * n:] - X[2 * n:]
+    assert np.isclose(eta_rem, est.remainder(r2, dlam), rtol=1e-14, atol=0)
+    cpf = 1 / (np.pi * np.sqrt(2))
+    by_hand = cpf * np.sqrt(disc.comm.allreduce(sum(
+        float(fem.assemble_scalar(fem.form(rho ** 2 / mu * dx)))
+        for rho, mu in ((r2[0] - (lam2 - lam), MU1), (r2[1] + (lam2 - lam), MU2))), op=MPI.SUM))
+    assert np.isclose(eta_rem, by_hand, rtol=1e-12, atol=0)
+
+
+def test_evaluate_with_the_equilibration(equilibrated):
+    """evaluate(X, R, σ_alg) with the ν flux measures u_h(X) against σ_disc(X'): its η_F is
+    that of `assemble` with σ = σ_disc(X') (σ_disc(X) + σ_alg, to round-off), and its η_alg
+    is ‖μ^{-1/2} σ_alg‖ + η_rem. Without σ_alg the default remainder is the Poincaré bound
+    of the whole lifted residual; with R = 0 there is none."""
+    disc, est = equilibrated
+    X, X2 = iterate(disc, 0.0), iterate(disc, 0.7)
+    R, R2 = residual(disc, X), residual(disc, X2)
+    alg, eta_rem = est.nu_flux(X, R, X2, R2)
+    got = est.evaluate(X, R, alg, eta_rem)
+    (s2, _) = est.sigma_disc(X2, R2)
+    direct = est.assemble(X, s2)
+    assert np.isclose(got["eta_F"], direct["eta_F"], rtol=1e-12, atol=0)
+    plain = est.evaluate(X, R)
+    assert np.isclose(plain["eta_rem"], est.remainder(est.lifted(R)), rtol=1e-14, atol=0)
+    assert plain["eta_rem"] > 0 and plain["eta_alg"] == plain["eta_rem"]
+    for key in ("eta_disc", "eta_lin", "eta_osc", "eta_C"):
+        assert got[key] == plain[key], key
+    assert got["eta_alg"] > eta_rem > 0
