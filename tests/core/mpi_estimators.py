@@ -4,9 +4,11 @@
 a discretisation with cubic loads and a quadratic exact solution, an iterate X whose values
 are functions of the vertex coordinates (so the same discrete functions on any partition),
 two RT_1 fields σ and σ_alg given by formulas that RT_1 holds exactly, and DG1 residual
-liftings. Run as a script (`mpirun -n P python tests/core/mpi_estimators.py N`) it prints, on
+liftings; `iterate` and `residual` give iterates with the boundary values of §2 and their
+residuals R = B - A X, for the flux equilibration. Run as a script (`mpirun -n P python tests/core/mpi_estimators.py N`) it prints, on
 rank 0, one JSON line with the global estimators, the remainder and the energy error, after
-checking that every rank holds the same numbers.
+checking that every rank holds the same numbers: the estimators with the given fluxes, and
+with the flux equilibration and the ν flux.
 """
 
 import json
@@ -109,6 +111,37 @@ def scene(comm, N):
     return disc, X, sigma, alg, r, dlam
 
 
+def residual(disc, X):
+    """R = B - A X on the linear rows (§4): R_1 = F_1 - μ1 S u1 + D λ, R_2 = F_2 - μ2 S u2 - D λ
+    on the interior dofs, 0 at the Dirichlet vertices (numpy, owned entries)."""
+    n = disc.n
+    u1, u2, lam = (disc.S.createVecRight() for _ in range(3))
+    for v, part in zip((u1, u2, lam), disc.split(X)):
+        v.array[:] = part
+    D = disc.D.array_r[:n]
+    R = []
+    for u, F, mu, sign in ((u1, disc.F1, disc.mu1, 1.0), (u2, disc.F2, disc.mu2, -1.0)):
+        Su = disc.S.createVecLeft()
+        disc.S.mult(u, Su)
+        part = F.array_r[:n] - mu * Su.array_r + sign * D * lam.array_r
+        part[disc.boundary_owned] = 0.0
+        R.append(part)
+    return np.concatenate(R + [np.zeros(n)])
+
+
+def iterate(disc, seed):
+    """An iterate with the boundary values of §2 (u1 = g, u2 = λ = 0 on ∂Ω) and values from
+    the coordinates elsewhere (the same on any partition), shifted by `seed`."""
+    n = disc.n
+    x = disc.V.tabulate_dof_coordinates()[:n, :2].T
+    u1 = 0.1 + 0.3 * np.sin(3 * x[0] + seed) * x[1]
+    u2 = 0.05 * np.cos(2 * x[1] - seed) + 0.1 * x[0]
+    lam = np.sin(5 * x[0] * x[1] + seed)
+    b = disc.boundary_owned
+    u1[b], u2[b], lam[b] = disc.g, 0.0, 0.0
+    return np.concatenate([u1, u2, lam])
+
+
 def main(N):
     from membranes.estimation.energy_error import EnergyError
     from membranes.estimation.estimators import Estimators
@@ -120,6 +153,17 @@ def main(N):
     full = est.assemble(X, sigma, alg, eta_rem)
     out = {"eta_rem": eta_rem, "energy_error": EnergyError(disc)(X)}
     for name, values in (("plain", plain), ("full", full)):
+        for key, v in values.items():
+            if key == "eta_K":
+                v = float(np.sqrt(comm.allreduce(float((v ** 2).sum()), op=MPI.SUM)))
+            out[f"{name}.{key}"] = v
+    # with the flux equilibration, the ν flux between two iterates (§5, §6)
+    from membranes.estimation.equilibration import FluxEquilibration
+    est = Estimators(disc, FluxEquilibration(disc))
+    X, X2 = iterate(disc, 0.0), iterate(disc, 0.7)
+    R, R2 = residual(disc, X), residual(disc, X2)
+    alg, eta_rem = est.nu_flux(X, R, X2, R2)
+    for name, values in (("nu", est.evaluate(X, R, alg, eta_rem)), ("bare", est.evaluate(X, R))):
         for key, v in values.items():
             if key == "eta_K":
                 v = float(np.sqrt(comm.allreduce(float((v ** 2).sum()), op=MPI.SUM)))

@@ -18,7 +18,7 @@ from mpi4py import MPI
 from membranes.estimation import estimators as est_module
 from membranes.estimation.energy_error import EnergyError
 from membranes.estimation.estimators import Estimators
-from tests.core.mpi_estimators import MU1, MU2, NP, scene
+from tests.core.mpi_estimators import MU1, MU2, NP, iterate, residual, scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 TOL = 1e-11
@@ -279,37 +279,6 @@ def test_same_estimators_on_several_processes(procs):
     assert serial.keys() == parallel.keys()
     for key, value in serial.items():
         assert abs(parallel[key] - value) <= 1e-12 * abs(value), key
-
-
-def residual(disc, X):
-    """R = B - A X on the linear rows (§4): R_1 = F_1 - μ1 S u1 + D λ, R_2 = F_2 - μ2 S u2 - D λ
-    on the interior dofs, 0 at the Dirichlet vertices (numpy, owned entries)."""
-    n = disc.n
-    u1, u2, lam = (disc.S.createVecRight() for _ in range(3))
-    for v, part in zip((u1, u2, lam), disc.split(X)):
-        v.array[:] = part
-    D = disc.D.array_r[:n]
-    R = []
-    for u, F, mu, sign in ((u1, disc.F1, disc.mu1, 1.0), (u2, disc.F2, disc.mu2, -1.0)):
-        Su = disc.S.createVecLeft()
-        disc.S.mult(u, Su)
-        part = F.array_r[:n] - mu * Su.array_r + sign * D * lam.array_r
-        part[disc.boundary_owned] = 0.0
-        R.append(part)
-    return np.concatenate(R + [np.zeros(n)])
-
-
-def iterate(disc, seed):
-    """An iterate with the boundary values of §2 (u1 = g, u2 = λ = 0 on ∂Ω) and values from
-    the coordinates elsewhere (the same on any partition), shifted by `seed`."""
-    n = disc.n
-    x = disc.V.tabulate_dof_coordinates()[:n, :2].T
-    u1 = 0.1 + 0.3 * np.sin(3 * x[0] + seed) * x[1]
-    u2 = 0.05 * np.cos(2 * x[1] - seed) + 0.1 * x[0]
-    lam = np.sin(5 * x[0] * x[1] + seed)
-    b = disc.boundary_owned
-    u1[b], u2[b], lam[b] = disc.g, 0.0, 0.0
-    return np.concatenate([u1, u2, lam])
 
 
 @pytest.fixture(scope="module")
