@@ -1,45 +1,54 @@
 # # UFL forms of the two-membrane contact problem
 #
 # This module holds UFL only: no dolfinx, no assembly. Every function returns a form (or a
-# UFL expression) built from the arguments it is given, so that the driver in `membranes/`
-# decides spaces, measures and quadrature. Section numbers refer to `../shared/DESIGN.md`.
+# UFL expression) built from the arguments it is given, so that `membranes.fem` decides spaces,
+# measures and quadrature. Section numbers refer to docs/theory.md.
 
 import ufl
 
+# The lumped contact term uses the vertex quadrature rule: on a triangle K the rule puts the
+# weight |K|/3 at each vertex, so that (u, v)_vertex is diagonal for P1 and its diagonal entry
+# at vertex a is Σ_K |K|/3 = (ψ_a, 1), the weight D_aa of §2.
+VERTEX_RULE = {"quadrature_rule": "vertex", "quadrature_degree": 1}
+
 
 def membrane_bilinear(mu, u, v, dx=ufl.dx):
-    """μ_α (∇u, ∇v): the operator of membrane α (DESIGN §1, §2)."""
+    """μ_α (∇u, ∇v): the operator of membrane α (§1, §2)."""
     return mu * ufl.inner(ufl.grad(u), ufl.grad(v)) * dx
 
 
 def membrane_linear(f, v, dx=ufl.dx):
-    """(f_α, v): the load of membrane α (DESIGN §2)."""
+    """(f_α, v): the load of membrane α (§2)."""
     return f * v * dx
 
 
-def contact_weight(v, dx=ufl.dx):
-    """(ψ_a, 1): the lumped contact weight D_aa of vertex a (DESIGN §2).
+def contact_term(lam, v, dx=ufl.dx):
+    """The lumped contact term λ_a (ψ_a, 1) of row a (§2), for λ a P1 trial function or
+    coefficient: (λ, v) integrated with the vertex rule (`VERTEX_RULE`). As a bilinear form it
+    assembles into the diagonal matrix D of E = [[μ1 S, 0, -D], [0, μ2 S, D]]."""
+    return lam * v * dx(metadata=VERTEX_RULE)
 
-    Assembled against the P1 test function v it gives the diagonal D of the block form
-    E = [[μ1 S, 0, -D], [0, μ2 S, D]].
-    """
+
+def contact_weight(v, dx=ufl.dx):
+    """(ψ_a, 1): the lumped contact weight D_aa of vertex a (§2), as a linear form."""
     return v * dx
 
 
 def energy_density(mu1, mu2, e1, e2):
-    """μ1 |∇e1|² + μ2 |∇e2|²: the integrand of the energy norm (DESIGN §1)."""
+    """μ1 |∇e1|² + μ2 |∇e2|²: the integrand of the energy norm (§1)."""
     return (mu1 * ufl.inner(ufl.grad(e1), ufl.grad(e1))
             + mu2 * ufl.inner(ufl.grad(e2), ufl.grad(e2)))
 
 
 def energy_norm_squared(mu1, mu2, e1, e2, dx=ufl.dx, w=1.0):
-    """|||(e1, e2)|||² = μ1 ‖∇e1‖² + μ2 ‖∇e2‖² (DESIGN §1); with w a DG0 test function, the
+    """|||(e1, e2)|||² = μ1 ‖∇e1‖² + μ2 ‖∇e2‖² (§1); with w a DG0 test function, the
     squared energy norm on every cell."""
     return w * energy_density(mu1, mu2, e1, e2) * dx
 
 
+
 def energy_error_expansion(mu1, mu2, e1, e2, w, dx=ufl.dx):
-    """The terms that expand |||(e1 - d1, e2 - d2)|||² for P1 functions d1, d2 (DESIGN §1).
+    """The terms that expand |||(e1 - d1, e2 - d2)|||² for P1 functions d1, d2 (§1).
 
     With w a test function of (P1)³ (hat functions ψ_a in each component), assembled:
         b1_a = μ1 (∇e1, ∇ψ_a),  b2_a = μ2 (∇e2, ∇ψ_a),  c_a = (μ1 |∇e1|² + μ2 |∇e2|², ψ_a),

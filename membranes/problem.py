@@ -78,9 +78,9 @@ class Problem:
         from mpi4py import MPI
         x = self.mesh.geometry.x[:, :2]
         comm = self.mesh.comm
-        lo = comm.allreduce(x.min(axis=0), op=MPI.MIN)
-        hi = comm.allreduce(x.max(axis=0), op=MPI.MAX)
-        a, b = hi - lo
+        lo = [comm.allreduce(x[:, k].min(initial=np.inf), op=MPI.MIN) for k in (0, 1)]
+        hi = [comm.allreduce(x[:, k].max(initial=-np.inf), op=MPI.MAX) for k in (0, 1)]
+        a, b = hi[0] - lo[0], hi[1] - lo[1]
         return float(1.0 / (np.pi * np.sqrt(1.0 / a ** 2 + 1.0 / b ** 2)))
 
     def __post_init__(self):

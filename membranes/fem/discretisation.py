@@ -1,0 +1,165 @@
+"""Conforming P1 discretisation with lumped contact, assembled by dolfinx into PETSc (§2, §12).
+
+`discretise(problem)` assembles, once per mesh, from the UFL forms of `forms/membrane.py`:
+
+    S_ab  = (∇ψ_b, ∇ψ_a)       stiffness            (membrane_bilinear with μ = 1)
+    D     = diag((ψ_a, 1))     lumped contact term  (contact_term: the vertex rule)
+    F_α,a = (f_α, ψ_a)         loads                (membrane_linear, data measures)
+
+into distributed PETSc objects on the mesh's communicator, and finds the Dirichlet vertices
+(u1 = g, u2 = 0, λ = 0 on ∂Ω). Membrane α's operator is μ_α S (§2).
+
+**The iterate layout.** A Newton iterate X = (u1, u2, λ) is a PETSc Vec of local size 3n
+(n owned P1 dofs), laid out per process as [u1 owned | u2 owned | λ owned]: the layout of
+dolfinx's block assembly and of a PETSc MatNest converted to AIJ. `split` gives numpy views of
+the three parts, `functions` the ghosted P1 Functions.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import ufl
+
+from forms.membrane import contact_term, contact_weight, membrane_bilinear, membrane_linear
+
+from .quadrature import data_measures, load, over
+
+
+@dataclass
+class Discretisation:
+    problem: object
+    V: object                 # P1 space on the computational mesh
+    S: object                 # PETSc Mat: (∇ψ_b, ∇ψ_a), no boundary conditions
+    Dm: object                # PETSc Mat: diag((ψ_a, 1)) from the lumped form
+    D: object                 # PETSc Vec (owned): (ψ_a, 1)
+    F1: object                # PETSc Vec (owned): (f1, ψ_a)
+    F2: object                # PETSc Vec (owned): (f2, ψ_a)
+    f1: object                # UFL expressions of the loads
+    f2: object
+    boundary: np.ndarray      # local dofs (owned and ghost) on ∂Ω
+    dx_data: list             # data measures (quadrature.data_measures)
+
+    @property
+    def mesh(self):
+        return self.V.mesh
+
+    @property
+    def comm(self):
+        return self.V.mesh.comm
+
+    @property
+    def n(self):
+        """Owned P1 dofs on this process."""
+        return self.V.dofmap.index_map.size_local
+
+    @property
+    def n_global(self):
+        return self.V.dofmap.index_map.size_global
+
+    @property
+    def boundary_owned(self):
+        return self.boundary[self.boundary < self.n]
+
+    @property
+    def interior(self):
+        """Mask of the owned dofs that are not on ∂Ω."""
+        mask = np.ones(self.n, dtype=bool)
+        mask[self.boundary_owned] = False
+        return mask
+
+    @property
+    def mu1(self):
+        return self.problem.mu1
+
+    @property
+    def mu2(self):
+        return self.problem.mu2
+
+    @property
+    def g(self):
+        return self.problem.g
+
+    @property
+    def poincare(self):
+        """C_PF h_Ω (§7)."""
+        return self.problem.poincare_constant()
+
+    def vector3(self):
+        """A new zero PETSc Vec in the iterate layout (local size 3n)."""
+        from petsc4py import PETSc
+        X = PETSc.Vec().createMPI((3 * self.n, 3 * self.n_global), comm=self.comm)
+        X.set(0.0)
+        return X
+
+    def split(self, X):
+        """(u1, u2, λ): numpy views of the owned parts of X (a Vec or an array of 3n)."""
+        a = X.array if hasattr(X, "array") else X
+        n = self.n
+        return a[:n], a[n:2 * n], a[2 * n:3 * n]
+
+    def functions(self, X, out=None):
+        """Ghosted P1 Functions u1, u2, λ with the values of X (written into `out` if given)."""
+        from dolfinx import fem
+        if out is None:
+            out = [fem.Function(self.V, name=name) for name in ("u1", "u2", "lambda")]
+        for f, part in zip(out, self.split(X)):
+            f.x.array[:self.n] = part
+            f.x.scatter_forward()
+        return out
+
+    def data_scales(self):
+        """(u_data, λ_data): the sizes the data give a displacement and a pressure (§11):
+        λ_data = max over interior vertices and α of |F_α,a| / D_a, u_data = max(g,
+        (C_PF h_Ω)² max |F_α,a| / (μ_α D_a))."""
+        from mpi4py import MPI
+        inner = self.interior
+        D = self.D.array[inner]
+        F1, F2 = (np.abs(F.array[inner]) / D for F in (self.F1, self.F2))
+        m1 = self.comm.allreduce(F1.max(initial=0.0), op=MPI.MAX)
+        m2 = self.comm.allreduce(F2.max(initial=0.0), op=MPI.MAX)
+        p = self.problem
+        return max(p.g, self.poincare ** 2 * max(m1 / p.mu1, m2 / p.mu2)), max(m1, m2)
+
+
+def boundary_dofs(V):
+    """The P1 dofs on ∂Ω (local indices, owned and ghost)."""
+    from dolfinx import fem, mesh as dmesh
+    mesh = V.mesh
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim - 1, tdim)
+    facets = dmesh.exterior_facet_indices(mesh.topology)
+    return fem.locate_dofs_topological(V, tdim - 1, facets)
+
+
+def assemble_vector(L):
+    """Assemble the linear form L into a ghosted PETSc Vec with its owned entries summed."""
+    from dolfinx import fem
+    from dolfinx.fem import petsc
+    from petsc4py import PETSc
+    b = petsc.assemble_vector(fem.form(L))
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    return b
+
+
+def assemble_matrix(a):
+    from dolfinx import fem
+    from dolfinx.fem import petsc
+    A = petsc.assemble_matrix(fem.form(a))
+    A.assemble()
+    return A
+
+
+def discretise(problem):
+    """Assemble S, D, F1, F2 and find the boundary vertices of `problem` (§2)."""
+    from dolfinx import fem
+    mesh = problem.mesh
+    V = fem.FunctionSpace(mesh, ("Lagrange", 1))
+    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    S = assemble_matrix(membrane_bilinear(1.0, u, v))
+    Dm = assemble_matrix(contact_term(u, v))
+    D = assemble_vector(contact_weight(v))
+    dx_data = data_measures(mesh, problem.interface)
+    f1, f2 = load(problem.f1, mesh), load(problem.f2, mesh)
+    F1 = assemble_vector(over(dx_data, lambda dx: membrane_linear(f1, v, dx)))
+    F2 = assemble_vector(over(dx_data, lambda dx: membrane_linear(f2, v, dx)))
+    return Discretisation(problem, V, S, Dm, D, F1, F2, f1, f2, boundary_dofs(V), dx_data)

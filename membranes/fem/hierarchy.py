@@ -1,0 +1,171 @@
+"""The mesh hierarchy T_0, …, T_J by uniform refinement, and its P1 prolongations (§6, §9, §12).
+
+Each level is dolfinx's plaza refinement of the one below, on the same communicator and without
+redistribution: every process refines its own cells, so the parent of a local fine cell is a
+local coarse cell (`plaza_refine_data(..., parent_cell_and_facet)`).
+
+**Curved boundaries (§9).** Plaza puts a new vertex at the midpoint of every edge. On a domain
+with a curved boundary the scene gives a projection onto the boundary curve (the disk:
+x ↦ x/|x|), and every new boundary vertex is moved onto it, so that the polygon of T_J converges
+to the domain instead of keeping the polygon of T_0. The boundary cells of T_j are then no longer
+inside their parents; nothing below relies on geometric nesting:
+
+* the prolongation P_j : P1(T_{j-1}) → P1(T_j) is *combinatorial*: the value at a fine vertex
+  is the coarse value at the same vertex or the mean of the two ends of the coarse edge it
+  halves (computed before the vertex is moved). It reproduces constants, so the prolonged hat
+  functions of T_{j-1} still form a partition of unity on T_j;
+* the multilevel algebraic flux groups the cells of the finest mesh by their ancestors
+  (`ancestors`), which is a statement about cells, not about geometry.
+
+Without a projection (polygons, gmsh files) the hierarchy is geometrically nested and P_j is the
+usual interpolation.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Hierarchy:
+    meshes: list                                      # [T_0, …, T_J]
+    parent_cells: list = field(default_factory=list)  # parent_cells[j-1][c]: parent of c ∈ T_j
+    prolongations: list = field(default_factory=list)  # P_j, PETSc Mat P1(T_{j-1}) → P1(T_j)
+    projection: object = None                         # boundary projection, or None
+
+    @property
+    def levels(self):
+        return len(self.meshes) - 1
+
+    @property
+    def finest(self):
+        return self.meshes[-1]
+
+    def ancestors(self, j):
+        """For every local cell of T_J, the index of its ancestor cell in T_j (local)."""
+        anc = np.arange(self.finest.topology.index_map(2).size_local, dtype=np.int32)
+        for level in range(self.levels, j, -1):
+            anc = self.parent_cells[level - 1][anc]
+        return anc
+
+
+def _refine(mesh):
+    """Plaza refinement of `mesh` and its parent-cell map (local fine cell → local coarse)."""
+    import ufl
+    from dolfinx import cpp, mesh as dmesh
+    mesh.topology.create_entities(1)
+    fine, parent_cell, _ = cpp.refinement.plaza_refine_data(
+        mesh._mesh, False, cpp.refinement.RefinementOptions.parent_cell_and_facet)
+    fine = dmesh.Mesh(fine, ufl.Mesh(mesh.ufl_domain().ufl_coordinate_element()))
+    # plaza's parent map is in the order this process created its cells; mesh creation then
+    # reorders the cells (and may add ghost cells), and original_cell_index maps each cell back
+    # to its place in the created cells of all processes, numbered process by process
+    parent_cell = np.asarray(parent_cell, dtype=np.int32)
+    offset = mesh.comm.exscan(len(parent_cell)) or 0
+    owned = fine.topology.index_map(2).size_local
+    created = np.asarray(fine.topology.original_cell_index, dtype=np.int64)[:owned] - offset
+    if owned and (created.min() < 0 or created.max() >= len(parent_cell)):
+        raise RuntimeError("plaza refinement moved cells between processes")
+    return fine, parent_cell[created]
+
+
+def _p1(mesh):
+    from dolfinx import fem
+    return fem.FunctionSpace(mesh, ("Lagrange", 1))
+
+
+def _cell_dofs(V):
+    return V.dofmap.list.array.reshape(-1, 3)
+
+
+def prolongation(coarse, fine, parents):
+    """P1 prolongation P : P1(coarse) → P1(fine) as a distributed PETSc matrix (rows: fine
+    dofs, columns: coarse dofs), from the barycentric coordinates of each fine cell's vertices
+    in its parent. Plaza's vertices are coarse vertices or edge midpoints, so the coordinates
+    are 0, 1/2 or 1 and are rounded to those values (they are exact before boundary vertices
+    move, which is when this is called)."""
+    from petsc4py import PETSc
+    Vc, Vf = _p1(coarse), _p1(fine)
+    ncf = fine.topology.index_map(2).size_local
+    xc, xf = coarse.geometry.x[:, :2], fine.geometry.x[:, :2]
+    gc = coarse.geometry.dofmap.array.reshape(-1, 3)
+    gf = fine.geometry.dofmap.array.reshape(-1, 3)[:ncf]
+    corners = xc[gc[parents]]                                    # (c, 3, 2) parent corners
+    pts = xf[gf]                                                 # (c, 3, 2) fine vertices
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    d = pts - corners[:, None, 0]
+    l1 = (d[..., 0] * e2[:, None, 1] - d[..., 1] * e2[:, None, 0]) / det[:, None]
+    l2 = (e1[:, None, 0] * d[..., 1] - e1[:, None, 1] * d[..., 0]) / det[:, None]
+    bary = np.stack([1.0 - l1 - l2, l1, l2], axis=2)             # (c, 3 fine, 3 coarse)
+    bary = np.round(2.0 * bary) / 2.0
+    # geometry nodes and P1 dofs are both vertex-based but numbered apart: use the dofmaps
+    rows_local = _cell_dofs(Vf)[:ncf]                            # fine dofs of each cell
+    cols_local = _cell_dofs(Vc)[parents]                         # coarse dofs of the parent
+    imf, imc = Vf.dofmap.index_map, Vc.dofmap.index_map
+    rows = imf.local_to_global(rows_local.ravel()).reshape(rows_local.shape)
+    cols = imc.local_to_global(cols_local.ravel()).reshape(cols_local.shape)
+    P = PETSc.Mat().createAIJ(((imf.size_local, imf.size_global),
+                               (imc.size_local, imc.size_global)), comm=fine.comm)
+    P.setPreallocationNNZ((3, 3))
+    P.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+    for k in range(3):                  # fine vertex k of every cell
+        for m in range(3):              # coarse corner m
+            w = bary[:, k, m]
+            keep = w != 0.0
+            for r, c, v in zip(rows[keep, k], cols[keep, m], w[keep]):
+                P.setValue(int(r), int(c), float(v), addv=PETSc.InsertMode.INSERT_VALUES)
+    P.assemble()
+    return P
+
+
+def boundary_vertices(mesh):
+    """Local geometry nodes on the boundary ∂Ω of `mesh` (owned and ghost)."""
+    from dolfinx import mesh as dmesh
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim - 1, tdim)
+    facets = dmesh.exterior_facet_indices(mesh.topology)
+    mesh.topology.create_connectivity(tdim - 1, 0)
+    f2v = mesh.topology.connectivity(tdim - 1, 0)
+    verts = np.unique(np.concatenate([f2v.links(f) for f in facets])) if len(facets) else \
+        np.zeros(0, dtype=np.int32)
+    # vertex → geometry node, read off the cells (P1 geometry: one node per vertex)
+    mesh.topology.create_connectivity(tdim, 0)
+    c2v = mesh.topology.connectivity(tdim, 0).array.reshape(-1, 3)
+    g = mesh.geometry.dofmap.array.reshape(-1, 3)
+    node = np.full(mesh.topology.index_map(0).size_local + mesh.topology.index_map(0).num_ghosts,
+                   -1, dtype=np.int64)
+    node[c2v.ravel()] = g.ravel()
+    return node[verts]
+
+
+def refine(mesh, projection=None):
+    """One uniform refinement: (fine mesh, parent cells, P1 prolongation); new boundary
+    vertices are moved by `projection` (points (m, 2) ↦ points (m, 2)) when it is given."""
+    fine, parents = _refine(mesh)
+    P = prolongation(mesh, fine, parents)
+    if projection is not None:
+        nodes = boundary_vertices(fine)
+        fine.geometry.x[nodes, :2] = projection(fine.geometry.x[nodes, :2])
+    return fine, parents, P
+
+
+def build_hierarchy(coarse, levels, projection=None):
+    """T_0 = `coarse` and `levels` uniform refinements of it (§6), new boundary vertices moved
+    onto the curve by `projection` (§9)."""
+    levels = int(levels)
+    if levels < 0:
+        raise ValueError(f"levels must be a non-negative integer, got {levels}")
+    h = Hierarchy([coarse], projection=projection)
+    for _ in range(levels):
+        fine, parents, P = refine(h.meshes[-1], projection)
+        h.meshes.append(fine)
+        h.parent_cells.append(parents)
+        h.prolongations.append(P)
+    return h
+
+
+def onto_unit_circle(points):
+    """The projection of the unit disk's boundary vertices onto the circle (§9)."""
+    r = np.sqrt((points ** 2).sum(axis=1))
+    return points / r[:, None]

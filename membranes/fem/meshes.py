@@ -1,0 +1,191 @@
+"""Computational domains on a communicator: the unit disk and square from gmsh, gmsh files (§9, §12).
+
+Every mesh is a dolfinx P1 triangular mesh with geometric dimension 2, partitioned by dolfinx on
+the communicator it is given (default `MPI.COMM_WORLD`): gmsh meshes (or reads) on rank 0 only,
+and `gmshio.model_to_mesh` distributes the cells. No process holds the whole mesh afterwards.
+`dolfinx.io.gmshio.read_from_msh` is broken in dolfinx 0.5.2, so a `.msh` file is opened with
+gmsh and converted with `model_to_mesh`, which keeps the cells of a physical group (a file
+without 2D physical groups gets one holding every surface).
+
+Bad input raises ValueError on every process with the same one-line message (rank 0 checks,
+the message is broadcast).
+"""
+
+import contextlib
+import os
+
+import numpy as np
+from mpi4py import MPI
+
+GMSH_TRIANGLE = 2  # gmsh element type of the 3-node triangle
+
+
+@contextlib.contextmanager
+def gmsh_session():
+    import gmsh
+    gmsh.initialize([])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.Verbosity", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        yield gmsh
+    finally:
+        gmsh.finalize()
+
+
+def check_size(h):
+    try:
+        h = float(h)
+    except (TypeError, ValueError):
+        raise ValueError(f"mesh size h must be a number, got {h!r}") from None
+    if not np.isfinite(h) or h <= 0:
+        raise ValueError(f"mesh size h must be a positive finite number, got {h}")
+    return h
+
+
+def _on_rank0(comm, build):
+    """Run `build(gmsh)` in a gmsh session on rank 0 (it prepares gmsh.model), then distribute
+    the model's cells with dolfinx on `comm`. A ValueError on rank 0 reaches every rank."""
+    from dolfinx.io import gmshio
+    error = None
+    with contextlib.ExitStack() as stack:
+        gmsh = None
+        if comm.rank == 0:
+            gmsh = stack.enter_context(gmsh_session())
+            try:
+                build(gmsh)
+            except ValueError as e:
+                error = str(e)
+        error = comm.bcast(error, root=0)
+        if error is not None:
+            raise ValueError(error)
+        try:
+            mesh, _, _ = gmshio.model_to_mesh(gmsh.model if gmsh else None, comm, 0, gdim=2)
+        except Exception as e:
+            raise ValueError(f"cannot convert the gmsh model to a dolfinx mesh: {e}") from None
+    return mesh
+
+
+def _shape(shape, h):
+    def build(gmsh):
+        gmsh.model.add(shape)
+        if shape == "disk":
+            gmsh.model.occ.addDisk(0.0, 0.0, 0.0, 1.0, 1.0)
+        else:
+            gmsh.model.occ.addRectangle(0.0, 0.0, 0.0, 1.0, 1.0)
+        gmsh.model.occ.synchronize()
+        surfaces = [tag for _, tag in gmsh.model.getEntities(2)]
+        gmsh.model.addPhysicalGroup(2, surfaces, 1)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMin", 0.0)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", h)
+        gmsh.model.mesh.generate(2)
+    return build
+
+
+def unit_disk(h, comm=MPI.COMM_WORLD):
+    """Unstructured mesh of the unit disk with target cell size h (§9)."""
+    return _on_rank0(comm, _shape("disk", check_size(h)))
+
+
+def unit_square(h, comm=MPI.COMM_WORLD):
+    """Unstructured mesh of (0, 1)² with target cell size h."""
+    return _on_rank0(comm, _shape("square", check_size(h)))
+
+
+def structured_square(nx, ny, grading=1.0, comm=MPI.COMM_WORLD):
+    """(0, 1)² cut into nx × ny rectangles, each split into two right triangles (dolfinx's
+    create_unit_square), then mapped by (x, y) -> (x^p, y^p), p = `grading` ≥ 1: cells shrink
+    towards the corner (0, 0). For stiff and extreme cases (§11): nx ≠ ny gives anisotropic
+    cells, a small nx, ny a mesh of a handful of cells."""
+    from dolfinx import mesh as dmesh
+    for name, value in (("nx", nx), ("ny", ny)):
+        if int(value) != value or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value}")
+    grading = float(grading)
+    if not (np.isfinite(grading) and grading >= 1.0):
+        raise ValueError(f"grading must be a finite number >= 1, got {grading}")
+    m = dmesh.create_unit_square(comm, int(nx), int(ny), dmesh.CellType.triangle,
+                                 dmesh.GhostMode.none)
+    m.geometry.x[:, :2] = m.geometry.x[:, :2] ** grading
+    return m
+
+
+def _check_msh(gmsh, path):
+    try:
+        gmsh.open(path)
+    except Exception as e:
+        raise ValueError(f"cannot read mesh file {path!r}: {e}") from None
+    dim = gmsh.model.getDimension()
+    if dim == 3 or gmsh.model.mesh.getElementTypes(3).size:
+        raise ValueError(f"mesh file {path!r} is 3D; a 2D triangular mesh is required")
+    types = list(gmsh.model.mesh.getElementTypes(2))
+    if dim < 2 or not types:
+        raise ValueError(f"mesh file {path!r} has no 2D cells")
+    if types != [GMSH_TRIANGLE]:
+        names = [gmsh.model.mesh.getElementProperties(t)[0] for t in types]
+        raise ValueError(f"mesh file {path!r} is not a linear triangular mesh "
+                         f"(cells: {', '.join(names)})")
+    _, coords, _ = gmsh.model.mesh.getNodes()
+    if not np.all(np.isfinite(coords)):
+        raise ValueError(f"mesh file {path!r} has non-finite node coordinates")
+    z = np.abs(coords.reshape(-1, 3)[:, 2])
+    if z.size and z.max() > 1e-12 * max(1.0, np.abs(coords).max()):
+        raise ValueError(f"mesh file {path!r} is 3D (nodes off the plane z = 0)")
+    if not gmsh.model.getPhysicalGroups(2):
+        gmsh.model.addPhysicalGroup(2, [t for _, t in gmsh.model.getEntities(2)], 1)
+
+
+def check_msh_path(path):
+    """The readable file at `path`, or ValueError naming what is wrong (no gmsh needed)."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise ValueError(f"mesh file {path!r} does not exist")
+    if not os.path.isfile(path):
+        raise ValueError(f"mesh file {path!r} is not a file")
+    if not os.access(path, os.R_OK):
+        raise ValueError(f"mesh file {path!r} is not readable")
+    return path
+
+
+def read_msh(path, comm=MPI.COMM_WORLD):
+    """Read a 2D triangular gmsh `.msh` file on rank 0 and distribute it; ValueError names
+    what is wrong with it."""
+    path = check_msh_path(path)
+    return _on_rank0(comm, lambda gmsh: _check_msh(gmsh, path))
+
+
+def owned_cells(mesh):
+    return mesh.topology.index_map(2).size_local
+
+
+def cell_vertices(mesh):
+    """Coordinates (c, 3, 2) of the vertices of the owned cells."""
+    x = mesh.geometry.x[:, :2]
+    cells = mesh.geometry.dofmap.array.reshape(-1, 3)[:owned_cells(mesh)]
+    return x[cells]
+
+
+def cell_diameters(mesh):
+    """Longest edge h_K of every owned cell."""
+    p = cell_vertices(mesh)
+    edges = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]], axis=1)
+    return np.sqrt((edges ** 2).sum(axis=2)).max(axis=1)
+
+
+def aspect_ratios(mesh):
+    """Longest edge over smallest altitude, h_K² / (2 |K|), of every owned cell."""
+    p = cell_vertices(mesh)
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    return cell_diameters(mesh) ** 2 / (2.0 * area)
+
+
+def mesh_size(mesh):
+    """h = max_K h_K over all processes."""
+    local = cell_diameters(mesh).max(initial=0.0)
+    return mesh.comm.allreduce(local, op=MPI.MAX)
+
+
+def vertex_count(mesh):
+    """Global number of vertices."""
+    return mesh.topology.index_map(0).size_global

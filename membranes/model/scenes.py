@@ -1,0 +1,246 @@
+"""Scenes: a domain, data, and what is known about the solution (§9).
+
+A scene builds a :class:`membranes.model.problem.Problem` and declares what it needs: an exact
+solution only where one is known (then the energy error is computed), an interface only where
+the data jump. Nothing else is attached, so the driver computes nothing a scene does not use.
+
+* ``disk``   — the paper's test case with its exact solution (§9).
+* ``square`` — the unit square with a manufactured solution with a genuine contact zone.
+* ``user``   — μ1, μ2, g, f1, f2 from the command line (f as formulas in x, y) on the unit disk,
+  the unit square, or a gmsh file.
+"""
+
+import math
+
+import numpy as np
+import ufl
+from mpi4py import MPI
+
+from ..expressions import Formula
+from ..fem import meshes
+from ..fem.hierarchy import build_hierarchy, onto_unit_circle
+from ..problem import ExactSolution, Problem, positive_number
+
+DEFAULT_H = 0.05
+
+
+def _projection(domain, mesh_file):
+    """New boundary vertices go onto the circle on the unit disk (§9); other domains are
+    polygons, whose refinements keep their boundary."""
+    return onto_unit_circle if mesh_file is None and domain == "disk" else None
+
+
+def _coarse_mesh(domain, h, mesh_file, comm):
+    if mesh_file is not None:
+        return meshes.read_msh(mesh_file, comm)
+    if domain == "disk":
+        return meshes.unit_disk(h, comm)
+    if domain == "square":
+        return meshes.unit_square(h, comm)
+    raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
+
+
+def _check_levels(levels):
+    if isinstance(levels, float) and not levels.is_integer():
+        raise ValueError(f"levels must be a non-negative integer, got {levels}")
+    if int(levels) < 0:
+        raise ValueError(f"levels must be a non-negative integer, got {levels}")
+    return int(levels)
+
+
+# ## The disk scene (§9)
+#
+# μ1 = μ2 = 1, g = 0.05 on the unit disk; the contact zone is the disk r ≤ 1/√2, where
+# λ = 2g; outside, membrane 2 bends as c (1 - r)(2r² - 1), c = g √2/(√2 - 1).
+
+DISK_G = 0.05
+J01 = 2.404825557695773   # first zero of the Bessel function J_0
+
+
+def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
+    """The paper's test case on the unit disk, with its exact solution (§9)."""
+    levels = _check_levels(levels)
+    g = DISK_G
+    c = g * math.sqrt(2.0) / (math.sqrt(2.0) - 1.0)
+
+    def r2(x):
+        return x[0] ** 2 + x[1] ** 2
+
+    def inside(x):
+        return ufl.le(r2(x), 0.5)
+
+    def u1(x):
+        return g * (2 * r2(x) - 1)
+
+    def u2(x):
+        r = ufl.sqrt(r2(x))
+        return ufl.conditional(inside(x), g * (2 * r2(x) - 1), c * (1 - r) * (2 * r2(x) - 1))
+
+    def lam(x):
+        return ufl.conditional(inside(x), 2 * g, 0.0)
+
+    def f1(x):
+        return ufl.conditional(inside(x), -10 * g, -8 * g)
+
+    def f2(x):
+        r = ufl.sqrt(r2(x))
+        return ufl.conditional(inside(x), -6 * g, -c * (1 + 8 * r - 18 * r2(x)) / r)
+
+    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle)
+    return Problem("disk", hierarchy, 1.0, 1.0, g, f1, f2,
+                   exact=ExactSolution(u1, u2, lam),
+                   interface=lambda p: p[0] ** 2 + p[1] ** 2 - 0.5,
+                   # the polygon lies inside the unit disk, whose λ_1 is j_{0,1}² (§7)
+                   poincare=1.0 / J01,
+                   description="unit disk, mu1 = mu2 = 1, g = 0.05, exact solution "
+                               "(contact zone r <= 1/sqrt(2))",
+                   domain="disk")
+
+
+# ## The square scene (manufactured)
+#
+# s = 16 x(1-x) y(1-y) ∈ [0, 1] vanishes on ∂Ω; the contact zone is Z = {s ≥ s0}. The gap
+# w = u1 - u2 = g ((s0 - s)/s0)² outside Z and 0 on Z is C¹, equals g on ∂Ω and is positive
+# off Z; λ = λ0 (s - s0)/(1 - s0) on Z, 0 off Z. With u2 = (g/2) sin(πx) sin(πy), u1 = u2 + w,
+# the loads are f1 = -μ1 Δu1 - λ and f2 = -μ2 Δu2 + λ (UFL differentiates the formulas).
+# μ1 ≠ μ2 and f1 + f2 ≠ 0, so the decoupled check of §10 is not trivial here.
+
+SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
+
+
+def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, mesh=None):
+    """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
+    `mesh`: a dolfinx mesh of (0, 1)² to use instead of gmsh's at size h (API only: the
+    anisotropic, graded and tiny meshes of §11, meshes.structured_square)."""
+    levels = _check_levels(levels)
+    if mesh is not None:
+        x = mesh.geometry.x[:, :2]
+        lo = mesh.comm.allreduce(x.min(initial=np.inf), op=MPI.MIN)
+        hi = mesh.comm.allreduce(x.max(initial=-np.inf), op=MPI.MAX)
+        if abs(lo) > 1e-12 or abs(hi - 1.0) > 1e-12:
+            raise ValueError("the square scene's mesh must cover the unit square (0, 1)^2")
+    mu1, mu2, g, s0, lam0 = (SQUARE[k] for k in ("mu1", "mu2", "g", "s0", "lam0"))
+
+    def s(x):
+        return 16 * x[0] * (1 - x[0]) * x[1] * (1 - x[1])
+
+    def u2(x):
+        return 0.5 * g * ufl.sin(ufl.pi * x[0]) * ufl.sin(ufl.pi * x[1])
+
+    def u1(x):
+        gap = ufl.conditional(ufl.lt(s(x), s0), g * ((s0 - s(x)) / s0) ** 2, 0.0)
+        return u2(x) + gap
+
+    def lam(x):
+        return ufl.conditional(ufl.gt(s(x), s0), lam0 * (s(x) - s0) / (1 - s0), 0.0)
+
+    def f1(x):
+        return -mu1 * ufl.div(ufl.grad(u1(x))) - lam(x)
+
+    def f2(x):
+        return -mu2 * ufl.div(ufl.grad(u2(x))) + lam(x)
+
+    def interface(p):
+        return 16 * p[0] * (1 - p[0]) * p[1] * (1 - p[1]) - s0
+
+    coarse = meshes.unit_square(h, comm) if mesh is None else mesh
+    hierarchy = build_hierarchy(coarse, levels)
+    return Problem("square", hierarchy, mu1, mu2, g, f1, f2,
+                   exact=ExactSolution(u1, u2, lam), interface=interface,
+                   description="unit square, mu1 = 1, mu2 = 2, g = 0.1, manufactured solution "
+                               "(contact zone 16x(1-x)y(1-y) >= 1/2)",
+                   domain="square")
+
+
+# ## The radial family (stiff and extreme cases, §11)
+#
+# On the unit disk, for any μ1, μ2 > 0, g > 0: membrane 2 is u2 = (g/2)(r² - 1); the gap
+# w = u1 - u2 vanishes on the contact disk r ≤ ρ and is g ((r² - ρ²)/(1 - ρ²))² outside (C¹,
+# = g on ∂Ω); λ = 4g on r < ρ, 0 outside. ρ = 0: w and λ vanish together at the origin only
+# (grazing contact, Fischer–Burmeister's kink); ρ close to 1: near-total contact;
+# contact=False: w = g (1 + r²)/2 > 0 and λ = 0 (no contact). The loads follow from the
+# equations (UFL differentiates), so every choice has its exact solution.
+
+
+def radial(h=DEFAULT_H, levels=0, rho=0.5, mu1=1.0, mu2=1.0, g=0.05, contact=True,
+           comm=MPI.COMM_WORLD):
+    """Unit disk, exact radial solution with contact disk r <= rho (any mu1, mu2, g)."""
+    levels = _check_levels(levels)
+    mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
+    rho = float(rho)
+    if not (0.0 <= rho < 1.0):
+        raise ValueError(f"rho must lie in [0, 1), got {rho}")
+
+    def r2(x):
+        return x[0] ** 2 + x[1] ** 2
+
+    def u2(x):
+        return 0.5 * g * (r2(x) - 1)
+
+    def gap(x):
+        if not contact:
+            return 0.5 * g * (1 + r2(x))
+        t = (r2(x) - rho ** 2) / (1 - rho ** 2)
+        return ufl.conditional(ufl.gt(r2(x), rho ** 2), g * t ** 2, 0.0)
+
+    def u1(x):
+        return u2(x) + gap(x)
+
+    def lam(x):
+        if not contact or rho == 0.0:
+            return 0.0 * r2(x)
+        return ufl.conditional(ufl.lt(r2(x), rho ** 2), 4 * g, 0.0)
+
+    def f1(x):
+        return -mu1 * ufl.div(ufl.grad(u1(x))) - lam(x)
+
+    def f2(x):
+        return -mu2 * ufl.div(ufl.grad(u2(x))) + lam(x)
+
+    jump = contact and rho > 0.0
+    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle)
+    kind = "no contact" if not contact else ("grazing contact at the origin" if rho == 0.0
+                                             else f"contact disk r <= {rho}")
+    return Problem("radial", hierarchy, mu1, mu2, g, f1, f2,
+                   exact=ExactSolution(u1, u2, lam),
+                   interface=(lambda p: p[0] ** 2 + p[1] ** 2 - rho ** 2) if jump else None,
+                   poincare=1.0 / J01,
+                   description=f"unit disk, mu1 = {mu1}, mu2 = {mu2}, g = {g}, exact radial "
+                               f"solution, {kind}",
+                   domain="disk")
+
+
+# ## User data
+
+USER_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "g": 0.05, "f1": "0", "f2": "0"}
+
+
+def user(mu1=1.0, mu2=1.0, g=0.05, f1="0", f2="0", mesh=None, domain="disk", h=DEFAULT_H,
+         levels=0, comm=MPI.COMM_WORLD):
+    """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square."""
+    levels = _check_levels(levels)
+    f1, f2 = Formula(f1, "f1"), Formula(f2, "f2")   # fail on bad input before any meshing
+    mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
+    hierarchy = build_hierarchy(_coarse_mesh(domain, h, mesh, comm), levels,
+                                _projection(domain, mesh))
+    where = f"mesh {mesh}" if mesh is not None else f"unit {domain}"
+    return Problem("user", hierarchy, mu1, mu2, g, f1, f2,
+                   description=f"{where}, mu1 = {mu1}, mu2 = {mu2}, g = {g}, "
+                               f"f1 = {f1.text}, f2 = {f2.text}",
+                   domain=str(mesh) if mesh is not None else domain)
+
+
+SCENES = {"disk": disk, "square": square, "radial": radial, "user": user}
+
+NEEDS = {"disk": "exact solution -> energy error; data jump across r = 1/sqrt(2)",
+         "square": "exact solution -> energy error; data jump across s = 1/2",
+         "radial": "exact solution -> energy error; parameters rho, mu1, mu2, g, contact "
+                   "(API only)",
+         "user": "data only (no exact solution, no energy error)"}
+
+
+def make(name, **kwargs):
+    """Build scene `name` with keyword arguments of its function."""
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r} (choose from: {', '.join(SCENES)})")
+    return SCENES[name](**kwargs)
