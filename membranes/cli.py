@@ -18,7 +18,7 @@ EXIT_NOT_CONVERGED = 3
 
 DATA_OPTIONS = ("mu1", "mu2", "g", "f1", "f2", "mesh", "domain")
 VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--tol",
-                 "--petsc-options", "--gamma-lin", "--gamma-alg")
+                 "--petsc-options", "--gamma-lin", "--gamma-alg", "--max-vertices")
 
 
 class BadInput(ValueError):
@@ -85,6 +85,9 @@ def _parser():
                         "test (default with --levels >= 1; --no-nested: from X^0 on T_J only)")
     s.add_argument("--out", metavar="DIR", help="write summary.json, history.csv, "
                    "solution.xdmf there")
+    s.add_argument("--max-vertices", type=int, metavar="N",
+                   help="refuse a computational mesh of more than N vertices (default: "
+                        "refuse a run that needs more memory than each process has)")
     s.add_argument("--no-estimators", action="store_true",
                    help="skip the a posteriori estimators (DESIGN §7) and their set-up")
     s.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -110,7 +113,11 @@ def _scene_arguments(args):
         raise BadInput(f"--levels must be a non-negative integer, got {args.levels}")
     if args.max_newton < 1:
         raise BadInput(f"--max-newton must be at least 1, got {args.max_newton}")
+    if args.max_vertices is not None and args.max_vertices < 1:
+        raise BadInput(f"--max-vertices must be a positive integer, got {args.max_vertices}")
     kwargs = {"levels": args.levels}
+    if args.max_vertices is not None:
+        kwargs["max_vertices"] = args.max_vertices
     if args.h is not None:
         kwargs["h"] = args.h
     if scene == "user":
@@ -131,17 +138,38 @@ def quiet_jit_logging():
         handler.setLevel(logging.WARNING)
 
 
+def _check_before_meshing(args, scene, kwargs, comm):
+    """Refuse at once what cannot work (issue 29), before any mesh is built: an output folder
+    that cannot be written, PETSc options PETSc would not use, and a mesh whose run needs
+    more memory than each process has (or more vertices than --max-vertices). Returns the
+    parsed PETSc options."""
+    from .app import checks
+    from .driver import check_linear_solver
+    from .scenes import DEFAULT_H
+    petsc_options = None if args.petsc_options is None else \
+        checks.parse_petsc_options(args.petsc_options)
+    if args.out is not None:
+        checks.check_output_folder(args.out, comm)
+    krylov = check_linear_solver(args.linear_solver, petsc_options, args.nu,
+                                 args.max_linear_its)
+    domain = scene if scene in ("disk", "square") else kwargs.get("domain", "disk")
+    alg_flux = args.alg_flux or ("multilevel" if args.levels >= 1 else "nu")
+    checks.check_request(kwargs.get("h", DEFAULT_H), args.levels, domain, kwargs.get("mesh"),
+                         args.max_vertices, comm=comm, linear_solver=args.linear_solver,
+                         pc_type=None if krylov is None else krylov.options.get("pc_type"),
+                         estimators=not args.no_estimators, alg_flux=alg_flux)
+    return petsc_options
+
+
 def _solve(args):
     scene, kwargs = _scene_arguments(args)
     from . import scenes
     from .driver import solve
-    from .krylov import parse_petsc_options
     from .outputs import write_outputs
     quiet_jit_logging()
-    petsc_options = None if args.petsc_options is None else \
-        parse_petsc_options(args.petsc_options)
     from mpi4py import MPI
     world = MPI.COMM_WORLD
+    petsc_options = _check_before_meshing(args, scene, kwargs, world)
     # several processes (mpirun): each builds the whole problem; Newton on process 0, the
     # estimators on the others (membranes.pipeline)
     problem = scenes.make(scene, comm=MPI.COMM_SELF, **kwargs)
@@ -150,7 +178,8 @@ def _solve(args):
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
                 estimators=not args.no_estimators, progress=not args.quiet,
                 gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux,
-                initial_guess=args.initial_guess, nested=args.nested, comm=world)
+                initial_guess=args.initial_guess, nested=args.nested, comm=world,
+                max_vertices=args.max_vertices)
     if args.out is not None:
         write_outputs(sol, args.out)
     if world.rank == 0:                  # process 0 speaks for all

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import cfunctions, parallel
+from .app import checks
 from .discretisation import EnergyError, as_one_run, discretise, discretise_in_parts
 from .estimators import ALG_ROUNDOFF, Estimators
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
@@ -32,6 +33,7 @@ from .nested import level_problem, prolong, prolongation
 from .newton import (DEFAULT_GAMMA, DEFAULT_TOL, check_choice, check_gamma, check_method,
                      linear_tolerance, semismooth_newton)
 from .newton_system import initial_guess as paper_guess, initial_residual, linear_rows, split
+from .preconditioner import DEFAULT_INNER, INNER_PREFIX
 
 LINEAR_SOLVERS = ("gmres", "direct")
 ALG_FLUXES = ("nu", "multilevel")
@@ -154,6 +156,40 @@ def _krylov(linear_solver, petsc_options, nu, max_linear_its):
     _reject("linear_solver 'gmres'", petsc_options=petsc_options, nu=nu,
             max_linear_its=max_linear_its)
     return None
+
+
+def check_linear_solver(linear_solver="gmres", petsc_options=None, nu=None,
+                        max_linear_its=None):
+    """The Krylov solver of a run (None for MUMPS) once its options are checked, before any
+    mesh is needed: `petsc_options` (a dict, or a string as on the command line) parsed
+    (membranes.app.checks.parse_petsc_options), and refused if PETSc would not use one of them
+    (a misspelt name, an option of another KSP or PC; `checks.check_petsc_options_used` on the
+    options the solves apply). ValueError otherwise."""
+    check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
+    if petsc_options is not None:
+        petsc_options = checks.parse_petsc_options(petsc_options)
+    krylov = _krylov(linear_solver, petsc_options, nu, max_linear_its)
+    if krylov is not None and petsc_options:
+        inner = krylov.vertex_amg
+        inner_options = None if inner is None else \
+            {**(DEFAULT_INNER if "pc_type" not in inner else {}), **inner}
+        # krylov._petsc: the options each solve gives its KSP (vertex_amg: pc_type none)
+        checks.check_petsc_options_used(petsc_options, krylov._petsc, inner_options,
+                                        INNER_PREFIX, shown=krylov.options)
+    return krylov
+
+
+def _check_memory(problem, krylov, linear_solver, estimators, alg_flux, max_vertices, comm):
+    """Refuse a computational mesh whose run needs more memory than each process has, or more
+    vertices than `max_vertices`, before anything is assembled (membranes.app.checks)."""
+    vertices = problem.mesh.topology.index_map(0).size_global
+    max_vertices = checks.check_max_vertices(max_vertices)
+    available = None if max_vertices is not None else checks.available_memory(comm)
+    pc_type = None if krylov is None else krylov.options.get("pc_type")
+    checks.check_size(vertices, available, max_vertices,
+                      what=f"the computational mesh of {problem.name!r}",
+                      linear_solver=linear_solver, pc_type=pc_type, estimators=estimators,
+                      alg_flux=alg_flux)
 
 
 def _stopping(newton, tol, gamma_lin, gamma_alg):
@@ -325,7 +361,7 @@ class IterateEstimates:
 def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmres",
           petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
           estimators=True, progress=False, gamma_lin=None, gamma_alg=None, alg_flux=None,
-          initial_guess=None, nested=None, comm=None):
+          initial_guess=None, nested=None, comm=None, max_vertices=None):
     """Solve the discrete contact problem of `problem` by semismooth Newton (DESIGN §3, §8).
 
     newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
@@ -354,7 +390,9 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     same problem on MPI.COMM_SELF; Newton and GMRES run on process 0, the estimators on the
     others, which share the patch problems when P ≥ 3; progress lines come from process 0;
     every process returns the same Solution, whose discretisation on the estimator processes
-    has no stiffness matrices, S1 = S2 = None); None: one process.
+    has no stiffness matrices, S1 = S2 = None); None: one process;
+    max_vertices: refuse a computational mesh of more vertices (default: refuse one whose run
+    needs more memory than each process has, membranes.app.checks, issue 29).
     """
     started = time.perf_counter()       # the wall time of the run starts here (module notes)
     parallel.check_replicated(problem.mesh, comm)
@@ -363,7 +401,7 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     check_choice("linear solver", linear_solver, LINEAR_SOLVERS)
     if int(max_newton) < 1:
         raise ValueError(f"max_newton must be at least 1, got {max_newton}")
-    krylov = _krylov(linear_solver, petsc_options, nu, max_linear_its)
+    krylov = check_linear_solver(linear_solver, petsc_options, nu, max_linear_its)
     check_method(system, newton, krylov)
     if krylov is not None and krylov.options.get("pc_type") == "vertex_amg" and \
             system != "eliminated":
@@ -374,6 +412,7 @@ def solve(problem, newton="exact", cfun="min", system="full", linear_solver="gmr
     if isinstance(initial_guess, str):
         check_choice("initial guess", initial_guess, INITIAL_GUESSES)
     nested = _nested(problem, nested)
+    _check_memory(problem, krylov, linear_solver, estimators, alg_flux, max_vertices, comm)
     guess_name = initial_guess if isinstance(initial_guess, str) else \
         "paper" if initial_guess is None else "given"
     say = progress if callable(progress) else \

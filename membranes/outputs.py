@@ -20,6 +20,7 @@ import os
 import shutil
 import tempfile
 
+from .app.checks import check_output_folder
 from .estimators import COLUMNS as ESTIMATOR_COLUMNS
 
 HISTORY_COLUMNS = ("level", "newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
@@ -68,10 +69,10 @@ def write_solution(path, mesh, functions, eta_K=None):
 def staged_folder(out):
     """Yield a fresh temporary folder beside `out` (one process); when the block ends without
     an error, every file in it moves into `out` (created if missing); the temporary folder
-    goes in any case. ValueError if `out` exists and is not a folder."""
+    goes in any case. ValueError (one line, nothing left behind) if `out` exists and is not a
+    folder or cannot be written (membranes.app.checks.check_output_folder)."""
     out = os.path.abspath(out)
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise ValueError(f"--out {out} exists and is not a folder")
+    check_output_folder(out)
     parent = os.path.dirname(out)
     os.makedirs(parent, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix=".membranes-", dir=parent)

@@ -16,6 +16,7 @@ import ufl
 from mpi4py import MPI
 
 from . import meshes
+from .app.checks import check_request
 from .expressions import Formula
 from .hierarchy import build_hierarchy
 from .problem import ExactSolution, Problem, positive_number
@@ -31,6 +32,14 @@ def _coarse_mesh(domain, h, mesh_file, comm):
     if domain == "square":
         return meshes.unit_square(h, comm)
     raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
+
+
+def _check_size(h, levels, domain, mesh_file, max_vertices, comm):
+    """Refuse, before gmsh runs, a mesh and hierarchy that no run could hold in memory (or of
+    more vertices than `max_vertices`): membranes.app.checks.check_request with the leanest
+    method; `solve` checks its own method's memory on the mesh built."""
+    check_request(h, levels, domain, mesh_file, max_vertices,
+                  comm=comm if comm.size > 1 else None)
 
 
 def _check_levels(levels):
@@ -50,9 +59,11 @@ DISK_G = 0.05
 J01 = 2.404825557695773   # first zero of the Bessel function J_0
 
 
-def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_SELF):
-    """The paper's test case on the unit disk, with its exact solution (DESIGN §9)."""
+def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_SELF, max_vertices=None):
+    """The paper's test case on the unit disk, with its exact solution (DESIGN §9).
+    `max_vertices`: see `_check_size` (every scene has it)."""
     levels = _check_levels(levels)
+    _check_size(h, levels, "disk", None, max_vertices, comm)
     g = DISK_G
     c = g * math.sqrt(2.0) / (math.sqrt(2.0) - 1.0)
 
@@ -101,12 +112,14 @@ def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_SELF):
 SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
 
 
-def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_SELF, mesh=None):
+def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_SELF, mesh=None, max_vertices=None):
     """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
     `mesh`: a dolfinx mesh of (0, 1)² to use instead of gmsh's at size h (API only: the
     anisotropic, graded and tiny meshes of DESIGN §11, meshes.structured_square)."""
     levels = _check_levels(levels)
-    if mesh is not None:
+    if mesh is None:
+        _check_size(h, levels, "square", None, max_vertices, comm)
+    else:
         x = mesh.geometry.x[:, :2]
         if abs(x.min()) > 1e-12 or abs(x.max() - 1.0) > 1e-12:
             raise ValueError("the square scene's mesh must cover the unit square (0, 1)^2")
@@ -154,13 +167,14 @@ def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_SELF, mesh=None):
 
 
 def radial(h=DEFAULT_H, levels=0, rho=0.5, mu1=1.0, mu2=1.0, g=0.05, contact=True,
-           comm=MPI.COMM_SELF):
+           comm=MPI.COMM_SELF, max_vertices=None):
     """Unit disk, exact radial solution with contact disk r <= rho (any mu1, mu2, g)."""
     levels = _check_levels(levels)
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
     rho = float(rho)
     if not (0.0 <= rho < 1.0):
         raise ValueError(f"rho must lie in [0, 1), got {rho}")
+    _check_size(h, levels, "disk", None, max_vertices, comm)
 
     def r2(x):
         return x[0] ** 2 + x[1] ** 2
@@ -207,11 +221,13 @@ USER_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "g": 0.05, "f1": "0", "f2": "0"}
 
 
 def user(mu1=1.0, mu2=1.0, g=0.05, f1="0", f2="0", mesh=None, domain="disk", h=DEFAULT_H,
-         levels=0, comm=MPI.COMM_SELF):
+         levels=0, comm=MPI.COMM_SELF, max_vertices=None):
     """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square."""
     levels = _check_levels(levels)
     f1, f2 = Formula(f1, "f1"), Formula(f2, "f2")   # fail on bad input before any meshing
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
+    if mesh is not None or domain in ("disk", "square"):
+        _check_size(h, levels, domain, mesh, max_vertices, comm)
     hierarchy = build_hierarchy(_coarse_mesh(domain, h, mesh, comm), levels)
     where = f"mesh {mesh}" if mesh is not None else f"unit {domain}"
     return Problem("user", hierarchy, mu1, mu2, g, f1, f2,

@@ -1,0 +1,587 @@
+"""Checks made before a run starts, so that what cannot work is refused at once (issue 29).
+
+Three kinds of request fail late or never if nobody looks at them first:
+
+* **a size beyond memory.** ``--levels 12`` asks for ~1e10 vertices, ``--h 1e-5`` for ~3e10;
+  gmsh or the refinement would run for minutes before anything fails. `check_size` estimates
+  the vertex count of the requested mesh and hierarchy from the domain's area and boundary, h
+  and the levels (or from a gmsh file's header), the memory of the run from the measured
+  bytes per vertex of its method, and refuses when that exceeds the memory available to each
+  process. ``max_vertices`` (``--max-vertices N``) replaces the memory limit by a vertex count.
+* **an output folder that cannot be written** (``--out /proc/x``): `check_output_folder`
+  creates it, writes and removes a probe file, and removes what it created again.
+* **PETSc options that do nothing.** A token that is not ``-name [value]`` is refused by
+  `parse_petsc_options`; an option PETSc never queries (a misspelt name, or one that does not
+  apply to the solver configured) is found through PETSc's own record of the options it read
+  (`unused_petsc_options`, PetscOptionsUsed), and `check_petsc_options_used` refuses it before
+  the solve by configuring a throw-away KSP (and inner PC) with the run's options.
+
+Every check raises ValueError with a one-line message; the command line turns it into exit
+code 2. The functions take plain values (sizes, dicts, a communicator) and import nothing
+from the rest of the package, so that any driver can call them before it meshes.
+"""
+
+import ctypes
+import math
+import os
+import shlex
+import shutil
+import tempfile
+
+# ## Vertex counts of a requested mesh and hierarchy
+#
+# gmsh meshes a domain of area A and boundary length L with target size h into
+# V_0 ≈ c_A A/h² + c_L L/h vertices. Measured with the meshing of membranes.meshes (disk and
+# square, h = 0.1 … 0.005): V_0 h²/A → 1.15 as h → 0, and the boundary's share is ~0.6-0.75
+# L/h (disk h = 0.005: 146 055 vertices against 145 200 + 940; square: 46 686 against
+# 46 400 + 600). An equilateral triangulation of size h would have 2/√3 = 1.155 A/h².
+# T_0 = 2 V_0 - V_b - 2 triangles (Euler's formula for a simply connected triangulation with
+# V_b ≈ L/h boundary vertices). One uniform refinement adds a vertex on each edge,
+# E = V + T - 1, and cuts every triangle into four: V ← V + E, T ← 4 T, so V_J ≈ 4^J V_0
+# (the recursion is exact: disk h = 0.2, V_0 = 123, T_0 = 212 gives V_3 = 6 913 as measured).
+
+VERTICES_PER_AREA = 1.16        # c_A: V_0 ≈ c_A A/h² + c_L L/h (gmsh, measured above)
+VERTICES_PER_LENGTH = 0.75      # c_L
+DOMAINS = {"disk": (math.pi, 2.0 * math.pi),    # (area, boundary length) of the unit disk
+           "square": (1.0, 4.0)}                # and of the unit square
+# Bytes of a gmsh file per vertex, the fewest seen (msh 4.1 binary of a triangular mesh is
+# ~50 B per vertex with its triangles; ASCII ~100 B): a file's size over it bounds its
+# vertex count from above where its header cannot be read.
+MIN_FILE_BYTES_PER_VERTEX = 40.0
+
+
+def coarse_mesh_size(h, domain="disk"):
+    """(V_0, T_0): the estimated vertices and triangles of a gmsh mesh of `domain` ('disk',
+    'square' or (area, boundary length)) with target size h (module notes)."""
+    area, length = DOMAINS[domain] if isinstance(domain, str) else domain
+    h = float(h)
+    if not (math.isfinite(h) and h > 0):
+        raise ValueError(f"mesh size h must be a positive finite number, got {h}")
+    boundary = length / h
+    vertices = VERTICES_PER_AREA * area / h ** 2 + VERTICES_PER_LENGTH * boundary
+    # gmsh never makes fewer than a few triangles (3 boundary vertices at least)
+    boundary = max(boundary, 3.0)
+    vertices = max(vertices, boundary)
+    return vertices, max(2.0 * vertices - boundary - 2.0, 1.0)
+
+
+def refined_vertices(vertices, triangles, levels):
+    """Vertices after `levels` uniform refinements of a triangulation with `vertices` and
+    `triangles` (V ← V + E, E = V + T - 1, T ← 4 T; module notes). Floats: no overflow for
+    absurd requests."""
+    v, t = float(vertices), float(triangles)
+    for _ in range(int(levels)):
+        v, t = v + (v + t - 1.0), 4.0 * t
+    return v
+
+
+def hierarchy_vertices(vertices, triangles, levels):
+    """Vertices of every level T_0 … T_J (the hierarchy is kept whole): Σ_j V_j ≈ 4/3 V_J."""
+    return sum(refined_vertices(vertices, triangles, j) for j in range(int(levels) + 1))
+
+
+def mesh_file_vertices(path):
+    """The node count a gmsh .msh file declares (formats 2 and 4, ASCII or binary), read from
+    its $Nodes header without reading the nodes; its size over MIN_FILE_BYTES_PER_VERTEX
+    where the header is not found in the first 64 MiB; None where the path is no readable
+    gmsh file (the mesh reader then says what is wrong with it)."""
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+            if not head.startswith(b"$MeshFormat"):
+                return None
+            fmt = head.split(b"\n", 2)[1].split()
+            version, binary, word = float(fmt[0]), fmt[1] == b"1", int(fmt[2])
+            data, at = head, 0
+            while b"$Nodes" not in data and at < (1 << 26):
+                more = f.read(1 << 20)
+                if not more:
+                    return None
+                at += len(more)
+                data = data[-16:] + more
+            if b"$Nodes" not in data:
+                return size / MIN_FILE_BYTES_PER_VERTEX
+            start = data.index(b"$Nodes")
+            tail = data[start:] + f.read(256)
+    except (OSError, ValueError, IndexError):
+        return None
+    body = tail.split(b"\n", 1)[1]
+    try:
+        if version < 4:                            # "$Nodes\nN\n" (ASCII even in binary files)
+            return float(int(body.split(b"\n", 1)[0]))
+        if not binary:                             # "blocks nodes min max"
+            return float(int(body.split(b"\n", 1)[0].split()[1]))
+        endian = "little" if int.from_bytes(head.split(b"\n", 3)[2][:4], "little") == 1 \
+            else "big"
+        return float(int.from_bytes(body[word:2 * word], endian))   # blocks, nodes, ...
+    except (ValueError, IndexError):
+        return size / MIN_FILE_BYTES_PER_VERTEX
+
+
+def estimate_vertices(h=None, levels=0, domain="disk", mesh_file=None):
+    """(finest, all levels): the estimated vertices of T_J and of the whole hierarchy
+    T_0 … T_J for a gmsh mesh of `domain` with size h, or of the gmsh file `mesh_file`
+    (T_0 ≈ 2 V_0 there), refined `levels` times. (None, None) for a file whose size cannot
+    be read."""
+    if mesh_file is not None:
+        v0 = mesh_file_vertices(mesh_file)
+        if v0 is None:
+            return None, None
+        t0 = 2.0 * v0
+    else:
+        v0, t0 = coarse_mesh_size(h, domain)
+    return refined_vertices(v0, t0, levels), hierarchy_vertices(v0, t0, levels)
+
+
+# ## Memory of a run
+#
+# Peak resident memory of one process = BASE_BYTES + bytes per vertex × vertices of the
+# finest mesh T_J (its hierarchy included), measured with the current code on the disk
+# (BENCHMARKS.md, "Memory per vertex"): the linear-algebra part by method, plus the
+# estimators' part where they run (its multilevel algebraic flux keeps operators on every
+# level). A run on P processes that replicate the mesh (membranes.pipeline) needs at most
+# the serial figure on each; a distributed run about the serial per-vertex part over P.
+
+BASE_BYTES = 0.30 * 2 ** 30       # interpreter, dolfinx, PETSc, compiled kernels, small mesh
+SOLVER_BYTES_PER_VERTEX = {       # discretisation, Newton systems and their Krylov/MUMPS solve
+    "gmres": 1700.0,              # GMRES(30) + ILU(0), full 3N system (the default)
+    "vertex_amg": 1500.0,         # FGMRES + vertex_amg on the eliminated 2N system
+    "direct": 6000.0,             # MUMPS LU of the full system
+}
+ESTIMATOR_BYTES_PER_VERTEX = {    # the a posteriori estimators (DESIGN §7), by algebraic flux
+    "nu": 1500.0,
+    "multilevel": 3100.0,
+}
+
+
+def _solver_key(linear_solver="gmres", pc_type=None):
+    if linear_solver == "direct":
+        return "direct"
+    return "vertex_amg" if pc_type == "vertex_amg" else "gmres"
+
+
+def estimate_memory(vertices, linear_solver="gmres", pc_type=None, estimators=True,
+                    alg_flux="multilevel", processes=1, replicated=True):
+    """Bytes one process needs for a run on a finest mesh of `vertices` vertices: the
+    measured BASE_BYTES and bytes per vertex of the linear solver (`linear_solver` 'gmres' or
+    'direct'; `pc_type` 'vertex_amg' or another PETSc PC) and, with `estimators`, of the
+    estimators with algebraic flux `alg_flux` ('nu' or 'multilevel'); `linear_solver=None`:
+    the leanest method (what any run needs). With `processes` > 1 and not `replicated`,
+    the per-vertex part is shared out."""
+    if linear_solver is None:
+        per_vertex = min(SOLVER_BYTES_PER_VERTEX.values())
+    else:
+        per_vertex = SOLVER_BYTES_PER_VERTEX[_solver_key(linear_solver, pc_type)]
+        if estimators:
+            per_vertex += ESTIMATOR_BYTES_PER_VERTEX[alg_flux or "multilevel"]
+    share = 1 if replicated else max(int(processes), 1)
+    return BASE_BYTES + per_vertex * float(vertices) / share
+
+
+def largest_fitting(available, **method):
+    """The most vertices whose run (`estimate_memory` with `method`) fits in `available`
+    bytes (0 if not even the base does)."""
+    per_vertex = estimate_memory(1.0, **method) - estimate_memory(0.0, **method)
+    return max(int((available - estimate_memory(0.0, **method)) / per_vertex), 0)
+
+
+# ## Memory available to each process
+
+def _meminfo_available():
+    """MemAvailable of /proc/meminfo (the kernel's estimate of what can be allocated without
+    swapping), in bytes; None where there is no such file."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _cgroup_room():
+    """What the process's memory cgroup still allows (limit - usage, v2 or v1), or None."""
+    for limit, usage in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                         ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                          "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            with open(limit) as f:
+                text = f.read().strip()
+            if text == "max" or float(text) >= 2.0 ** 60:
+                return None
+            with open(usage) as f:
+                return float(text) - float(f.read())
+        except (OSError, ValueError):
+            continue
+    return None
+
+
+def processes_on_node(comm=None):
+    """How many processes of the run share this node: those of `comm` on it (collective on
+    `comm`), or without one those the MPI launcher says it started here (Open MPI, MPICH,
+    Slurm), 1 if none says."""
+    if comm is not None and comm.size > 1:
+        from mpi4py import MPI
+        node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+        try:
+            return node.size
+        finally:
+            node.Free()
+    for name in ("OMPI_COMM_WORLD_LOCAL_SIZE", "MPI_LOCALNRANKS", "SLURM_NTASKS_PER_NODE"):
+        try:
+            return max(int(os.environ[name]), 1)
+        except (KeyError, ValueError):
+            continue
+    return 1
+
+
+def available_memory(comm=None):
+    """Bytes each process of the run may use: the node's MemAvailable (or its cgroup's room,
+    if smaller) over the processes on the node (`processes_on_node`), the least over `comm`
+    (collective on `comm` when given with several processes). None where it cannot be read."""
+    room = _meminfo_available()
+    cgroup = _cgroup_room()
+    if room is None or (cgroup is not None and cgroup < room):
+        room = cgroup
+    share = None if room is None else room / processes_on_node(comm)
+    if comm is not None and comm.size > 1:
+        shares = [s for s in comm.allgather(share) if s is not None]
+        share = min(shares) if shares else None
+    return share
+
+
+# ## The size check
+
+def _bytes(n):
+    for unit, scale in (("TiB", 2 ** 40), ("GiB", 2 ** 30), ("MiB", 2 ** 20)):
+        if n >= scale or unit == "MiB":
+            return f"{n / scale:.3g} {unit}"
+
+
+def _count(n):
+    """2.5e10, 4.3e6, 9412: a vertex count to two digits, or whole below 1e4."""
+    if n < 1e4:
+        return str(round(n))
+    mantissa, exponent = f"{n:.1e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def check_max_vertices(max_vertices):
+    """`max_vertices` as a positive int (None stays None); ValueError otherwise."""
+    if max_vertices is None:
+        return None
+    if isinstance(max_vertices, bool) or not float(max_vertices).is_integer() or \
+            max_vertices < 1:
+        raise ValueError(f"max_vertices must be a positive integer, got {max_vertices}")
+    return int(max_vertices)
+
+
+def describe_request(h=None, levels=0, domain="disk", mesh_file=None):
+    """'h = 0.05 and 12 levels on the unit disk' (the words of the size check's message)."""
+    where = f"mesh file {mesh_file}" if mesh_file is not None else \
+        f"the unit {domain}" if isinstance(domain, str) else "the domain"
+    size = "" if mesh_file is not None else f"h = {h:g}, "
+    return f"{size}{int(levels)} level{'s' if int(levels) != 1 else ''} on {where}"
+
+
+def check_size(vertices, available=None, max_vertices=None, what="the run", hint=None,
+               **method):
+    """Refuse a run on a finest mesh of about `vertices` vertices that will not fit: the
+    memory `estimate_memory(vertices, **method)` needs against `available` bytes per process
+    (None: not known, no memory check), or, when `max_vertices` is given, `vertices` against
+    it instead. ValueError with one line: both figures and the largest size that fits
+    (`hint(largest)`, if given, adds how to ask for it). Returns the bytes needed."""
+    limit = check_max_vertices(max_vertices)
+    need = estimate_memory(vertices, **method)
+    if limit is not None:
+        if vertices > limit:
+            extra = f"; {hint(limit)}" if hint is not None else ""
+            raise ValueError(f"{what} has about {_count(vertices)} vertices, more than "
+                             f"the limit --max-vertices {limit} (max_vertices){extra}")
+        return need
+    if available is None or need <= available:
+        return need
+    largest = largest_fitting(available, **method)
+    extra = f" ({hint(largest)})" if hint is not None else ""
+    raise ValueError(f"{what} has about {_count(vertices)} vertices and needs about "
+                     f"{_bytes(need)} of memory, but {_bytes(available)} is available per "
+                     f"process: the largest run that fits has about {_count(largest)} "
+                     f"vertices{extra}; --max-vertices N (max_vertices=N) sets another limit")
+
+
+def largest_levels(limit, h=None, domain="disk", mesh_file=None):
+    """The most uniform refinements whose finest mesh keeps within `limit` vertices, or -1."""
+    levels = -1
+    while levels < 64 and \
+            estimate_vertices(h, levels + 1, domain, mesh_file)[0] <= limit:
+        levels += 1
+    return levels
+
+
+def smallest_h(limit, levels=0, domain="disk"):
+    """The smallest gmsh size h, rounded up to two digits, whose mesh refined `levels` times
+    keeps within `limit` vertices (the estimate falls as h grows: bisection on log h); None
+    if even the coarsest mesh, refined so often, has more."""
+    low, high = 1e-12, 1e6                 # too many vertices at low, few enough at high
+    if estimate_vertices(high, levels, domain)[0] > limit:
+        return None
+    for _ in range(100):
+        mid = math.sqrt(low * high)
+        if estimate_vertices(mid, levels, domain)[0] <= limit:
+            high = mid
+        else:
+            low = mid
+    unit = 10.0 ** (math.floor(math.log10(high)) - 1)
+    return math.ceil(high / unit * (1 - 1e-12)) * unit
+
+
+def check_request(h=None, levels=0, domain="disk", mesh_file=None, max_vertices=None,
+                  available=None, comm=None, **method):
+    """The size check before meshing (issue 29): the estimated finest mesh of a gmsh mesh of
+    `domain` ('disk', 'square' or (area, boundary length)) at size h, or of `mesh_file`,
+    refined `levels` times, against the memory of `method` (`estimate_memory`'s arguments;
+    none: the leanest method) on `available` bytes per process (default
+    `available_memory(comm)`), or against `max_vertices`. ValueError as `check_size`;
+    returns the estimated vertex count (None for a file that cannot be read: the mesh reader
+    reports it)."""
+    vertices, _ = estimate_vertices(h, levels, domain, mesh_file)
+    if vertices is None:
+        check_max_vertices(max_vertices)
+        return None
+    if max_vertices is None and available is None:
+        available = available_memory(comm)
+    method = method or {"linear_solver": None}
+
+    def hint(largest):
+        fit = largest_levels(largest, h, domain, mesh_file)
+        if mesh_file is not None:
+            return f"at most {fit} levels on this file" if fit >= 0 else "not this file"
+        h_min = smallest_h(largest, levels, domain)
+        ways = [] if h_min is None else [f"h >= {h_min:g} with {int(levels)} levels"]
+        if fit >= 0 and fit != int(levels):
+            ways.append(f"at most {fit} levels at h = {h:g}")
+        return " or ".join(ways) or f"no mesh with {int(levels)} levels"
+
+    check_size(vertices, available, max_vertices,
+               what=describe_request(h, levels, domain, mesh_file), hint=hint, **method)
+    return vertices
+
+
+# ## The output folder
+
+def check_output_folder(path, comm=None):
+    """Make sure the run can write its output folder `path` before it starts: the folder
+    (and its missing parents) can be created, a file written, moved in from a staging folder
+    beside it (as membranes' writers do) and removed. Whatever this created is removed again.
+    ValueError with one line otherwise. With `comm`, process 0 looks (it writes the outputs)
+    and every process gets its answer."""
+    error = None
+    if comm is None or comm.rank == 0:
+        try:
+            _probe_folder(os.path.abspath(os.fspath(path)))
+        except ValueError as e:
+            error = str(e)
+    if comm is not None and comm.size > 1:
+        error = comm.bcast(error, root=0)
+    if error is not None:
+        raise ValueError(error)
+
+
+def _probe_folder(out):
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ValueError(f"output folder {out} exists and is not a folder")
+    created = []                     # the folders made here, the outermost first
+    parent = os.path.dirname(out)
+    stage = None
+    try:
+        for folder in _missing_folders(out):
+            os.mkdir(folder)
+            created.append(folder)
+        stage = tempfile.mkdtemp(prefix=".membranes-probe-", dir=parent)
+        probe = os.path.join(stage, ".membranes-probe")
+        with open(probe, "w") as f:
+            f.write("probe\n")
+        os.replace(probe, os.path.join(out, ".membranes-probe"))
+        os.remove(os.path.join(out, ".membranes-probe"))
+    except OSError as e:
+        reason = e.strerror or str(e)
+        raise ValueError(f"output folder {out} cannot be written: {reason}") from None
+    finally:
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
+        for folder in reversed(created):
+            try:
+                os.rmdir(folder)
+            except OSError:
+                pass
+
+
+def _missing_folders(out):
+    """The folders from the first missing ancestor of `out` down to `out` itself."""
+    missing = []
+    while not os.path.exists(out):
+        missing.append(out)
+        parent = os.path.dirname(out)
+        if parent == out:
+            break
+        out = parent
+    return missing[::-1]
+
+
+# ## PETSc options
+#
+# An option is '-' and a name (a letter, then letters, digits and '_'), followed by at most
+# one value, any token that is not itself an option (so -1e-3 is a value). What is not of
+# that form is refused here rather than passed on: PETSc would store "-pc_type=vertex_amg" as
+# an option of that whole name and never read it.
+
+def _valid_name(name):
+    return bool(name) and name[0].isalpha() and name.replace("_", "a").isalnum() and \
+        name.isascii()
+
+
+def _is_option(token):
+    return token[:1] == "-" and token[1:2].isalpha()
+
+
+def parse_petsc_options(options):
+    """PETSc options as a dict {name: value or None}, names without their '-': from a string
+    ("-ksp_type gmres -ksp_monitor -pc_factor_shift_amount -1e-3") or a dict (whose names
+    may carry the '-'). ValueError for a token that is not -name [value]: '-pc_type=ilu',
+    'pc_type' where an option is expected, a value after a value, a name with other
+    characters; for a value that is not a string, number or bool."""
+    if options is None:
+        return {}
+    if isinstance(options, dict):
+        out = {}
+        for name, value in options.items():
+            bare = str(name)[1:] if str(name).startswith("-") else str(name)
+            if not _valid_name(bare):
+                raise ValueError(f"PETSc option {name!r} is not a valid option name "
+                                 f"(a letter, then letters, digits and '_')")
+            if not (value is None or isinstance(value, (str, bool, int, float))):
+                raise ValueError(f"PETSc option -{bare}: value {value!r} is not a string "
+                                 f"or number")
+            out[bare] = value
+        return out
+    try:
+        tokens = shlex.split(str(options))
+    except ValueError as e:
+        raise ValueError(f"PETSc options {options!r}: {e}") from None
+    out, name = {}, None
+    for token in tokens:
+        if _is_option(token):
+            name = token[1:]
+            if not _valid_name(name):
+                fix = f" (write '-{name.replace('=', ' ', 1)}')" if "=" in name else ""
+                raise ValueError(f"PETSc options: {token!r} is not -name [value]{fix}")
+            out[name] = None
+        elif "=" in token:
+            raise ValueError(f"PETSc options: {token!r} is not -name [value] "
+                             f"(write '-{token.lstrip('-').replace('=', ' ', 1)}')")
+        elif name is not None and out[name] is None:
+            out[name] = token
+        else:
+            raise ValueError(f"PETSc options: value {token!r} follows no option "
+                             f"(an option is -name [value])")
+    return out
+
+
+def _petsc_used():
+    """PETSc's PetscOptionsUsed(options, name, &used) from the library petsc4py runs on (the
+    same options database), or None where it cannot be found. petsc4py 3.18 has no binding for
+    it (its Options has getAll, hasName, delValue, but no 'used')."""
+    from petsc4py import PETSc  # noqa: F401  (loads the library)
+    try:
+        with open("/proc/self/maps") as f:
+            paths = {line.split()[-1] for line in f if "libpetsc" in line.split()[-1]}
+    except OSError:
+        return None
+    for path in sorted(paths):
+        try:
+            fn = ctypes.CDLL(path).PetscOptionsUsed
+        except (OSError, AttributeError):
+            continue
+        fn.argtypes = [ctypes.c_void_p, ctypes.c_char_p, ctypes.POINTER(ctypes.c_int)]
+        fn.restype = ctypes.c_int
+        return fn
+    return None
+
+
+def unused_petsc_options(options, prefix=""):
+    """The names of `options` (names without '-') that PETSc's global options database holds
+    under `prefix` but has never read: no PETSc object queried them. Call it at the end of a
+    run, before the options are taken out of the database. None where PETSc's record cannot be
+    read (`_petsc_used`)."""
+    used = _petsc_used()
+    if used is None:
+        return None
+    from petsc4py import PETSc
+    held = PETSc.Options().getAll()
+    unused = []
+    for name in options:
+        full = prefix + str(name).lstrip("-")
+        flag = ctypes.c_int(0)
+        if full in held and used(None, full.encode(), ctypes.byref(flag)) == 0 and \
+                not flag.value:
+            unused.append(str(name).lstrip("-"))
+    return unused
+
+
+_trials = iter(range(1 << 62))
+
+
+def unused_by_trial(options, kind="ksp"):
+    """The names of `options` that a throw-away PETSc KSP (or PC, `kind='pc'`) configured
+    with them (setFromOptions, no operator) does not read: an option a solve configured the
+    same way cannot read either, when its options are read at configuration (as the current
+    solvers do: they take their options out of the database right after setFromOptions).
+    PETSc errors (an unknown KSP type, a bad value) pass on as ValueError."""
+    from petsc4py import PETSc
+    prefix = f"membranes_check_{next(_trials)}_"
+    database = PETSc.Options()
+    for name, value in options.items():
+        database[prefix + name] = value
+    obj = (PETSc.KSP() if kind == "ksp" else PETSc.PC()).create(PETSc.COMM_SELF)
+    try:
+        obj.setOptionsPrefix(prefix)
+        try:
+            obj.setFromOptions()
+        except PETSc.Error as e:
+            message = str(e).strip().splitlines()[-1].split("] ", 1)[-1]
+            raise ValueError(f"PETSc options: {message}") from None
+        return unused_petsc_options(options, prefix)
+    finally:
+        obj.destroy()
+        for name in options:
+            database.delValue(prefix + name)
+
+
+def check_petsc_options_used(user, ksp_options, pc_options=None, pc_prefix=None,
+                             shown=None):
+    """Refuse the first of the user's options `user` (names without '-') that PETSc would not
+    read: those whose name starts with `pc_prefix` go (without it) to an inner PC configured
+    with `pc_options`, the others to a KSP configured with `ksp_options` (both the complete
+    options the solve applies, defaults included). ValueError naming it, in one line, with the
+    KSP and PC types of `shown` (default `ksp_options`)."""
+    inner = {name[len(pc_prefix):] for name in user
+             if pc_prefix and pc_options is not None and name.startswith(pc_prefix)}
+    outer = [name for name in user
+             if not (pc_prefix and pc_options is not None and name.startswith(pc_prefix))]
+    unused = unused_by_trial(ksp_options, "ksp")
+    if unused is None:
+        return
+    unused = [name for name in outer if name in unused]
+    if pc_options is not None and inner:
+        unused += [pc_prefix + name for name in unused_by_trial(pc_options, "pc") or []
+                   if name in inner]
+    if unused:
+        what = " ".join(f"-{k} {v}" for k, v in (shown or ksp_options).items()
+                        if k in ("ksp_type", "pc_type"))
+        raise ValueError(f"PETSc option -{unused[0]} is not used by the solver of this run "
+                         f"({what}): misspelt, or not an option of this KSP/PC")

@@ -1,0 +1,328 @@
+"""The checks made before a run (membranes.app.checks, issue 29): vertex estimates against the
+meshes gmsh and the refinement make, the memory check (a run of about 1e6 vertices fits in
+24 GiB; 1e10 does not), the output folder probe, PETSc option parsing and PETSc's record of
+the options it used."""
+
+import math
+import os
+
+import pytest
+
+from membranes import scenes, solve
+from membranes.app import checks
+from membranes.hierarchy import build_hierarchy
+from membranes.meshes import unit_disk, unit_square
+
+from .conftest import scene
+
+GiB = 2.0 ** 30
+
+
+def _counts(mesh):
+    return (mesh.topology.index_map(0).size_global, mesh.topology.index_map(2).size_global)
+
+
+# ## Vertex estimates
+
+@pytest.mark.parametrize("domain,h", [("disk", 0.05), ("disk", 0.02), ("square", 0.02),
+                                      ("square", 0.01)])
+def test_coarse_estimate_against_gmsh(domain, h):
+    """V_0 ≈ 1.16 A/h² + 0.75 L/h: the constants were fitted on these meshes and h = 0.005;
+    the model leaves a few per cent (the boundary's share varies with h)."""
+    mesh = (unit_disk if domain == "disk" else unit_square)(h)
+    vertices, triangles = _counts(mesh)
+    v0, t0 = checks.coarse_mesh_size(h, domain)
+    assert abs(v0 / vertices - 1) < 0.03
+    assert abs(t0 / triangles - 1) < 0.03
+
+
+def test_refinement_recursion_is_exact():
+    """V ← V + E, E = V + T - 1, T ← 4 T is Euler's formula on a simply connected
+    triangulation: from the coarse mesh's own counts it gives every level's count exactly."""
+    h = build_hierarchy(unit_disk(0.2), 3)
+    v0, t0 = _counts(h.meshes[0])
+    for j, mesh in enumerate(h.meshes):
+        assert checks.refined_vertices(v0, t0, j) == _counts(mesh)[0]
+    assert checks.hierarchy_vertices(v0, t0, 3) == sum(_counts(m)[0] for m in h.meshes)
+
+
+def test_estimate_of_a_hierarchy():
+    """disk, h = 0.2, J = 3: 6 913 vertices measured; the estimate from h alone within 8 %
+    (the coarse estimate's error at this coarse h, carried through the refinement)."""
+    finest, total = checks.estimate_vertices(0.2, 3, "disk")
+    assert abs(finest / 6913 - 1) < 0.08
+    assert finest < total < 4 / 3 * finest + 200
+    assert checks.estimate_vertices(0.05, 12, "disk")[0] > 1e10       # the issue's request
+
+
+@pytest.mark.parametrize("version", [2.2, 4.1])
+@pytest.mark.parametrize("binary", [0, 1])
+def test_mesh_file_vertices_from_the_header(version, binary, tmp_path):
+    import gmsh
+    gmsh.initialize([])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("r")
+        gmsh.model.occ.addRectangle(0, 0, 0, 2, 1)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.05)
+        gmsh.model.mesh.generate(2)
+        nodes = len(gmsh.model.mesh.getNodes()[0])
+        gmsh.option.setNumber("Mesh.MshFileVersion", version)
+        gmsh.option.setNumber("Mesh.Binary", binary)
+        path = str(tmp_path / "r.msh")
+        gmsh.write(path)
+    finally:
+        gmsh.finalize()
+    assert checks.mesh_file_vertices(path) == nodes
+    finest, _ = checks.estimate_vertices(levels=2, mesh_file=path)
+    assert finest == checks.refined_vertices(nodes, 2 * nodes, 2)
+
+
+def test_mesh_file_that_is_not_one(tmp_path):
+    """Not a gmsh file (or none at all): no estimate, so that the mesh reader says what is
+    wrong with it."""
+    garbage = tmp_path / "garbage.msh"
+    garbage.write_text("this is not a mesh\n")
+    for path in (garbage, tmp_path / "missing.msh", tmp_path):
+        assert checks.mesh_file_vertices(str(path)) is None
+        assert checks.check_request(levels=20, mesh_file=str(path)) is None
+
+
+# ## Memory
+
+def test_a_run_of_about_1e6_vertices_fits_in_24_GiB():
+    """The issue's example: the default method (GMRES + ILU(0), estimators, multilevel flux)
+    and every other one are admitted at 1e6 vertices on a machine with 24 GiB."""
+    default = {"linear_solver": "gmres", "pc_type": "ilu", "estimators": True,
+               "alg_flux": "multilevel"}
+    need = checks.check_size(1e6, 24 * GiB, **default)
+    assert need < 12 * GiB
+    for method in ({"linear_solver": "direct", "estimators": True},
+                   {"linear_solver": "gmres", "pc_type": "vertex_amg", "alg_flux": "nu"},
+                   {"linear_solver": None}):
+        assert checks.check_size(1e6, 24 * GiB, **method) < 24 * GiB
+    assert checks.largest_fitting(24 * GiB, **default) > 2e6
+    # h = 0.05 with 5 levels (~1.6e6 vertices): admitted through check_request as well
+    assert checks.check_request(0.05, 5, "disk", available=24 * GiB, **default) > 1e6
+
+
+def test_a_run_beyond_memory_is_refused_with_both_figures():
+    with pytest.raises(ValueError) as e:
+        checks.check_request(0.05, 12, "disk", available=24 * GiB)
+    message = str(e.value)
+    assert "\n" not in message
+    assert "2.5e10 vertices" in message and "24 GiB is available" in message
+    largest = checks.largest_fitting(24 * GiB, linear_solver=None)
+    assert f"about {checks._count(largest)} vertices" in message
+    fits = checks.largest_levels(largest, 0.05, "disk")
+    assert f"at most {fits} levels at h = 0.05" in message
+    assert checks.estimate_vertices(0.05, fits, "disk")[0] <= largest < \
+        checks.estimate_vertices(0.05, fits + 1, "disk")[0]
+    with pytest.raises(ValueError, match=r"h >= [0-9.e-]+ with 0 levels"):
+        checks.check_request(1e-5, 0, "disk", available=24 * GiB)
+
+
+def test_smallest_h_is_the_bound():
+    limit = 1e6
+    h = checks.smallest_h(limit, 2, "square")
+    assert checks.estimate_vertices(h, 2, "square")[0] <= limit
+    assert checks.estimate_vertices(0.98 * h, 2, "square")[0] > limit
+    assert checks.smallest_h(limit, 40, "disk") is None      # 4^40 > 1e6 whatever h
+
+
+def test_max_vertices_raises_or_lowers_the_limit():
+    with pytest.raises(ValueError, match="more than the limit --max-vertices 1000"):
+        checks.check_request(0.05, 1, "disk", max_vertices=1000)
+    # a size beyond the memory given passes with a limit above it
+    assert checks.check_request(0.05, 6, "disk", available=1 * GiB,
+                                max_vertices=10 ** 8) > 6e6
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="max_vertices"):
+            checks.check_max_vertices(bad)
+
+
+def test_available_memory_is_memavailable_per_process(monkeypatch):
+    total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    monkeypatch.delenv("OMPI_COMM_WORLD_LOCAL_SIZE", raising=False)
+    monkeypatch.delenv("MPI_LOCALNRANKS", raising=False)
+    monkeypatch.delenv("SLURM_NTASKS_PER_NODE", raising=False)
+    alone = checks.available_memory()
+    assert 0 < alone <= total
+    monkeypatch.setenv("OMPI_COMM_WORLD_LOCAL_SIZE", "4")
+    assert checks.processes_on_node() == 4
+    # the other three have the node too (MemAvailable moves a little between two reads)
+    assert checks.available_memory() == pytest.approx(alone / 4, rel=0.05)
+
+
+def test_scenes_refuse_before_gmsh(monkeypatch):
+    """The size check runs before any meshing: with gmsh made to fail, an oversized scene is
+    refused by the check (ValueError naming the size), a small one reaches gmsh."""
+    from membranes import meshes
+
+    def no_gmsh(*args, **kwargs):
+        raise AssertionError("gmsh was called")
+    monkeypatch.setattr(meshes, "_mesh_shape", no_gmsh)
+    for make in (lambda: scenes.disk(h=0.05, levels=12), lambda: scenes.disk(h=1e-5),
+                 lambda: scenes.square(h=1e-5),
+                 lambda: scenes.radial(h=0.05, levels=12),
+                 lambda: scenes.user(domain="square", levels=13),
+                 lambda: scenes.make("disk", h=0.1, levels=2, max_vertices=100)):
+        with pytest.raises(ValueError, match="vertices"):
+            make()
+    with pytest.raises(AssertionError, match="gmsh was called"):
+        scenes.disk(h=0.1)
+
+
+def test_solve_checks_the_mesh_before_assembly(monkeypatch):
+    """solve() refuses a mesh above max_vertices (the method's own check on the mesh built)
+    before the discretisation is assembled."""
+    from membranes import driver
+    problem = scene("disk", 0.3)
+
+    def no_assembly(*args, **kwargs):
+        raise AssertionError("assembled")
+    monkeypatch.setattr(driver, "discretise", no_assembly)
+    monkeypatch.setattr(driver, "discretise_in_parts", no_assembly)
+    with pytest.raises(ValueError, match="the computational mesh of 'disk' has about 71 "
+                                         "vertices, more than the limit"):
+        solve(problem, max_vertices=50)
+
+
+# ## The output folder
+
+def test_output_folder_probe_leaves_nothing(tmp_path):
+    deep = tmp_path / "a" / "b" / "out"
+    checks.check_output_folder(str(deep))
+    assert not (tmp_path / "a").exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "old.txt").write_text("x")
+    checks.check_output_folder(str(kept))
+    assert sorted(os.listdir(kept)) == ["old.txt"]
+    assert sorted(os.listdir(tmp_path)) == ["kept"]
+
+
+@pytest.mark.parametrize("where", ["proc", "under a file", "a file"])
+def test_output_folder_that_cannot_be_written(where, tmp_path):
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    path = {"proc": "/proc/membranes-x", "under a file": str(a_file / "out"),
+            "a file": str(a_file)}[where]
+    with pytest.raises(ValueError, match="output folder") as e:
+        checks.check_output_folder(path)
+    assert "\n" not in str(e.value)
+    assert sorted(os.listdir(tmp_path)) == ["file"] and not os.path.exists("/proc/membranes-x")
+
+
+def test_write_outputs_refuses_an_unwritable_folder():
+    from membranes.outputs import write_outputs
+    from .conftest import solved
+    with pytest.raises(ValueError, match="output folder /proc/x cannot be written"):
+        write_outputs(solved("disk", 0.3), "/proc/x")
+
+
+# ## PETSc options
+
+def test_parse_petsc_options():
+    assert checks.parse_petsc_options(
+        "-ksp_type gmres -ksp_monitor -pc_factor_shift_amount -1e-3 -pc_type ilu") == \
+        {"ksp_type": "gmres", "ksp_monitor": None, "pc_factor_shift_amount": "-1e-3",
+         "pc_type": "ilu"}
+    assert checks.parse_petsc_options({"-ksp_gmres_restart": 50, "pc_type": "jacobi"}) == \
+        {"ksp_gmres_restart": 50, "pc_type": "jacobi"}
+    assert checks.parse_petsc_options(None) == {} and checks.parse_petsc_options("") == {}
+
+
+@pytest.mark.parametrize("bad,message", [
+    ("-pc_type=vertex_amg", "write '-pc_type vertex_amg'"),
+    ("pc_type", "follows no option"),
+    ("-ksp_type gmres ilu", "follows no option"),
+    ("-ksp_monitor pc_type=ilu", "write '-pc_type ilu'"),
+    ("-pc_type 'ilu", "quotation"),
+    ("-pc.type ilu", "is not -name"),
+    ({"pc type": "ilu"}, "not a valid option name"),
+    ({"pc_type=ilu": None}, "not a valid option name"),
+    ({"ksp_gmres_restart": [30]}, "not a string or number"),
+])
+def test_malformed_petsc_options(bad, message):
+    with pytest.raises(ValueError, match=message) as e:
+        checks.parse_petsc_options(bad)
+    assert "\n" not in str(e.value)
+
+
+def test_petsc_record_of_used_options_until_the_end_of_a_solve():
+    """PETSc marks an option used when an object reads it; -ksp_converged_reason is read by
+    KSPSolve itself, so it is unused after setFromOptions and used at the end of the run; a
+    misspelt name stays unused."""
+    from petsc4py import PETSc
+    options = {"ksp_type": "gmres", "ksp_gmres_restart": "40", "ksp_gmres_restartt": "50",
+               "ksp_converged_reason": "ascii:/dev/null"}
+    prefix = "membranes_test_used_"
+    database = PETSc.Options()
+    for name, value in options.items():
+        database[prefix + name] = value
+    A = PETSc.Mat().createAIJ((2, 2), nnz=1, comm=PETSc.COMM_SELF)
+    A.setValue(0, 0, 1.0)
+    A.setValue(1, 1, 2.0)
+    A.assemble()
+    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+    try:
+        ksp.setOptionsPrefix(prefix)
+        ksp.setOperators(A)
+        ksp.setFromOptions()
+        assert checks.unused_petsc_options(options, prefix) == ["ksp_gmres_restartt",
+                                                               "ksp_converged_reason"]
+        b, x = A.createVecs()
+        b.set(1.0)
+        ksp.solve(b, x)
+        assert checks.unused_petsc_options(options, prefix) == ["ksp_gmres_restartt"]
+    finally:
+        ksp.destroy()
+        A.destroy()
+        for name in options:
+            database.delValue(prefix + name)
+
+
+def test_unused_options_refused_up_front():
+    ilu = {"ksp_type": "gmres", "pc_type": "ilu"}
+    checks.check_petsc_options_used({"ksp_gmres_restart": "50"},
+                                    {**ilu, "ksp_gmres_restart": "50"})
+    with pytest.raises(ValueError, match="-ksp_gmres_restartt is not used"):
+        checks.check_petsc_options_used({"ksp_gmres_restartt": "50"},
+                                        {**ilu, "ksp_gmres_restartt": "50"})
+    with pytest.raises(ValueError, match=r"-ksp_gmres_restart is not used .*-ksp_type cg"):
+        checks.check_petsc_options_used({"ksp_gmres_restart": "50", "ksp_type": "cg"},
+                                        {**ilu, "ksp_type": "cg", "ksp_gmres_restart": "50"})
+    amg = {"pc_type": "hypre", "pc_hypre_type": "boomeramg"}
+    checks.check_petsc_options_used({"inner_pc_hypre_boomeramg_strong_threshold": "0.5"},
+                                    {**ilu, "pc_type": "none"},
+                                    {**amg, "pc_hypre_boomeramg_strong_threshold": "0.5"},
+                                    "inner_")
+    with pytest.raises(ValueError, match="-inner_pc_hypre_boomeramg_strong_treshold"):
+        checks.check_petsc_options_used({"inner_pc_hypre_boomeramg_strong_treshold": "0.5"},
+                                        {**ilu, "pc_type": "none"},
+                                        {**amg, "pc_hypre_boomeramg_strong_treshold": "0.5"},
+                                        "inner_")
+    from petsc4py import PETSc
+    assert not [k for k in PETSc.Options().getAll() if k.startswith("membranes_check_")]
+
+
+@pytest.mark.parametrize("options,message", [
+    ({"ksp_gmres_restartt": 50}, "-ksp_gmres_restartt is not used"),
+    ("-ksp_gmres_restartt 50", "-ksp_gmres_restartt is not used"),
+    ("-pc_type=vertex_amg", "is not -name"),
+    ({"pc_type": "vertex_amg", "vertex_amg_pc_hypre_boomeramg_strong_treshold": 0.5},
+     "-vertex_amg_pc_hypre_boomeramg_strong_treshold is not used"),
+])
+def test_api_refuses_options_petsc_would_not_use(options, message):
+    with pytest.raises(ValueError, match=message):
+        solve(scene("disk", 0.3), petsc_options=options, system="eliminated")
+
+
+def test_api_accepts_options_petsc_uses():
+    run = solve(scene("disk", 0.3), petsc_options="-ksp_gmres_restart 50 -pc_type jacobi",
+                estimators=False)
+    assert run.converged
+    assert run.summary()["petsc_options"]["ksp_gmres_restart"] == "50"
+    assert math.isfinite(run.energy_error)
