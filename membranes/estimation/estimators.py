@@ -175,6 +175,7 @@ class Estimators:
         self._build_forms()
         self.osc = self._oscillation()                                  # (cells, 2)
         self._recent = []                                               # σ_disc's last two
+        self._u_sigma = [fem.Function(V) for _ in range(3)]             # σ_disc's iterate
         self._layouts = {}                                              # `_alike`'s verdicts
 
     # ## Set-up
@@ -263,7 +264,8 @@ class Estimators:
         the later one is the next ν flux's X; `evaluate` at X asks again): an iterate seen
         before is found by comparing X and R on every process (collectively, so that all
         processes compute or none), and a new one is written into the Functions of the
-        older kept one."""
+        older kept one: the Functions returned stay valid until σ_disc is asked for two
+        other iterates."""
         from dolfinx import fem
         x = np.array(owned(X))
         r = None if R is None else np.array(owned(R))
@@ -279,7 +281,7 @@ class Estimators:
         else:
             sigma = tuple(fem.Function(self.RT) for _ in range(2))
             rh = tuple(fem.Function(self.DG1) for _ in range(2))
-        u = self.disc.functions(x)
+        u = self.disc.functions(x, out=self._u_sigma)
         self.lifted(r, rh)
         for alpha in (1, 2):
             eq.sigma(alpha, u[alpha - 1], u[2], rh[alpha - 1], self.loads[alpha - 1],
