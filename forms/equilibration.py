@@ -65,3 +65,13 @@ def patch_rhs(psi, lam_c, sign, mu, u, r, tau, q, dx=ufl.dx):
 def patch_load(psi, f, q, dx=ufl.dx):
     """The data part -(ψ f, q) of the right-hand side (§5; dx a data measure)."""
     return -psi * f * q * dx
+
+
+# ## The multilevel algebraic flux (DESIGN §6)
+
+
+def multilevel_data(psi, r, rho, q, dx=ufl.dx):
+    """(r ψ - ∇ρ_0·∇ψ, q): the divergence data of the coarse patch problems of §6 before
+    projection, for ψ a P1 trial function (the prolonged hat functions ψ_{j-1,a}), r the lifted
+    residual r_αh, ρ_0 the prolonged coarse solution and q a DG1 test function."""
+    return (r * psi - ufl.inner(ufl.grad(rho), ufl.grad(psi))) * q * dx
