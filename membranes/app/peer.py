@@ -1,0 +1,366 @@
+"""The SNES VI peer: PETSc's `vinewtonrsls` on the decoupled problem, distributed (§10).
+
+With z = μ1 u1 + μ2 u2 and w = u1 - u2 the discrete system of §2 splits exactly into
+
+    S z = F1 + F2,                                      z = μ1 g on ∂Ω,
+    κ S w - D λ = b,  b = (μ2 F1 - μ1 F2)/(μ1 + μ2),    w = g on ∂Ω,   κ = μ1 μ2/(μ1 + μ2),
+    w ≥ 0,  λ ≥ 0,  λ w = 0,
+
+S the unit stiffness matrix and D the lumped contact weights (ψ_a, 1). The first line is a
+Poisson problem (CG + BoomerAMG). The second is the complementarity problem
+
+    Φ(w) = κ S w - b  ⊥  w ≥ 0,        λ = D⁻¹ Φ(w) on the active set, 0 elsewhere,
+
+which PETSc's reduced-space active-set Newton (`vinewtonrsls`) solves with the bounds
+0 ≤ w < ∞, its reduced linear systems by CG + BoomerAMG. This is the peer to beat (§10): an
+independent solver of the same discrete problem, run as a competent PETSc user would run it.
+
+* **nested** (`nested_peer`): over the levels T_0, …, T_J of the problem's hierarchy, each
+  level solved from the P1 prolongation of the last level's (z, w). PETSc's own
+  `-snes_grid_sequence` needs a refinable DM, which dolfinx does not attach, so the loop over
+  levels is written here with the hierarchy's prolongations.
+* **plain** (`plain_peer`): the finest mesh only, from w = 0 at the interior vertices (and g on
+  ∂Ω), z from zero. Kept for comparison.
+
+Both stop SNES at PETSc's default relative tolerance 1e-8 (of the VI-reduced residual norm,
+relative to its value at the level's initial guess) and leave every other PETSc default
+(line search, KSP tolerances, stol) unless `options` changes it.
+
+**Boundary rows.** The Dirichlet vertices keep their rows in the SNES unknown: the residual
+there is κ (w_a - g), and the Jacobian is κ S with the rows *and columns* of ∂Ω replaced by
+κ times the identity (`MatZeroRowsColumns`: symmetric, so CG applies). Every initial guess
+here has w = g on ∂Ω (the prolongation reproduces constants, and new boundary vertices halve
+boundary edges), so the boundary residual vanishes, the Newton step is zero there and the
+dropped columns do not change the step: it is Newton's step for the interior unknowns.
+
+**Back to the iterate of §2.** u1 = (z + μ2 w)/(μ1 + μ2), u2 = (z - μ1 w)/(μ1 + μ2) and λ give
+the iterate layout [u1 | u2 | λ] of `Discretisation` (`to_iterate`): μ1 u1 + μ2 u2 = z and
+u1 - u2 = w, and the boundary values g, 0 come out exactly.
+
+**Active set.** PETSc counts vertex a active at the lower bound when w_a ≤ 1e-8 and
+Φ_a ≥ 0 (an absolute threshold in SNESVIGetActiveSetIS) and never moves such a vertex; λ is
+recovered on exactly that set, so the iterate's λ is the multiplier PETSc's last reduced
+system enforced.
+"""
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+# PETSc's threshold of SNESVIGetActiveSetIS: x_a ≤ lower_a + 1e-8 counts as at the bound.
+PETSC_VI_ACTIVE_TOL = 1e-8
+
+
+@dataclass
+class LevelRecord:
+    """One level of a peer run: its size, PETSc's counts and the times spent."""
+    level: int
+    vertices: int
+    snes_iterations: int
+    ksp_iterations: int         # CG steps of the reduced SNES systems
+    z_iterations: int           # CG steps of the z solve
+    reason: int                 # SNES converged reason (> 0 converged)
+    z_reason: int               # KSP converged reason of the z solve
+    active: int                 # vertices in PETSc's final active set
+    wall_time_s: float          # solver work: prolongation, operators, solves, λ
+    setup_time_s: float         # discretisation of the level (dolfinx assembly)
+
+
+@dataclass
+class PeerResult:
+    """A peer run. `X` is the finest level's (u1, u2, λ) in the iterate layout of `disc`;
+    z, w, lam the decoupled unknowns (PETSc Vecs, owned entries)."""
+    label: str                  # "nested" or "plain"
+    disc: object                # the finest level's Discretisation
+    X: object
+    z: object
+    w: object
+    lam: object
+    levels: list = field(default_factory=list)
+
+    @property
+    def snes_iterations(self):
+        return sum(r.snes_iterations for r in self.levels)
+
+    @property
+    def ksp_iterations(self):
+        """CG steps of all SNES systems and z solves."""
+        return sum(r.ksp_iterations + r.z_iterations for r in self.levels)
+
+    @property
+    def wall_time_s(self):
+        """Solver work over all levels (discretisation not included: `setup_time_s`)."""
+        return sum(r.wall_time_s for r in self.levels)
+
+    @property
+    def setup_time_s(self):
+        return sum(r.setup_time_s for r in self.levels)
+
+    @property
+    def converged(self):
+        return all(r.reason > 0 and r.z_reason > 0 for r in self.levels)
+
+    @property
+    def reason(self):
+        """PETSc's converged reason of the finest level's SNES, in words."""
+        from petsc4py import PETSc
+        code = self.levels[-1].reason
+        names = {v: k for k, v in vars(PETSc.SNES.ConvergedReason).items()
+                 if isinstance(v, int)}
+        return f"{names.get(code, 'UNKNOWN')} ({code})"
+
+
+def level_problem(problem, j):
+    """The problem on T_j: a shallow copy whose hierarchy stops at level j."""
+    from ..fem.hierarchy import Hierarchy
+    h = problem.hierarchy
+    if j == h.levels:
+        return problem
+    sub = Hierarchy(h.meshes[:j + 1], h.parent_cells[:j], h.prolongations[:j], h.projection)
+    return replace(problem, hierarchy=sub)
+
+
+def to_iterate(disc, z, w, lam, X=None):
+    """The iterate (u1, u2, λ) of §2 in the layout of `disc` (a new PETSc Vec, or `X`) from
+    the decoupled unknowns (PETSc Vecs or arrays of the owned entries):
+    u1 = (z + μ2 w)/(μ1 + μ2), u2 = (z - μ1 w)/(μ1 + μ2)."""
+    mu1, mu2 = disc.mu1, disc.mu2
+    z, w, lam = (v.array_r if hasattr(v, "array_r") else np.asarray(v) for v in (z, w, lam))
+    X = disc.vector3() if X is None else X
+    X.setArray(np.concatenate([(z + mu2 * w) / (mu1 + mu2), (z - mu1 * w) / (mu1 + mu2), lam]))
+    return X
+
+
+class DecoupledSolver:
+    """The decoupled problem of one discretisation (§10), set up for PETSc: `solve_z` and
+    `solve_w` solve the two lines from given initial guesses (PETSc Vecs of the owned P1
+    dofs, overwritten by the solutions).
+
+    ksp, pc: the Krylov method and preconditioner of both the z solve and SNES's reduced
+    systems ('hypre' means BoomerAMG). rtol: the z solve's KSP tolerance and SNES's.
+    options: further PETSc options (without '-') for the SNES and its KSP, e.g.
+    {"snes_stol": 0, "ksp_rtol": 1e-10}; they are set under a private prefix and removed."""
+
+    _count = 0
+
+    def __init__(self, disc, rtol=1e-8, ksp="cg", pc="hypre", options=None):
+        from petsc4py import PETSc
+        self.disc = disc
+        self.rtol, self.ksp_type, self.pc_type = rtol, ksp, pc
+        self.options = dict(options or {})
+        mu1, mu2 = disc.mu1, disc.mu2
+        self.kappa = mu1 * mu2 / (mu1 + mu2)
+        S = disc.S
+        # owned boundary dofs, by local and by global index
+        self.bl = disc.boundary_owned
+        self.bg = disc.V.dofmap.index_map.local_to_global(self.bl).astype(PETSc.IntType)
+        # right sides: F1 + F2 for z, b = (μ2 F1 - μ1 F2)/(μ1 + μ2) for w
+        F1, F2 = disc.F1.array_r, disc.F2.array_r
+        self.rhs_z = S.createVecLeft()
+        self.rhs_z.setArray(F1 + F2)
+        self.b = S.createVecLeft()
+        self.b.setArray((mu2 * F1 - mu1 * F2) / (mu1 + mu2))
+        self.D = disc.D.array_r.copy()
+        self.interior = disc.interior
+        self._A = None
+
+    # ## z: the Poisson problem S z = F1 + F2, z = μ1 g on ∂Ω
+    def solve_z(self, z):
+        """CG + BoomerAMG on S with the boundary rows and columns eliminated
+        (MatZeroRowsColumns moves the known boundary values to the right side)."""
+        from petsc4py import PETSc
+        disc = self.disc
+        self._A = A = disc.S.copy()
+        z.array[self.bl] = disc.mu1 * disc.g
+        rhs = self.rhs_z.copy()
+        A.zeroRowsColumns(self.bg, 1.0, z, rhs)
+        ksp = self._ksp(PETSc.KSP().create(disc.comm))
+        ksp.setOperators(A)
+        ksp.setTolerances(rtol=self.rtol)
+        ksp.setInitialGuessNonzero(True)
+        ksp.solve(rhs, z)
+        its, reason = ksp.getIterationNumber(), ksp.getConvergedReason()
+        ksp.destroy()
+        rhs.destroy()
+        return its, reason
+
+    # ## w: the complementarity problem Φ(w) = κ S w - b ⊥ w ≥ 0
+    def solve_w(self, w, monitor=None):
+        """SNES vinewtonrsls from w (whose boundary entries must be g); returns
+        (SNES iterations, CG iterations, converged reason, λ as a PETSc Vec).
+        monitor(its, w) sees every SNES iterate (its = 0: the initial guess)."""
+        from petsc4py import PETSc
+        disc, kappa, bl = self.disc, self.kappa, self.bl
+        S = disc.S
+        # the Jacobian κ S, boundary rows and columns κ × identity: reuse the z matrix
+        J = self._A if self._A is not None else self._boundary_eliminated()
+        self._A = None
+        J.scale(kappa)
+
+        def residual(snes, x, f):
+            S.mult(x, f)                                   # f = κ S w - b
+            f.scale(kappa)
+            f.axpy(-1.0, self.b)
+            with f as fa, x as xa:
+                fa[bl] = kappa * (xa[bl] - disc.g)         # boundary rows κ (w - g)
+
+        snes = PETSc.SNES().create(disc.comm)
+        prefix = f"membranes_peer{DecoupledSolver._count}_"
+        DecoupledSolver._count += 1
+        snes.setOptionsPrefix(prefix)
+        snes.setType("vinewtonrsls")
+        f = S.createVecLeft()
+        snes.setFunction(residual, f)
+        snes.setJacobian(lambda snes, x, A, P: None, J, J)   # constant
+        lower, upper = w.duplicate(), w.duplicate()
+        lower.set(0.0)
+        upper.set(PETSc.INFINITY)
+        snes.setVariableBounds(lower, upper)
+        snes.setTolerances(rtol=self.rtol)
+        self._ksp(snes.getKSP())
+        if monitor is not None:
+            snes.setMonitor(lambda s, its, fnorm: monitor(its, s.getSolution()))
+        opts = PETSc.Options()
+        for k, v in self.options.items():
+            opts[prefix + k] = v
+        try:
+            snes.setFromOptions()
+            snes.solve(None, w)
+        finally:
+            for k in self.options:
+                del opts[prefix + k]
+        its, lin = snes.getIterationNumber(), snes.getLinearSolveIterations()
+        reason = snes.getConvergedReason()
+        residual(snes, w, f)
+        lam = self.multiplier(w, f)
+        for obj in (snes, f, lower, upper, J):
+            obj.destroy()
+        return its, lin, reason, lam
+
+    def multiplier(self, w, f=None):
+        """λ = Φ(w)/D on PETSc's active set (w_a ≤ 1e-8 and Φ_a ≥ 0, interior), 0 elsewhere;
+        f: Φ(w) if already computed."""
+        disc = self.disc
+        if f is None:
+            f = disc.S.createVecLeft()
+            disc.S.mult(w, f)
+            f.scale(self.kappa)
+            f.axpy(-1.0, self.b)
+        phi, wa = f.array_r, w.array_r
+        active = (wa <= PETSC_VI_ACTIVE_TOL) & (phi >= 0.0) & self.interior
+        lam = f.duplicate()
+        lam.setArray(np.where(active, phi / self.D, 0.0))
+        return lam
+
+    def active(self, w, lam):
+        """Global count of PETSc's active set at the solution."""
+        from mpi4py import MPI
+        n = int(np.count_nonzero(lam.array_r > 0.0))
+        return self.disc.comm.allreduce(n, op=MPI.SUM)
+
+    def _boundary_eliminated(self):
+        A = self.disc.S.copy()
+        A.zeroRowsColumns(self.bg, 1.0)
+        return A
+
+    def _ksp(self, ksp):
+        ksp.setType(self.ksp_type)
+        pc = ksp.getPC()
+        pc.setType(self.pc_type)
+        if self.pc_type == "hypre":
+            pc.setHYPREType("boomeramg")
+        return ksp
+
+
+def _run(label, problems, rtol, ksp, pc, options, progress, monitor):
+    """Solve the decoupled problem on each of `problems` (a list of callables giving the
+    level's Discretisation), each level from the prolongation of the last."""
+    from petsc4py import PETSc
+    records, prev = [], None
+    for j, make in enumerate(problems):
+        disc, setup = make()
+        t0 = time.perf_counter()
+        solver = DecoupledSolver(disc, rtol, ksp, pc, options)
+        z, w = disc.S.createVecRight(), disc.S.createVecRight()
+        if prev is None:                                   # from zero (g on ∂Ω)
+            z.set(0.0)
+            w.set(0.0)
+        else:                                              # P1 prolongation (§10)
+            P, (zc, wc) = prev
+            P.mult(zc, z)
+            P.mult(wc, w)
+            zc.destroy()
+            wc.destroy()
+        w.array[solver.bl] = disc.g
+        z_its, z_reason = solver.solve_z(z)
+        clock = [t0, 0.0]                                  # start, time paused
+
+        def snes_monitor(its, wv, disc=disc, z=z, level=j, clock=clock, solver=solver):
+            paused = time.perf_counter()
+            monitor(level, its, paused - clock[0] - clock[1], disc,
+                    to_iterate(disc, z, wv, solver.multiplier(wv)))
+            clock[1] += time.perf_counter() - paused
+
+        its, lin, reason, lam = solver.solve_w(w, snes_monitor if monitor else None)
+        wall = time.perf_counter() - t0 - clock[1]
+        rec = LevelRecord(j, disc.n_global, its, lin, z_its, reason, z_reason,
+                          solver.active(w, lam), wall, setup)
+        records.append(rec)
+        if progress is not None:
+            progress(f"peer ({label}) level {j}: {rec.vertices} vertices, "
+                     f"{its} SNES steps ({lin} CG), z: {z_its} CG, active {rec.active}, "
+                     f"reason {reason}, {wall:.3f} s (+ {setup:.3f} s discretisation)")
+        if j + 1 < len(problems):
+            prev = (problems[j + 1].prolongation, (z, w))
+            lam.destroy()
+    t0 = time.perf_counter()
+    X = to_iterate(disc, z, w, lam)
+    records[-1].wall_time_s += time.perf_counter() - t0
+    return PeerResult(label, disc, X, z, w, lam, records)
+
+
+class _Level:
+    """Level j of `problem`: calling it gives (its Discretisation, the seconds spent making it:
+    0 for one given); `prolongation` is P_j, from level j-1 into this one."""
+
+    def __init__(self, problem, j, disc=None):
+        self.problem, self.j, self.disc = problem, j, disc
+
+    @property
+    def prolongation(self):
+        return self.problem.hierarchy.prolongations[self.j - 1]
+
+    def __call__(self):
+        from ..fem.discretisation import discretise
+        if self.disc is not None:
+            return self.disc, 0.0
+        t0 = time.perf_counter()
+        disc = discretise(level_problem(self.problem, self.j))
+        return disc, time.perf_counter() - t0
+
+
+def nested_peer(problem, rtol=1e-8, ksp="cg", pc="hypre", options=None, progress=None,
+                monitor=None):
+    """The competent peer of §10: SNES vinewtonrsls (`ksp` + `pc` inside, SNES rtol `rtol`)
+    on the decoupled problem over the levels 0..J of `problem.hierarchy`, level 0 from zero,
+    each next level from the P1 prolongation of the last level's z and w.
+
+    progress(line): one line per level. monitor(level, its, seconds, disc, X): every SNES
+    iterate (its = 0: the initial guess) as an iterate X of §2 on that level's `disc`, with
+    the solver time of the level so far; building X and the monitor are not timed."""
+    levels = [_Level(problem, j) for j in range(problem.hierarchy.levels + 1)]
+    return _run("nested", levels, rtol, ksp, pc, options, progress, monitor)
+
+
+def plain_peer(problem, rtol=1e-8, ksp="cg", pc="hypre", options=None, progress=None,
+               monitor=None):
+    """The plain peer: SNES vinewtonrsls on the finest mesh only, from w = 0 at the interior
+    vertices (g on ∂Ω) and z = 0. `problem` may be a Problem (its finest level is discretised)
+    or a Discretisation (used as it is; no set-up time then)."""
+    from ..fem.discretisation import Discretisation
+    if isinstance(problem, Discretisation):
+        level = _Level(problem.problem, problem.problem.hierarchy.levels, problem)
+    else:
+        level = _Level(problem, problem.hierarchy.levels)
+    return _run("plain", [level], rtol, ksp, pc, options, progress, monitor)
