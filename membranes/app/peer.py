@@ -20,11 +20,13 @@ independent solver of the same discrete problem, run as a competent PETSc user w
   `-snes_grid_sequence` needs a refinable DM, which dolfinx does not attach, so the loop over
   levels is written here with the hierarchy's prolongations.
 * **plain** (`plain_peer`): the finest mesh only, from w = 0 at the interior vertices (and g on
-  ∂Ω), z from zero. Kept for comparison.
+  ∂Ω), z from zero. Kept for comparison. Its SNES steps grow like 1/h, so it may take more
+  than PETSc's default limit of 50 steps: its limit is PLAIN_MAX_IT.
 
 Both stop SNES at PETSc's default relative tolerance 1e-8 (of the VI-reduced residual norm,
 relative to its value at the level's initial guess) and leave every other PETSc default
-(line search, KSP tolerances, stol) unless `options` changes it.
+(backtracking line search, KSP rtol 1e-5 of the reduced systems, stol 1e-8) unless `options`
+changes it; the z solve's KSP stops at rtol relative to its preconditioned right side.
 
 **Boundary rows.** The Dirichlet vertices keep their rows in the SNES unknown: the residual
 there is κ (w_a - g), and the Jacobian is κ S with the rows *and columns* of ∂Ω replaced by
@@ -50,6 +52,10 @@ import numpy as np
 
 # PETSc's threshold of SNESVIGetActiveSetIS: x_a ≤ lower_a + 1e-8 counts as at the bound.
 PETSC_VI_ACTIVE_TOL = 1e-8
+# The plain peer's SNES step limit. From zero, the active set moves by about one layer of
+# vertices per step, so the steps grow like 1/h: PETSc's default of 50 stops it before it
+# converges beyond ~2e5 vertices on the disk.
+PLAIN_MAX_IT = 10000
 
 
 @dataclass
@@ -144,10 +150,10 @@ class DecoupledSolver:
 
     _count = 0
 
-    def __init__(self, disc, rtol=1e-8, ksp="cg", pc="hypre", options=None):
+    def __init__(self, disc, rtol=1e-8, ksp="cg", pc="hypre", options=None, max_it=None):
         from petsc4py import PETSc
         self.disc = disc
-        self.rtol, self.ksp_type, self.pc_type = rtol, ksp, pc
+        self.rtol, self.ksp_type, self.pc_type, self.max_it = rtol, ksp, pc, max_it
         self.options = dict(options or {})
         mu1, mu2 = disc.mu1, disc.mu2
         self.kappa = mu1 * mu2 / (mu1 + mu2)
@@ -217,7 +223,7 @@ class DecoupledSolver:
         lower.set(0.0)
         upper.set(PETSc.INFINITY)
         snes.setVariableBounds(lower, upper)
-        snes.setTolerances(rtol=self.rtol)
+        snes.setTolerances(rtol=self.rtol, max_it=self.max_it)
         self._ksp(snes.getKSP())
         if monitor is not None:
             snes.setMonitor(lambda s, its, fnorm: monitor(its, s.getSolution()))
@@ -273,7 +279,7 @@ class DecoupledSolver:
         return ksp
 
 
-def _run(label, problems, rtol, ksp, pc, options, progress, monitor):
+def _run(label, problems, progress, monitor, **settings):
     """Solve the decoupled problem on each of `problems` (a list of callables giving the
     level's Discretisation), each level from the prolongation of the last."""
     from petsc4py import PETSc
@@ -281,7 +287,7 @@ def _run(label, problems, rtol, ksp, pc, options, progress, monitor):
     for j, make in enumerate(problems):
         disc, setup = make()
         t0 = time.perf_counter()
-        solver = DecoupledSolver(disc, rtol, ksp, pc, options)
+        solver = DecoupledSolver(disc, **settings)
         z, w = disc.S.createVecRight(), disc.S.createVecRight()
         if prev is None:                                   # from zero (g on ∂Ω)
             z.set(0.0)
@@ -340,27 +346,31 @@ class _Level:
         return disc, time.perf_counter() - t0
 
 
-def nested_peer(problem, rtol=1e-8, ksp="cg", pc="hypre", options=None, progress=None,
-                monitor=None):
+def nested_peer(problem, rtol=1e-8, ksp="cg", pc="hypre", options=None, max_it=None,
+                progress=None, monitor=None):
     """The competent peer of §10: SNES vinewtonrsls (`ksp` + `pc` inside, SNES rtol `rtol`)
     on the decoupled problem over the levels 0..J of `problem.hierarchy`, level 0 from zero,
     each next level from the P1 prolongation of the last level's z and w.
 
-    progress(line): one line per level. monitor(level, its, seconds, disc, X): every SNES
+    max_it: SNES steps per level (None: PETSc's default, 50). progress(line): one line per
+    level. monitor(level, its, seconds, disc, X): every SNES
     iterate (its = 0: the initial guess) as an iterate X of §2 on that level's `disc`, with
     the solver time of the level so far; building X and the monitor are not timed."""
     levels = [_Level(problem, j) for j in range(problem.hierarchy.levels + 1)]
-    return _run("nested", levels, rtol, ksp, pc, options, progress, monitor)
+    return _run("nested", levels, progress, monitor, rtol=rtol, ksp=ksp, pc=pc,
+                options=options, max_it=max_it)
 
 
-def plain_peer(problem, rtol=1e-8, ksp="cg", pc="hypre", options=None, progress=None,
-               monitor=None):
+def plain_peer(problem, rtol=1e-8, ksp="cg", pc="hypre", options=None, max_it=PLAIN_MAX_IT,
+               progress=None, monitor=None):
     """The plain peer: SNES vinewtonrsls on the finest mesh only, from w = 0 at the interior
-    vertices (g on ∂Ω) and z = 0. `problem` may be a Problem (its finest level is discretised)
-    or a Discretisation (used as it is; no set-up time then)."""
+    vertices (g on ∂Ω) and z = 0, to its own convergence (`max_it` SNES steps at most:
+    PLAIN_MAX_IT). `problem` may be a Problem (its finest level is discretised) or a
+    Discretisation (used as it is; no set-up time then). Other arguments as `nested_peer`."""
     from ..fem.discretisation import Discretisation
     if isinstance(problem, Discretisation):
         level = _Level(problem.problem, problem.problem.hierarchy.levels, problem)
     else:
         level = _Level(problem, problem.hierarchy.levels)
-    return _run("plain", [level], rtol, ksp, pc, options, progress, monitor)
+    return _run("plain", [level], progress, monitor, rtol=rtol, ksp=ksp, pc=pc,
+                options=options, max_it=max_it)
