@@ -41,6 +41,13 @@ class Hierarchy:
     def finest(self):
         return self.meshes[-1]
 
+    def up_to(self, j):
+        """The hierarchy T_0, …, T_j (shares the meshes and maps)."""
+        if j == self.levels:
+            return self
+        return Hierarchy(self.meshes[:j + 1], self.parent_cells[:j], self.prolongations[:j],
+                         self.projection)
+
     def ancestors(self, j):
         """For every local cell of T_J, the index of its ancestor cell in T_j (local)."""
         anc = np.arange(self.finest.topology.index_map(2).size_local, dtype=np.int32)

@@ -1,0 +1,323 @@
+"""The API: `solve(problem, ...)` runs semismooth Newton on a problem and certifies the answer
+(§3, §7, §8).
+
+    >>> from membranes import scenes, solve
+    >>> sol = solve(scenes.disk(h=0.2, levels=3))           # adaptive, amg preset, nested
+    >>> sol.converged, sol.newton_iterations, sol.estimates["eta"], sol.energy_error
+    >>> sol.u1, sol.u2, sol.lam          # dolfinx P1 Functions on the computational mesh
+
+Everything runs on the problem's communicator: the same call under `mpirun -n P` distributes
+the mesh, the assembly, the solves and the estimators, and every process returns the same
+figures (and its own part of the iterate).
+
+**What is computed** (lean runs): the estimators of §7 where the method needs them (the
+adaptive variant, at the iterates its stopping tests read, on every level of a nested run) and
+at the final iterate (the certificate), unless `estimators=False`; the energy error only where
+the scene knows its exact solution, at the final iterate, or at every recorded iterate with
+`errors="iterates"` (for error-against-time curves; then outside the clock).
+
+**Wall time** runs from the call of `solve` to the certified answer: meshes are the
+problem's (built before the call), discretisation, Newton, Krylov and every estimate the run
+makes are in it; energy errors are not (diagnostics).
+"""
+
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from ..estimation.energy_error import EnergyError
+from ..estimation.equilibration import FluxEquilibration
+from ..estimation.estimators import Estimators
+from ..fem.discretisation import discretise
+from ..linalg.krylov import Krylov
+from ..nonlinear import cfunctions
+from ..nonlinear.newton import VARIANTS, newton as run_newton
+from .solution import ESTIMATOR_COLUMNS, Solution
+
+DEFAULT_GAMMA = 0.3
+DEFAULT_TOL = 1e-10
+ALG_FLUXES = ("nu", "multilevel")
+INITIAL_GUESSES = ("paper", "zero")
+ERRORS = ("final", "iterates", "none")
+
+
+def _choice(name, value, choices):
+    if value not in choices:
+        raise ValueError(f"unknown {name} {value!r} (choose from: {', '.join(choices)})")
+    return value
+
+
+def _reject(applies_to, **options):
+    """ValueError naming the first of `options` that was given (not None)."""
+    given = [name for name, value in options.items() if value is not None]
+    if given:
+        raise ValueError(f"{given[0]} applies to {applies_to} only")
+
+
+def _gamma(name, value):
+    value = DEFAULT_GAMMA if value is None else float(value)
+    if not (np.isfinite(value) and 0.0 < value < 1.0):
+        raise ValueError(f"{name} must lie in (0, 1), got {value}")
+    return value
+
+
+def _stopping(newton, tol, gamma_lin, gamma_alg):
+    """(tol, γ_lin, γ_alg) of the variant (§8); the ones it does not use must not be given."""
+    if newton != "adaptive":
+        _reject("newton 'adaptive'", gamma_lin=gamma_lin, gamma_alg=gamma_alg)
+        tol = DEFAULT_TOL if tol is None else float(tol)
+        if not (np.isfinite(tol) and tol > 0):
+            raise ValueError(f"tol must be a positive finite number, got {tol}")
+        return tol, None, None
+    _reject("newton 'exact' and 'inexact' (adaptive stops by gamma_lin)", tol=tol)
+    return DEFAULT_TOL, _gamma("gamma_lin", gamma_lin), _gamma("gamma_alg", gamma_alg)
+
+
+def _nested(problem, nested):
+    if nested is None:
+        return problem.levels >= 1
+    if not isinstance(nested, (bool, np.bool_)):
+        raise ValueError(f"nested must be True, False or None, got {nested!r}")
+    if nested and problem.levels < 1:
+        raise ValueError("nested iteration needs a mesh hierarchy: levels >= 1 (--levels J)")
+    return bool(nested)
+
+
+def _algebraic_flux(problem, alg_flux, estimators, newton):
+    """The algebraic flux of §6 for iterates whose residual is not at round-off: the one
+    asked for, else 'nu'; None without estimators."""
+    if not estimators:
+        if newton == "adaptive":
+            raise ValueError("the adaptive Newton variant needs the estimators")
+        _reject("runs with estimators", alg_flux=alg_flux)
+        return None
+    alg_flux = "nu" if alg_flux is None else _choice("algebraic flux", alg_flux, ALG_FLUXES)
+    if alg_flux == "multilevel" and problem.levels < 1:
+        raise ValueError("the multilevel algebraic flux needs a mesh hierarchy: levels >= 1 "
+                         "(--levels J)")
+    return alg_flux
+
+
+class LevelEstimates:
+    """The estimators of one mesh (§7) with the run's algebraic flux (§6), set up once:
+    the `estimate(X, R, kind)` callback of Newton. Only a run that estimates builds one."""
+
+    def __init__(self, disc, alg_flux, hierarchy=None):
+        t = time.perf_counter()
+        self.est = Estimators(disc, FluxEquilibration(disc.V, disc.dx_data))
+        self.multilevel = None
+        if alg_flux == "multilevel":
+            from ..estimation.multilevel import MultilevelFlux   # only a run that uses it
+            self.multilevel = MultilevelFlux(disc, hierarchy)
+        self.setup_time = time.perf_counter() - t
+        self.time = 0.0
+        self.count = 0
+
+    def __call__(self, X, R, kind=None):
+        t = time.perf_counter()
+        if R is not None and self.multilevel is not None:
+            rh = self.est.lifted(R)
+            out = self.est.evaluate(X, R, sigma_alg=self.multilevel.sigma_pair(*rh))
+        else:
+            out = self.est.evaluate(X, R)
+        out["bound"] = True
+        self.time += time.perf_counter() - t
+        self.count += 1
+        return out
+
+
+def _initial_guess(initial_guess, disc):
+    """X^0 (None: the paper's (g, 0, 0), §3)."""
+    if initial_guess is None or initial_guess == "paper":
+        return None
+    if isinstance(initial_guess, str):
+        _choice("initial guess", initial_guess, INITIAL_GUESSES)
+        return disc.vector3()
+    X = initial_guess(disc) if callable(initial_guess) else initial_guess
+    if not hasattr(X, "getLocalSize") or X.getLocalSize() != 3 * disc.n:
+        raise ValueError("an initial guess must be a PETSc Vec in the iterate layout "
+                         "(Discretisation.vector3) or a function of the discretisation "
+                         "returning one")
+    if not disc.comm.allreduce(bool(np.all(np.isfinite(X.array_r)))):
+        raise ValueError("the initial guess has non-finite values")
+    return X
+
+
+def prolong(P, disc, X_coarse, n_coarse):
+    """The nested iteration's initial guess on the next level: u1, u2 and λ each prolonged
+    by the P1 prolongation P (§6; it keeps u1 = g, u2 = λ = 0 on ∂Ω)."""
+    X = disc.vector3()
+    xc, xf = P.createVecRight(), P.createVecLeft()
+    a = X_coarse.array_r
+    for k in range(3):
+        xc.array[:] = a[k * n_coarse:(k + 1) * n_coarse]
+        P.mult(xc, xf)
+        X.array[k * disc.n:(k + 1) * disc.n] = xf.array_r
+    xc.destroy()
+    xf.destroy()
+    return X
+
+
+def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
+          petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
+          estimators=True, alg_flux=None, gamma_lin=None, gamma_alg=None,
+          initial_guess=None, nested=None, errors="final", progress=False):
+    """Solve the discrete contact problem of `problem` by semismooth Newton and certify it.
+
+    newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
+    or 'adaptive' (Algorithm 1 of §8: Krylov stops at η_alg ≤ γ_alg max(η_disc, η_lin),
+    Newton at η_lin ≤ γ_lin η_disc, γ = `gamma_lin`, `gamma_alg`, 0.3 by default);
+    cfun: 'min' or 'fb'; solver: a Krylov preset of membranes.linalg.krylov, 'amg' (the
+    eliminated system, FGMRES with the mean/gap BoomerAMG preconditioner), 'paper' (the full
+    system, GMRES + ILU(0), block Jacobi across processes) or 'direct' (MUMPS); system:
+    'full' or 'eliminated' instead of the preset's; petsc_options: PETSc options on top of the
+    preset (a dict, or a string "-name value ..."); nu: estimate (adaptive) and record every
+    ν Krylov steps (10); tol: exact and inexact stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol (1e-10);
+    estimators: certify the final iterate (and let adaptive use them); alg_flux: 'nu' or
+    'multilevel' (§6); initial_guess: 'paper' (default, (g, 0, 0)), 'zero', or a PETSc Vec
+    in the iterate layout (or a function of the discretisation returning one) on the first
+    mesh solved; nested: solve T_0, …, T_J in turn, each from the prolonged solution of the
+    last (default where the problem has levels ≥ 1); errors: the energy error at the 'final'
+    iterate (default), at all recorded 'iterates', or 'none'; progress: True for one stderr
+    line per Newton step (rank 0), or a callable taking the line.
+    """
+    started = time.perf_counter()
+    _choice("Newton variant", newton, VARIANTS)
+    cfunctions.get(cfun)
+    _choice("errors", errors, ERRORS)
+    if int(max_newton) < 1:
+        raise ValueError(f"max_newton must be at least 1, got {max_newton}")
+    if isinstance(petsc_options, str):
+        from .checks import parse_petsc_options
+        petsc_options = parse_petsc_options(petsc_options)
+    krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": int(nu)}),
+                    **({} if max_linear_its is None else {"max_it": int(max_linear_its)}))
+    if system is not None:
+        _choice("system", system, ("full", "eliminated"))
+    if newton == "adaptive" and not krylov.iterative:
+        raise ValueError("the adaptive variant stops a Krylov solver: choose solver 'amg' or "
+                         "'paper', not 'direct'")
+    tol, gamma_lin, gamma_alg = _stopping(newton, tol, gamma_lin, gamma_alg)
+    alg_flux = _algebraic_flux(problem, alg_flux, estimators, newton)
+    nested = _nested(problem, nested)
+    if nested and initial_guess is not None and not isinstance(initial_guess, str) and \
+            not callable(initial_guess):
+        raise ValueError("with nested iteration the initial guess is that of the coarse mesh "
+                         "T_0: give 'paper', 'zero' or a function of the discretisation, or "
+                         "nested=False")
+    comm = problem.mesh.comm
+    say = None
+    if progress and comm.rank == 0:
+        say = progress if callable(progress) else \
+            (lambda line: print(line, file=sys.stderr, flush=True))
+    options = {"newton": newton, "cfun": cfun, "solver": solver,
+               "system": system or krylov.system, "petsc_options": dict(petsc_options or {}),
+               "nu": krylov.nu, "gamma_lin": gamma_lin, "gamma_alg": gamma_alg,
+               "alg_flux": alg_flux, "nested": nested, "tol": tol,
+               "initial_guess": initial_guess if isinstance(initial_guess, str) or
+               initial_guess is None else "given"}
+
+    J = problem.levels
+    levels = list(range(J + 1)) if nested else [J]
+    history, per_level = [], []
+    offset, its_offset, newton_total = 0.0, 0, 0
+    est_setup, est_time = 0.0, 0.0
+    X, disc, estimate, prev = None, None, None, None
+    errors_off = 0.0                           # seconds of diagnostics, off the clock
+    for j in levels:
+        t_level = time.perf_counter()
+        pj = replace(problem, hierarchy=problem.hierarchy.up_to(j)) if j < J else problem
+        disc = discretise(pj)
+        X0 = _initial_guess(initial_guess, disc) if prev is None else \
+            prolong(problem.hierarchy.prolongations[j - 1], disc, prev[0], prev[1])
+        last = j == J
+        estimate = None
+        if alg_flux is not None and (newton == "adaptive" or last):
+            estimate = LevelEstimates(disc, alg_flux if last else "nu",
+                                      problem.hierarchy.up_to(j))
+            est_setup += estimate.setup_time
+        error = EnergyError(disc) if problem.exact is not None and errors != "none" and \
+            (last or errors == "iterates") else None
+        tag = f"level {j}: " if nested else ""
+        result = run_newton(disc, X0, cfun=cfun, variant=newton, system=system,
+                            krylov=krylov,
+                            estimate=estimate if newton == "adaptive" else None,
+                            gamma_lin=gamma_lin or DEFAULT_GAMMA,
+                            gamma_alg=gamma_alg or DEFAULT_GAMMA, tol=tol,
+                            max_newton=int(max_newton),
+                            progress=(lambda line, tag=tag: say(tag + line)) if say else None)
+        if estimate is not None and newton != "adaptive":
+            final = result.history[-1]
+            final["estimates"] = estimate(result.X, None if final["alg_residual"] is None
+                                          else _final_residual(result))
+        level_time = time.perf_counter() - t_level
+        for rec in result.history:
+            rec["level"] = j
+            rec["cumulative_linear_its"] = rec.pop("krylov_total") + its_offset
+            rec["newton_it"], rec["linear_it"] = rec.pop("k"), rec.pop("i")
+            est = rec.pop("estimates", None) or {}
+            rec.update({k: est.get(k) for k in ESTIMATOR_COLUMNS})
+            rec["bound"] = est.get("bound")
+            if est.get("eta_K") is not None:
+                rec["_eta_K"] = est["eta_K"]
+            rec["wall_time_s"] = offset + level_time          # level's end (see docstring)
+            rec["energy_error"] = None
+        if error is not None:
+            t = time.perf_counter()
+            recs = result.history if errors == "iterates" else result.history[-1:]
+            for rec in recs:
+                rec["energy_error"] = error(result.X) if rec is result.history[-1] else None
+            errors_off += time.perf_counter() - t
+        history.extend(result.history)
+        newton_total += result.newton_steps
+        its_offset += result.krylov_steps
+        offset += level_time
+        if estimate is not None:
+            est_time += estimate.time
+        final = result.history[-1]
+        per_level.append({"level": j, "n_vertices": int(disc.n_global),
+                          "converged": result.converged, "reason": result.reason,
+                          "newton_iterations": result.newton_steps,
+                          "linear_iterations": result.krylov_steps,
+                          "wall_time_s": level_time, "final_residual": final["residual"],
+                          "energy_error": final["energy_error"], "eta": final.get("eta"),
+                          "times": result.times})
+        if not result.converged:
+            break
+        prev = (result.X, disc.n)
+    X = result.X
+    wall = time.perf_counter() - started - errors_off
+    final = history[-1]
+    eta_K = final.pop("_eta_K", None)
+    for rec in history:
+        rec.pop("_eta_K", None)
+    estimates = {k: final.get(k) for k in ESTIMATOR_COLUMNS} if final.get("eta") is not None \
+        else None
+    if estimates is not None:
+        estimates["bound"] = final.get("bound")
+    sol = Solution(problem if disc.mesh is problem.mesh else pj, disc, X, result.converged,
+                   result.reason if len(levels) == 1 or not result.converged or j == J
+                   else result.reason, newton_total, its_offset, wall, history, options,
+                   energy_error=final.get("energy_error"),
+                   energy_error_kind=_error_kind(problem) if final.get("energy_error")
+                   is not None else None,
+                   functions=disc.functions(X), eta_K=eta_K, estimates=estimates,
+                   estimator_times=(est_setup, est_time), per_level=per_level)
+    return sol
+
+
+def _final_residual(result):
+    """The algebraic residual of the final iterate is not kept by Newton; the estimate of a
+    converged exact/inexact run takes it as zero only where it is at round-off."""
+    return None
+
+
+def _error_kind(problem):
+    """What `energy_error` measures (docs/outputs.md): the error against the scene's exact
+    solution, restricted to the computational polygon."""
+    if problem.hierarchy.projection is not None:
+        return ("exact solution of the curved domain on the polygon of T_J (boundary "
+                "vertices on the curve)")
+    return "exact solution"

@@ -1,0 +1,111 @@
+"""What `solve` returns: the iterate, its history, its certified bound and the figures of a run.
+
+Every process holds its own part of the iterate (the owned dofs of the distributed mesh) and
+the same history, counts and estimates (MPI reductions), so every process returns an equal
+`Solution`; `summary()` is the content of summary.json (docs/outputs.md).
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from mpi4py import MPI
+
+from ..fem.meshes import mesh_size
+
+# the estimators of an iterate as they go into records and summary.json (§7)
+ESTIMATOR_COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
+                     "eta_lin1", "eta_lin2", "eta_lin3", "eta_rem")
+
+
+@dataclass
+class Solution:
+    problem: object
+    disc: object                  # the discretisation of the computational mesh T_J
+    X: object                     # PETSc Vec, iterate layout [u1 | u2 | λ] (owned dofs)
+    converged: bool
+    reason: str
+    newton_iterations: int
+    linear_iterations: int
+    wall_time_s: float
+    history: list
+    options: dict
+    energy_error: float = None
+    energy_error_kind: str = None  # which error energy_error is (see `summary`)
+    functions: list = field(default_factory=list)
+    eta_K: np.ndarray = None      # local distribution η_K over the owned cells (§7)
+    estimates: dict = None        # the estimators at X, where estimated
+    estimator_times: tuple = (None, None)   # (set-up, evaluations) in seconds
+    per_level: list = field(default_factory=list)
+
+    @property
+    def comm(self):
+        return self.disc.comm
+
+    @property
+    def u1(self):
+        return self.functions[0]
+
+    @property
+    def u2(self):
+        return self.functions[1]
+
+    @property
+    def lam(self):
+        return self.functions[2]
+
+    @property
+    def final_record(self):
+        """The history record of X (Krylov records may follow it after a failed solve)."""
+        return next(rec for rec in reversed(self.history) if rec["kind"] != "krylov")
+
+    def complementarity_violation(self):
+        """Largest violation of w = u1 - u2 ≥ 0, λ ≥ 0, λ w = 0 at interior vertices, relative
+        to the data scale (§11): w against max(u_data, |u|∞), λ against max(λ_data, |λ|∞)."""
+        d = self.disc
+        u1, u2, lam = d.split(self.X)
+        inner = d.interior
+        w, lam = (u1 - u2)[inner], lam[inner]
+        u_data, lam_data = d.data_scales()
+        comm = d.comm
+
+        def gmax(a):
+            return comm.allreduce(float(np.max(a, initial=0.0)), op=MPI.MAX)
+
+        u_scale = max(u_data, gmax(np.abs(u1)), gmax(np.abs(u2)))
+        lam_scale = max(lam_data, gmax(np.abs(lam)), np.finfo(float).tiny)
+        return float(max(gmax(-w) / u_scale, gmax(-lam) / lam_scale,
+                         gmax(np.abs(w * lam)) / (u_scale * lam_scale)))
+
+    def summary(self):
+        """The keys of summary.json (docs/outputs.md)."""
+        p = self.problem
+        mesh = p.mesh
+        est = self.estimates or {}
+        eta, err = est.get("eta"), self.energy_error
+        out = {
+            "scene": p.name,
+            "description": p.description,
+            "n_vertices": int(mesh.topology.index_map(0).size_global),
+            "n_cells": int(mesh.topology.index_map(2).size_global),
+            "h": mesh_size(mesh),
+            "h_coarse": mesh_size(p.hierarchy.meshes[0]),
+            "levels": p.levels,
+            "mu1": p.mu1, "mu2": p.mu2, "g": p.g,
+            "processes": self.comm.size,
+            **self.options,
+            "per_level": self.per_level,
+            "converged": self.converged,
+            "reason": self.reason,
+            "newton_iterations": self.newton_iterations,
+            "linear_iterations": self.linear_iterations,
+            "wall_time_s": self.wall_time_s,
+            "final_residual": self.final_record["residual"],
+            "complementarity_violation": self.complementarity_violation(),
+            "energy_error": err,
+            "energy_error_kind": self.energy_error_kind,
+        }
+        out.update({k: est.get(k) for k in ESTIMATOR_COLUMNS})
+        out["bound_guaranteed"] = est.get("bound")
+        out["effectivity"] = eta / err if eta is not None and err else None
+        out["estimator_setup_s"], out["estimator_time_s"] = self.estimator_times
+        return out
