@@ -18,7 +18,9 @@ the scene knows its exact solution, at the final iterate, or at every recorded i
 
 **Wall time** runs from the call of `solve` to the certified answer: meshes are the
 problem's (built before the call), discretisation, Newton, Krylov and every estimate the run
-makes are in it; energy errors are not (diagnostics).
+makes are in it; energy errors are not (diagnostics). Every history record carries the clock
+at the moment it was made (`wall_time_s`: after its estimate where the method estimates it;
+the final iterate's after its certificate), so that error and η can be drawn against time.
 """
 
 import sys
@@ -128,6 +130,42 @@ class LevelEstimates:
         return out
 
 
+class _Recorder:
+    """Newton's `estimate` callback, wrapped: it is called at every iterate Newton records
+    (all but the adaptive variant's X⁰), so each record gets the run's clock when it is made
+    (after its estimate, if the method estimates it) and, with errors='iterates', its energy
+    error, computed off the clock. `estimate` None: the method does not estimate (returns
+    None, so Newton records no estimates)."""
+
+    def __init__(self, estimate, error, clock):
+        self.estimate, self.error, self.clock = estimate, error, clock
+        self.stamps = []                         # (seconds on the clock, energy error)
+
+    def __call__(self, X, R, kind):
+        out = self.estimate(X, R, kind) if self.estimate is not None else None
+        t = self.clock.now()
+        err = self.clock.off(self.error, X) if self.error is not None else None
+        self.stamps.append((t, err))
+        return out
+
+
+class _Clock:
+    """Seconds since `solve` was called, less the diagnostics run off the clock (`off`)."""
+
+    def __init__(self, started):
+        self.started, self.paused = started, 0.0
+
+    def now(self):
+        return time.perf_counter() - self.started - self.paused
+
+    def off(self, f, *args):
+        t = time.perf_counter()
+        try:
+            return f(*args)
+        finally:
+            self.paused += time.perf_counter() - t
+
+
 def _initial_guess(initial_guess, disc):
     """X^0 (None: the paper's (g, 0, 0), §3)."""
     if initial_guess is None or initial_guess == "paper":
@@ -222,12 +260,12 @@ def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
     J = problem.levels
     levels = list(range(J + 1)) if nested else [J]
     history, per_level = [], []
-    offset, its_offset, newton_total = 0.0, 0, 0
+    its_offset, newton_total = 0, 0
     est_setup, est_time = 0.0, 0.0
     X, disc, estimate, prev = None, None, None, None
-    errors_off = 0.0                           # seconds of diagnostics, off the clock
+    clock = _Clock(started)                    # energy errors run off the clock
     for j in levels:
-        t_level = time.perf_counter()
+        t_level = clock.now()
         pj = replace(problem, hierarchy=problem.hierarchy.up_to(j)) if j < J else problem
         disc = discretise(pj)
         X0 = _initial_guess(initial_guess, disc) if prev is None else \
@@ -238,21 +276,36 @@ def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
             estimate = LevelEstimates(disc, alg_flux if last else "nu",
                                       problem.hierarchy.up_to(j))
             est_setup += estimate.setup_time
-        error = EnergyError(disc) if problem.exact is not None and errors != "none" and \
-            (last or errors == "iterates") else None
+        error = clock.off(EnergyError, disc) if problem.exact is not None and \
+            errors != "none" and (last or errors == "iterates") else None
+        recorder = _Recorder(estimate if newton == "adaptive" else None,
+                             error if errors == "iterates" else None, clock)
+        t_start = clock.now()
         tag = f"level {j}: " if nested else ""
         result = run_newton(disc, X0, cfun=cfun, variant=newton, system=system,
-                            krylov=krylov,
-                            estimate=estimate if newton == "adaptive" else None,
+                            krylov=krylov, estimate=recorder,
                             gamma_lin=gamma_lin or DEFAULT_GAMMA,
                             gamma_alg=gamma_alg or DEFAULT_GAMMA, tol=tol,
                             max_newton=int(max_newton),
                             progress=(lambda line, tag=tag: say(tag + line)) if say else None)
+        # the records Newton made through the recorder (all but the adaptive X⁰), in order
+        stamped = result.history[1:] if newton == "adaptive" else result.history
+        if len(stamped) != len(recorder.stamps):
+            raise RuntimeError("Newton's records and its estimate calls do not match")
+        for rec, (t, err) in zip(stamped, recorder.stamps):
+            rec["wall_time_s"], rec["energy_error"] = t, err
+        if newton == "adaptive":
+            result.history[0]["wall_time_s"] = t_start
+            result.history[0]["energy_error"] = None if error is None or \
+                errors != "iterates" else clock.off(error, X0 if X0 is not None
+                                                    else _paper_guess(disc))
+        final = result.history[-1]
         if estimate is not None and newton != "adaptive":
-            final = result.history[-1]
-            final["estimates"] = estimate(result.X, None if final["alg_residual"] is None
-                                          else _final_residual(result))
-        level_time = time.perf_counter() - t_level
+            final["estimates"] = estimate(result.X, _final_residual(disc, result.X, cfun))
+            final["wall_time_s"] = clock.now()            # the certificate is part of X^k
+        if error is not None and errors == "final":
+            final["energy_error"] = clock.off(error, result.X)
+        level_time = clock.now() - t_level
         for rec in result.history:
             rec["level"] = j
             rec["cumulative_linear_its"] = rec.pop("krylov_total") + its_offset
@@ -262,21 +315,12 @@ def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
             rec["bound"] = est.get("bound")
             if est.get("eta_K") is not None:
                 rec["_eta_K"] = est["eta_K"]
-            rec["wall_time_s"] = offset + level_time          # level's end (see docstring)
-            rec["energy_error"] = None
-        if error is not None:
-            t = time.perf_counter()
-            recs = result.history if errors == "iterates" else result.history[-1:]
-            for rec in recs:
-                rec["energy_error"] = error(result.X) if rec is result.history[-1] else None
-            errors_off += time.perf_counter() - t
+            rec.setdefault("energy_error", None)
         history.extend(result.history)
         newton_total += result.newton_steps
         its_offset += result.krylov_steps
-        offset += level_time
         if estimate is not None:
             est_time += estimate.time
-        final = result.history[-1]
         per_level.append({"level": j, "n_vertices": int(disc.n_global),
                           "converged": result.converged, "reason": result.reason,
                           "newton_iterations": result.newton_steps,
@@ -288,7 +332,7 @@ def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
             break
         prev = (result.X, disc.n)
     X = result.X
-    wall = time.perf_counter() - started - errors_off
+    wall = clock.now()
     final = history[-1]
     eta_K = final.pop("_eta_K", None)
     for rec in history:
@@ -308,10 +352,26 @@ def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
     return sol
 
 
-def _final_residual(result):
-    """The algebraic residual of the final iterate is not kept by Newton; the estimate of a
-    converged exact/inexact run takes it as zero only where it is at round-off."""
-    return None
+def _final_residual(disc, X, cfun):
+    """The algebraic residual R = B - A X of the final iterate, for its certificate (§4): its
+    membrane blocks are those of the nonlinear residual, F - E X, whatever the
+    linearisation (the third block, unused by the estimators, is set to zero). Newton does
+    not keep it, so it is formed here once."""
+    from ..nonlinear.system import NewtonSystem
+    sys_ = NewtonSystem(disc)
+    try:
+        R, _ = sys_.nonlinear_residual(X, cfun)
+    finally:
+        sys_.destroy()
+    R.array[2 * disc.n:] = 0.0
+    return R
+
+
+def _paper_guess(disc):
+    """X⁰ = (g, 0, 0) (§3), the guess Newton takes for X0 None."""
+    X = disc.vector3()
+    X.array[:disc.n] = disc.g
+    return X
 
 
 def _error_kind(problem):
