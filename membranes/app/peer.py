@@ -52,9 +52,9 @@ import numpy as np
 
 # PETSc's threshold of SNESVIGetActiveSetIS: x_a ≤ lower_a + 1e-8 counts as at the bound.
 PETSC_VI_ACTIVE_TOL = 1e-8
-# The plain peer's SNES step limit. From zero, the active set moves by about one layer of
-# vertices per step, so the steps grow like 1/h: PETSc's default of 50 stops it before it
-# converges beyond ~2e5 vertices on the disk.
+# The plain peer's SNES step limit. From zero, the active set moves by a few layers of
+# vertices per step, so the steps grow roughly like 1/h: PETSc's default of 50 stops it before
+# it converges on the disk beyond ~1e5 vertices.
 PLAIN_MAX_IT = 10000
 
 
@@ -68,7 +68,7 @@ class LevelRecord:
     z_iterations: int           # CG steps of the z solve
     reason: int                 # SNES converged reason (> 0 converged)
     z_reason: int               # KSP converged reason of the z solve
-    active: int                 # vertices in PETSc's final active set
+    active: int                 # vertices with λ > 0 at the end
     wall_time_s: float          # solver work: prolongation, operators, solves, λ
     setup_time_s: float         # discretisation of the level (dolfinx assembly)
 
@@ -208,8 +208,8 @@ class DecoupledSolver:
             S.mult(x, f)                                   # f = κ S w - b
             f.scale(kappa)
             f.axpy(-1.0, self.b)
-            with f as fa, x as xa:
-                fa[bl] = kappa * (xa[bl] - disc.g)         # boundary rows κ (w - g)
+            with f as fa:
+                fa[bl] = kappa * (x.array_r[bl] - disc.g)  # boundary rows κ (w - g)
 
         snes = PETSc.SNES().create(disc.comm)
         prefix = f"membranes_peer{DecoupledSolver._count}_"
@@ -259,8 +259,8 @@ class DecoupledSolver:
         lam.setArray(np.where(active, phi / self.D, 0.0))
         return lam
 
-    def active(self, w, lam):
-        """Global count of PETSc's active set at the solution."""
+    def active(self, lam):
+        """How many vertices carry λ > 0 (PETSc's active set less any with Φ_a = 0)."""
         from mpi4py import MPI
         n = int(np.count_nonzero(lam.array_r > 0.0))
         return self.disc.comm.allreduce(n, op=MPI.SUM)
@@ -282,7 +282,6 @@ class DecoupledSolver:
 def _run(label, problems, progress, monitor, **settings):
     """Solve the decoupled problem on each of `problems` (a list of callables giving the
     level's Discretisation), each level from the prolongation of the last."""
-    from petsc4py import PETSc
     records, prev = [], None
     for j, make in enumerate(problems):
         disc, setup = make()
@@ -311,7 +310,7 @@ def _run(label, problems, progress, monitor, **settings):
         its, lin, reason, lam = solver.solve_w(w, snes_monitor if monitor else None)
         wall = time.perf_counter() - t0 - clock[1]
         rec = LevelRecord(j, disc.n_global, its, lin, z_its, reason, z_reason,
-                          solver.active(w, lam), wall, setup)
+                          solver.active(lam), wall, setup)
         records.append(rec)
         if progress is not None:
             progress(f"peer ({label}) level {j}: {rec.vertices} vertices, "
