@@ -232,3 +232,13 @@ def test_level_problem_is_the_truncated_hierarchy():
         assert p.mesh is problem.hierarchy.meshes[j] and p.levels == j
         assert p.mu1 == problem.mu1 and p.f1 is problem.f1
     assert problem.levels == 2
+
+
+def test_options_reach_snes_and_are_removed():
+    """PETSc options given to the peer reach its SNES (a one-step limit stops every level
+    unconverged, and the result says so) and are gone from the options database afterwards."""
+    from petsc4py import PETSc
+    result = nested_peer(disk(1), options={"snes_max_it": 1})
+    assert [lv.snes_iterations for lv in result.levels] == [1, 1]
+    assert not result.converged and "DIVERGED_MAX_IT" in result.reason
+    assert not any("membranes_peer" in k for k in PETSc.Options().getAll())
