@@ -72,7 +72,7 @@ class Load:
             eq.set_colour(c)
             b = assemble_vector(form)
             b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            self.parts.append(b.array_r[eq.systems.groups[c]["kept"]].copy())
+            self.parts.append(eq.systems.gather(c, b).array_r.copy())
             b.destroy()
 
 
@@ -167,9 +167,7 @@ class FluxEquilibration:
                 local.set(0.0)
             assemble_vector(self.b, self.rhs_form)
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            group = self.systems.groups[c]
-            self.b.array[group["kept"]] += f.parts[c]
-            self.systems.solve(c, self.b, self.x)
+            self.systems.solve(c, self.b, self.x, extra=f.parts[c])
             self.systems.add_flux(self.x, sigma)
         sigma.x.scatter_forward()
         return sigma

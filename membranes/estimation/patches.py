@@ -17,7 +17,7 @@ the cells of one patch (a facet dof is kept only if both its cells are in that p
 one cell if the facet lies on ∂Ω), so A's entry between two kept dofs is the sum of the cell
 blocks of that patch only, and is zero between dofs of two patches. PETSc extracts each group's
 submatrix (MatCreateSubMatrix) and MUMPS factorises it once (LDLᵀ: it is symmetric
-indefinite); a right-hand side is then one back-solve per group. This is dolfin-tape's design.
+indefinite); a right-hand side is then one back-solve per group. Only the factors are kept. This is dolfin-tape's design.
 
 Only facet-cell connectivity and index-map communication are used, so the engine works on
 GhostMode.none meshes (the patch id of the cell across a process boundary travels with the
@@ -202,20 +202,30 @@ def mixed_space(mesh):
     return fem.FunctionSpace(mesh, element)
 
 
-def _mumps(A, comm, prefix):
-    """A KSP that applies the MUMPS LDLᵀ factorisation of the symmetric matrix A (factorised
-    now, once)."""
-    ksp = PETSc.KSP().create(comm)
-    ksp.setOptionsPrefix(prefix)
-    ksp.setOperators(A)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("cholesky")
-    pc.setFactorSolverType("mumps")
-    A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-    ksp.setFromOptions()
-    ksp.setUp()
-    return ksp
+def _mumps_factor(A, prefix, comm):
+    """The MUMPS LDLᵀ factor (a PETSc factored Mat, `F.solve(b, x)`) of the symmetric
+    sequential matrix A, or None if A is empty. A itself is not needed afterwards: MUMPS keeps
+    its own copy. Collective on `comm`: a failure on one process raises on all."""
+    factor, info = None, 0
+    if A.getSize()[0] > 0:
+        ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+        ksp.setOptionsPrefix(prefix)
+        ksp.setOperators(A)
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("cholesky")
+        pc.setFactorSolverType("mumps")
+        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        ksp.setFromOptions()
+        ksp.setUp()
+        factor = pc.getFactorMatrix()          # a new reference: it outlives the KSP
+        ksp.destroy()
+        info = factor.getMumpsInfog(1)
+    info = comm.allreduce(min(info, 0), op=MPI.MIN)
+    if info < 0:
+        raise RuntimeError(f"MUMPS could not factorise the patch system {prefix[:-1]} "
+                           f"(INFOG(1) = {info}): a patch is singular")
+    return factor
 
 
 class PatchSystems:
@@ -227,9 +237,20 @@ class PatchSystems:
     its boundary and zero mean; otherwise its facets on ∂Ω are free). Patch ids must be unique
     within a group across processes; a patch's cells may live on several processes.
 
-    `solve(c, b)` solves group c for the right-hand side b (a PETSc Vec on W, assembled from a
-    linear form on `W`) and returns the solution on W (zero at the dofs the group does not
-    keep); `add_flux(x, sigma)` adds its RT part to an RT_1 Function.
+    Each patch is solved on one process, its *home*: the owner of its cell of least global
+    index. The kept dofs of all the patches at home on a process, wherever they are owned, form
+    a sequential principal submatrix of A (PETSc's MatCreateSubMatrices, as for overlapping
+    Schwarz subdomains), factorised by sequential MUMPS; a VecScatter moves a right-hand side's
+    kept entries to the home processes and the solution back. Only the dofs of patches that
+    straddle processes travel. (Handing one distributed block-diagonal matrix to parallel
+    MUMPS works too, but its analysis of a forest of ~10⁵ tiny trees on 2 processes took
+    minutes where the sequential one takes seconds.)
+
+    `solve(c, b, out, extra)` solves group c for the right-hand side b (a PETSc Vec on W,
+    assembled from a linear form on `W`, owned entries final) plus `extra` (entries at the
+    group's home dofs, see `gather`) and returns the solution on W (zero at the dofs the group
+    does not keep; ghosts not updated); `add_flux(x, sigma)` adds its RT part to an RT_1
+    Function.
     """
 
     def __init__(self, mesh, patches, interior, W=None):
@@ -240,24 +261,27 @@ class PatchSystems:
         self.rt_space, rt_map = W.sub(0).collapse()
         self.rt_map = np.asarray(rt_map, dtype=np.int64)
         self.ngroups = len(patches)
+        self._topology(mesh, W)
 
         # A over the whole mesh; each group keeps a principal submatrix of it.
         (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
         A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q)))
         A.assemble()
-
-        self._topology(mesh, W)
+        template = A.createVecLeft()
         self.groups = []
         for c, (pid, inner) in enumerate(zip(patches, interior)):
-            kept = self._kept_dofs(np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
-            rstart = W.dofmap.index_map.local_range[0]
-            iset = PETSc.IS().createGeneral((kept + rstart).astype(PETSc.IntType), comm=self.comm)
-            Ac = A.createSubMatrix(iset, iset)
-            ksp = _mumps(Ac, self.comm, f"patches_{c}_")
-            x, b = Ac.createVecs()
-            self.groups.append(dict(kept=kept, iset=iset, A=Ac, ksp=ksp, x=x, b=b,
-                                    size=iset.getSize()))
+            home = self._home_dofs(np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
+            iset = PETSc.IS().createGeneral(home.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+            block = A.createSubMatrices(iset)[0]
+            x, b = block.createVecs()
+            factor = _mumps_factor(block, f"patches_{c}_", self.comm)
+            block.destroy()
+            scatter = PETSc.Scatter().create(template, iset, b, None)
+            self.groups.append(dict(factor=factor, scatter=scatter, x=x, b=b, iset=iset,
+                                    size=self.comm.allreduce(home.size, op=MPI.SUM),
+                                    home=home.size))
         A.destroy()
+        template.destroy()
 
     def _topology(self, mesh, W):
         """Cell → facet and cell → dof tables (all local cells), facet cell counts (global)."""
@@ -282,12 +306,15 @@ class PatchSystems:
         self.rt_cell_cols = np.array(rt[tdim][0])                 # interior dofs
         self.rt_dofs = W.sub(0).dofmap.list.array.reshape(nall, -1)
         self.dg_dofs = W.sub(1).dofmap.list.array.reshape(nall, -1)
-        self.nowned = W.dofmap.index_map.size_local
-        self.nlocal = self.nowned + W.dofmap.index_map.num_ghosts
+        imap = W.dofmap.index_map
+        self.nowned = imap.size_local
+        self.nlocal = imap.size_local + imap.num_ghosts
+        self.rstart = imap.local_range[0]
 
-    def _kept_dofs(self, pid, inner):
-        """Owned local W dofs kept for one group (sorted)."""
-        nc = self.ncells
+    def _home_dofs(self, pid, inner):
+        """The global indices of the kept W dofs of the patches at home on this process, patch
+        by patch (a collective call: every process hands over its owned kept dofs)."""
+        nc, comm = self.ncells, self.comm
         own = self.c2f[:nc]
         # per facet, over its (at most two) cells: the largest and smallest patch id + 1
         # (0 = no patch), and whether a cell's patch is not interior; reduced across processes
@@ -300,36 +327,60 @@ class PatchSystems:
         hi, lo, free = info[:, 0], -info[:, 1], info[:, 2]
         inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
         on_boundary = (self.facet_cells == 1) & (free == 1)
-        facet_kept = inside | on_boundary
+        facet_patch = np.where(inside | on_boundary, hi - 1, -1)
 
-        kept = np.zeros(self.nlocal, dtype=bool)
-        # facet dofs, from every local cell's view of its facets (the same facet, the same flag)
+        # the patch of every local dof the group keeps (-1: not kept)
+        patch = np.full(self.nlocal, -1, dtype=np.int64)
         cols = self.rt_facet_cols
-        kept[self.rt_dofs[:, cols.ravel()]] = np.repeat(facet_kept[self.c2f], cols.shape[1],
-                                                        axis=1)
+        patch[self.rt_dofs[:, cols.ravel()]] = np.repeat(facet_patch[self.c2f], cols.shape[1],
+                                                         axis=1)
         cells = np.flatnonzero(pid >= 0)
-        kept[self.rt_dofs[cells][:, self.rt_cell_cols]] = True
-        kept[self.dg_dofs[cells]] = True
-        # interior patches: drop the first DG dof of the patch's cell of least global index
-        icells = np.flatnonzero((pid >= 0) & inner)
-        first = reduce_by_key(self.comm, pid[icells], self.cell_global[icells], np.minimum)
-        pinned = icells[self.cell_global[icells] == first]
-        kept[self.dg_dofs[pinned, 0]] = False
-        return np.flatnonzero(kept[:self.nowned]).astype(np.int64)
+        patch[self.rt_dofs[cells][:, self.rt_cell_cols]] = pid[cells, None]
+        patch[self.dg_dofs[cells]] = pid[cells, None]
 
-    def solve(self, c, b, out=None):
-        """Solve group c for the W vector `b` (owned entries used); return the W vector `out`
-        (owned entries: the solution at kept dofs, zero elsewhere; ghosts not updated)."""
+        # home and pinned cell of each patch: its cell of least global index (and that cell's
+        # owner), found with the kept dofs' patches in one distributed reduction
+        kept = np.flatnonzero(patch[:self.nowned] >= 0)
+        big = np.iinfo(np.int64).max
+        keys = np.concatenate([pid[cells], patch[kept]])
+        values = np.concatenate([self.cell_global[cells] * comm.size + comm.rank,
+                                 np.full(kept.size, big, dtype=np.int64)])
+        first = reduce_by_key(comm, keys, values, np.minimum)
+        first_cell, home = first[:cells.size] // comm.size, first[cells.size:] % comm.size
+        # interior patches: drop the first DG dof of the first cell (see the module docstring)
+        pinned = cells[inner[cells] & (self.cell_global[cells] == first_cell)]
+        keep = np.ones(kept.size, dtype=bool)
+        keep[np.searchsorted(kept, self.dg_dofs[pinned, 0])] = False
+        kept, home = kept[keep], home[keep]
+
+        # send every kept dof (global index, patch) to its patch's home
+        order = np.argsort(home, kind="stable")
+        send = np.bincount(home, minlength=comm.size).astype(np.int64)
+        recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
+        rows = np.stack([kept + self.rstart, patch[kept]], axis=1)[order]
+        got = alltoallv(comm, rows, send, recv)
+        return got[np.lexsort((got[:, 0], got[:, 1])), 0]
+
+    def gather(self, c, b):
+        """The entries of the W vector b at the home dofs of group c (a sequential Vec)."""
+        g = self.groups[c]
+        g["scatter"].scatter(b, g["b"], PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+        return g["b"]
+
+    def solve(self, c, b, out=None, extra=None):
+        """Solve group c for the W vector `b` (+ `extra` at its home dofs); the W vector `out`
+        holds the solution at the kept dofs and zero elsewhere (owned entries)."""
         g = self.groups[c]
         if out is None:
             out = b.duplicate()
-        g["b"].array[:] = b.array_r[g["kept"]]
-        g["ksp"].solve(g["b"], g["x"])
-        if g["ksp"].getConvergedReason() < 0:
-            raise RuntimeError(f"patch group {c}: MUMPS solve failed "
-                               f"(reason {g['ksp'].getConvergedReason()})")
-        out.array[:] = 0.0
-        out.array[g["kept"]] = g["x"].array_r
+        rhs = self.gather(c, b)
+        if extra is not None:
+            rhs.array[:] += extra
+        if g["factor"] is not None:
+            g["factor"].solve(rhs, g["x"])
+        with out.localForm() as local:
+            local.set(0.0)
+        g["scatter"].scatter(g["x"], out, PETSc.InsertMode.INSERT, PETSc.ScatterMode.REVERSE)
         return out
 
     def add_flux(self, x, sigma):
@@ -343,6 +394,7 @@ class PatchSystems:
 
     def destroy(self):
         for g in self.groups:
-            for key in ("iset", "A", "ksp", "x", "b"):
-                g[key].destroy()
+            for key in ("factor", "scatter", "x", "b", "iset"):
+                if g[key] is not None:
+                    g[key].destroy()
         self.groups = []

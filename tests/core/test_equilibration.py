@@ -1,0 +1,281 @@
+"""The distributed flux equilibration σ_α,disc (§5, §12) and its patch engine.
+
+With compatible data (mpi_equilibration.Compatible: the linear rows of §4 hold exactly) the
+identities of §5 hold to round-off:
+- on every cell ∇·σ_1,disc = Π_P1 f + λh - r1h and ∇·σ_2,disc = Π_P1 f - λh - r2h;
+- σ_α,disc is the sum over the vertices a of the patch solutions σ_a of §5, checked against an
+  independent dense solve of every patch (its dofs found from the mesh's facets, its zero mean
+  imposed by a Lagrange multiplier instead of the engine's pinned dof);
+- on 2 and 3 processes σ equals the serial one (patches straddling processes);
+- the result follows the forms of forms/equilibration.py.
+"""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import ufl
+from mpi4py import MPI
+
+import forms.equilibration as equilibration_forms
+from membranes.estimation.equilibration import FluxEquilibration
+from membranes.estimation.patches import PatchSystems, colour_vertices
+
+from .mpi_equilibration import MU, Compatible, disk, equilibrate, square
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(os.path.dirname(HERE))
+ROUND_OFF = 1e-11      # relative: patch matrices of condition ~1e3 at these sizes, times 1e-16
+
+
+@pytest.fixture(scope="module", params=["square", "disk"])
+def data(request):
+    build = {"square": square, "disk": disk}[request.param]
+    return Compatible(build(MPI.COMM_WORLD))
+
+
+@pytest.fixture(scope="module")
+def fluxes(data):
+    return equilibrate(data)
+
+
+@pytest.mark.parametrize("alpha", [1, 2])
+def test_divergence_on_every_cell(data, fluxes, alpha):
+    """∇·σ_α,disc = Π_P1 f ± λh - r_αh on every cell, to round-off (§5)."""
+    _, sigmas = fluxes
+    defect, scale = data.divergence_defect(sigmas[alpha], alpha)
+    assert scale > 1.0
+    assert defect <= ROUND_OFF * scale
+
+
+def test_colouring_is_proper(data, fluxes):
+    """No two vertices of one colour share a cell; few colours (a planar mesh graph)."""
+    eq, _ = fluxes
+    nc = data.mesh.topology.index_map(2).size_local
+    cells = data.V.dofmap.list.array.reshape(-1, 3)[:nc]
+    c = eq.colour[cells]
+    assert np.all((c[:, 0] != c[:, 1]) & (c[:, 1] != c[:, 2]) & (c[:, 0] != c[:, 2]))
+    assert eq.colour.min() >= 0 and 3 <= eq.ncolours <= 9
+
+
+# ## An independent dense solve of every vertex patch
+
+def dense_patch_sum(data, alpha):
+    """Σ_a σ_a by dense solves of §5 patch by patch (serial): RT dofs on facets inside the
+    patch (two cells of the patch) and, for a ∈ ∂Ω, on its facets on ∂Ω (one cell); zero mean
+    of γ and q on interior patches by a Lagrange multiplier. Returns σ in W's numbering."""
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_matrix, assemble_vector
+    from membranes.estimation.patches import mixed_space
+    mesh, V = data.mesh, data.V
+    W = mixed_space(mesh)
+    (s, g), (t, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
+    A = assemble_matrix(fem.form((ufl.inner(s, t) - g * ufl.div(t) - ufl.div(s) * q) * ufl.dx))
+    A.assemble()
+    K = A.convert("dense").getDenseArray()
+    mean = assemble_vector(fem.form(q * ufl.dx)).array.copy()      # (φ_i, 1) at DG dofs
+    mesh.topology.create_connectivity(2, 1)
+    mesh.topology.create_connectivity(1, 2)
+    c2f = mesh.topology.connectivity(2, 1).array.reshape(-1, 3)
+    f2c = mesh.topology.connectivity(1, 2)
+    cells = V.dofmap.list.array.reshape(-1, 3)
+    rt = W.sub(0).dofmap.list.array.reshape(-1, 8)
+    dg = W.sub(1).dofmap.list.array.reshape(-1, 3)
+    entity = W.sub(0).element.basix_element.entity_dofs
+    psi, lam_a = fem.Function(V), fem.Function(V)
+    sign = 1.0 if alpha == 1 else -1.0
+    u, r, f = data.u, data.r[alpha], data.f
+    rhs = fem.form(-MU * psi * ufl.inner(ufl.grad(u), t) * ufl.dx
+                   - (-psi * r + sign * lam_a - MU * ufl.inner(ufl.grad(u), ufl.grad(psi))) * q
+                   * ufl.dx - psi * f * q * data.dx_data)
+    sigma = np.zeros(K.shape[0])
+    for a in range(V.dofmap.index_map.size_local):
+        patch = np.flatnonzero((cells == a).any(axis=1))
+        dofs = [rt[patch][:, entity[2][0]].ravel(), dg[patch].ravel()]
+        on_boundary = bool(data.on_boundary[a])
+        for k in patch:
+            for i, facet in enumerate(c2f[k]):
+                around = f2c.links(facet)
+                if (len(around) == 2 and np.isin(around, patch).all()) or \
+                        (len(around) == 1 and on_boundary):
+                    dofs.append(rt[k, entity[1][i]])
+        dofs = np.unique(np.concatenate(dofs))
+        psi.x.array[:] = 0.0
+        psi.x.array[a] = 1.0
+        lam_a.x.array[:] = 0.0
+        lam_a.x.array[a] = data.lam.x.array[a]
+        b = assemble_vector(rhs).array[dofs]
+        M = K[np.ix_(dofs, dofs)]
+        if not on_boundary:
+            m = mean[dofs]
+            M = np.block([[M, m[:, None]], [m[None, :], np.zeros((1, 1))]])
+            b = np.append(b, 0.0)
+        x = np.linalg.solve(M, b)[:dofs.size]
+        is_rt = np.isin(dofs, rt)
+        sigma[dofs[is_rt]] += x[is_rt]
+    return sigma, np.unique(rt), W
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="dense serial reference")
+@pytest.mark.parametrize("mesh", ["square", "disk"])
+def test_sum_of_dense_patch_solves(mesh):
+    """σ_α,disc of the coloured systems = Σ_a σ_a of independent dense patch solves."""
+    data = Compatible(square(MPI.COMM_WORLD, 4) if mesh == "square"
+                      else disk(MPI.COMM_WORLD, 0.45))
+    eq, sigmas = equilibrate(data)
+    for alpha in (1, 2):
+        reference, rt_all, W = dense_patch_sum(data, alpha)
+        # the engine's W and the test's W number dofs alike (same mesh, same element)
+        got = np.zeros_like(reference)
+        got[eq.systems.rt_map] = sigmas[alpha].x.array
+        scale = np.abs(reference).max()
+        assert scale > 0.1
+        assert np.abs(got - reference).max() <= ROUND_OFF * scale
+        assert np.all(got[np.setdiff1d(np.arange(got.size), rt_all)] == 0)
+
+
+# ## The generic engine with other groupings
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="dense serial reference")
+def test_engine_two_halves():
+    """One group of two patches (the cells left and right of x = 1/2), free on ∂Ω: the solution
+    equals the global mixed problem with zero normal flux on the line x = 1/2 (imposed as a
+    dolfinx Dirichlet condition), solved as one system."""
+    from dolfinx import fem, mesh as dm
+    from dolfinx.fem.petsc import assemble_matrix, assemble_vector
+    from membranes.estimation.patches import mixed_space
+    mesh = square(MPI.COMM_WORLD, 6)
+    W = mixed_space(mesh)
+    nc = mesh.topology.index_map(2).size_local
+    mid = dm.compute_midpoints(mesh, 2, np.arange(nc, dtype=np.int32))[:, 0]
+    left = mid < 0.5
+    systems = PatchSystems(mesh, [np.where(left, 7, 11)], [np.zeros(nc, dtype=bool)], W)
+    (s, g), (t, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
+    x = ufl.SpatialCoordinate(mesh)
+    L = fem.form((ufl.inner(ufl.as_vector((x[1], x[0] ** 2)), t) + ufl.sin(4 * x[0]) * q) * ufl.dx)
+    b = assemble_vector(L)
+    got = systems.solve(0, b)
+    line = dm.locate_entities(mesh, 1, lambda p: np.isclose(p[0], 0.5))
+    assert line.size == 6
+    V0, _ = W.sub(0).collapse()
+    zero = fem.Function(V0)
+    bc = fem.dirichletbc(zero, fem.locate_dofs_topological((W.sub(0), V0), 1, line), W.sub(0))
+    A = assemble_matrix(fem.form((ufl.inner(s, t) - g * ufl.div(t) - ufl.div(s) * q) * ufl.dx),
+                        bcs=[bc])
+    A.assemble()
+    fem.petsc.set_bc(b, [bc])
+    reference = np.linalg.solve(A.convert("dense").getDenseArray(), b.array)
+    assert np.abs(got.array - reference).max() <= ROUND_OFF * np.abs(reference).max()
+
+
+def test_engine_one_interior_patch():
+    """The whole mesh as one interior patch (zero normal flux on ∂Ω, zero mean) with data g of
+    zero mean: ∇·σ = g on every cell, the pinned dof's equation included (it is implied), and
+    σ·n = 0 on ∂Ω."""
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_vector
+    from petsc4py import PETSc
+    from membranes.estimation.patches import mixed_space
+    comm = MPI.COMM_WORLD
+    mesh = square(comm, 5)
+    W = mixed_space(mesh)
+    nc = mesh.topology.index_map(2).size_local
+    systems = PatchSystems(mesh, [np.full(nc, 3)], [np.ones(nc, dtype=bool)], W)
+    _, q = ufl.TestFunctions(W)
+    x = ufl.SpatialCoordinate(mesh)
+    g = (x[0] - 0.5) * (1 + x[1]) + x[1] ** 2 - 1.0 / 3.0      # zero mean on (0, 1)²
+    b = assemble_vector(fem.form(-g * q * ufl.dx))              # -(g, q): §5 negated
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    solution = fem.Function(W)
+    systems.solve(0, b, solution.vector)
+    solution.x.scatter_forward()
+    sigma = solution.sub(0)
+    w = ufl.TestFunction(fem.FunctionSpace(mesh, ("DG", 1)))
+    defect = assemble_vector(fem.form((ufl.div(sigma) - g) * w * ufl.dx)).array
+    scale = assemble_vector(fem.form(abs(g) * w * ufl.dx)).array
+    assert comm.allreduce(np.abs(defect).max(), op=MPI.MAX) <= \
+        ROUND_OFF * comm.allreduce(scale.max(), op=MPI.MAX)
+    n = ufl.FacetNormal(mesh)
+    flux = comm.allreduce(fem.assemble_scalar(fem.form(ufl.inner(sigma, n) ** 2 * ufl.ds)),
+                          op=MPI.SUM)
+    norm = comm.allreduce(fem.assemble_scalar(fem.form(ufl.inner(sigma, sigma) * ufl.dx)),
+                          op=MPI.SUM)
+    assert flux <= 1e-28 * norm          # the normal dofs on ∂Ω are zero: round-off only
+    assert systems.sizes() == [W.dofmap.index_map.size_global - 2 * 20 - 1]
+
+
+# ## The forms are those of forms/equilibration.py
+
+def test_forms_drive_the_result(monkeypatch):
+    """Doubling the mass term of forms.equilibration.patch_system changes σ (and keeps its
+    divergence); scaling patch_rhs scales σ."""
+    data = Compatible(square(MPI.COMM_WORLD, 6))
+    _, sigmas = equilibrate(data)
+    base = data.functionals(sigmas[1])
+    original = equilibration_forms.patch_system
+    monkeypatch.setattr(equilibration_forms, "patch_system",
+                        lambda s, g, t, q, dx=ufl.dx: original(s, g, t, q, dx)
+                        + ufl.inner(s, t) * dx)
+    _, changed = equilibrate(data)
+    values = data.functionals(changed[1])
+    assert abs(values[0] - base[0]) > 1e-2 * base[0]
+    defect, scale = data.divergence_defect(changed[1], 1)
+    assert defect <= ROUND_OFF * scale
+    monkeypatch.undo()
+    rhs = equilibration_forms.patch_rhs
+    load = equilibration_forms.patch_load
+    monkeypatch.setattr(equilibration_forms, "patch_rhs", lambda *a, **k: 2.0 * rhs(*a, **k))
+    monkeypatch.setattr(equilibration_forms, "patch_load", lambda *a, **k: 2.0 * load(*a, **k))
+    _, doubled = equilibrate(data)
+    values = data.functionals(doubled[1])
+    assert np.allclose(values, [4 * base[0], 4 * base[1], 2 * base[2], 2 * base[3]],
+                       rtol=1e-12, atol=0)
+
+
+def test_colouring_generic():
+    """colour_vertices on a graph given by arbitrary 'cells' (here: a path of triangles) and
+    reported rounds."""
+    from dolfinx import fem
+    mesh = square(MPI.COMM_WORLD, 3)
+    V = fem.FunctionSpace(mesh, ("Lagrange", 1))
+    nc = mesh.topology.index_map(2).size_local
+    cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
+    colour, n, rounds = colour_vertices(cells, V.dofmap.index_map, mesh.comm)
+    assert n >= 3 and rounds >= 1
+    c = colour[cells]
+    assert np.all((c[:, 0] != c[:, 1]) & (c[:, 1] != c[:, 2]) & (c[:, 0] != c[:, 2]))
+
+
+def test_sigma_api_errors(data, fluxes):
+    eq, _ = fluxes
+    with pytest.raises(ValueError):
+        eq.sigma(3, data.u, data.lam, data.r[1], data.f, MU)
+
+
+# ## On several processes
+
+def run_mpi(n, *extra):
+    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(n), *extra,
+           sys.executable, os.path.join(HERE, "mpi_equilibration.py"), "equilibration"]
+    env = dict(os.environ, PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
+    out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return [line for line in out.stdout.splitlines() if line.startswith("OK")]
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
+@pytest.mark.parametrize("nproc, extra", [(2, ()), (3, ("--mca", "btl", "tcp,self"))],
+                         ids=["2", "3-tcp"])
+def test_parallel_equals_serial(nproc, extra):
+    """On P processes: divergence identity to round-off, the same σ as in serial (norms and
+    moments to 1e-11), and patches that straddle processes (the script asserts all three)."""
+    lines = run_mpi(nproc, *extra)
+    assert len(lines) == 4, lines
+    for line in lines:
+        fields = dict(item.split("=") for item in line.split()[3:])
+        assert int(fields["P"]) == nproc
+        assert int(fields["straddling"]) > 0
+        assert float(fields["defect"]) <= ROUND_OFF
+        assert float(fields["functionals_rel_diff"]) <= ROUND_OFF
