@@ -1,0 +1,291 @@
+"""Krylov solvers of the Newton systems through PETSc KSP: presets, options, stopping tests
+(§3, §4, §8, §12).
+
+**Presets** (`PRESETS`), each a Newton system and a set of PETSc options; the user's options
+(a dict, names without '-') go on top, under a prefix of their own per solver
+(``membranes_<k>_``), so that they reach this solver's KSP (and its inner PCs) only:
+
+* ``paper``: GMRES (restart 30, PETSc's) on the full 3N system, preconditioned on the right
+  by ILU(0), with the unpreconditioned norm (GMRES minimises ‖B - A X‖ itself), as in the
+  paper (§8). In parallel PETSc's ILU is block Jacobi: ``pc_type bjacobi`` with one block per
+  process and ILU(0) inside it, i.e. the paper's ILU(0) on each process's diagonal block of the
+  matrix (its own u1, u2 and λ rows); on one process it *is* the paper's ILU(0). The iteration
+  counts grow with P as the blocks decouple.
+* ``direct``: MUMPS, distributed LU of the full 3N system (``preonly``, ``lu``), analysed
+  anew at every step, with ICNTL(14) = 100 (100 % more working memory than its analysis
+  estimates): the zero λ-diagonal of a min contact vertex makes MUMPS delay pivots, and with
+  its default 20 % the factorisation stopped with INFOG(1) = -9 (workspace too small) from the
+  second Newton step on, on the disk from h = 0.1 down (one process and two).
+* ``amg`` (the default): FGMRES on the eliminated 2N system, preconditioned by the mean/gap
+  split of §10 with one BoomerAMG V-cycle on the mean and one on the gap (`preconditioners.
+  MeanGapPC`; for Newton-min and Fischer–Burmeister alike). Iterations per Newton step do not
+  grow with the mesh. The user's ``pc_type`` replaces the split by a PETSc PC on the
+  eliminated matrix (e.g. ``hypre``).
+
+FGMRES keeps the preconditioned basis, so building an iterate costs no extra PC application;
+for a fixed preconditioner it is right-preconditioned GMRES.
+
+**Stopping tests** (`StoppingTest`, installed by `ksp.setConvergenceTest`). PETSc's own test
+compares with rtol ‖b‖, but the eliminated system's right-hand side is not B, and the inexact
+tolerance is met by the initial guess itself. Ours is ‖R_alg‖ ≤ tol ‖B‖ (both weighted, B the
+right side of the 3N system, so that both systems are measured alike), tested after the
+iterations that are multiples of `every`:
+
+* exact (§8): tol = `EXACT_TOL` = 2e-12, every iteration (and the initial guess);
+* inexact (§8): tol = ‖R_lin(X^{k-1})‖/‖(F, 0)‖, every ν iterations from i = ν: the initial
+  guess X^{k-1} meets it (B - A X^{k-1} = R_lin(X^{k-1}) and ‖B‖ ≥ ‖(F, 0)‖), so that it is not
+  tested, and GMRES, whose residual never grows, meets it at i = ν (the paper's 10 per step);
+* adaptive (§8): the exact floor, and every ν iterations the callback `on_iterate(i, y, r)`
+  with the current iterate y (`ksp.buildSolution`) and its weighted residual r = b - A y; it
+  returns True to stop (η_alg ≤ γ_alg max(η_disc, η_lin) is decided by the Newton loop, which
+  holds the estimators).
+
+GMRES's recursive residual estimate (the `rnorm` of the test, the unpreconditioned norm) only
+gates the test: where it says converged, the iterate is built and b - A y computed, and the
+solve goes on while the true residual is above the bound (it drifts from the estimate near
+round-off). With a preconditioned norm (set through the options) the true residual is computed
+at every test. The tolerances, not PETSc's rtol, decide: ``ksp_rtol``, ``ksp_atol``,
+``ksp_max_it`` are refused (the limit is `max_it`).
+"""
+
+import itertools
+from dataclasses import dataclass, field
+
+from petsc4py import PETSc
+
+from .preconditioners import (INNER_DEFAULTS, InnerPC, MeanGapPC, configure, inner_defaults,
+                              petsc_message, put_options, take_options)
+
+EXACT_TOL = 2e-12          # exact Newton: ‖R_alg‖/‖B‖ ≤ 2e-12 at every step (§8)
+DEFAULT_NU = 10            # the paper's ν: estimators / inexact tests every 10 Krylov steps
+
+PRESETS = {
+    "paper": {"system": "full",
+              "options": {"ksp_type": "gmres", "ksp_pc_side": "right",
+                          "ksp_norm_type": "unpreconditioned", "pc_type": "bjacobi",
+                          "sub_ksp_type": "preonly", "sub_pc_type": "ilu",
+                          "sub_pc_factor_levels": 0}},
+    "direct": {"system": "full",
+               "options": {"ksp_type": "preonly", "pc_type": "lu",
+                           "pc_factor_mat_solver_type": "mumps",
+                           "mat_mumps_icntl_14": 100}},
+    "amg": {"system": "eliminated",
+            "options": {"ksp_type": "fgmres", "ksp_norm_type": "unpreconditioned"}},
+}
+RESERVED = {"ksp_rtol": "the Newton variant sets the linear tolerance",
+            "ksp_atol": "the Newton variant sets the linear tolerance",
+            "ksp_max_it": "use max_it"}
+
+_prefixes = itertools.count()
+REASONS = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if k.isupper()}
+
+
+def linear_tolerance(variant, residual):
+    """The tolerance of ‖R_alg‖/‖B‖ for a Newton step; `residual` = ‖R_lin(X^{k-1})‖/‖(F, 0)‖
+    (§8). The adaptive variant's floor is the exact tolerance (its criterion stops first)."""
+    return residual if variant == "inexact" else EXACT_TOL
+
+
+@dataclass
+class Krylov:
+    """A preset (`PRESETS`) with the user's PETSc options on top, ν and the iteration limit of
+    one solve. ValueError on an unknown preset or a refused option."""
+    preset: str = "amg"
+    options: dict = None
+    nu: int = DEFAULT_NU
+    max_it: int = 10000
+    merged: dict = field(init=False)
+
+    def __post_init__(self):
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown Krylov preset {self.preset!r} (choose from: "
+                             f"{', '.join(PRESETS)})")
+        for name in ("nu", "max_it"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        user = {}
+        for name, value in (self.options or {}).items():
+            name = str(name).lstrip("-")
+            if name in RESERVED:
+                raise ValueError(f"PETSc option -{name} is not accepted: {RESERVED[name]}")
+            if not (value is None or isinstance(value, (str, bool, int, float))):
+                raise ValueError(f"PETSc option -{name}: value {value!r} is not a string "
+                                 "or number")
+            user[name] = value
+        self.merged = dict(PRESETS[self.preset]["options"])
+        self.merged.update(user)
+
+    @property
+    def system(self):
+        """The preset's Newton system ('full' or 'eliminated')."""
+        return PRESETS[self.preset]["system"]
+
+    @property
+    def iterative(self):
+        return self.merged.get("ksp_type") != "preonly"
+
+    @property
+    def mean_gap(self):
+        """Whether the mean/gap PC is used (the amg preset, no pc_type of the user's)."""
+        return self.preset == "amg" and "pc_type" not in self.merged
+
+
+def as_krylov(krylov):
+    """A `Krylov` from a preset name, a dict of its fields, or a `Krylov`."""
+    if isinstance(krylov, Krylov):
+        return krylov
+    if isinstance(krylov, str):
+        return Krylov(krylov)
+    if isinstance(krylov, dict):
+        return Krylov(**krylov)
+    raise ValueError(f"krylov must be a preset name ({', '.join(PRESETS)}), a dict or a "
+                     f"Krylov, got {krylov!r}")
+
+
+class StoppingTest:
+    """The KSP convergence test of the module notes: ‖b - A y‖ ≤ bound after iterations
+    i ≡ 0 mod `every` (the initial guess too where every = 1), and every ν iterations the
+    callback `on_iterate(i, y, r)` (y the current iterate, r = b - A y; True stops)."""
+
+    def __init__(self, A, b, bound, every=1, nu=DEFAULT_NU, on_iterate=None):
+        self.A, self.b, self.bound = A, b, bound
+        self.every, self.nu, self.on_iterate = every, nu, on_iterate
+        self.y, self.r = A.createVecRight(), b.duplicate()
+        self.last, self.stopped, self.true_norm = -1, False, None
+
+    def _build(self, ksp):
+        ksp.buildSolution(self.y)
+        self.A.mult(self.y, self.r)
+        self.r.aypx(-1.0, self.b)
+        self.true_norm = self.r.norm()
+        return self.true_norm
+
+    def __call__(self, ksp, its, rnorm):
+        if its <= self.last:        # the same iterate again after a GMRES restart
+            return PETSc.KSP.ConvergedReason.ITERATING
+        self.last = its
+        gate = ksp.getNormType() != PETSc.KSP.NormType.UNPRECONDITIONED or rnorm <= self.bound
+        if (its % self.every == 0 and (its > 0 or self.every == 1) or rnorm == 0) and gate \
+                and self._build(ksp) <= self.bound:
+            return PETSc.KSP.ConvergedReason.CONVERGED_ATOL
+        if self.on_iterate is not None and its > 0 and its % self.nu == 0:
+            self._build(ksp)
+            if self.on_iterate(its, self.y, self.r):
+                self.stopped = True
+                return PETSc.KSP.ConvergedReason.CONVERGED_ITS
+        return PETSc.KSP.ConvergedReason.ITERATING
+
+    def destroy(self):
+        self.y.destroy()
+        self.r.destroy()
+
+
+def _mumps_info(pc):
+    """MUMPS's INFOG(1), INFOG(2) of a failed factorisation, as text ('' if not MUMPS)."""
+    try:
+        F = pc.getFactorMatrix()
+        return f" (MUMPS INFOG(1) = {F.getMumpsInfog(1)}, INFOG(2) = {F.getMumpsInfog(2)})"
+    except PETSc.Error:
+        return ""
+
+
+class LinearSolver:
+    """One KSP for a Newton run: configured once from the Krylov spec (under its own prefix),
+    handed each step's matrix; for the mean/gap split it keeps the mean's AMG (S_D does not
+    change on a mesh) and builds the gap's per step."""
+
+    def __init__(self, krylov, comm):
+        self.krylov = as_krylov(krylov)
+        self.comm = comm
+        self.prefix = f"membranes_{next(_prefixes)}_"
+        options = dict(self.krylov.merged)
+        if self.krylov.mean_gap:
+            options.update(inner_defaults(options, "mean"))
+            options.update(inner_defaults(options, "gap"))
+        self.options = options
+        put_options(self.prefix, options)
+        self.ksp = PETSc.KSP().create(comm)
+        self.mean = None
+        self._context = None
+        try:
+            configure(self.ksp, self.prefix)
+        except ValueError:
+            self.destroy()
+            raise
+
+    def _shell(self, step, split):
+        """Install the mean/gap PC of the eliminated `step` (`split` = (S_D, ab, theta))."""
+        S_D, ab, theta = split
+        if self.mean is None:
+            self.mean = InnerPC(S_D, self.prefix + "mean_")
+        context = MeanGapPC(S_D, ab, theta, step.lam_out, step.c, step.d, self.mean,
+                            self.prefix)
+        pc = self.ksp.getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(context)
+        self._context = context
+
+    def solve(self, step, y, bound, every=1, on_iterate=None, split=None):
+        """Solve step.A y = step.b from y (changed in place) until ‖b - A y‖ ≤ bound (tested
+        after multiples of `every` iterations) or `on_iterate` stops it (see StoppingTest).
+        `split`: (S_D, ab, θ) for the mean/gap PC of an eliminated step. Returns (iterations,
+        reason name, converged, ‖b - A y‖ at the end)."""
+        ksp = self.ksp
+        if not self.krylov.iterative:
+            # a factorisation is analysed anew each step: MUMPS's pivot order of the step
+            # before (λ-diagonal β ≠ 0 everywhere at X⁰) fails on the zero β of a min contact
+            ksp.getPC().reset()
+        ksp.setOperators(step.A)
+        if self.krylov.mean_gap:
+            if split is None or step.system != "eliminated":
+                raise ValueError("the amg preset's mean/gap preconditioner needs the "
+                                 "eliminated system")
+            self._shell(step, split)
+        iterative = self.krylov.iterative
+        test = None
+        try:
+            if iterative:
+                test = StoppingTest(step.A, step.b, bound, every, self.krylov.nu, on_iterate)
+                ksp.setConvergenceTest(test)
+                ksp.setInitialGuessNonzero(True)
+                ksp.setTolerances(max_it=self.krylov.max_it)
+            try:
+                ksp.solve(step.b, y)
+            except PETSc.Error as e:
+                return ksp.getIterationNumber(), f"PETSc error: {petsc_message(e)}", False, \
+                    float("nan")
+            its, reason = ksp.getIterationNumber(), ksp.getConvergedReason()
+            r = step.b.duplicate()
+            step.A.mult(y, r)
+            r.aypx(-1.0, step.b)
+            norm = r.norm()
+            r.destroy()
+            name = REASONS.get(reason, str(reason))
+            if not iterative and reason < 0:
+                name += _mumps_info(ksp.getPC())
+            if not iterative:
+                return max(its, 1), name, reason > 0, norm
+            converged = reason > 0 and (test.stopped or norm <= bound)
+            return its, name, converged, norm
+        finally:
+            if iterative:
+                ksp.setConvergenceTest(None)
+            if test is not None:
+                test.destroy()
+            if self._context is not None:
+                ksp.getPC().setType(PETSc.PC.Type.NONE)
+                self._context.destroy()
+                self._context = None
+
+    def destroy(self):
+        """Free the KSP and the mean's PC, and take the solver's options out of PETSc's
+        database."""
+        self.ksp.destroy()
+        if self.mean is not None:
+            self.mean.destroy()
+        take_options(self.prefix, self.options)
+
+
+__all__ = ["EXACT_TOL", "DEFAULT_NU", "PRESETS", "INNER_DEFAULTS", "Krylov", "as_krylov",
+           "LinearSolver", "StoppingTest", "linear_tolerance"]

@@ -1,0 +1,243 @@
+"""Semismooth Newton for the discrete contact problem: exact, inexact and adaptive inexact
+(§3, §8).
+
+    k = 0, X⁰ = (g, 0, 0)
+    repeat                                       (Newton)
+        k += 1; linearise C at X^{k-1}: A^{k-1}, B^{k-1}; X^{k,0} = X^{k-1}
+        repeat one more Krylov step i            (linear solver)
+        until the variant's linear test holds at X^{k,i}
+    until the variant's Newton test holds at X^k
+
+The step is solved on the full 3N system or on the eliminated 2N one
+(`membranes.nonlinear.system`) by a `membranes.linalg.krylov` preset ('amg', 'paper',
+'direct'). Variants (§8), with residuals weighted as in system's module notes (§11):
+
+* exact: ‖R_alg‖/‖B‖ ≤ 2e-12 at every step; Newton stops at ‖R_lin‖/‖(F, 0)‖ ≤ tol;
+* inexact: the Krylov solve stops at ‖R_alg‖/‖B‖ ≤ ‖R_lin(X^{k-1})‖/‖(F, 0)‖ (tested every ν
+  iterations: see krylov), Newton stops as for exact;
+* adaptive (Algorithm 1): every ν Krylov steps the iterate X^{k,i} and its residual R^{k,i}
+  go to the estimators (`estimate(X, R, 'krylov')`), and the solve stops at the first with
+  η_alg ≤ γ_alg max(η_disc, η_lin) (or at the exact floor 2e-12); that iterate is X^k, whose
+  estimates are then known. Newton stops at the first X^k, k ≥ 1, with η_lin ≤ γ_lin η_disc.
+  X⁰ is not estimated (Algorithm 1 makes at least one step).
+
+`estimate(X, R, kind)` is any callable returning a dict with at least eta_disc, eta_lin,
+eta_alg (e.g. `membranes.estimation.estimators.Estimators.evaluate`, wrapped): X, R are PETSc
+Vecs in the iterate layout, R = B - A X unweighted (§4; None for X⁰), kind 'initial',
+'krylov' or 'newton'. The exact and inexact variants estimate X⁰ and every Newton iterate when
+given one, for the record. The Vecs are the loop's own: a callback that keeps one copies it.
+
+No line search and no safeguards: a Newton step is the plain semismooth step of §3 (for
+Newton-min with exact solves, the primal–dual active set method). A Krylov solve that fails
+(PETSc error, iteration limit, breakdown) ends the run with converged = False and says why;
+nothing is hidden.
+"""
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from mpi4py import MPI
+
+from ..linalg.krylov import EXACT_TOL, LinearSolver, as_krylov, linear_tolerance
+from . import cfunctions
+from .system import NewtonSystem
+
+VARIANTS = ("exact", "inexact", "adaptive")
+SYSTEMS = ("full", "eliminated")
+
+
+@dataclass
+class NewtonResult:
+    X: object                    # PETSc Vec, the final iterate (iterate layout)
+    history: list                # one dict per recorded iterate
+    newton_steps: int
+    krylov_steps: int            # Krylov iterations over all steps (1 per direct solve)
+    reason: str
+    converged: bool
+    times: dict = field(default_factory=dict)   # wall seconds: 'assembly', 'solve', 'estimate'
+
+
+def _positive(name, value):
+    try:
+        ok = np.isfinite(value) and value > 0 and not isinstance(value, bool)
+    except TypeError:
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+
+
+def _check(cfun, variant, system, solver_spec, estimate, gamma_lin, gamma_alg, tol, max_newton):
+    cfunctions.get(cfun)
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown Newton variant {variant!r} (choose from: "
+                         f"{', '.join(VARIANTS)})")
+    if system not in SYSTEMS:
+        raise ValueError(f"unknown Newton system {system!r} (choose from: {', '.join(SYSTEMS)})")
+    if variant != "exact" and not solver_spec.iterative:
+        raise ValueError(f"the {variant} Newton variant needs an iterative Krylov preset "
+                         f"('amg' or 'paper'), not {solver_spec.preset!r}")
+    if solver_spec.mean_gap and system != "eliminated":
+        raise ValueError("the amg preset's mean/gap preconditioner works on the eliminated "
+                         "system (system='eliminated')")
+    if variant == "adaptive" and estimate is None:
+        raise ValueError("the adaptive Newton variant needs the estimators (estimate=...)")
+    for name, value in (("gamma_lin", gamma_lin), ("gamma_alg", gamma_alg), ("tol", tol)):
+        _positive(name, value)
+    if isinstance(max_newton, bool) or not isinstance(max_newton, (int, np.integer)) \
+            or max_newton < 1:
+        raise ValueError(f"max_newton must be a positive integer, got {max_newton!r}")
+
+
+def linear_criterion(est, gamma_alg):
+    """η_alg ≤ γ_alg max(η_disc, η_lin) (§8)."""
+    return est["eta_alg"] <= gamma_alg * max(est["eta_disc"], est["eta_lin"])
+
+
+def newton_criterion(est, gamma_lin):
+    """η_lin ≤ γ_lin η_disc (§8)."""
+    return est["eta_lin"] <= gamma_lin * est["eta_disc"]
+
+
+def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg",
+           estimate=None, gamma_lin=0.3, gamma_alg=0.3, tol=1e-10, max_newton=100,
+           progress=None):
+    """Semismooth Newton on `disc` (a membranes.fem.discretisation.Discretisation) from X0 (a
+    PETSc Vec in the iterate layout; default (g, 0, 0)).
+
+    cfun 'min' | 'fb'; variant 'exact' | 'inexact' | 'adaptive'; system 'full' | 'eliminated'
+    (default: the preset's); krylov: a preset name ('amg', 'paper', 'direct'), a dict of
+    `membranes.linalg.krylov.Krylov` fields (preset, options, nu, max_it) or a Krylov;
+    estimate: see the module notes; progress: True (print on rank 0) or a callable taking one
+    line per Newton step (called on rank 0 only). Returns a `NewtonResult`."""
+    spec = as_krylov(krylov)
+    system = spec.system if system is None else system
+    _check(cfun, variant, system, spec, estimate, gamma_lin, gamma_alg, tol, max_newton)
+    comm = disc.comm
+    say = None
+    if progress and comm.rank == 0:
+        say = progress if callable(progress) else (lambda line: print(line, flush=True))
+    adaptive = variant == "adaptive"
+    times = {"assembly": 0.0, "solve": 0.0, "estimate": 0.0}
+
+    t0 = time.perf_counter()
+    sys = NewtonSystem(disc)
+    solver = LinearSolver(spec, comm)
+    split = (sys.S_D, sys.D * (1.0 / sys.mu[0] + 1.0 / sys.mu[1]), sys.theta)
+    times["assembly"] += time.perf_counter() - t0
+
+    X = sys.initial_guess() if X0 is None else X0.copy()
+    if X.getLocalSize() != 3 * sys.n:
+        raise ValueError(f"X0 must have the iterate layout (local size {3 * sys.n}), got "
+                         f"{X.getLocalSize()}")
+    R = disc.vector3()              # the residual handed to the estimators
+    X_try = disc.vector3()          # Krylov iterates, built for the callback
+    history = []
+
+    def estimated(Xv, Rv, kind):
+        t = time.perf_counter()
+        est = estimate(Xv, Rv, kind)
+        times["estimate"] += time.perf_counter() - t
+        return est
+
+    def record(kind, k, i, total, Xv, alg, est=None):
+        rec = {"kind": kind, "k": k, "i": i, "krylov_total": total,
+               "residual": sys.relative_residual(Xv, cfun), "alg_residual": alg}
+        if est is not None:
+            rec["estimates"] = est
+        history.append(rec)
+        return rec
+
+    est0 = estimated(X, None, "initial") if estimate is not None and not adaptive else None
+    last = record("initial", 0, 0, 0, X, None, est0)
+    total, k, reason, converged = 0, 0, None, False
+
+    def met(rec):
+        """The variant's Newton stopping test at `rec`: (met, description)."""
+        if adaptive:
+            if rec["kind"] == "initial":
+                return False, ""
+            e = rec["estimates"]
+            ok = newton_criterion(e, gamma_lin)
+            return ok, (f"eta_lin {e['eta_lin']:.3e} {'<=' if ok else '>'} gamma_lin eta_disc "
+                        f"= {gamma_lin * e['eta_disc']:.3e}")
+        ok = rec["residual"] <= tol
+        return ok, f"relative residual {rec['residual']:.3e} {'<=' if ok else '>'} {tol:.1e}"
+
+    try:
+        while True:
+            ok, description = met(last)
+            if ok:
+                reason, converged = f"converged: {description}", True
+                break
+            if k >= max_newton:
+                reason = f"no convergence in {max_newton} Newton steps ({description})"
+                break
+            k += 1
+            t = time.perf_counter()
+            lin = sys.linearise(X, cfun)
+            step = sys.step(lin, system)
+            y = step.guess(X)
+            times["assembly"] += time.perf_counter() - t
+            lin_tol = linear_tolerance(variant, last["residual"])
+            accepted = []
+
+            def on_iterate(i, yi, ri, k=k, step=step, accepted=accepted):
+                """Adaptive: estimate X^{k,i}; stop the solve where the linear criterion
+                holds (§8)."""
+                step.expand(yi, X_try)
+                norm = step.residual(yi, R, rw=ri)
+                e = estimated(X_try, R, "krylov")
+                rec = record("krylov", k, i, total + i, X_try, norm / lin.norm_B, e)
+                if linear_criterion(e, gamma_alg):
+                    accepted.append(rec)
+                    return True
+                return False
+
+            t = time.perf_counter()
+            t_est = times["estimate"]
+            every = spec.nu if variant == "inexact" else 1
+            its, name, solved, norm = solver.solve(
+                step, y, lin_tol * lin.norm_B, every, on_iterate if adaptive else None,
+                split if step.system == "eliminated" else None)
+            times["solve"] += time.perf_counter() - t - (times["estimate"] - t_est)
+            total += its
+            if not solved:
+                reason = (f"Krylov solver failed at Newton step {k}: {name} after {its} "
+                          f"iterations, ||R_alg||/||B|| = {norm / lin.norm_B:.2e} "
+                          f"(asked {lin_tol:.1e})")
+                step.destroy()
+                y.destroy()
+                break
+            step.expand(y, X)
+            step.residual(y, R)
+            step.destroy()
+            y.destroy()
+            if not comm.allreduce(bool(np.all(np.isfinite(X.array_r))), op=MPI.LAND):
+                reason = f"non-finite iterate at Newton step {k}"
+                break
+            if accepted:
+                last = accepted[0]
+                last["kind"], last["krylov_total"] = "newton", total
+            else:
+                e = estimated(X, R, "newton") if estimate is not None else None
+                last = record("newton", k, its, total, X, norm / lin.norm_B, e)
+            if say is not None:
+                line = (f"Newton {k:3d}: residual {last['residual']:.3e}, {its} Krylov "
+                        f"iterations ({total} in all), ||R_alg||/||B|| "
+                        f"{last['alg_residual']:.1e}")
+                if "estimates" in last:
+                    e = last["estimates"]
+                    line += (f", eta_disc {e['eta_disc']:.3e}, eta_lin {e['eta_lin']:.3e}, "
+                             f"eta_alg {e['eta_alg']:.3e}")
+                say(line)
+    finally:
+        solver.destroy()
+        sys.destroy()
+        R.destroy()
+        X_try.destroy()
+    return NewtonResult(X, history, k, total, reason, converged, times)
+
+
+__all__ = ["newton", "NewtonResult", "VARIANTS", "SYSTEMS", "EXACT_TOL",
+           "linear_criterion", "newton_criterion"]

@@ -1,0 +1,343 @@
+"""The semismooth Newton systems as distributed PETSc matrices (§2, §3, §11, §12).
+
+Unknowns X = (u1, u2, λ) in the iterate layout [u1 owned | u2 owned | λ owned] of every process
+(`Discretisation.vector3`). The 2N linear rows (fixed for a mesh) are
+
+    E X = F,   E = [[μ1 S, 0, -D], [0, μ2 S, D]],
+
+with the rows of boundary vertices replaced by the Dirichlet rows u1 = g, u2 = 0 (§2). The N
+complementarity rows change with the iterate: α_l (X1 - X2)_l + β_l X3_l = B3_l at interior
+vertices (`cfunctions.linearise`) and κ λ_l = 0 at boundary vertices.
+
+**Units (§11).** The rows of membrane α are loads, μ_α times a displacement; λ is a pressure.
+Two fixed, data-independent scalings put every row in units of a displacement:
+
+* the row weights W: the rows of membrane α at interior vertices are divided by μ_α (the
+  Dirichlet rows u_α = g, 0 keep weight 1, the complementarity rows too);
+* the scale κ = (1/μ1 + 1/μ2)/2 of the pressure: the C-function acts on (u1 - u2, κ λ), so that
+  its Newton path does not depend on the unit of λ (`cfunctions.linearise`).
+
+Without them, for μ1/μ2 = 1e6, a relative residual is that of the stiffer membrane alone and
+the constraint of the softer one is left violated far above round-off. Every matrix and
+right-hand side here is the *weighted* one, W A and W B: the same linear system, so the same
+iterates and solutions; only the norm a Krylov method minimises, and the norm of the stopping
+tests, change. The weighted linear rows are exact copies of S: the first block row is
+[S_D, 0, -D/μ1], the second [0, S_D, D/μ2], S_D the stiffness matrix with identity rows at the
+boundary vertices. Residuals handed to the estimators are always unweighted (§4):
+R = W⁻¹ (W B - W A X). For μ1 = μ2 = 1 both scalings are the identity (the paper's setting).
+
+The nonlinear residual of §8 is R_lin(X) = (F - E X, -C(X1 - X2, κ X3)) (with -κ λ_l in the
+boundary rows of the third block), and its size relative to the data ‖W R_lin‖/‖W F‖, F with
+its Dirichlet values (`relative_residual`).
+
+**The full 3N system** (`full_step`): A = [W E; J_C], one distributed AIJ matrix made once per
+mesh from a MatNest of the blocks (S_D, the diagonal D blocks, three diagonal J_C blocks) by
+PETSc's conversion, which keeps the iterate layout. Each Newton step only overwrites the N
+complementarity rows (three entries each, all in the owning process's diagonal block); their
+entries stay stored where they are zero, which natural-order ILU(0) needs (the λ-block diagonal
+β_l is 0 at a min contact vertex: its pivot is then D_l (1/p1_l + 1/p2_l) > 0, p_α the ILU
+pivots of the stiffness rows).
+
+**The eliminated 2N system** (`eliminated_step`): every complementarity row eliminates one
+unknown of its vertex, λ_l where |β_l| ≥ κ |α_l| (the C-function's own derivatives compared:
+|∂C/∂b| = |β|/κ against |∂C/∂a| = |α|; boundary vertices, where α = 0, always), else u2_l.
+With Y = (u1, z), z_l = u2_l where λ_l goes and z_l = λ_l where u2_l goes,
+
+    X = T Y + t,   T = [[I, 0], [diag U, diag H], [diag G, diag Q]],
+
+    λ eliminated:  u2 = z,                   λ = B3/β - (α/β) u1 + (α/β) z
+    u2 eliminated: u2 = u1 + (β/α) z - B3/α,  λ = z,
+
+and the system is (W E T) Y = W F - W E t: T is a sparse PETSc matrix (its zero factors not
+stored), W E T one MatMatMult per step. Every iterate X = T Y + t satisfies the complementarity
+rows exactly, so R3 = 0 and the residual is W⁻¹ (b - A Y) in the two membrane blocks.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from petsc4py import PETSc
+
+from . import cfunctions
+
+
+def _ints(a):
+    return np.ascontiguousarray(a, dtype=PETSc.IntType)
+
+
+def diagonal_matrix(values, offset, size, comm):
+    """The AIJ matrix diag(values) (`values` the owned entries, rows from `offset`, global
+    `size`), every diagonal entry stored, zeros included."""
+    n = len(values)
+    indptr = _ints(np.arange(n + 1))
+    indices = _ints(offset + np.arange(n))
+    M = PETSc.Mat().createAIJ(((n, size), (n, size)),
+                              csr=(indptr, indices, np.asarray(values, dtype=float)), comm=comm)
+    M.assemble()
+    return M
+
+
+def _converted(blocks, comm):
+    """The MatNest of `blocks` converted to one AIJ matrix (the iterate layout)."""
+    nest = PETSc.Mat().createNest(blocks, comm=comm)
+    return nest.convert("aij")                  # in place (petsc4py's convert without `out`)
+
+
+@dataclass
+class Linearisation:
+    """The complementarity rows α (X1 - X2) + β X3 = B3 at an iterate (owned entries) and
+    ‖W B‖ of its 3N right-hand side."""
+    alpha: np.ndarray
+    beta: np.ndarray
+    B3: np.ndarray
+    norm_B: float
+
+
+class NewtonSystem:
+    """The linear rows of §2 on one discretisation, weighted by W (module notes), and the
+    Newton systems of its iterates."""
+
+    def __init__(self, disc):
+        self.disc, self.comm = disc, disc.comm
+        self.n, self.N = disc.n, disc.n_global
+        mu1, mu2 = float(disc.mu1), float(disc.mu2)
+        self.mu = (mu1, mu2)
+        self.kappa = 0.5 * (1.0 / mu1 + 1.0 / mu2)          # κ of §3, §11
+        self.theta = mu2 / (mu1 + mu2)                      # z = μ1 u1 + μ2 u2 ∝ (1-θ) u1 + θ u2
+        self.offset = disc.S.getOwnershipRange()[0]          # first owned P1 dof (global)
+        self.boundary = disc.boundary_owned
+        inner = disc.interior
+        n, N, r0, comm = self.n, self.N, self.offset, self.comm
+        # S_D: the stiffness matrix with identity rows at the boundary vertices
+        self.S_D = disc.S.copy()
+        self.S_D.zeroRows(_ints(self.boundary + r0), 1.0)
+        # D_l = (ψ_l, 1) from the lumped (vertex-rule) contact form, 0 in Dirichlet rows
+        d = np.where(inner, disc.Dm.getDiagonal().array_r, 0.0)
+        self.D = d
+        self._D1 = diagonal_matrix(-d / mu1, r0, N, comm)
+        self._D2 = diagonal_matrix(d / mu2, r0, N, comm)
+        self.E = _converted([[self.S_D, None, self._D1], [None, self.S_D, self._D2]], comm)
+        self._A = None                                       # the full matrix, when asked for
+        # the weights W (3N; 1 in the third block) and the weighted right side W (F, 0)
+        self.W = disc.vector3()
+        self.W.array[:n] = np.where(inner, 1.0 / mu1, 1.0)
+        self.W.array[n:2 * n] = np.where(inner, 1.0 / mu2, 1.0)
+        self.W.array[2 * n:] = 1.0
+        self.WF = disc.vector3()
+        self.WF.array[:n] = np.where(inner, disc.F1.array_r[:n] / mu1, disc.g)
+        self.WF.array[n:2 * n] = np.where(inner, disc.F2.array_r[:n] / mu2, 0.0)
+        self.norm_F = self.WF.norm()                         # ‖W (F, 0)‖
+        self.WF2 = self.E.createVecLeft()                    # W F in the 2N layout
+        self.WF2.array[:] = self.WF.array_r[:2 * n]
+        self._r2 = self.WF2.duplicate()
+
+    # ## Iterates
+
+    def initial_guess(self):
+        """X⁰ = (g, 0, 0) of the paper: u1 = g everywhere, u2 = 0, λ = 0 (§3)."""
+        X = self.disc.vector3()
+        X.array[:self.n] = self.disc.g
+        return X
+
+    def split(self, X):
+        return self.disc.split(X)
+
+    def _sum(self, local):
+        from mpi4py import MPI
+        return self.comm.allreduce(float(local), op=MPI.SUM)
+
+    # ## The nonlinear residual (§8)
+
+    def constraint(self, X, cfun):
+        """C(u1 - u2, κ λ) on the owned vertices, κ λ at the boundary vertices."""
+        u1, u2, lam = self.split(X)
+        C = cfunctions.value(cfun, u1 - u2, lam, self.kappa)
+        C[self.boundary] = self.kappa * lam[self.boundary]
+        return C
+
+    def nonlinear_residual(self, X, cfun, out=None):
+        """(R_lin, ‖W R_lin‖/‖W F‖): R_lin = (F - E X, -C) unweighted (a 3N Vec, `out` if
+        given), and its weighted size relative to the data (module notes)."""
+        r = self._r2
+        self.E.mult(X, r)
+        r.aypx(-1.0, self.WF2)                               # W (F - E X)
+        C = self.constraint(X, cfun)
+        n = self.n
+        if out is None:
+            out = self.disc.vector3()
+        out.array[:2 * n] = r.array_r / self.W.array_r[:2 * n]
+        out.array[2 * n:] = -C
+        return out, np.sqrt(r.norm() ** 2 + self._sum(C @ C)) / self.norm_F
+
+    def relative_residual(self, X, cfun):
+        """‖W R_lin(X)‖/‖W F‖ (§8, §11)."""
+        r = self._r2
+        self.E.mult(X, r)
+        r.aypx(-1.0, self.WF2)
+        C = self.constraint(X, cfun)
+        return np.sqrt(r.norm() ** 2 + self._sum(C @ C)) / self.norm_F
+
+    # ## The linearisation (§3)
+
+    def linearise(self, X, cfun):
+        """α, β, B3 of the Newton rows at X; boundary vertices get κ λ_l = 0 (α = 0, β = κ)."""
+        u1, u2, lam = self.split(X)
+        alpha, beta, B3 = cfunctions.linearise(cfun, u1 - u2, lam, self.kappa)
+        b = self.boundary
+        alpha[b], beta[b], B3[b] = 0.0, self.kappa, 0.0
+        return Linearisation(alpha, beta, B3, np.sqrt(self.norm_F ** 2 + self._sum(B3 @ B3)))
+
+    def full_matrix(self):
+        """W A with placeholder complementarity rows (made once; `full_step` fills them)."""
+        if self._A is None:
+            one = diagonal_matrix(np.ones(self.n), self.offset, self.N, self.comm)
+            self._A = _converted([[self.S_D, None, self._D1], [None, self.S_D, self._D2],
+                                  [one, one, one]], self.comm)
+            one.destroy()
+        return self._A
+
+    def full_step(self, lin):
+        """The full 3N system of §3 at the linearisation `lin` (`FullStep`)."""
+        A = self.full_matrix()
+        n, r3 = self.n, 3 * self.offset
+        l = np.arange(n)
+        cols = np.stack([r3 + l, r3 + n + l, r3 + 2 * n + l], axis=1).ravel()
+        vals = np.stack([lin.alpha, -lin.alpha, lin.beta], axis=1).ravel()
+        A.setValuesIJV(_ints(np.arange(0, 3 * n + 1, 3)), _ints(cols), vals,
+                       rowmap=_ints(r3 + 2 * n + l))
+        A.assemble()
+        b = self.WF.copy()
+        b.array[2 * n:] = lin.B3
+        return FullStep(self, A, b, lin.norm_B)
+
+    def eliminated_step(self, lin):
+        """The eliminated 2N system of the module notes at `lin` (`EliminatedStep`)."""
+        return EliminatedStep(self, lin)
+
+    def step(self, lin, system):
+        """The Newton system at `lin`: system 'full' or 'eliminated'."""
+        if system == "full":
+            return self.full_step(lin)
+        if system == "eliminated":
+            return self.eliminated_step(lin)
+        raise ValueError(f"unknown Newton system {system!r} (choose from: full, eliminated)")
+
+    def destroy(self):
+        for obj in (self.S_D, self._D1, self._D2, self.E, self._A, self.W, self.WF, self.WF2,
+                    self._r2):
+            if obj is not None:
+                obj.destroy()
+
+
+class FullStep:
+    """A y = b with y = X (3N), the weighted full system; `norm_B` = ‖W B‖."""
+    system = "full"
+
+    def __init__(self, sys, A, b, norm_B):
+        self.sys, self.A, self.b, self.norm_B = sys, A, b, norm_B
+
+    def guess(self, X):
+        """The solver's unknowns y for the iterate X (the Newton iterate X^{k-1}, §8)."""
+        return X.copy()
+
+    def expand(self, y, X):
+        """X = the iterate of the solver's unknowns y."""
+        y.copy(X)
+        return X
+
+    def residual(self, y, R, rw=None):
+        """R = W⁻¹ (b - A y) (3N, unweighted, §4); returns ‖b - A y‖ (weighted). rw: the
+        weighted residual if already known."""
+        if rw is None:
+            rw = self.b.duplicate()
+            self.A.mult(y, rw)
+            rw.aypx(-1.0, self.b)
+            norm = rw.norm()
+            R.pointwiseDivide(rw, self.sys.W)
+            rw.destroy()
+            return norm
+        R.pointwiseDivide(rw, self.sys.W)
+        return rw.norm()
+
+    def destroy(self):
+        self.b.destroy()                       # A is the system's, kept for the next step
+
+
+class EliminatedStep:
+    """The eliminated 2N system (module notes): A = W E T, b = W F - W E t, X = T Y + t.
+
+    `lam_out[l]`: λ_l was eliminated (z_l = u2_l), else u2_l (z_l = λ_l). The vertex
+    couplings the mean/gap preconditioner needs: c_l = α_l/β_l where λ_l was eliminated
+    (λ_l = c_l (u2 - u1)_l + const), d_l = β_l/α_l where u2_l was (u2_l - u1_l = d_l λ_l +
+    const)."""
+    system = "eliminated"
+
+    def __init__(self, sys, lin):
+        self.sys, self.norm_B = sys, lin.norm_B
+        n, N, r0, comm = sys.n, sys.N, sys.offset, sys.comm
+        alpha, beta, B3 = lin.alpha, lin.beta, lin.B3
+        lam_out = np.abs(beta) >= sys.kappa * np.abs(alpha)
+        u2_out = ~lam_out
+        a_safe = np.where(u2_out, alpha, 1.0)
+        b_safe = np.where(lam_out, beta, 1.0)
+        L, U = lam_out.astype(float), u2_out.astype(float)
+        H = L + U * beta / a_safe
+        G = -L * alpha / b_safe
+        Q = L * alpha / b_safe + U
+        self.lam_out = lam_out
+        self.c = np.where(lam_out, alpha / b_safe, 0.0)
+        self.d = np.where(u2_out, beta / a_safe, 0.0)
+        # T (3N × 2N), its nonzero factors only: row l of u1 holds 1 in column l (Y's u1);
+        # rows of u2 and λ hold (U, H) and (G, Q) in columns l and n + l (Y's u1 and z)
+        l = np.arange(n)
+        y0, y1 = 2 * r0 + l, 2 * r0 + n + l
+        first = np.concatenate([np.ones(n), U, G])
+        second = np.concatenate([np.zeros(n), H, Q])
+        cols = np.stack([np.concatenate([y0, y0, y0]), np.concatenate([y1, y1, y1])], axis=1)
+        vals = np.stack([first, second], axis=1)
+        keep = vals != 0.0
+        indptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))])
+        self.T = PETSc.Mat().createAIJ(((3 * n, 3 * N), (2 * n, 2 * N)),
+                                       csr=(_ints(indptr), _ints(cols[keep]), vals[keep]),
+                                       comm=comm)
+        self.T.assemble()
+        self.t = sys.disc.vector3()
+        self.t.array[n:2 * n] = -U * B3 / a_safe
+        self.t.array[2 * n:] = L * B3 / b_safe
+        self.A = sys.E.matMult(self.T)
+        self.b = sys.WF2.duplicate()
+        sys.E.mult(self.t, self.b)
+        self.b.aypx(-1.0, sys.WF2)                            # W F - W E t
+
+    def guess(self, X):
+        """Y = (u1, z) of the iterate X: z = u2 where λ was eliminated, else λ."""
+        n = self.sys.n
+        u1, u2, lam = self.sys.split(X)
+        y = self.b.duplicate()
+        y.array[:n] = u1
+        y.array[n:] = np.where(self.lam_out, u2, lam)
+        return y
+
+    def expand(self, y, X):
+        """X = T y + t."""
+        self.T.multAdd(y, self.t, X)
+        return X
+
+    def residual(self, y, R, rw=None):
+        """R = (W⁻¹ (b - A y), 0) (3N, unweighted, §4; R3 = 0 exactly); returns ‖b - A y‖."""
+        n = self.sys.n
+        own = rw is None
+        if own:
+            rw = self.b.duplicate()
+            self.A.mult(y, rw)
+            rw.aypx(-1.0, self.b)
+        R.array[:2 * n] = rw.array_r / self.sys.W.array_r[:2 * n]
+        R.array[2 * n:] = 0.0
+        norm = rw.norm()
+        if own:
+            rw.destroy()
+        return norm
+
+    def destroy(self):
+        for obj in (self.T, self.t, self.A, self.b):
+            obj.destroy()
