@@ -1,6 +1,7 @@
 """Bad input: one-line error and exit code 2 from the CLI, ValueError from the API, and nothing
 written to the output folder."""
 
+import os
 import subprocess
 import sys
 
@@ -137,3 +138,81 @@ def test_bad_initial_guess(guess, message):
     """A named guess that does not exist, an array of the wrong size, NaN: ValueError."""
     with pytest.raises(ValueError, match=message):
         solve(scenes.disk(h=0.3), initial_guess=guess, estimators=False)
+
+
+# ## Refused at once (issue 29): each case of the issue's table, as a user runs it
+
+REFUSED_AT_ONCE = {
+    "levels beyond memory": (["--scene", "disk", "--levels", "12"], "2.5e10 vertices"),
+    "h beyond memory": (["--scene", "disk", "--h", "1e-5"], "3.6e10 vertices"),
+    "output folder in /proc": (["--scene", "disk", "--h", "0.3", "--out", "/proc/x"],
+                               "output folder /proc/x cannot be written"),
+    "malformed PETSc option": (["--scene", "disk", "--h", "0.3", "--petsc-options",
+                                "-pc_type=vertex_amg"], "'-pc_type=vertex_amg' is not -name"),
+    "misspelt PETSc option": (["--scene", "disk", "--h", "0.3", "--petsc-options",
+                               "-ksp_gmres_restartt 50"], "-ksp_gmres_restartt is not used"),
+    "below --max-vertices": (["--scene", "square", "--h", "0.1", "--levels", "2",
+                              "--max-vertices", "500"], "more than the limit --max-vertices"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(REFUSED_AT_ONCE))
+def test_refused_at_once_by_the_installed_command(case, tmp_path):
+    """Exit 2, one stderr line naming the cause, no traceback, the output folder absent, and
+    back in seconds: the mesh is never built (gmsh alone needs minutes for the first two; the
+    bound is generous, the in-process test below shows that gmsh is not called)."""
+    import time
+    args, expected = REFUSED_AT_ONCE[case]
+    out = "/proc/x" if "/proc/x" in args else str(tmp_path / "out")
+    extra = [] if "--out" in args else ["--out", out]
+    started = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "membranes.cli", "solve", "--quiet"] + args
+                          + extra, capture_output=True, text=True, timeout=120)
+    elapsed = time.perf_counter() - started
+    assert proc.returncode == 2, proc.stderr
+    err = proc.stderr.strip()
+    assert err.startswith("membranes: error: ") and "\n" not in err, err
+    assert expected in err and "Traceback" not in err
+    assert proc.stdout == ""
+    assert not os.path.exists(out) and os.listdir(tmp_path) == []
+    assert elapsed < 20.0
+
+
+@pytest.mark.parametrize("case", sorted(REFUSED_AT_ONCE))
+def test_refused_before_the_mesh_is_built(case, tmp_path, capsys, monkeypatch):
+    """The same cases in process, with gmsh and the refinement made to fail: the checks
+    refuse them before either is called."""
+    from membranes import hierarchy, meshes
+    from membranes.cli import main
+
+    def never(*args, **kwargs):
+        raise AssertionError("the mesh was built")
+    monkeypatch.setattr(meshes, "_mesh_shape", never)
+    monkeypatch.setattr(hierarchy, "refine_uniformly", never)
+    args, expected = REFUSED_AT_ONCE[case]
+    out = tmp_path / "out"
+    extra = [] if "--out" in args else ["--out", str(out)]
+    assert main(["solve", "--quiet"] + args + extra) == 2
+    err = capsys.readouterr().err.strip()
+    assert expected in err and "\n" not in err
+    assert not out.exists()
+
+
+def test_api_refuses_the_same_with_the_same_message(capsys):
+    """The API raises ValueError with the CLI's message."""
+    from membranes.cli import main
+    for args, call in (
+            (["--levels", "12"], lambda: scenes.disk(levels=12)),
+            (["--h", "0.3", "--petsc-options", "-ksp_gmres_restartt 50"],
+             lambda: solve(scenes.disk(h=0.3), petsc_options="-ksp_gmres_restartt 50")),
+            (["--h", "0.3", "--petsc-options", "-pc_type=vertex_amg"],
+             lambda: solve(scenes.disk(h=0.3), petsc_options="-pc_type=vertex_amg"))):
+        assert main(["solve", "--quiet", "--scene", "disk"] + args) == 2
+        cli = capsys.readouterr().err.strip()
+        with pytest.raises(ValueError) as e:
+            call()
+        if "--levels" in args:     # the scene checks with the leanest method: fewer bytes
+            assert cli.split(" and needs")[0] == "membranes: error: " + \
+                str(e.value).split(" and needs")[0]
+        else:
+            assert cli == "membranes: error: " + str(e.value)

@@ -151,8 +151,12 @@ def test_available_memory_is_memavailable_per_process(monkeypatch):
     assert 0 < alone <= total
     monkeypatch.setenv("OMPI_COMM_WORLD_LOCAL_SIZE", "4")
     assert checks.processes_on_node() == 4
-    # the other three have the node too (MemAvailable moves a little between two reads)
-    assert checks.available_memory() == pytest.approx(alone / 4, rel=0.05)
+    # the other three processes share the node (a fixed MemAvailable: it moves between reads)
+    monkeypatch.setattr(checks, "_meminfo_available", lambda: 20 * GiB)
+    monkeypatch.setattr(checks, "_cgroup_room", lambda: None)
+    assert checks.available_memory() == 5 * GiB
+    monkeypatch.setattr(checks, "_cgroup_room", lambda: 8 * GiB)    # a container's limit
+    assert checks.available_memory() == 2 * GiB
 
 
 def test_scenes_refuse_before_gmsh(monkeypatch):
@@ -326,3 +330,25 @@ def test_api_accepts_options_petsc_uses():
     assert run.converged
     assert run.summary()["petsc_options"]["ksp_gmres_restart"] == "50"
     assert math.isfinite(run.energy_error)
+
+
+def test_two_processes_share_the_node_and_refuse_together(tmp_path):
+    """`mpirun -n 2 membranes solve --levels 12`: both processes refuse (exit 2), process 0
+    says it once, with the memory of the node shared between the two."""
+    import re
+    import shutil
+    import subprocess
+    import sys
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    out = tmp_path / "out"
+    proc = subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
+                           "-n", "2", sys.executable, "-m", "membranes.cli", "solve", "--quiet",
+                           "--levels", "12", "--out", str(out)],
+                          capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("membranes:")]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr
+    shared = float(re.search(r"but ([0-9.]+) GiB is available per process", lines[0])[1])
+    total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    assert 0 < shared * GiB <= total / 2 * 1.001       # (the message's 3 digits)
+    assert not out.exists()

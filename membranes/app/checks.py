@@ -44,9 +44,12 @@ VERTICES_PER_AREA = 1.16        # c_A: V_0 ≈ c_A A/h² + c_L L/h (gmsh, measur
 VERTICES_PER_LENGTH = 0.75      # c_L
 DOMAINS = {"disk": (math.pi, 2.0 * math.pi),    # (area, boundary length) of the unit disk
            "square": (1.0, 4.0)}                # and of the unit square
-# Bytes of a gmsh file per vertex, the fewest seen (msh 4.1 binary of a triangular mesh is
-# ~50 B per vertex with its triangles; ASCII ~100 B): a file's size over it bounds its
-# vertex count from above where its header cannot be read.
+# The coarsest meshes gmsh makes of them, (vertices, triangles), whatever h: h ≥ 0.3 on the
+# disk, h ≥ 0.14 on the square give these (measured up to h = 10).
+COARSEST = {"disk": (71.0, 117.0), "square": (98.0, 162.0)}
+# Bytes of a gmsh file per vertex, a lower bound: gmsh writes 84-100 B per vertex with its
+# triangles (a rectangle at h = 0.02 in msh 2.2 and 4.1, ASCII and binary), so a file's size
+# over 40 B bounds its vertex count from above where its header cannot be read.
 MIN_FILE_BYTES_PER_VERTEX = 40.0
 
 
@@ -59,10 +62,11 @@ def coarse_mesh_size(h, domain="disk"):
         raise ValueError(f"mesh size h must be a positive finite number, got {h}")
     boundary = length / h
     vertices = VERTICES_PER_AREA * area / h ** 2 + VERTICES_PER_LENGTH * boundary
-    # gmsh never makes fewer than a few triangles (3 boundary vertices at least)
-    boundary = max(boundary, 3.0)
-    vertices = max(vertices, boundary)
-    return vertices, max(2.0 * vertices - boundary - 2.0, 1.0)
+    triangles = 2.0 * vertices - boundary - 2.0
+    coarsest = COARSEST.get(domain) if isinstance(domain, str) else None
+    if coarsest is not None and vertices < coarsest[0]:
+        return coarsest
+    return vertices, max(triangles, 1.0)
 
 
 def refined_vertices(vertices, triangles, levels):
@@ -584,4 +588,6 @@ def check_petsc_options_used(user, ksp_options, pc_options=None, pc_prefix=None,
         what = " ".join(f"-{k} {v}" for k, v in (shown or ksp_options).items()
                         if k in ("ksp_type", "pc_type"))
         raise ValueError(f"PETSc option -{unused[0]} is not used by the solver of this run "
-                         f"({what}): misspelt, or not an option of this KSP/PC")
+                         f"({what}): misspelt, not an option of this KSP/PC, or one that is "
+                         f"read during a solve only (the solvers drop their options once "
+                         f"configured)")
