@@ -1,0 +1,462 @@
+"""The multilevel algebraic flux σ_α,alg on the distributed mesh hierarchy (§6, §9, §12).
+
+Given the lifted residual r = r_αh ∈ DG1(T_J) (§4), σ_alg ∈ RT_1(T_J) with ∇·σ_alg = r on every
+cell, to round-off, after Papež, Rüde, Vohralík and Wohlmuth: a coarse solve and, for
+j = 1..J, mixed RT_1 × DG1 problems on the patches of the vertices of T_{j-1}, meshed by the
+cells of T_j, whose fluxes are moved to T_J and added.
+
+**Curved boundaries (§9).** On the disk the new boundary vertices of each level are moved onto
+the circle, so a boundary cell of T_j is not inside its parent. Each cell K of T_j is instead
+tied to its parent K' by the *combinatorial map* G_K : K → K̂ ⊂ K', the affine map that sends
+the vertices of K to where plaza created them (coarse vertices and midpoints of coarse edges,
+`Hierarchy.prolongations` applied to the coarse coordinates), K̂ one of the four quarters of K'
+(|K̂| = |K'|/4). Composing these maps level by level gives the map of a cell of T_J into its
+ancestor in T_j, and everything below is transported along them:
+
+* a field σ ∈ RT_1(T_{j-1}) moves to T_j by the contravariant Piola transform along G_K,
+  σ_K(x) = det(DG_K) DG_K⁻¹ σ(G_K(x)). It lies in RT_1(K), its normal traces agree across
+  every facet of T_j (two neighbours map their facet onto the same half of a coarse facet, with
+  the same parametrisation), and ∇·σ_K = (|K̂|/|K|) (∇·σ)∘G_K. In dof terms it is the usual
+  RT interpolation into the *unmoved* quarter K̂: the matrix `rt_prolongation`, computed on the
+  reference cell from the child's position in its parent and the dof transformations;
+* divergences move with the same law, T q := (|K̂|/|K|) q∘G_K for q ∈ DG1(T_{j-1}), which
+  preserves integrals over every coarse cell, and composes like the maps;
+* Π̃_j, the "L² projection onto DG1(T_j)" of §6 seen from T_J, is the L² projection on each
+  cell K_j of T_j of the function transported there: Π̃_j x ∈ DG1(T_j) with
+  (Π̃_j x, q)_{K_j} = Σ_{K ⊂ K_j} (x, q∘G)_K for q ∈ P1(K_j) (its moments are those of x against
+  the DG1(T_j) basis prolonged combinatorially, R_jᵀ b(x)). Q_j := T Π̃_j is then a projection
+  on DG1(T_J) that preserves integrals over the cells of T_j, with Q_j Q_{j-1} = Q_{j-1},
+  Q_{j-1} Q_j = Q_{j-1}, Q_J = I. On a nested mesh (the square) these are the plain L²
+  projections and the plain interpolation, and the construction is the paper's.
+
+**The construction.** ψ_{j,a} are the hat functions of T_j prolonged to T_J (combinatorial P1
+prolongations, a partition of unity on T_J).
+
+1. ρ_0 ∈ P1(T_0) ∩ H¹_0 with (∇ρ_0, ∇ψ_{0,a})_{T_J} = (r, ψ_{0,a})_{T_J}: the Galerkin coarse
+   matrix Pᵀ S_J P (P = P_J ⋯ P_1), factorised once by MUMPS.
+2. For j = 1..J and each vertex a of T_{j-1}, with x_a = r ψ_{j-1,a} - ∇ρ_0·∇ψ_{j-1,a} on T_J:
+   on the patch of a (the cells of T_j whose parent contains a) the mixed problem of §5 with
+   target 0 (minimal ‖σ‖) and divergence e_j^a = Π̃_j x_a - T Π̃_{j-1} x_a ∈ DG1(T_j)
+   (Π̃_0 := 0), zero normal flux on the patch boundary off ∂Ω, zero mean if a ∉ ∂Ω.
+   Interior patches are compatible: for j = 1, ∫ e_1^a = ∫_{T_J} x_a = 0 by the coarse solve;
+   for j ≥ 2 both terms have the integral of x_a over every cell of T_{j-1}.
+3. σ_alg = Σ_j (Piola transfer to T_J of Σ_a σ_j^a). Its divergence on T_J is
+   Σ_j (Q_j - Q_{j-1}) Σ_a x_a = Σ_j (Q_j - Q_{j-1}) r = Q_J r = r (Σ_a ψ_{j-1,a} = 1,
+   Σ_a ∇ψ_{j-1,a} = 0): exact, with or without moved vertices.
+
+**Distributed set-up (§12).** Plaza refinement without redistribution keeps children on their
+parents' process, so all the DG1 moment algebra (restrictions R_jᵀ, the 3×3 cell masses) is
+process-local numpy/scipy on the owned cells. The patches of level j are the coloured groups of
+a `PatchSystems` on T_j, one group per colour of a vertex colouring of T_{j-1} (no two vertices
+of one colour share a cell of T_{j-1}, so no two of their patches share a cell of T_j);
+factorised once. The RT transfers are distributed PETSc matrices.
+
+**Cost.** Level j's systems have about 3 × dim(RT_1 × DG1)(T_j) unknowns in patches of ~24
+cells, so all levels together about 4 × dim(T_J) (σ_disc: 3 ×); the coarse system has the size
+of P1(T_0). Per call: one coarse back-solve, one assembly of the data matrix on T_J, one
+matrix-vector product per colour and level, one back-solve per colour and level, J - 1 RT
+transfers. (Solving every level's coarse patches on T_J itself, grouped by ancestry, would be
+just as exact but costs about 3 × dim(T_J) unknowns *per level*, in patches of up to
+6 · 4^J cells.)
+"""
+
+import numpy as np
+import scipy.sparse as sp
+import ufl
+from petsc4py import PETSc
+
+import forms.equilibration as equilibration_forms
+from forms.membrane import membrane_linear
+
+from .equilibration import boundary_dofs
+from .lifting import MINV_REF
+from .patches import PatchSystems, colour_vertices
+
+ROUND_OFF = 1e-8      # tolerance on the barycentric coordinates 0, 1/2, 1 of plaza's vertices
+
+
+def _p1(mesh):
+    from dolfinx import fem
+    return fem.FunctionSpace(mesh, ("Lagrange", 1))
+
+
+def _owned_cells(mesh):
+    return mesh.topology.index_map(mesh.topology.dim).size_local
+
+
+def _areas(x, cells):
+    """Areas of the triangles with vertex coordinates x[cells] ((c, 3) indices)."""
+    p = x[cells]
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+
+# ## The combinatorial maps
+#
+# The fine vertex l of a cell K of T_j sits, before any boundary vertex moved, at
+# x̂_l = (P_j X_{j-1})_l: a coarse vertex or the midpoint of a coarse edge. Its barycentric
+# coordinates in the parent K' are then exactly 0, 1/2 or 1; β[K, l, m] is the one of x̂_l
+# with respect to vertex m of K'. β is the DG1 prolongation (nodal values of a parent's affine
+# function at the child's vertices) and defines G_K.
+
+def child_positions(Vc, Vf, P, parents):
+    """β (owned cells of T_j, 3, 3): barycentric coordinates of each fine cell's vertices in
+    their parent, in the vertex (= P1 dof) order of both cells."""
+    from dolfinx import fem
+    Xc = Vc.tabulate_dof_coordinates()[:, :2]
+    nco, nfo = Vc.dofmap.index_map.size_local, Vf.dofmap.index_map.size_local
+    xc, xf = P.createVecRight(), P.createVecLeft()
+    f = fem.Function(Vf)
+    xhat = np.empty((f.x.array.size, 2))
+    for d in range(2):
+        xc.array[:] = Xc[:nco, d]
+        P.mult(xc, xf)
+        f.x.array[:nfo] = xf.array_r
+        f.x.scatter_forward()
+        xhat[:, d] = f.x.array
+    xc.destroy()
+    xf.destroy()
+    nc = len(parents)
+    corners = Xc[Vc.dofmap.list.array.reshape(-1, 3)[parents]]           # (c, 3, 2)
+    pts = xhat[Vf.dofmap.list.array.reshape(-1, 3)[:nc]]                  # (c, 3, 2)
+    jac = np.stack([corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]], axis=2)
+    ref = np.einsum("cij,clj->cli", np.linalg.inv(jac), pts - corners[:, None, 0])
+    beta = np.concatenate([1.0 - ref.sum(axis=2, keepdims=True), ref], axis=2)
+    rounded = np.round(2.0 * beta) / 2.0
+    if nc and np.abs(beta - rounded).max() > ROUND_OFF:
+        raise RuntimeError("a fine vertex is neither a coarse vertex nor a coarse edge's "
+                           "midpoint: the hierarchy's P1 numbering does not match")
+    return rounded
+
+
+def dg_prolongation(beta, parents, ncoarse):
+    """The process-local DG1 prolongation E_j (scipy CSR, 3 n_j × 3 n_{j-1}; rows and columns
+    (cell, vertex)): the nodal values of the parent's affine function at the child's
+    combinatorial vertices. E_jᵀ restricts moments (x, q) from T_j to T_{j-1}."""
+    nc = beta.shape[0]
+    rows = np.repeat(np.arange(3 * nc), 3)
+    cols = 3 * np.repeat(parents, 9) + np.tile(np.arange(3), 3 * nc)
+    values = beta.ravel()
+    keep = values != 0.0
+    return sp.csr_matrix((values[keep], (rows[keep], cols[keep])), shape=(3 * nc, 3 * ncoarse))
+
+
+def _block_diagonal(blocks):
+    """The block-diagonal CSR matrix of (n, 3, 3) blocks."""
+    n = blocks.shape[0]
+    return sp.bsr_matrix((blocks, np.arange(n), np.arange(n + 1)), shape=(3 * n, 3 * n)).tocsr()
+
+
+# ## Raviart–Thomas transfer along the combinatorial maps
+#
+# For a fine cell K with reference map F_K, and its parent K' with F_K', the composite
+# A = F_K'⁻¹ ∘ G_K ∘ F_K maps the reference cell onto the child's quarter of the reference
+# cell (vertices at the β's), whatever the geometry. dolfinx's basis on K' is the Piola image of
+# T_K' φ̂ (T the dof transformation of the cell, from its permutation info), and the
+# interpolation of a field into K gives the coefficients T_K⁻ᵀ Π̂ (pulled-back values at the
+# reference points), Π̂ basix's interpolation matrix. Pulling the Piola-transferred coarse
+# basis back to the fine reference cell gives det(DA) DA⁻¹ φ̂(A X). So the block of K is
+#
+#     M_K = T_K⁻ᵀ Π̂ V(A) T_K'ᵀ,   V(A)[(i, p), m] = (det(DA) DA⁻¹ φ̂_m(A X_p))_i,
+#
+# depending on the child's position and the two cells' permutation infos only.
+
+def _transformation(element, info, inverse_transpose=False):
+    n = element.dim
+    apply = (element.apply_inverse_transpose_dof_transformation if inverse_transpose
+             else element.apply_dof_transformation)
+    return np.asarray(apply(np.eye(n).ravel(), n, int(info))).reshape(n, n)
+
+
+def _reference_block(element, ref):
+    """Π̂ V(A) for the child whose vertices have reference coordinates ref (3, 2) in the
+    parent's reference cell."""
+    X, Pi = element.points, element.interpolation_matrix
+    DA = np.column_stack([ref[1] - ref[0], ref[2] - ref[0]])
+    table = element.tabulate(0, ref[0] + X @ DA.T)[0]                    # (points, dofs, 2)
+    pulled = np.linalg.det(DA) * np.einsum("ij,pmj->pmi", np.linalg.inv(DA), table)
+    values = np.concatenate([pulled[:, :, 0], pulled[:, :, 1]], axis=0)  # component-major
+    return Pi @ values
+
+
+def rt_prolongation(Rc, Rf, parents, beta):
+    """The Piola transfer RT_1(T_{j-1}) → RT_1(T_j) along the combinatorial maps, as a
+    distributed PETSc matrix (rows: fine dofs, columns: coarse dofs). Exact: the transferred
+    field of an RT_1 field is in RT_1(T_j)."""
+    element = Rf.element.basix_element
+    n = element.dim
+    coarse, fine = Rc.mesh, Rf.mesh
+    for mesh in (coarse, fine):
+        mesh.topology.create_entity_permutations()
+    info_c = np.asarray(coarse.topology.get_cell_permutation_info())
+    info_f = np.asarray(fine.topology.get_cell_permutation_info())
+    nc = len(parents)
+    ref = beta[:, :, 1:]                                             # (c, 3, 2)
+    position = (np.round(2.0 * ref).astype(np.int64).reshape(nc, 6)
+                * 3 ** np.arange(6)).sum(axis=1)
+    keys = np.stack([position, info_f[:nc].astype(np.int64),
+                     info_c[parents].astype(np.int64)], axis=1)
+    unique, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    blocks = np.empty((len(unique), n, n))
+    for k, i in enumerate(first):                                   # a cell of each kind
+        blocks[k] = (_transformation(element, info_f[i], inverse_transpose=True)
+                     @ _reference_block(element, ref[i])
+                     @ _transformation(element, info_c[parents[i]]).T)
+    # each owned fine dof takes its row from the first owned cell that has it
+    imf, imc = Rf.dofmap.index_map, Rc.dofmap.index_map
+    fdofs = Rf.dofmap.list.array.reshape(-1, n)[:nc].ravel()
+    cdofs = Rc.dofmap.list.array.reshape(-1, n)[parents]                # (c, n)
+    owned = np.flatnonzero(fdofs < imf.size_local)
+    row, at = np.unique(fdofs[owned], return_index=True)
+    if row.size != imf.size_local:
+        raise RuntimeError("an owned RT dof of the fine mesh lies on no owned cell")
+    cell, local = np.divmod(owned[at], n)
+    values = blocks[inverse.ravel()[cell], local]                       # (rows, n)
+    cols = np.asarray(imc.local_to_global(cdofs[cell].ravel().astype(np.int32)),
+                      dtype=np.int64)
+    indptr = np.arange(0, n * row.size + 1, n, dtype=PETSc.IntType)
+    M = PETSc.Mat().createAIJ(((imf.size_local, imf.size_global),
+                               (imc.size_local, imc.size_global)),
+                              csr=(indptr, cols.astype(PETSc.IntType), values.ravel()),
+                              comm=fine.comm)
+    M.assemble()
+    return M
+
+
+# ## One level of coarse patches
+
+class _Level:
+    """Level j ≥ 1: the patches of the vertices of T_{j-1} meshed by T_j."""
+
+    def __init__(self, j, hierarchy, Vc, Vf, finest_V):
+        from dolfinx import fem
+        self.j = j
+        self.mesh = hierarchy.meshes[j]
+        comm = self.mesh.comm
+        self.parents = parents = np.asarray(hierarchy.parent_cells[j - 1], dtype=np.int64)
+        nc, ncc = len(parents), _owned_cells(hierarchy.meshes[j - 1])
+        if nc != _owned_cells(self.mesh) or (nc and parents.max() >= ncc):
+            raise RuntimeError("the parent of an owned cell is not an owned cell")
+        P = hierarchy.prolongations[j - 1]
+        self.beta = child_positions(Vc, Vf, P, parents)
+
+        # moments: E_j (prolongation, so E_jᵀ restricts moments from T_j to T_{j-1}) and
+        # G_j = M̂_j E_j M_{j-1}⁻¹, which maps the moments of x on T_{j-1} to those of
+        # T Π̃_{j-1} x on T_j (M̂_j: DG1 masses of the unmoved quarters, |K'|/48 (I + 1 1ᵀ))
+        self.E = dg_prolongation(self.beta, parents, ncc)
+        self.ET = self.E.T.tocsr()
+        cells_c = Vc.dofmap.list.array.reshape(-1, 3)[:ncc]
+        area_c = _areas(Vc.tabulate_dof_coordinates()[:, :2], cells_c)
+        minv = (3.0 / area_c)[:, None, None] * MINV_REF
+        mhat = (area_c[parents] / 48.0)[:, None, None] * (np.eye(3) + 1.0)
+        self.G = _block_diagonal(mhat) @ self.E @ _block_diagonal(minv)
+        self.C = None                   # restriction of moments from T_J (set by the owner)
+
+        # the patches: colour the vertices of T_{j-1}; group c holds the patches of colour c
+        imap = Vc.dofmap.index_map
+        colour, self.ncolours, _ = colour_vertices(cells_c, imap, comm)
+        on_boundary = boundary_dofs(Vc)
+        gdofs = np.asarray(imap.local_to_global(np.arange(colour.size, dtype=np.int32)),
+                           dtype=np.int64)
+        corners = cells_c[parents]                                        # (c, 3)
+        patches, interior = [], []
+        for c in range(self.ncolours):
+            hit = colour[corners] == c                                    # ≤ 1 per cell
+            vertex = corners[np.arange(nc), np.argmax(hit, axis=1)]
+            has = hit.any(axis=1)
+            patches.append(np.where(has, gdofs[vertex], -1))
+            interior.append(has & ~on_boundary[vertex])
+        self.patches, self.interior = patches, interior
+        self.systems = PatchSystems(self.mesh, patches, interior)
+        self.rt_space = self.systems.rt_space
+        W = self.systems.W
+        self.dg = W.sub(1).dofmap.list.array.reshape(-1, 3)[:nc].ravel()
+        self.b, self.x = fem.Function(W), fem.Function(W)
+        self.sigma = fem.Function(self.rt_space)
+
+        # the prolonged colour sums Σ_{a of colour c} ψ_{j-1,a} on T_J
+        n = imap.size_local
+        self.psi = []
+        for c in range(self.ncolours):
+            v = P.createVecRight()
+            v.array[:] = colour[:n] == c
+            for k in range(j, hierarchy.levels + 1):
+                w = hierarchy.prolongations[k - 1].createVecLeft()
+                hierarchy.prolongations[k - 1].mult(v, w)
+                v.destroy()
+                v = w
+            self.psi.append(v)
+        self.transfer = None            # RT_1(T_{j-1}) → RT_1(T_j), for j ≥ 2
+
+    def solve(self, data):
+        """σ_j = Σ_a σ_j^a on T_j for the DG1 moments `data` ((3 n_j, colours): column c
+        the moments -(e_j^a, q) of the colour's patches)."""
+        self.sigma.x.array[:] = 0.0
+        b, x = self.b.vector, self.x.vector
+        for c in range(self.ncolours):
+            b.array[:] = 0.0
+            b.array[self.dg] = data[:, c]
+            self.systems.solve(c, b, x)
+            self.systems.add_flux(x, self.sigma)
+
+    def destroy(self):
+        self.systems.destroy()
+        for v in self.psi:
+            v.destroy()
+        if self.transfer is not None:
+            self.transfer.destroy()
+
+
+class MultilevelFlux:
+    """σ_alg of §6 on the hierarchy of `disc`'s mesh (set up once per hierarchy).
+
+    `MultilevelFlux(disc, hierarchy)`: disc a `Discretisation` on hierarchy.finest (its P1
+    space V and stiffness S are used), hierarchy with J ≥ 1 levels. `sigma(r, out=None)`
+    returns σ_alg ∈ RT_1(T_J) with ∇·σ_alg = r for the lifted residual r (a DG1 Function on
+    T_J), as a new Function of `rt_space` or written into `out` (any RT_1 Function on T_J).
+    σ_alg does not depend on μ_α: call it once per membrane.
+    """
+
+    def __init__(self, disc, hierarchy):
+        from dolfinx import fem
+        from dolfinx.fem.petsc import create_matrix, create_vector
+        if hierarchy.levels < 1:
+            raise ValueError("the multilevel algebraic flux needs a hierarchy with at least "
+                             "one refinement (J >= 1); use the flux of extra iterations")
+        if disc.mesh is not hierarchy.finest:
+            raise ValueError("the discretisation must live on the hierarchy's finest mesh")
+        self.disc, self.hierarchy = disc, hierarchy
+        self.comm = disc.comm
+        J = hierarchy.levels
+        spaces = [_p1(m) for m in hierarchy.meshes[:-1]] + [disc.V]
+        self.levels = [_Level(j, hierarchy, spaces[j - 1], spaces[j], disc.V)
+                       for j in range(1, J + 1)]
+        # restrictions of moments from T_J to T_j: C_J = I, C_{j-1} = E_jᵀ C_j
+        C = None
+        for level in reversed(self.levels):
+            level.C = C
+            C = level.ET if C is None else (level.ET @ C).tocsr()
+        for coarse, fine in zip(self.levels[:-1], self.levels[1:]):
+            fine.transfer = rt_prolongation(coarse.rt_space, fine.rt_space, fine.parents,
+                                            fine.beta)
+        self.rt_space = self.levels[-1].rt_space
+
+        # the residual, the prolonged coarse solution, the data matrix on T_J
+        mesh = disc.mesh
+        self.Q = fem.FunctionSpace(mesh, ("DG", 1))
+        self.r, self.rho = fem.Function(self.Q), fem.Function(disc.V)
+        psi, q = ufl.TrialFunction(disc.V), ufl.TestFunction(self.Q)
+        self.data_form = fem.form(equilibration_forms.multilevel_data(psi, self.r, self.rho, q))
+        self.B = create_matrix(self.data_form)
+        self.y = self.B.createVecLeft()
+        ncJ = _owned_cells(mesh)
+        self.dgJ = self.Q.dofmap.list.array.reshape(-1, 3)[:ncJ].ravel()
+        self.rhs_form = fem.form(membrane_linear(self.r, ufl.TestFunction(disc.V)))
+        self.rhs = create_vector(self.rhs_form)
+        self._coarse_setup(spaces[0])
+        self._same_layout = {}
+
+    def _coarse_setup(self, V0):
+        """P = P_J ⋯ P_1 and the MUMPS factorisation of Pᵀ S_J P with the Dirichlet rows of
+        T_0's boundary vertices (§6, step 1)."""
+        P = self.hierarchy.prolongations[-1]
+        P = P.copy()
+        for Pk in reversed(self.hierarchy.prolongations[:-1]):
+            P = P.matMult(Pk)
+        self.P = P
+        K0 = self.disc.S.PtAP(P)
+        n0 = V0.dofmap.index_map.size_local
+        on_boundary = np.flatnonzero(boundary_dofs(V0)[:n0])
+        self.boundary0 = on_boundary
+        rows = np.asarray(V0.dofmap.index_map.local_to_global(on_boundary.astype(np.int32)),
+                          dtype=PETSc.IntType)
+        K0.zeroRowsColumns(rows, diag=1.0)
+        ksp = PETSc.KSP().create(self.comm)
+        ksp.setOptionsPrefix("multilevel_coarse_")
+        ksp.setOperators(K0)
+        ksp.setType("preonly")
+        ksp.getPC().setType("lu")
+        ksp.getPC().setFactorSolverType("mumps")
+        ksp.setFromOptions()
+        ksp.setUp()
+        self.coarse_ksp, self.K0 = ksp, K0
+        self.b0, self.rho0 = K0.createVecs()
+        self.rhoJ = P.createVecLeft()
+
+    def _coarse_solve(self):
+        """ρ_0 for the current r, prolonged to T_J (into self.rho)."""
+        from dolfinx.fem.petsc import assemble_vector
+        with self.rhs.localForm() as local:
+            local.set(0.0)
+        assemble_vector(self.rhs, self.rhs_form)
+        self.rhs.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        self.P.multTranspose(self.rhs, self.b0)
+        self.b0.array[self.boundary0] = 0.0
+        self.coarse_ksp.solve(self.b0, self.rho0)
+        self.P.mult(self.rho0, self.rhoJ)
+        n = self.disc.n
+        self.rho.x.array[:n] = self.rhoJ.array_r
+        self.rho.x.scatter_forward()
+
+    def _set(self, target, source):
+        """target ← source (two Functions of the same element on T_J), by the dof arrays when
+        the spaces number the dofs alike (checked once per space), else by interpolation."""
+        V, W = source.function_space, target.function_space
+        key = (id(V), id(W))
+        if key not in self._same_layout:
+            a, b = V.dofmap.list.array, W.dofmap.list.array
+            self._same_layout[key] = (V.element.signature() == W.element.signature()
+                                      and a.shape == b.shape and np.array_equal(a, b))
+        if self._same_layout[key]:
+            target.x.array[:] = source.x.array
+        else:
+            target.interpolate(source)
+
+    def sigma(self, r, out=None):
+        """σ_alg with ∇·σ_alg = r (§6), r a DG1 Function on T_J."""
+        from dolfinx import fem
+        from dolfinx.fem.petsc import assemble_matrix
+        self._set(self.r, r)
+        self._coarse_solve()
+        self.B.zeroEntries()
+        assemble_matrix(self.B, self.data_form)
+        self.B.assemble()
+        previous = None
+        for level in self.levels:
+            # the moments of x_c = Σ_{a of colour c} x_a against DG1(T_J), then T_j, T_{j-1}
+            Y = np.empty((self.dgJ.size, level.ncolours))
+            for c, psi in enumerate(level.psi):
+                self.B.mult(psi, self.y)
+                Y[:, c] = self.y.array_r[self.dgJ]
+            moments = Y if level.C is None else level.C @ Y
+            data = -moments
+            if previous is not None:
+                data += level.G @ (level.ET @ moments)
+            level.solve(data)
+            if previous is not None:
+                s = level.sigma.vector
+                level.transfer.multAdd(previous.sigma.vector, s, s)
+            previous = level
+        result = previous.sigma
+        result.x.scatter_forward()
+        if out is None:
+            out = fem.Function(self.rt_space)
+        self._set(out, result)
+        return out
+
+    def summary(self):
+        """Global facts of the set-up: per level j = 1..J the colours of T_{j-1} and the
+        unknowns of the patch systems; the coarse unknowns."""
+        return dict(levels=len(self.levels),
+                    colours=[level.ncolours for level in self.levels],
+                    unknowns=[sum(level.systems.sizes()) for level in self.levels],
+                    coarse=self.K0.getSize()[0],
+                    vertices=self.disc.n_global, processes=self.comm.size)
+
+    def destroy(self):
+        for level in self.levels:
+            level.destroy()
+        for obj in (self.coarse_ksp, self.K0, self.b0, self.rho0, self.rhoJ, self.P, self.B,
+                    self.y, self.rhs):
+            obj.destroy()
+        self.levels = []
