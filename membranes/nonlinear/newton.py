@@ -56,6 +56,8 @@ class NewtonResult:
     reason: str
     converged: bool
     times: dict = field(default_factory=dict)   # wall seconds: 'assembly', 'solve', 'estimate'
+    # (a Newton record holds its step's 'times' too: 'assembly' = linearisation and matrices,
+    # 'solve' = the linear solve with its preconditioner set-up, estimates excluded)
 
 
 def _positive(name, value):
@@ -178,7 +180,8 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             lin = sys.linearise(X, cfun)
             step = sys.step(lin, system)
             y = step.guess(X)
-            times["assembly"] += time.perf_counter() - t
+            t_assembly = time.perf_counter() - t
+            times["assembly"] += t_assembly
             lin_tol = linear_tolerance(variant, last["residual"])
             accepted = []
 
@@ -200,7 +203,8 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             its, name, solved, norm = solver.solve(
                 step, y, lin_tol * lin.norm_B, every, on_iterate if adaptive else None,
                 split if step.system == "eliminated" else None)
-            times["solve"] += time.perf_counter() - t - (times["estimate"] - t_est)
+            t_solve = time.perf_counter() - t - (times["estimate"] - t_est)
+            times["solve"] += t_solve
             total += its
             if not solved:
                 reason = (f"Krylov solver failed at Newton step {k}: {name} after {its} "
@@ -222,6 +226,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             else:
                 e = estimated(X, R, "newton") if estimate is not None else None
                 last = record("newton", k, its, total, X, norm / lin.norm_B, e)
+            last["times"] = {"assembly": t_assembly, "solve": t_solve}
             if say is not None:
                 line = (f"Newton {k:3d}: residual {last['residual']:.3e}, {its} Krylov "
                         f"iterations ({total} in all), ||R_alg||/||B|| "

@@ -1,0 +1,261 @@
+"""C-functions, the Newton systems, the Krylov presets and the mean/gap preconditioner (§3, §4,
+§8, §10), each against an independent computation."""
+
+from functools import lru_cache
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from membranes.fem.discretisation import discretise
+from membranes.linalg.krylov import EXACT_TOL, Krylov, LinearSolver, StoppingTest
+from membranes.model import scenes
+from membranes.nonlinear import cfunctions
+from membranes.nonlinear.newton import newton
+from membranes.nonlinear.system import NewtonSystem
+
+RNG = np.random.default_rng(7)
+
+
+@lru_cache(maxsize=None)
+def disc_of(scene, h):
+    return discretise(scenes.make(scene, h=h))
+
+
+@lru_cache(maxsize=None)
+def contact_iterate(scene, cfun):
+    """An iterate with a genuine contact set: the second Newton iterate from X⁰ (MUMPS)."""
+    res = newton(disc_of(scene, 0.1), cfun=cfun, krylov="direct", max_newton=2)
+    return res.X
+
+
+# ## C-functions (§3)
+
+@pytest.mark.parametrize("name", ["min", "fb"])
+def test_c_function_vanishes_exactly_on_the_complementarity_set(name):
+    a, b = RNG.normal(size=1000), RNG.normal(size=1000)
+    C, _ = cfunctions.get(name)
+    on_set = np.concatenate([np.abs(a), 0 * b]), np.concatenate([0 * a, np.abs(b)])
+    assert np.all(C(*on_set) == 0.0)
+    off = ~(((a >= 0) & (b == 0)) | ((a == 0) & (b >= 0)))
+    assert np.all(C(a, b)[off] != 0.0)
+
+
+@pytest.mark.parametrize("name", ["min", "fb"])
+def test_linearisation_is_a_jacobian_with_euler_identity(name):
+    # off the kink both C-functions are differentiable almost everywhere: compare the rows
+    # with central differences of C(a, κ b) (κ by the chain rule), and B3 = 0 (degree 1)
+    a, b, kappa = RNG.normal(size=200), RNG.normal(size=200), 0.7
+    alpha, beta, B3 = cfunctions.linearise(name, a, b, kappa)
+    eps = 1e-7
+    C = lambda x, y: cfunctions.value(name, x, y, kappa)
+    da = (C(a + eps, b) - C(a - eps, b)) / (2 * eps)
+    db = (C(a, b + eps) - C(a, b - eps)) / (2 * eps)
+    assert np.allclose(alpha, da, atol=1e-6) and np.allclose(beta, db, atol=1e-6)
+    assert np.abs(B3).max() <= 1e-15 * np.abs(np.stack([a, b])).max() * 4
+
+
+def test_fischer_burmeister_kink_element_is_in_the_clarke_jacobian():
+    alpha, beta = cfunctions.jacobian_fb(np.zeros(1), np.zeros(1))
+    xi, zeta = alpha + 1, beta + 1
+    assert xi ** 2 + zeta ** 2 <= 1 + 1e-15 and xi == zeta == cfunctions.FB_KINK
+
+
+def test_unknown_c_function():
+    with pytest.raises(ValueError, match="C-function"):
+        cfunctions.get("max")
+
+
+# ## The Newton systems (§2, §3, §4)
+
+def independent_residual(disc, X, B3, alpha, beta):
+    """B - A X (unweighted) from S, D, F of the discretisation, not from the Newton system."""
+    u1, u2, lam = (np.array(a) for a in disc.split(X))
+    S = disc.S
+    Su = []
+    for u in (u1, u2):
+        v, out = S.createVecRight(), S.createVecLeft()
+        v.array[:] = u
+        S.mult(v, out)
+        Su.append(out.array_r.copy())
+    D, inner = disc.D.array_r, disc.interior
+    R1 = np.where(inner, disc.F1.array_r - disc.mu1 * Su[0] + D * lam, disc.g - u1)
+    R2 = np.where(inner, disc.F2.array_r - disc.mu2 * Su[1] - D * lam, -u2)
+    R3 = B3 - alpha * (u1 - u2) - beta * lam
+    return np.concatenate([R1, R2, R3])
+
+
+@pytest.mark.parametrize("scene", ["disk", "square"])
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_full_and_eliminated_systems(scene, cfun):
+    disc = disc_of(scene, 0.1)
+    sys_ = NewtonSystem(disc)
+    X = contact_iterate(scene, cfun)
+    lin = sys_.linearise(X, cfun)
+    lam_out = np.abs(lin.beta) >= sys_.kappa * np.abs(lin.alpha)
+    assert (~lam_out).sum() > 0 and lam_out.sum() > 0      # both eliminations occur
+    steps = {s: sys_.step(lin, s) for s in ("full", "eliminated")}
+    # (1) the residual handed to the estimators is B - A X unweighted (§4): at a perturbed
+    # iterate, against the rows assembled independently
+    for step in steps.values():
+        Y = disc.vector3()
+        Y.array[:] = X.array_r * (1 + 0.01 * RNG.normal(size=3 * disc.n))
+        y = step.guess(Y)
+        Z, R = disc.vector3(), disc.vector3()
+        step.expand(y, Z)
+        step.residual(y, R)
+        ref = independent_residual(disc, Z, lin.B3, lin.alpha, lin.beta)
+        scale = np.abs(ref).max()
+        assert np.abs(R.array_r - ref).max() <= 1e-13 * scale
+        if step.system == "eliminated":         # R3 = 0: complementarity rows hold exactly
+            assert np.abs(ref[2 * disc.n:]).max() <= 1e-13 * np.abs(Z.array_r).max()
+    # (2) both systems give the same Newton step (MUMPS on each)
+    sols = {}
+    for name, step in steps.items():
+        solver = LinearSolver("direct", disc.comm)
+        y = step.guess(X)
+        its, reason, ok, norm = solver.solve(step, y, 0.0)
+        assert ok, reason
+        sols[name] = step.expand(y, disc.vector3()).array_r.copy()
+        solver.destroy()
+    u_data, lam_data = disc.data_scales()
+    n = disc.n
+    d = np.abs(sols["full"] - sols["eliminated"])
+    assert d[:2 * n].max() <= 1e-12 * u_data and d[2 * n:].max() <= 1e-10 * lam_data
+    for step in steps.values():
+        step.destroy()
+    sys_.destroy()
+
+
+def test_weights_and_kappa_for_unequal_moduli():
+    disc = disc_of("square", 0.1)                  # μ1 = 1, μ2 = 2
+    sys_ = NewtonSystem(disc)
+    assert sys_.kappa == pytest.approx(0.5 * (1 + 0.5))
+    n, inner = disc.n, disc.interior
+    W = sys_.W.array_r
+    assert np.all(W[:n][inner] == 1.0) and np.all(W[n:2 * n][inner] == 0.5)
+    assert np.all(W[:2 * n][np.concatenate([~inner, ~inner])] == 1.0) and np.all(W[2 * n:] == 1)
+    sys_.destroy()
+
+
+# ## The mean/gap preconditioner (§10)
+
+@pytest.mark.parametrize("scene", ["disk", "square"])
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_mean_gap_split_is_the_exact_inverse(scene, cfun):
+    # with exact inner solves (LU) the split inverts the eliminated matrix: one iteration
+    disc = disc_of(scene, 0.1)
+    sys_ = NewtonSystem(disc)
+    X = contact_iterate(scene, cfun)
+    lin = sys_.linearise(X, cfun)
+    step = sys_.eliminated_step(lin)
+    split = (sys_.S_D, sys_.D * (1 / sys_.mu[0] + 1 / sys_.mu[1]), sys_.theta)
+    exact = LinearSolver(Krylov("amg", {"mean_pc_type": "lu", "gap_pc_type": "lu"}), disc.comm)
+    y = step.guess(X)
+    its, reason, ok, norm = exact.solve(step, y, 1e-13 * lin.norm_B, split=split)
+    assert ok and its == 1, (its, reason)
+    assert exact.mean.pc.getType() == "lu"
+    exact.destroy()
+    amg = LinearSolver("amg", disc.comm)
+    y = step.guess(X)
+    its, reason, ok, norm = amg.solve(step, y, EXACT_TOL * lin.norm_B, split=split)
+    assert ok and its <= 12, (its, reason)            # one V-cycle each: 5-9 measured
+    assert norm <= EXACT_TOL * lin.norm_B
+    amg.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
+# ## Stopping tests and options (§8)
+
+def _step(cfun="min", system="full"):
+    disc = disc_of("disk", 0.1)
+    sys_ = NewtonSystem(disc)
+    lin = sys_.linearise(contact_iterate("disk", cfun), cfun)
+    return disc, sys_, lin, sys_.step(lin, system)
+
+
+def test_callback_every_nu_iterations_sees_the_true_residual():
+    disc, sys_, lin, step = _step()
+    seen = []
+
+    def on_iterate(i, y, r):
+        check = step.b.duplicate()
+        step.A.mult(y, check)
+        check.aypx(-1.0, step.b)
+        seen.append((i, (check - r).norm() / check.norm()))
+        return i == 30                     # stop at the third call
+
+    solver = LinearSolver(Krylov("paper", nu=10), disc.comm)
+    y = step.guess(contact_iterate("disk", "min"))
+    its, reason, ok, norm = solver.solve(step, y, EXACT_TOL * lin.norm_B, 1, on_iterate)
+    assert ok and its == 30 and reason == "CONVERGED_ITS"
+    assert [i for i, _ in seen] == [10, 20, 30]
+    assert max(e for _, e in seen) <= 1e-14
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
+def test_exact_tolerance_is_met_by_the_true_residual():
+    disc, sys_, lin, step = _step("fb")
+    solver = LinearSolver("paper", disc.comm)
+    y = step.guess(contact_iterate("disk", "fb"))
+    its, reason, ok, norm = solver.solve(step, y, EXACT_TOL * lin.norm_B)
+    r = step.b.duplicate()
+    step.A.mult(y, r)
+    r.aypx(-1.0, step.b)
+    assert ok and r.norm() <= EXACT_TOL * lin.norm_B and r.norm() == pytest.approx(norm)
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
+def test_stopping_test_does_not_stop_at_the_initial_guess_every_nu():
+    # the inexact tolerance is met by the initial guess: tested from i = ν only
+    disc, sys_, lin, step = _step()
+    test = StoppingTest(step.A, step.b, bound=1e300, every=10)
+    ksp = PETSc.KSP().create(disc.comm)
+    ksp.setType("gmres")
+    ksp.setOperators(step.A)
+    assert test(ksp, 0, 1.0) == PETSc.KSP.ConvergedReason.ITERATING
+    ksp.destroy()
+    test.destroy()
+    solver = LinearSolver("paper", disc.comm)
+    y = step.guess(contact_iterate("disk", "min"))
+    its, reason, ok, norm = solver.solve(step, y, 1e300, every=10)
+    assert ok and its == 10
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
+def test_user_options_reach_our_ksp_only():
+    disc = disc_of("disk", 0.1)
+    solver = LinearSolver(Krylov("paper", {"ksp_type": "bcgs", "-ksp_monitor_cancel": None}),
+                          disc.comm)
+    assert solver.ksp.getType() == "bcgs"
+    prefix = solver.prefix
+    other = PETSc.KSP().create(disc.comm)
+    other.setFromOptions()
+    assert other.getType() != "bcgs"
+    other.destroy()
+    solver.destroy()
+    assert not any(k.startswith(prefix) for k in PETSc.Options().getAll())
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"preset": "gmres"}, "preset"),
+    ({"options": {"ksp_atol": 1}}, "ksp_atol"),
+    ({"options": {"pc_type": object()}}, "string or number"),
+    ({"nu": 0}, "nu"),
+    ({"max_it": 2.5}, "max_it"),
+])
+def test_bad_krylov_specs(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        Krylov(**kwargs)
+
+
+def test_options_petsc_refuses():
+    with pytest.raises(ValueError, match="PETSc options"):
+        LinearSolver(Krylov("paper", {"ksp_type": "no_such_method"}), disc_of("disk", 0.1).comm)
