@@ -224,7 +224,7 @@ def _mumps_factor(A, prefix, comm):
     info = comm.allreduce(min(info, 0), op=MPI.MIN)
     if info < 0:
         raise RuntimeError(f"MUMPS could not factorise the patch system {prefix[:-1]} "
-                           f"(INFOG(1) = {info}): a patch is singular")
+                           f"(INFOG(1) = {info}; -10: a patch is singular)")
     return factor
 
 
@@ -263,16 +263,25 @@ class PatchSystems:
         self.ngroups = len(patches)
         self._topology(mesh, W)
 
-        # A over the whole mesh; each group keeps a principal submatrix of it.
+        # Group c keeps a principal submatrix of A; A is assembled over the group's cells only
+        # (the same entries at the kept dofs, whose supports lie in those cells), one group at
+        # a time: a smaller transient matrix, one compiled form (the tags are data).
+        from dolfinx import mesh as dmesh
         (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
-        A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q)))
-        A.assemble()
-        template = A.createVecLeft()
+        owned = np.arange(self.ncells, dtype=np.int32)
+        template = fem.Function(W).vector
         self.groups = []
         for c, (pid, inner) in enumerate(zip(patches, interior)):
-            home = self._home_dofs(np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
+            pid, inner = np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool)
+            home = self._home_dofs(pid, inner)
+            tags = dmesh.meshtags(mesh, mesh.topology.dim, owned, (pid >= 0).astype(np.int32))
+            dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
+            A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q,
+                                                                          dx)))
+            A.assemble()
             iset = PETSc.IS().createGeneral(home.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
             block = A.createSubMatrices(iset)[0]
+            A.destroy()
             x, b = block.createVecs()
             factor = _mumps_factor(block, f"patches_{c}_", self.comm)
             block.destroy()
@@ -280,8 +289,6 @@ class PatchSystems:
             self.groups.append(dict(factor=factor, scatter=scatter, x=x, b=b, iset=iset,
                                     size=self.comm.allreduce(home.size, op=MPI.SUM),
                                     home=home.size))
-        A.destroy()
-        template.destroy()
 
     def _topology(self, mesh, W):
         """Cell → facet and cell → dof tables (all local cells), facet cell counts (global)."""
