@@ -13,11 +13,17 @@ V_h^a: zero normal flux on ∂ω_a \\ ∂Ω; Q_h^a: zero mean if a ∉ ∂Ω. σ
 Distributed set-up (§12): the vertices are coloured so that no two vertices of one colour share
 a cell (`patches.colour_vertices`); the patches of the vertices of colour c are then group c of
 `patches.PatchSystems`, one block-diagonal system factorised once per mesh. Per call and colour
-the right-hand side is ONE dolfinx assembly of `forms.equilibration.patch_rhs` with the P1
-coefficients ψ_c = Σ_{a of colour c} ψ_a and Λ_c = Σ_{a of colour c} λ_a ψ_a (on a patch of
-colour c they are ψ_a and λ_a ψ_a), plus the data part -(ψ_c f, q), which does not change with
-the iterate: it is assembled once per load (`load`, with the data measures). One back-solve per
-colour, and the RT parts of the colours' solutions add up to σ_α,disc.
+the right-hand side is ONE dolfinx assembly of `forms.equilibration.patch_rhs` (over the cells
+touching colour c) with the P1 coefficients ψ_c = Σ_{a of colour c} ψ_a and
+Λ_c = Σ_{a of colour c} λ_a ψ_a (on a patch of colour c they are ψ_a and λ_a ψ_a), plus the data
+part -(ψ_c f, q), which does not change with the iterate: it is assembled once per load
+(`Load`). One back-solve per colour; the RT parts of the colours' solutions add up to σ_α,disc.
+
+Compatibility of the interior patches, (g̃_a, 1) = 0, is the linear row of §4 at a: it holds
+to round-off only if (ψ_a f, 1) is integrated here with the same quadrature as the load
+F_α = ((f_α, ψ_a))_a of the discretisation, so `Load` uses the data measures (dx_data) that
+assembled F_α. With another rule the defect, a quadrature error, lands on one cell per
+interior patch (`patches`, the pinned dof).
 """
 
 import numpy as np
@@ -55,8 +61,9 @@ def boundary_dofs(V):
 
 
 class Load:
-    """The data part -(ψ_c f, q) of the patch right-hand sides, restricted to each colour's kept
-    dofs: assembled once per load f (and mesh), reused at every call of `sigma`."""
+    """The data part -(ψ_c f, q) of the patch right-hand sides at each colour's home dofs
+    (`PatchSystems.gather`), assembled with the data measures once per load f and mesh and
+    reused at every call of `sigma`."""
 
     def __init__(self, eq, f, measures=None):
         from dolfinx import fem
@@ -120,10 +127,19 @@ class FluxEquilibration:
         self.mu = fem.Constant(mesh, 1.0)
         self.sign = fem.Constant(mesh, 1.0)
         tau, q = ufl.TestFunctions(self.systems.W)
-        self.rhs_form = fem.form(equilibration_forms.patch_rhs(
-            self.psi, self.lam_c, self.sign, self.mu, self.u, self.r, tau, q))
+        # one form per colour, integrated over the cells touching the colour (elsewhere ψ_c
+        # and Λ_c vanish); the same compiled kernel, the cell tags are data
+        from dolfinx import mesh as dmesh
         from dolfinx.fem.petsc import create_vector
-        self.b = create_vector(self.rhs_form)
+        owned = np.arange(nc, dtype=np.int32)
+        self.rhs_forms = []
+        for c in range(self.ncolours):
+            touching = (self.colour[cells] == c).any(axis=1).astype(np.int32)
+            tags = dmesh.meshtags(mesh, mesh.topology.dim, owned, touching)
+            dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
+            self.rhs_forms.append(fem.form(equilibration_forms.patch_rhs(
+                self.psi, self.lam_c, self.sign, self.mu, self.u, self.r, tau, q, dx)))
+        self.b = create_vector(self.rhs_forms[0])
         self.x = self.b.duplicate()
         self._loads = {}
 
@@ -152,7 +168,7 @@ class FluxEquilibration:
         if not isinstance(f, Load):
             key = id(f)
             if key not in self._loads:
-                self._loads[key] = self.load(f)           # keeps f alive: the id stays unique
+                self._loads[key] = self.load(f)  # Load.f keeps f alive: the id stays unique
             f = self._loads[key]
         self.sign.value = 1.0 if alpha == 1 else -1.0
         self.mu.value = float(mu)
@@ -165,7 +181,7 @@ class FluxEquilibration:
             self.set_colour(c, self.lam.x.array)
             with self.b.localForm() as local:
                 local.set(0.0)
-            assemble_vector(self.b, self.rhs_form)
+            assemble_vector(self.b, self.rhs_forms[c])
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
             self.systems.solve(c, self.b, self.x, extra=f.parts[c])
             self.systems.add_flux(self.x, sigma)

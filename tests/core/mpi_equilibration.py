@@ -22,9 +22,15 @@ DATA = {"quadrature_degree": 6}
 MU = 1.5
 
 
-def square(comm, n=12):
+def square(comm, n=12, ghosts=False):
     from dolfinx import mesh as dm
-    return dm.create_unit_square(comm, n, n, dm.CellType.triangle, dm.GhostMode.none)
+    mode = dm.GhostMode.shared_facet if ghosts else dm.GhostMode.none
+    return dm.create_unit_square(comm, n, n, dm.CellType.triangle, mode)
+
+
+def ghosted_square(comm):
+    """The square with a layer of ghost cells (GhostMode.shared_facet)."""
+    return square(comm, 10, ghosts=True)
 
 
 def disk(comm, h=0.2):
@@ -173,7 +179,10 @@ def straddling(eq):
 
 def main(mode):
     comm = MPI.COMM_WORLD
-    for name, build in (("square", square), ("disk", disk)):
+    meshes = [("square", square), ("disk", disk)]
+    if mode == "equilibration":
+        meshes.append(("ghosted", ghosted_square))
+    for name, build in meshes:
         data = Compatible(build(comm))
         serial = Compatible(build(MPI.COMM_SELF)) if comm.rank == 0 else None
         if mode == "lifting":

@@ -269,10 +269,11 @@ def run_mpi(n, *extra):
 @pytest.mark.parametrize("nproc, extra", [(2, ()), (3, ("--mca", "btl", "tcp,self"))],
                          ids=["2", "3-tcp"])
 def test_parallel_equals_serial(nproc, extra):
-    """On P processes: divergence identity to round-off, the same σ as in serial (norms and
-    moments to 1e-11), and patches that straddle processes (the script asserts all three)."""
+    """On P processes (the square, the disk, and the square with ghost cells): divergence
+    identity to round-off, the same σ as in serial (norms and moments to 1e-11), and patches
+    that straddle processes (the script asserts all three)."""
     lines = run_mpi(nproc, *extra)
-    assert len(lines) == 4, lines
+    assert len(lines) == 6, lines
     for line in lines:
         fields = dict(item.split("=") for item in line.split()[3:])
         assert int(fields["P"]) == nproc
