@@ -84,6 +84,13 @@ def _owned_cells(mesh):
     return mesh.topology.index_map(mesh.topology.dim).size_local
 
 
+def _check(comm, ok, message):
+    """Raise RuntimeError(message) on every process if `ok` is False on one of them."""
+    from mpi4py import MPI
+    if not comm.allreduce(bool(ok), op=MPI.LAND):
+        raise RuntimeError(message)
+
+
 def _areas(x, cells):
     """Areas of the triangles with vertex coordinates x[cells] ((c, 3) indices)."""
     p = x[cells]
@@ -123,9 +130,9 @@ def child_positions(Vc, Vf, P, parents):
     ref = np.einsum("cij,clj->cli", np.linalg.inv(jac), pts - corners[:, None, 0])
     beta = np.concatenate([1.0 - ref.sum(axis=2, keepdims=True), ref], axis=2)
     rounded = np.round(2.0 * beta) / 2.0
-    if nc and np.abs(beta - rounded).max() > ROUND_OFF:
-        raise RuntimeError("a fine vertex is neither a coarse vertex nor a coarse edge's "
-                           "midpoint: the hierarchy's P1 numbering does not match")
+    _check(Vf.mesh.comm, np.abs(beta - rounded).max(initial=0.0) <= ROUND_OFF,
+           "a fine vertex is neither a coarse vertex nor a coarse edge's midpoint: the "
+           "hierarchy's P1 numbering does not match")
     return rounded
 
 
@@ -208,8 +215,8 @@ def rt_prolongation(Rc, Rf, parents, beta):
     cdofs = Rc.dofmap.list.array.reshape(-1, n)[parents]                # (c, n)
     owned = np.flatnonzero(fdofs < imf.size_local)
     row, at = np.unique(fdofs[owned], return_index=True)
-    if row.size != imf.size_local:
-        raise RuntimeError("an owned RT dof of the fine mesh lies on no owned cell")
+    _check(fine.comm, row.size == imf.size_local,
+           "an owned RT dof of the fine mesh lies on no owned cell")
     cell, local = np.divmod(owned[at], n)
     values = blocks[inverse.ravel()[cell], local]                       # (rows, n)
     cols = np.asarray(imc.local_to_global(cdofs[cell].ravel().astype(np.int32)),
@@ -228,15 +235,15 @@ def rt_prolongation(Rc, Rf, parents, beta):
 class _Level:
     """Level j ≥ 1: the patches of the vertices of T_{j-1} meshed by T_j."""
 
-    def __init__(self, j, hierarchy, Vc, Vf, finest_V):
+    def __init__(self, j, hierarchy, Vc, Vf):
         from dolfinx import fem
         self.j = j
         self.mesh = hierarchy.meshes[j]
         comm = self.mesh.comm
         self.parents = parents = np.asarray(hierarchy.parent_cells[j - 1], dtype=np.int64)
         nc, ncc = len(parents), _owned_cells(hierarchy.meshes[j - 1])
-        if nc != _owned_cells(self.mesh) or (nc and parents.max() >= ncc):
-            raise RuntimeError("the parent of an owned cell is not an owned cell")
+        _check(comm, nc == _owned_cells(self.mesh) and parents.max(initial=-1) < ncc,
+               "the parent of an owned cell is not an owned cell")
         P = hierarchy.prolongations[j - 1]
         self.beta = child_positions(Vc, Vf, P, parents)
 
@@ -329,7 +336,7 @@ class MultilevelFlux:
         self.comm = disc.comm
         J = hierarchy.levels
         spaces = [_p1(m) for m in hierarchy.meshes[:-1]] + [disc.V]
-        self.levels = [_Level(j, hierarchy, spaces[j - 1], spaces[j], disc.V)
+        self.levels = [_Level(j, hierarchy, spaces[j - 1], spaces[j])
                        for j in range(1, J + 1)]
         # restrictions of moments from T_J to T_j: C_J = I, C_{j-1} = E_jᵀ C_j
         C = None
@@ -359,8 +366,7 @@ class MultilevelFlux:
     def _coarse_setup(self, V0):
         """P = P_J ⋯ P_1 and the MUMPS factorisation of Pᵀ S_J P with the Dirichlet rows of
         T_0's boundary vertices (§6, step 1)."""
-        P = self.hierarchy.prolongations[-1]
-        P = P.copy()
+        P = self.hierarchy.prolongations[-1].copy()
         for Pk in reversed(self.hierarchy.prolongations[:-1]):
             P = P.matMult(Pk)
         self.P = P
@@ -400,14 +406,18 @@ class MultilevelFlux:
 
     def _set(self, target, source):
         """target ← source (two Functions of the same element on T_J), by the dof arrays when
-        the spaces number the dofs alike (checked once per space), else by interpolation."""
+        the spaces number the dofs alike (checked once per pair of spaces, on all processes),
+        else by interpolation (exact between spaces of one element)."""
+        from mpi4py import MPI
         V, W = source.function_space, target.function_space
         key = (id(V), id(W))
         if key not in self._same_layout:
             a, b = V.dofmap.list.array, W.dofmap.list.array
-            self._same_layout[key] = (V.element.signature() == W.element.signature()
-                                      and a.shape == b.shape and np.array_equal(a, b))
-        if self._same_layout[key]:
+            alike = (V.element.signature() == W.element.signature()
+                     and a.shape == b.shape and np.array_equal(a, b))
+            # the spaces are kept with the verdict, so that their ids stay theirs
+            self._same_layout[key] = (V, W, self.comm.allreduce(alike, op=MPI.LAND))
+        if self._same_layout[key][2]:
             target.x.array[:] = source.x.array
         else:
             target.interpolate(source)
