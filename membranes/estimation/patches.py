@@ -107,12 +107,12 @@ def reduce_by_key(comm, keys, values, op):
     recv_counts = np.asarray(comm.alltoall(send_counts.tolist()), dtype=np.int64)
     k = alltoallv(comm, keys[order], send_counts, recv_counts)
     v = alltoallv(comm, values[order], send_counts, recv_counts)
-    unique, inverse = np.unique(k, return_inverse=True)
-    reduced = np.full(unique.shape, op.identity if op.identity is not None else 0,
-                      dtype=values.dtype)
-    if op in (np.minimum, np.maximum) and k.size:
-        reduced = v[np.unique(inverse, return_index=True)[1]].copy()
-    op.at(reduced, inverse, v)
+    by_key = np.argsort(k, kind="stable")
+    first = np.ones(k.size, dtype=bool)
+    first[1:] = k[by_key][1:] != k[by_key][:-1]
+    reduced = op.reduceat(v[by_key], np.flatnonzero(first)) if k.size else v[:0]
+    inverse = np.empty(k.size, dtype=np.int64)
+    inverse[by_key] = np.cumsum(first) - 1
     back = alltoallv(comm, reduced[inverse], recv_counts, send_counts)
     out = np.empty_like(values)
     out[order] = back
@@ -263,32 +263,26 @@ class PatchSystems:
         self.ngroups = len(patches)
         self._topology(mesh, W)
 
-        # Group c keeps a principal submatrix of A; A is assembled over the group's cells only
-        # (the same entries at the kept dofs, whose supports lie in those cells), one group at
-        # a time: a smaller transient matrix, one compiled form (the tags are data).
-        from dolfinx import mesh as dmesh
+        # A over the whole mesh, once; group c keeps a principal submatrix of it. All the
+        # groups' blocks are taken before A is freed and MUMPS allocates (a lower peak).
         (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
-        owned = np.arange(self.ncells, dtype=np.int32)
-        template = fem.Function(W).vector
-        self.groups = []
-        for c, (pid, inner) in enumerate(zip(patches, interior)):
-            pid, inner = np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool)
-            home = self._home_dofs(pid, inner)
-            tags = dmesh.meshtags(mesh, mesh.topology.dim, owned, (pid >= 0).astype(np.int32))
-            dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
-            A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q,
-                                                                          dx)))
-            A.assemble()
+        A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q)))
+        A.assemble()
+        template = A.createVecLeft()
+        self.groups, blocks = [], []
+        for pid, inner in zip(patches, interior):
+            home = self._home_dofs(np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
             iset = PETSc.IS().createGeneral(home.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
-            block = A.createSubMatrices(iset)[0]
-            A.destroy()
-            x, b = block.createVecs()
-            factor = _mumps_factor(block, f"patches_{c}_", self.comm)
+            blocks.append(A.createSubMatrices(iset)[0])
+            self.groups.append(dict(iset=iset, home=home.size,
+                                    size=self.comm.allreduce(home.size, op=MPI.SUM)))
+        A.destroy()
+        for c, (group, block) in enumerate(zip(self.groups, blocks)):
+            group["x"], group["b"] = block.createVecs()
+            group["factor"] = _mumps_factor(block, f"patches_{c}_", self.comm)
             block.destroy()
-            scatter = PETSc.Scatter().create(template, iset, b, None)
-            self.groups.append(dict(factor=factor, scatter=scatter, x=x, b=b, iset=iset,
-                                    size=self.comm.allreduce(home.size, op=MPI.SUM),
-                                    home=home.size))
+            group["scatter"] = PETSc.Scatter().create(template, group["iset"], group["b"], None)
+        template.destroy()
 
     def _topology(self, mesh, W):
         """Cell → facet and cell → dof tables (all local cells), facet cell counts (global)."""
@@ -304,8 +298,17 @@ class PatchSystems:
         fmap = mesh.topology.index_map(tdim - 1)
         self.nfacets = fmap.size_local + fmap.num_ghosts
         self.facet_shared = Shared(fmap, self.comm)
-        # cells per facet over the whole mesh (owned cells only, each counted by its owner)
-        count = np.bincount(self.c2f[:self.ncells].ravel(), minlength=self.nfacets)
+        # the (at most two) owned cells of each local facet (-1: none), and the number of cells
+        # of each facet over the whole mesh (owned cells only, each counted by its owner)
+        facets = self.c2f[:self.ncells].ravel()
+        order = np.argsort(facets, kind="stable")
+        count = np.bincount(facets, minlength=self.nfacets)
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        self.facet_owned_cells = np.full((self.nfacets, 2), -1, dtype=np.int64)
+        has = count > 0
+        self.facet_owned_cells[has, 0] = order[start[has]] // 3
+        two = count > 1
+        self.facet_owned_cells[two, 1] = order[start[two] + 1] // 3
         self.facet_cells = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
 
         rt = W.sub(0).element.basix_element.entity_dofs
@@ -321,15 +324,14 @@ class PatchSystems:
     def _home_dofs(self, pid, inner):
         """The global indices of the kept W dofs of the patches at home on this process, patch
         by patch (a collective call: every process hands over its owned kept dofs)."""
-        nc, comm = self.ncells, self.comm
-        own = self.c2f[:nc]
+        comm = self.comm
         # per facet, over its (at most two) cells: the largest and smallest patch id + 1
         # (0 = no patch), and whether a cell's patch is not interior; reduced across processes
-        v = pid + 1
-        info = np.full((self.nfacets, 3), np.iinfo(np.int64).min, dtype=np.int64)
-        np.maximum.at(info[:, 0], own, v[:, None])
-        np.maximum.at(info[:, 1], own, -v[:, None])
-        np.maximum.at(info[:, 2], own, ((pid >= 0) & ~inner).astype(np.int64)[:, None])
+        least = np.iinfo(np.int64).min
+        cell_info = np.stack([pid + 1, -(pid + 1), ((pid >= 0) & ~inner)], axis=1)
+        cell_info = np.vstack([cell_info, np.full((1, 3), least)])     # row -1: no cell
+        info = np.maximum(cell_info[self.facet_owned_cells[:, 0]],
+                          cell_info[self.facet_owned_cells[:, 1]])
         self.facet_shared.forward(self.facet_shared.reverse(info, np.maximum))
         hi, lo, free = info[:, 0], -info[:, 1], info[:, 2]
         inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
