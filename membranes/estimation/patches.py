@@ -1,4 +1,4 @@
-"""Coloured patch problems: block-diagonal mixed RT_1 × DG1 systems over a distributed mesh (§5, §12).
+"""Coloured patch problems: block-diagonal mixed RT_1 × DG1 systems on a distributed mesh (§5, §12).
 
 A *patch* is a group of cells; the patch problems of §5 (and of the multilevel flux, §6) are
 mixed Raviart–Thomas problems on each patch:
@@ -16,8 +16,9 @@ by dolfinx over the whole mesh. This holds because every dof kept for a group is
 the cells of one patch (a facet dof is kept only if both its cells are in that patch, or its
 one cell if the facet lies on ∂Ω), so A's entry between two kept dofs is the sum of the cell
 blocks of that patch only, and is zero between dofs of two patches. PETSc extracts each group's
-submatrix (MatCreateSubMatrix) and MUMPS factorises it once (LDLᵀ: it is symmetric
-indefinite); a right-hand side is then one back-solve per group. Only the factors are kept. This is dolfin-tape's design.
+submatrix and MUMPS factorises it once (LDLᵀ: it is symmetric indefinite); a right-hand side
+is then one back-solve per group. Only the factors are kept. This is dolfin-tape's design;
+where each patch is solved is told in `PatchSystems`.
 
 Only facet-cell connectivity and index-map communication are used, so the engine works on
 GhostMode.none meshes (the patch id of the cell across a process boundary travels with the
@@ -242,9 +243,7 @@ class PatchSystems:
     a sequential principal submatrix of A (PETSc's MatCreateSubMatrices, as for overlapping
     Schwarz subdomains), factorised by sequential MUMPS; a VecScatter moves a right-hand side's
     kept entries to the home processes and the solution back. Only the dofs of patches that
-    straddle processes travel. (Handing one distributed block-diagonal matrix to parallel
-    MUMPS works too, but its analysis of a forest of ~10⁵ tiny trees on 2 processes took
-    minutes where the sequential one takes seconds.)
+    straddle processes travel; the factorisations and back-solves need no communication.
 
     `solve(c, b, out, extra)` solves group c for the right-hand side b (a PETSc Vec on W,
     assembled from a linear form on `W`, owned entries final) plus `extra` (entries at the
