@@ -140,22 +140,25 @@ def estimate_vertices(h=None, levels=0, domain="disk", mesh_file=None):
 
 # ## Memory of a run
 #
-# Peak resident memory of one process = BASE_BYTES + bytes per vertex × vertices of the
-# finest mesh T_J (its hierarchy included), measured with the current code on the disk
-# (BENCHMARKS.md, "Memory per vertex"): the linear-algebra part by method, plus the
-# estimators' part where they run (its multilevel algebraic flux keeps operators on every
-# level). A run on P processes that replicate the mesh (membranes.pipeline) needs at most
-# the serial figure on each; a distributed run about the serial per-vertex part over P.
+# Peak resident memory of one process, measured with the current code on the disk
+# (BENCHMARKS.md, "Memory per vertex": h0 = 0.2 refined J = 5, 6 times, 1.1e5 and 4.4e5
+# vertices, one fresh process per run): BASE_BYTES plus, per vertex of the finest mesh T_J
+# (its hierarchy included), the slope between the two sizes of the linear algebra of the
+# method and, where they run, of the estimators (the multilevel algebraic flux keeps
+# operators on every level). MUMPS's factors grow faster than N: its part is c N^p, fitted
+# on J = 4, 5 (2.7e4, 1.1e5 vertices). A run on P processes that replicate the mesh
+# (membranes.pipeline) needs at most the serial figure on each (measured: 1.77 against 2.77
+# GiB at 9.3e5, BENCHMARKS.md); a distributed run about the per-vertex part over P.
 
-BASE_BYTES = 0.30 * 2 ** 30       # interpreter, dolfinx, PETSc, compiled kernels, small mesh
-SOLVER_BYTES_PER_VERTEX = {       # discretisation, Newton systems and their Krylov/MUMPS solve
-    "gmres": 1700.0,              # GMRES(30) + ILU(0), full 3N system (the default)
-    "vertex_amg": 1500.0,         # FGMRES + vertex_amg on the eliminated 2N system
-    "direct": 6000.0,             # MUMPS LU of the full system
+BASE_BYTES = 0.30 * 2 ** 30       # interpreter, dolfinx, PETSc, kernels; fixed costs of levels
+SOLVER_BYTES_PER_VERTEX = {       # discretisation, Newton systems and their Krylov solve
+    "gmres": 3000.0,              # GMRES(30) + ILU(0) on the full 3N system (the default)
+    "vertex_amg": 1800.0,         # FGMRES + vertex_amg on the eliminated 2N system
 }
+DIRECT_COEFFICIENT, DIRECT_EXPONENT = 1.9e3, 1.26   # MUMPS LU of the full system: c N^p bytes
 ESTIMATOR_BYTES_PER_VERTEX = {    # the a posteriori estimators (DESIGN §7), by algebraic flux
-    "nu": 1500.0,
-    "multilevel": 3100.0,
+    "nu": 1100.0,
+    "multilevel": 2900.0,
 }
 
 
@@ -167,27 +170,37 @@ def _solver_key(linear_solver="gmres", pc_type=None):
 
 def estimate_memory(vertices, linear_solver="gmres", pc_type=None, estimators=True,
                     alg_flux="multilevel", processes=1, replicated=True):
-    """Bytes one process needs for a run on a finest mesh of `vertices` vertices: the
-    measured BASE_BYTES and bytes per vertex of the linear solver (`linear_solver` 'gmres' or
-    'direct'; `pc_type` 'vertex_amg' or another PETSc PC) and, with `estimators`, of the
-    estimators with algebraic flux `alg_flux` ('nu' or 'multilevel'); `linear_solver=None`:
-    the leanest method (what any run needs). With `processes` > 1 and not `replicated`,
-    the per-vertex part is shared out."""
+    """Bytes one process needs for a run on a finest mesh of `vertices` vertices (module
+    notes): BASE_BYTES, the linear solver's part (`linear_solver` 'gmres' with `pc_type`
+    'vertex_amg' or another PETSc PC, or 'direct') and, with `estimators`, the estimators'
+    with algebraic flux `alg_flux` ('nu' or 'multilevel'); `linear_solver=None`: the leanest
+    method (what any run needs). With `processes` > 1 and not `replicated` the part that
+    grows with the mesh is shared out."""
+    n = float(vertices)
     if linear_solver is None:
-        per_vertex = min(SOLVER_BYTES_PER_VERTEX.values())
+        grows = min(SOLVER_BYTES_PER_VERTEX.values()) * n
     else:
-        per_vertex = SOLVER_BYTES_PER_VERTEX[_solver_key(linear_solver, pc_type)]
+        key = _solver_key(linear_solver, pc_type)
+        grows = DIRECT_COEFFICIENT * n ** DIRECT_EXPONENT if key == "direct" else \
+            SOLVER_BYTES_PER_VERTEX[key] * n
         if estimators:
-            per_vertex += ESTIMATOR_BYTES_PER_VERTEX[alg_flux or "multilevel"]
+            grows += ESTIMATOR_BYTES_PER_VERTEX[alg_flux or "multilevel"] * n
     share = 1 if replicated else max(int(processes), 1)
-    return BASE_BYTES + per_vertex * float(vertices) / share
+    return BASE_BYTES + grows / share
 
 
 def largest_fitting(available, **method):
     """The most vertices whose run (`estimate_memory` with `method`) fits in `available`
-    bytes (0 if not even the base does)."""
-    per_vertex = estimate_memory(1.0, **method) - estimate_memory(0.0, **method)
-    return max(int((available - estimate_memory(0.0, **method)) / per_vertex), 0)
+    bytes, to 0.1 % (0 if not even the base does): bisection, the estimate grows with N."""
+    if estimate_memory(1.0, **method) > available:
+        return 0
+    low, high = 1.0, 2.0
+    while estimate_memory(high, **method) <= available:
+        low, high = high, 2.0 * high
+    while high > 1.001 * low:
+        mid = math.sqrt(low * high)
+        low, high = (mid, high) if estimate_memory(mid, **method) <= available else (low, mid)
+    return int(low)
 
 
 # ## Memory available to each process
