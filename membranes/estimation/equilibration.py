@@ -188,6 +188,12 @@ class FluxEquilibration:
         sigma.x.scatter_forward()
         return sigma
 
+    def destroy(self):
+        """Free the factorisations and PETSc vectors (the object is unusable afterwards)."""
+        self.systems.destroy()
+        self.b.destroy()
+        self.x.destroy()
+
     def summary(self):
         """Global facts of the set-up: colours, Jones–Plassmann rounds, unknowns per colour."""
         return dict(colours=self.ncolours, rounds=self.colour_rounds,
