@@ -1,4 +1,4 @@
-"""The multilevel algebraic flux (§6) on P processes: the script behind tests/core/test_multilevel.py.
+"""The multilevel algebraic flux (§6) on P processes: the script of tests/core/test_multilevel.py.
 
 `mpirun -n P python tests/core/mpi_multilevel.py SCENE J H` builds the scene (disk or square)
 with J levels from mesh size H on P processes, lifts a residual R that is a fixed function of
