@@ -1,0 +1,181 @@
+"""Files a run writes to its output folder, in parallel (§12).
+
+* ``summary.json`` — the keys of :meth:`membranes.app.solution.Solution.summary` (scene and
+  mesh, the options of the run — ``solver``, ``system``, ``petsc_options``, ``nu``, γ's,
+  ``alg_flux``, ``nested``, ``tol``, ``initial_guess`` —, ``processes``, ``per_level``,
+  ``converged``, ``reason``, the counts, ``wall_time_s``, ``final_residual``,
+  ``complementarity_violation``, ``energy_error`` and ``energy_error_kind`` (what that error
+  measures), the estimators of §7 at the final iterate, ``bound_guaranteed``,
+  ``effectivity``, ``estimator_setup_s``, ``estimator_time_s``). Non-finite numbers are
+  written as null.
+* ``history.csv`` — one row per recorded iterate, columns `HISTORY_COLUMNS`: X⁰ of every level
+  (kind ``initial``), every Newton iterate (``newton``) and, in adaptive runs, every ν-th
+  Krylov iterate inside a Newton step (``krylov``); ``wall_time_s`` is the run's clock when
+  the record was made; empty cells where a value is unknown.
+* ``solution.xdmf`` (+ ``solution.h5``) — the P1 functions ``u1``, ``u2``, ``lambda`` and,
+  where the final iterate was estimated, the DG0 function ``eta`` (the local distribution η_K
+  of §7) on the computational mesh, readable by ParaView.
+
+**In parallel.** The mesh stays distributed: every process writes its own cells and
+vertices into the one XDMF/HDF5 pair through dolfinx's `XDMFFile` on the mesh's
+communicator (collective HDF5 I/O). Process 0 writes the JSON and CSV (the history and
+summary are the same on every process).
+
+**Nothing half-written.** Everything goes into a fresh temporary folder beside the target
+(same parent, hence the same — shared — filesystem for every process, and a rename instead
+of a copy) and is moved into place by process 0 only when every process has finished its
+part without error; the temporary folder is removed in any case. A failure on any process
+raises on every process.
+"""
+
+import contextlib
+import csv
+import json
+import math
+import os
+import shutil
+import tempfile
+
+import numpy as np
+from mpi4py import MPI
+
+from .checks import check_output_folder
+from .solution import ESTIMATOR_COLUMNS
+
+HISTORY_COLUMNS = ("level", "newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
+                   "residual", "alg_residual", "kind", "energy_error") + ESTIMATOR_COLUMNS \
+    + ("bound",)
+FILES = ("summary.json", "history.csv", "solution.xdmf", "solution.h5")
+
+
+# ## Plain files (process 0)
+
+def json_safe(value):
+    """`value` with numpy scalars and arrays as Python ones and non-finite floats as None."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_summary(path, summary):
+    with open(path, "w") as f:
+        json.dump(json_safe(summary), f, indent=2)
+        f.write("\n")
+
+
+def _cell(value):
+    value = json_safe(value)
+    return "" if value is None else value
+
+
+def write_rows(path, rows, columns=HISTORY_COLUMNS):
+    """A CSV with the given columns, one line per dict of `rows` (missing values empty)."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(columns)
+        for row in rows:
+            writer.writerow([_cell(row.get(c)) for c in columns])
+
+
+def write_columns(path, columns):
+    """A CSV of equally long named columns ({name: values})."""
+    names = tuple(columns)
+    write_rows(path, [dict(zip(names, values)) for values in zip(*columns.values())], names)
+
+
+# ## The solution (every process)
+
+def eta_function(mesh, eta_K):
+    """The DG0 Function `eta` with the values η_K of the owned cells (mesh cell order)."""
+    from dolfinx import fem
+    DG0 = fem.FunctionSpace(mesh, ("DG", 0))
+    eta = fem.Function(DG0, name="eta")
+    ncells = mesh.topology.index_map(2).size_local
+    eta.x.array[DG0.dofmap.list.array[:ncells]] = eta_K
+    eta.x.scatter_forward()
+    return eta
+
+
+def write_solution(path, mesh, functions, eta_K=None):
+    """u1, u2, lambda (P1) and, where given, η_K (DG0 `eta`) into XDMF + HDF5; collective on
+    the mesh's communicator, every process writing its part."""
+    from dolfinx.io import XDMFFile
+    functions = list(functions)
+    if eta_K is not None:
+        functions.append(eta_function(mesh, eta_K))
+    with XDMFFile(mesh.comm, path, "w") as xdmf:
+        xdmf.write_mesh(mesh)
+        for f in functions:
+            xdmf.write_function(f)
+
+
+# ## Staging
+
+@contextlib.contextmanager
+def staged_folder(out, comm=MPI.COMM_SELF):
+    """Yield (on every process of `comm`) the path of a fresh temporary folder beside `out`;
+    when the block ends without an error on any process, process 0 moves every file in it
+    into `out` (created if missing). The temporary folder goes in any case. ValueError (one
+    line, nothing left behind) if `out` cannot be written (checks.check_output_folder); a
+    process whose block succeeded while another's failed raises RuntimeError."""
+    out = os.path.abspath(os.fspath(out))
+    check_output_folder(out, comm)
+    tmp, error = None, None
+    if comm.rank == 0:
+        try:
+            parent = os.path.dirname(out)
+            os.makedirs(parent, exist_ok=True)
+            tmp = tempfile.mkdtemp(prefix=".membranes-", dir=parent)
+        except OSError as e:
+            error = f"output folder {out} cannot be written: {e.strerror or e}"
+    tmp, error = comm.bcast((tmp, error), root=0)
+    if error is not None:
+        raise ValueError(error)
+    failed = None
+    try:
+        yield tmp
+    except BaseException as e:          # noqa: BLE001  (every process must learn of it)
+        failed = e
+    everyone = comm.allreduce(failed is None, op=MPI.LAND)
+    error = None
+    if comm.rank == 0:
+        try:
+            if everyone:
+                os.makedirs(out, exist_ok=True)
+                for name in sorted(os.listdir(tmp)):
+                    os.replace(os.path.join(tmp, name), os.path.join(out, name))
+        except OSError as e:
+            error = f"cannot move the outputs into {out}: {e.strerror or e}"
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    error = comm.bcast(error, root=0)
+    if failed is not None:
+        raise failed
+    if not everyone:
+        raise RuntimeError(f"writing into {out} failed on another process; nothing was "
+                           "written")
+    if error is not None:
+        raise ValueError(error)
+
+
+def write_outputs(solution, out_dir):
+    """Write summary.json, history.csv and solution.xdmf (+ .h5) of `solution` into
+    `out_dir` (created if missing); collective on the solution's communicator. Returns the
+    absolute path of `out_dir`."""
+    comm = solution.comm
+    summary = solution.summary()                  # collective (MPI reductions)
+    with staged_folder(out_dir, comm) as tmp:
+        write_solution(os.path.join(tmp, "solution.xdmf"), solution.disc.mesh,
+                       solution.functions, solution.eta_K)
+        if comm.rank == 0:
+            write_summary(os.path.join(tmp, "summary.json"), summary)
+            write_rows(os.path.join(tmp, "history.csv"), solution.history)
+    return os.path.abspath(out_dir)
