@@ -1,0 +1,215 @@
+"""The outputs of a run (membranes.app.outputs): summary.json, history.csv and
+solution.xdmf + .h5 as documented, read back and compared with the Solution they come from;
+written by every process of a parallel run; nothing left behind when a write fails."""
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from membranes.app import outputs
+from membranes.app.driver import solve
+from membranes.app.outputs import HISTORY_COLUMNS, staged_folder, write_outputs
+from membranes.model import scenes
+from tests.core.mpi_outputs import by_coordinates, gathered, h5_values
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+serial_only = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="reads files serially")
+
+SUMMARY_KEYS = {"scene", "description", "n_vertices", "n_cells", "h", "h_coarse", "levels",
+                "mu1", "mu2", "g", "processes", "newton", "cfun", "solver", "system",
+                "petsc_options", "nu", "gamma_lin", "gamma_alg", "alg_flux", "nested", "tol",
+                "initial_guess", "per_level", "converged", "reason", "newton_iterations",
+                "linear_iterations", "wall_time_s", "final_residual",
+                "complementarity_violation", "energy_error", "energy_error_kind", "eta",
+                "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C", "eta_lin1",
+                "eta_lin2", "eta_lin3", "eta_rem", "bound_guaranteed", "effectivity",
+                "estimator_setup_s", "estimator_time_s"}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """The default method (adaptive, amg, nested) on the disk, J = 1, written out."""
+    sol = solve(scenes.disk(h=0.3, levels=1))
+    out = tmp_path_factory.mktemp("outputs") / "disk"
+    assert write_outputs(sol, str(out)) == str(out)
+    return sol, out
+
+
+def test_files_and_nothing_else(run):
+    sol, out = run
+    assert sorted(os.listdir(out)) == sorted(outputs.FILES)
+    assert [p.name for p in out.parent.iterdir()] == ["disk"]     # no staging folder left
+
+
+def test_summary_keys_and_values(run):
+    sol, out = run
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary) == SUMMARY_KEYS
+    expected = outputs.json_safe(sol.summary())
+    for key in SUMMARY_KEYS - {"wall_time_s"}:
+        assert summary[key] == expected[key], key
+    assert summary["solver"] == "amg" and summary["newton"] == "adaptive"
+    assert summary["nested"] is True and len(summary["per_level"]) == 2
+    assert summary["converged"] is True and summary["bound_guaranteed"] is True
+    # the certificate bounds the error (§7), and the effectivity is their ratio
+    assert summary["eta"] >= summary["energy_error"] > 0
+    assert summary["effectivity"] == pytest.approx(summary["eta"] / summary["energy_error"],
+                                                   rel=1e-15)
+
+
+def _history(out):
+    with open(out / "history.csv") as f:
+        reader = csv.DictReader(f)
+        return tuple(reader.fieldnames), list(reader)
+
+
+def _value(cell):
+    if cell == "":
+        return None
+    if cell in ("True", "False"):
+        return cell == "True"
+    try:
+        return int(cell)
+    except ValueError:
+        pass
+    try:
+        return float(cell)
+    except ValueError:
+        return cell
+
+
+def test_history_is_the_solutions(run):
+    sol, out = run
+    columns, rows = _history(out)
+    assert columns == HISTORY_COLUMNS
+    assert len(rows) == len(sol.history)
+    for row, rec in zip(rows, sol.history):
+        for c in HISTORY_COLUMNS:
+            assert _value(row[c]) == rec.get(c), (c, row[c], rec.get(c))
+    # the run's own bookkeeping: X⁰ of both levels, Newton steps counted per level, the
+    # Krylov steps of the Newton rows adding up, a clock that never goes back
+    newton = [r for r in rows if r["kind"] == "newton"]
+    assert [r["level"] for r in rows if r["kind"] == "initial"] == ["0", "1"]
+    assert len(newton) == sol.newton_iterations
+    assert np.array_equal(np.cumsum([int(r["linear_it"]) for r in newton]),
+                          [int(r["cumulative_linear_its"]) for r in newton])
+    assert int(newton[-1]["cumulative_linear_its"]) == sol.linear_iterations
+    times = [float(r["wall_time_s"]) for r in rows]
+    assert times == sorted(times) and times[-1] <= sol.wall_time_s
+    # adaptive: every Newton row carries its estimates; the last one is the certificate
+    assert all(r["eta"] != "" and r["bound"] == "True" for r in newton)
+    assert float(newton[-1]["eta"]) == sol.estimates["eta"]
+    assert float(rows[-1]["energy_error"]) == sol.energy_error
+
+
+@serial_only
+def test_solution_h5_reads_back(run):
+    """u1, u2, lambda at the vertices and eta on the cells, matched by coordinates: the
+    values of the iterate (to the last bits XDMF's point values may change)."""
+    sol, out = run
+    attributes = {a.get("Name") for a in ET.parse(out / "solution.xdmf").iter("Attribute")}
+    assert attributes == {"u1", "u2", "lambda", "eta"}
+    mine, theirs = h5_values(str(out)), gathered(sol)
+    assert len(mine["u1"][1]) == sol.disc.n_global
+    assert len(mine["eta"][1]) == sol.disc.mesh.topology.index_map(2).size_global
+    for name in ("u1", "u2", "lambda", "eta"):
+        (px, pv), (qx, qv) = mine[name], theirs[name]
+        assert np.array_equal(px, qx), name
+        assert np.allclose(pv, qv, rtol=0, atol=1e-15 * np.abs(qv).max()), name
+    # the boundary values of §2 survive the round trip
+    assert np.abs(mine["u1"][1] - sol.problem.g).min() == 0.0
+
+
+@serial_only
+def test_without_estimates_no_eta(tmp_path):
+    sol = solve(scenes.disk(h=0.3), newton="exact", solver="direct", estimators=False)
+    write_outputs(sol, str(tmp_path / "run"))
+    attributes = {a.get("Name") for a in ET.parse(tmp_path / "run" / "solution.xdmf")
+                  .iter("Attribute")}
+    assert attributes == {"u1", "u2", "lambda"}
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["eta"] is None and summary["effectivity"] is None
+    assert summary["energy_error"] > 0
+
+
+# ## Failures leave nothing behind
+
+def test_unwritable_target_is_refused(run):
+    sol, _ = run
+    with pytest.raises(ValueError, match="cannot be written"):
+        write_outputs(sol, "/proc/membranes-out")
+    assert not os.path.exists("/proc/membranes-out")
+
+
+def test_failure_while_writing_leaves_nothing(run, tmp_path, monkeypatch):
+    """The XDMF pair is written, then the CSV fails: neither the new folder nor the staging
+    folder remain; an existing folder keeps its content."""
+    sol, _ = run
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full (planted)")
+
+    monkeypatch.setattr(outputs, "write_rows", broken)
+    with pytest.raises(OSError, match="planted"):
+        write_outputs(sol, str(tmp_path / "new"))
+    assert list(tmp_path.iterdir()) == []
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "summary.json").write_text("previous\n")
+    with pytest.raises(OSError, match="planted"):
+        write_outputs(sol, str(old))
+    assert [p.name for p in tmp_path.iterdir()] == ["old"]
+    assert [p.name for p in old.iterdir()] == ["summary.json"]
+    assert (old / "summary.json").read_text() == "previous\n"
+
+
+def test_staged_folder_moves_only_on_success(tmp_path):
+    with staged_folder(tmp_path / "a") as tmp:
+        assert os.path.dirname(tmp) == str(tmp_path)            # beside the target
+        (open(os.path.join(tmp, "x.txt"), "w")).write("x\n")
+        assert not (tmp_path / "a").exists()
+    assert (tmp_path / "a" / "x.txt").read_text() == "x\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]
+
+
+def test_json_safe():
+    value = {"a": np.float64(np.nan), "b": [np.int32(3), np.inf], "c": np.array([1.5]),
+             "d": np.bool_(True)}
+    assert outputs.json_safe(value) == {"a": None, "b": [3, None], "c": [1.5], "d": True}
+
+
+# ## Several processes
+
+@serial_only
+@pytest.mark.parametrize("procs", [2])
+def test_parallel_write(tmp_path, procs):
+    """Every process writes its part of the one HDF5 file: read back serially, the values
+    at every vertex and cell are those of the owning process; a failure on one process
+    raises on all and leaves nothing."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(procs), sys.executable,
+           os.path.join(ROOT, "tests", "core", "mpi_outputs.py"), str(tmp_path)]
+    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    r = json.loads(done.stdout.strip().splitlines()[-1])
+    assert r["processes"] == r["summary_processes"] == procs and r["converged"]
+    assert r["files"] == sorted(outputs.FILES)
+    assert r["left"] == ["run"]                       # no 'failed', no staging folder
+    assert r["raised"][-1] == "planted failure"
+    assert all("failed on another process" in m for m in r["raised"][:-1])
+    for name in ("u1", "u2", "lambda", "eta"):
+        assert r[name]["points"], name
+        assert r[name]["max_diff"] <= 1e-15 * r[name]["size"], (name, r[name])
+
+
+def test_by_coordinates_sorts_points():
+    x = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
+    px, pv = by_coordinates(x, np.array([1.0, 2.0, 3.0]))
+    assert np.array_equal(pv, [3.0, 2.0, 1.0])         # sorted by x, then y
