@@ -1,0 +1,179 @@
+"""The report (membranes.app.report) on a tiny disk: every method and both peers in one table,
+the numbers are the runs' own, the peers solve the same discrete problem, the certificate of
+the nested peer bounds its error, the pictures are real renderings and the CSVs are the data
+behind them."""
+
+import argparse
+import csv
+import os
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from membranes.app import report
+from membranes.app.report import (CURVE_COLUMNS, METHOD_NAMES, PEERS, TABLE_COLUMNS,
+                                  write_report)
+from membranes.model import scenes
+
+pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="reads the files serially")
+
+PICTURES = ["error_vs_time.png", "error_distribution.png", "contact.png"] + \
+    [f"estimators_{report._slug(m)}.png" for m in METHOD_NAMES]
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    out = tmp_path_factory.mktemp("report") / "disk"
+    problem = scenes.disk(h=0.3, levels=1)
+    runs, rows = write_report(problem, str(out))
+    return problem, out, runs, {r["method"]: r for r in rows}
+
+
+def _rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def _column(rows, name):
+    return np.array([float(r[name]) for r in rows])
+
+
+def test_every_file_and_nothing_else(made):
+    _, out, _, _ = made
+    expected = {"table.csv", "report.md", "error_vs_time.csv", "error_distribution.csv",
+                "contact.csv"} | set(PICTURES) | \
+        {f"estimators_{report._slug(m)}.csv" for m in METHOD_NAMES}
+    assert set(os.listdir(out)) == expected
+    assert [p.name for p in out.parent.iterdir()] == ["disk"]
+
+
+@pytest.mark.parametrize("name", PICTURES)
+def test_pictures_are_real_renderings(made, name):
+    import matplotlib.image as mpimg
+    _, out, _, _ = made
+    path = out / name
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    pixels = mpimg.imread(str(path))[..., :3]
+    assert pixels.shape[0] > 300 and pixels.shape[1] > 500
+    assert pixels.std() > 0.02                                   # not a flat image
+    assert len(np.unique(pixels.reshape(-1, 3), axis=0)) > 50    # more than a few colours
+
+
+def test_table_has_every_method_and_the_peers(made):
+    _, out, runs, table = made
+    rows = {r["method"]: r for r in _rows(out / "table.csv")}
+    assert list(rows) == list(METHOD_NAMES) + list(PEERS)
+    assert all(r["converged"] == "True" for r in rows.values())
+    for method, sol in runs.items():
+        s = sol.summary()
+        assert int(rows[method]["newton_iterations"]) == s["newton_iterations"]
+        assert int(rows[method]["linear_iterations"]) == s["linear_iterations"]
+        for key in ("energy_error", "wall_time_s", "eta", "effectivity"):
+            assert float(rows[method][key]) == s[key], (method, key)
+        # the solver asked for, nested or not as the method says
+        assert (s["solver"], s["nested"]) == \
+            (method.split("/")[1], method.endswith("amg"))
+    text = (out / "report.md").read_text()
+    for name in PICTURES:
+        assert f"]({name})" in text
+    for method in rows:
+        line = next(li for li in text.splitlines() if li.startswith(f"| {method} |"))
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        for key in ("newton_iterations", "linear_iterations"):
+            assert cells[TABLE_COLUMNS.index(key)] == rows[method][key]
+    assert "## The paper's table" in text and "replay (same counts as the run)" in text
+
+
+def test_peers_solve_the_same_discrete_problem(made):
+    """The SNES VI peers (rtol 1e-8) reach the discrete solution the exact Newton runs reach
+    (2e-12): the same energy error to far below the discretisation error, 1e-8 relative; the
+    certificate of the nested peer is η of that same iterate: a bound, the effectivity of
+    exact Newton to the same precision, and it costs time on top of the peer's."""
+    _, _, runs, table = made
+    exact = runs["exact/paper"]
+    for peer in PEERS:
+        assert table[peer]["energy_error"] == pytest.approx(exact.energy_error, rel=1e-8)
+        assert table[peer]["newton_iterations"] >= 1
+        assert table[peer]["linear_iterations"] > table[peer]["newton_iterations"]
+    cert, nested = table["certified nested peer"], table["nested peer"]
+    assert cert["eta"] >= cert["energy_error"] and cert["bound_guaranteed"]
+    assert cert["eta"] == pytest.approx(exact.estimates["eta"], rel=1e-6)
+    assert cert["wall_time_s"] == pytest.approx(nested["wall_time_s"] + cert["certificate_s"],
+                                                rel=1e-12)
+    assert cert["eta_rem"] < 1e-4 * cert["eta"]        # the peer's residual is small
+    assert nested["newton_per_level"].count("+") == 1     # two levels
+
+
+def test_error_curves_are_the_histories(made):
+    _, out, runs, table = made
+    curves = _rows(out / "error_vs_time.csv")
+    assert tuple(curves[0]) == CURVE_COLUMNS
+    for method, sol in runs.items():
+        mine = [r for r in curves if r["method"] == method]
+        steps = [r for r in sol.history if r["kind"] != "krylov"]
+        assert len(mine) == len(steps)
+        assert np.array_equal(_column(mine, "wall_time_s"), [r["wall_time_s"] for r in steps])
+        # errors='iterates': the energy error of every Newton iterate, decreasing to the end
+        errors = _column(mine, "energy_error")
+        assert np.array_equal(errors, [r["energy_error"] for r in steps])
+        assert errors[-1] == sol.energy_error and errors[0] > 2 * errors[-1]
+    for peer in ("nested peer", "plain peer"):
+        mine = [r for r in curves if r["method"] == peer]
+        t = _column(mine, "wall_time_s")
+        assert np.all(np.diff(t) >= 0) and t[-1] <= table[peer]["wall_time_s"]
+        assert _column(mine, "energy_error")[-1] == table[peer]["energy_error"]
+    assert [r["level"] for r in curves if r["method"] == "plain peer"] == \
+        ["1"] * (table["plain peer"]["newton_iterations"] + 1)
+    cert = [r for r in curves if r["method"] == "certified nested peer"]
+    assert len(cert) == 1 and float(cert[0]["eta"]) == table["certified nested peer"]["eta"]
+
+
+@pytest.mark.parametrize("method", METHOD_NAMES)
+def test_estimator_curves(made, method):
+    """Adaptive runs: the run's own history. Exact and inexact: the run's Newton records with
+    the replay's estimators, which end at the run's certificate (the same iterate) and bound
+    the error at every Newton iterate (X⁰ included: its residual is handed over)."""
+    _, out, runs, _ = made
+    sol = runs[method]
+    rows = _rows(out / f"estimators_{report._slug(method)}.csv")
+    if method.startswith("adaptive"):
+        assert len(rows) == len(sol.history)
+    else:
+        assert len(rows) == sol.newton_iterations + (2 if method.endswith("amg") else 1)
+        assert float(rows[-1]["eta"]) == pytest.approx(sol.estimates["eta"], rel=1e-9)
+    with_both = [r for r in rows if r["eta"] and r["energy_error"]]
+    assert len(with_both) >= sol.newton_iterations
+    assert all(float(r["eta"]) >= float(r["energy_error"]) for r in with_both)
+
+
+def test_snapshot_data(made):
+    _, out, runs, _ = made
+    sol = runs["adaptive/amg"]
+    cells = _rows(out / "error_distribution.csv")
+    error_K = _column(cells, "error_K")
+    # the cell errors add up to the energy error; η_K is the run's
+    assert np.sqrt((error_K ** 2).sum()) == pytest.approx(sol.energy_error, rel=1e-12)
+    assert np.array_equal(_column(cells, "eta_K"), sol.eta_K)
+    vertices = _rows(out / "contact.csv")
+    u1, u2, lam = sol.disc.split(sol.X)
+    assert np.array_equal(_column(vertices, "gap"), u1 - u2)
+    assert np.array_equal(_column(vertices, "lambda"), lam)
+
+
+def test_cli_refuses_an_unwritable_folder_first(tmp_path):
+    """Bad --out is refused before any mesh or run; the parser has the old options."""
+    parser = argparse.ArgumentParser()
+    report.add_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["report", "--out", "/proc/report", "--h", "0.3", "--levels",
+                              "1", "--quiet"])
+    assert (args.scene, args.h, args.levels) == ("disk", 0.3, 1)
+    with pytest.raises(ValueError, match="cannot be written"):
+        report.main(args)
+    existing = tmp_path / "file"
+    existing.write_text("mine\n")
+    args = parser.parse_args(["report", "--out", str(existing), "--quiet"])
+    with pytest.raises(ValueError, match="not a folder"):
+        report.main(args)
+    assert existing.read_text() == "mine\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["file"]
