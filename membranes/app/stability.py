@@ -225,15 +225,17 @@ def table(cases, runs):
     rows = []
     for case in cases:
         for method, sol in runs[case.name].items():
-            row = {"case": case.name, "class": case.klass, "method": method,
-                   "description": case.description}
+            row = dict.fromkeys(COLUMNS)
+            mine = {"case": case.name, "class": case.klass, "method": method,
+                    "description": case.description}
+            row.update(mine)
             if isinstance(sol, Exception):
                 rows.append(dict(row, converged=False,
                                  reason=f"{type(sol).__name__}: {sol}"))
                 continue
             s = sol.summary()
             ok = finite(sol)
-            row.update({k: s[k] for k in COLUMNS if k in s and k not in row})
+            row.update({k: s[k] for k in COLUMNS if k in s and k not in mine})
             row.update(converged=bool(sol.converged and ok), wall_time_s=s["wall_time_s"],
                        reason=sol.reason if ok else "non-finite value in the output")
             ref = runs.get(case.scaled_from, {}).get(method) if case.scaled_from else None

@@ -1,0 +1,123 @@
+"""The stability matrix of §11 (membranes.app.stability) on a quick subset: the cases are what
+they claim, representative methods converge without NaN with complementarity at the Newton
+tolerance and η ≥ error where the solution is known, scaled data scale the solution and keep
+the counts, a run that raises is a failed row, and `membranes stability` writes its files."""
+
+import argparse
+import csv
+import functools
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from membranes.app import stability
+from membranes.fem import meshes
+
+pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial subset")
+
+H = 0.3              # the disk meshes of the quick subset
+TOL = 1e-10          # the Newton tolerance of exact and inexact (§8)
+# both C-functions, the three variants, the three solvers
+METHODS = (("min", "exact", "direct"), ("fb", "exact", "amg"), ("min", "inexact", "amg"),
+           ("fb", "inexact", "paper"), ("min", "adaptive", "paper"), ("fb", "adaptive", "amg"))
+
+
+@functools.lru_cache(maxsize=None)
+def matrix(names):
+    cases = stability.select(list(names))
+    runs = {c.name: stability.run_case(c, H, METHODS) for c in cases}
+    return stability.table(cases, runs), runs
+
+
+def test_case_meshes_are_what_they_claim():
+    case = {c.name: c for c in stability.CASES}
+    aniso = case["anisotropic"].build(H).mesh
+    assert meshes.aspect_ratios(aniso).max() >= 100
+    assert case["tiny"].build(H).mesh.topology.index_map(2).size_global == 18
+    d = meshes.cell_diameters(case["graded"].build(H).mesh)
+    assert d.max() / d.min() > 100
+    assert len(stability.CASES) == 18 and len(stability.METHODS) == 14
+    assert {m[2] for m in stability.METHODS if m[1] != "exact"} == {"paper", "amg"}
+
+
+def test_select():
+    assert [c.name for c in stability.select(["scaled_1e+08"])] == \
+        ["mu_ratio_1", "scaled_1e+08"]                  # with the case it is a copy of
+    with pytest.raises(ValueError, match="unknown stability case 'nonsense'"):
+        stability.select(["tiny", "nonsense"])
+    for bad in (0, -1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="positive finite"):
+            stability.check_h(bad)
+
+
+@pytest.mark.parametrize("names", [("tiny", "far_guess"), ("scaled_1e-08", "grazing")])
+def test_cases_converge_and_are_certified(names):
+    rows, runs = matrix(names)
+    assert len(rows) == len(METHODS) * len(stability.select(list(names)))
+    for r in rows:
+        label = f"{r['case']} {r['method']}"
+        assert r["converged"], f"{label}: {r['reason']}"
+        if "/adaptive/" not in r["method"]:
+            # exact and inexact stop at ‖W R_lin‖/‖W F‖ ≤ TOL; the constraint rows are part
+            # of R_lin, so their violation relative to the data is of that order (a factor
+            # 10 for ‖W F‖ against the data sizes u_data, λ_data on these meshes)
+            assert r["final_residual"] <= TOL, label
+            assert r["complementarity_violation"] <= 10 * TOL, label
+        assert r["bound_guaranteed"], label
+        assert r["eta"] >= r["energy_error"] > 0, label       # the guaranteed bound (§7)
+
+
+def test_scaled_data_scale_the_solution():
+    """(f1, f2, g) → s (f1, f2, g): X → s X to round-off and the same counts (residuals,
+    tolerances and the C-function's scale are relative to the data: nonlinear.system)."""
+    rows, _ = matrix(("scaled_1e-08", "grazing"))
+    scaled = [r for r in rows if r["scale_defect"] is not None]
+    assert len(scaled) == len(METHODS)
+    for r in scaled:
+        assert r["same_counts"], r
+        assert r["scale_defect"] <= 1e-10, r
+
+
+def test_a_run_that_raises_is_a_failed_row():
+    case = stability.select(["tiny"])[0]
+    runs = {"tiny": stability.run_case(case, H, [("min", "adaptive", "direct"),
+                                                  ("min", "exact", "direct")])}
+    rows = stability.table([case], runs)
+    assert [r["converged"] for r in rows] == [False, True]
+    assert rows[0]["reason"].startswith("ValueError: the adaptive variant stops a Krylov")
+    text = stability.markdown(rows, H, 1.0, 1)
+    assert "1 of 2 runs converged" in text and "tiny min/adaptive/direct: ValueError" in text
+
+
+def test_scale_defect_measures_the_difference():
+    """The defect of a run against itself times s is 0, and a planted change shows."""
+    rows, runs = matrix(("tiny", "far_guess"))
+    sol = runs["tiny"]["min/exact/direct"]
+    assert stability.scale_defect(sol, sol, 1.0) == 0.0
+    X = sol.X.copy()
+    sol2 = type(sol)(**{**sol.__dict__, "X": X})
+    u1, _, _ = sol.disc.split(X)
+    u1[np.argmax(np.abs(u1))] *= 1.0 + 1e-6
+    assert stability.scale_defect(sol2, sol, 1.0) == pytest.approx(1e-6, rel=1e-9)
+
+
+def test_command_writes_the_matrix(tmp_path):
+    parser = argparse.ArgumentParser()
+    stability.add_parser(parser.add_subparsers(dest="command"))
+    out = tmp_path / "stab"
+    args = parser.parse_args(["stability", "--quiet", "--cases", "tiny", "--h", str(H),
+                              "--out", str(out)])
+    assert stability.main(args) == 0
+    rows = list(csv.DictReader(open(out / "stability.csv")))
+    assert tuple(rows[0]) == stability.COLUMNS
+    assert [r["method"] for r in rows] == [stability.method_name(*m) for m in stability.METHODS]
+    assert all(r["converged"] == "True" for r in rows)
+    text = (out / "stability.md").read_text()
+    assert f"{len(rows)} of {len(rows)} runs converged" in text
+    assert sorted(p.name for p in out.iterdir()) == ["stability.csv", "stability.md"]
+    for bad in (["--cases", "nonsense"], ["--h", "-1"]):
+        args = parser.parse_args(["stability", "--quiet", "--out", str(tmp_path / "no")] + bad)
+        with pytest.raises(ValueError):
+            stability.main(args)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["stab"]
