@@ -1,0 +1,241 @@
+"""Command line: ``membranes solve ...``, ``membranes scenes``, ``membranes report`` and
+``membranes stability`` (docs/cli.md).
+
+Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out),
+3 the solver did not converge (the outputs are written, with converged = false and a reason).
+Progress: one line per Newton step on stderr (``--quiet`` silences it).
+``mpirun -n P membranes solve ...`` runs the same code on P processes: dolfinx distributes
+the mesh, PETSc the solves; rank 0 prints, every rank writes its part of the solution.
+"""
+
+import argparse
+import json
+import logging
+import sys
+
+EXIT_BAD_INPUT = 2
+EXIT_NOT_CONVERGED = 3
+
+DATA_OPTIONS = ("mu1", "mu2", "g", "f1", "f2", "mesh", "domain")
+VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--tol",
+                 "--petsc-options", "--gamma-lin", "--gamma-alg", "--max-vertices")
+
+
+# the method keys of checks.estimate_memory for each solver preset
+MEMORY_METHOD = {"direct": {"linear_solver": "direct"},
+                 "paper": {"linear_solver": "gmres", "pc_type": None},
+                 "amg": {"linear_solver": "gmres", "pc_type": "vertex_amg"}}
+
+
+class BadInput(ValueError):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise BadInput(message)
+
+
+def _parser():
+    from ..linalg.krylov import PRESETS
+    p = _Parser(prog="membranes",
+                description="Contact of two elastic membranes: semismooth Newton on P1 "
+                            "finite elements with guaranteed error bounds (FEniCSx).")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    s = sub.add_parser("solve", help="solve a scene and write summary, history and solution")
+    s.add_argument("--scene", choices=("disk", "square", "user"),
+                   help="disk (default) or square with known exact solutions, or user data "
+                        "(implied by --mu1/--mu2/--g/--f1/--f2/--mesh/--domain)")
+    s.add_argument("--mesh", metavar="FILE", help="2D triangular gmsh .msh file (user scene)")
+    s.add_argument("--domain", choices=("disk", "square"),
+                   help="domain of the user scene when no --mesh is given (default disk)")
+    s.add_argument("--h", type=float, help="gmsh target size of the coarse mesh (default 0.05)")
+    s.add_argument("--levels", type=int, default=0,
+                   help="uniform refinements of the coarse mesh; the finest is computed on")
+    s.add_argument("--mu1", type=float, help="modulus of membrane 1 (> 0, default 1)")
+    s.add_argument("--mu2", type=float, help="modulus of membrane 2 (> 0, default 1)")
+    s.add_argument("--g", type=float, help="boundary value of membrane 1 (> 0, default 0.05)")
+    s.add_argument("--f1", metavar="EXPR", help="load of membrane 1, formula in x, y "
+                   "(pi sin cos exp sqrt abs min max; default 0)")
+    s.add_argument("--f2", metavar="EXPR", help="load of membrane 2 (default 0)")
+    s.add_argument("--newton", choices=("exact", "inexact", "adaptive"), default="adaptive",
+                   help="adaptive (default): Krylov and Newton stopped by the estimators; "
+                        "exact: linear solves to 2e-12; inexact: to the previous nonlinear "
+                        "residual (theory §8)")
+    s.add_argument("--gamma-lin", type=float, metavar="G",
+                   help="adaptive: stop Newton at eta_lin <= G eta_disc (default 0.3)")
+    s.add_argument("--gamma-alg", type=float, metavar="G",
+                   help="adaptive: stop Krylov at eta_alg <= G max(eta_disc, eta_lin) "
+                        "(default 0.3)")
+    s.add_argument("--alg-flux", choices=("nu", "multilevel"),
+                   help="algebraic flux of the estimators (theory §6; default nu)")
+    s.add_argument("--cfun", choices=("min", "fb"), default="min")
+    s.add_argument("--solver", choices=tuple(PRESETS), default="amg",
+                   help="amg (default): eliminated system, FGMRES + mean/gap BoomerAMG; "
+                        "paper: full system, GMRES + ILU(0) (block Jacobi on several "
+                        "processes); direct: MUMPS")
+    s.add_argument("--system", choices=("full", "eliminated"),
+                   help="Newton system instead of the solver's: full 3N or eliminated 2N")
+    s.add_argument("--petsc-options", metavar="STRING",
+                   help='PETSc options on top of the solver\'s, e.g. "-ksp_gmres_restart 50"')
+    s.add_argument("--nu", type=int, metavar="N",
+                   help="record (and for adaptive, estimate) the Krylov iterate every N steps "
+                        "(default 10)")
+    s.add_argument("--max-linear-its", type=int, metavar="N",
+                   help="Krylov iterations allowed per Newton step (default 10000)")
+    s.add_argument("--tol", type=float,
+                   help="exact, inexact: stop at ||R_lin|| / ||(F, 0)|| <= TOL (default 1e-10)")
+    s.add_argument("--max-newton", type=int, default=100)
+    s.add_argument("--initial-guess", choices=("paper", "zero"), default="paper",
+                   help="X^0: paper (u1 = g, u2 = 0, lambda = 0; default) or zero")
+    s.add_argument("--nested", action=argparse.BooleanOptionalAction, default=None,
+                   help="nested iteration: solve on T_0, prolong the solution to T_1 as its "
+                        "initial guess, ..., up to T_J (default with --levels >= 1)")
+    s.add_argument("--out", metavar="DIR", help="write summary.json, history.csv, "
+                   "solution.xdmf there")
+    s.add_argument("--max-vertices", type=int, metavar="N",
+                   help="refuse a computational mesh of more than N vertices (default: "
+                        "refuse a run that needs more memory than the processes have)")
+    s.add_argument("--no-estimators", action="store_true",
+                   help="no certificate: skip the estimators of theory §7 (not with "
+                        "--newton adaptive)")
+    s.add_argument("--quiet", action="store_true", help="no progress lines")
+    sub.add_parser("scenes", help="list the scenes")
+    from .report import add_parser as add_report_parser
+    add_report_parser(sub)
+    from .stability import add_parser as add_stability_parser
+    add_stability_parser(sub)
+    return p
+
+
+def _scene_arguments(args):
+    given = [k for k in DATA_OPTIONS if getattr(args, k) is not None]
+    scene = args.scene or ("user" if given else "disk")
+    if scene != "user" and given:
+        raise BadInput(f"--{given[0]} applies to --scene user only (scene {scene} has its "
+                       f"own data)")
+    if args.mesh is not None and args.h is not None:
+        raise BadInput("give --mesh or --h, not both")
+    if args.mesh is not None and args.domain is not None:
+        raise BadInput("give --mesh or --domain, not both")
+    if args.levels < 0:
+        raise BadInput(f"--levels must be a non-negative integer, got {args.levels}")
+    if args.max_newton < 1:
+        raise BadInput(f"--max-newton must be at least 1, got {args.max_newton}")
+    if args.max_vertices is not None and args.max_vertices < 1:
+        raise BadInput(f"--max-vertices must be a positive integer, got {args.max_vertices}")
+    kwargs = {"levels": args.levels}
+    if args.h is not None:
+        kwargs["h"] = args.h
+    if scene == "user":
+        for k in DATA_OPTIONS:
+            if getattr(args, k) is not None:
+                kwargs[k] = getattr(args, k)
+    return scene, kwargs
+
+
+def quiet_jit_logging():
+    """Keep stderr for progress lines and real warnings: ffcx installs a root handler when
+    imported, and setuptools (which compiles the JIT kernels) lowers the root level to INFO."""
+    import ffcx  # noqa: F401  (installs its handler now, so that we can raise its level)
+    for handler in logging.getLogger().handlers:
+        handler.setLevel(logging.WARNING)
+
+
+def _check_before_meshing(args, scene, kwargs, comm):
+    """Refuse at once what cannot work, before any mesh is built: an output folder that cannot
+    be written, PETSc options PETSc would not use, and a mesh whose run needs more memory than
+    the processes have (or more vertices than --max-vertices). Returns the parsed options."""
+    from ..linalg.krylov import Krylov
+    from ..model.scenes import DEFAULT_H
+    from . import checks
+    petsc_options = checks.parse_petsc_options(args.petsc_options)
+    if args.out is not None:
+        checks.check_output_folder(args.out, comm)
+    krylov = Krylov(args.solver, petsc_options)
+    if petsc_options:
+        checks.check_petsc_options_used(petsc_options, krylov.merged)
+    domain = scene if scene in ("disk", "square") else kwargs.get("domain", "disk")
+    checks.check_request(kwargs.get("h", DEFAULT_H), args.levels, domain, kwargs.get("mesh"),
+                         args.max_vertices, comm=comm, estimators=not args.no_estimators,
+                         **MEMORY_METHOD[args.solver])
+    return petsc_options
+
+
+def _solve(args):
+    scene, kwargs = _scene_arguments(args)
+    quiet_jit_logging()
+    from mpi4py import MPI
+
+    from ..model import scenes
+    from .driver import solve
+    from .outputs import write_outputs
+    world = MPI.COMM_WORLD
+    petsc_options = _check_before_meshing(args, scene, kwargs, world)
+    problem = scenes.make(scene, comm=world, **kwargs)
+    sol = solve(problem, newton=args.newton, cfun=args.cfun, solver=args.solver,
+                system=args.system, petsc_options=petsc_options, nu=args.nu,
+                max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
+                estimators=not args.no_estimators, progress=not args.quiet,
+                gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux,
+                initial_guess=args.initial_guess, nested=args.nested)
+    if args.out is not None:
+        write_outputs(sol, args.out)
+    summary = sol.summary()          # collective (reductions): every rank computes it
+    if world.rank == 0:
+        keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "solver", "system",
+                "processes", "converged", "newton_iterations", "linear_iterations",
+                "wall_time_s", "energy_error", "eta", "effectivity", "nested")
+        line = {k: summary[k] for k in keys}
+        line["newton_per_level"] = [r["newton_iterations"] for r in summary["per_level"]]
+        print(json.dumps(line))
+        if not sol.converged:
+            print(f"membranes: not converged: {sol.reason}", file=sys.stderr)
+    return 0 if sol.converged else EXIT_NOT_CONVERGED
+
+
+def _scenes():
+    from ..model.scenes import NEEDS, SCENES
+    for name, fn in SCENES.items():
+        print(f"{name:8s} {fn.__doc__.strip().splitlines()[0]}")
+        print(f"{'':8s} needs: {NEEDS[name]}")
+    return 0
+
+
+def _glue_values(argv):
+    """["--f1", "-1+y"] -> ["--f1=-1+y"]: a formula or number may start with '-'."""
+    out, it = [], iter(argv)
+    for a in it:
+        nxt = next(it, None) if a in VALUE_OPTIONS else None
+        if nxt is not None:
+            out.append(f"{a}={nxt}")
+        else:
+            out.append(a)
+    return out
+
+
+def main(argv=None):
+    try:
+        argv = sys.argv[1:] if argv is None else list(argv)
+        args = _parser().parse_args(_glue_values(argv))
+        if args.command == "report":
+            from .report import main as report_main
+            quiet_jit_logging()
+            return report_main(args)
+        if args.command == "stability":
+            from .stability import main as stability_main
+            quiet_jit_logging()
+            return stability_main(args)
+        if args.command == "scenes":
+            return _scenes()
+        return _solve(args)
+    except ValueError as e:   # BadInput and every data/mesh error of the API
+        message = " ".join(str(e).split())
+        from mpi4py import MPI
+        if MPI.COMM_WORLD.rank == 0:     # every process meets the same error: say it once
+            print(f"membranes: error: {message}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())
