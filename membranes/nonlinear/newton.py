@@ -122,16 +122,16 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
     adaptive = variant == "adaptive"
     times = {"assembly": 0.0, "solve": 0.0, "estimate": 0.0}
 
+    if X0 is not None and X0.getLocalSize() != 3 * disc.n:
+        raise ValueError(f"X0 must have the iterate layout (local size {3 * disc.n}), got "
+                         f"{X0.getLocalSize()}")
     t0 = time.perf_counter()
-    sys = NewtonSystem(disc)
+    ns = NewtonSystem(disc)
     solver = LinearSolver(spec, comm)
-    split = (sys.S_D, sys.D * (1.0 / sys.mu[0] + 1.0 / sys.mu[1]), sys.theta)
+    split = (ns.S_D, ns.D * (1.0 / ns.mu[0] + 1.0 / ns.mu[1]), ns.theta)
     times["assembly"] += time.perf_counter() - t0
 
-    X = sys.initial_guess() if X0 is None else X0.copy()
-    if X.getLocalSize() != 3 * sys.n:
-        raise ValueError(f"X0 must have the iterate layout (local size {3 * sys.n}), got "
-                         f"{X.getLocalSize()}")
+    X = ns.initial_guess() if X0 is None else X0.copy()
     R = disc.vector3()              # the residual handed to the estimators
     X_try = disc.vector3()          # Krylov iterates, built for the callback
     history = []
@@ -144,7 +144,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
 
     def record(kind, k, i, total, Xv, alg, est=None):
         rec = {"kind": kind, "k": k, "i": i, "krylov_total": total,
-               "residual": sys.relative_residual(Xv, cfun), "alg_residual": alg}
+               "residual": ns.relative_residual(Xv, cfun), "alg_residual": alg}
         if est is not None:
             rec["estimates"] = est
         history.append(rec)
@@ -177,8 +177,8 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 break
             k += 1
             t = time.perf_counter()
-            lin = sys.linearise(X, cfun)
-            step = sys.step(lin, system)
+            lin = ns.linearise(X, cfun)
+            step = ns.step(lin, system)
             y = step.guess(X)
             t_assembly = time.perf_counter() - t
             times["assembly"] += t_assembly
@@ -213,13 +213,14 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 step.destroy()
                 y.destroy()
                 break
-            step.expand(y, X)
+            step.expand(y, X_try)
             step.residual(y, R)
             step.destroy()
             y.destroy()
-            if not comm.allreduce(bool(np.all(np.isfinite(X.array_r))), op=MPI.LAND):
+            if not comm.allreduce(bool(np.all(np.isfinite(X_try.array_r))), op=MPI.LAND):
                 reason = f"non-finite iterate at Newton step {k}"
                 break
+            X_try.copy(X)
             if accepted:
                 last = accepted[0]
                 last["kind"], last["krylov_total"] = "newton", total
@@ -238,7 +239,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 say(line)
     finally:
         solver.destroy()
-        sys.destroy()
+        ns.destroy()
         R.destroy()
         X_try.destroy()
     return NewtonResult(X, history, k, total, reason, converged, times)
