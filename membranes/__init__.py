@@ -1,13 +1,15 @@
-"""membranes: contact of two elastic membranes, semismooth Newton, a posteriori error bounds.
+"""membranes: contact of two elastic membranes, adaptive inexact semismooth Newton with
+guaranteed a posteriori error bounds, on dolfinx and PETSc (docs/theory.md).
 
-The mathematics is in DESIGN.md (shared with the project); the modules are named after it:
-problem (data), meshes and hierarchy, discretisation (P1, lumped contact), cfunctions,
-newton_system, linear_solve, newton, scenes, decoupled (the SNES VI peer), driver (`solve`),
-outputs and cli.
+Subpackages (docs/architecture.md): model (problem data, scenes), fem (meshes, hierarchy,
+discretisation), nonlinear (C-functions, Newton systems, the Newton loop), linalg (Krylov
+solvers), estimation (liftings, flux equilibration, algebraic fluxes, estimators), app
+(`solve`, the SNES VI peer, outputs, report, command line).
 """
 
-from .driver import Solution, solve  # noqa: F401
-from .problem import Problem  # noqa: F401
-from . import scenes  # noqa: F401
+from .app.driver import solve  # noqa: F401
+from .app.solution import Solution  # noqa: F401
+from .model import scenes  # noqa: F401
+from .model.problem import Problem  # noqa: F401
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -3,7 +3,7 @@
 import functools
 
 from membranes import scenes, solve
-from membranes.cli import quiet_jit_logging
+from membranes.app.cli import quiet_jit_logging
 
 quiet_jit_logging()
 
@@ -14,14 +14,14 @@ def scene(name, h, **kwargs):
 
 
 @functools.lru_cache(maxsize=None)
-def solved(name, h, cfun="min", system="full"):
-    """A cached default solve without estimators (the tests of the discrete solution)."""
-    return solve(scene(name, h), cfun=cfun, system=system, estimators=False)
+def solved(name, h, cfun="min", system=None):
+    """A cached exact solve without estimators (the tests of the discrete solution)."""
+    return solve(scene(name, h), newton="exact", cfun=cfun, system=system, estimators=False)
 
 
 @functools.lru_cache(maxsize=None)
 def solved_with(name, h, **options):
-    """A cached solve with any options of `membranes.solve` (e.g. linear_solver="direct")."""
+    """A cached solve with any options of `membranes.solve` (e.g. solver="direct")."""
     return solve(scene(name, h), **options)
 
 
@@ -63,7 +63,7 @@ def cli_bad_input(args, out, capsys):
     """`membranes solve --quiet [--h 0.3] --out OUT ARGS` must reject its input: exit code 2,
     one stderr line 'membranes: error: …', nothing written to OUT. Returns the line. (--h 0.3
     keeps a valid run cheap; it is left out where ARGS give --mesh or --h themselves.)"""
-    from membranes.cli import main
+    from membranes.app.cli import main
     size = [] if "--mesh" in args or "--h" in args else ["--h", "0.3"]
     code = main(["solve", "--quiet"] + size + ["--out", str(out)] + args)
     err = capsys.readouterr().err.strip()

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from membranes.hierarchy import build_hierarchy
-from membranes.meshes import mesh_size, read_msh, unit_disk, unit_square
+from membranes.fem.hierarchy import build_hierarchy
+from membranes.fem.meshes import mesh_size, read_msh, unit_disk, unit_square
 
 from .conftest import write_msh
 

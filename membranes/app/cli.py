@@ -21,12 +21,6 @@ VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--
                  "--petsc-options", "--gamma-lin", "--gamma-alg", "--max-vertices")
 
 
-# the method keys of checks.estimate_memory for each solver preset
-MEMORY_METHOD = {"direct": {"linear_solver": "direct"},
-                 "paper": {"linear_solver": "gmres", "pc_type": None},
-                 "amg": {"linear_solver": "gmres", "pc_type": "vertex_amg"}}
-
-
 class BadInput(ValueError):
     pass
 
@@ -148,7 +142,8 @@ def _check_before_meshing(args, scene, kwargs, comm):
     the processes have (or more vertices than --max-vertices). Returns the parsed options."""
     from ..linalg.krylov import Krylov
     from ..model.scenes import DEFAULT_H
-    from . import checks
+    from .driver import MEMORY_METHOD
+    from ..model import checks
     petsc_options = checks.parse_petsc_options(args.petsc_options)
     if args.out is not None:
         checks.check_output_folder(args.out, comm)
@@ -172,13 +167,14 @@ def _solve(args):
     from .outputs import write_outputs
     world = MPI.COMM_WORLD
     petsc_options = _check_before_meshing(args, scene, kwargs, world)
-    problem = scenes.make(scene, comm=world, **kwargs)
+    problem = scenes.make(scene, comm=world, max_vertices=args.max_vertices, **kwargs)
     sol = solve(problem, newton=args.newton, cfun=args.cfun, solver=args.solver,
                 system=args.system, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
                 estimators=not args.no_estimators, progress=not args.quiet,
                 gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux,
-                initial_guess=args.initial_guess, nested=args.nested)
+                initial_guess=args.initial_guess, nested=args.nested,
+                max_vertices=args.max_vertices)
     if args.out is not None:
         write_outputs(sol, args.out)
     summary = sol.summary()          # collective (reductions): every rank computes it

@@ -34,6 +34,7 @@ from ..estimation.equilibration import FluxEquilibration
 from ..estimation.estimators import Estimators
 from ..fem.discretisation import discretise
 from ..linalg.krylov import Krylov
+from ..model import checks
 from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS, newton as run_newton
 from .solution import ESTIMATOR_COLUMNS, Solution
@@ -85,6 +86,23 @@ def _nested(problem, nested):
     if nested and problem.levels < 1:
         raise ValueError("nested iteration needs a mesh hierarchy: levels >= 1 (--levels J)")
     return bool(nested)
+
+
+# the method keys of checks.estimate_memory for each solver preset
+MEMORY_METHOD = {"direct": {"linear_solver": "direct"},
+                 "paper": {"linear_solver": "gmres", "pc_type": None},
+                 "amg": {"linear_solver": "gmres", "pc_type": "vertex_amg"}}
+
+
+def _check_memory(problem, solver, estimators, max_vertices):
+    """Refuse a computational mesh whose run needs more memory than the processes have, or
+    more vertices than `max_vertices`, before anything is assembled (model.checks)."""
+    comm = problem.mesh.comm
+    max_vertices = checks.check_max_vertices(max_vertices)
+    available = None if max_vertices is not None else checks.available_memory(comm)
+    checks.check_size(problem.mesh.topology.index_map(0).size_global, available, max_vertices,
+                      what=f"the computational mesh of {problem.name!r}",
+                      estimators=estimators, **MEMORY_METHOD.get(solver, {}))
 
 
 def _algebraic_flux(problem, alg_flux, estimators, newton):
@@ -168,7 +186,7 @@ class _Clock:
 
 def _initial_guess(initial_guess, disc):
     """X^0 (None: the paper's (g, 0, 0), §3)."""
-    if initial_guess is None or initial_guess == "paper":
+    if initial_guess is None or (isinstance(initial_guess, str) and initial_guess == "paper"):
         return None
     if isinstance(initial_guess, str):
         _choice("initial guess", initial_guess, INITIAL_GUESSES)
@@ -201,7 +219,8 @@ def prolong(P, disc, X_coarse, n_coarse):
 def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
           petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
           estimators=True, alg_flux=None, gamma_lin=None, gamma_alg=None,
-          initial_guess=None, nested=None, errors="final", progress=False):
+          initial_guess=None, nested=None, errors="final", progress=False,
+          max_vertices=None):
     """Solve the discrete contact problem of `problem` by semismooth Newton and certify it.
 
     newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
@@ -219,7 +238,9 @@ def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
     mesh solved; nested: solve T_0, …, T_J in turn, each from the prolonged solution of the
     last (default where the problem has levels ≥ 1); errors: the energy error at the 'final'
     iterate (default), at all recorded 'iterates', or 'none'; progress: True for one stderr
-    line per Newton step (rank 0), or a callable taking the line.
+    line per Newton step (rank 0), or a callable taking the line; max_vertices: refuse a
+    computational mesh of more vertices (default: refuse one whose run needs more memory than
+    the processes have, model.checks).
     """
     started = time.perf_counter()
     _choice("Newton variant", newton, VARIANTS)
@@ -227,11 +248,12 @@ def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
     _choice("errors", errors, ERRORS)
     if int(max_newton) < 1:
         raise ValueError(f"max_newton must be at least 1, got {max_newton}")
-    if isinstance(petsc_options, str):
-        from .checks import parse_petsc_options
-        petsc_options = parse_petsc_options(petsc_options)
+    petsc_options = checks.parse_petsc_options(petsc_options)
     krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": int(nu)}),
                     **({} if max_linear_its is None else {"max_it": int(max_linear_its)}))
+    if petsc_options:       # refused here if PETSc would not read one of them
+        checks.check_petsc_options_used(petsc_options, krylov.merged)
+    _check_memory(problem, solver, estimators, max_vertices)
     if system is not None:
         _choice("system", system, ("full", "eliminated"))
     if newton == "adaptive" and not krylov.iterative:

@@ -39,7 +39,7 @@ import tempfile
 import numpy as np
 from mpi4py import MPI
 
-from .checks import check_output_folder
+from ..model.checks import check_output_folder
 from .solution import ESTIMATOR_COLUMNS
 
 HISTORY_COLUMNS = ("level", "newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",

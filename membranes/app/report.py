@@ -466,7 +466,7 @@ def main(args):
     is written all the same); bad input raises ValueError before anything is written."""
     from ..cli import EXIT_NOT_CONVERGED
     from ..model import scenes
-    from .checks import check_output_folder
+    from ..model.checks import check_output_folder
     comm = MPI.COMM_WORLD
     check_output_folder(args.out, comm)
     problem = scenes.make(args.scene, h=args.h, levels=args.levels)

@@ -11,7 +11,7 @@ import functools
 import numpy as np
 import ufl
 
-from ..problem import as_builder
+from ..model.problem import as_builder
 
 DATA_DEGREE = 6          # Gauss degree for data on cells the interface does not cut
 CUT_SUBDIVISIONS = 16    # composite rule on cut cells: 16² sub-triangles …

@@ -16,10 +16,11 @@ import numpy as np
 import ufl
 from mpi4py import MPI
 
-from ..expressions import Formula
+from .checks import check_request
+from .expressions import Formula
 from ..fem import meshes
 from ..fem.hierarchy import build_hierarchy, onto_unit_circle
-from ..problem import ExactSolution, Problem, positive_number
+from .problem import ExactSolution, Problem, positive_number
 
 DEFAULT_H = 0.05
 
@@ -40,6 +41,12 @@ def _coarse_mesh(domain, h, mesh_file, comm):
     raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
 
 
+def _check_size(h, levels, domain, mesh_file, max_vertices, comm):
+    """Refuse, before gmsh runs, a mesh and hierarchy that no run could hold in memory (or of
+    more vertices than `max_vertices`): checks.check_request with the leanest method."""
+    check_request(h, levels, domain, mesh_file, max_vertices, comm=comm)
+
+
 def _check_levels(levels):
     if isinstance(levels, float) and not levels.is_integer():
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
@@ -57,9 +64,11 @@ DISK_G = 0.05
 J01 = 2.404825557695773   # first zero of the Bessel function J_0
 
 
-def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
-    """The paper's test case on the unit disk, with its exact solution (§9)."""
+def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, max_vertices=None):
+    """The paper's test case on the unit disk, with its exact solution (§9).
+    `max_vertices`: refuse a larger mesh before meshing (every scene has it)."""
     levels = _check_levels(levels)
+    _check_size(h, levels, "disk", None, max_vertices, comm)
     g = DISK_G
     c = g * math.sqrt(2.0) / (math.sqrt(2.0) - 1.0)
 
@@ -108,12 +117,14 @@ def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD):
 SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
 
 
-def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, mesh=None):
+def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, mesh=None, max_vertices=None):
     """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
     `mesh`: a dolfinx mesh of (0, 1)² to use instead of gmsh's at size h (API only: the
     anisotropic, graded and tiny meshes of §11, meshes.structured_square)."""
     levels = _check_levels(levels)
-    if mesh is not None:
+    if mesh is None:
+        _check_size(h, levels, "square", None, max_vertices, comm)
+    else:
         x = mesh.geometry.x[:, :2]
         lo = mesh.comm.allreduce(x.min(initial=np.inf), op=MPI.MIN)
         hi = mesh.comm.allreduce(x.max(initial=-np.inf), op=MPI.MAX)
@@ -163,9 +174,10 @@ def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, mesh=None):
 
 
 def radial(h=DEFAULT_H, levels=0, rho=0.5, mu1=1.0, mu2=1.0, g=0.05, contact=True,
-           comm=MPI.COMM_WORLD):
+           comm=MPI.COMM_WORLD, max_vertices=None):
     """Unit disk, exact radial solution with contact disk r <= rho (any mu1, mu2, g)."""
     levels = _check_levels(levels)
+    _check_size(h, levels, "disk", None, max_vertices, comm)
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
     rho = float(rho)
     if not (0.0 <= rho < 1.0):
@@ -216,11 +228,14 @@ USER_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "g": 0.05, "f1": "0", "f2": "0"}
 
 
 def user(mu1=1.0, mu2=1.0, g=0.05, f1="0", f2="0", mesh=None, domain="disk", h=DEFAULT_H,
-         levels=0, comm=MPI.COMM_WORLD):
+         levels=0, comm=MPI.COMM_WORLD, max_vertices=None):
     """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square."""
     levels = _check_levels(levels)
     f1, f2 = Formula(f1, "f1"), Formula(f2, "f2")   # fail on bad input before any meshing
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
+    if mesh is None and domain not in ("disk", "square"):
+        raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
+    _check_size(h, levels, domain, mesh, max_vertices, comm)
     hierarchy = build_hierarchy(_coarse_mesh(domain, h, mesh, comm), levels,
                                 _projection(domain, mesh))
     where = f"mesh {mesh}" if mesh is not None else f"unit {domain}"

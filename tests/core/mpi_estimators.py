@@ -54,7 +54,7 @@ class SquareProblem:
     """What `membranes.fem.discretisation.discretise` and the estimators read of a problem."""
 
     def __init__(self, mesh, mu1=MU1, mu2=MU2, f1=UFL["f1"], f2=UFL["f2"]):
-        from membranes.problem import ExactSolution
+        from membranes.model.problem import ExactSolution
         self.mesh, self.mu1, self.mu2, self.g = mesh, mu1, mu2, G
         self.f1, self.f2 = f1, f2
         self.interface = None

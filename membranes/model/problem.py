@@ -6,7 +6,7 @@ scene declares beyond that: an exact solution where one is known, and a level se
 the data jump (so that cells it cuts are integrated with a composite rule, DESIGN §7, §9).
 
 Data are *builders*: callables taking the UFL spatial coordinate ``x`` and returning a UFL
-expression, or :class:`membranes.expressions.Formula` objects (user formulas, which are also
+expression, or :class:`membranes.model.expressions.Formula` objects (user formulas, which are also
 checked to be finite on the mesh). Bad data raise ValueError with a one-line message.
 """
 
