@@ -36,7 +36,7 @@ from ..fem.discretisation import discretise
 from ..linalg.krylov import Krylov
 from ..model import checks
 from ..nonlinear import cfunctions
-from ..nonlinear.newton import VARIANTS, newton as run_newton
+from ..nonlinear.newton import VARIANTS, linear_criterion, newton as run_newton
 from .solution import ESTIMATOR_COLUMNS, Solution
 
 DEFAULT_GAMMA = 0.3
@@ -121,31 +121,73 @@ def _algebraic_flux(problem, alg_flux, estimators, newton):
 
 
 class LevelEstimates:
-    """The estimators of one mesh (§7) with the run's algebraic flux (§6), set up once:
-    the `estimate(X, R, kind)` callback of Newton. Only a run that estimates builds one."""
+    """The estimators of one mesh (§7) with the run's algebraic flux (§6), set up once: the
+    `estimate(X, R, kind)` callback of Newton (membranes.nonlinear.newton). Only a run that
+    estimates builds one.
 
-    def __init__(self, disc, alg_flux, hierarchy=None):
+    * 'multilevel': every iterate gets σ_alg with ∇·σ_alg = r_αh exactly (no remainder).
+    * 'nu': an iterate is first estimated without algebraic flux, its whole lifted residual
+      bounded by Poincaré–Friedrichs (η_rem; enough where the residual is at round-off). If
+      that does not meet the linear criterion η_alg ≤ γ_alg max(η_disc, η_lin), the iterate
+      handed over before in the same Newton step, X^{k,i-ν} (X^{k,0} = X^{k-1} announced with
+      kind 'step'), is estimated with the ν flux σ_disc(X^{k,i}) - σ_disc(X^{k,i-ν}) and its
+      remainder, and returned marked `of_previous` (Newton accepts that iterate if the
+      criterion holds on it). σ_disc of each iterate is solved once (Estimators keeps the last
+      two).
+    """
+
+    def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA):
         t = time.perf_counter()
         self.est = Estimators(disc, FluxEquilibration(disc.V, disc.dx_data))
         self.multilevel = None
         if alg_flux == "multilevel":
             from ..estimation.multilevel import MultilevelFlux   # only a run that uses it
             self.multilevel = MultilevelFlux(disc, hierarchy)
+        self.gamma_alg = gamma_alg
+        self.pending = None            # ('nu') the iterate handed over last: (X, R) copies
         self.setup_time = time.perf_counter() - t
         self.time = 0.0
         self.count = 0
 
-    def __call__(self, X, R, kind=None):
-        t = time.perf_counter()
+    def _keep(self, X, R):
+        self._drop()
+        self.pending = (X.copy(), R.copy())
+
+    def _drop(self):
+        if self.pending is not None:
+            for v in self.pending:
+                v.destroy()
+            self.pending = None
+
+    def _evaluate(self, X, R):
         if R is not None and self.multilevel is not None:
             rh = self.est.lifted(R)
-            out = self.est.evaluate(X, R, sigma_alg=self.multilevel.sigma_pair(*rh))
-        else:
-            out = self.est.evaluate(X, R)
-        out["bound"] = True
-        self.time += time.perf_counter() - t
-        self.count += 1
-        return out
+            sigma_alg = [self.multilevel.sigma(r) for r in rh]
+            return self.est.evaluate(X, R, sigma_alg=sigma_alg)
+        return self.est.evaluate(X, R)
+
+    def __call__(self, X, R, kind=None):
+        t = time.perf_counter()
+        try:
+            if kind == "step":                 # X^{k,0} of a new Newton step
+                if self.multilevel is None:
+                    self._keep(X, R)
+                return None
+            out = self._evaluate(X, R)
+            if kind == "krylov" and self.multilevel is None:
+                if not linear_criterion(out, self.gamma_alg) and self.pending is not None:
+                    (Xp, Rp), current = self.pending, (X, R)
+                    sigma_alg, eta_rem = self.est.nu_flux(Xp, Rp, X, R)
+                    out = self.est.evaluate(Xp, Rp, sigma_alg=sigma_alg, eta_rem=eta_rem)
+                    out["of_previous"] = True
+                    self._keep(*current)
+                else:
+                    self._keep(X, R)
+            out["bound"] = True
+            self.count += 1
+            return out
+        finally:
+            self.time += time.perf_counter() - t
 
 
 class _Recorder:
@@ -161,6 +203,8 @@ class _Recorder:
 
     def __call__(self, X, R, kind):
         out = self.estimate(X, R, kind) if self.estimate is not None else None
+        if kind == "step":                     # not a record: X^{k,0} announced
+            return out
         t = self.clock.now()
         err = self.clock.off(self.error, X) if self.error is not None else None
         self.stamps.append((t, err))
@@ -296,7 +340,8 @@ def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
         estimate = None
         if alg_flux is not None and (newton == "adaptive" or last):
             estimate = LevelEstimates(disc, alg_flux if last else "nu",
-                                      problem.hierarchy.up_to(j))
+                                      problem.hierarchy.up_to(j),
+                                      gamma_alg or DEFAULT_GAMMA)
             est_setup += estimate.setup_time
         error = clock.off(EnergyError, disc) if problem.exact is not None and \
             errors != "none" and (last or errors == "iterates") else None

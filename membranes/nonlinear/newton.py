@@ -21,6 +21,14 @@ The step is solved on the full 3N system or on the eliminated 2N one
   estimates are then known. Newton stops at the first X^k, k ≥ 1, with η_lin ≤ γ_lin η_disc.
   X⁰ is not estimated (Algorithm 1 makes at least one step).
 
+**Estimates that need a later iterate.** The ν algebraic flux of X^{k,i} is built from
+X^{k,i+ν} (§6): an `estimate` may answer the call for X^{k,i+ν} with the estimates of the
+iterate it was handed before in the same step (X^{k,i}, or X^{k,0} = X^{k-1} at i = ν), marked
+by the key `of_previous` = True. If the linear criterion holds on them, X^{k,i} is accepted:
+the solve ran ν more iterations (they count) and X^k is the iterate the criterion was verified
+on, with its own guaranteed bound. Each call then starts a new step for the callback with
+kind 'step' (X^{k,0}, no estimate wanted).
+
 `estimate(X, R, kind)` is any callable returning a dict with at least eta_disc, eta_lin,
 eta_alg (e.g. `membranes.estimation.estimators.Estimators.evaluate`, wrapped): X, R are PETSc
 Vecs in the iterate layout, R = B - A X unweighted (§4; None for X⁰), kind 'initial',
@@ -185,17 +193,36 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             lin_tol = linear_tolerance(variant, last["residual"])
             accepted = []
 
-            def on_iterate(i, yi, ri, k=k, step=step, accepted=accepted):
-                """Adaptive: estimate X^{k,i}; stop the solve where the linear criterion
-                holds (§8)."""
+            earlier = []        # the iterate handed to the estimators last: (X, R, alg, i)
+            if adaptive:        # X^{k,0} = X^{k-1} and its residual in this step's system
+                R0 = R.copy()
+                norm0 = step.residual(y, R0)
+                estimate(X, R0, "step")
+                earlier.append((X.copy(), R0, norm0 / lin.norm_B, 0))
+
+            def on_iterate(i, yi, ri, k=k, step=step, accepted=accepted, earlier=earlier):
+                """Adaptive: estimate X^{k,i} (or the iterate before it, `of_previous`);
+                stop the solve where the linear criterion holds (§8)."""
                 step.expand(yi, X_try)
                 norm = step.residual(yi, R, rw=ri)
                 e = estimated(X_try, R, "krylov")
-                rec = record("krylov", k, i, total + i, X_try, norm / lin.norm_B, e)
-                if linear_criterion(e, gamma_alg):
-                    accepted.append(rec)
-                    return True
-                return False
+                if e.get("of_previous"):
+                    Xp, Rp, alg_p, i_p = earlier[-1]
+                    rec = record("krylov", k, i_p, total + i, Xp, alg_p, e)
+                    ok = linear_criterion(e, gamma_alg)
+                    if ok:
+                        accepted.append((rec, Xp.copy(), Rp.copy()))
+                else:
+                    rec = record("krylov", k, i, total + i, X_try, norm / lin.norm_B, e)
+                    ok = linear_criterion(e, gamma_alg)
+                    if ok:
+                        accepted.append((rec, None, None))
+                if earlier:
+                    earlier[-1][0].destroy()
+                    earlier[-1][1].destroy()
+                    earlier.clear()
+                earlier.append((X_try.copy(), R.copy(), norm / lin.norm_B, i))
+                return ok
 
             t = time.perf_counter()
             t_est = times["estimate"]
@@ -215,6 +242,14 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 break
             step.expand(y, X_try)
             step.residual(y, R)
+            if accepted and accepted[0][1] is not None:     # an earlier iterate accepted
+                accepted[0][1].copy(X)
+                accepted[0][2].copy(R)
+                accepted[0][1].destroy()
+                accepted[0][2].destroy()
+            for Xe, Re, *_ in earlier:
+                Xe.destroy()
+                Re.destroy()
             step.destroy()
             y.destroy()
             if not comm.allreduce(bool(np.all(np.isfinite(X_try.array_r))), op=MPI.LAND):
@@ -222,7 +257,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 break
             X_try.copy(X)
             if accepted:
-                last = accepted[0]
+                last = accepted[0][0]
                 last["kind"], last["krylov_total"] = "newton", total
             else:
                 e = estimated(X, R, "newton") if estimate is not None else None
