@@ -115,6 +115,23 @@ def test_min_and_fischer_burmeister_reach_the_same_solution(preset):
     assert_same(disc, fb.X, solved("square", 0.1).X)
 
 
+# ## Stiff moduli (§11): the weights W and the scale κ keep every row in units of the data
+
+@pytest.mark.parametrize("mu1", [1e6, 1e-6])
+def test_extreme_moduli(mu1):
+    disc = discretise(scenes.make("radial", h=0.1, mu1=mu1, mu2=1.0))
+    u_data, lam_data = disc.data_scales()
+    ref = newton(disc, krylov="direct")
+    assert ref.converged, ref.reason
+    for cfun in ("min", "fb"):
+        res = newton(disc, krylov="amg", cfun=cfun)
+        assert res.converged, res.reason
+        u1, u2, lam = parts(disc, res.X)
+        inner = disc.interior
+        assert np.abs(np.minimum((u1 - u2) / u_data, lam / lam_data))[inner].max() <= 1e-12
+        assert_same(disc, res.X, ref.X)
+
+
 # ## (d) the decoupled check of §10
 
 def _mumps_solve(A, b):
