@@ -25,7 +25,6 @@ from petsc4py import PETSc
 from membranes.fem import discretisation as fem_discretisation
 from membranes.fem.discretisation import discretise
 from membranes.model import scenes
-from membranes.nonlinear import cfunctions
 from membranes.nonlinear.newton import newton
 from membranes.nonlinear.system import NewtonSystem
 from tests.core.mpi_newton import run as mpi_run
