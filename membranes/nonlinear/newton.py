@@ -24,16 +24,18 @@ The step is solved on the full 3N system or on the eliminated 2N one
 **Estimates that need a later iterate.** The ν algebraic flux of X^{k,i} is built from
 X^{k,i+ν} (§6): an `estimate` may answer the call for X^{k,i+ν} with the estimates of the
 iterate it was handed before in the same step (X^{k,i}, or X^{k,0} = X^{k-1} at i = ν), marked
-by the key `of_previous` = True. If the linear criterion holds on them, X^{k,i} is accepted:
-the solve ran ν more iterations (they count) and X^k is the iterate the criterion was verified
-on, with its own guaranteed bound. Each call then starts a new step for the callback with
-kind 'step' (X^{k,0}, no estimate wanted).
+by the key `of_previous` = True. If the linear criterion holds on them and i ≥ 1, X^{k,i} is
+accepted: the solve ran ν more iterations (they count) and X^k is the iterate the criterion
+was verified on, with its own guaranteed bound (X^{k,0} is no candidate: accepting X^{k-1}
+would repeat step k unchanged). Each Newton step first calls the callback with kind 'step'
+(X^{k,0} and its residual in the step's system; no estimate wanted).
 
 `estimate(X, R, kind)` is any callable returning a dict with at least eta_disc, eta_lin,
 eta_alg (e.g. `membranes.estimation.estimators.Estimators.evaluate`, wrapped): X, R are PETSc
 Vecs in the iterate layout, R = B - A X unweighted (§4; None for X⁰), kind 'initial',
-'krylov' or 'newton'. The exact and inexact variants estimate X⁰ and every Newton iterate when
-given one, for the record. The Vecs are the loop's own: a callback that keeps one copies it.
+'step' (its answer is not used), 'krylov' or 'newton'. The exact and inexact variants estimate
+X⁰ and every Newton iterate when given one, for the record. The Vecs are the loop's own: a
+callback that keeps one copies it.
 
 No line search and no safeguards: a Newton step is the plain semismooth step of §3 (for
 Newton-min with exact solves, the primal–dual active set method). A Krylov solve that fails
@@ -209,7 +211,9 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 if e.get("of_previous"):
                     Xp, Rp, alg_p, i_p = earlier[-1]
                     rec = record("krylov", k, i_p, total + i, Xp, alg_p, e)
-                    ok = linear_criterion(e, gamma_alg)
+                    # X^{k,0} = X^{k-1} is no candidate: Algorithm 1 takes i ≥ 1 (accepting
+                    # it would repeat step k unchanged)
+                    ok = i_p >= 1 and linear_criterion(e, gamma_alg)
                     if ok:
                         accepted.append((rec, Xp.copy(), Rp.copy()))
                 else:
@@ -243,7 +247,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             step.expand(y, X_try)
             step.residual(y, R)
             if accepted and accepted[0][1] is not None:     # an earlier iterate accepted
-                accepted[0][1].copy(X)
+                accepted[0][1].copy(X_try)
                 accepted[0][2].copy(R)
                 accepted[0][1].destroy()
                 accepted[0][2].destroy()

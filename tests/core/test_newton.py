@@ -265,6 +265,47 @@ def test_adaptive_newton_stops_where_the_estimators_say():
     assert res.krylov_steps < 0.5 * solved("disk", 0.1, "paper").krylov_steps
 
 
+def test_adaptive_newton_with_estimates_of_the_previous_iterate():
+    # the ν flux's estimates of X^{k,i} come with X^{k,i+ν} (`of_previous`): Newton must
+    # return the accepted earlier iterate, never X^{k,0} = X^{k-1}
+    from membranes.estimation.equilibration import FluxEquilibration
+    from membranes.estimation.estimators import Estimators
+    disc = disc_of("disk", 0.1)
+    est = Estimators(disc, FluxEquilibration(disc))
+    held = []
+
+    def evaluate(X, R):
+        e = est.evaluate(X, R)
+        e.pop("eta_K")
+        return e
+
+    def estimate(X, R, kind):
+        if kind == "step":
+            held[:] = [X.copy(), R.copy()]
+            return None
+        if kind == "krylov":
+            e = evaluate(*held)
+            e["of_previous"] = True
+            held[:] = [X.copy(), R.copy()]
+            return e
+        return evaluate(X, R)
+
+    res = newton(disc, variant="adaptive", krylov="paper", estimate=estimate)
+    assert res.converged, res.reason
+    sys_ = NewtonSystem(disc)
+    assert sys_.relative_residual(res.X, "min") == pytest.approx(res.history[-1]["residual"],
+                                                                 rel=1e-10)
+    sys_.destroy()
+    steps = [r for r in res.history if r["kind"] == "newton"]
+    before = 0
+    for rec in steps:
+        assert rec["i"] >= 1
+        if rec["alg_residual"] > 2e-12:            # accepted: ν more iterations were run
+            assert rec["i"] % 10 == 0 and rec["krylov_total"] - before == rec["i"] + 10
+        before = rec["krylov_total"]
+    assert any(r["alg_residual"] > 2e-12 for r in steps)
+
+
 # ## Options and failures
 
 @pytest.mark.parametrize("kwargs, message", [
