@@ -28,11 +28,12 @@ def one(spec):
     import numpy as np
     sys.path.insert(0, HERE)
     from bench_multilevel import kept_bytes, rss_gib
+    from threadpoolctl import threadpool_limits
+
     from membranes import scenes
     from membranes.cli import quiet_jit_logging
     from membranes.discretisation import discretise
     from membranes.estimators import Estimators
-    from threadpoolctl import threadpool_limits
     quiet_jit_logging()
     warm = discretise(scenes.disk(h=0.3, levels=1))   # JIT-compile every form off the clock
     Estimators(warm).evaluate(np.ones(3 * warm.n))

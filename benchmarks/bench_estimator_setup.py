@@ -59,6 +59,7 @@ def _timed(owner, name, label, times):
 def one(J, h0, out):
     import numpy as np
     from threadpoolctl import threadpool_limits
+
     from membranes import scenes
     from membranes.cli import quiet_jit_logging
     from membranes.discretisation import discretise
@@ -89,6 +90,7 @@ def levels(J, h0, rounds):
     """The least set-up time of `Estimators` on each level 1 .. J over `rounds` rounds."""
     import numpy as np
     from threadpoolctl import threadpool_limits
+
     from membranes import scenes
     from membranes.cli import quiet_jit_logging
     from membranes.discretisation import discretise

@@ -25,7 +25,7 @@ import subprocess
 import sys
 import time
 
-from bench_scaling import _size     # 'J' or 'J:H0' (H0 = 0.2), as bench_scaling reads sizes
+from bench_scaling import _size  # 'J' or 'J:H0' (H0 = 0.2), as bench_scaling reads sizes
 
 OPTIONS = {"newton": "adaptive", "cfun": "min", "system": "eliminated",
            "petsc_options": {"pc_type": "vertex_amg"}, "alg_flux": "nu"}
@@ -35,6 +35,7 @@ def child(size):
     """Two solves in this process; prints one JSON line."""
     levels, h0 = _size(size)
     from dolfinx import jit
+
     from membranes import compiled, scenes, solve
     from membranes.cli import quiet_jit_logging
     quiet_jit_logging()

@@ -2,16 +2,17 @@
 
 The disk scene (DESIGN §9) on gmsh meshes with about as many cells as the paper's (gmsh h
 calibrated once: 2026, 4088, 7884, 16781, 20900, 27260, 34796 cells for 2048 … 34592) and a
-larger one (68857 cells; at 136599 cells inexact Newton alone takes ~10 minutes), no hierarchy (J = 0, so the adaptive method stops on the
-ν-extra-iterations flux), Newton-min, full 3N system, GMRES(30) + ILU(0), ν = 10,
-γ_lin = γ_alg = 0.3, at most 500 Newton steps (inexact Newton needs more than the default
-100 on the finer meshes; the paper's needed up to 174). For each mesh and variant:
-Newton steps, total GMRES steps, wall time (`solve`'s: discretisation and method; for
-adaptive the estimators' set-up and evaluations count, since the method uses them, and the
-set-up is also shown apart), final energy error and effectivity η/|||u - u_h||| (η at the final
-iterate where it is a guaranteed bound; the last inexact iterate has no later iterate for
-the ν-flux, so its η is missing unless its residual is at round-off). Then the table beside
-the paper's figures (DESIGN §8) with the ratio adaptive/exact of the GMRES steps.
+larger one (68857 cells; at 136599 cells inexact Newton alone takes ~10 minutes), no
+hierarchy (J = 0, so the adaptive method stops on the ν-extra-iterations flux), Newton-min,
+full 3N system, GMRES(30) + ILU(0), ν = 10, γ_lin = γ_alg = 0.3, at most 500 Newton steps
+(inexact Newton needs more than the default 100 on the finer meshes; the paper's needed up
+to 174). For each mesh and variant: Newton steps, total GMRES steps, wall time (`solve`'s:
+discretisation and method; for adaptive the estimators' set-up and evaluations count, since
+the method uses them, and the set-up is also shown apart), final energy error and
+effectivity η/|||u - u_h||| (η at the final iterate where it is a guaranteed bound; the last
+inexact iterate has no later iterate for the ν-flux, so its η is missing unless its residual
+is at round-off). Then the table beside the paper's figures (DESIGN §8) with the ratio
+adaptive/exact of the GMRES steps.
 
 Usage: `.venv/bin/python benchmarks/bench_newton.py [number of meshes, default all 8]`.
 """

@@ -59,6 +59,7 @@ def child(which, size):
     levels, h0 = _size(size)
     t0 = time.perf_counter()
     from mpi4py import MPI
+
     from membranes import scenes
     from membranes.cli import quiet_jit_logging
     quiet_jit_logging()
@@ -73,6 +74,7 @@ def child(which, size):
         # wall time leaves out, while the estimator process goes on: that hid up to 2.8 s of
         # waiting at 9.3e5 vertices.) The final energy error is computed afterwards.
         import dataclasses
+
         from membranes import solve
         from membranes.discretisation import EnergyError
         sol = solve(dataclasses.replace(problem, exact=None), newton="adaptive", cfun="min",

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from membranes import Problem, scenes, solve
-from membranes.model.expressions import Formula
 from membranes.fem.hierarchy import build_hierarchy
 from membranes.fem.meshes import read_msh, unit_disk
+from membranes.model.expressions import Formula
 
 from .conftest import cli_bad_input, scene, write_msh
 
@@ -187,8 +187,8 @@ def test_refused_at_once_by_the_installed_command(case, tmp_path):
 def test_refused_before_the_mesh_is_built(case, tmp_path, capsys, monkeypatch):
     """The same cases in process, with gmsh and the refinement made to fail: the checks
     refuse them before either is called."""
-    from membranes.fem import hierarchy, meshes
     from membranes.app.cli import main
+    from membranes.fem import hierarchy, meshes
 
     def never(*args, **kwargs):
         raise AssertionError("the mesh was built")

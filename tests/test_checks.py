@@ -9,9 +9,9 @@ import os
 import pytest
 
 from membranes import scenes, solve
-from membranes.model import checks
 from membranes.fem.hierarchy import build_hierarchy
 from membranes.fem.meshes import unit_disk, unit_square
+from membranes.model import checks
 
 from .conftest import scene
 
@@ -237,6 +237,7 @@ def test_output_folder_that_cannot_be_written(where, tmp_path):
 
 def test_write_outputs_refuses_an_unwritable_folder():
     from membranes.app.outputs import write_outputs
+
     from .conftest import solved
     with pytest.raises(ValueError, match="output folder /proc/x cannot be written"):
         write_outputs(solved("disk", 0.3), "/proc/x")

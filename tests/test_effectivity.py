@@ -11,8 +11,9 @@ h0 = 0.2 (123 to 6913 vertices); J = 4 is in BENCHMARKS.md.
 
 import pytest
 
-from .conftest import scene
 from membranes import solve
+
+from .conftest import scene
 
 
 @pytest.mark.parametrize("J", [0, 1, 2, 3])

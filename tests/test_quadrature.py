@@ -4,8 +4,8 @@ import math
 
 import numpy as np
 
-from membranes.fem.quadrature import composite_rule, cut_cells
 from membranes.fem.meshes import mesh_size
+from membranes.fem.quadrature import composite_rule, cut_cells
 
 from .conftest import scene
 
@@ -41,6 +41,7 @@ def test_disk_load_integral_against_exact_areas():
     # without the composite rule on cut cells the error is larger (a sanity check that the
     # composite rule is what makes the difference)
     import ufl
+
     from membranes.fem.quadrature import DATA_DEGREE
     x = ufl.SpatialCoordinate(problem.mesh)
     v = ufl.TestFunction(d.V)

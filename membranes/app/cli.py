@@ -141,9 +141,9 @@ def _check_before_meshing(args, scene, kwargs, comm):
     be written, PETSc options PETSc would not use, and a mesh whose run needs more memory than
     the processes have (or more vertices than --max-vertices). Returns the parsed options."""
     from ..linalg.krylov import Krylov
+    from ..model import checks
     from ..model.scenes import DEFAULT_H
     from .driver import MEMORY_METHOD
-    from ..model import checks
     petsc_options = checks.parse_petsc_options(args.petsc_options)
     if args.out is not None:
         checks.check_output_folder(args.out, comm)

@@ -36,7 +36,8 @@ from ..fem.discretisation import discretise
 from ..linalg.krylov import Krylov
 from ..model import checks
 from ..nonlinear import cfunctions
-from ..nonlinear.newton import VARIANTS, linear_criterion, newton as run_newton
+from ..nonlinear.newton import VARIANTS, linear_criterion
+from ..nonlinear.newton import newton as run_newton
 from .solution import ESTIMATOR_COLUMNS, Solution
 
 DEFAULT_GAMMA = 0.3
@@ -141,7 +142,7 @@ class LevelEstimates:
         self.est = Estimators(disc, FluxEquilibration(disc.V, disc.dx_data))
         self.multilevel = None
         if alg_flux == "multilevel":
-            from ..estimation.multilevel import MultilevelFlux   # only a run that uses it
+            from ..estimation.multilevel import MultilevelFlux  # only a run that uses it
             self.multilevel = MultilevelFlux(disc, hierarchy)
         self.gamma_alg = gamma_alg
         self.pending = None            # ('nu') the iterate handed over last: (X, R) copies

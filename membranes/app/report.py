@@ -325,6 +325,7 @@ def error_distribution(sol, path):
 def contact_zone(sol, path):
     """u1 - u2 and λ with the scene's interface, and the CSV behind them (process 0)."""
     from dolfinx import fem
+
     from .render import _gather, snapshot
     disc = sol.disc
     V, n = disc.V, disc.n

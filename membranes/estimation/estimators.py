@@ -44,9 +44,18 @@ import numpy as np
 import ufl
 from mpi4py import MPI
 
-from forms.estimators import (FLUX_RULE, P1_RULE, cell_norm_squared, contact_estimator,
-                              energy_squared, flux_squared, mass, oscillation_squared,
-                              projection_load, weighted_norm_squared)
+from forms.estimators import (
+    FLUX_RULE,
+    P1_RULE,
+    cell_norm_squared,
+    contact_estimator,
+    energy_squared,
+    flux_squared,
+    mass,
+    oscillation_squared,
+    projection_load,
+    weighted_norm_squared,
+)
 
 from ..fem.quadrature import over
 
@@ -389,7 +398,7 @@ class Estimators:
         columns = [((flux_K + osc) ** 2).sum(axis=1),                   # η_1²
                    ((disc_K + osc) ** 2).sum(axis=1),                   # η_disc's flux part²
                    (flux_K ** 2).sum(axis=1), (osc ** 2).sum(axis=1),   # η_F², η_osc²
-                   eta_C_K, lin1_sq, lin3_sq, q[:, LAM_POS]]            # Σ_C, lin1², lin3², ‖λ^pos‖²
+                   eta_C_K, lin1_sq, lin3_sq, q[:, LAM_POS]]           # Σ_C, lin1², lin3², ‖λ^pos‖²
         if with_alg:
             columns.append(np.maximum(q[:, ALG1], 0.0) + np.maximum(q[:, ALG2], 0.0))
         s = global_sums(self.comm, np.stack(columns, axis=1))

@@ -123,7 +123,8 @@ class Discretisation:
 
 def boundary_dofs(V):
     """The P1 dofs on ∂Ω (local indices, owned and ghost)."""
-    from dolfinx import fem, mesh as dmesh
+    from dolfinx import fem
+    from dolfinx import mesh as dmesh
     mesh = V.mesh
     tdim = mesh.topology.dim
     mesh.topology.create_connectivity(tdim - 1, tdim)

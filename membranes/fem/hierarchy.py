@@ -59,7 +59,8 @@ class Hierarchy:
 def _refine(mesh):
     """Plaza refinement of `mesh` and its parent-cell map (local fine cell → local coarse)."""
     import ufl
-    from dolfinx import cpp, mesh as dmesh
+    from dolfinx import cpp
+    from dolfinx import mesh as dmesh
     mesh.topology.create_entities(1)
     fine, parent_cell, _ = cpp.refinement.plaza_refine_data(
         mesh._mesh, False, cpp.refinement.RefinementOptions.parent_cell_and_facet)

@@ -1,4 +1,5 @@
-"""Computational domains on a communicator: the unit disk and square from gmsh, gmsh files (§9, §12).
+"""Computational domains on a communicator: the unit disk and square from gmsh, gmsh files
+(§9, §12).
 
 Every mesh is a dolfinx P1 triangular mesh with geometric dimension 2, partitioned by dolfinx on
 the communicator it is given (default `MPI.COMM_WORLD`): gmsh meshes (or reads) on rank 0 only,

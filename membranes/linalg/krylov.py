@@ -53,8 +53,16 @@ from dataclasses import dataclass, field
 
 from petsc4py import PETSc
 
-from .preconditioners import (INNER_DEFAULTS, InnerPC, MeanGapPC, configure, inner_defaults,
-                              petsc_message, put_options, take_options)
+from .preconditioners import (
+    INNER_DEFAULTS,
+    InnerPC,
+    MeanGapPC,
+    configure,
+    inner_defaults,
+    petsc_message,
+    put_options,
+    take_options,
+)
 
 EXACT_TOL = 2e-12          # exact Newton: ‖R_alg‖/‖B‖ ≤ 2e-12 at every step (§8)
 DEFAULT_NU = 10            # the paper's ν: estimators / inexact tests every 10 Krylov steps

@@ -16,10 +16,10 @@ import numpy as np
 import ufl
 from mpi4py import MPI
 
-from .checks import check_request
-from .expressions import Formula
 from ..fem import meshes
 from ..fem.hierarchy import build_hierarchy, onto_unit_circle
+from .checks import check_request
+from .expressions import Formula
 from .problem import ExactSolution, Problem, positive_number
 
 DEFAULT_H = 0.05

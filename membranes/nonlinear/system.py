@@ -200,7 +200,7 @@ class NewtonSystem:
         """The full 3N system of §3 at the linearisation `lin` (`FullStep`)."""
         A = self.full_matrix()
         n, r3 = self.n, 3 * self.offset
-        l = np.arange(n)
+        l = np.arange(n)  # noqa: E741  (the vertex index l of §3)
         cols = np.stack([r3 + l, r3 + n + l, r3 + 2 * n + l], axis=1).ravel()
         vals = np.stack([lin.alpha, -lin.alpha, lin.beta], axis=1).ravel()
         A.setValuesIJV(_ints(np.arange(0, 3 * n + 1, 3)), _ints(cols), vals,
@@ -289,7 +289,7 @@ class EliminatedStep:
         self.d = np.where(u2_out, beta / a_safe, 0.0)
         # T (3N × 2N), its nonzero factors only: row l of u1 holds 1 in column l (Y's u1);
         # rows of u2 and λ hold (U, H) and (G, Q) in columns l and n + l (Y's u1 and z)
-        l = np.arange(n)
+        l = np.arange(n)  # noqa: E741  (the vertex index l of §3)
         y0, y1 = 2 * r0 + l, 2 * r0 + n + l
         first = np.concatenate([np.ones(n), U, G])
         second = np.concatenate([np.zeros(n), H, Q])

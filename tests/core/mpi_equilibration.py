@@ -50,7 +50,8 @@ def assembled(form):
 
 def boundary(V):
     """Bool over the owned P1 dofs: on ∂Ω (dolfinx's exterior facets)."""
-    from dolfinx import fem, mesh as dm
+    from dolfinx import fem
+    from dolfinx import mesh as dm
     mesh = V.mesh
     mesh.topology.create_connectivity(1, 2)
     dofs = fem.locate_dofs_topological(V, 1, dm.exterior_facet_indices(mesh.topology))
@@ -89,6 +90,7 @@ class Compatible:
 
     def __init__(self, mesh):
         from dolfinx import fem
+
         from membranes.estimation.lifting import Lifting
         self.mesh = mesh
         self.V = V = fem.FunctionSpace(mesh, ("Lagrange", 1))
@@ -125,6 +127,7 @@ class Compatible:
     def divergence_defect(self, sigma, alpha):
         """(max_K ‖∇·σ - (Π f ± λ - r)‖_K, max_K ‖Π f ± λ - r‖_K) over all processes."""
         from dolfinx import fem
+
         from forms.equilibration import cell_norm_squared
         w = ufl.TestFunction(fem.FunctionSpace(self.mesh, ("DG", 0)))
         target = self.Pf + self.sign(alpha) * self.lam - self.r[alpha]
@@ -224,6 +227,7 @@ def main(mode):
 
 if __name__ == "__main__":
     import logging
+
     import ffcx  # noqa: F401  (installs its root handler: quiet it, as membranes.cli does)
     for handler in logging.getLogger().handlers:
         handler.setLevel(logging.WARNING)

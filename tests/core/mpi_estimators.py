@@ -5,10 +5,11 @@ a discretisation with cubic loads and a quadratic exact solution, an iterate X w
 are functions of the vertex coordinates (so the same discrete functions on any partition),
 two RT_1 fields σ and σ_alg given by formulas that RT_1 holds exactly, and DG1 residual
 liftings; `iterate` and `residual` give iterates with the boundary values of §2 and their
-residuals R = B - A X, for the flux equilibration. Run as a script (`mpirun -n P python tests/core/mpi_estimators.py N`) it prints, on
-rank 0, one JSON line with the global estimators, the remainder and the energy error, after
-checking that every rank holds the same numbers: the estimators with the given fluxes, and
-with the flux equilibration and the ν flux.
+residuals R = B - A X, for the flux equilibration. Run as a script
+(`mpirun -n P python tests/core/mpi_estimators.py N`) it prints, on rank 0, one JSON line
+with the global estimators, the remainder and the energy error, after checking that every
+rank holds the same numbers: the estimators with the given fluxes, and with the flux
+equilibration and the ν flux.
 """
 
 import json
@@ -93,6 +94,7 @@ def rt_function(RT, formula):
 def scene(comm, N):
     """(disc, X, σ, σ_alg, r, δλ) of the module notes; X a numpy array of the owned values."""
     from dolfinx import fem
+
     from membranes.fem.discretisation import discretise
     mesh = perturbed_square(comm, N)
     disc = discretise(SquareProblem(mesh))

@@ -38,6 +38,7 @@ def cell_measures(sigma, r):
     """Per owned cell: ‖σ‖_K², ‖∇·σ - r‖_K², ‖r‖_K², |K| (DG0-tested forms)."""
     from dolfinx import fem
     from dolfinx.fem.petsc import assemble_vector
+
     from forms.equilibration import cell_norm_squared
     mesh = r.function_space.mesh
     w = ufl.TestFunction(fem.FunctionSpace(mesh, ("DG", 0)))
@@ -78,6 +79,7 @@ def straddling(flux, comm):
 
 def main(name, J, h):
     from dolfinx import fem
+
     from membranes.estimation.lifting import Lifting
     from membranes.estimation.multilevel import MultilevelFlux
     comm = MPI.COMM_WORLD

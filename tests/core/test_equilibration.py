@@ -20,7 +20,6 @@ import ufl
 from mpi4py import MPI
 
 import forms.equilibration as equilibration_forms
-from membranes.estimation.equilibration import FluxEquilibration
 from membranes.estimation.patches import PatchSystems, colour_vertices
 
 from .mpi_equilibration import MU, Compatible, disk, equilibrate, square
@@ -68,6 +67,7 @@ def dense_patch_sum(data, alpha):
     of γ and q on interior patches by a Lagrange multiplier. Returns σ in W's numbering."""
     from dolfinx import fem
     from dolfinx.fem.petsc import assemble_matrix, assemble_vector
+
     from membranes.estimation.patches import mixed_space
     mesh, V = data.mesh, data.V
     W = mixed_space(mesh)
@@ -143,8 +143,10 @@ def test_engine_two_halves():
     """One group of two patches (the cells left and right of x = 1/2), free on ∂Ω: the solution
     equals the global mixed problem with zero normal flux on the line x = 1/2 (imposed as a
     dolfinx Dirichlet condition), solved as one system."""
-    from dolfinx import fem, mesh as dm
+    from dolfinx import fem
+    from dolfinx import mesh as dm
     from dolfinx.fem.petsc import assemble_matrix, assemble_vector
+
     from membranes.estimation.patches import mixed_space
     mesh = square(MPI.COMM_WORLD, 6)
     W = mixed_space(mesh)
@@ -177,6 +179,7 @@ def test_engine_one_interior_patch():
     from dolfinx import fem
     from dolfinx.fem.petsc import assemble_vector
     from petsc4py import PETSc
+
     from membranes.estimation.patches import mixed_space
     comm = MPI.COMM_WORLD
     mesh = square(comm, 5)

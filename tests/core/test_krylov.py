@@ -48,7 +48,10 @@ def test_linearisation_is_a_jacobian_with_euler_identity(name):
     a, b, kappa = RNG.normal(size=200), RNG.normal(size=200), 0.7
     alpha, beta, B3 = cfunctions.linearise(name, a, b, kappa)
     eps = 1e-7
-    C = lambda x, y: cfunctions.value(name, x, y, kappa)
+
+    def C(x, y):
+        return cfunctions.value(name, x, y, kappa)
+
     da = (C(a + eps, b) - C(a - eps, b)) / (2 * eps)
     db = (C(a, b + eps) - C(a, b - eps)) / (2 * eps)
     assert np.allclose(alpha, da, atol=1e-6) and np.allclose(beta, db, atol=1e-6)

@@ -196,6 +196,7 @@ def test_sharpness_on_a_newton_system():
     """Newton-min on the disk, three exact steps, then GMRES(ILU) iterates of the fourth
     step's 3N system: η_alg against the dual norm of their residuals R_1, R_2."""
     from dolfinx import fem
+
     from membranes.nonlinear.system import NewtonSystem
     _, disc, flux = flux_of("disk", 2, 0.2)
     comm, n = disc.comm, disc.n

@@ -12,8 +12,7 @@ import pytest
 from mpi4py import MPI
 
 from membranes.app import report
-from membranes.app.report import (CURVE_COLUMNS, METHOD_NAMES, PEERS, TABLE_COLUMNS,
-                                  write_report)
+from membranes.app.report import CURVE_COLUMNS, METHOD_NAMES, PEERS, TABLE_COLUMNS, write_report
 from membranes.model import scenes
 
 pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="reads the files serially")
