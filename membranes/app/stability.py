@@ -365,7 +365,7 @@ def add_parser(sub):
 
 
 def main(args):
-    from ..cli import EXIT_NOT_CONVERGED
+    from .cli import EXIT_NOT_CONVERGED
     comm = MPI.COMM_WORLD
     names = None if args.cases is None else [n.strip() for n in args.cases.split(",")]
     check_h(args.h)
