@@ -4,7 +4,7 @@
 setup:
 	@bash .ci/setup
 
-# The full disk comparison (DESIGN §8, §9): J = 3 levels, finest h ≈ 0.025, ~10k vertices.
+# The full disk comparison (§8, §9): J = 3 levels, finest h ≈ 0.025, ~10k vertices.
 demo: setup
 	.venv/bin/membranes report --scene disk --h 0.16 --levels 3 --out out/report
 

@@ -1,4 +1,4 @@
-"""Meshes and the refinement hierarchy (DESIGN §6, §9)."""
+"""Meshes and the refinement hierarchy (§6, §9)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""The radial family of exact solutions (scenes.radial; groundwork for DESIGN §11's cases):
+"""The radial family of exact solutions (scenes.radial; groundwork for §11's cases):
 contact disk, near-total contact, grazing contact and no contact, for any μ1, μ2, g. Every
 case converges with min and Fischer–Burmeister, complementarity holds at round-off (fb: at its
 tolerance), and the guaranteed bound holds at the final iterate."""

@@ -156,7 +156,7 @@ SOLVER_BYTES_PER_VERTEX = {       # discretisation, Newton systems and their Kry
     "vertex_amg": 1800.0,         # FGMRES + vertex_amg on the eliminated 2N system
 }
 DIRECT_COEFFICIENT, DIRECT_EXPONENT = 1.9e3, 1.26   # MUMPS LU of the full system: c N^p bytes
-ESTIMATOR_BYTES_PER_VERTEX = {    # the a posteriori estimators (DESIGN §7), by algebraic flux
+ESTIMATOR_BYTES_PER_VERTEX = {    # the a posteriori estimators (§7), by algebraic flux
     "nu": 1100.0,
     "multilevel": 2900.0,
 }

@@ -1,9 +1,9 @@
-"""Problem data of the two-membrane contact problem (DESIGN §1).
+"""Problem data of the two-membrane contact problem (§1).
 
 A :class:`Problem` holds the mesh hierarchy (the computational mesh is the finest level),
 the moduli μ1, μ2 > 0, the boundary value g > 0 of membrane 1, the loads f1, f2, and what the
 scene declares beyond that: an exact solution where one is known, and a level set across which
-the data jump (so that cells it cuts are integrated with a composite rule, DESIGN §7, §9).
+the data jump (so that cells it cuts are integrated with a composite rule, §7, §9).
 
 Data are *builders*: callables taking the UFL spatial coordinate ``x`` and returning a UFL
 expression, or :class:`membranes.model.expressions.Formula` objects (user formulas, which are also
@@ -71,7 +71,7 @@ class Problem:
     poincare: Optional[float] = None       # C_PF h_Ω where the scene knows a sharper value
 
     def poincare_constant(self):
-        """C_PF h_Ω ≥ 1/sqrt(λ_1(Ω)) (DESIGN §7): the scene's value, else the guaranteed bound
+        """C_PF h_Ω ≥ 1/sqrt(λ_1(Ω)) (§7): the scene's value, else the guaranteed bound
         1/(π sqrt(1/a² + 1/b²)) of the bounding box a × b of the computational mesh."""
         if self.poincare is not None:
             return float(self.poincare)
