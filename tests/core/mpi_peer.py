@@ -101,6 +101,7 @@ def main(levels, rtol):
     # a collective clean-up: done here, every rank at once, not at exit while another rank
     # may still wait in the gather below
     import gc
+
     from petsc4py import PETSc
     gc.collect()
     PETSc.garbage_cleanup(comm)
