@@ -1,0 +1,199 @@
+"""One measurement in a fresh process, for the benchmarks of this folder.
+
+Run as a script, this is the *child*: `python benchmarks/fresh.py METHOD J[:H0]` (under
+`mpirun -n P` for P > 1) builds the disk scene (§9) `scenes.disk(h=H0, levels=J)`, runs one
+method on it and prints, on process 0, one JSON line:
+
+* ``ours``: `solve(problem)` with the API's defaults (adaptive Newton, the 'amg' preset,
+  nested iteration, the ν algebraic flux, the final certificate; §3, §6-§8);
+* ``nested``: the nested SNES VI peer, `nested_peer(problem)` (§10);
+* ``certified``: the nested peer, then our estimators at its final iterate: the set-up of
+  `LevelEstimates(disc, 'nu')` and one evaluation with R the residual of its linear rows
+  (`driver._final_residual`, §4, §7);
+* ``plain``: the plain peer, `plain_peer(problem)` (§10).
+
+The line holds the vertex count, the mesh time (the hierarchy, outside every method's
+clock), the method's own wall time (the largest over the processes: `Solution.wall_time_s`
+for ours; for a peer its solver and discretisation time, plus the certificate's for
+``certified``), Newton (SNES) and Krylov steps, the final energy error against the exact
+solution, η where certified, and the peak resident memory of every process
+(`resource.getrusage`, at the end of the method: the peers' energy errors, computed
+afterwards, are not in it; ours computes its own inside `solve`, off its clock).
+
+The parent side (`launch`, `sizes`, `memory_guard`) starts such a child, times the whole
+process around it, and refuses to start one whose estimated memory exceeds what the machine
+has available.
+"""
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+H0 = 0.2                   # the coarse mesh size of a size 'J' (BENCHMARKS.md's meshes)
+METHODS = ("ours", "nested", "certified", "plain")
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+GIB = 2.0 ** 30
+
+
+def size(arg):
+    """'J' or 'J:H0' -> (J, H0); ValueError for anything else."""
+    j, _, h0 = str(arg).partition(":")
+    try:
+        j, h0 = int(j), float(h0) if h0 else H0
+    except ValueError:
+        j, h0 = -1, 0.0
+    if j < 0 or not h0 > 0:
+        raise ValueError(f"size {arg!r} is not J or J:H0 (J >= 0, H0 > 0)")
+    return j, h0
+
+
+def vertices(arg):
+    """The vertex count of T_J for size 'J[:H0]': gmsh's coarse mesh counted (a fraction of
+    a second), then the exact recursion of uniform refinement (model.checks)."""
+    from membranes.fem import meshes
+    from membranes.model import checks
+    from mpi4py import MPI
+    j, h0 = size(arg)
+    mesh = meshes.unit_disk(h0, MPI.COMM_SELF)
+    v, t = (mesh.topology.index_map(d).size_global for d in (0, 2))
+    return int(round(checks.refined_vertices(v, t, j)))
+
+
+# ## The child
+
+def _peak_gib():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0 / GIB   # KiB on Linux
+
+
+def child(method, arg):
+    from mpi4py import MPI
+    from membranes.app.cli import quiet_jit_logging
+    quiet_jit_logging()
+    from membranes import scenes, solve
+    from membranes.app.driver import LevelEstimates, _final_residual
+    from membranes.app.peer import nested_peer, plain_peer
+    from membranes.estimation.energy_error import EnergyError
+    comm = MPI.COMM_WORLD
+    j, h0 = size(arg)
+    t0 = time.perf_counter()
+    problem = scenes.disk(h=h0, levels=j)
+    mesh_s = time.perf_counter() - t0
+    out = {"method": method, "size": arg, "processes": comm.size,
+           "vertices": int(problem.mesh.topology.index_map(0).size_global), "mesh_s": mesh_s}
+    if method == "ours":
+        sol = solve(problem)
+        peak = _peak_gib()
+        est = sol.estimates or {}
+        out.update(converged=bool(sol.converged), method_s=sol.wall_time_s,
+                   newton=sol.newton_iterations,
+                   per_level=[lv["newton_iterations"] for lv in sol.per_level],
+                   linear=sol.linear_iterations, energy_error=sol.energy_error,
+                   eta=est.get("eta"), estimator_s=list(sol.estimator_times))
+    elif method in ("nested", "certified", "plain"):
+        result = (plain_peer if method == "plain" else nested_peer)(problem)
+        method_s = result.wall_time_s + result.setup_time_s
+        eta = cert_s = None
+        if method == "certified":
+            t = time.perf_counter()
+            disc = result.disc
+            certificate = LevelEstimates(disc, "nu")
+            eta = certificate(result.X, _final_residual(disc, result.X, "min"))["eta"]
+            cert_s = time.perf_counter() - t
+            method_s += cert_s
+        peak = _peak_gib()
+        out.update(converged=bool(result.converged), method_s=method_s,
+                   newton=result.snes_iterations,
+                   per_level=[r.snes_iterations for r in result.levels],
+                   linear=result.ksp_iterations,
+                   energy_error=EnergyError(result.disc)(result.X), eta=eta,
+                   certificate_s=cert_s)
+    else:
+        raise ValueError(f"unknown method {method!r} (choose from: {', '.join(METHODS)})")
+    # every process's clock and peak: the slowest clock is the method's time
+    out["method_s"] = comm.allreduce(out["method_s"], op=MPI.MAX)
+    peaks = comm.gather(peak, root=0)
+    if comm.rank == 0:
+        out["peaks_gib"] = peaks
+        print(json.dumps(out), flush=True)
+
+
+# ## The parent
+
+def launch(method, arg, processes=1, timeout=None):
+    """Run the child in a fresh process (`mpirun --oversubscribe -n P` for P > 1) and return
+    its JSON record with `process_s`, the wall time of the whole process measured here, or
+    {"failed": reason}."""
+    command = [sys.executable, os.path.join(HERE, "fresh.py"), method, str(arg)]
+    # a parent started under mpirun must not hand its own MPI environment to the child
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    if processes > 1:
+        command = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n",
+                   str(processes)] + command
+    t = time.perf_counter()
+    try:
+        proc = subprocess.run(command, capture_output=True, text=True, env=env, cwd=ROOT,
+                              timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"method": method, "size": arg, "processes": processes,
+                "failed": f"timed out after {timeout} s"}
+    process_s = time.perf_counter() - t
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        tail = " | ".join(proc.stderr.strip().splitlines()[-3:])
+        return {"method": method, "size": arg, "processes": processes,
+                "failed": f"exit {proc.returncode}: {tail}"}
+    record = json.loads(lines[-1])
+    record["process_s"] = process_s
+    return record
+
+
+def available_bytes():
+    """MemAvailable now (the kernel's estimate of what can be allocated without swapping)."""
+    from membranes.model import checks
+    return checks.available_memory()
+
+
+class MemoryGuard:
+    """Estimated memory of a run of ours (the heaviest method here: the 'amg' preset and the
+    estimators) on P processes, summed over them, against MemAvailable read just before the
+    launch: `room(n, P)` gives None if it fits in `margin` of what is available, else the
+    reason to skip. The estimate is the larger of model.checks's (bytes per vertex, the
+    per-vertex part shared out over P, a base per process) and the figure measured by the
+    runs of at least MEASURED_FROM vertices made so far (`measured`)."""
+
+    MEASURED_FROM = 5e4     # below, the base of each process dominates: no per-vertex figure
+
+    def __init__(self, margin=0.8):
+        self.margin = margin
+        self.per_vertex = 0.0
+
+    def estimate(self, n, processes):
+        from membranes.app.driver import MEMORY_METHOD
+        from membranes.model import checks
+        each = checks.estimate_memory(n, estimators=True, processes=processes,
+                                      replicated=False, **MEMORY_METHOD["amg"])
+        measured = processes * checks.BASE_BYTES + self.per_vertex * n
+        return max(processes * each, measured)
+
+    def measured(self, record):
+        from membranes.model import checks
+        if "failed" in record or record["vertices"] < self.MEASURED_FROM:
+            return
+        grows = sum(record["peaks_gib"]) * GIB - len(record["peaks_gib"]) * checks.BASE_BYTES
+        self.per_vertex = max(self.per_vertex, grows / record["vertices"])
+
+    def room(self, n, processes):
+        need, have = self.estimate(n, processes), available_bytes()
+        if have is not None and need > self.margin * have:
+            return (f"skipped: {n} vertices on {processes} process(es) need about "
+                    f"{need / GIB:.1f} GiB, {self.margin:.0%} of the "
+                    f"{have / GIB:.1f} GiB available is {self.margin * have / GIB:.1f}")
+        return None
+
+
+if __name__ == "__main__":
+    child(sys.argv[1], sys.argv[2])
