@@ -465,9 +465,9 @@ def add_parser(sub):
 def main(args):
     """`membranes report`: 0, or EXIT_NOT_CONVERGED when a method did not converge (the report
     is written all the same); bad input raises ValueError before anything is written."""
-    from .cli import EXIT_NOT_CONVERGED
     from ..model import scenes
     from ..model.checks import check_output_folder
+    from .cli import EXIT_NOT_CONVERGED
     comm = MPI.COMM_WORLD
     check_output_folder(args.out, comm)
     problem = scenes.make(args.scene, h=args.h, levels=args.levels)
