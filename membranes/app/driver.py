@@ -23,18 +23,23 @@ at the moment it was made (`wall_time_s`: after its estimate where the method es
 the final iterate's after its certificate), so that error and η can be drawn against time.
 """
 
+from __future__ import annotations
+
 import sys
 import time
 from dataclasses import replace
+from typing import Any, Callable, Literal, Mapping, Optional, Union
 
 import numpy as np
+from petsc4py import PETSc
 
 from ..estimation.energy_error import EnergyError
 from ..estimation.equilibration import FluxEquilibration
 from ..estimation.estimators import Estimators
-from ..fem.discretisation import discretise
+from ..fem.discretisation import Discretisation, discretise
 from ..linalg.krylov import Krylov
 from ..model import checks
+from ..model.problem import Problem
 from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS, linear_criterion
 from ..nonlinear.newton import newton as run_newton
@@ -261,11 +266,26 @@ def prolong(P, disc, X_coarse, n_coarse):
     return X
 
 
-def solve(problem, newton="adaptive", cfun="min", solver="amg", system=None,
-          petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
-          estimators=True, alg_flux=None, gamma_lin=None, gamma_alg=None,
-          initial_guess=None, nested=None, errors="final", progress=False,
-          max_vertices=None):
+def solve(problem: Problem,
+          newton: Literal["adaptive", "exact", "inexact"] = "adaptive",
+          cfun: Literal["min", "fb"] = "min",
+          solver: Literal["amg", "paper", "direct"] = "amg",
+          system: Optional[Literal["full", "eliminated"]] = None,
+          petsc_options: Union[None, str, Mapping[str, Any]] = None,
+          nu: Optional[int] = None,
+          max_linear_its: Optional[int] = None,
+          tol: Optional[float] = None,
+          max_newton: int = 100,
+          estimators: bool = True,
+          alg_flux: Optional[Literal["nu", "multilevel"]] = None,
+          gamma_lin: Optional[float] = None,
+          gamma_alg: Optional[float] = None,
+          initial_guess: Union[None, Literal["paper", "zero"], PETSc.Vec,
+                               Callable[[Discretisation], PETSc.Vec]] = None,
+          nested: Optional[bool] = None,
+          errors: Literal["final", "iterates", "none"] = "final",
+          progress: Union[bool, Callable[[str], Any]] = False,
+          max_vertices: Optional[int] = None) -> Solution:
     """Solve the discrete contact problem of `problem` by semismooth Newton and certify it.
 
     newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)

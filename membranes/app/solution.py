@@ -5,12 +5,19 @@ the same history, counts and estimates (MPI reductions), so every process return
 `Solution`; `summary()` is the content of summary.json (docs/outputs.md).
 """
 
+from __future__ import annotations
+
 from dataclasses import dataclass, field
+from typing import Any, Optional
 
 import numpy as np
+from dolfinx.fem import Function
 from mpi4py import MPI
+from petsc4py import PETSc
 
+from ..fem.discretisation import Discretisation
 from ..fem.meshes import mesh_size
+from ..model.problem import Problem
 
 # the estimators of an iterate as they go into records and summary.json (§7)
 ESTIMATOR_COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
@@ -19,46 +26,46 @@ ESTIMATOR_COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc"
 
 @dataclass
 class Solution:
-    problem: object
-    disc: object                  # the discretisation of the computational mesh T_J
-    X: object                     # PETSc Vec, iterate layout [u1 | u2 | λ] (owned dofs)
+    problem: Problem
+    disc: Discretisation          # the discretisation of the computational mesh T_J
+    X: PETSc.Vec                  # iterate layout [u1 | u2 | λ] (owned dofs)
     converged: bool
     reason: str
     newton_iterations: int
     linear_iterations: int
     wall_time_s: float
-    history: list
-    options: dict
-    energy_error: float = None
-    energy_error_kind: str = None  # which error energy_error is (see `summary`)
-    functions: list = field(default_factory=list)
-    eta_K: np.ndarray = None      # local distribution η_K over the owned cells (§7)
-    estimates: dict = None        # the estimators at X, where estimated
-    estimator_times: tuple = (None, None)   # (set-up, evaluations) in seconds
-    per_level: list = field(default_factory=list)
+    history: list[dict[str, Any]]
+    options: dict[str, Any]
+    energy_error: Optional[float] = None
+    energy_error_kind: Optional[str] = None  # which error energy_error is (see `summary`)
+    functions: list[Function] = field(default_factory=list)
+    eta_K: Optional[np.ndarray] = None      # local distribution η_K over the owned cells (§7)
+    estimates: Optional[dict[str, Any]] = None        # the estimators at X, where estimated
+    estimator_times: tuple[Optional[float], Optional[float]] = (None, None)  # set-up, evals [s]
+    per_level: list[dict[str, Any]] = field(default_factory=list)
 
     @property
-    def comm(self):
+    def comm(self) -> MPI.Comm:
         return self.disc.comm
 
     @property
-    def u1(self):
+    def u1(self) -> Function:
         return self.functions[0]
 
     @property
-    def u2(self):
+    def u2(self) -> Function:
         return self.functions[1]
 
     @property
-    def lam(self):
+    def lam(self) -> Function:
         return self.functions[2]
 
     @property
-    def final_record(self):
+    def final_record(self) -> dict[str, Any]:
         """The history record of X (Krylov records may follow it after a failed solve)."""
         return next(rec for rec in reversed(self.history) if rec["kind"] != "krylov")
 
-    def complementarity_violation(self):
+    def complementarity_violation(self) -> float:
         """Largest violation of w = u1 - u2 ≥ 0, λ ≥ 0, λ w = 0 at interior vertices, relative
         to the data scale (§11): w against max(u_data, |u|∞), λ against max(λ_data, |λ|∞)."""
         d = self.disc
@@ -76,7 +83,7 @@ class Solution:
         return float(max(gmax(-w) / u_scale, gmax(-lam) / lam_scale,
                          gmax(np.abs(w * lam)) / (u_scale * lam_scale)))
 
-    def summary(self):
+    def summary(self) -> dict[str, Any]:
         """The keys of summary.json (docs/outputs.md)."""
         p = self.problem
         mesh = p.mesh

@@ -10,23 +10,32 @@ expression, or :class:`membranes.model.expressions.Formula` objects (user formul
 checked to be finite on the mesh). Bad data raise ValueError with a one-line message.
 """
 
+from __future__ import annotations
+
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional, Union
 
 import numpy as np
+from dolfinx.mesh import Mesh
 
 from .expressions import Formula
+
+if TYPE_CHECKING:          # model/ imports nothing above it (docs/architecture.md)
+    from ..fem.hierarchy import Hierarchy
+
+# A data item: a number, a formula in x, y (str or Formula) or a builder x ↦ UFL expression.
+Data = Union[float, str, Formula, Callable[[Any], Any]]
 
 
 @dataclass
 class ExactSolution:
     """u1, u2, λ as builders x ↦ UFL expression."""
-    u1: Callable
-    u2: Callable
-    lam: Callable
+    u1: Callable[[Any], Any]
+    u2: Callable[[Any], Any]
+    lam: Callable[[Any], Any]
 
 
-def as_builder(data):
+def as_builder(data: Data) -> Callable[[Any], Any]:
     """A data item as a callable x ↦ UFL expression (numbers and Formulas accepted)."""
     if isinstance(data, Formula):
         return data.ufl
@@ -36,7 +45,7 @@ def as_builder(data):
     return lambda x: value
 
 
-def positive_number(name, value):
+def positive_number(name: str, value: Any) -> float:
     try:
         value = float(value)
     except (TypeError, ValueError):
@@ -58,19 +67,20 @@ def _sample_points(mesh):
 @dataclass
 class Problem:
     name: str
-    hierarchy: object            # membranes.hierarchy.Hierarchy
+    hierarchy: Hierarchy         # the meshes T_0, …, T_J; T_J is the computational mesh
     mu1: float
     mu2: float
     g: float
-    f1: object
-    f2: object
+    f1: Data
+    f2: Data
     exact: Optional[ExactSolution] = None
-    interface: Optional[Callable] = None   # numpy level set φ(points (2, n)); data jump at φ = 0
+    # numpy level set φ(points (2, n)); the data jump at φ = 0
+    interface: Optional[Callable[[np.ndarray], np.ndarray]] = None
     description: str = ""
     domain: str = ""
     poincare: Optional[float] = None       # C_PF h_Ω where the scene knows a sharper value
 
-    def poincare_constant(self):
+    def poincare_constant(self) -> float:
         """C_PF h_Ω ≥ 1/sqrt(λ_1(Ω)) (§7): the scene's value, else the guaranteed bound
         1/(π sqrt(1/a² + 1/b²)) of the bounding box a × b of the computational mesh."""
         if self.poincare is not None:
@@ -83,7 +93,7 @@ class Problem:
         a, b = hi[0] - lo[0], hi[1] - lo[1]
         return float(1.0 / (np.pi * np.sqrt(1.0 / a ** 2 + 1.0 / b ** 2)))
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.mu1 = positive_number("mu1", self.mu1)
         self.mu2 = positive_number("mu2", self.mu2)
         self.g = positive_number("g", self.g)
@@ -107,10 +117,10 @@ class Problem:
                     raise ValueError(f"{name} must be finite, got {v}")
 
     @property
-    def mesh(self):
+    def mesh(self) -> Mesh:
         """The computational mesh T_J."""
         return self.hierarchy.finest
 
     @property
-    def levels(self):
+    def levels(self) -> int:
         return self.hierarchy.levels

@@ -10,8 +10,13 @@ the data jump. Nothing else is attached, so the driver computes nothing a scene 
   the unit square, or a gmsh file.
 """
 
-import math
+from __future__ import annotations
 
+import math
+import os
+from typing import Any, Optional, Union
+
+import dolfinx.mesh
 import numpy as np
 import ufl
 from mpi4py import MPI
@@ -64,7 +69,8 @@ DISK_G = 0.05
 J01 = 2.404825557695773   # first zero of the Bessel function J_0
 
 
-def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, max_vertices=None):
+def disk(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
+         max_vertices: Optional[int] = None) -> Problem:
     """The paper's test case on the unit disk, with its exact solution (§9).
     `max_vertices`: refuse a larger mesh before meshing (every scene has it)."""
     levels = _check_levels(levels)
@@ -117,7 +123,9 @@ def disk(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, max_vertices=None):
 SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
 
 
-def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, mesh=None, max_vertices=None):
+def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
+           mesh: Optional[dolfinx.mesh.Mesh] = None,
+           max_vertices: Optional[int] = None) -> Problem:
     """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
     `mesh`: a dolfinx mesh of (0, 1)² to use instead of gmsh's at size h (API only: the
     anisotropic, graded and tiny meshes of §11, meshes.structured_square)."""
@@ -173,8 +181,9 @@ def square(h=DEFAULT_H, levels=0, comm=MPI.COMM_WORLD, mesh=None, max_vertices=N
 # equations (UFL differentiates), so every choice has its exact solution.
 
 
-def radial(h=DEFAULT_H, levels=0, rho=0.5, mu1=1.0, mu2=1.0, g=0.05, contact=True,
-           comm=MPI.COMM_WORLD, max_vertices=None):
+def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float = 1.0,
+           mu2: float = 1.0, g: float = 0.05, contact: bool = True,
+           comm: MPI.Comm = MPI.COMM_WORLD, max_vertices: Optional[int] = None) -> Problem:
     """Unit disk, exact radial solution with contact disk r <= rho (any mu1, mu2, g)."""
     levels = _check_levels(levels)
     _check_size(h, levels, "disk", None, max_vertices, comm)
@@ -227,8 +236,11 @@ def radial(h=DEFAULT_H, levels=0, rho=0.5, mu1=1.0, mu2=1.0, g=0.05, contact=Tru
 USER_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "g": 0.05, "f1": "0", "f2": "0"}
 
 
-def user(mu1=1.0, mu2=1.0, g=0.05, f1="0", f2="0", mesh=None, domain="disk", h=DEFAULT_H,
-         levels=0, comm=MPI.COMM_WORLD, max_vertices=None):
+def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, float] = "0",
+         f2: Union[str, float] = "0", mesh: Union[None, str, os.PathLike] = None,
+         domain: str = "disk",
+         h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
+         max_vertices: Optional[int] = None) -> Problem:
     """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square."""
     levels = _check_levels(levels)
     f1, f2 = Formula(f1, "f1"), Formula(f2, "f2")   # fail on bad input before any meshing
@@ -254,7 +266,7 @@ NEEDS = {"disk": "exact solution -> energy error; data jump across r = 1/sqrt(2)
          "user": "data only (no exact solution, no energy error)"}
 
 
-def make(name, **kwargs):
+def make(name: str, **kwargs: Any) -> Problem:
     """Build scene `name` with keyword arguments of its function."""
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r} (choose from: {', '.join(SCENES)})")
