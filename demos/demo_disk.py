@@ -1,104 +1,183 @@
-# # Two membranes in contact: the disk test case
+# # Two membranes in contact: exact, inexact and adaptive Newton on the disk
 #
 # This demo solves the contact problem between two elastic membranes on the unit disk, the
-# test case of Dabaghi, Martin and Vohralík (J. Sci. Comput. 2020) whose exact solution is
-# known (`../shared/DESIGN.md`, §9). It illustrates how to
+# test case of Dabaghi, Martin and Vohralík (J. Sci. Comput. 84:28, 2020) whose exact solution
+# is known ([theory](../docs/theory.md) §9), with the three semismooth Newton methods of §8.
+# It shows
 #
-# - build a scene (mesh, data, exact solution) with `membranes.scenes`,
-# - solve the discrete problem by semismooth Newton with the C-functions `min` and
-#   Fischer–Burmeister (`membranes.solve`), exactly and inexactly (GMRES),
-# - certify the answer with the guaranteed a posteriori bound η (DESIGN §7),
-# - check the answer against an independent solver (PETSc SNES VI on the decoupled
-#   problem, DESIGN §10),
-# - write `summary.json`, `history.csv` and `solution.xdmf` for ParaView.
+# - how to build a scene with a hierarchy of meshes (`membranes.scenes`),
+# - how `membranes.solve` runs exact, inexact and adaptive inexact Newton,
+# - the guaranteed bound η ≥ |||u − u_h||| that certifies each answer, and its split into
+#   discretisation, linearisation and algebraic parts (§7),
+# - the picture of the energy error and of η against wall time,
+# - the files a run writes (`summary.json`, `history.csv`, `solution.xdmf`).
+#
+# Run it as `python demos/demo_disk.py [--quick] [--out DIR]` (`--quick`, or the environment
+# variable `MEMBRANES_DEMO_QUICK=1`, takes a coarse mesh and runs in seconds); under
+# `mpirun -n P` the same script runs on P processes.
 #
 # ## Equations
 #
-# Find $u_1, u_2, \lambda$ with
+# Membrane 1 (modulus $\mu_1$, held at height $g$ on $\partial\Omega$) lies above membrane 2
+# ($\mu_2$, held at 0); loads $f_1, f_2$ push them, and where they touch a contact pressure
+# $\lambda \ge 0$ keeps them apart:
 #
 # $$
 # -\mu_1 \Delta u_1 - \lambda = f_1, \quad -\mu_2 \Delta u_2 + \lambda = f_2, \quad
-# u_1 - u_2 \ge 0,\ \lambda \ge 0,\ (u_1 - u_2)\lambda = 0,
+# u_1 - u_2 \ge 0,\ \lambda \ge 0,\ (u_1 - u_2)\lambda = 0 .
 # $$
 #
-# $u_1 = g$, $u_2 = 0$ on $\partial\Omega$. Membrane 1 lies above membrane 2 and $\lambda$ is
-# the contact pressure. On the disk, $\mu_1 = \mu_2 = 1$, $g = 0.05$, and the membranes touch
-# on the disk $r \le 1/\sqrt{2}$.
+# On the disk $\mu_1 = \mu_2 = 1$, $g = 0.05$, and the membranes touch on the disk
+# $r \le 1/\sqrt{2}$, where $\lambda = 2g$ (§9). P1 finite elements with a lumped contact
+# term turn this into $N$ complementarity conditions at the vertices (§2); a C-function
+# ($\min$ here) turns those into equations, which semismooth Newton solves (§3).
 
 # +
+import argparse
 import os
-import sys
 
-import numpy as np
+from mpi4py import MPI
 
 from membranes import scenes, solve
-from membranes.cli import quiet_jit_logging
-from membranes.decoupled import solve_decoupled
-from membranes.newton_system import split
-from membranes.outputs import write_outputs
+from membranes.app.cli import quiet_jit_logging
+from membranes.app.outputs import write_outputs
 
-quiet_jit_logging()
-out = sys.argv[1] if len(sys.argv) > 1 else os.path.join("out", "demo_disk")
+quiet_jit_logging()          # keep stderr for Newton's progress lines
+parser = argparse.ArgumentParser(description="exact, inexact and adaptive Newton on the disk")
+parser.add_argument("--quick", action="store_true", help="a coarse mesh (seconds)")
+parser.add_argument("--out", default=os.path.join("out", "demos", "disk"),
+                    help="folder for the picture and the outputs")
+args = parser.parse_args()
+quick = args.quick or os.environ.get("MEMBRANES_DEMO_QUICK") == "1"
+comm = MPI.COMM_WORLD
+
+
+def say(*line):
+    if comm.rank == 0:
+        print(*line, flush=True)
 # -
 
 # ## The scene
 #
-# `scenes.disk(h)` meshes the unit disk with gmsh (target size `h`) and attaches the data and
-# the exact solution. The data jump across the circle $r = 1/\sqrt{2}$, which cuts cells:
-# those cells are integrated with a composite quadrature rule.
+# `scenes.disk(h, levels)` meshes the unit disk with gmsh (target size `h`) and refines it
+# `levels` times uniformly; each refinement moves the new boundary vertices onto the circle,
+# so the finest mesh $T_J$ approximates the disk, not the first polygon (§9). The scene
+# carries the data and the exact solution, so every run below also measures its true error.
+# The data jump across the circle $r = 1/\sqrt{2}$, which cuts cells: those cells are
+# integrated with a composite quadrature rule.
 
-problem = scenes.disk(h=0.05)
-print(f"disk: {problem.mesh.topology.index_map(0).size_global} vertices, "
-      f"{problem.mesh.topology.index_map(2).size_global} cells")
+h, levels = (0.4, 1) if quick else (0.2, 3)
+problem = scenes.disk(h=h, levels=levels)
+say(f"disk: h = {h}, {levels} refinements; T_J has "
+    f"{problem.mesh.topology.index_map(0).size_global} vertices, "
+    f"{problem.mesh.topology.index_map(2).size_global} cells")
 
-# ## Semismooth Newton
+# ## Three Newton methods
 #
-# From the paper's initial guess $X^0 = (g, 0, 0)$, each Newton step linearises the
-# C-function and solves the $3N \times 3N$ system with GMRES and ILU(0) to
-# $\|R_{alg}\|/\|B\| \le 2 \cdot 10^{-12}$, until the nonlinear residual has dropped to
-# $10^{-10}$ relative to the data. With `min` this is the primal–dual active set method;
-# Fischer–Burmeister is smooth away from the origin. At every Newton iterate the estimators
-# give $\eta \ge |||u - u_h|||$; the effectivity index is $\eta / |||u - u_h|||$.
-
-solutions = {}
-for cfun in ("min", "fb"):
-    sol = solve(problem, cfun=cfun, progress=True)
-    solutions[cfun] = sol
-    s = sol.summary()
-    print(f"{cfun:>3}: converged = {sol.converged}, {sol.newton_iterations} Newton steps, "
-          f"{sol.linear_iterations} GMRES steps, energy error {sol.energy_error:.4e}, "
-          f"eta {s['eta']:.4e} (effectivity {s['effectivity']:.3f}), "
-          f"complementarity violation {sol.complementarity_violation():.1e}")
-
-# Inexact Newton stops GMRES as soon as the algebraic residual is below the nonlinear one
-# (checked every ν = 10 GMRES steps, as in the paper): cheaper steps, more of them. Its Krylov
-# iterates carry no guaranteed bound yet (the algebraic flux comes with the next release).
-
-inexact = solve(problem, newton="inexact", estimators=False)
-print(f"inexact: {inexact.newton_iterations} Newton steps, {inexact.linear_iterations} GMRES "
-      f"steps, energy error {inexact.energy_error:.4e}")
-
-# Both C-functions define the same discrete solution:
-
-n = solutions["min"].disc.n
-for name, a, b in zip(("u1", "u2", "lambda"), split(solutions["min"].X, n),
-                      split(solutions["fb"].X, n)):
-    print(f"max |{name}(min) - {name}(fb)| / max |{name}| = "
-          f"{np.abs(a - b).max() / np.abs(a).max():.1e}")
-
-# ## An independent check
+# All three start on the coarse mesh $T_0$ from $X^0 = (g, 0, 0)$ and use nested iteration:
+# the solution on $T_j$, prolonged, is the initial guess on $T_{j+1}$. Each Newton step is
+# solved by FGMRES with a BoomerAMG preconditioner for the mean and the gap of the two
+# membranes (`solver="amg"`, §10). They differ in when they stop (§8):
 #
-# $z = \mu_1 u_1 + \mu_2 u_2$ and $w = u_1 - u_2$ decouple the discrete system into a linear
-# problem and an obstacle problem, which PETSc's `vinewtonrsls` solves.
+# - **exact**: every linear solve to a relative residual of $2\cdot10^{-12}$, Newton until
+#   the nonlinear residual is $10^{-10}$ of the data;
+# - **inexact**: each linear solve only as far as the current nonlinear residual;
+# - **adaptive**: the estimators decide. Krylov stops once
+#   $\eta_{alg} \le \gamma_{alg} \max(\eta_{disc}, \eta_{lin})$, Newton once
+#   $\eta_{lin} \le \gamma_{lin}\, \eta_{disc}$ ($\gamma = 0.3$): no iteration is spent on an
+#   error the discretisation error already hides.
+#
+# `errors="iterates"` also records the energy error of every iterate, computed off the clock,
+# for the picture below. Every answer comes with its certificate: the estimators at the final
+# iterate, `sol.estimates`.
 
-peer = solve_decoupled(solutions["min"].disc)
-u1, u2, lam = split(solutions["min"].X, n)
-print(f"SNES VI: {peer.newton_iterations} iterations; "
-      f"max relative difference in lambda {np.abs(lam - peer.lam).max() / lam.max():.1e}")
+# +
+runs = {}
+for variant in ("exact", "inexact", "adaptive"):
+    runs[variant] = solve(problem, newton=variant, errors="iterates")
+
+say(f"{'method':9s} {'Newton':>6s} {'per level':>10s} {'Krylov':>6s} {'time [s]':>8s} "
+    f"{'error':>10s} {'eta':>10s} {'eta_disc':>10s} {'eta_lin':>10s} {'eta_alg':>10s} "
+    f"{'eta/error':>9s}")
+for variant, sol in runs.items():
+    est = sol.estimates
+    per_level = "+".join(str(p["newton_iterations"]) for p in sol.per_level)
+    say(f"{variant:9s} {sol.newton_iterations:6d} {per_level:>10s} "
+        f"{sol.linear_iterations:6d} {sol.wall_time_s:8.2f} {sol.energy_error:10.3e} "
+        f"{est['eta']:10.3e} {est['eta_disc']:10.3e} {est['eta_lin']:10.3e} "
+        f"{est['eta_alg']:10.3e} {est['eta'] / sol.energy_error:9.3f}")
+# -
+
+# ## What the certificate says
+#
+# $\eta$ is a guaranteed upper bound of the energy error $|||u - u_h|||$ of the iterate the
+# method returns, whatever the solvers did (§7): it holds for the exact solution of the
+# discrete problem and equally for an iterate stopped early, because the residual that an
+# early stop leaves is part of the bound. The effectivity $\eta / |||u - u_h|||$ says how
+# sharp it is. (On the disk, the error is measured on the polygon of $T_J$ against the
+# disk's exact solution; docs/choices.md says what that means.)
+#
+# The split tells where the error comes from. Exact and inexact Newton end with
+# $\eta_{lin}$ and $\eta_{alg}$ far below $\eta_{disc}$: their last iterations bought
+# nothing visible in the error. The adaptive method stops as soon as the linearisation and
+# algebraic parts are a fraction of the discretisation part:
+
+adaptive = runs["adaptive"]
+est, opts = adaptive.estimates, adaptive.options
+say(f"adaptive: eta_lin = {est['eta_lin']:.3e} <= gamma_lin eta_disc = "
+    f"{opts['gamma_lin'] * est['eta_disc']:.3e}; eta_alg = {est['eta_alg']:.3e} "
+    f"(gamma_alg = {opts['gamma_alg']})")
+for variant, sol in runs.items():
+    bound = sol.estimates["eta"] >= sol.energy_error
+    say(f"{variant}: eta = {sol.estimates['eta']:.4e} >= error = {sol.energy_error:.4e}: "
+        f"{bound}")
+
+# ## Error and estimate against time
+#
+# Every history record (one per Newton iterate here; the adaptive run also records every
+# ν-th Krylov iterate) carries the run's clock when it was made, its energy error, and, where
+# the method estimated it, the estimators. Plotted against time, the error of each method
+# falls level by level with the nested iteration; the adaptive method's η follows its error
+# from above at every iterate it estimated, while exact and inexact Newton carry a single
+# certificate, at the end. The estimates are not free: the adaptive run sets up the flux
+# equilibration of every level (the pause at the start of each level) and evaluates the
+# estimators every ν Krylov steps; whether that pays off depends on how much the Krylov and
+# Newton steps it saves cost. `membranes report` measures it for every method side by side.
+
+# +
+os.makedirs(args.out, exist_ok=True)
+picture = os.path.join(args.out, "error_vs_time.png")
+if comm.rank == 0:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7.5, 4.8), layout="constrained")
+    ax = fig.add_subplot()
+    for i, (variant, sol) in enumerate(runs.items()):
+        records = [r for r in sol.history if r["kind"] != "krylov"]
+        t = [r["wall_time_s"] for r in records if r["energy_error"]]
+        err = [r["energy_error"] for r in records if r["energy_error"]]
+        ax.plot(t, err, "-o", ms=3, color=f"C{i}", label=f"{variant}: error")
+        t = [r["wall_time_s"] for r in records if r["eta"] is not None]
+        eta = [r["eta"] for r in records if r["eta"] is not None]
+        ax.plot(t, eta, "--s" if len(eta) > 1 else "s", ms=5 if len(eta) > 1 else 9,
+                color=f"C{i}", label=f"{variant}: η")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time [s]")
+    ax.set_ylabel("energy error |||u - u_h|||, estimate η")
+    ax.set_title(f"disk, J = {levels}: error and η at the Newton iterates")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.savefig(picture, dpi=100)
+    say("picture:", picture)
+# -
 
 # ## Outputs
 #
-# `summary.json`, `history.csv` (one row per Newton iterate) and `solution.xdmf` with the P1
-# functions `u1`, `u2`, `lambda`, to open in ParaView.
+# `write_outputs` writes `summary.json` (counts, times, η and its parts, the energy error
+# and the effectivity), `history.csv` (one row per recorded iterate with its estimates) and
+# `solution.xdmf` + `.h5` with `u1`, `u2`, `lambda` and the local estimator `eta` ($\eta_K$,
+# one value per cell) for ParaView. `membranes solve --scene disk --h 0.2 --levels 3 --out DIR`
+# does the same from the command line (docs/cli.md, docs/outputs.md).
 
-print("written to", write_outputs(solutions["min"], out))
+say("written to", write_outputs(adaptive, os.path.join(args.out, "adaptive")))

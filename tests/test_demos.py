@@ -1,0 +1,84 @@
+"""The literate demos of demos/ run in their quick mode, as a user runs them: as scripts in a
+fresh process (serially, and the user-mesh demo on 2 processes), exiting 0, drawing their
+pictures and writing outputs whose certificate is a bound."""
+
+import json
+import math
+import os
+import shutil
+import struct
+import subprocess
+import sys
+
+import pytest
+from mpi4py import MPI
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DEMOS = os.path.join(ROOT, "demos")
+
+pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1,
+                                reason="runs the demos in processes of their own")
+
+
+def run_demo(name, out, processes=1):
+    """Run demos/NAME --quick --out OUT; returns its stdout (asserting exit code 0)."""
+    command = [sys.executable, os.path.join(DEMOS, name), "--quick", "--out", str(out)]
+    if processes > 1:
+        mpirun = shutil.which("mpirun")
+        if mpirun is None:
+            pytest.skip("no mpirun")
+        command = [mpirun, "--allow-run-as-root", "--oversubscribe", "-n", str(processes)] + \
+            command
+    # this process is an MPI singleton: its Open MPI variables would confuse a new mpirun
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    proc = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    return proc.stdout
+
+
+def png_size(path):
+    """(width, height) of a PNG file, from its signature and IHDR chunk."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    assert head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR", f"{path} is no PNG"
+    return struct.unpack(">II", head[16:24])
+
+
+def summary(folder):
+    with open(os.path.join(folder, "summary.json")) as f:
+        return json.load(f)
+
+
+def test_demo_disk(tmp_path):
+    out = tmp_path / "disk"
+    stdout = run_demo("demo_disk.py", out)
+    width, height = png_size(out / "error_vs_time.png")
+    assert width >= 600 and height >= 400
+    assert os.path.getsize(out / "error_vs_time.png") > 20_000      # curves, not a blank plot
+    # the three methods printed their certificates, and each bounds the measured error
+    verdicts = [line for line in stdout.splitlines() if ">= error" in line]
+    assert [v.split(":")[0] for v in verdicts] == ["exact", "inexact", "adaptive"]
+    assert all(v.endswith(": True") for v in verdicts), verdicts
+    s = summary(out / "adaptive")
+    assert s["converged"] and s["newton"] == "adaptive" and s["bound_guaranteed"]
+    assert s["eta"] >= s["energy_error"] > 0
+    # adaptive stopping (theory §8): η_lin ≤ γ_lin η_disc at the returned iterate
+    assert s["eta_lin"] <= s["gamma_lin"] * s["eta_disc"]
+    for name in ("history.csv", "solution.xdmf", "solution.h5"):
+        assert (out / "adaptive" / name).stat().st_size > 0
+
+
+@pytest.mark.parametrize("processes", [1, 2])
+def test_demo_user_mesh(tmp_path, processes):
+    out = tmp_path / "user_mesh"
+    stdout = run_demo("demo_user_mesh.py", out, processes)
+    assert (out / "l_shape.msh").stat().st_size > 0
+    for picture, panels in (("contact.png", 2), ("eta_K.png", 1)):
+        width, height = png_size(out / picture)
+        assert width == 700 * panels and height == 650     # render.py's window per panel
+    s = summary(out / "solution")
+    assert s["converged"] and s["scene"] == "user" and s["processes"] == processes
+    assert s["energy_error"] is None            # user data: no exact solution, η alone
+    assert math.isfinite(s["eta"]) and s["eta"] > 0 and s["bound_guaranteed"]
+    assert "guaranteed bound" in stdout
