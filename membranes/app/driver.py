@@ -201,19 +201,23 @@ class _Recorder:
     (all but the adaptive variant's X⁰), so each record gets the run's clock when it is made
     (after its estimate, if the method estimates it) and, with errors='iterates', its energy
     error, computed off the clock. `estimate` None: the method does not estimate (returns
-    None, so Newton records no estimates)."""
+    None, so Newton records no estimates). An estimate marked `of_previous` (the ν flux, §6)
+    is that of the iterate handed over before (X^{k,0} announced as 'step', or the last
+    Krylov iterate), and so is the error of its record."""
 
     def __init__(self, estimate, error, clock):
         self.estimate, self.error, self.clock = estimate, error, clock
         self.stamps = []                         # (seconds on the clock, energy error)
+        self.previous = None                     # the error of the iterate handed over last
 
     def __call__(self, X, R, kind):
         out = self.estimate(X, R, kind) if self.estimate is not None else None
-        if kind == "step":                     # not a record: X^{k,0} announced
-            return out
         t = self.clock.now()
         err = self.clock.off(self.error, X) if self.error is not None else None
-        self.stamps.append((t, err))
+        earlier, self.previous = self.previous, err
+        if kind == "step":                     # not a record: X^{k,0} announced
+            return out
+        self.stamps.append((t, earlier if out is not None and out.get("of_previous") else err))
         return out
 
 
