@@ -22,8 +22,8 @@ Printed per size and P: the largest per-process peak, the sum over the processes
 relative to the serial one; then the ratio at the largest P against the target. Nothing is
 asserted.
 
-Usage: `.venv/bin/python benchmarks/bench_memory.py [--sizes J[:H0] ...] [--procs P ...]`;
-a smoke run: `--sizes 2 3`.
+Usage: `.venv/bin/python benchmarks/bench_memory.py [--sizes J[:H0] ...] [--procs P ...]
+[--blas-threads T] [--timeout S] [--margin F]`; a smoke run: `--sizes 2 3`.
 """
 
 import argparse
@@ -37,8 +37,10 @@ TARGET = 0.4          # largest per-process peak at P = 4 over the serial peak
 
 def main(args):
     guard = fresh.MemoryGuard(args.margin)
+    print(f"BLAS threads: {fresh.blas_threads(args.blas_threads)}", flush=True)
     if not args.no_warmup:
-        r = fresh.launch("ours", "1", 1, args.timeout)       # the JIT cache warm
+        # the JIT cache warm
+        r = fresh.launch("ours", "1", 1, args.timeout, args.blas_threads)
         if "failed" in r:
             print(f"warm-up: failed: {r['failed']}", file=sys.stderr)
     rows = {}
@@ -49,7 +51,7 @@ def main(args):
             if skip:
                 print(f"size {s} ({n} vertices), P = {p}: {skip}", flush=True)
                 continue
-            r = fresh.launch("ours", s, p, args.timeout)
+            r = fresh.launch("ours", s, p, args.timeout, args.blas_threads)
             if "failed" in r:
                 print(f"size {s}, P = {p}: failed: {r['failed']}", flush=True)
                 continue
@@ -98,6 +100,9 @@ def parse(argv=None):
                         help="numbers of processes (default 1 2 4)")
     parser.add_argument("--no-warmup", action="store_true",
                         help="no small unreported run first (the JIT cache is then warm)")
+    parser.add_argument("--blas-threads", type=int, default=None, metavar="T",
+                        help="BLAS (OpenBLAS, OpenMP) threads of every process (default: "
+                             "the environment's)")
     parser.add_argument("--timeout", type=float, default=None, metavar="S",
                         help="give up a run after S seconds")
     parser.add_argument("--margin", type=float, default=0.8, metavar="F",
@@ -111,6 +116,8 @@ def parse(argv=None):
             parser.error(str(e))
     if any(p < 1 for p in args.procs):
         parser.error("every P must be at least 1")
+    if args.blas_threads is not None and args.blas_threads < 1:
+        parser.error("--blas-threads must be at least 1")
     if not 0 < args.margin <= 1:
         parser.error("--margin must lie in (0, 1]")
     args.procs = sorted(set(args.procs))

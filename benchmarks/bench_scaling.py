@@ -29,7 +29,9 @@ Before each launch the run's memory is estimated (fresh.MemoryGuard) and the run
 with a message if it would not fit in the memory available.
 
 Usage: `.venv/bin/python benchmarks/bench_scaling.py [--sizes J[:H0] ...] [--procs P ...]
-[--repeat N] [--no-plain]`; a smoke run: `--sizes 2 3`.
+[--repeat N] [--no-plain] [--blas-threads T] [--timeout S] [--margin F]`; a smoke run:
+`--sizes 2 3`. `--blas-threads 1` gives every process one BLAS thread (OpenBLAS otherwise
+starts one per core in each, which oversubscribes the cores on P processes).
 """
 
 import argparse
@@ -145,11 +147,12 @@ def main(args):
     methods = [m for m in ("ours", "nested", "certified", "plain")
                if m != "plain" or not args.no_plain]
     guard = fresh.MemoryGuard(args.margin)
+    print(f"BLAS threads: {fresh.blas_threads(args.blas_threads)}", flush=True)
     if not args.no_warmup:
         # forms JIT-compiled into the disk cache before anything is measured, as for any run
         # after the first
         for m in methods:
-            r = fresh.launch(m, "1", 1, args.timeout)
+            r = fresh.launch(m, "1", 1, args.timeout, args.blas_threads)
             if "failed" in r:
                 print(f"warm-up {m}: failed: {r['failed']}", file=sys.stderr)
     runs = []
@@ -163,7 +166,7 @@ def main(args):
                     if skip:
                         r = {"method": m, "size": s, "processes": p, "skipped": skip}
                     else:
-                        r = fresh.launch(m, s, p, args.timeout)
+                        r = fresh.launch(m, s, p, args.timeout, args.blas_threads)
                         guard.measured(r)
                     r["repeat"] = rep
                     runs.append(r)
@@ -200,6 +203,9 @@ def parse(argv=None):
     parser.add_argument("--no-plain", action="store_true", help="leave out the plain peer")
     parser.add_argument("--no-warmup", action="store_true",
                         help="no small unreported runs first (the JIT cache is then warm)")
+    parser.add_argument("--blas-threads", type=int, default=None, metavar="T",
+                        help="BLAS (OpenBLAS, OpenMP) threads of every process (default: "
+                             "the environment's)")
     parser.add_argument("--timeout", type=float, default=None, metavar="S",
                         help="give up a run after S seconds")
     parser.add_argument("--margin", type=float, default=0.8, metavar="F",
@@ -213,6 +219,8 @@ def parse(argv=None):
             parser.error(str(e))
     if args.repeat < 1 or any(p < 1 for p in args.procs):
         parser.error("--repeat and every P must be at least 1")
+    if args.blas_threads is not None and args.blas_threads < 1:
+        parser.error("--blas-threads must be at least 1")
     if not 0 < args.margin <= 1:
         parser.error("--margin must lie in (0, 1]")
     return args

@@ -123,13 +123,29 @@ def child(method, arg):
 
 # ## The parent
 
-def launch(method, arg, processes=1, timeout=None):
+BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def blas_threads(threads=None):
+    """What the children's BLAS threads are: `threads` if given, else the environment's."""
+    if threads is not None:
+        return f"{threads} per process (set by --blas-threads)"
+    given = {k: os.environ[k] for k in BLAS_THREADS if k in os.environ}
+    return (", ".join(f"{k}={v}" for k, v in given.items()) if given else
+            "the BLAS library's default (one per core, per process)") + " (environment)"
+
+
+def launch(method, arg, processes=1, timeout=None, threads=None):
     """Run the child in a fresh process (`mpirun --oversubscribe -n P` for P > 1) and return
     its JSON record with `process_s`, the wall time of the whole process measured here, or
-    {"failed": reason}."""
+    {"failed": reason}. `threads`: the BLAS threads of each process (None: the
+    environment's; OpenBLAS starts one per core in every process, which the batched small
+    inverses of the estimators' set-up feel on a machine shared with other processes)."""
     command = [sys.executable, os.path.join(HERE, "fresh.py"), method, str(arg)]
     # a parent started under mpirun must not hand its own MPI environment to the child
     env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    if threads is not None:
+        env.update({k: str(threads) for k in BLAS_THREADS})
     if processes > 1:
         command = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n",
                    str(processes)] + command
