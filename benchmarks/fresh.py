@@ -54,9 +54,10 @@ def size(arg):
 def vertices(arg):
     """The vertex count of T_J for size 'J[:H0]': gmsh's coarse mesh counted (a fraction of
     a second), then the exact recursion of uniform refinement (model.checks)."""
+    from mpi4py import MPI
+
     from membranes.fem import meshes
     from membranes.model import checks
-    from mpi4py import MPI
     j, h0 = size(arg)
     mesh = meshes.unit_disk(h0, MPI.COMM_SELF)
     v, t = (mesh.topology.index_map(d).size_global for d in (0, 2))
@@ -71,12 +72,13 @@ def _peak_gib():
 
 def child(method, arg):
     from mpi4py import MPI
-    from membranes.app.cli import quiet_jit_logging
-    quiet_jit_logging()
+
     from membranes import scenes, solve
+    from membranes.app.cli import quiet_jit_logging
     from membranes.app.driver import LevelEstimates, _final_residual
     from membranes.app.peer import nested_peer, plain_peer
     from membranes.estimation.energy_error import EnergyError
+    quiet_jit_logging()
     comm = MPI.COMM_WORLD
     j, h0 = size(arg)
     t0 = time.perf_counter()
