@@ -213,3 +213,20 @@ def test_by_coordinates_sorts_points():
     x = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
     px, pv = by_coordinates(x, np.array([1.0, 2.0, 3.0]))
     assert np.array_equal(pv, [3.0, 2.0, 1.0])         # sorted by x, then y
+
+
+def test_history_errors_belong_to_their_iterates():
+    """errors='iterates': a record estimated with the ν flux of §6 is the iterate handed over
+    before (here X^{k,0} = X^{k-1}, linear_it 0: γ_alg = 0.01 makes the first ν steps fall
+    short); its energy error is that iterate's, i.e. exactly the previous Newton record's."""
+    sol = solve(scenes.disk(h=0.3, levels=1), solver="paper", nested=False, gamma_alg=0.01,
+                errors="iterates")
+    assert sol.converged
+    h = sol.history
+    earlier = [k for k, r in enumerate(h) if r["kind"] == "krylov" and r["linear_it"] == 0]
+    assert earlier                                     # the case this test is about
+    for k in earlier:
+        before = next(r for r in reversed(h[:k]) if r["kind"] in ("newton", "initial"))
+        assert h[k]["energy_error"] == before["energy_error"]
+        assert h[k]["eta"] >= h[k]["energy_error"]
+    assert all(r["energy_error"] is not None for r in h)
