@@ -116,7 +116,8 @@ def replay(problem, sol):
 
         def estimate(X, R, kind, disc=disc, certificate=certificate):
             # Newton hands X⁰ without a residual; X⁰ need not satisfy the linear rows (§4)
-            return certificate(X, _final_residual(disc, X, o["cfun"]) if R is None else R)
+            return certificate(X, _final_residual(disc, X, o["cfun"]) if R is None else R,
+                               kind)
 
         result = newton(disc, X0, cfun=o["cfun"], variant=o["newton"], system=o["system"],
                         krylov=krylov, estimate=estimate, tol=o["tol"],
