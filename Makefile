@@ -6,8 +6,11 @@
 setup:
 	@bash .ci/setup
 
+# A failed warm-up does not stop `make test`: the forms then compile on first use, and the
+# tests say what is broken.
 warmup: setup
-	@.venv/bin/python -m membranes.app.warmup
+	@.venv/bin/python -m membranes.app.warmup || \
+		echo "warmup failed: the forms will compile on first use, inside timed runs" >&2
 
 # The full disk comparison (theory §8, §9): J = 3 levels, finest h ≈ 0.025, ~10k vertices.
 demo: warmup
