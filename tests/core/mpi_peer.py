@@ -97,14 +97,6 @@ def main(levels, rtol):
         out[r.label] = {**discrete_checks(r), **invariants(r, EnergyError(r.disc)),
                         "snes": [lv.snes_iterations for lv in r.levels],
                         "converged": r.converged}
-    # PETSc objects that Python collects on a parallel communicator are destroyed together by
-    # a collective clean-up: done here, every rank at once, not at exit while another rank
-    # may still wait in the gather below
-    import gc
-
-    from petsc4py import PETSc
-    gc.collect()
-    PETSc.garbage_cleanup(comm)
     every = comm.gather(out, root=0)
     if comm.rank == 0:
         if any(o != out for o in every):
