@@ -12,12 +12,13 @@ V_h^a: zero normal flux on ∂ω_a \\ ∂Ω; Q_h^a: zero mean if a ∉ ∂Ω. σ
 
 Distributed set-up (§12): the vertices are coloured so that no two vertices of one colour share
 a cell (`patches.colour_vertices`); the patches of the vertices of colour c are then group c of
-`patches.PatchSystems`, one block-diagonal system factorised once per mesh. Per call and colour
-the right-hand side is ONE dolfinx assembly of `forms.equilibration.patch_rhs` (over the cells
-touching colour c) with the P1 coefficients ψ_c = Σ_{a of colour c} ψ_a and
+`patches.PatchSystems`, set up once per mesh (congruent patches share one dense inverse). Per
+call and colour the right-hand side is ONE dolfinx assembly of `forms.equilibration.patch_rhs`
+(over the cells touching colour c) with the P1 coefficients ψ_c = Σ_{a of colour c} ψ_a and
 Λ_c = Σ_{a of colour c} λ_a ψ_a (on a patch of colour c they are ψ_a and λ_a ψ_a), plus the data
 part -(ψ_c f, q), which does not change with the iterate: it is assembled once per load
-(`Load`). One back-solve per colour; the RT parts of the colours' solutions add up to σ_α,disc.
+(`Load`). All patches are then solved at once; the RT parts of the colours' solutions add up to
+σ_α,disc.
 
 Compatibility of the interior patches, (g̃_a, 1) = 0, is the linear row of §4 at a: it holds
 to round-off only if (ψ_a f, 1) is integrated here with the same quadrature as the load
@@ -61,9 +62,9 @@ def boundary_dofs(V):
 
 
 class Load:
-    """The data part -(ψ_c f, q) of the patch right-hand sides at each colour's home dofs
-    (`PatchSystems.gather`), assembled with the data measures once per load f and mesh and
-    reused at every call of `sigma`."""
+    """The data part -(ψ_c f, q) of the patch right-hand sides of all colours, gathered at the
+    patches' homes in the canonical basis (`PatchSystems.canonical`), assembled with the data
+    measures once per load f and mesh and reused at every call of `sigma`."""
 
     def __init__(self, eq, f, measures=None):
         from dolfinx import fem
@@ -74,13 +75,14 @@ class Load:
         _, q = ufl.TestFunctions(eq.systems.W)
         form = fem.form(over(measures, lambda dx: equilibration_forms.patch_load(eq.psi, f, q,
                                                                                  dx)))
-        self.parts = []
+        home = eq.systems.home_vector()
         for c in range(eq.ncolours):
             eq.set_colour(c)
             b = assemble_vector(form)
             b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            self.parts.append(eq.systems.gather(c, b).array_r.copy())
+            eq.systems.gather(c, b, home)
             b.destroy()
+        self.home = eq.systems.canonical(home)
 
 
 class FluxEquilibration:
@@ -176,15 +178,23 @@ class FluxEquilibration:
         self._copy(self.r, r)
         self._copy(self.lam, lam)
         sigma = out if out is not None else fem.Function(self.rt_space)
-        sigma.x.array[:] = 0.0
+        systems = self.systems
+        home = systems.home_vector()
         for c in range(self.ncolours):
             self.set_colour(c, self.lam.x.array)
             with self.b.localForm() as local:
                 local.set(0.0)
             assemble_vector(self.b, self.rhs_forms[c])
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            self.systems.solve(c, self.b, self.x, extra=f.parts[c])
-            self.systems.add_flux(self.x, sigma)
+            systems.gather(c, self.b, home)
+        x = systems.solve_home(home, extra=f.home)
+        # the colours' solutions add up; their RT parts are σ_α,disc
+        with self.x.localForm() as local:
+            local.set(0.0)
+        for c in range(self.ncolours):
+            systems.scatter(c, x, self.x, add=True)
+        sigma.x.array[:] = 0.0
+        systems.add_flux(self.x, sigma)
         sigma.x.scatter_forward()
         return sigma
 
@@ -195,9 +205,10 @@ class FluxEquilibration:
         self.x.destroy()
 
     def summary(self):
-        """Global facts of the set-up: colours, Jones–Plassmann rounds, unknowns per colour."""
+        """Global facts of the set-up: colours, Jones–Plassmann rounds, unknowns per colour,
+        sharing of the patch inverses (`PatchSystems.stats`)."""
         return dict(colours=self.ncolours, rounds=self.colour_rounds,
-                    unknowns=self.systems.sizes(),
+                    unknowns=self.systems.sizes(), sharing=self.systems.stats(),
                     vertices=self.V.dofmap.index_map.size_global,
                     processes=self.comm.size)
 

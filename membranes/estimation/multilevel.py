@@ -70,7 +70,7 @@ from forms.membrane import membrane_linear
 
 from .equilibration import boundary_dofs
 from .lifting import MINV_REF
-from .patches import PatchSystems, colour_vertices
+from .patches import PatchSystems, colour_vertices, dof_transformation, piola_reference_block
 
 ROUND_OFF = 1e-8      # tolerance on the barycentric coordinates 0, 1/2, 1 of plaza's vertices
 
@@ -168,24 +168,6 @@ def _block_diagonal(blocks):
 #
 # depending on the child's position and the two cells' permutation infos only.
 
-def _transformation(element, info, inverse_transpose=False):
-    n = element.dim
-    apply = (element.apply_inverse_transpose_dof_transformation if inverse_transpose
-             else element.apply_dof_transformation)
-    return np.asarray(apply(np.eye(n).ravel(), n, int(info))).reshape(n, n)
-
-
-def _reference_block(element, ref):
-    """Π̂ V(A) for the child whose vertices have reference coordinates ref (3, 2) in the
-    parent's reference cell."""
-    X, Pi = element.points, element.interpolation_matrix
-    DA = np.column_stack([ref[1] - ref[0], ref[2] - ref[0]])
-    table = element.tabulate(0, ref[0] + X @ DA.T)[0]                    # (points, dofs, 2)
-    pulled = np.linalg.det(DA) * np.einsum("ij,pmj->pmi", np.linalg.inv(DA), table)
-    values = np.concatenate([pulled[:, :, 0], pulled[:, :, 1]], axis=0)  # component-major
-    return Pi @ values
-
-
 def rt_prolongation(Rc, Rf, parents, beta):
     """The Piola transfer RT_1(T_{j-1}) → RT_1(T_j) along the combinatorial maps, as a
     distributed PETSc matrix (rows: fine dofs, columns: coarse dofs). Exact: the transferred
@@ -206,9 +188,9 @@ def rt_prolongation(Rc, Rf, parents, beta):
     unique, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     blocks = np.empty((len(unique), n, n))
     for k, i in enumerate(first):                                   # a cell of each kind
-        blocks[k] = (_transformation(element, info_f[i], inverse_transpose=True)
-                     @ _reference_block(element, ref[i])
-                     @ _transformation(element, info_c[parents[i]]).T)
+        blocks[k] = (dof_transformation(element, info_f[i], inverse_transpose=True)
+                     @ piola_reference_block(element, ref[i])
+                     @ dof_transformation(element, info_c[parents[i]]).T)
     # each owned fine dof takes its row from the first owned cell that has it
     imf, imc = Rf.dofmap.index_map, Rc.dofmap.index_map
     fdofs = Rf.dofmap.list.array.reshape(-1, n)[:nc].ravel()
@@ -298,13 +280,18 @@ class _Level:
     def solve(self, data):
         """σ_j = Σ_a σ_j^a on T_j for the DG1 moments `data` ((3 n_j, colours): column c
         the moments -(e_j^a, q) of the colour's patches)."""
-        self.sigma.x.array[:] = 0.0
         b, x = self.b.vector, self.x.vector
+        home = self.systems.home_vector()
         for c in range(self.ncolours):
             b.array[:] = 0.0
             b.array[self.dg] = data[:, c]
-            self.systems.solve(c, b, x)
-            self.systems.add_flux(x, self.sigma)
+            self.systems.gather(c, b, home)
+        solution = self.systems.solve_home(home)
+        x.array[:] = 0.0
+        for c in range(self.ncolours):
+            self.systems.scatter(c, solution, x, add=True)
+        self.sigma.x.array[:] = 0.0
+        self.systems.add_flux(x, self.sigma)
 
     def destroy(self):
         self.systems.destroy()
