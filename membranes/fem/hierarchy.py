@@ -117,12 +117,20 @@ def prolongation(coarse, fine, parents):
                                (imc.size_local, imc.size_global)), comm=fine.comm)
     P.setPreallocationNNZ((3, 3))
     P.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
-    for k in range(3):                  # fine vertex k of every cell
-        for m in range(3):              # coarse corner m
-            w = bary[:, k, m]
-            keep = w != 0.0
-            for r, c, v in zip(rows[keep, k], cols[keep, m], w[keep]):
-                P.setValue(int(r), int(c), float(v), addv=PETSc.InsertMode.INSERT_VALUES)
+    # one entry per (fine vertex k, coarse corner m) of every cell with a nonzero weight; a
+    # vertex shared by several cells repeats its entries with equal values: keep one
+    r = np.repeat(rows, 3, axis=1).ravel()                      # (cells, k, m) flattened
+    c = np.tile(cols, (1, 3)).ravel()
+    w = bary.reshape(len(bary), 9).ravel()
+    keep = w != 0.0
+    entries = np.unique(np.stack([r[keep], c[keep]], axis=1), axis=0, return_index=True)[1]
+    r, c, w = r[keep][entries], c[keep][entries], w[keep][entries]
+    order = np.lexsort((c, r))
+    r, c, w = r[order], c[order], w[order]
+    row_ids, starts = np.unique(r, return_index=True)
+    ptr = np.append(starts, len(r)).astype(PETSc.IntType)
+    P.setValuesIJV(ptr, c.astype(PETSc.IntType), w, rowmap=row_ids.astype(PETSc.IntType),
+                   addv=PETSc.InsertMode.INSERT_VALUES)
     P.assemble()
     return P
 
