@@ -1,47 +1,16 @@
-# # UFL forms of the patchwise flux equilibration and of the estimators (DESIGN §5, §7)
+# # UFL forms of the patchwise flux equilibration (§5) and of the multilevel flux (§6)
 #
-# UFL only. The driver assembles the global Raviart–Thomas forms once per mesh and restricts
-# them to each vertex patch; the estimator forms are tested with a piecewise-constant function
-# so that one assembly gives a value per cell.
+# UFL only. `membranes.estimation.patches` assembles the mixed RT_1 × DG1 form once per mesh
+# over the whole distributed mesh, and each colour's patch matrices are its principal
+# submatrices; the right-hand sides are assembled per colour from the forms below.
 
 import ufl
 
 
-def rt_mass(sigma, tau, dx=ufl.dx):
-    """(σ, τ): the mass matrix of RT_1 (DESIGN §5, first equation)."""
-    return ufl.inner(sigma, tau) * dx
-
-
-def divergence(sigma, q, dx=ufl.dx):
-    """(∇·σ, q): the divergence constraint against discontinuous P1 (DESIGN §5)."""
-    return ufl.div(sigma) * q * dx
-
-
-def vector_moment(w, tau, dx=ufl.dx):
-    """(w, τ) for w in vector DG1: gives ∫_K ψ_a e_d · τ, the moments behind -(ψ_a μ ∇u_h, τ)."""
-    return ufl.inner(w, tau) * dx
-
-
-def weighted_mass(f, p, q, dx=ufl.dx):
-    """(f p, q) on DG1: gives (ψ_a f, q)_K, the load part of the patch right-hand side."""
-    return f * p * q * dx
-
-
-def flux_estimator_squared(mu, u, sigma, w, dx=ufl.dx):
-    """η_F,K² = ‖μ^{1/2} ∇u_h + μ^{-1/2} σ‖_K² per cell (w a DG0 test function; DESIGN §7)."""
-    e = ufl.sqrt(mu) * ufl.grad(u) + sigma / ufl.sqrt(mu)
-    return ufl.inner(e, e) * w * dx
-
-
-def cell_norm_squared(v, w, dx=ufl.dx):
-    """‖v‖_K² per cell (w a DG0 test function)."""
-    return ufl.inner(v, v) * w * dx
-
-
-# ## The coloured patch problems of the distributed code (DESIGN §5, §12)
+# ## The coloured patch problems of the distributed code (§5, §12)
 #
 # Trial (σ, γ) and test (τ, q) functions in RT_1 × DG1. The divergence equation of §5 is
-# negated so that the patch matrix is symmetric (MUMPS then factorises it as LDLᵀ):
+# negated so that the patch matrix is symmetric:
 #
 #     (σ, τ) - (γ, ∇·τ) - (∇·σ, q) = -(ψ μ ∇u, τ) - (g̃, q),
 #     g̃ = ψ (f - r) ± Λ - μ ∇u·∇ψ,
@@ -67,7 +36,7 @@ def patch_load(psi, f, q, dx=ufl.dx):
     return -psi * f * q * dx
 
 
-# ## The multilevel algebraic flux (DESIGN §6)
+# ## The multilevel algebraic flux (§6)
 
 
 def multilevel_data(psi, r, rho, q, dx=ufl.dx):

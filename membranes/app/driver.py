@@ -108,7 +108,8 @@ def _check_memory(problem, solver, estimators, max_vertices):
     available = None if max_vertices is not None else checks.available_memory(comm)
     checks.check_size(problem.mesh.topology.index_map(0).size_global, available, max_vertices,
                       what=f"the computational mesh of {problem.name!r}",
-                      estimators=estimators, **MEMORY_METHOD.get(solver, {}))
+                      estimators=estimators, processes=comm.size, replicated=False,
+                      **MEMORY_METHOD.get(solver, {}))
 
 
 def _algebraic_flux(problem, alg_flux, estimators, newton):
