@@ -6,7 +6,6 @@
 
 import ufl
 
-
 # ## The coloured patch problems of the distributed code (§5, §12)
 #
 # Trial (σ, γ) and test (τ, q) functions in RT_1 × DG1. The divergence equation of §5 is
