@@ -92,20 +92,21 @@ def test_mesh_file_that_is_not_one(tmp_path):
 # ## Memory
 
 def test_a_run_of_about_1e6_vertices_fits_in_24_GiB():
-    """The issue's example: the default method (GMRES + ILU(0), estimators, multilevel flux)
-    and the iterative ones are admitted at 1e6 vertices on a machine with 24 GiB; MUMPS, whose
-    factors grow like N^1.26 (3.9 GiB measured at 1.1e5), is not, and says what fits."""
-    default = {"linear_solver": "gmres", "pc_type": "ilu", "estimators": True,
-               "alg_flux": "multilevel"}
+    """The issue's example: the default method (adaptive, the amg preset, the ν flux: about
+    13 kB per vertex measured on the distributed core) and the other iterative ones are
+    admitted at 1e6 vertices on a machine with 24 GiB; MUMPS, whose factors grow like N^1.26
+    (3.9 GiB measured at 1.1e5), is not, and says what fits."""
+    default = {"linear_solver": "gmres", "pc_type": "vertex_amg", "estimators": True,
+               "alg_flux": "nu"}
     need = checks.check_size(1e6, 24 * GiB, **default)
-    assert need < 12 * GiB
-    for method in ({"linear_solver": "gmres", "pc_type": "vertex_amg", "alg_flux": "nu"},
+    assert 11 * GiB < need < 14 * GiB        # 11.04 GiB measured at 9.3e5 vertices
+    for method in ({"linear_solver": "gmres", "pc_type": "ilu", "alg_flux": "nu"},
                    {"linear_solver": "gmres", "pc_type": "vertex_amg",
                     "alg_flux": "multilevel"},
                    {"linear_solver": "gmres", "estimators": False},
                    {"linear_solver": None}):
-        assert checks.check_size(1e6, 24 * GiB, **method) < 12 * GiB
-    assert checks.largest_fitting(24 * GiB, **default) > 2e6
+        assert checks.check_size(1e6, 24 * GiB, **method) < 24 * GiB
+    assert checks.largest_fitting(24 * GiB, **default) > 1.5e6
     direct = {"linear_solver": "direct", "estimators": False}
     assert checks.check_size(1.1e5, 24 * GiB, **direct) < 6 * GiB
     with pytest.raises(ValueError, match="the largest run that fits has about 4.[0-9]e5"):

@@ -140,25 +140,29 @@ def estimate_vertices(h=None, levels=0, domain="disk", mesh_file=None):
 
 # ## Memory of a run
 #
-# Peak resident memory of one process, measured with the current code on the disk
-# (BENCHMARKS.md, "Memory per vertex": h0 = 0.2 refined J = 5, 6 times, 1.1e5 and 4.4e5
-# vertices, one fresh process per run): BASE_BYTES plus, per vertex of the finest mesh T_J
-# (its hierarchy included), the slope between the two sizes of the linear algebra of the
-# method and, where they run, of the estimators (the multilevel algebraic flux keeps
-# operators on every level). MUMPS's factors grow faster than N: its part is c N^p, fitted
-# on J = 4, 5 (2.7e4, 1.1e5 vertices). A run on P processes that replicate the mesh
-# (membranes.pipeline) needs at most the serial figure on each (measured: 1.77 against 2.77
-# GiB at 9.3e5, BENCHMARKS.md); a distributed run about the per-vertex part over P.
+# Peak resident memory of one process of the distributed core on the disk (BENCHMARKS.md,
+# "Time and memory against the peers": h0 = 0.2 refined J = 5, 6 times and h0 = 0.132 six
+# times, 1.1e5, 4.4e5 and 9.3e5 vertices, one fresh process per run): BASE_BYTES plus, per
+# vertex of the finest mesh T_J (its hierarchy included), the slope of the peaks. The default
+# method (adaptive, the amg preset, the ν flux) measured 1.43, 5.33 and 11.04 GiB: slopes of
+# 12.9 and 12.4 kB per vertex, of which the nested SNES VI peer (the same discretisation and an
+# AMG-preconditioned solve, 0.36 / 0.98 / 1.92 GiB) accounts for about 2.5 kB; the rest is the
+# estimators' (the coloured patch systems, their shared inverses and the RT_1 fluxes). The
+# paper's GMRES + ILU(0) and the multilevel flux were not measured on this core: their
+# figures below are the amg solver's and twice the ν flux's, as upper guesses. MUMPS's factors
+# grow faster than N: c N^p, fitted on the serial core at 2.7e4 and 1.1e5 vertices. A run on
+# P processes needs about the per-vertex part over P on each (4.4e5 vertices: 5.33 GiB on one
+# process, 2.89 GiB on each of two).
 
-BASE_BYTES = 0.30 * 2 ** 30       # interpreter, dolfinx, PETSc, kernels; fixed costs of levels
+BASE_BYTES = 0.30 * 2 ** 30       # interpreter, dolfinx, PETSc; fixed costs of levels
 SOLVER_BYTES_PER_VERTEX = {       # discretisation, Newton systems and their Krylov solve
-    "gmres": 3000.0,              # GMRES(30) + ILU(0) on the full 3N system (the default)
-    "vertex_amg": 1800.0,         # FGMRES + vertex_amg on the eliminated 2N system
+    "gmres": 2500.0,              # GMRES(30) + ILU(0) on the full 3N system (not measured)
+    "vertex_amg": 2500.0,         # the amg preset: FGMRES + mean/gap BoomerAMG, 2N system
 }
 DIRECT_COEFFICIENT, DIRECT_EXPONENT = 1.9e3, 1.26   # MUMPS LU of the full system: c N^p bytes
 ESTIMATOR_BYTES_PER_VERTEX = {    # the a posteriori estimators (§7), by algebraic flux
-    "nu": 1100.0,
-    "multilevel": 2900.0,
+    "nu": 10500.0,
+    "multilevel": 21000.0,        # not measured: twice the ν flux's
 }
 
 
