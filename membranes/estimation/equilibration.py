@@ -69,6 +69,7 @@ class Load:
     def __init__(self, eq, f, measures=None):
         from dolfinx import fem
         from dolfinx.fem.petsc import assemble_vector
+
         from membranes.fem.quadrature import over
         self.f = f
         measures = measures if measures is not None else [ufl.dx(domain=eq.mesh)]

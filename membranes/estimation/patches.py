@@ -62,7 +62,6 @@ from petsc4py import PETSc
 
 import forms.equilibration as equilibration_forms
 
-
 # ## Communication on an index map
 #
 # dolfinx's own scatterers add or insert; the colouring needs max and bitwise-or, and the
