@@ -59,6 +59,7 @@ import numpy as np
 import ufl
 from mpi4py import MPI
 from petsc4py import PETSc
+from threadpoolctl import threadpool_limits
 
 import forms.equilibration as equilibration_forms
 
@@ -550,8 +551,11 @@ class Blocks:
             k = np.repeat(np.flatnonzero(pick), shape[1])
             r = np.repeat(np.tile(np.arange(n), rows.size), lengths.data[rows].ravel())
             dense[k, r, columns.data[rows].ravel()] = values.data[rows].ravel()
-        for i in range(0, len(order), 4096):
-            dense[i:i + 4096] = np.linalg.inv(dense[i:i + 4096])
+        # Many small inverses: LAPACK per matrix, on one BLAS thread (threads only add their
+        # start-up cost to a 50 × 50 inverse, and several MPI processes would share cores)
+        with threadpool_limits(limits=1, user_api="blas"):
+            for i in range(0, len(order), 4096):
+                dense[i:i + 4096] = np.linalg.inv(dense[i:i + 4096])
         return dense
 
     def release(self):
