@@ -61,6 +61,25 @@ def boundary_dofs(V):
     return vertices.forward(vertices.reverse(on, np.maximum)).astype(bool)
 
 
+def vertex_patches(V, colour, ncolours, on_boundary):
+    """The groups of `PatchSystems` for the vertex patches of §5: per colour c, over the owned
+    cells, the global index of the cell's vertex of colour c (-1: none; one at most, by the
+    colouring) and whether that vertex is off ∂Ω (an interior patch)."""
+    nc = V.mesh.topology.index_map(V.mesh.topology.dim).size_local
+    cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
+    gdofs = np.asarray(V.dofmap.index_map.local_to_global(np.arange(colour.size,
+                                                                    dtype=np.int32)),
+                       dtype=np.int64)
+    patches, interior = [], []
+    for c in range(ncolours):
+        hit = colour[cells] == c                                        # ≤ 1 per cell
+        vertex = cells[np.arange(nc), np.argmax(hit, axis=1)]
+        has = hit.any(axis=1)
+        patches.append(np.where(has, gdofs[vertex], -1))
+        interior.append(has & ~on_boundary[vertex])
+    return patches, interior
+
+
 class Load:
     """The data part -(ψ_c f, q) of the patch right-hand sides of all colours, gathered at the
     patches' homes in the canonical basis (`PatchSystems.canonical`), assembled with the data
@@ -110,16 +129,7 @@ class FluxEquilibration:
         imap = V.dofmap.index_map
         self.colour, self.ncolours, self.colour_rounds = colour_vertices(cells, imap, self.comm)
         self.on_boundary = boundary_dofs(V)
-        gdofs = np.asarray(imap.local_to_global(np.arange(self.colour.size, dtype=np.int32)),
-                           dtype=np.int64)
-        patches, interior = [], []
-        for c in range(self.ncolours):
-            hit = self.colour[cells] == c                               # ≤ 1 per cell
-            which = np.argmax(hit, axis=1)
-            vertex = cells[np.arange(nc), which]
-            has = hit.any(axis=1)
-            patches.append(np.where(has, gdofs[vertex], -1))
-            interior.append(has & ~self.on_boundary[vertex])
+        patches, interior = vertex_patches(V, self.colour, self.ncolours, self.on_boundary)
         self.systems = PatchSystems(mesh, patches, interior)
         self.rt_space = self.systems.rt_space
 

@@ -68,9 +68,10 @@ from petsc4py import PETSc
 import forms.equilibration as equilibration_forms
 from forms.membrane import membrane_linear
 
+from .congruence import dof_transformation, piola_reference_block
 from .equilibration import boundary_dofs
 from .lifting import MINV_REF
-from .patches import PatchSystems, colour_vertices, dof_transformation, piola_reference_block
+from .patches import PatchSystems, colour_vertices
 
 ROUND_OFF = 1e-8      # tolerance on the barycentric coordinates 0, 1/2, 1 of plaza's vertices
 

@@ -1,0 +1,387 @@
+"""Congruent patches: a canonical basis of RT_1 × DG1 and classes of equal patch blocks (§12).
+
+`patches.PatchSystems` solves the patch problems of §5 and §6 with dense inverses; on a mesh
+refined uniformly most patches are translates of a few shapes, and those share one inverse.
+Their matrices A_p, principal submatrices of the matrix A that dolfinx assembles, differ only
+through dolfinx's basis, which depends on the numbering (the local vertex order of a cell and
+the orientation of a facet by global vertex indices). This module removes that dependence:
+
+* `canonical_dofs`: on every cell the *canonical* basis is the Piola image of the reference
+  basis through the vertices ordered along a fixed direction d, every facet oriented along d,
+  and the dofs are ordered by the position of their entity along d — all translation
+  invariant. The change of basis G (canonical → dolfinx) is ±1 on facet dofs, the identity on
+  the DG dofs (Lagrange at the vertices: only their labels change) and a 2 × 2 integer block on
+  the two interior RT dofs of a cell (`basis_changes` checks this form on basix's elements);
+  `canonical_block` forms Ã_p = G_pᵀ A_p G_p on the rows of the patches, `to_canonical`
+  applies Gᵀ and G to vectors.
+* `Blocks`: the blocks Ã_p are fingerprinted and grouped, and a patch joins a class only after
+  its block is checked entry by entry against the class's first block, to the round-off of the
+  patch's coordinates.
+
+The canonical basis only decides what is shared: with any invertible G the solves are exact,
+and each patch is solved with the inverse of a matrix equal to its own to round-off.
+"""
+
+import itertools
+
+import numpy as np
+
+# ## Dof transformations and the Piola pull-back on the reference cell
+#
+# dolfinx's basis on a cell K is the Piola image of T_K φ̂ (T_K the dof transformation of the
+# cell, from its permutation info). Interpolating a field into K's basis gives the coefficients
+# T_K⁻ᵀ Π̂ (pulled-back values at the reference points), Π̂ basix's interpolation matrix. For an
+# affine map A of the reference cell into itself (vertices `ref`), Π̂ V(A) expresses the
+# reference functions pulled back along A in the reference basis:
+# V(A)[(i, p), m] = (det(DA) DA⁻¹ φ̂_m(A X_p))_i.
+
+def dof_transformation(element, info, inverse_transpose=False):
+    """The matrix T (or T⁻ᵀ) of a basix element's dof transformation for permutation info."""
+    n = element.dim
+    apply = (element.apply_inverse_transpose_dof_transformation if inverse_transpose
+             else element.apply_dof_transformation)
+    return np.asarray(apply(np.eye(n).ravel(), n, int(info))).reshape(n, n)
+
+
+def piola_reference_block(element, ref):
+    """Π̂ V(A) for the affine map A sending the reference vertices to `ref` (3, 2)."""
+    X, Pi = element.points, element.interpolation_matrix
+    DA = np.column_stack([ref[1] - ref[0], ref[2] - ref[0]])
+    table = element.tabulate(0, ref[0] + X @ DA.T)[0]                    # (points, dofs, 2)
+    pulled = np.linalg.det(DA) * np.einsum("ij,pmj->pmi", np.linalg.inv(DA), table)
+    values = np.concatenate([pulled[:, :, 0], pulled[:, :, 1]], axis=0)  # component-major
+    return Pi @ values
+
+
+# ## The canonical basis
+#
+# On a cell K, let π order its vertices by their position along DIRECTION (ties by global
+# vertex index): canonical vertex k is dolfinx's local vertex π(k). The canonical basis of K is
+# the Piola image of the reference basis through the reference map with the vertices in that
+# order, with no dof transformation: along every facet both cells see the same vertex order, so
+# this basis is H(div)-conforming like dolfinx's, and translated cells get the same functions.
+# With A the symmetry of the reference cell sending vertex k to vertex π(k), the canonical
+# coefficients of a field are M_K = Π̂ V(A) T_Kᵀ times dolfinx's, and G_K = M_K⁻¹ depends only
+# on (π, permutation info): checked below to be ±1 between the dofs of canonical facet i and
+# dolfinx's facet π(i) (same index t along the facet), a 2 × 2 block on the interior dofs, and,
+# for DG1, the identity between canonical vertex k and dolfinx's vertex π(k).
+#
+# A W dof is labelled by a `code`: bits 0-1 its index t in its entity, bits 2-3 its kind
+# (FACET, INNER: interior RT, DG), bit 4 NEGATIVE (the canonical function is minus dolfinx's),
+# bits 5-7 the vertex order π of its cell (interior dofs: which 2 × 2 block), bit 8 INTERIOR
+# (its patch is interior; set per group).
+
+DIRECTION = np.array([np.cos(1.0), np.sin(1.0)])     # parallel to no edge of usual meshes
+ORDERS = list(itertools.permutations(range(3)))
+FACET, INNER, DG = 0, 1, 2
+NEGATIVE, BLOCK, INTERIOR = 1 << 4, 5, 1 << 8
+
+
+def _kind(code):
+    return (code >> 2) & 3
+
+
+def basis_changes(W):
+    """(signs, blocks): signs[p, info, i, t] = ±1, the canonical dof t of facet i against
+    dolfinx's dof t of its facet π(i), for the vertex order p = ORDERS.index(π) and permutation
+    info of a cell; blocks[p] the block of G on the interior RT dofs (rows dolfinx's, columns
+    canonical). Raises if the elements' transformations are not of that form."""
+    rt, dg = (W.sub(i).element.basix_element for i in (0, 1))
+    facet = [list(d) for d in rt.entity_dofs[1]]
+    inner = list(rt.entity_dofs[2][0])
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    signs = np.zeros((len(ORDERS), 8, 3, len(facet[0])))
+    blocks = np.zeros((len(ORDERS), len(inner), len(inner)))
+    for p, order in enumerate(ORDERS):
+        ref = corners[list(order)]
+        pulled = piola_reference_block(rt, ref)
+        blocks[p] = np.round(np.linalg.inv(pulled)[np.ix_(inner, inner)])
+        for info in range(8):
+            G = np.linalg.inv(pulled @ dof_transformation(rt, info).T)
+            expected = np.zeros_like(G)
+            for i in range(3):
+                for t, (row, col) in enumerate(zip(facet[order[i]], facet[i])):
+                    signs[p, info, i, t] = expected[row, col] = np.sign(G[row, col])
+            expected[np.ix_(inner, inner)] = blocks[p]
+            if np.abs(G - expected).max() > 1e-12:
+                raise RuntimeError("the RT element's dof transformations are not signed "
+                                   "facet permutations: no canonical basis")
+        DA = np.column_stack([ref[1] - ref[0], ref[2] - ref[0]])
+        values = dg.tabulate(0, ref[0] + dg.points @ DA.T)[0][:, :, 0]
+        if np.abs(dg.interpolation_matrix @ values - np.eye(3)[list(order)]).max() > 1e-12:
+            raise RuntimeError("the DG element is not Lagrange at the vertices")
+    return signs, blocks
+
+
+def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
+    """Per local W dof (owned and ghost): its entity's position along DIRECTION (facet
+    midpoint or cell centroid), a global integer that orders the dofs of equal position (the
+    entity's global index, the dof's kind and index in it), its code; the interior blocks; and
+    the number of facet dofs on which the two cells of the facet disagree (0: both see the same
+    vertex order)."""
+    cmap = mesh.topology.index_map(2)
+    nall = cmap.size_local + cmap.num_ghosts
+    signs, blocks = basis_changes(W)
+    mesh.topology.create_entity_permutations()
+    info = np.asarray(mesh.topology.get_cell_permutation_info())[:nall].astype(np.int64)
+    if info.max(initial=0) >= 8:
+        raise RuntimeError("unexpected cell permutation info (not a triangle mesh?)")
+    nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:nall]
+    along = mesh.geometry.x[:, :2][nodes] @ DIRECTION                      # (cells, 3)
+    mesh.topology.create_connectivity(2, 0)
+    c2v = mesh.topology.connectivity(2, 0).array.reshape(-1, 3)[:nall]
+    vglobal = np.asarray(mesh.topology.index_map(0).local_to_global(c2v.ravel()),
+                         dtype=np.int64)
+    # π: the vertices of each cell by position, ties by global index
+    rank = np.lexsort((vglobal, along.ravel(), np.repeat(np.arange(nall), 3)))
+    order = (rank - np.repeat(3 * np.arange(nall), 3)).reshape(nall, 3)
+    lookup = np.zeros(27, dtype=np.int64)
+    for p, o in enumerate(ORDERS):
+        lookup[9 * o[0] + 3 * o[1] + o[2]] = p
+    p = lookup[9 * order[:, 0] + 3 * order[:, 1] + order[:, 2]]
+    total = along.sum(axis=1)
+    midpoint = 0.5 * (total[:, None] - along)                 # facet i is opposite vertex i
+    fglobal = np.asarray(mesh.topology.index_map(1).local_to_global(c2f.ravel()),
+                         dtype=np.int64).reshape(nall, 3)
+    cglobal = np.asarray(cmap.local_to_global(np.arange(nall, dtype=np.int32)), dtype=np.int64)
+
+    nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
+    position = np.zeros(nlocal)
+    entity = np.zeros(nlocal, dtype=np.int64)
+    code = np.zeros(nlocal, dtype=np.int64)
+    cells = np.arange(nall)
+    facet_cols = np.array(W.sub(0).element.basix_element.entity_dofs[1])
+    inner_cols = W.sub(0).element.basix_element.entity_dofs[2][0]
+    facet_dofs, facet_codes = [], []
+    for i in range(3):
+        f = order[:, i]                                   # dolfinx facet of canonical facet i
+        for t in range(facet_cols.shape[1]):
+            dof = rt_dofs[cells, facet_cols[f, t]]
+            position[dof] = midpoint[cells, f]
+            entity[dof] = fglobal[cells, f]
+            code[dof] = (FACET << 2) | t | np.where(signs[p, info, i, t] < 0, NEGATIVE, 0)
+            facet_dofs.append(dof)
+            facet_codes.append(code[dof])
+    disagree = sum(int(np.count_nonzero(code[d] != k)) for d, k in zip(facet_dofs, facet_codes))
+    for t, col in enumerate(inner_cols):
+        dof = rt_dofs[:, col]
+        position[dof], entity[dof] = total / 3.0, cglobal
+        code[dof] = (INNER << 2) | t | (p << BLOCK)
+    for k in range(3):
+        dof = dg_dofs[cells, order[:, k]]
+        position[dof], entity[dof] = total / 3.0, cglobal
+        code[dof] = (DG << 2) | k
+    # one integer per dof for ties of position: entity, kind, index in the entity
+    entity = (entity * 4 + _kind(code)) * 4 + (code & 3)
+    return position, entity, code, blocks, disagree
+
+
+def to_canonical(values, sign, pairs, blocks, transpose=True):
+    """values ← Gᵀ values (transpose) or G values, in place, for home vectors: `sign` ±1 per
+    entry, `pairs[p]` the positions of the first interior dof of the cells with block p (the
+    second follows it)."""
+    values *= sign
+    for p, first in enumerate(pairs):
+        if first.size:
+            B = blocks[p].T if transpose else blocks[p]
+            v0, v1 = values[first], values[first + 1]
+            values[first] = B[0, 0] * v0 + B[0, 1] * v1
+            values[first + 1] = B[1, 0] * v0 + B[1, 1] * v1
+    return values
+
+
+def _pairs(code):
+    """Positions of the first interior dof of each cell, by block (see `to_canonical`)."""
+    first = np.flatnonzero((_kind(code) == INNER) & ((code & 3) == 0))
+    p = (code[first] >> BLOCK) & 7
+    if first.size and not np.all((_kind(code[first + 1]) == INNER) & ((code[first + 1] & 3) == 1)):
+        raise RuntimeError("the interior dofs of a cell are not adjacent in a patch")
+    return [first[p == k] for k in range(len(ORDERS))]
+
+
+def canonical_block(ia, ja, a, code, blocks):
+    """Ã = Gᵀ A G in place on the CSR arrays of the home rows (rows and columns in home order,
+    `code` per row), A's rows and columns already multiplied by the signs of G. The rows of the
+    two interior dofs of a cell have the same columns, and in each row the two are adjacent
+    columns."""
+    pairs = _pairs(code)
+    block_of = np.full(ia.size - 1, -1, dtype=np.int8)
+    for p, first in enumerate(pairs):
+        block_of[first] = p
+        if not first.size:
+            continue
+        B = blocks[p]
+        length = ia[first + 1] - ia[first]
+        if np.any(ia[first + 2] - ia[first + 1] != length):
+            raise RuntimeError("the interior dofs of a cell have different couplings")
+        e0 = np.repeat(ia[first] - np.cumsum(length) + length, length) + np.arange(length.sum())
+        e1 = e0 + np.repeat(length, length)
+        v0, v1 = a[e0], a[e1]                                   # rows: Gᵀ A
+        a[e0] = B[0, 0] * v0 + B[1, 0] * v1
+        a[e1] = B[0, 1] * v0 + B[1, 1] * v1
+    column = block_of[ja]
+    k = np.flatnonzero(column >= 0)
+    if k.size and (k[-1] + 1 >= ja.size or np.any(ja[k + 1] != ja[k] + 1)):
+        raise RuntimeError("a row couples one interior dof of a cell but not the other")
+    column = column[k]
+    for p in range(len(pairs)):
+        kp = k[column == p]
+        B = blocks[p]
+        v0, v1 = a[kp], a[kp + 1]                               # columns: (Gᵀ A) G
+        a[kp] = B[0, 0] * v0 + B[1, 0] * v1
+        a[kp + 1] = B[0, 1] * v0 + B[1, 1] * v1
+    return a
+
+
+# ## Classes of equal blocks
+#
+# The patches of a group with the same size n and number of entries L are compared as rows of a
+# (patches, L) array of their CSR values (rows in order, columns sorted). A block's fingerprint
+# is its values against fixed weights over the L positions divided by its largest entry,
+# rounded to 2⁻³² (congruent blocks differ by ~1e-15: they share a fingerprint but for a ~1e-4
+# chance of straddling a rounding boundary, which only loses the sharing). Blocks with the same
+# n, L and fingerprint are candidates; a patch joins the class of its candidate only if its
+# pattern (row lengths and columns) is the class's and every entry agrees to `tolerance` times
+# the class's largest entry. Classes persist across groups; each keeps its first block.
+#
+# The tolerance is the round-off of the geometry: the coordinates carry an error ε R (R the
+# largest |x|), so the blocks of two translates, functions of the edge vectors of their cells,
+# differ relatively by ~ε R/h (h the patch's shortest edge; measured up to 1.2 ε R/h). A patch
+# is compared with tolerance max(SAME, ROUNDING ε R/h): as close as its own matrix is to the
+# matrix of its exact geometry.
+
+SAME = 1e-13
+ROUNDING = 16            # a translate's blocks differ by ~ε R/h (measured 1.2 ε R/h at most)
+
+
+class _Rows:
+    """A growing 2-d array (rows appended in blocks)."""
+
+    def __init__(self, width, dtype):
+        self.data, self.size = np.zeros((16, width), dtype=dtype), 0
+
+    def append(self, rows):
+        end = self.size + len(rows)
+        if end > len(self.data):
+            data = np.zeros((max(end, len(self.data) * 3 // 2),) + self.data.shape[1:],
+                            self.data.dtype)
+            data[:self.size] = self.data[:self.size]
+            self.data = data
+        self.data[self.size:end] = rows
+        self.size = end
+
+
+class Blocks:
+    """The distinct canonical patch blocks of one process (`classify`, then `inverses`)."""
+
+    def __init__(self, share=True):
+        self.share = share
+        self.index = {}              # (n, L, fingerprint) → class
+        self.shapes = {}             # (n, L) → [values, columns, row lengths, scales] (_Rows)
+        self.where = []              # class → ((n, L), row in the shape's arrays)
+        self.rejected = 0
+        self.worst = 0.0             # largest relative difference of a block from its class's
+
+    def _add(self, shape, values, columns, lengths, scales):
+        """New classes, one per row of `values`; their numbers."""
+        if shape not in self.shapes:
+            n, L = shape
+            self.shapes[shape] = [_Rows(L, np.float64), _Rows(L, np.int32), _Rows(n, np.int32),
+                                  _Rows(1, np.float64)]
+        store = self.shapes[shape]
+        first = store[0].size
+        for rows, data in zip(store, (values, columns, lengths, scales[:, None])):
+            rows.append(data)
+        numbers = np.arange(len(self.where), len(self.where) + len(values))
+        self.where.extend((shape, first + k) for k in range(len(values)))
+        return numbers
+
+    def classify(self, ia, ja, a, offsets, tolerance):
+        """The class of each patch of a group: rows offsets[k]:offsets[k+1] of the canonical
+        CSR block (ia, ja, a) are patch k's; its columns must lie in the same range.
+        `tolerance[k]`: the relative difference of entries allowed for patch k."""
+        n = np.diff(offsets)
+        starts = ia[offsets]
+        L = np.diff(starts)
+        cls = np.zeros(n.size, dtype=np.int64)
+        if n.size == 0:
+            return cls
+        rowlen = np.diff(ia).astype(np.int32)
+        shapes, shape_of = np.unique(np.stack([n, L], axis=1), axis=0, return_inverse=True)
+        for g, (size, length) in enumerate(shapes.tolist()):
+            shape = (size, length)
+            members = np.flatnonzero(shape_of.ravel() == g)
+            entries = starts[members, None] + np.arange(length)
+            values = a[entries]
+            columns = ja[entries]
+            del entries
+            columns -= offsets[members, None].astype(ja.dtype)
+            if length == 0 or columns.min() < 0 or columns.max() >= size:
+                raise RuntimeError("a patch block couples two patches: the patches share a cell")
+            lengths = rowlen[offsets[members, None] + np.arange(size)]
+            scales = np.abs(values).max(axis=1)
+            if not self.share:
+                cls[members] = self._add(shape, values, columns, lengths, scales)
+                continue
+            weights = 1.0 + np.mod(np.arange(length) * 0.6180339887498949, 1.0)
+            fingerprint = np.round(np.ldexp(values @ weights / scales, 32)).astype(np.int64)
+            unique, first, inverse = np.unique(fingerprint, return_index=True,
+                                               return_inverse=True)
+            found = np.array([self.index.get((size, length, k), -1) for k in unique.tolist()],
+                             dtype=np.int64)
+            new = np.flatnonzero(found < 0)
+            found[new] = self._add(shape, values[first[new]], columns[first[new]],
+                                   lengths[first[new]], scales[first[new]])
+            for k in new:
+                self.index[(size, length, int(unique[k]))] = found[k]
+            found = found[inverse.ravel()]
+
+            # every entry and row length against the class's first block
+            store = self.shapes[shape]
+            row = np.array([self.where[k][1] for k in found.tolist()], dtype=np.int64)
+            error = np.abs(store[0].data[row] - values).max(axis=1)
+            same = ((store[1].data[row] == columns).all(axis=1)
+                    & (store[2].data[row] == lengths).all(axis=1)
+                    & (error <= tolerance[members] * store[3].data[row, 0]))
+            bad = np.flatnonzero(~same)
+            if bad.size < same.size:
+                self.worst = max(self.worst, float((error / store[3].data[row, 0])[same].max()))
+            if bad.size:
+                self.rejected += bad.size
+                found[bad] = self._add(shape, values[bad], columns[bad], lengths[bad],
+                                       scales[bad])
+            cls[members] = found
+        return cls
+
+    def count(self):
+        return len(self.where)
+
+    def size(self, classes):
+        """The sizes n of the given classes."""
+        return np.array([self.where[k][0][0] for k in classes], dtype=np.int64)
+
+    def inverses(self, order):
+        """The inverses of the classes `order` (all of one size n) as an array (k, n, n)."""
+        n = self.where[order[0]][0][0]
+        dense = np.zeros((len(order), n, n))
+        shape_of = [self.where[k][0] for k in order]
+        row_of = np.array([self.where[k][1] for k in order], dtype=np.int64)
+        for shape in set(shape_of):
+            pick = np.array([s == shape for s in shape_of])
+            values, columns, lengths, _ = self.shapes[shape]
+            rows = row_of[pick]
+            k = np.repeat(np.flatnonzero(pick), shape[1])
+            r = np.repeat(np.tile(np.arange(n), rows.size), lengths.data[rows].ravel())
+            dense[k, r, columns.data[rows].ravel()] = values.data[rows].ravel()
+        # LAPACK one block at a time: batched solves with threaded BLAS are far slower here
+        from scipy.linalg import lapack
+        for block in dense:
+            lu, pivots, info = lapack.dgetrf(block)
+            if info == 0:
+                block[...], info = lapack.dgetri(lu, pivots)
+            if info != 0:
+                raise np.linalg.LinAlgError("singular patch block")
+        return dense
+
+    def release(self):
+        self.__init__(self.share)

@@ -1,0 +1,236 @@
+"""The patch engine's sharing of inverses between congruent patches (§5, §6, §12).
+
+* The canonical change of basis: `canonical_block` (in place on CSR rows) equals the dense
+  Gᵀ A G, and `to_canonical` the products with Gᵀ and G, G built independently from the codes
+  and the blocks of `basis_changes` (which itself checks that dolfinx's RT and DG bases differ
+  from the canonical ones by signed facet permutations, 2 × 2 interior blocks and vertex
+  relabelling).
+* The classes: a block joins a class only if its pattern and entries match (a pattern that
+  differs under equal values, and an entry off by 1e-11 relative, are kept apart; a 1e-16
+  perturbation is shared).
+* Shared and unshared solves agree to round-off: the patch solutions of the vertex patches of
+  a refined disk for random right-hand sides, with and without sharing, differ by at most
+  ROUND_OFF relative (measured ~1e-15); the shared blocks differ from their class's first by
+  at most SAME = 1e-13 of their largest entry (measured ≲ 1e-15).
+* The sharing happens: on the disk refined J times (boundary vertices moved onto the circle)
+  the share of distinct inverses falls with J (measured 0.45, 0.23 at J = 2, 3 from h = 0.3),
+  on a structured square all interior patches are translates (13 classes at any size), and on
+  2 and 3 processes the same holds with patches straddling processes (mpi_patches.py).
+"""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from membranes.estimation import congruence as engine
+from membranes.estimation.congruence import (
+    FACET,
+    INNER,
+    NEGATIVE,
+    Blocks,
+    basis_changes,
+    canonical_block,
+    to_canonical,
+)
+from membranes.estimation.equilibration import FluxEquilibration, boundary_dofs, vertex_patches
+from membranes.estimation.patches import PatchSystems, colour_vertices, mixed_space
+
+from .mpi_patches import random_solutions, refined_disk
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(os.path.dirname(HERE))
+ROUND_OFF = 1e-12      # condition ~1e3 of the patch matrices times SAME = 1e-13 bounds it
+
+
+def _square(n):
+    from dolfinx import mesh as dm
+    return dm.create_unit_square(MPI.COMM_WORLD, n, n, dm.CellType.triangle, dm.GhostMode.none)
+
+
+# ## The canonical change of basis against dense linear algebra
+
+def _synthetic(rng, blocks):
+    """Codes of 40 home dofs (facets with random signs, interior pairs with random blocks, DG)
+    and the dense G (rows dolfinx, columns canonical) they stand for."""
+    code, G = [], np.zeros((40, 40))
+    i = 0
+    while i < 40:
+        kind = rng.integers(3) if i < 39 else FACET
+        if kind == INNER:
+            p = rng.integers(len(blocks))
+            code += [(INNER << 2) | (p << engine.BLOCK), (INNER << 2) | 1 | (p << engine.BLOCK)]
+            G[i:i + 2, i:i + 2] = blocks[p]
+            i += 2
+        else:
+            negative = kind == FACET and rng.random() < 0.5
+            code.append((kind << 2) | (NEGATIVE if negative else 0))
+            G[i, i] = -1.0 if negative else 1.0
+            i += 1
+    return np.array(code, dtype=np.int64), G
+
+
+def test_canonical_block_is_the_dense_product():
+    _, blocks = basis_changes(mixed_space(_square(2)))
+    rng = np.random.default_rng(1)
+    code, G = _synthetic(rng, blocks)
+    A = rng.standard_normal((40, 40))
+    A = A + A.T
+    sign = np.diag(G).copy()
+    sign[(code >> 2) & 3 == INNER] = 1.0
+    scaled = sign[:, None] * A * sign[None, :]            # as A.diagonalScale does
+    ia = np.arange(0, 40 * 40 + 1, 40)
+    ja = np.tile(np.arange(40), 40)
+    got = canonical_block(ia, ja, scaled.ravel().copy(), code, blocks).reshape(40, 40)
+    expected = G.T @ A @ G
+    assert np.abs(got - expected).max() <= 1e-14 * np.abs(expected).max()
+    # the same G on vectors, with the home vectors' sign and pair arrays
+    v = rng.standard_normal(40)
+    sign8 = np.where(code & NEGATIVE, -1, 1).astype(np.int8)
+    pairs = engine._pairs(code)
+    assert np.allclose(to_canonical(v.copy(), sign8, pairs, blocks, transpose=True), G.T @ v,
+                       rtol=0, atol=1e-14)
+    assert np.allclose(to_canonical(v.copy(), sign8, pairs, blocks, transpose=False), G @ v,
+                       rtol=0, atol=1e-14)
+
+
+def test_basis_changes_are_integer_and_invertible():
+    signs, blocks = basis_changes(mixed_space(_square(2)))
+    assert set(np.unique(signs)) == {-1.0, 1.0}
+    assert np.all(np.abs(np.linalg.det(blocks)) == 1.0)
+    assert np.array_equal(blocks[0], np.eye(2))        # vertices already in order: identity
+
+
+# ## Classes
+
+def _csr(blocks):
+    """The CSR arrays of a block diagonal matrix from (rows: list of column lists, values)."""
+    ia, ja, a, offsets = [0], [], [], [0]
+    for rows, values in blocks:
+        base = offsets[-1]
+        for cols in rows:
+            ja += [base + c for c in cols]
+            ia.append(ia[-1] + len(cols))
+        a += list(values)
+        offsets.append(base + len(rows))
+    return (np.array(ia, dtype=np.int64), np.array(ja, dtype=np.int32), np.array(a),
+            np.array(offsets, dtype=np.int64))
+
+
+def test_classes_check_pattern_and_entries():
+    rng = np.random.default_rng(2)
+    full = [[0, 1, 2]] * 3
+    M = rng.standard_normal(9) + 2.0
+    off = M.copy()
+    off[4] *= 1.0 + 1e-11
+    close = M * (1.0 + 1e-16 * rng.standard_normal(9))
+    other = [[0, 1], [0, 1], [1, 2]]
+    moved = [[0, 2], [0, 1], [1, 2]]                     # same values, another pattern
+    ia, ja, a, offsets = _csr([(full, M), (full, close), (full, off), (other, M[:6]),
+                               (moved, M[:6])])
+    tolerance = np.full(5, engine.SAME)
+    classes = Blocks()
+    cls = classes.classify(ia, ja, a, offsets, tolerance)
+    assert cls[0] == cls[1]
+    assert len(set(cls.tolist())) == 4
+    assert classes.rejected >= 1                          # the pattern, at least
+    assert classes.worst <= engine.SAME
+    # a second group finds the classes of the first
+    again = classes.classify(ia, ja, a, offsets, tolerance)
+    assert np.array_equal(again[[0, 1, 3]], cls[[0, 1, 3]])
+    unshared = Blocks(share=False).classify(ia, ja, a, offsets, tolerance)
+    assert len(set(unshared.tolist())) == 5
+
+
+# ## Shared and unshared solves, and the sharing rate
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial reference; see mpi_patches.py")
+def test_shared_and_unshared_solves_agree():
+    mesh = refined_disk(MPI.COMM_WORLD, 0.3, 2)
+    shared, unshared, scale, diff = random_solutions(mesh)
+    stats = shared.stats()
+    assert stats["classes"] < 0.6 * stats["patches"]
+    assert unshared.stats()["classes"] == stats["patches"]
+    assert stats["rejected"] == 0 and stats["disagree"] == 0
+    assert stats["worst"] <= engine.SAME
+    assert scale > 0.1
+    assert diff <= ROUND_OFF * scale
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial rates")
+def test_sharing_grows_with_refinement():
+    from dolfinx import fem
+    rates = []
+    for J in (1, 2, 3):
+        V = fem.FunctionSpace(refined_disk(MPI.COMM_WORLD, 0.3, J), ("Lagrange", 1))
+        stats = FluxEquilibration(V).summary()["sharing"]
+        assert stats["rejected"] == 0 and stats["disagree"] == 0
+        rates.append(stats["classes"] / stats["patches"])
+    assert rates[0] > rates[1] > rates[2]
+    assert rates[2] < 0.3, rates
+
+
+def test_structured_square_has_few_classes():
+    """All patches of interior vertices of create_unit_square are translates: the classes are
+    those of the interior, the four sides and the four corners' kinds (13 in all, whatever n;
+    on several processes each process has its own)."""
+    from dolfinx import fem
+    for n in (8, 16):
+        V = fem.FunctionSpace(_square(n), ("Lagrange", 1))
+        stats = FluxEquilibration(V).summary()["sharing"]
+        assert stats["patches"] == (n + 1) ** 2
+        assert stats["classes"] <= 13 * MPI.COMM_WORLD.size
+
+
+def test_unshared_engine_gives_the_same_flux():
+    """σ_disc with sharing equals σ_disc of the engine without sharing (PatchSystems(share=
+    False) in FluxEquilibration's place), on a refined disk."""
+    from dolfinx import fem
+
+    from .mpi_equilibration import MU, Compatible, equilibrate
+    data = Compatible(refined_disk(MPI.COMM_WORLD, 0.4, 2))
+    eq, sigmas = equilibrate(data)
+    patches, interior = vertex_patches(data.V, eq.colour, eq.ncolours, eq.on_boundary)
+    eq.systems = PatchSystems(data.mesh, patches, interior, eq.systems.W, share=False)
+    eq._loads = {}
+    for alpha in (1, 2):
+        other = eq.sigma(alpha, data.u, data.lam, data.r[alpha], data.f, MU)
+        a, b = data.functionals(sigmas[alpha]), data.functionals(other)
+        assert np.abs(a - b).max() <= ROUND_OFF * np.abs(a).max()
+        diff = fem.Function(other.function_space)
+        diff.x.array[:] = other.x.array - sigmas[alpha].x.array
+        assert data.functionals(diff)[0] <= (ROUND_OFF ** 2) * a[0]
+
+
+def test_colouring_and_boundary_helpers_used_by_the_groups():
+    """vertex_patches: every owned cell is in exactly three groups (one per vertex)."""
+    from dolfinx import fem
+    V = fem.FunctionSpace(_square(5), ("Lagrange", 1))
+    nc = V.mesh.topology.index_map(2).size_local
+    cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
+    colour, ncolours, _ = colour_vertices(cells, V.dofmap.index_map, V.mesh.comm)
+    patches, interior = vertex_patches(V, colour, ncolours, boundary_dofs(V))
+    assert np.all(sum((p >= 0).astype(int) for p in patches) == 3)
+    assert all(np.all(~i[p < 0]) for p, i in zip(patches, interior))
+
+
+# ## On several processes
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
+@pytest.mark.parametrize("nproc", [2, 3])
+def test_parallel_sharing(nproc):
+    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(nproc),
+           sys.executable, os.path.join(HERE, "mpi_patches.py")]
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
+    out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout + out.stderr
+    fields = dict(item.split("=") for item in out.stdout.split("OK")[-1].split())
+    assert int(fields["P"]) == nproc
+    assert int(fields["straddling"]) > 0
+    assert int(fields["classes"]) < int(fields["patches"])
+    assert float(fields["diff"]) <= ROUND_OFF * float(fields["scale"])
+    assert float(fields["worst"]) <= engine.SAME
