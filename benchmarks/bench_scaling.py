@@ -201,22 +201,7 @@ def parse(argv=None):
     parser.add_argument("--repeat", type=int, default=1, metavar="N",
                         help="runs of each (P, method) per size (default 1)")
     parser.add_argument("--no-plain", action="store_true", help="leave out the plain peer")
-    parser.add_argument("--no-warmup", action="store_true",
-                        help="no small unreported runs first (the JIT cache is then warm)")
-    parser.add_argument("--blas-threads", type=int, default=None, metavar="T",
-                        help="BLAS (OpenBLAS, OpenMP) threads of every process (default: "
-                             "the environment's)")
-    parser.add_argument("--timeout", type=float, default=None, metavar="S",
-                        help="give up a run after S seconds")
-    parser.add_argument("--margin", type=float, default=0.8, metavar="F",
-                        help="skip a run estimated to need more than F of MemAvailable "
-                             "(default 0.8)")
-    args = parser.parse_args(argv)
-    for s in args.sizes:
-        try:
-            fresh.size(s)
-        except ValueError as e:
-            parser.error(str(e))
+    args = fresh.parse_common(parser, argv)
     if args.repeat < 1 or any(p < 1 for p in args.procs):
         parser.error("--repeat and every P must be at least 1")
     if args.blas_threads is not None and args.blas_threads < 1:

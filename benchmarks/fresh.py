@@ -215,3 +215,25 @@ class MemoryGuard:
 
 if __name__ == "__main__":
     child(sys.argv[1], sys.argv[2])
+
+
+def parse_common(parser, argv=None):
+    """Add the options both benchmarks share (--no-warmup, --blas-threads, --timeout,
+    --margin), parse `argv` and check the sizes (`size`)."""
+    parser.add_argument("--no-warmup", action="store_true",
+                        help="no small unreported run first (the JIT cache is then warm)")
+    parser.add_argument("--blas-threads", type=int, default=None, metavar="T",
+                        help="BLAS (OpenBLAS, OpenMP) threads of every process (default: "
+                             "the environment's)")
+    parser.add_argument("--timeout", type=float, default=None, metavar="S",
+                        help="give up a run after S seconds")
+    parser.add_argument("--margin", type=float, default=0.8, metavar="F",
+                        help="skip a run estimated to need more than F of MemAvailable "
+                             "(default 0.8)")
+    args = parser.parse_args(argv)
+    for s in args.sizes:
+        try:
+            size(s)
+        except ValueError as e:
+            parser.error(str(e))
+    return args
