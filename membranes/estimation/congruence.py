@@ -8,12 +8,12 @@ the orientation of a facet by global vertex indices). This module removes that d
 
 * `canonical_dofs`: on every cell the *canonical* basis is the Piola image of the reference
   basis through the vertices ordered along a fixed direction d, every facet oriented along d,
-  and the dofs are ordered by the position of their entity along d — all translation
-  invariant. The change of basis G (canonical → dolfinx) is ±1 on facet dofs, the identity on
-  the DG dofs (Lagrange at the vertices: only their labels change) and a 2 × 2 integer block on
-  the two interior RT dofs of a cell (`basis_changes` checks this form on basix's elements);
-  `canonical_block` forms Ã_p = G_pᵀ A_p G_p on the rows of the patches, `to_canonical`
-  applies Gᵀ and G to vectors.
+  and a patch's dofs are ordered RT dofs first, DG dofs last, each by the position of their
+  entity along d — all translation invariant. The change of basis G (canonical → dolfinx) is
+  ±1 on facet dofs, the identity on the DG dofs (Lagrange at the vertices: only their labels
+  change) and a 2 × 2 integer block on the two interior RT dofs of a cell (`basis_changes`
+  checks this form on basix's elements); `canonical_block` forms Ã_p = G_pᵀ A_p G_p on the rows
+  of the patches, `to_canonical` applies Gᵀ and G to vectors.
 * `Blocks`: the blocks Ã_p are fingerprinted and grouped, and a patch joins a class only after
   its block is checked entry by entry against the class's first block, to the round-off of the
   patch's coordinates.
@@ -235,12 +235,13 @@ def canonical_block(ia, ja, a, code, blocks):
 
 # ## Classes of equal blocks
 #
-# The patches of a group with the same size n and number of entries L are compared as rows of a
-# (patches, L) array of their CSR values (rows in order, columns sorted). A block's fingerprint
+# The patches of a group with the same size n, number of entries L and number of RT dofs n_σ
+# are compared as rows of a (patches, L) array of their CSR values (rows in order, columns
+# sorted). A block's fingerprint
 # is its values against fixed weights over the L positions divided by its largest entry,
 # rounded to 2⁻³² (congruent blocks differ by ~1e-15: they share a fingerprint but for a ~1e-4
 # chance of straddling a rounding boundary, which only loses the sharing). Blocks with the same
-# n, L and fingerprint are candidates; a patch joins the class of its candidate only if its
+# n, L, n_σ and fingerprint are candidates; a patch joins the class of its candidate only if its
 # pattern (row lengths and columns) is the class's and every entry agrees to `tolerance` times
 # the class's largest entry. Classes persist across groups; each keeps its first block.
 #
@@ -272,20 +273,21 @@ class _Rows:
 
 
 class Blocks:
-    """The distinct canonical patch blocks of one process (`classify`, then `inverses`)."""
+    """The distinct canonical patch blocks of one process (`classify` the patches of each
+    group, then `operators` of the classes)."""
 
     def __init__(self, share=True):
         self.share = share
-        self.index = {}              # (n, L, fingerprint) → class
-        self.shapes = {}             # (n, L) → [values, columns, row lengths, scales] (_Rows)
-        self.where = []              # class → ((n, L), row in the shape's arrays)
+        self.index = {}              # (n, L, n_σ, fingerprint) → class
+        self.shapes = {}             # (n, L, n_σ) → [values, columns, row lengths, scales]
+        self.where = []              # class → ((n, L, n_σ), row in the shape's arrays)
         self.rejected = 0
         self.worst = 0.0             # largest relative difference of a block from its class's
 
     def _add(self, shape, values, columns, lengths, scales):
         """New classes, one per row of `values`; their numbers."""
         if shape not in self.shapes:
-            n, L = shape
+            n, L, _ = shape
             self.shapes[shape] = [_Rows(L, np.float64), _Rows(L, np.int32), _Rows(n, np.int32),
                                   _Rows(1, np.float64)]
         store = self.shapes[shape]
@@ -296,10 +298,11 @@ class Blocks:
         self.where.extend((shape, first + k) for k in range(len(values)))
         return numbers
 
-    def classify(self, ia, ja, a, offsets, tolerance):
+    def classify(self, ia, ja, a, offsets, tolerance, nsigma):
         """The class of each patch of a group: rows offsets[k]:offsets[k+1] of the canonical
-        CSR block (ia, ja, a) are patch k's; its columns must lie in the same range.
-        `tolerance[k]`: the relative difference of entries allowed for patch k."""
+        CSR block (ia, ja, a) are patch k's, its RT dofs first (nsigma[k] of them); its
+        columns must lie in the same range. `tolerance[k]`: the relative difference of entries
+        allowed for patch k."""
         n = np.diff(offsets)
         starts = ia[offsets]
         L = np.diff(starts)
@@ -307,9 +310,10 @@ class Blocks:
         if n.size == 0:
             return cls
         rowlen = np.diff(ia).astype(np.int32)
-        shapes, shape_of = np.unique(np.stack([n, L], axis=1), axis=0, return_inverse=True)
-        for g, (size, length) in enumerate(shapes.tolist()):
-            shape = (size, length)
+        shapes, shape_of = np.unique(np.stack([n, L, nsigma], axis=1), axis=0,
+                                     return_inverse=True)
+        for g, (size, length, rt) in enumerate(shapes.tolist()):
+            shape = (size, length, rt)
             members = np.flatnonzero(shape_of.ravel() == g)
             entries = starts[members, None] + np.arange(length)
             values = a[entries]
@@ -327,13 +331,13 @@ class Blocks:
             fingerprint = np.round(np.ldexp(values @ weights / scales, 32)).astype(np.int64)
             unique, first, inverse = np.unique(fingerprint, return_index=True,
                                                return_inverse=True)
-            found = np.array([self.index.get((size, length, k), -1) for k in unique.tolist()],
+            found = np.array([self.index.get(shape + (k,), -1) for k in unique.tolist()],
                              dtype=np.int64)
             new = np.flatnonzero(found < 0)
             found[new] = self._add(shape, values[first[new]], columns[first[new]],
                                    lengths[first[new]], scales[first[new]])
             for k in new:
-                self.index[(size, length, int(unique[k]))] = found[k]
+                self.index[shape + (int(unique[k]),)] = found[k]
             found = found[inverse.ravel()]
 
             # every entry and row length against the class's first block
@@ -356,12 +360,12 @@ class Blocks:
     def count(self):
         return len(self.where)
 
-    def size(self, classes):
-        """The sizes n of the given classes."""
-        return np.array([self.where[k][0][0] for k in classes], dtype=np.int64)
+    def shape(self, k):
+        """(n, L, n_σ) of class k."""
+        return self.where[k][0]
 
-    def inverses(self, order):
-        """The inverses of the classes `order` (all of one size n) as an array (k, n, n)."""
+    def dense(self, order):
+        """The blocks of the classes `order` (all of one size n) as an array (k, n, n)."""
         n = self.where[order[0]][0][0]
         dense = np.zeros((len(order), n, n))
         shape_of = [self.where[k][0] for k in order]
@@ -373,15 +377,65 @@ class Blocks:
             k = np.repeat(np.flatnonzero(pick), shape[1])
             r = np.repeat(np.tile(np.arange(n), rows.size), lengths.data[rows].ravel())
             dense[k, r, columns.data[rows].ravel()] = values.data[rows].ravel()
-        # LAPACK one block at a time: batched solves with threaded BLAS are far slower here
-        from scipy.linalg import lapack
-        for block in dense:
-            lu, pivots, info = lapack.dgetrf(block)
-            if info == 0:
-                block[...], info = lapack.dgetri(lu, pivots)
-            if info != 0:
-                raise np.linalg.LinAlgError("singular patch block")
         return dense
+
+    def operators(self, order, inputs, outputs):
+        """The blocks of the inverses of the classes `order` (all of one shape (n, L, n_σ))
+        that map the right-hand side entries `inputs` to the solution entries `outputs`
+        (index ranges of the patch's dofs), as an array (k, len(outputs), len(inputs)). Raises
+        np.linalg.LinAlgError for a singular block."""
+        dense = self.dense(order)
+        rt = self.where[order[0]][0][2]
+        flux_of_divergence = outputs[-1] < rt <= inputs[0]
+        out = np.empty((len(order), len(outputs), len(inputs)))
+        for block, result in zip(dense, out):
+            corner = _saddle_corner(block, rt) if flux_of_divergence else None
+            if corner is not None:
+                result[...] = corner[np.ix_(outputs, inputs - rt)]
+            else:
+                result[...] = _lu_inverse(block)[np.ix_(outputs, inputs)]
+        return out
 
     def release(self):
         self.__init__(self.share)
+
+
+# ## Inverses of the patch blocks
+#
+# LAPACK one block at a time: numpy's batched solves call threaded BLAS, far slower for these
+# sizes. A full inverse by LU. When only the flux of divergence data is wanted (§6), the block
+# of the inverse from the DG rows to the RT unknowns: with the RT dofs first, a block is
+# [[M, Bᵀ], [B, 0]], M the RT mass matrix (SPD), B the divergence (full row rank: the pinned
+# dof removes the constants); with Y = M⁻¹Bᵀ and the Schur complement S = B Y (SPD), that block
+# of the inverse is Y S⁻¹: two Cholesky factorisations, a sixth of the work of the LU inverse
+# for the coarse patches.
+
+def _saddle_corner(block, rt):
+    """Y S⁻¹ for a saddle-point block [[M, Bᵀ], [B, 0]] (M: its first rt rows and columns),
+    or None if the block is not of that form with M and S SPD."""
+    from scipy.linalg import lapack
+    M, B = block[:rt, :rt], block[rt:, :rt]
+    scale = np.abs(block).max(initial=0.0)
+    if (np.any(block[rt:, rt:] != 0.0)
+            or np.abs(block[:rt, rt:] - B.T).max(initial=0.0) > 1e-12 * scale):
+        return None
+    cm, info = lapack.dpotrf(M)
+    if info != 0:
+        return None
+    Y, _ = lapack.dpotrs(cm, np.ascontiguousarray(B.T))
+    cs, info = lapack.dpotrf(B @ Y)
+    if info != 0:
+        return None
+    Z, _ = lapack.dpotrs(cs, np.ascontiguousarray(Y.T))               # S⁻¹ Yᵀ
+    return Z.T
+
+
+def _lu_inverse(block):
+    """The inverse of a block by LAPACK's LU (raises np.linalg.LinAlgError if singular)."""
+    from scipy.linalg import lapack
+    lu, pivots, info = lapack.dgetrf(block)
+    if info == 0:
+        inverse, info = lapack.dgetri(lu, pivots)
+    if info != 0:
+        raise np.linalg.LinAlgError("singular patch block")
+    return inverse

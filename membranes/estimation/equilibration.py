@@ -130,7 +130,7 @@ class FluxEquilibration:
         self.colour, self.ncolours, self.colour_rounds = colour_vertices(cells, imap, self.comm)
         self.on_boundary = boundary_dofs(V)
         patches, interior = vertex_patches(V, self.colour, self.ncolours, self.on_boundary)
-        self.systems = PatchSystems(mesh, patches, interior)
+        self.systems = PatchSystems(mesh, patches, interior, solution="flux")
         self.rt_space = self.systems.rt_space
 
         # coefficients of the right-hand side forms, compiled once

@@ -48,16 +48,20 @@ prolongations, a partition of unity on T_J).
 parents' process, so all the DG1 moment algebra (restrictions R_jᵀ, the 3×3 cell masses) is
 process-local numpy/scipy on the owned cells. The patches of level j are the coloured groups of
 a `PatchSystems` on T_j, one group per colour of a vertex colouring of T_{j-1} (no two vertices
-of one colour share a cell of T_{j-1}, so no two of their patches share a cell of T_j);
-factorised once. The RT transfers are distributed PETSc matrices.
+of one colour share a cell of T_{j-1}, so no two of their patches share a cell of T_j), set
+up once. Their right-hand sides are DG moments and only σ is wanted, so each class of
+congruent patches keeps the block Y S⁻¹ of its inverse from the DG rows to the RT unknowns
+(`PatchSystems(rhs="divergence", solution="flux")`). The RT transfers are distributed PETSc
+matrices.
 
-**Cost.** Level j's systems have about 3 × dim(RT_1 × DG1)(T_j) unknowns in patches of ~24
+**Cost.** Level j's patches have about 3 × dim(RT_1 × DG1)(T_j) unknowns in patches of ~24
 cells, so all levels together about 4 × dim(T_J) (σ_disc: 3 ×); the coarse system has the size
-of P1(T_0). Per call: one coarse back-solve, one assembly of the data matrix on T_J, one
-matrix-vector product per colour and level, one back-solve per colour and level, J - 1 RT
-transfers. (Solving every level's coarse patches on T_J itself, grouped by ancestry, would be
-just as exact but costs about 3 × dim(T_J) unknowns *per level*, in patches of up to
-6 · 4^J cells.)
+of P1(T_0). On a uniformly refined hierarchy most coarse patches of level j ≥ 2 are translates
+and share their block. Per call: one coarse back-solve, one assembly of the data matrix on T_J,
+one matrix-vector product per colour and level, the patches of each level in one pass (a
+matrix product per class of congruent patches), J - 1 RT transfers. (Solving every level's
+coarse patches on T_J itself, grouped by ancestry, would be just as exact but costs about
+3 × dim(T_J) unknowns *per level*, in patches of up to 6 · 4^J cells.)
 """
 
 import numpy as np
@@ -257,7 +261,9 @@ class _Level:
             patches.append(np.where(has, gdofs[vertex], -1))
             interior.append(has & ~on_boundary[vertex])
         self.patches, self.interior = patches, interior
-        self.systems = PatchSystems(self.mesh, patches, interior)
+        # the data are DG moments and only σ is wanted
+        self.systems = PatchSystems(self.mesh, patches, interior, rhs="divergence",
+                                    solution="flux")
         self.rt_space = self.systems.rt_space
         W = self.systems.W
         self.dg = W.sub(1).dofmap.list.array.reshape(-1, 3)[:nc].ravel()

@@ -231,7 +231,11 @@ class PatchSystems:
     c containing the cell, or -1; no two patches of one group share a cell. `interior[c]`: bool
     array over the owned cells, True where the cell's patch is interior (zero normal flux on all
     its boundary and zero mean; otherwise its facets on ∂Ω are free). Patch ids must be unique
-    within a group across processes; a patch's cells may live on several processes.
+    within a group across processes; a patch's cells may live on several processes. `share`:
+    congruent patches share one inverse (False: every patch has its own). `rhs="divergence"`:
+    right-hand sides vanish on the RT dofs (only DG moments, as in §6); `solution="flux"`: only
+    the RT part of the solutions is wanted (σ; γ is returned as zero). Each class then keeps
+    only the block of its inverse between those dofs.
 
     Each patch is solved on one process, its *home*: the owner of its cell of least global
     index. The kept dofs of all patches at home on a process form its *home vector* (numpy),
@@ -243,8 +247,13 @@ class PatchSystems:
     extra)` does all this for one group.
     """
 
-    def __init__(self, mesh, patches, interior, W=None, share=True):
+    def __init__(self, mesh, patches, interior, W=None, share=True, rhs="full",
+                 solution="full"):
         from dolfinx import fem
+        if rhs not in ("full", "divergence") or solution not in ("full", "flux"):
+            raise ValueError(f"rhs must be 'full' or 'divergence', solution 'full' or 'flux'; "
+                             f"got {rhs!r}, {solution!r}")
+        self.rhs, self.solution = rhs, solution
         from dolfinx.fem.petsc import assemble_matrix
         self.mesh, self.comm = mesh, mesh.comm
         self.W = W = W if W is not None else mixed_space(mesh)
@@ -255,7 +264,9 @@ class PatchSystems:
         self.position, self.entity, self.code, self.blocks, self.disagree = canonical_dofs(
             mesh, W, self.c2f, self.rt_dofs, self.dg_dofs)
         n = self.nowned
-        self.by_rank = np.lexsort((self.entity[:n], self.position[:n]))   # canonical order
+        # canonical order in a patch: its RT dofs, then its DG dofs, each by position
+        self.by_rank = np.lexsort((self.entity[:n], self.position[:n],
+                                   _kind(self.code[:n]) == DG))
 
         # A over the whole mesh, once; each group's rows at home are taken from it, made
         # canonical and classified, one group at a time
@@ -269,8 +280,8 @@ class PatchSystems:
         classes = Blocks(share)
         groups = []
         for pid, inner in zip(patches, interior):
-            dofs, offsets, code, tolerance = self._home_dofs(np.asarray(pid, dtype=np.int64),
-                                                             np.asarray(inner, dtype=bool))
+            dofs, offsets, code, tolerance, nsigma = self._home_dofs(
+                np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
             cls = np.zeros(len(offsets) - 1, dtype=np.int64)
             for first, last in self._chunks(offsets):
                 rows = slice(offsets[first], offsets[last])
@@ -284,7 +295,7 @@ class PatchSystems:
                 a = canonical_block(ia, ja.astype(np.int64), a, code[rows], self.blocks)
                 cls[first:last] = classes.classify(ia, ja, a,
                                                    offsets[first:last + 1] - offsets[first],
-                                                   tolerance[first:last])
+                                                   tolerance[first:last], nsigma[first:last])
                 del ia, ja, a
             groups.append((dofs.astype(PETSc.IntType), offsets, code.astype(np.int16), cls))
         A.destroy()
@@ -350,8 +361,9 @@ class PatchSystems:
 
     def _home_dofs(self, pid, inner):
         """The kept W dofs of the group's patches at home on this process (global indices), in
-        canonical order patch by patch, the patches' offsets, the dofs' codes and the patches'
-        tolerances (a collective call: every process hands over its owned kept dofs)."""
+        canonical order patch by patch (RT dofs first), the patches' offsets, the dofs' codes,
+        the patches' tolerances and numbers of RT dofs (a collective call: every process hands
+        over its owned kept dofs)."""
         comm = self.comm
         # per facet, over its (at most two) cells: the largest and smallest patch id + 1
         # (0 = no patch), and whether a cell's patch is not interior; reduced across processes
@@ -405,7 +417,7 @@ class PatchSystems:
         code = self.code[kept] | np.where(first & 1, 0, INTERIOR)
 
         # send every kept dof to its patch's home (in order), which keeps the patches whole
-        order = np.argsort(home, kind="stable")
+        order = np.argsort(home, kind="stable") if comm.size > 1 else slice(None)
         send = np.bincount(home, minlength=comm.size).astype(np.int64)
         recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
         rows = np.empty((kept.size, 6), dtype=np.int64)
@@ -414,9 +426,9 @@ class PatchSystems:
         rows[:, 2], rows[:, 3] = self.position[kept].view(np.int64), self.entity[kept]
         rows[:, 5] = h[order].view(np.int64)
         got = alltoallv(comm, rows, send, recv)
-        by_patch = np.argsort(got[:, 1], kind="stable")
-        got = got[by_patch]
         if comm.size > 1:
+            by_patch = np.argsort(got[:, 1], kind="stable")
+            got = got[by_patch]
             # a patch with dofs from several processes: merge them in canonical order
             source = np.repeat(np.arange(comm.size), recv)[by_patch]
             new = np.flatnonzero(np.diff(got[:, 1], prepend=-1) != 0)
@@ -426,20 +438,20 @@ class PatchSystems:
             if redo.size:
                 part = got[redo]
                 got[redo] = part[np.lexsort((part[:, 3], part[:, 2].view(np.float64),
-                                             part[:, 1]))]
+                                             _kind(part[:, 4]) == DG, part[:, 1]))]
         # patch offsets; interior patches lose their first DG dof
         new = np.flatnonzero(np.diff(got[:, 1], prepend=-1) != 0)
-        is_dg = _kind(got[:, 4]) == DG
-        dg_patch, dg_first = np.unique(got[is_dg, 1], return_index=True)
-        pinned = np.flatnonzero(is_dg)[dg_first]
+        dg = np.flatnonzero(_kind(got[:, 4]) == DG)
+        pinned = dg[np.flatnonzero(np.diff(got[dg, 1], prepend=-1) != 0)]
         pinned = pinned[(got[pinned, 4] & INTERIOR) != 0]
         keep = np.ones(len(got), dtype=bool)
         keep[pinned] = False
         start = np.searchsorted(np.flatnonzero(keep), np.append(new, len(got)))
         tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius
                                / got[new, 5].view(np.float64))
-        got = got[keep]
-        return got[:, 0], start, got[:, 4], tolerance
+        dofs, code = got[keep, 0], got[keep, 4]
+        nsigma = np.add.reduceat(_kind(code) != DG, start[:-1]) if code.size else start[:0]
+        return dofs, start, code, tolerance, nsigma
 
     def _layout(self, groups, classes):
         """Home order (size, class multiplicity, class, group, patch), the scatters, the
@@ -450,7 +462,8 @@ class PatchSystems:
         group = np.concatenate([np.full(len(g[1]) - 1, c) for c, g in enumerate(groups)])
         nclasses = classes.count()
         count = np.bincount(cls, minlength=nclasses)
-        order = np.lexsort((np.arange(cls.size), group, cls, count[cls], n))
+        rt = np.array([classes.shape(k)[2] for k in range(nclasses)], dtype=np.int64)
+        order = np.lexsort((np.arange(cls.size), group, cls, count[cls], rt[cls], n))
         start = np.zeros(cls.size, dtype=np.int64)
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
@@ -477,21 +490,28 @@ class PatchSystems:
         self.sign = np.where(code & NEGATIVE, -1, 1).astype(np.int8)
         self.pairs = _pairs(code)
 
-        # the classes' inverses, size by size in home order; one product per (size, count)
+        # per class the block of its inverse from the right-hand side entries used to the
+        # solution entries wanted (RT dofs first, DG dofs last in a patch); one product per
+        # (shape, count) for all the patches of its classes
         self.solves = []
+        shape = np.array([classes.shape(k) for k in range(nclasses)], dtype=np.int64)
+        shape = shape.reshape(-1, 3)
         ok = True
         try:
-            ranked = np.unique(np.stack([n[order], count[cls[order]], cls[order]], axis=1),
-                               axis=0)
-            for size in np.unique(ranked[:, 0]):
-                these = ranked[ranked[:, 0] == size]
-                inverses = classes.inverses(these[:, 2])
+            first = np.full(nclasses, np.iinfo(np.int64).max)
+            np.minimum.at(first, cls, start)                  # each class's first patch
+            ranked = np.unique(np.stack([n[order], shape[cls[order], 2], count[cls[order]],
+                                         cls[order]], axis=1), axis=0)
+            for size, rt in np.unique(ranked[:, :2], axis=0).tolist():
+                these = ranked[(ranked[:, 0] == size) & (ranked[:, 1] == rt)]
+                inputs = np.arange(rt if self.rhs == "divergence" else 0, size)
+                outputs = np.arange(rt if self.solution == "flux" else size)
+                operators = classes.operators(these[:, 3], inputs, outputs)
                 at = 0
-                for m in np.unique(these[:, 1]):
-                    K = int(np.count_nonzero(these[:, 1] == m))
-                    h0 = int(start[cls == these[at, 2]].min())
-                    self.solves.append((h0, K, int(m), int(size),
-                                        inverses[at:at + K].transpose(0, 2, 1)))
+                for m in np.unique(these[:, 2]):
+                    K = int(np.count_nonzero(these[:, 2] == m))
+                    self.solves.append((int(first[these[at, 3]]), K, int(m), size, inputs,
+                                        outputs, operators[at:at + K].transpose(0, 2, 1)))
                     at += K
         except np.linalg.LinAlgError:
             ok = False
@@ -526,10 +546,11 @@ class PatchSystems:
         rhs = self.canonical(home)
         if extra is not None:
             rhs += extra
-        x = np.empty_like(rhs)
-        for h0, K, m, n, inverse_t in self.solves:
+        x = np.zeros_like(rhs)
+        for h0, K, m, n, inputs, outputs, operator_t in self.solves:
             h1 = h0 + K * m * n
-            np.matmul(rhs[h0:h1].reshape(K, m, n), inverse_t, out=x[h0:h1].reshape(K, m, n))
+            r = rhs[h0:h1].reshape(K, m, n)[:, :, inputs[0]:inputs[-1] + 1]
+            np.matmul(r, operator_t, out=x[h0:h1].reshape(K, m, n)[:, :, :outputs[-1] + 1])
         return to_canonical(x, self.sign, self.pairs, self.blocks, transpose=False)
 
     def scatter(self, c, x, out, add=False):
@@ -566,7 +587,7 @@ class PatchSystems:
         whose two cells disagree on the canonical basis (0), and the largest difference of a
         shared block from its class's first, relative to its largest entry (within the
         tolerance of `Blocks`)."""
-        memory = sum(s[4].nbytes for s in self.solves)
+        memory = sum(s[6].nbytes for s in self.solves)
         local = np.array([self.npatches, self.nclasses, self.rejected, memory, self.disagree])
         total = self.comm.allreduce(local, op=MPI.SUM)
         out = dict(zip(("patches", "classes", "rejected", "inverse_bytes", "disagree"),

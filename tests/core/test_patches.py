@@ -131,17 +131,17 @@ def test_classes_check_pattern_and_entries():
     moved = [[0, 2], [0, 1], [1, 2]]                     # same values, another pattern
     ia, ja, a, offsets = _csr([(full, M), (full, close), (full, off), (other, M[:6]),
                                (moved, M[:6])])
-    tolerance = np.full(5, engine.SAME)
+    tolerance, nsigma = np.full(5, engine.SAME), np.full(5, 2)
     classes = Blocks()
-    cls = classes.classify(ia, ja, a, offsets, tolerance)
+    cls = classes.classify(ia, ja, a, offsets, tolerance, nsigma)
     assert cls[0] == cls[1]
     assert len(set(cls.tolist())) == 4
     assert classes.rejected >= 1                          # the pattern, at least
     assert classes.worst <= engine.SAME
     # a second group finds the classes of the first
-    again = classes.classify(ia, ja, a, offsets, tolerance)
+    again = classes.classify(ia, ja, a, offsets, tolerance, nsigma)
     assert np.array_equal(again[[0, 1, 3]], cls[[0, 1, 3]])
-    unshared = Blocks(share=False).classify(ia, ja, a, offsets, tolerance)
+    unshared = Blocks(share=False).classify(ia, ja, a, offsets, tolerance, nsigma)
     assert len(set(unshared.tolist())) == 5
 
 
@@ -203,6 +203,37 @@ def test_unshared_engine_gives_the_same_flux():
         diff = fem.Function(other.function_space)
         diff.x.array[:] = other.x.array - sigmas[alpha].x.array
         assert data.functionals(diff)[0] <= (ROUND_OFF ** 2) * a[0]
+
+
+def test_reduced_operators():
+    """rhs="divergence" (data only on DG rows) and solution="flux" (only σ): the RT part of the
+    solutions equals the full solve's to round-off (the Schur complement path of §6's blocks
+    against LU), and γ is returned as zero."""
+    from petsc4py import PETSc
+
+    from .mpi_patches import vertex_groups
+    mesh = refined_disk(MPI.COMM_WORLD, 0.4, 1)
+    patches, interior = vertex_groups(mesh)
+    W = mixed_space(mesh)
+    rt = np.zeros(W.dofmap.index_map.size_local, dtype=bool)
+    rt[W.sub(0).dofmap.list.array[W.sub(0).dofmap.list.array < rt.size]] = True
+    b = PETSc.Vec().createMPI((rt.size, PETSc.DECIDE), comm=mesh.comm)
+    b.array[:] = np.random.default_rng(3 + mesh.comm.rank).standard_normal(rt.size)
+    full = PatchSystems(mesh, patches, interior, W)
+    for rhs, solution in (("full", "flux"), ("divergence", "flux"), ("divergence", "full")):
+        if rhs == "divergence":
+            b.array[rt] = 0.0
+        reduced = PatchSystems(mesh, patches, interior, W, rhs=rhs, solution=solution)
+        for c in range(len(patches)):
+            x, y = full.solve(c, b), reduced.solve(c, b)
+            scale = mesh.comm.allreduce(np.abs(x.array).max(initial=0.0), op=MPI.MAX)
+            part = rt if solution == "flux" else slice(None)
+            diff = np.abs(x.array[part] - y.array[part]).max(initial=0.0)
+            assert mesh.comm.allreduce(diff, op=MPI.MAX) <= ROUND_OFF * scale
+            if solution == "flux":
+                assert np.all(y.array[~rt] == 0.0)
+    with pytest.raises(ValueError):
+        PatchSystems(mesh, patches, interior, W, rhs="data")
 
 
 def test_colouring_and_boundary_helpers_used_by_the_groups():
