@@ -381,19 +381,25 @@ class Blocks:
 
     def operators(self, order, inputs, outputs):
         """The blocks of the inverses of the classes `order` (all of one shape (n, L, n_σ))
-        that map the right-hand side entries `inputs` to the solution entries `outputs`
-        (index ranges of the patch's dofs), as an array (k, len(outputs), len(inputs)). Raises
-        np.linalg.LinAlgError for a singular block."""
-        dense = self.dense(order)
+        that map the right-hand side entries `inputs` to the solution entries `outputs` (slices
+        of the patch's dofs), as an array (k, outputs, inputs). Raises np.linalg.LinAlgError
+        for a singular block."""
         rt = self.where[order[0]][0][2]
-        flux_of_divergence = outputs[-1] < rt <= inputs[0]
-        out = np.empty((len(order), len(outputs), len(inputs)))
-        for block, result in zip(dense, out):
-            corner = _saddle_corner(block, rt) if flux_of_divergence else None
-            if corner is not None:
-                result[...] = corner[np.ix_(outputs, inputs - rt)]
-            else:
-                result[...] = _lu_inverse(block)[np.ix_(outputs, inputs)]
+        n = self.where[order[0]][0][0]
+        rows, cols = range(n)[outputs], range(n)[inputs]
+        flux_of_divergence = rows.stop <= rt <= cols.start
+        out = np.empty((len(order), len(rows), len(cols)))
+        for first in range(0, len(order), 1024):        # dense blocks a few at a time
+            chunk = order[first:first + 1024]
+            dense = self.dense(chunk)
+            for k, block in enumerate(dense):
+                corner = _saddle_corner(block, rt) if flux_of_divergence else None
+                if corner is not None:
+                    out[first + k] = corner[outputs, cols.start - rt:cols.stop - rt]
+                else:
+                    block[...] = _lu_inverse(block)
+            if not flux_of_divergence:
+                out[first:first + len(chunk)] = dense[:, outputs, inputs]
         return out
 
     def release(self):

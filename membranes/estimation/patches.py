@@ -250,11 +250,11 @@ class PatchSystems:
     def __init__(self, mesh, patches, interior, W=None, share=True, rhs="full",
                  solution="full"):
         from dolfinx import fem
+        from dolfinx.fem.petsc import assemble_matrix
         if rhs not in ("full", "divergence") or solution not in ("full", "flux"):
             raise ValueError(f"rhs must be 'full' or 'divergence', solution 'full' or 'flux'; "
                              f"got {rhs!r}, {solution!r}")
         self.rhs, self.solution = rhs, solution
-        from dolfinx.fem.petsc import assemble_matrix
         self.mesh, self.comm = mesh, mesh.comm
         self.W = W = W if W is not None else mixed_space(mesh)
         self.rt_space, rt_map = W.sub(0).collapse()
@@ -504,8 +504,8 @@ class PatchSystems:
                                          cls[order]], axis=1), axis=0)
             for size, rt in np.unique(ranked[:, :2], axis=0).tolist():
                 these = ranked[(ranked[:, 0] == size) & (ranked[:, 1] == rt)]
-                inputs = np.arange(rt if self.rhs == "divergence" else 0, size)
-                outputs = np.arange(rt if self.solution == "flux" else size)
+                inputs = slice(rt if self.rhs == "divergence" else 0, size)
+                outputs = slice(0, rt if self.solution == "flux" else size)
                 operators = classes.operators(these[:, 3], inputs, outputs)
                 at = 0
                 for m in np.unique(these[:, 2]):
@@ -549,8 +549,8 @@ class PatchSystems:
         x = np.zeros_like(rhs)
         for h0, K, m, n, inputs, outputs, operator_t in self.solves:
             h1 = h0 + K * m * n
-            r = rhs[h0:h1].reshape(K, m, n)[:, :, inputs[0]:inputs[-1] + 1]
-            np.matmul(r, operator_t, out=x[h0:h1].reshape(K, m, n)[:, :, :outputs[-1] + 1])
+            np.matmul(rhs[h0:h1].reshape(K, m, n)[:, :, inputs], operator_t,
+                      out=x[h0:h1].reshape(K, m, n)[:, :, outputs])
         return to_canonical(x, self.sign, self.pairs, self.blocks, transpose=False)
 
     def scatter(self, c, x, out, add=False):
