@@ -48,6 +48,8 @@ CLI_CASES = {
     "h zero": ["--h", "0"],
     "h nan": ["--h", "nan"],
     "unknown option": ["--bogus"],
+    "coarse tol zero": ["--coarse-tol", "0"],
+    "coarse unknown": ["--coarse", "never"],
     "data with disk scene": ["--scene", "disk", "--f1", "1"],
 }
 MESH_CASES = ("missing", "directory", "garbage", "quads", "p2", "box")
@@ -116,6 +118,13 @@ def test_api_problem_and_solve_options():
             solve(base, **kwargs)
     with pytest.raises(ValueError, match="scene"):
         scenes.make("cube")
+    two = scene("disk", 0.4, levels=1)
+    for kwargs, message in (({"coarse": "never"}, "coarse"),
+                            ({"coarse_tol": 1.5}, "coarse_tol"),
+                            ({"coarse_tol": 1e-3, "newton": "exact"}, "coarse_tol"),
+                            ({"coarse_tol": 1e-3, "coarse": "estimated"}, "coarse_tol")):
+        with pytest.raises(ValueError, match=message):
+            solve(two, **kwargs)
 
 
 def test_formula_accepts_the_documented_language():

@@ -85,6 +85,13 @@ def _parser():
     s.add_argument("--nested", action=argparse.BooleanOptionalAction, default=None,
                    help="nested iteration: solve on T_0, prolong the solution to T_1 as its "
                         "initial guess, ..., up to T_J (default with --levels >= 1)")
+    s.add_argument("--coarse", choices=("residual", "estimated"), default="residual",
+                   help="adaptive with --nested: leave each coarse level at ||R_lin|| / "
+                        "||(F, 0)|| <= --coarse-tol without estimators (residual, default) "
+                        "or by the adaptive criteria with estimators on every level "
+                        "(estimated); the finest level is certified either way")
+    s.add_argument("--coarse-tol", type=float, metavar="TOL",
+                   help="--coarse residual: the coarse levels' tolerance (default 1e-6)")
     s.add_argument("--out", metavar="DIR", help="write summary.json, history.csv, "
                    "solution.xdmf there")
     s.add_argument("--max-vertices", type=int, metavar="N",
@@ -116,6 +123,8 @@ def _scene_arguments(args):
         raise BadInput(f"--levels must be a non-negative integer, got {args.levels}")
     if args.max_newton < 1:
         raise BadInput(f"--max-newton must be at least 1, got {args.max_newton}")
+    if args.coarse_tol is not None and not (0.0 < args.coarse_tol < 1.0):
+        raise BadInput(f"--coarse-tol must lie in (0, 1), got {args.coarse_tol}")
     if args.max_vertices is not None and args.max_vertices < 1:
         raise BadInput(f"--max-vertices must be a positive integer, got {args.max_vertices}")
     kwargs = {"levels": args.levels}
@@ -175,7 +184,8 @@ def _solve(args):
                 estimators=not args.no_estimators, progress=not args.quiet,
                 gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux,
                 initial_guess=args.initial_guess, nested=args.nested,
-                max_vertices=args.max_vertices)
+                max_vertices=args.max_vertices, coarse=args.coarse,
+                coarse_tol=args.coarse_tol)
     if args.out is not None:
         write_outputs(sol, args.out)
     summary = sol.summary()          # collective (reductions): every rank computes it

@@ -11,7 +11,8 @@ the mesh, the assembly, the solves and the estimators, and every process returns
 figures (and its own part of the iterate).
 
 **What is computed** (lean runs): the estimators of §7 where the method needs them (the
-adaptive variant, at the iterates its stopping tests read, on every level of a nested run) and
+adaptive variant, at the iterates its stopping tests read: on T_J, and on the coarse levels
+of a nested run only with coarse='estimated', see `_coarse_levels`) and
 at the final iterate (the certificate), unless `estimators=False`; the energy error only where
 the scene knows its exact solution, at the final iterate, or at every recorded iterate with
 `errors="iterates"` (for error-against-time curves; then outside the clock).
@@ -50,6 +51,8 @@ DEFAULT_TOL = 1e-10
 ALG_FLUXES = ("nu", "multilevel")
 INITIAL_GUESSES = ("paper", "zero")
 ERRORS = ("final", "iterates", "none")
+COARSE = ("residual", "estimated")
+DEFAULT_COARSE_TOL = 1e-6
 
 
 def _choice(name, value, choices):
@@ -290,7 +293,9 @@ def solve(problem: Problem,
           nested: Optional[bool] = None,
           errors: Literal["final", "iterates", "none"] = "final",
           progress: Union[bool, Callable[[str], Any]] = False,
-          max_vertices: Optional[int] = None) -> Solution:
+          max_vertices: Optional[int] = None,
+          coarse: Literal["residual", "estimated"] = "residual",
+          coarse_tol: Optional[float] = None) -> Solution:
     """Solve the discrete contact problem of `problem` by semismooth Newton and certify it.
 
     newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
@@ -310,7 +315,10 @@ def solve(problem: Problem,
     iterate (default), at all recorded 'iterates', or 'none'; progress: True for one stderr
     line per Newton step (rank 0), or a callable taking the line; max_vertices: refuse a
     computational mesh of more vertices (default: refuse one whose run needs more memory than
-    the processes have, model.checks).
+    the processes have, model.checks); coarse: how the adaptive variant of a nested run
+    leaves the coarse levels T_0 … T_{J-1} (`_coarse_levels`): 'residual' (default: inexact
+    Newton to ‖R_lin‖/‖(F, 0)‖ ≤ coarse_tol, 1e-6, no estimators) or 'estimated' (Algorithm
+    1 with the estimators on every level).
     """
     started = time.perf_counter()
     _choice("Newton variant", newton, VARIANTS)
@@ -332,6 +340,7 @@ def solve(problem: Problem,
     tol, gamma_lin, gamma_alg = _stopping(newton, tol, gamma_lin, gamma_alg)
     alg_flux = _algebraic_flux(problem, alg_flux, estimators, newton)
     nested = _nested(problem, nested)
+    coarse, coarse_tol = _coarse_levels(coarse, coarse_tol, newton, nested)
     if nested and initial_guess is not None and not isinstance(initial_guess, str) and \
             not callable(initial_guess):
         raise ValueError("with nested iteration the initial guess is that of the coarse mesh "
@@ -346,6 +355,7 @@ def solve(problem: Problem,
                "system": system or krylov.system, "petsc_options": dict(petsc_options or {}),
                "nu": krylov.nu, "gamma_lin": gamma_lin, "gamma_alg": gamma_alg,
                "alg_flux": alg_flux, "nested": nested, "tol": tol,
+               "coarse": coarse, "coarse_tol": coarse_tol,
                "initial_guess": initial_guess if isinstance(initial_guess, str) or
                initial_guess is None else "given"}
 
@@ -363,37 +373,41 @@ def solve(problem: Problem,
         X0 = _initial_guess(initial_guess, disc) if prev is None else \
             prolong(problem.hierarchy.prolongations[j - 1], disc, prev[0], prev[1])
         last = j == J
+        # the adaptive variant's coarse levels without estimators (`_coarse_levels`)
+        variant, level_tol = newton, tol
+        if not last and coarse == "residual":
+            variant, level_tol = "inexact", coarse_tol
         estimate = None
-        if alg_flux is not None and (newton == "adaptive" or last):
+        if alg_flux is not None and (variant == "adaptive" or last):
             estimate = LevelEstimates(disc, alg_flux if last else "nu",
                                       problem.hierarchy.up_to(j),
                                       gamma_alg or DEFAULT_GAMMA)
             est_setup += estimate.setup_time
         error = clock.off(EnergyError, disc) if problem.exact is not None and \
             errors != "none" and (last or errors == "iterates") else None
-        recorder = _Recorder(estimate if newton == "adaptive" else None,
+        recorder = _Recorder(estimate if variant == "adaptive" else None,
                              error if errors == "iterates" else None, clock)
         t_start = clock.now()
         tag = f"level {j}: " if nested else ""
-        result = run_newton(disc, X0, cfun=cfun, variant=newton, system=system,
+        result = run_newton(disc, X0, cfun=cfun, variant=variant, system=system,
                             krylov=krylov, estimate=recorder,
                             gamma_lin=gamma_lin or DEFAULT_GAMMA,
-                            gamma_alg=gamma_alg or DEFAULT_GAMMA, tol=tol,
+                            gamma_alg=gamma_alg or DEFAULT_GAMMA, tol=level_tol,
                             max_newton=int(max_newton),
                             progress=(lambda line, tag=tag: say(tag + line)) if say else None)
         # the records Newton made through the recorder (all but the adaptive X⁰), in order
-        stamped = result.history[1:] if newton == "adaptive" else result.history
+        stamped = result.history[1:] if variant == "adaptive" else result.history
         if len(stamped) != len(recorder.stamps):
             raise RuntimeError("Newton's records and its estimate calls do not match")
         for rec, (t, err) in zip(stamped, recorder.stamps):
             rec["wall_time_s"], rec["energy_error"] = t, err
-        if newton == "adaptive":
+        if variant == "adaptive":
             result.history[0]["wall_time_s"] = t_start
             result.history[0]["energy_error"] = None if error is None or \
                 errors != "iterates" else clock.off(error, X0 if X0 is not None
                                                     else _paper_guess(disc))
         final = result.history[-1]
-        if estimate is not None and newton != "adaptive":
+        if estimate is not None and variant != "adaptive":
             final["estimates"] = estimate(result.X, _final_residual(disc, result.X, cfun))
             final["wall_time_s"] = clock.now()            # the certificate is part of X^k
         if error is not None and errors == "final":
@@ -443,6 +457,30 @@ def solve(problem: Problem,
                    functions=disc.functions(X), eta_K=eta_K, estimates=estimates,
                    estimator_times=(est_setup, est_time), per_level=per_level)
     return sol
+
+
+def _coarse_levels(coarse, coarse_tol, newton, nested):
+    """How the coarse levels of an adaptive nested run stop (§8, nested iteration).
+
+    Only the answer on T_J is certified; a coarse level only hands its iterate, prolonged, to
+    the next. 'estimated' runs Algorithm 1 there too, which sets the estimators up on every
+    mesh (the flux equilibration's patch systems, §5) for a stopping test whose only use is
+    the move up. 'residual' (default) moves up on a cheaper signal: inexact Newton (§8) down
+    to ‖R_lin‖/‖(F, 0)‖ ≤ coarse_tol, with no estimator. Either way T_J runs Algorithm 1 from
+    the prolonged iterate and its answer carries the guaranteed bound of §7: the bound holds
+    for any iterate, so how the start was obtained does not matter to it. Other variants and
+    single-level runs ignore it (returned as None)."""
+    _choice("coarse", coarse, COARSE)
+    if newton != "adaptive" or not nested:
+        _reject("the adaptive variant with nested iteration", coarse_tol=coarse_tol)
+        return None, None
+    if coarse == "estimated":
+        _reject("coarse 'residual'", coarse_tol=coarse_tol)
+        return coarse, None
+    coarse_tol = DEFAULT_COARSE_TOL if coarse_tol is None else float(coarse_tol)
+    if not (np.isfinite(coarse_tol) and 0.0 < coarse_tol < 1.0):
+        raise ValueError(f"coarse_tol must lie in (0, 1), got {coarse_tol}")
+    return coarse, coarse_tol
 
 
 def _final_residual(disc, X, cfun):
