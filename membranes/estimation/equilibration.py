@@ -83,25 +83,38 @@ def vertex_patches(V, colour, ncolours, on_boundary):
 class Load:
     """The data part -(ψ_c f, q) of the patch right-hand sides of all colours, gathered at the
     patches' homes in the canonical basis (`PatchSystems.canonical`), assembled with the data
-    measures once per load f and mesh and reused at every call of `sigma`."""
+    measures once per load f and mesh and reused at every call of `sigma`.
+
+    The data part lives on the DG1 dofs, which belong to one cell each: on a cell K touching
+    colour c it is -(φ_j f, q_m)_K, φ_j the hat function of K's vertex of colour c. So one
+    assembly gives it for every colour: the test function is vector DG1 with three components
+    q_s, and component s is tested against φ_s, the hat of K's local vertex s (a DG1 Function,
+    `FluxEquilibration.slots`): the result holds the 3 × 3 block -(φ_s f, q_m)_K of every cell,
+    and colour c takes column s = (local index of its vertex) on each cell touching it. The data
+    are integrated once per cell instead of once per colour, with the same measures and
+    integrand (the compatibility above holds as before)."""
 
     def __init__(self, eq, f, measures=None):
-        from dolfinx import fem
-        from dolfinx.fem.petsc import assemble_vector
+        from dolfinx import fem, la
 
         from membranes.fem.quadrature import over
         self.f = f
         measures = measures if measures is not None else [ufl.dx(domain=eq.mesh)]
-        _, q = ufl.TestFunctions(eq.systems.W)
-        form = fem.form(over(measures, lambda dx: equilibration_forms.patch_load(eq.psi, f, q,
-                                                                                 dx)))
+        Z, hats, zdofs, qdofs = eq.slots()
+        q = ufl.TestFunction(Z)
+        form = fem.form(over(measures, lambda dx: sum(
+            equilibration_forms.patch_load(hats[s], f, q[s], dx) for s in range(3))))
+        blocks = fem.assemble_vector(form)
+        blocks.scatter_reverse(la.ScatterMode.add)
+        blocks = blocks.array.reshape(-1, 3)[zdofs]              # (cells, m, s)
+        y = np.zeros(eq.Q.dofmap.index_map.size_local)
         home = eq.systems.home_vector()
-        for c in range(eq.ncolours):
-            eq.set_colour(c)
-            b = assemble_vector(form)
-            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            eq.systems.gather(c, b, home)
-            b.destroy()
+        for c, (touching, s) in enumerate(eq.touching()):
+            y[:] = 0.0
+            y[qdofs[touching]] = blocks[touching, :, s]
+            eq.b.set(0.0)
+            eq.b.array[eq.q_to_w] = y
+            eq.systems.gather(c, eq.b, home)
         self.home = eq.systems.canonical(home)
 
 
@@ -125,7 +138,7 @@ class FluxEquilibration:
         self.measures = measures
         mesh = self.mesh
         nc = mesh.topology.index_map(mesh.topology.dim).size_local
-        cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
+        self.cells = cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
         imap = V.dofmap.index_map
         self.colour, self.ncolours, self.colour_rounds = colour_vertices(cells, imap, self.comm)
         self.on_boundary = boundary_dofs(V)
@@ -153,8 +166,44 @@ class FluxEquilibration:
             self.rhs_forms.append(fem.form(equilibration_forms.patch_rhs(
                 self.psi, self.lam_c, self.sign, self.mu, self.u, self.r, tau, q, dx)))
         self.b = create_vector(self.rhs_forms[0])
+        # DG1 on its own, and where its owned dofs sit in W's owned dofs (`Load`)
+        self.Q, q_map = self.systems.W.sub(1).collapse()
+        nq = self.Q.dofmap.index_map.size_local
+        self.q_to_w = np.asarray(q_map[:nq], dtype=np.int64)
+        if self.q_to_w.size and self.q_to_w.max() >= self.b.getLocalSize():
+            raise RuntimeError("an owned DG1 dof of W is not owned")
         self.x = self.b.duplicate()
         self._loads = {}
+        self._slots = self._touching = None
+
+    def touching(self):
+        """Per colour c: the owned cells touching c and, on each, the local index of its vertex
+        of colour c (one at most, by the colouring). Built once per mesh."""
+        if self._touching is None:
+            self._touching = []
+            for c in range(self.ncolours):
+                hit = self.colour[self.cells] == c
+                cells = np.flatnonzero(hit.any(axis=1)).astype(np.int32)
+                self._touching.append((cells, np.argmax(hit[cells], axis=1).astype(np.int8)))
+        return self._touching
+
+    def slots(self):
+        """(Z, hats, zdofs, qdofs) for `Load`: Z the vector DG1 space with three components,
+        hats[s] the DG1 Function equal on every cell to the hat function of its local vertex s,
+        zdofs and qdofs the (owned cells, 3) dof blocks of Z and of `Q` (the same local order:
+        one DG1 element). Built once per mesh."""
+        if self._slots is None:
+            from dolfinx import fem
+            mesh, nc = self.mesh, self.cells.shape[0]
+            Z = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=3)
+            blocks = Z.dofmap.list.array.reshape(-1, 3)
+            hats = fem.Function(Z)
+            values = hats.x.array.reshape(-1, 3)
+            for s in range(3):
+                values[blocks[:, s], s] = 1.0
+            qdofs = self.Q.dofmap.list.array.reshape(-1, 3)[:nc]
+            self._slots = (Z, hats, blocks[:nc].copy(), qdofs.copy())
+        return self._slots
 
     def set_colour(self, c, lam=None):
         """ψ = indicator of colour c at the P1 dofs (owned and ghost); Λ = λ there."""
