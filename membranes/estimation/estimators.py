@@ -51,7 +51,6 @@ from forms.estimators import (
     contact_estimator,
     energy_squared,
     flux_squared,
-    mass,
     oscillation_squared,
     projection_load,
     weighted_norm_squared,
@@ -103,36 +102,30 @@ def global_sums(comm, columns):
     return comm.allreduce(local, op=MPI.SUM)
 
 
-def dg1_projection(disc, f, DG1):
-    """Π_P1 f: the L² projection of f onto discontinuous P1 (cell by cell), as a DG1 Function.
-    The DG1 mass matrix is block diagonal with every block on the process owning the cell, so
-    block Jacobi with an exact LU of each process's block solves the system exactly."""
-    from dolfinx import fem
-    from dolfinx.fem import petsc
-    from petsc4py import PETSc
-    p, q = ufl.TrialFunction(DG1), ufl.TestFunction(DG1)
-    M = petsc.assemble_matrix(fem.form(mass(p, q, ufl.dx(metadata=P1_RULE))))
-    M.assemble()
-    b = petsc.assemble_vector(fem.form(over(disc.dx_data, lambda dx: projection_load(f, q, dx))))
-    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-    prefix = f"membranes_dg1_projection_{id(M)}_"
-    opts = PETSc.Options()
-    opts[prefix + "ksp_type"] = "preonly"
-    opts[prefix + "pc_type"] = "bjacobi"
-    opts[prefix + "sub_ksp_type"] = "preonly"
-    opts[prefix + "sub_pc_type"] = "lu"
-    ksp = PETSc.KSP().create(disc.comm)
-    ksp.setOptionsPrefix(prefix)
-    ksp.setOperators(M)
-    ksp.setFromOptions()
-    for key in ("ksp_type", "pc_type", "sub_ksp_type", "sub_pc_type"):
-        del opts[prefix + key]
-    pf = fem.Function(DG1)
-    ksp.solve(b, pf.vector)
-    pf.x.scatter_forward()
-    for obj in (ksp, M, b):
-        obj.destroy()
-    return pf
+def dg1_projections(disc, fs, lifting):
+    """Π_P1 f for each f of `fs`: the L² projections onto discontinuous P1 (cell by cell), as
+    Functions of `lifting.Q`. The loads (f, q) are assembled in one pass (vector DG1 with a
+    component per f, the data measures); the DG1 mass matrix is block diagonal with the block
+    M_K = |K|/12 (I + 1 1ᵀ), whose inverse (3/|K|)(4 I - 1 1ᵀ) (`lifting`) is applied cell by
+    cell on the owned cells."""
+    from dolfinx import fem, la
+
+    from .lifting import MINV_REF
+    mesh, k = disc.mesh, len(fs)
+    Z = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=k)
+    q = ufl.TestFunction(Z)
+    b = fem.assemble_vector(fem.form(over(disc.dx_data, lambda dx: sum(
+        projection_load(f, q[i], dx) for i, f in enumerate(fs)))))
+    b.scatter_reverse(la.ScatterMode.add)
+    nc = lifting.ncells
+    blocks = b.array.reshape(-1, k)[Z.dofmap.list.array.reshape(-1, 3)[:nc]]   # (nc, 3, k)
+    out = []
+    for i in range(k):
+        pf = fem.Function(lifting.Q)
+        pf.x.array[lifting.dg] = (3.0 / lifting.area)[:, None] * (blocks[:, :, i] @ MINV_REF)
+        pf.x.scatter_forward()
+        out.append(pf)
+    return out
 
 
 def constraint_parts(u1, u2, lam):
@@ -227,7 +220,7 @@ class Estimators:
     def _oscillation(self):
         """η_osc,K,α for every owned cell (cells, 2): iterate-independent, once per mesh."""
         disc = self.disc
-        pf = [dg1_projection(disc, f, self.DG1) for f in (disc.f1, disc.f2)]
+        pf = dg1_projections(disc, (disc.f1, disc.f2), self.lifting)
         mu1, mu2 = self._mu
         osc = CellForm(disc.mesh, 2, lambda w: over(disc.dx_data, lambda dx: (
             oscillation_squared(mu1, disc.f1, pf[0], w[0], dx)
