@@ -83,39 +83,50 @@ def vertex_patches(V, colour, ncolours, on_boundary):
 class Load:
     """The data part -(ψ_c f, q) of the patch right-hand sides of all colours, gathered at the
     patches' homes in the canonical basis (`PatchSystems.canonical`), assembled with the data
-    measures once per load f and mesh and reused at every call of `sigma`.
+    measures once per load f and mesh and reused at every call of `sigma`; `home` holds it.
+    Made by `FluxEquilibration.loads` (several loads in one assembly) or `load`."""
+
+    def __init__(self, f, home):
+        self.f, self.home = f, home
+
+
+def assemble_loads(eq, fs, measures):
+    """The `Load`s of the expressions `fs` on the mesh of `eq` (a FluxEquilibration).
 
     The data part lives on the DG1 dofs, which belong to one cell each: on a cell K touching
     colour c it is -(φ_j f, q_m)_K, φ_j the hat function of K's vertex of colour c. So one
-    assembly gives it for every colour: the test function is vector DG1 with three components
-    q_s, and component s is tested against φ_s, the hat of K's local vertex s (a DG1 Function,
-    `FluxEquilibration.slots`): the result holds the 3 × 3 block -(φ_s f, q_m)_K of every cell,
-    and colour c takes column s = (local index of its vertex) on each cell touching it. The data
-    are integrated once per cell instead of once per colour, with the same measures and
-    integrand (the compatibility above holds as before)."""
+    assembly gives it for every colour and every load: the test function is vector DG1 with
+    three components q_{3i+s} per load f_i, and component 3i + s is tested against φ_s, the hat
+    of K's local vertex s (a DG1 Function, `FluxEquilibration.slots`): the result holds the
+    3 × 3 block -(φ_s f_i, q_m)_K of every cell, and colour c takes column s = (local index of
+    its vertex) on each cell touching it. The data are integrated once per cell instead of once
+    per colour and load, with the same measures and integrand (the compatibility above holds
+    as before)."""
+    from dolfinx import fem, la
 
-    def __init__(self, eq, f, measures=None):
-        from dolfinx import fem, la
-
-        from membranes.fem.quadrature import over
-        self.f = f
-        measures = measures if measures is not None else [ufl.dx(domain=eq.mesh)]
-        Z, hats, zdofs, qdofs = eq.slots()
-        q = ufl.TestFunction(Z)
-        form = fem.form(over(measures, lambda dx: sum(
-            equilibration_forms.patch_load(hats[s], f, q[s], dx) for s in range(3))))
-        blocks = fem.assemble_vector(form)
-        blocks.scatter_reverse(la.ScatterMode.add)
-        blocks = blocks.array.reshape(-1, 3)[zdofs]              # (cells, m, s)
-        y = np.zeros(eq.Q.dofmap.index_map.size_local)
-        home = eq.systems.home_vector()
-        for c, (touching, s) in enumerate(eq.touching()):
+    from membranes.fem.quadrature import over
+    k = len(fs)
+    hats, qdofs = eq.slots()
+    Z = fem.VectorFunctionSpace(eq.mesh, ("DG", 1), dim=3 * k)
+    q = ufl.TestFunction(Z)
+    form = fem.form(over(measures, lambda dx: sum(
+        equilibration_forms.patch_load(hats[s], f, q[3 * i + s], dx)
+        for i, f in enumerate(fs) for s in range(3))))
+    blocks = fem.assemble_vector(form)
+    blocks.scatter_reverse(la.ScatterMode.add)
+    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:qdofs.shape[0]]
+    blocks = blocks.array.reshape(-1, k, 3)[zdofs]                      # (cells, m, i, s)
+    y = np.zeros(eq.Q.dofmap.index_map.size_local)
+    homes = [eq.systems.home_vector() for _ in fs]
+    eq.b.set(0.0)                                         # its RT entries stay zero
+    for c, (touching, s) in enumerate(eq.touching()):
+        dofs = qdofs[touching]
+        for i, home in enumerate(homes):
             y[:] = 0.0
-            y[qdofs[touching]] = blocks[touching, :, s]
-            eq.b.set(0.0)
+            y[dofs] = blocks[touching, :, i, s]
             eq.b.array[eq.q_to_w] = y
             eq.systems.gather(c, eq.b, home)
-        self.home = eq.systems.canonical(home)
+    return [Load(f, eq.systems.canonical(home)) for f, home in zip(fs, homes)]
 
 
 class FluxEquilibration:
@@ -157,11 +168,13 @@ class FluxEquilibration:
         # and Λ_c vanish); the same compiled kernel, the cell tags are data
         from dolfinx import mesh as dmesh
         from dolfinx.fem.petsc import create_vector
+        self._slots = self._touching = None
         owned = np.arange(nc, dtype=np.int32)
         self.rhs_forms = []
-        for c in range(self.ncolours):
-            touching = (self.colour[cells] == c).any(axis=1).astype(np.int32)
-            tags = dmesh.meshtags(mesh, mesh.topology.dim, owned, touching)
+        for touching, _ in self.touching():
+            marker = np.zeros(nc, dtype=np.int32)
+            marker[touching] = 1
+            tags = dmesh.meshtags(mesh, mesh.topology.dim, owned, marker)
             dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
             self.rhs_forms.append(fem.form(equilibration_forms.patch_rhs(
                 self.psi, self.lam_c, self.sign, self.mu, self.u, self.r, tau, q, dx)))
@@ -174,35 +187,34 @@ class FluxEquilibration:
             raise RuntimeError("an owned DG1 dof of W is not owned")
         self.x = self.b.duplicate()
         self._loads = {}
-        self._slots = self._touching = None
 
     def touching(self):
-        """Per colour c: the owned cells touching c and, on each, the local index of its vertex
-        of colour c (one at most, by the colouring). Built once per mesh."""
+        """Per colour c: the owned cells touching c (ascending) and, on each, the local index of
+        its vertex of colour c (one at most, by the colouring). Built once per mesh."""
         if self._touching is None:
-            self._touching = []
-            for c in range(self.ncolours):
-                hit = self.colour[self.cells] == c
-                cells = np.flatnonzero(hit.any(axis=1)).astype(np.int32)
-                self._touching.append((cells, np.argmax(hit[cells], axis=1).astype(np.int8)))
+            flat = self.colour[self.cells].ravel()                 # cell-major: 3 cell + slot
+            order = np.argsort(flat, kind="stable")
+            bounds = np.searchsorted(flat[order], np.arange(self.ncolours + 1))
+            self._touching = [((order[a:b] // 3).astype(np.int32),
+                               (order[a:b] % 3).astype(np.int8))
+                              for a, b in zip(bounds[:-1], bounds[1:])]
         return self._touching
 
     def slots(self):
-        """(Z, hats, zdofs, qdofs) for `Load`: Z the vector DG1 space with three components,
-        hats[s] the DG1 Function equal on every cell to the hat function of its local vertex s,
-        zdofs and qdofs the (owned cells, 3) dof blocks of Z and of `Q` (the same local order:
-        one DG1 element). Built once per mesh."""
+        """(hats, qdofs) for `assemble_loads`: hats[s] the DG1 Function (a component of a vector
+        DG1 Function) equal on every cell to the hat function of its local vertex s; qdofs the
+        (owned cells, 3) dofs of `Q` (the same local order as any DG1 dofmap: one element).
+        Built once per mesh."""
         if self._slots is None:
             from dolfinx import fem
-            mesh, nc = self.mesh, self.cells.shape[0]
-            Z = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=3)
+            Z = fem.VectorFunctionSpace(self.mesh, ("DG", 1), dim=3)
             blocks = Z.dofmap.list.array.reshape(-1, 3)
             hats = fem.Function(Z)
             values = hats.x.array.reshape(-1, 3)
             for s in range(3):
                 values[blocks[:, s], s] = 1.0
-            qdofs = self.Q.dofmap.list.array.reshape(-1, 3)[:nc]
-            self._slots = (Z, hats, blocks[:nc].copy(), qdofs.copy())
+            qdofs = self.Q.dofmap.list.array.reshape(-1, 3)[:self.cells.shape[0]]
+            self._slots = (hats, qdofs.copy())
         return self._slots
 
     def set_colour(self, c, lam=None):
@@ -212,9 +224,16 @@ class FluxEquilibration:
         if lam is not None:
             self.lam_c.x.array[:] = np.where(mask, lam, 0.0)
 
+    def loads(self, fs, measures=None):
+        """The `Load`s of the expressions f_α in `fs`, in one assembly (data measures:
+        `measures`, else the constructor's, else dx)."""
+        measures = measures if measures is not None else self.measures
+        measures = measures if measures is not None else [ufl.dx(domain=self.mesh)]
+        return assemble_loads(self, list(fs), measures)
+
     def load(self, f, measures=None):
-        """The `Load` of the expression f_α (data measures: `measures`, else the constructor's)."""
-        return Load(self, f, measures if measures is not None else self.measures)
+        """The `Load` of the expression f_α (`loads`)."""
+        return self.loads([f], measures)[0]
 
     def _copy(self, target, source):
         n = target.function_space.dofmap.index_map.size_local

@@ -166,7 +166,7 @@ class Estimators:
         self.RT = (equilibration.rt_space if equilibration is not None
                    else fem.FunctionSpace(mesh, ("RT", 2)))
         if equilibration is not None:                                   # data parts, once
-            self.loads = [equilibration.load(f) for f in (disc.f1, disc.f2)]
+            self.loads = equilibration.loads((disc.f1, disc.f2))
         # coefficients the evaluations write into
         self.u = [fem.Function(V) for _ in range(3)]                    # u1h, u2h, λh
         self.lam_pos, self.lam_neg, self.e1, self.e2 = (fem.Function(V) for _ in range(4))
