@@ -61,6 +61,7 @@ from ..fem.quadrature import over
 # Components of the per-cell vector of one evaluation (the vector-DG0 test function's index)
 DISC1, DISC2, CONTACT, LIN1, LAM_POS, LAM_NEG = range(6)      # always
 FLUX1, FLUX2, ALG1, ALG2 = range(6, 10)                          # with an algebraic flux
+REM1, REM2 = range(6, 8)                      # with the remainder, no algebraic flux (evaluate)
 
 
 def owned(X):
@@ -209,13 +210,15 @@ class Estimators:
         # ρ_1 = r_1h - δλ, ρ_2 = r_2h + δλ (δλ = λ'_h - λh, zero outside the ν flux; §6)
         r1, r2 = self.rho
 
-        def remainder(w):
-            return (weighted_norm_squared(mu1, r1 - self.dlam, w[0], dp)
-                    + weighted_norm_squared(mu2, r2 + self.dlam, w[1], dp))
+        def remainder(w, i=0, j=1):
+            return (weighted_norm_squared(mu1, r1 - self.dlam, w[i], dp)
+                    + weighted_norm_squared(mu2, r2 + self.dlam, w[j], dp))
 
         self.cells_disc = CellForm(mesh, 6, base)
         self.cells_alg = CellForm(mesh, 10, with_alg)
         self.cells_rem = CellForm(mesh, 2, remainder)
+        # `evaluate`'s default remainder in the same assembly as the estimators
+        self.cells_disc_rem = CellForm(mesh, 8, lambda w: base(w) + remainder(w, REM1, REM2))
 
     def _oscillation(self):
         """η_osc,K,α for every owned cell (cells, 2): iterate-independent, once per mesh."""
@@ -296,6 +299,12 @@ class Estimators:
     def remainder(self, r, dlam=None):
         """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_1 = r_1 - δλ, ρ_2 = r_2 + δλ
         (r_α DG1 Functions, δλ = λ'_h - λh given by its owned nodal values, or 0)."""
+        self._set_rho(r, dlam)
+        total = global_sums(self.comm, self.cells_rem.cells()).sum()
+        return float(self.cpf * np.sqrt(max(total, 0.0)))
+
+    def _set_rho(self, r, dlam=None):
+        """r_α and δλ into the remainder's coefficients (`remainder`)."""
         n = self.n
         for target, source in zip(self.rho, r):
             if not self._alike(source.function_space, target.function_space):
@@ -303,8 +312,6 @@ class Estimators:
             target.x.array[:] = source.x.array
         self.dlam.x.array[:n] = 0.0 if dlam is None else dlam
         self.dlam.x.scatter_forward()
-        total = global_sums(self.comm, self.cells_rem.cells()).sum()
-        return float(self.cpf * np.sqrt(max(total, 0.0)))
 
     def nu_flux(self, X, R, X_later, R_later):
         """The algebraic flux of ν extra iterations (§6) at X (residual R) from the later
@@ -362,9 +369,14 @@ class Estimators:
         (Σ_C), eta_lin1, eta_lin2, eta_lin3, eta_rem, eta_1, and eta_K, the local
         distribution of §7 on the owned cells (in the mesh's cell order)."""
         sigma, r = self.sigma_disc(X, R)
-        if eta_rem is None:
-            eta_rem = self.remainder(r) if sigma_alg is None and R is not None else 0.0
-        return self.assemble(X, sigma, sigma_alg, eta_rem)
+        if eta_rem is None and sigma_alg is None and R is not None:
+            # `remainder(r)`, integrated with the estimators (one assembly)
+            self._set_rho(r)
+            self._write(X)
+            self._set_flux(self.sigma, sigma)
+            q = self.cells_disc_rem.cells()
+            return self._combine(q, q[:, [DISC1, DISC2]], False, None, rem=True)
+        return self.assemble(X, sigma, sigma_alg, 0.0 if eta_rem is None else eta_rem)
 
     def assemble(self, X, sigma, sigma_alg=None, eta_rem=0.0):
         """The estimators at X for the given σ_disc (and σ_alg): `evaluate` without the flux
@@ -380,8 +392,9 @@ class Estimators:
             flux = q[:, [FLUX1, FLUX2]]
         return self._combine(q, flux, sigma_alg is not None, float(eta_rem))
 
-    def _combine(self, q, flux, with_alg, eta_rem):
-        """The global values and η_K from the per-cell integrals q (§7)."""
+    def _combine(self, q, flux, with_alg, eta_rem, rem=False):
+        """The global values and η_K from the per-cell integrals q (§7); with `rem`, η_rem
+        from q's columns REM1, REM2 (as `remainder`)."""
         osc = self.osc
         disc_K = np.sqrt(np.maximum(q[:, [DISC1, DISC2]], 0.0))        # η_disc,K,α
         flux_K = np.sqrt(np.maximum(flux, 0.0))                         # η_F,K,α
@@ -394,7 +407,11 @@ class Estimators:
                    eta_C_K, lin1_sq, lin3_sq, q[:, LAM_POS]]           # Σ_C, lin1², lin3², ‖λ^pos‖²
         if with_alg:
             columns.append(np.maximum(q[:, ALG1], 0.0) + np.maximum(q[:, ALG2], 0.0))
+        if rem:
+            columns += [q[:, REM1], q[:, REM2]]
         s = global_sums(self.comm, np.stack(columns, axis=1))
+        if rem:
+            eta_rem = float(self.cpf * np.sqrt(max(s[-2:].sum(), 0.0)))
         eta_1, disc_part, eta_F, eta_osc = np.sqrt(np.maximum(s[[0, 1, 2, 3]], 0.0))
         sum_C = float(s[4])
         eta_lin1, eta_lin3 = np.sqrt(max(s[5], 0.0)), np.sqrt(max(s[6], 0.0))
@@ -404,8 +421,7 @@ class Estimators:
         eta_lin2 = 2.0 * self.kappa * lam_pos_norm * eta_lin1
         alg_flux = np.sqrt(max(s[8], 0.0)) if with_alg else 0.0
         eta = np.sqrt((eta_1 + eta_rem + eta_lin1 + eta_lin3) ** 2 + eta_lin2 + max(0.0, sum_C))
-        eta_K = np.sqrt(((flux_K + osc) ** 2).sum(axis=1) + lin1_sq + lin3_sq
-                        + np.abs(eta_C_K))
+        eta_K = np.sqrt(columns[0] + lin1_sq + lin3_sq + np.abs(eta_C_K))
         return {
             "eta": float(eta),
             "eta_disc": float(disc_part + np.sqrt(abs(sum_C))),
