@@ -61,22 +61,37 @@ def boundary_dofs(V):
     return vertices.forward(vertices.reverse(on, np.maximum)).astype(bool)
 
 
-def vertex_patches(V, colour, ncolours, on_boundary):
+def colour_cells(colour, cells, ncolours):
+    """Per colour c: the cells (rows of `cells`, ascending) with a vertex of colour c and, on
+    each, the local index of that vertex (one at most, by the colouring); one stable sort."""
+    flat = colour[cells].ravel()                                   # cell-major: 3 cell + slot
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(ncolours + 1))
+    return [((order[a:b] // 3).astype(np.int32), (order[a:b] % 3).astype(np.int8))
+            for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def vertex_patches(V, colour, ncolours, on_boundary, touching=None):
     """The groups of `PatchSystems` for the vertex patches of §5: per colour c, over the owned
     cells, the global index of the cell's vertex of colour c (-1: none; one at most, by the
-    colouring) and whether that vertex is off ∂Ω (an interior patch)."""
+    colouring) and whether that vertex is off ∂Ω (an interior patch). `touching`: the
+    `colour_cells` of the owned cells, if at hand."""
     nc = V.mesh.topology.index_map(V.mesh.topology.dim).size_local
     cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
     gdofs = np.asarray(V.dofmap.index_map.local_to_global(np.arange(colour.size,
                                                                     dtype=np.int32)),
                        dtype=np.int64)
+    if touching is None:
+        touching = colour_cells(colour, cells, ncolours)
     patches, interior = [], []
-    for c in range(ncolours):
-        hit = colour[cells] == c                                        # ≤ 1 per cell
-        vertex = cells[np.arange(nc), np.argmax(hit, axis=1)]
-        has = hit.any(axis=1)
-        patches.append(np.where(has, gdofs[vertex], -1))
-        interior.append(has & ~on_boundary[vertex])
+    for hit, slot in touching:
+        vertex = cells[hit, slot]
+        patch = np.full(nc, -1, dtype=np.int64)
+        patch[hit] = gdofs[vertex]
+        inner = np.zeros(nc, dtype=bool)
+        inner[hit] = ~on_boundary[vertex]
+        patches.append(patch)
+        interior.append(inner)
     return patches, interior
 
 
@@ -116,16 +131,15 @@ def assemble_loads(eq, fs, measures):
     blocks.scatter_reverse(la.ScatterMode.add)
     zdofs = Z.dofmap.list.array.reshape(-1, 3)[:qdofs.shape[0]]
     blocks = blocks.array.reshape(-1, k, 3)[zdofs]                      # (cells, m, i, s)
-    y = np.zeros(eq.Q.dofmap.index_map.size_local)
     homes = [eq.systems.home_vector() for _ in fs]
-    eq.b.set(0.0)                                         # its RT entries stay zero
+    qw = eq.q_to_w[qdofs]                                 # W dofs of the cells' DG1 dofs
+    eq.b.set(0.0)
     for c, (touching, s) in enumerate(eq.touching()):
-        dofs = qdofs[touching]
+        dofs = qw[touching]
         for i, home in enumerate(homes):
-            y[:] = 0.0
-            y[dofs] = blocks[touching, :, i, s]
-            eq.b.array[eq.q_to_w] = y
+            eq.b.array[dofs] = blocks[touching, :, i, s]
             eq.systems.gather(c, eq.b, home)
+        eq.b.array[dofs] = 0.0
     return [Load(f, eq.systems.canonical(home)) for f, home in zip(fs, homes)]
 
 
@@ -153,7 +167,9 @@ class FluxEquilibration:
         imap = V.dofmap.index_map
         self.colour, self.ncolours, self.colour_rounds = colour_vertices(cells, imap, self.comm)
         self.on_boundary = boundary_dofs(V)
-        patches, interior = vertex_patches(V, self.colour, self.ncolours, self.on_boundary)
+        self._slots = self._touching = None
+        patches, interior = vertex_patches(V, self.colour, self.ncolours, self.on_boundary,
+                                           self.touching())
         self.systems = PatchSystems(mesh, patches, interior, solution="flux")
         self.rt_space = self.systems.rt_space
 
@@ -168,7 +184,6 @@ class FluxEquilibration:
         # and Λ_c vanish); the same compiled kernel, the cell tags are data
         from dolfinx import mesh as dmesh
         from dolfinx.fem.petsc import create_vector
-        self._slots = self._touching = None
         owned = np.arange(nc, dtype=np.int32)
         self.rhs_forms = []
         for touching, _ in self.touching():
@@ -189,15 +204,10 @@ class FluxEquilibration:
         self._loads = {}
 
     def touching(self):
-        """Per colour c: the owned cells touching c (ascending) and, on each, the local index of
-        its vertex of colour c (one at most, by the colouring). Built once per mesh."""
+        """`colour_cells` of the owned cells: per colour c the cells touching c and the local
+        index of their vertex of colour c. Built once per mesh."""
         if self._touching is None:
-            flat = self.colour[self.cells].ravel()                 # cell-major: 3 cell + slot
-            order = np.argsort(flat, kind="stable")
-            bounds = np.searchsorted(flat[order], np.arange(self.ncolours + 1))
-            self._touching = [((order[a:b] // 3).astype(np.int32),
-                               (order[a:b] % 3).astype(np.int8))
-                              for a, b in zip(bounds[:-1], bounds[1:])]
+            self._touching = colour_cells(self.colour, self.cells, self.ncolours)
         return self._touching
 
     def slots(self):
