@@ -121,7 +121,7 @@ def assemble_loads(eq, fs, measures):
 
     from membranes.fem.quadrature import over
     k = len(fs)
-    hats, qdofs = eq.slots()
+    hats, wdofs = eq.slots()
     Z = fem.VectorFunctionSpace(eq.mesh, ("DG", 1), dim=3 * k)
     q = ufl.TestFunction(Z)
     form = fem.form(over(measures, lambda dx: sum(
@@ -129,15 +129,14 @@ def assemble_loads(eq, fs, measures):
         for i, f in enumerate(fs) for s in range(3))))
     blocks = fem.assemble_vector(form)
     blocks.scatter_reverse(la.ScatterMode.add)
-    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:qdofs.shape[0]]
-    blocks = blocks.array.reshape(-1, k, 3)[zdofs]                      # (cells, m, i, s)
+    blocks = blocks.array.reshape(-1, k, 3)                             # (dof, i, s)
+    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:wdofs.shape[0]]
     homes = [eq.systems.home_vector() for _ in fs]
-    qw = eq.q_to_w[qdofs]                                 # W dofs of the cells' DG1 dofs
     eq.b.set(0.0)
     for c, (touching, s) in enumerate(eq.touching()):
-        dofs = qw[touching]
+        dofs, rows, slot = wdofs[touching], zdofs[touching], s[:, None]
         for i, home in enumerate(homes):
-            eq.b.array[dofs] = blocks[touching, :, i, s]
+            eq.b.array[dofs] = blocks[rows, i, slot]
             eq.systems.gather(c, eq.b, home)
         eq.b.array[dofs] = 0.0
     return [Load(f, eq.systems.canonical(home)) for f, home in zip(fs, homes)]
@@ -167,7 +166,7 @@ class FluxEquilibration:
         imap = V.dofmap.index_map
         self.colour, self.ncolours, self.colour_rounds = colour_vertices(cells, imap, self.comm)
         self.on_boundary = boundary_dofs(V)
-        self._slots = self._touching = None
+        self._touching = None
         patches, interior = vertex_patches(V, self.colour, self.ncolours, self.on_boundary,
                                            self.touching())
         self.systems = PatchSystems(mesh, patches, interior, solution="flux")
@@ -194,12 +193,6 @@ class FluxEquilibration:
             self.rhs_forms.append(fem.form(equilibration_forms.patch_rhs(
                 self.psi, self.lam_c, self.sign, self.mu, self.u, self.r, tau, q, dx)))
         self.b = create_vector(self.rhs_forms[0])
-        # DG1 on its own, and where its owned dofs sit in W's owned dofs (`Load`)
-        self.Q, q_map = self.systems.W.sub(1).collapse()
-        nq = self.Q.dofmap.index_map.size_local
-        self.q_to_w = np.asarray(q_map[:nq], dtype=np.int64)
-        if self.q_to_w.size and self.q_to_w.max() >= self.b.getLocalSize():
-            raise RuntimeError("an owned DG1 dof of W is not owned")
         self.x = self.b.duplicate()
         self._loads = {}
 
@@ -211,21 +204,21 @@ class FluxEquilibration:
         return self._touching
 
     def slots(self):
-        """(hats, qdofs) for `assemble_loads`: hats[s] the DG1 Function (a component of a vector
-        DG1 Function) equal on every cell to the hat function of its local vertex s; qdofs the
-        (owned cells, 3) dofs of `Q` (the same local order as any DG1 dofmap: one element).
-        Built once per mesh."""
-        if self._slots is None:
-            from dolfinx import fem
-            Z = fem.VectorFunctionSpace(self.mesh, ("DG", 1), dim=3)
-            blocks = Z.dofmap.list.array.reshape(-1, 3)
-            hats = fem.Function(Z)
-            values = hats.x.array.reshape(-1, 3)
-            for s in range(3):
-                values[blocks[:, s], s] = 1.0
-            qdofs = self.Q.dofmap.list.array.reshape(-1, 3)[:self.cells.shape[0]]
-            self._slots = (hats, qdofs.copy())
-        return self._slots
+        """(hats, wdofs) for `assemble_loads`: hats[s] the DG1 Function (a component of a vector
+        DG1 Function) equal on every cell to the hat function of its local vertex s; wdofs the
+        (owned cells, 3) W dofs of the cells' DG1 dofs (W's DG1 part: the same element, so the
+        same local order)."""
+        from dolfinx import fem
+        Z = fem.VectorFunctionSpace(self.mesh, ("DG", 1), dim=3)
+        blocks = Z.dofmap.list.array.reshape(-1, 3)
+        hats = fem.Function(Z)
+        values = hats.x.array.reshape(-1, 3)
+        for s in range(3):
+            values[blocks[:, s], s] = 1.0
+        wdofs = self.systems.W.sub(1).dofmap.list.array.reshape(-1, 3)[:self.cells.shape[0]]
+        if wdofs.size and wdofs.max() >= self.b.getLocalSize():
+            raise RuntimeError("a DG1 dof of an owned cell is not owned")
+        return hats, wdofs
 
     def set_colour(self, c, lam=None):
         """ψ = indicator of colour c at the P1 dofs (owned and ghost); Λ = λ there."""
