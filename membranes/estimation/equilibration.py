@@ -29,11 +29,14 @@ interior patch (`patches`, the pinned dof).
 
 import numpy as np
 import ufl
+from mpi4py import MPI
 from petsc4py import PETSc
 
 import forms.equilibration as equilibration_forms
 
 from .patches import PatchSystems, Shared, colour_vertices
+
+PSI, LAMC, U = range(3)      # components of FluxEquilibration.nodal
 
 
 def boundary_dofs(V):
@@ -59,6 +62,15 @@ def boundary_dofs(V):
                 on[cells[exterior, j]] = 1
     vertices = Shared(imap, mesh.comm)
     return vertices.forward(vertices.reverse(on, np.maximum)).astype(bool)
+
+
+def same_numbering(V, W):
+    """Whether the spaces V, W (of one mesh) number their nodes alike: equal cell dofmaps and
+    index maps (owned sizes and ghosts), so that node i of V is node i of W (block sizes may
+    differ). Local: reduce over the processes before acting on it."""
+    a, b = V.dofmap.index_map, W.dofmap.index_map
+    return bool(np.array_equal(V.dofmap.list.array, W.dofmap.list.array)
+                and a.size_local == b.size_local and np.array_equal(a.ghosts, b.ghosts))
 
 
 def colour_cells(colour, cells, ncolours):
@@ -173,8 +185,14 @@ class FluxEquilibration:
         self.rt_space = self.systems.rt_space
 
         # coefficients of the right-hand side forms, compiled once
-        self.psi, self.lam_c = fem.Function(V), fem.Function(V)
-        self.u, self.lam = fem.Function(V), fem.Function(V)
+        # ψ_c, Λ_c and u_αh are the components PSI, LAMC, U of one vector-P1 Function: dolfinx
+        # packs a form's coefficients cell by cell, and a vertex's values then lie side by side
+        # (one gather instead of three). It numbers the vertices as V does (checked).
+        self.nodal = fem.Function(fem.VectorFunctionSpace(mesh, ("Lagrange", 1), dim=3))
+        if not self.comm.allreduce(same_numbering(self.nodal.function_space, V), op=MPI.LAND):
+            raise RuntimeError("vector P1 numbers its vertices unlike P1")
+        self._nodal = self.nodal.x.array.reshape(-1, 3)
+        self.lam = fem.Function(V)
         self.r = fem.Function(fem.FunctionSpace(mesh, ("DG", 1)))
         self.mu = fem.Constant(mesh, 1.0)
         self.sign = fem.Constant(mesh, 1.0)
@@ -191,7 +209,8 @@ class FluxEquilibration:
             tags = dmesh.meshtags(mesh, mesh.topology.dim, owned, marker)
             dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
             self.rhs_forms.append(fem.form(equilibration_forms.patch_rhs(
-                self.psi, self.lam_c, self.sign, self.mu, self.u, self.r, tau, q, dx)))
+                self.nodal[PSI], self.nodal[LAMC], self.sign, self.mu, self.nodal[U], self.r,
+                tau, q, dx)))
         self.b = create_vector(self.rhs_forms[0])
         self.x = self.b.duplicate()
         self._loads = {}
@@ -223,9 +242,9 @@ class FluxEquilibration:
     def set_colour(self, c, lam=None):
         """ψ = indicator of colour c at the P1 dofs (owned and ghost); Λ = λ there."""
         mask = self.colour == c
-        self.psi.x.array[:] = mask
+        self._nodal[:, PSI] = mask
         if lam is not None:
-            self.lam_c.x.array[:] = np.where(mask, lam, 0.0)
+            self._nodal[:, LAMC] = np.where(mask, lam, 0.0)
 
     def loads(self, fs, measures=None):
         """The `Load`s of the expressions f_α in `fs`, in one assembly (data measures:
@@ -256,7 +275,9 @@ class FluxEquilibration:
             f = self._loads[key]
         self.sign.value = 1.0 if alpha == 1 else -1.0
         self.mu.value = float(mu)
-        self._copy(self.u, u)
+        n = self.V.dofmap.index_map.size_local
+        self._nodal[:n, U] = u.x.array[:n]
+        self.nodal.x.scatter_forward()
         self._copy(self.r, r)
         self._copy(self.lam, lam)
         sigma = out if out is not None else fem.Function(self.rt_space)

@@ -57,11 +57,14 @@ from forms.estimators import (
 )
 
 from ..fem.quadrature import over
+from .equilibration import same_numbering
 
 # Components of the per-cell vector of one evaluation (the vector-DG0 test function's index)
 DISC1, DISC2, CONTACT, LIN1, LAM_POS, LAM_NEG = range(6)      # always
 FLUX1, FLUX2, ALG1, ALG2 = range(6, 10)                          # with an algebraic flux
 REM1, REM2 = range(6, 8)                      # with the remainder, no algebraic flux (evaluate)
+# Components of the one vector-P1 Function that holds the forms' nodal fields
+U1, U2, LPOS, LNEG, E1, E2, DLAM = range(7)
 
 
 def owned(X):
@@ -168,13 +171,17 @@ class Estimators:
                    else fem.FunctionSpace(mesh, ("RT", 2)))
         if equilibration is not None:                                   # data parts, once
             self.loads = equilibration.loads((disc.f1, disc.f2))
-        # coefficients the evaluations write into
-        self.u = [fem.Function(V) for _ in range(3)]                    # u1h, u2h, λh
-        self.lam_pos, self.lam_neg, self.e1, self.e2 = (fem.Function(V) for _ in range(4))
+        # coefficients the evaluations write into. The nodal fields u1h, u2h, λ^pos, λ^neg,
+        # s_h - u_h and δλ = λ'_h - λh (ν flux) are the components of ONE vector-P1 Function:
+        # dolfinx packs a form's coefficients cell by cell, and the values of a vertex then lie
+        # side by side (one gather instead of one per field)
+        self.nodal = fem.Function(fem.VectorFunctionSpace(mesh, ("Lagrange", 1), dim=DLAM + 1))
+        if not self.comm.allreduce(same_numbering(self.nodal.function_space, V), op=MPI.LAND):
+            raise RuntimeError("vector P1 numbers its vertices unlike P1")
+        self._nodal = self.nodal.x.array.reshape(-1, DLAM + 1)         # (vertices, fields)
         self.sigma = [fem.Function(self.RT) for _ in range(2)]          # σ_α,disc
         self.sigma_alg = [fem.Function(self.RT) for _ in range(2)]
         self.rho = [fem.Function(self.DG1) for _ in range(2)]           # r_αh (lifted R_α)
-        self.dlam = fem.Function(V)                                     # λ'_h - λh (ν flux)
         self._build_forms()
         self.osc = self._oscillation()                                  # (cells, 2)
         self._recent = []                                               # σ_disc's last two
@@ -185,7 +192,7 @@ class Estimators:
 
     def _build_forms(self):
         mesh = self.disc.mesh
-        u1, u2, lam = self.u
+        u1, u2, lam_pos, lam_neg, e1, e2, dlam = (self.nodal[i] for i in range(DLAM + 1))
         mu1, mu2 = self._mu
         dp = ufl.dx(domain=mesh, metadata=P1_RULE)
         df = ufl.dx(domain=mesh, metadata=FLUX_RULE)
@@ -195,10 +202,10 @@ class Estimators:
         def base(w):
             return (flux_squared(mu1, u1, s1, w[DISC1], df)
                     + flux_squared(mu2, u2, s2, w[DISC2], df)
-                    + contact_estimator(u1, u2, self.lam_pos, w[CONTACT], dp)
-                    + energy_squared(mu1, mu2, self.e1, self.e2, w[LIN1], dp)
-                    + cell_norm_squared(self.lam_pos, w[LAM_POS], dp)
-                    + cell_norm_squared(self.lam_neg, w[LAM_NEG], dp))
+                    + contact_estimator(u1, u2, lam_pos, w[CONTACT], dp)
+                    + energy_squared(mu1, mu2, e1, e2, w[LIN1], dp)
+                    + cell_norm_squared(lam_pos, w[LAM_POS], dp)
+                    + cell_norm_squared(lam_neg, w[LAM_NEG], dp))
 
         def with_alg(w):
             return (base(w)
@@ -211,8 +218,8 @@ class Estimators:
         r1, r2 = self.rho
 
         def remainder(w, i=0, j=1):
-            return (weighted_norm_squared(mu1, r1 - self.dlam, w[i], dp)
-                    + weighted_norm_squared(mu2, r2 + self.dlam, w[j], dp))
+            return (weighted_norm_squared(mu1, r1 - dlam, w[i], dp)
+                    + weighted_norm_squared(mu2, r2 + dlam, w[j], dp))
 
         self.cells_disc = CellForm(mesh, 6, base)
         self.cells_alg = CellForm(mesh, 10, with_alg)
@@ -234,14 +241,15 @@ class Estimators:
     # ## Iterate data
 
     def _write(self, X):
-        """u1h, u2h, λh and the nodal λ^pos, λ^neg, s_h - u_h of X into the Functions."""
+        """u1h, u2h and the nodal λ^pos, λ^neg, s_h - u_h of X into `nodal`."""
         n = self.n
-        self.disc.functions(X, out=self.u)
-        u1, u2, lam = (f.x.array[:n] for f in self.u)
-        for f, values in zip((self.lam_pos, self.lam_neg, self.e1, self.e2),
-                             constraint_parts(u1, u2, lam)):
-            f.x.array[:n] = values
-            f.x.scatter_forward()
+        a = owned(X)
+        u1, u2, lam = a[:n], a[n:2 * n], a[2 * n:3 * n]
+        values = self._nodal
+        values[:n, U1], values[:n, U2] = u1, u2
+        for i, v in zip((LPOS, LNEG, E1, E2), constraint_parts(u1, u2, lam)):
+            values[:n, i] = v
+        self.nodal.x.scatter_forward()
 
     def lifted(self, R, out=None):
         """(r_1h, r_2h): the liftings of R_1, R_2 (§4) as DG1 Functions (zero for R None),
@@ -310,8 +318,8 @@ class Estimators:
             if not self._alike(source.function_space, target.function_space):
                 raise ValueError("r_αh must be a DG1 Function (the lifting's space)")
             target.x.array[:] = source.x.array
-        self.dlam.x.array[:n] = 0.0 if dlam is None else dlam
-        self.dlam.x.scatter_forward()
+        self._nodal[:n, DLAM] = 0.0 if dlam is None else dlam
+        self.nodal.x.scatter_forward()
 
     def nu_flux(self, X, R, X_later, R_later):
         """The algebraic flux of ν extra iterations (§6) at X (residual R) from the later
