@@ -184,6 +184,8 @@ class Estimators:
         self.rho = [fem.Function(self.DG1) for _ in range(2)]           # r_αh (lifted R_α)
         self._build_forms()
         self.osc = self._oscillation()                                  # (cells, 2)
+        self._osc_t = np.ascontiguousarray(self.osc.T)
+        self._osc_sum = (self._osc_t ** 2).sum()                        # η_osc², local
         self._recent = []                                               # σ_disc's last two
         self._u_sigma = [fem.Function(V) for _ in range(3)]             # σ_disc's iterate
         self._layouts = {}                                              # `_alike`'s verdicts
@@ -383,7 +385,7 @@ class Estimators:
             self._write(X)
             self._set_flux(self.sigma, sigma)
             q = self.cells_disc_rem.cells()
-            return self._combine(q, q[:, [DISC1, DISC2]], False, None, rem=True)
+            return self._combine(q, (DISC1, DISC2), False, None, rem=True)
         return self.assemble(X, sigma, sigma_alg, 0.0 if eta_rem is None else eta_rem)
 
     def assemble(self, X, sigma, sigma_alg=None, eta_rem=0.0):
@@ -393,31 +395,36 @@ class Estimators:
         self._set_flux(self.sigma, sigma)
         if sigma_alg is None:
             q = self.cells_disc.cells()
-            flux = q[:, [DISC1, DISC2]]
+            flux = (DISC1, DISC2)
         else:
             self._set_flux(self.sigma_alg, sigma_alg)
             q = self.cells_alg.cells()
-            flux = q[:, [FLUX1, FLUX2]]
+            flux = (FLUX1, FLUX2)
         return self._combine(q, flux, sigma_alg is not None, float(eta_rem))
 
     def _combine(self, q, flux, with_alg, eta_rem, rem=False):
-        """The global values and η_K from the per-cell integrals q (§7); with `rem`, η_rem
-        from q's columns REM1, REM2 (as `remainder`)."""
-        osc = self.osc
-        disc_K = np.sqrt(np.maximum(q[:, [DISC1, DISC2]], 0.0))        # η_disc,K,α
-        flux_K = np.sqrt(np.maximum(flux, 0.0))                         # η_F,K,α
-        lin1_sq = np.maximum(q[:, LIN1], 0.0)                           # η_lin1,K²
-        lin3_sq = self.kappa ** 2 * np.maximum(q[:, LAM_NEG], 0.0)      # η_lin3,K²
-        eta_C_K = q[:, CONTACT]
-        columns = [((flux_K + osc) ** 2).sum(axis=1),                   # η_1²
-                   ((disc_K + osc) ** 2).sum(axis=1),                   # η_disc's flux part²
-                   (flux_K ** 2).sum(axis=1), (osc ** 2).sum(axis=1),   # η_F², η_osc²
-                   eta_C_K, lin1_sq, lin3_sq, q[:, LAM_POS]]           # Σ_C, lin1², lin3², ‖λ^pos‖²
+        """The global values and η_K from the per-cell integrals q (§7): `flux` the columns of
+        η_F,K,α²; with `rem`, η_rem from q's columns REM1, REM2 (as `remainder`). Column by
+        column on contiguous copies; the global sums in one reduction."""
+        qt = np.ascontiguousarray(q.T)                                  # (k, cells)
+        o1, o2 = self._osc_t
+        disc_K = [np.sqrt(np.maximum(qt[i], 0.0)) for i in (DISC1, DISC2)]   # η_disc,K,α
+        flux_K = (disc_K if list(flux) == [DISC1, DISC2]
+                  else [np.sqrt(np.maximum(qt[i], 0.0)) for i in flux])      # η_F,K,α
+        lin1_sq = np.maximum(qt[LIN1], 0.0)                             # η_lin1,K²
+        lin3_sq = self.kappa ** 2 * np.maximum(qt[LAM_NEG], 0.0)        # η_lin3,K²
+        eta_C_K = qt[CONTACT]
+        eta_1_sq = (flux_K[0] + o1) ** 2 + (flux_K[1] + o2) ** 2        # η_1,K²
+        columns = [eta_1_sq,
+                   (disc_K[0] + o1) ** 2 + (disc_K[1] + o2) ** 2,       # η_disc's flux part²
+                   flux_K[0] ** 2 + flux_K[1] ** 2]                     # η_F²
+        sums = [c.sum() for c in columns] + [self._osc_sum]             # η_osc²
+        sums += [c.sum() for c in (eta_C_K, lin1_sq, lin3_sq, qt[LAM_POS])]
         if with_alg:
-            columns.append(np.maximum(q[:, ALG1], 0.0) + np.maximum(q[:, ALG2], 0.0))
+            sums.append(np.maximum(qt[ALG1], 0.0).sum() + np.maximum(qt[ALG2], 0.0).sum())
         if rem:
-            columns += [q[:, REM1], q[:, REM2]]
-        s = global_sums(self.comm, np.stack(columns, axis=1))
+            sums += [qt[REM1].sum(), qt[REM2].sum()]
+        s = self.comm.allreduce(np.array(sums), op=MPI.SUM)
         if rem:
             eta_rem = float(self.cpf * np.sqrt(max(s[-2:].sum(), 0.0)))
         eta_1, disc_part, eta_F, eta_osc = np.sqrt(np.maximum(s[[0, 1, 2, 3]], 0.0))
@@ -429,7 +436,10 @@ class Estimators:
         eta_lin2 = 2.0 * self.kappa * lam_pos_norm * eta_lin1
         alg_flux = np.sqrt(max(s[8], 0.0)) if with_alg else 0.0
         eta = np.sqrt((eta_1 + eta_rem + eta_lin1 + eta_lin3) ** 2 + eta_lin2 + max(0.0, sum_C))
-        eta_K = np.sqrt(columns[0] + lin1_sq + lin3_sq + np.abs(eta_C_K))
+        eta_1_sq += lin1_sq
+        eta_1_sq += lin3_sq
+        eta_1_sq += np.abs(eta_C_K)
+        eta_K = np.sqrt(eta_1_sq)
         return {
             "eta": float(eta),
             "eta_disc": float(disc_part + np.sqrt(abs(sum_C))),
