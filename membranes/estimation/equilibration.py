@@ -141,14 +141,15 @@ def assemble_loads(eq, fs, measures):
         for i, f in enumerate(fs) for s in range(3))))
     blocks = fem.assemble_vector(form)
     blocks.scatter_reverse(la.ScatterMode.add)
-    blocks = blocks.array.reshape(-1, k, 3)                             # (dof, i, s)
+    blocks = blocks.array                         # entry 3k z + 3i + s: dof z, load i, slot s
     zdofs = Z.dofmap.list.array.reshape(-1, 3)[:wdofs.shape[0]]
     homes = [eq.systems.home_vector() for _ in fs]
     eq.b.set(0.0)
     for c, (touching, s) in enumerate(eq.touching()):
-        dofs, rows, slot = wdofs[touching], zdofs[touching], s[:, None]
+        dofs = wdofs[touching]
+        entry = 3 * k * zdofs[touching].astype(np.int64) + s[:, None]
         for i, home in enumerate(homes):
-            eq.b.array[dofs] = blocks[rows, i, slot]
+            eq.b.array[dofs] = blocks[entry + 3 * i]
             eq.systems.gather(c, eq.b, home)
         eq.b.array[dofs] = 0.0
     return [Load(f, eq.systems.canonical(home)) for f, home in zip(fs, homes)]
