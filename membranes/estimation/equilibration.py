@@ -16,9 +16,16 @@ a cell (`patches.colour_vertices`); the patches of the vertices of colour c are 
 call and colour the right-hand side is ONE dolfinx assembly of `forms.equilibration.patch_rhs`
 (over the cells touching colour c) with the P1 coefficients ψ_c = Σ_{a of colour c} ψ_a and
 Λ_c = Σ_{a of colour c} λ_a ψ_a (on a patch of colour c they are ψ_a and λ_a ψ_a), plus the data
-part -(ψ_c f, q), which does not change with the iterate: it is assembled once per load
-(`Load`). All patches are then solved at once; the RT parts of the colours' solutions add up to
+part -(ψ_c f, q), which does not change with the iterate: it is assembled once per mesh for
+both loads (`assemble_loads`: one assembly for all colours, since it lives on the cell-local DG1
+dofs). All patches are then solved at once; the RT parts of the colours' solutions add up to
 σ_α,disc.
+
+Cost (§12). Each cell touches three colours, so the per-call assemblies run the kernel three
+times per cell; the kernel and dolfinx's packing of the coefficients (a gather per cell and
+coefficient) are most of a call besides the patch solves. ψ_c, Λ_c and u_αh are therefore the
+components of one vector-P1 Function (one gather per vertex, not three), and the per-call work
+outside dolfinx is kept to writing those components.
 
 Compatibility of the interior patches, (g̃_a, 1) = 0, is the linear row of §4 at a: it holds
 to round-off only if (ψ_a f, 1) is integrated here with the same quadrature as the load
@@ -179,7 +186,7 @@ class FluxEquilibration:
         imap = V.dofmap.index_map
         self.colour, self.ncolours, self.colour_rounds = colour_vertices(cells, imap, self.comm)
         self.on_boundary = boundary_dofs(V)
-        self._touching = None
+        self._touching = self._home = None
         patches, interior = vertex_patches(V, self.colour, self.ncolours, self.on_boundary,
                                            self.touching())
         self.systems = PatchSystems(mesh, patches, interior, solution="flux")
@@ -283,7 +290,10 @@ class FluxEquilibration:
         self._copy(self.lam, lam)
         sigma = out if out is not None else fem.Function(self.rt_space)
         systems = self.systems
-        home = systems.home_vector()
+        if self._home is None:                    # kept: no fresh pages at every call
+            self._home = systems.home_vector()
+        home = self._home
+        home.fill(0.0)
         for c in range(self.ncolours):
             self.set_colour(c, self.lam.x.array)
             with self.b.localForm() as local:

@@ -19,7 +19,11 @@ the components of one vector-DG0 test function, so one dolfinx assembly over the
 gives them all on every cell (exact quadrature for the polynomial integrands; the data
 measures for f). The forms are compiled once per mesh with dolfinx Functions as coefficients;
 an evaluation writes the iterate's values into those Functions (nodal values on the owned
-dofs, then `scatter_forward` for the ghosts) and assembles. Global values are sums over the
+dofs, then `scatter_forward` for the ghosts) and assembles. The nodal fields (u1h, u2h,
+λ^pos, λ^neg, s_h - u_h, δλ) are the components of one vector-P1 Function: dolfinx packs the
+coefficients cell by cell before every assembly, and one gather per vertex for all of them
+costs a fraction of one per field. `evaluate`'s default remainder (below) is integrated in the
+same assembly as the estimators. Global values are sums over the
 owned cells reduced over the communicator: every process returns the same numbers.
 
 **The remainder η_rem** (§6). The flux σ_α = σ_α,disc + σ_α,alg satisfies
