@@ -227,11 +227,25 @@ class Estimators:
             return (weighted_norm_squared(mu1, r1 - dlam, w[i], dp)
                     + weighted_norm_squared(mu2, r2 + dlam, w[j], dp))
 
-        self.cells_disc = CellForm(mesh, 6, base)
-        self.cells_alg = CellForm(mesh, 10, with_alg)
-        self.cells_rem = CellForm(mesh, 2, remainder)
-        # `evaluate`'s default remainder in the same assembly as the estimators
-        self.cells_disc_rem = CellForm(mesh, 8, lambda w: base(w) + remainder(w, REM1, REM2))
+        # compiled at first use (a run may never need some of them)
+        self._cell_forms = {
+            "disc": (6, base), "alg": (10, with_alg), "rem": (2, remainder),
+            # `evaluate`'s default remainder in the same assembly as the estimators
+            "disc_rem": (8, lambda w: base(w) + remainder(w, REM1, REM2))}
+
+    def _cell_form(self, name):
+        entry = self._cell_forms[name]
+        if not isinstance(entry, CellForm):
+            entry = self._cell_forms[name] = CellForm(self.disc.mesh, *entry)
+        return entry
+
+    cells_disc = property(lambda self: self._cell_form("disc"),
+                          doc="CellForm of the estimators without algebraic flux")
+    cells_alg = property(lambda self: self._cell_form("alg"),
+                         doc="CellForm of the estimators with an algebraic flux")
+    cells_rem = property(lambda self: self._cell_form("rem"), doc="CellForm of η_rem's terms")
+    cells_disc_rem = property(lambda self: self._cell_form("disc_rem"),
+                              doc="`cells_disc` and η_rem's terms in one CellForm")
 
     def _oscillation(self):
         """η_osc,K,α for every owned cell (cells, 2): iterate-independent, once per mesh."""
