@@ -169,8 +169,8 @@ class FluxEquilibration:
     data measures dx_data are used). `sigma(alpha, u, lam, r, f, mu, out=None)` returns σ_α,disc
     as a Function of `rt_space` (RT_1): u the P1 Function u_αh, lam the P1 Function λ_h (nodal
     values λ_a), r the DG1 Function r_αh (`lifting.Lifting`), f a UFL expression of f_α or a
-    `Load` from `load(f)` (an expression is turned into a Load at its first use and kept), mu
-    the float μ_α.
+    `Load` from `load(f)` or `loads([f1, f2])` (one assembly for several loads; an expression
+    is turned into a Load at its first use and kept), mu the float μ_α.
     """
 
     def __init__(self, V, measures=None):
@@ -243,7 +243,8 @@ class FluxEquilibration:
         for s in range(3):
             values[blocks[:, s], s] = 1.0
         wdofs = self.systems.W.sub(1).dofmap.list.array.reshape(-1, 3)[:self.cells.shape[0]]
-        if wdofs.size and wdofs.max() >= self.b.getLocalSize():
+        owned = not wdofs.size or wdofs.max() < self.b.getLocalSize()
+        if not self.comm.allreduce(bool(owned), op=MPI.LAND):
             raise RuntimeError("a DG1 dof of an owned cell is not owned")
         return hats, wdofs
 

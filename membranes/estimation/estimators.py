@@ -23,8 +23,8 @@ dofs, then `scatter_forward` for the ghosts) and assembles. The nodal fields (u1
 λ^pos, λ^neg, s_h - u_h, δλ) are the components of one vector-P1 Function: dolfinx packs the
 coefficients cell by cell before every assembly, and one gather per vertex for all of them
 costs a fraction of one per field. `evaluate`'s default remainder (below) is integrated in the
-same assembly as the estimators. Global values are sums over the
-owned cells reduced over the communicator: every process returns the same numbers.
+same assembly as the estimators. Global values are sums over the owned cells reduced over the
+communicator: every process returns the same numbers.
 
 **The remainder η_rem** (§6). The flux σ_α = σ_α,disc + σ_α,alg satisfies
 ∇·σ_α = Π_P1 f_α ± λh - ρ_α on every cell, with ρ_α the part of the residual it leaves out of
@@ -111,9 +111,10 @@ def global_sums(comm, columns):
 
 
 def dg1_projections(disc, fs, lifting):
-    """Π_P1 f for each f of `fs`: the L² projections onto discontinuous P1 (cell by cell), as
-    Functions of `lifting.Q`. The loads (f, q) are assembled in one pass (vector DG1 with a
-    component per f, the data measures); the DG1 mass matrix is block diagonal with the block
+    """Π_P1 f for each f of `fs` (η_osc, §7): the L² projections onto discontinuous P1 (cell
+    by cell), as Functions of `lifting.Q`. The loads (f, q) are assembled in one pass (vector
+    DG1 with a component per f, the data measures); the DG1 mass matrix is block diagonal with
+    the block
     M_K = |K|/12 (I + 1 1ᵀ), whose inverse (3/|K|)(4 I - 1 1ᵀ) (`lifting`) is applied cell by
     cell on the owned cells."""
     from dolfinx import fem, la
