@@ -75,7 +75,3 @@ def projection_load(f, q, dx=ufl.dx):
     projection onto discontinuous P1 (dx a data measure)."""
     return f * q * dx
 
-
-def mass(p, q, dx=ufl.dx):
-    """(p, q): the mass matrix of discontinuous P1 (block diagonal, one 3×3 block per cell)."""
-    return p * q * dx

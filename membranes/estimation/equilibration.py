@@ -16,9 +16,16 @@ a cell (`patches.colour_vertices`); the patches of the vertices of colour c are 
 call and colour the right-hand side is ONE dolfinx assembly of `forms.equilibration.patch_rhs`
 (over the cells touching colour c) with the P1 coefficients ψ_c = Σ_{a of colour c} ψ_a and
 Λ_c = Σ_{a of colour c} λ_a ψ_a (on a patch of colour c they are ψ_a and λ_a ψ_a), plus the data
-part -(ψ_c f, q), which does not change with the iterate: it is assembled once per load
-(`Load`). All patches are then solved at once; the RT parts of the colours' solutions add up to
+part -(ψ_c f, q), which does not change with the iterate: it is assembled once per mesh for
+both loads (`assemble_loads`: one assembly for all colours, since it lives on the cell-local DG1
+dofs). All patches are then solved at once; the RT parts of the colours' solutions add up to
 σ_α,disc.
+
+Cost (§12). Each cell touches three colours, so the per-call assemblies run the kernel three
+times per cell; the kernel and dolfinx's packing of the coefficients (a gather per cell and
+coefficient) are most of a call besides the patch solves. ψ_c, Λ_c and u_αh are therefore the
+components of one vector-P1 Function (one gather per vertex, not three), and the per-call work
+outside dolfinx is kept to writing those components.
 
 Compatibility of the interior patches, (g̃_a, 1) = 0, is the linear row of §4 at a: it holds
 to round-off only if (ψ_a f, 1) is integrated here with the same quadrature as the load
@@ -29,11 +36,14 @@ interior patch (`patches`, the pinned dof).
 
 import numpy as np
 import ufl
+from mpi4py import MPI
 from petsc4py import PETSc
 
 import forms.equilibration as equilibration_forms
 
 from .patches import PatchSystems, Shared, colour_vertices
+
+PSI, LAMC, U = range(3)      # components of FluxEquilibration.nodal
 
 
 def boundary_dofs(V):
@@ -61,48 +71,95 @@ def boundary_dofs(V):
     return vertices.forward(vertices.reverse(on, np.maximum)).astype(bool)
 
 
-def vertex_patches(V, colour, ncolours, on_boundary):
+def same_numbering(V, W):
+    """Whether the spaces V, W (of one mesh) number their nodes alike: equal cell dofmaps and
+    index maps (owned sizes and ghosts), so that node i of V is node i of W (block sizes may
+    differ). Local: reduce over the processes before acting on it."""
+    a, b = V.dofmap.index_map, W.dofmap.index_map
+    return bool(np.array_equal(V.dofmap.list.array, W.dofmap.list.array)
+                and a.size_local == b.size_local and np.array_equal(a.ghosts, b.ghosts))
+
+
+def colour_cells(colour, cells, ncolours):
+    """Per colour c: the cells (rows of `cells`, ascending) with a vertex of colour c and, on
+    each, the local index of that vertex (one at most, by the colouring); one stable sort."""
+    flat = colour[cells].ravel()                                   # cell-major: 3 cell + slot
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(ncolours + 1))
+    return [((order[a:b] // 3).astype(np.int32), (order[a:b] % 3).astype(np.int8))
+            for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def vertex_patches(V, colour, ncolours, on_boundary, touching=None):
     """The groups of `PatchSystems` for the vertex patches of §5: per colour c, over the owned
     cells, the global index of the cell's vertex of colour c (-1: none; one at most, by the
-    colouring) and whether that vertex is off ∂Ω (an interior patch)."""
+    colouring) and whether that vertex is off ∂Ω (an interior patch). `touching`: the
+    `colour_cells` of the owned cells, if at hand."""
     nc = V.mesh.topology.index_map(V.mesh.topology.dim).size_local
     cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
     gdofs = np.asarray(V.dofmap.index_map.local_to_global(np.arange(colour.size,
                                                                     dtype=np.int32)),
                        dtype=np.int64)
+    if touching is None:
+        touching = colour_cells(colour, cells, ncolours)
     patches, interior = [], []
-    for c in range(ncolours):
-        hit = colour[cells] == c                                        # ≤ 1 per cell
-        vertex = cells[np.arange(nc), np.argmax(hit, axis=1)]
-        has = hit.any(axis=1)
-        patches.append(np.where(has, gdofs[vertex], -1))
-        interior.append(has & ~on_boundary[vertex])
+    for hit, slot in touching:
+        vertex = cells[hit, slot]
+        patch = np.full(nc, -1, dtype=np.int64)
+        patch[hit] = gdofs[vertex]
+        inner = np.zeros(nc, dtype=bool)
+        inner[hit] = ~on_boundary[vertex]
+        patches.append(patch)
+        interior.append(inner)
     return patches, interior
 
 
 class Load:
     """The data part -(ψ_c f, q) of the patch right-hand sides of all colours, gathered at the
     patches' homes in the canonical basis (`PatchSystems.canonical`), assembled with the data
-    measures once per load f and mesh and reused at every call of `sigma`."""
+    measures once per load f and mesh and reused at every call of `sigma`; `home` holds it.
+    Made by `FluxEquilibration.loads` (several loads in one assembly) or `load`."""
 
-    def __init__(self, eq, f, measures=None):
-        from dolfinx import fem
-        from dolfinx.fem.petsc import assemble_vector
+    def __init__(self, f, home):
+        self.f, self.home = f, home
 
-        from membranes.fem.quadrature import over
-        self.f = f
-        measures = measures if measures is not None else [ufl.dx(domain=eq.mesh)]
-        _, q = ufl.TestFunctions(eq.systems.W)
-        form = fem.form(over(measures, lambda dx: equilibration_forms.patch_load(eq.psi, f, q,
-                                                                                 dx)))
-        home = eq.systems.home_vector()
-        for c in range(eq.ncolours):
-            eq.set_colour(c)
-            b = assemble_vector(form)
-            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            eq.systems.gather(c, b, home)
-            b.destroy()
-        self.home = eq.systems.canonical(home)
+
+def assemble_loads(eq, fs, measures):
+    """The `Load`s of the expressions `fs` on the mesh of `eq` (a FluxEquilibration).
+
+    The data part lives on the DG1 dofs, which belong to one cell each: on a cell K touching
+    colour c it is -(φ_j f, q_m)_K, φ_j the hat function of K's vertex of colour c. So one
+    assembly gives it for every colour and every load: the test function is vector DG1 with
+    three components q_{3i+s} per load f_i, and component 3i + s is tested against φ_s, the hat
+    of K's local vertex s (a DG1 Function, `FluxEquilibration.slots`): the result holds the
+    3 × 3 block -(φ_s f_i, q_m)_K of every cell, and colour c takes column s = (local index of
+    its vertex) on each cell touching it. The data are integrated once per cell instead of once
+    per colour and load, with the same measures and integrand (the compatibility above holds
+    as before)."""
+    from dolfinx import fem, la
+
+    from membranes.fem.quadrature import over
+    k = len(fs)
+    hats, wdofs = eq.slots()
+    Z = fem.VectorFunctionSpace(eq.mesh, ("DG", 1), dim=3 * k)
+    q = ufl.TestFunction(Z)
+    form = fem.form(over(measures, lambda dx: sum(
+        equilibration_forms.patch_load(hats[s], f, q[3 * i + s], dx)
+        for i, f in enumerate(fs) for s in range(3))))
+    blocks = fem.assemble_vector(form)
+    blocks.scatter_reverse(la.ScatterMode.add)
+    blocks = blocks.array                         # entry 3k z + 3i + s: dof z, load i, slot s
+    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:wdofs.shape[0]]
+    homes = [eq.systems.home_vector() for _ in fs]
+    eq.b.set(0.0)
+    for c, (touching, s) in enumerate(eq.touching()):
+        dofs = wdofs[touching]
+        entry = 3 * k * zdofs[touching].astype(np.int64) + s[:, None]
+        for i, home in enumerate(homes):
+            eq.b.array[dofs] = blocks[entry + 3 * i]
+            eq.systems.gather(c, eq.b, home)
+        eq.b.array[dofs] = 0.0
+    return [Load(f, eq.systems.canonical(home)) for f, home in zip(fs, homes)]
 
 
 class FluxEquilibration:
@@ -112,8 +169,8 @@ class FluxEquilibration:
     data measures dx_data are used). `sigma(alpha, u, lam, r, f, mu, out=None)` returns σ_α,disc
     as a Function of `rt_space` (RT_1): u the P1 Function u_αh, lam the P1 Function λ_h (nodal
     values λ_a), r the DG1 Function r_αh (`lifting.Lifting`), f a UFL expression of f_α or a
-    `Load` from `load(f)` (an expression is turned into a Load at its first use and kept), mu
-    the float μ_α.
+    `Load` from `load(f)` or `loads([f1, f2])` (one assembly for several loads; an expression
+    is turned into a Load at its first use and kept), mu the float μ_α.
     """
 
     def __init__(self, V, measures=None):
@@ -125,17 +182,25 @@ class FluxEquilibration:
         self.measures = measures
         mesh = self.mesh
         nc = mesh.topology.index_map(mesh.topology.dim).size_local
-        cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
+        self.cells = cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
         imap = V.dofmap.index_map
         self.colour, self.ncolours, self.colour_rounds = colour_vertices(cells, imap, self.comm)
         self.on_boundary = boundary_dofs(V)
-        patches, interior = vertex_patches(V, self.colour, self.ncolours, self.on_boundary)
+        self._touching = self._home = None
+        patches, interior = vertex_patches(V, self.colour, self.ncolours, self.on_boundary,
+                                           self.touching())
         self.systems = PatchSystems(mesh, patches, interior, solution="flux")
         self.rt_space = self.systems.rt_space
 
         # coefficients of the right-hand side forms, compiled once
-        self.psi, self.lam_c = fem.Function(V), fem.Function(V)
-        self.u, self.lam = fem.Function(V), fem.Function(V)
+        # ψ_c, Λ_c and u_αh are the components PSI, LAMC, U of one vector-P1 Function: dolfinx
+        # packs a form's coefficients cell by cell, and a vertex's values then lie side by side
+        # (one gather instead of three). It numbers the vertices as V does (checked).
+        self.nodal = fem.Function(fem.VectorFunctionSpace(mesh, ("Lagrange", 1), dim=3))
+        if not self.comm.allreduce(same_numbering(self.nodal.function_space, V), op=MPI.LAND):
+            raise RuntimeError("vector P1 numbers its vertices unlike P1")
+        self._nodal = self.nodal.x.array.reshape(-1, 3)
+        self.lam = fem.Function(V)
         self.r = fem.Function(fem.FunctionSpace(mesh, ("DG", 1)))
         self.mu = fem.Constant(mesh, 1.0)
         self.sign = fem.Constant(mesh, 1.0)
@@ -146,26 +211,60 @@ class FluxEquilibration:
         from dolfinx.fem.petsc import create_vector
         owned = np.arange(nc, dtype=np.int32)
         self.rhs_forms = []
-        for c in range(self.ncolours):
-            touching = (self.colour[cells] == c).any(axis=1).astype(np.int32)
-            tags = dmesh.meshtags(mesh, mesh.topology.dim, owned, touching)
+        for touching, _ in self.touching():
+            marker = np.zeros(nc, dtype=np.int32)
+            marker[touching] = 1
+            tags = dmesh.meshtags(mesh, mesh.topology.dim, owned, marker)
             dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
             self.rhs_forms.append(fem.form(equilibration_forms.patch_rhs(
-                self.psi, self.lam_c, self.sign, self.mu, self.u, self.r, tau, q, dx)))
+                self.nodal[PSI], self.nodal[LAMC], self.sign, self.mu, self.nodal[U], self.r,
+                tau, q, dx)))
         self.b = create_vector(self.rhs_forms[0])
         self.x = self.b.duplicate()
         self._loads = {}
 
+    def touching(self):
+        """`colour_cells` of the owned cells: per colour c the cells touching c and the local
+        index of their vertex of colour c. Built once per mesh."""
+        if self._touching is None:
+            self._touching = colour_cells(self.colour, self.cells, self.ncolours)
+        return self._touching
+
+    def slots(self):
+        """(hats, wdofs) for `assemble_loads`: hats[s] the DG1 Function (a component of a vector
+        DG1 Function) equal on every cell to the hat function of its local vertex s; wdofs the
+        (owned cells, 3) W dofs of the cells' DG1 dofs (W's DG1 part: the same element, so the
+        same local order)."""
+        from dolfinx import fem
+        Z = fem.VectorFunctionSpace(self.mesh, ("DG", 1), dim=3)
+        blocks = Z.dofmap.list.array.reshape(-1, 3)
+        hats = fem.Function(Z)
+        values = hats.x.array.reshape(-1, 3)
+        for s in range(3):
+            values[blocks[:, s], s] = 1.0
+        wdofs = self.systems.W.sub(1).dofmap.list.array.reshape(-1, 3)[:self.cells.shape[0]]
+        owned = not wdofs.size or wdofs.max() < self.b.getLocalSize()
+        if not self.comm.allreduce(bool(owned), op=MPI.LAND):
+            raise RuntimeError("a DG1 dof of an owned cell is not owned")
+        return hats, wdofs
+
     def set_colour(self, c, lam=None):
         """ψ = indicator of colour c at the P1 dofs (owned and ghost); Λ = λ there."""
         mask = self.colour == c
-        self.psi.x.array[:] = mask
+        self._nodal[:, PSI] = mask
         if lam is not None:
-            self.lam_c.x.array[:] = np.where(mask, lam, 0.0)
+            self._nodal[:, LAMC] = np.where(mask, lam, 0.0)
+
+    def loads(self, fs, measures=None):
+        """The `Load`s of the expressions f_α in `fs`, in one assembly (data measures:
+        `measures`, else the constructor's, else dx)."""
+        measures = measures if measures is not None else self.measures
+        measures = measures if measures is not None else [ufl.dx(domain=self.mesh)]
+        return assemble_loads(self, list(fs), measures)
 
     def load(self, f, measures=None):
-        """The `Load` of the expression f_α (data measures: `measures`, else the constructor's)."""
-        return Load(self, f, measures if measures is not None else self.measures)
+        """The `Load` of the expression f_α (`loads`)."""
+        return self.loads([f], measures)[0]
 
     def _copy(self, target, source):
         n = target.function_space.dofmap.index_map.size_local
@@ -185,12 +284,17 @@ class FluxEquilibration:
             f = self._loads[key]
         self.sign.value = 1.0 if alpha == 1 else -1.0
         self.mu.value = float(mu)
-        self._copy(self.u, u)
+        n = self.V.dofmap.index_map.size_local
+        self._nodal[:n, U] = u.x.array[:n]
+        self.nodal.x.scatter_forward()
         self._copy(self.r, r)
         self._copy(self.lam, lam)
         sigma = out if out is not None else fem.Function(self.rt_space)
         systems = self.systems
-        home = systems.home_vector()
+        if self._home is None:                    # kept: no fresh pages at every call
+            self._home = systems.home_vector()
+        home = self._home
+        home.fill(0.0)
         for c in range(self.ncolours):
             self.set_colour(c, self.lam.x.array)
             with self.b.localForm() as local:

@@ -19,8 +19,12 @@ the components of one vector-DG0 test function, so one dolfinx assembly over the
 gives them all on every cell (exact quadrature for the polynomial integrands; the data
 measures for f). The forms are compiled once per mesh with dolfinx Functions as coefficients;
 an evaluation writes the iterate's values into those Functions (nodal values on the owned
-dofs, then `scatter_forward` for the ghosts) and assembles. Global values are sums over the
-owned cells reduced over the communicator: every process returns the same numbers.
+dofs, then `scatter_forward` for the ghosts) and assembles. The nodal fields (u1h, u2h,
+λ^pos, λ^neg, s_h - u_h, δλ) are the components of one vector-P1 Function: dolfinx packs the
+coefficients cell by cell before every assembly, and one gather per vertex for all of them
+costs a fraction of one per field. `evaluate`'s default remainder (below) is integrated in the
+same assembly as the estimators. Global values are sums over the owned cells reduced over the
+communicator: every process returns the same numbers.
 
 **The remainder η_rem** (§6). The flux σ_α = σ_α,disc + σ_α,alg satisfies
 ∇·σ_α = Π_P1 f_α ± λh - ρ_α on every cell, with ρ_α the part of the residual it leaves out of
@@ -51,17 +55,20 @@ from forms.estimators import (
     contact_estimator,
     energy_squared,
     flux_squared,
-    mass,
     oscillation_squared,
     projection_load,
     weighted_norm_squared,
 )
 
 from ..fem.quadrature import over
+from .equilibration import same_numbering
 
 # Components of the per-cell vector of one evaluation (the vector-DG0 test function's index)
 DISC1, DISC2, CONTACT, LIN1, LAM_POS, LAM_NEG = range(6)      # always
 FLUX1, FLUX2, ALG1, ALG2 = range(6, 10)                          # with an algebraic flux
+REM1, REM2 = range(6, 8)                      # with the remainder, no algebraic flux (evaluate)
+# Components of the one vector-P1 Function that holds the forms' nodal fields
+U1, U2, LPOS, LNEG, E1, E2, DLAM = range(7)
 
 
 def owned(X):
@@ -103,36 +110,31 @@ def global_sums(comm, columns):
     return comm.allreduce(local, op=MPI.SUM)
 
 
-def dg1_projection(disc, f, DG1):
-    """Π_P1 f: the L² projection of f onto discontinuous P1 (cell by cell), as a DG1 Function.
-    The DG1 mass matrix is block diagonal with every block on the process owning the cell, so
-    block Jacobi with an exact LU of each process's block solves the system exactly."""
-    from dolfinx import fem
-    from dolfinx.fem import petsc
-    from petsc4py import PETSc
-    p, q = ufl.TrialFunction(DG1), ufl.TestFunction(DG1)
-    M = petsc.assemble_matrix(fem.form(mass(p, q, ufl.dx(metadata=P1_RULE))))
-    M.assemble()
-    b = petsc.assemble_vector(fem.form(over(disc.dx_data, lambda dx: projection_load(f, q, dx))))
-    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-    prefix = f"membranes_dg1_projection_{id(M)}_"
-    opts = PETSc.Options()
-    opts[prefix + "ksp_type"] = "preonly"
-    opts[prefix + "pc_type"] = "bjacobi"
-    opts[prefix + "sub_ksp_type"] = "preonly"
-    opts[prefix + "sub_pc_type"] = "lu"
-    ksp = PETSc.KSP().create(disc.comm)
-    ksp.setOptionsPrefix(prefix)
-    ksp.setOperators(M)
-    ksp.setFromOptions()
-    for key in ("ksp_type", "pc_type", "sub_ksp_type", "sub_pc_type"):
-        del opts[prefix + key]
-    pf = fem.Function(DG1)
-    ksp.solve(b, pf.vector)
-    pf.x.scatter_forward()
-    for obj in (ksp, M, b):
-        obj.destroy()
-    return pf
+def dg1_projections(disc, fs, lifting):
+    """Π_P1 f for each f of `fs` (η_osc, §7): the L² projections onto discontinuous P1 (cell
+    by cell), as Functions of `lifting.Q`. The loads (f, q) are assembled in one pass (vector
+    DG1 with a component per f, the data measures); the DG1 mass matrix is block diagonal with
+    the block
+    M_K = |K|/12 (I + 1 1ᵀ), whose inverse (3/|K|)(4 I - 1 1ᵀ) (`lifting`) is applied cell by
+    cell on the owned cells."""
+    from dolfinx import fem, la
+
+    from .lifting import MINV_REF
+    mesh, k = disc.mesh, len(fs)
+    Z = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=k)
+    q = ufl.TestFunction(Z)
+    b = fem.assemble_vector(fem.form(over(disc.dx_data, lambda dx: sum(
+        projection_load(f, q[i], dx) for i, f in enumerate(fs)))))
+    b.scatter_reverse(la.ScatterMode.add)
+    nc = lifting.ncells
+    blocks = b.array.reshape(-1, k)[Z.dofmap.list.array.reshape(-1, 3)[:nc]]   # (nc, 3, k)
+    out = []
+    for i in range(k):
+        pf = fem.Function(lifting.Q)
+        pf.x.array[lifting.dg] = (3.0 / lifting.area)[:, None] * (blocks[:, :, i] @ MINV_REF)
+        pf.x.scatter_forward()
+        out.append(pf)
+    return out
 
 
 def constraint_parts(u1, u2, lam):
@@ -173,16 +175,22 @@ class Estimators:
         self.RT = (equilibration.rt_space if equilibration is not None
                    else fem.FunctionSpace(mesh, ("RT", 2)))
         if equilibration is not None:                                   # data parts, once
-            self.loads = [equilibration.load(f) for f in (disc.f1, disc.f2)]
-        # coefficients the evaluations write into
-        self.u = [fem.Function(V) for _ in range(3)]                    # u1h, u2h, λh
-        self.lam_pos, self.lam_neg, self.e1, self.e2 = (fem.Function(V) for _ in range(4))
+            self.loads = equilibration.loads((disc.f1, disc.f2))
+        # coefficients the evaluations write into. The nodal fields u1h, u2h, λ^pos, λ^neg,
+        # s_h - u_h and δλ = λ'_h - λh (ν flux) are the components of ONE vector-P1 Function:
+        # dolfinx packs a form's coefficients cell by cell, and the values of a vertex then lie
+        # side by side (one gather instead of one per field)
+        self.nodal = fem.Function(fem.VectorFunctionSpace(mesh, ("Lagrange", 1), dim=DLAM + 1))
+        if not self.comm.allreduce(same_numbering(self.nodal.function_space, V), op=MPI.LAND):
+            raise RuntimeError("vector P1 numbers its vertices unlike P1")
+        self._nodal = self.nodal.x.array.reshape(-1, DLAM + 1)         # (vertices, fields)
         self.sigma = [fem.Function(self.RT) for _ in range(2)]          # σ_α,disc
         self.sigma_alg = [fem.Function(self.RT) for _ in range(2)]
         self.rho = [fem.Function(self.DG1) for _ in range(2)]           # r_αh (lifted R_α)
-        self.dlam = fem.Function(V)                                     # λ'_h - λh (ν flux)
         self._build_forms()
         self.osc = self._oscillation()                                  # (cells, 2)
+        self._osc_t = np.ascontiguousarray(self.osc.T)
+        self._osc_sum = (self._osc_t ** 2).sum()                        # η_osc², local
         self._recent = []                                               # σ_disc's last two
         self._u_sigma = [fem.Function(V) for _ in range(3)]             # σ_disc's iterate
         self._layouts = {}                                              # `_alike`'s verdicts
@@ -191,7 +199,7 @@ class Estimators:
 
     def _build_forms(self):
         mesh = self.disc.mesh
-        u1, u2, lam = self.u
+        u1, u2, lam_pos, lam_neg, e1, e2, dlam = (self.nodal[i] for i in range(DLAM + 1))
         mu1, mu2 = self._mu
         dp = ufl.dx(domain=mesh, metadata=P1_RULE)
         df = ufl.dx(domain=mesh, metadata=FLUX_RULE)
@@ -201,10 +209,10 @@ class Estimators:
         def base(w):
             return (flux_squared(mu1, u1, s1, w[DISC1], df)
                     + flux_squared(mu2, u2, s2, w[DISC2], df)
-                    + contact_estimator(u1, u2, self.lam_pos, w[CONTACT], dp)
-                    + energy_squared(mu1, mu2, self.e1, self.e2, w[LIN1], dp)
-                    + cell_norm_squared(self.lam_pos, w[LAM_POS], dp)
-                    + cell_norm_squared(self.lam_neg, w[LAM_NEG], dp))
+                    + contact_estimator(u1, u2, lam_pos, w[CONTACT], dp)
+                    + energy_squared(mu1, mu2, e1, e2, w[LIN1], dp)
+                    + cell_norm_squared(lam_pos, w[LAM_POS], dp)
+                    + cell_norm_squared(lam_neg, w[LAM_NEG], dp))
 
         def with_alg(w):
             return (base(w)
@@ -216,18 +224,34 @@ class Estimators:
         # ρ_1 = r_1h - δλ, ρ_2 = r_2h + δλ (δλ = λ'_h - λh, zero outside the ν flux; §6)
         r1, r2 = self.rho
 
-        def remainder(w):
-            return (weighted_norm_squared(mu1, r1 - self.dlam, w[0], dp)
-                    + weighted_norm_squared(mu2, r2 + self.dlam, w[1], dp))
+        def remainder(w, i=0, j=1):
+            return (weighted_norm_squared(mu1, r1 - dlam, w[i], dp)
+                    + weighted_norm_squared(mu2, r2 + dlam, w[j], dp))
 
-        self.cells_disc = CellForm(mesh, 6, base)
-        self.cells_alg = CellForm(mesh, 10, with_alg)
-        self.cells_rem = CellForm(mesh, 2, remainder)
+        # compiled at first use (a run may never need some of them)
+        self._cell_forms = {
+            "disc": (6, base), "alg": (10, with_alg), "rem": (2, remainder),
+            # `evaluate`'s default remainder in the same assembly as the estimators
+            "disc_rem": (8, lambda w: base(w) + remainder(w, REM1, REM2))}
+
+    def _cell_form(self, name):
+        entry = self._cell_forms[name]
+        if not isinstance(entry, CellForm):
+            entry = self._cell_forms[name] = CellForm(self.disc.mesh, *entry)
+        return entry
+
+    cells_disc = property(lambda self: self._cell_form("disc"),
+                          doc="CellForm of the estimators without algebraic flux")
+    cells_alg = property(lambda self: self._cell_form("alg"),
+                         doc="CellForm of the estimators with an algebraic flux")
+    cells_rem = property(lambda self: self._cell_form("rem"), doc="CellForm of η_rem's terms")
+    cells_disc_rem = property(lambda self: self._cell_form("disc_rem"),
+                              doc="`cells_disc` and η_rem's terms in one CellForm")
 
     def _oscillation(self):
         """η_osc,K,α for every owned cell (cells, 2): iterate-independent, once per mesh."""
         disc = self.disc
-        pf = [dg1_projection(disc, f, self.DG1) for f in (disc.f1, disc.f2)]
+        pf = dg1_projections(disc, (disc.f1, disc.f2), self.lifting)
         mu1, mu2 = self._mu
         osc = CellForm(disc.mesh, 2, lambda w: over(disc.dx_data, lambda dx: (
             oscillation_squared(mu1, disc.f1, pf[0], w[0], dx)
@@ -238,14 +262,15 @@ class Estimators:
     # ## Iterate data
 
     def _write(self, X):
-        """u1h, u2h, λh and the nodal λ^pos, λ^neg, s_h - u_h of X into the Functions."""
+        """u1h, u2h and the nodal λ^pos, λ^neg, s_h - u_h of X into `nodal`."""
         n = self.n
-        self.disc.functions(X, out=self.u)
-        u1, u2, lam = (f.x.array[:n] for f in self.u)
-        for f, values in zip((self.lam_pos, self.lam_neg, self.e1, self.e2),
-                             constraint_parts(u1, u2, lam)):
-            f.x.array[:n] = values
-            f.x.scatter_forward()
+        a = owned(X)
+        u1, u2, lam = a[:n], a[n:2 * n], a[2 * n:3 * n]
+        values = self._nodal
+        values[:n, U1], values[:n, U2] = u1, u2
+        for i, v in zip((LPOS, LNEG, E1, E2), constraint_parts(u1, u2, lam)):
+            values[:n, i] = v
+        self.nodal.x.scatter_forward()
 
     def lifted(self, R, out=None):
         """(r_1h, r_2h): the liftings of R_1, R_2 (§4) as DG1 Functions (zero for R None),
@@ -303,15 +328,19 @@ class Estimators:
     def remainder(self, r, dlam=None):
         """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} with ρ_1 = r_1 - δλ, ρ_2 = r_2 + δλ
         (r_α DG1 Functions, δλ = λ'_h - λh given by its owned nodal values, or 0)."""
+        self._set_rho(r, dlam)
+        total = global_sums(self.comm, self.cells_rem.cells()).sum()
+        return float(self.cpf * np.sqrt(max(total, 0.0)))
+
+    def _set_rho(self, r, dlam=None):
+        """r_α and δλ into the remainder's coefficients (`remainder`)."""
         n = self.n
         for target, source in zip(self.rho, r):
             if not self._alike(source.function_space, target.function_space):
                 raise ValueError("r_αh must be a DG1 Function (the lifting's space)")
             target.x.array[:] = source.x.array
-        self.dlam.x.array[:n] = 0.0 if dlam is None else dlam
-        self.dlam.x.scatter_forward()
-        total = global_sums(self.comm, self.cells_rem.cells()).sum()
-        return float(self.cpf * np.sqrt(max(total, 0.0)))
+        self._nodal[:n, DLAM] = 0.0 if dlam is None else dlam
+        self.nodal.x.scatter_forward()
 
     def nu_flux(self, X, R, X_later, R_later):
         """The algebraic flux of ν extra iterations (§6) at X (residual R) from the later
@@ -369,9 +398,14 @@ class Estimators:
         (Σ_C), eta_lin1, eta_lin2, eta_lin3, eta_rem, eta_1, and eta_K, the local
         distribution of §7 on the owned cells (in the mesh's cell order)."""
         sigma, r = self.sigma_disc(X, R)
-        if eta_rem is None:
-            eta_rem = self.remainder(r) if sigma_alg is None and R is not None else 0.0
-        return self.assemble(X, sigma, sigma_alg, eta_rem)
+        if eta_rem is None and sigma_alg is None and R is not None:
+            # `remainder(r)`, integrated with the estimators (one assembly)
+            self._set_rho(r)
+            self._write(X)
+            self._set_flux(self.sigma, sigma)
+            q = self.cells_disc_rem.cells()
+            return self._combine(q, (DISC1, DISC2), False, None, rem=True)
+        return self.assemble(X, sigma, sigma_alg, 0.0 if eta_rem is None else eta_rem)
 
     def assemble(self, X, sigma, sigma_alg=None, eta_rem=0.0):
         """The estimators at X for the given σ_disc (and σ_alg): `evaluate` without the flux
@@ -380,28 +414,38 @@ class Estimators:
         self._set_flux(self.sigma, sigma)
         if sigma_alg is None:
             q = self.cells_disc.cells()
-            flux = q[:, [DISC1, DISC2]]
+            flux = (DISC1, DISC2)
         else:
             self._set_flux(self.sigma_alg, sigma_alg)
             q = self.cells_alg.cells()
-            flux = q[:, [FLUX1, FLUX2]]
+            flux = (FLUX1, FLUX2)
         return self._combine(q, flux, sigma_alg is not None, float(eta_rem))
 
-    def _combine(self, q, flux, with_alg, eta_rem):
-        """The global values and η_K from the per-cell integrals q (§7)."""
-        osc = self.osc
-        disc_K = np.sqrt(np.maximum(q[:, [DISC1, DISC2]], 0.0))        # η_disc,K,α
-        flux_K = np.sqrt(np.maximum(flux, 0.0))                         # η_F,K,α
-        lin1_sq = np.maximum(q[:, LIN1], 0.0)                           # η_lin1,K²
-        lin3_sq = self.kappa ** 2 * np.maximum(q[:, LAM_NEG], 0.0)      # η_lin3,K²
-        eta_C_K = q[:, CONTACT]
-        columns = [((flux_K + osc) ** 2).sum(axis=1),                   # η_1²
-                   ((disc_K + osc) ** 2).sum(axis=1),                   # η_disc's flux part²
-                   (flux_K ** 2).sum(axis=1), (osc ** 2).sum(axis=1),   # η_F², η_osc²
-                   eta_C_K, lin1_sq, lin3_sq, q[:, LAM_POS]]           # Σ_C, lin1², lin3², ‖λ^pos‖²
+    def _combine(self, q, flux, with_alg, eta_rem, rem=False):
+        """The global values and η_K from the per-cell integrals q (§7): `flux` the columns of
+        η_F,K,α²; with `rem`, η_rem from q's columns REM1, REM2 (as `remainder`). Column by
+        column on contiguous copies; the global sums in one reduction."""
+        qt = np.ascontiguousarray(q.T)                                  # (k, cells)
+        o1, o2 = self._osc_t
+        disc_K = [np.sqrt(np.maximum(qt[i], 0.0)) for i in (DISC1, DISC2)]   # η_disc,K,α
+        flux_K = (disc_K if list(flux) == [DISC1, DISC2]
+                  else [np.sqrt(np.maximum(qt[i], 0.0)) for i in flux])      # η_F,K,α
+        lin1_sq = np.maximum(qt[LIN1], 0.0)                             # η_lin1,K²
+        lin3_sq = self.kappa ** 2 * np.maximum(qt[LAM_NEG], 0.0)        # η_lin3,K²
+        eta_C_K = qt[CONTACT]
+        eta_1_sq = (flux_K[0] + o1) ** 2 + (flux_K[1] + o2) ** 2        # η_1,K²
+        columns = [eta_1_sq,
+                   (disc_K[0] + o1) ** 2 + (disc_K[1] + o2) ** 2,       # η_disc's flux part²
+                   flux_K[0] ** 2 + flux_K[1] ** 2]                     # η_F²
+        sums = [c.sum() for c in columns] + [self._osc_sum]             # η_osc²
+        sums += [c.sum() for c in (eta_C_K, lin1_sq, lin3_sq, qt[LAM_POS])]
         if with_alg:
-            columns.append(np.maximum(q[:, ALG1], 0.0) + np.maximum(q[:, ALG2], 0.0))
-        s = global_sums(self.comm, np.stack(columns, axis=1))
+            sums.append(np.maximum(qt[ALG1], 0.0).sum() + np.maximum(qt[ALG2], 0.0).sum())
+        if rem:
+            sums += [qt[REM1].sum(), qt[REM2].sum()]
+        s = self.comm.allreduce(np.array(sums), op=MPI.SUM)
+        if rem:
+            eta_rem = float(self.cpf * np.sqrt(max(s[-2:].sum(), 0.0)))
         eta_1, disc_part, eta_F, eta_osc = np.sqrt(np.maximum(s[[0, 1, 2, 3]], 0.0))
         sum_C = float(s[4])
         eta_lin1, eta_lin3 = np.sqrt(max(s[5], 0.0)), np.sqrt(max(s[6], 0.0))
@@ -411,8 +455,10 @@ class Estimators:
         eta_lin2 = 2.0 * self.kappa * lam_pos_norm * eta_lin1
         alg_flux = np.sqrt(max(s[8], 0.0)) if with_alg else 0.0
         eta = np.sqrt((eta_1 + eta_rem + eta_lin1 + eta_lin3) ** 2 + eta_lin2 + max(0.0, sum_C))
-        eta_K = np.sqrt(((flux_K + osc) ** 2).sum(axis=1) + lin1_sq + lin3_sq
-                        + np.abs(eta_C_K))
+        eta_1_sq += lin1_sq
+        eta_1_sq += lin3_sq
+        eta_1_sq += np.abs(eta_C_K)
+        eta_K = np.sqrt(eta_1_sq)
         return {
             "eta": float(eta),
             "eta_disc": float(disc_part + np.sqrt(abs(sum_C))),

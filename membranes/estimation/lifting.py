@@ -34,7 +34,7 @@ class Lifting:
         self.dg = self.Q.dofmap.list.array.reshape(-1, 3)[:nc].astype(np.int64)
         x = V.tabulate_dof_coordinates()[:, :2][self.cells]                    # (nc, 3, 2)
         e1, e2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
-        area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        self.area = area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
         # N_l over all processes: owned cells counted locally, ghosts added to their owners
         count = fem.Function(V)
         count.x.array[:] = np.bincount(self.cells.ravel(), minlength=count.x.array.size)

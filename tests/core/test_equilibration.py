@@ -59,6 +59,33 @@ def test_colouring_is_proper(data, fluxes):
     assert eq.colour.min() >= 0 and 3 <= eq.ncolours <= 9
 
 
+def test_load_equals_per_colour_assembly(data, fluxes):
+    """The data part of the right-hand sides (`Load`, one assembly for all colours by the hat
+    slots) equals the plain computation: per colour c, -(ψ_c f, q) assembled with ψ_c the P1
+    indicator of colour c over the whole mesh, gathered and made canonical."""
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_vector
+    from petsc4py import PETSc
+    eq, _ = fluxes
+    load = eq.load(data.f)
+    psi = fem.Function(data.V)
+    _, q = ufl.TestFunctions(eq.systems.W)
+    form = fem.form(equilibration_forms.patch_load(psi, data.f, q, data.dx_data))
+    home = eq.systems.home_vector()
+    for c in range(eq.ncolours):
+        psi.x.array[:] = eq.colour == c
+        b = assemble_vector(form)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        eq.systems.gather(c, b, home)
+        b.destroy()
+    expected = eq.systems.canonical(home)
+    comm = data.mesh.comm
+    scale = comm.allreduce(np.abs(expected).max(initial=0.0), op=MPI.MAX)
+    assert scale > 0.0
+    assert comm.allreduce(np.abs(load.home - expected).max(initial=0.0), op=MPI.MAX) <= \
+        1e-13 * scale
+
+
 # ## An independent dense solve of every vertex patch
 
 def dense_patch_sum(data, alpha):
