@@ -60,6 +60,7 @@ from .congruence import (
     _pairs,
     canonical_block,
     canonical_dofs,
+    patch_keys,
     to_canonical,
 )
 
@@ -265,7 +266,7 @@ class PatchSystems:
             mesh, W, self.c2f, self.rt_dofs, self.dg_dofs)
         n = self.nowned
         # canonical order in a patch: its RT dofs, then its DG dofs, each by position
-        self.by_rank = np.lexsort((self.entity[:n], self.position[:n],
+        self.by_rank = np.lexsort((self.entity[:n], self.position[:n, 0],
                                    _kind(self.code[:n]) == DG))
 
         # A over the whole mesh, once; each group's rows at home are taken from it, made
@@ -277,34 +278,115 @@ class PatchSystems:
         signs.array[:] = np.where(self.code[:n] & NEGATIVE, -1.0, 1.0)
         A.diagonalScale(signs, signs)                 # the ±1 of G on facet dofs
         signs.destroy()
-        classes = Blocks(share)
+        classes, self.known = Blocks(), (np.zeros(0, dtype=np.uint64), np.zeros(0, np.int64))
+        self.rejected, self.worst = 0, 0.0
         groups = []
         for pid, inner in zip(patches, interior):
-            dofs, offsets, code, tolerance, nsigma = self._home_dofs(
+            dofs, offsets, code, tolerance, nsigma, key, route = self._home_dofs(
                 np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
-            cls = np.zeros(len(offsets) - 1, dtype=np.int64)
-            for first, last in self._chunks(offsets):
-                rows = slice(offsets[first], offsets[last])
-                iset = PETSc.IS().createGeneral(dofs[rows].astype(PETSc.IntType),
-                                                comm=PETSc.COMM_SELF)
-                block = A.createSubMatrices(iset)[0]
-                iset.destroy()
-                ia, ja, a = block.getValuesCSR()
-                block.destroy()
-                ia = ia.astype(np.int64)
-                a = canonical_block(ia, ja.astype(np.int64), a, code[rows], self.blocks)
-                cls[first:last] = classes.classify(ia, ja, a,
-                                                   offsets[first:last + 1] - offsets[first],
-                                                   tolerance[first:last], nsigma[first:last])
-                del ia, ja, a
-            groups.append((dofs.astype(PETSc.IntType), offsets, code.astype(np.int16), cls))
+            npatch = len(offsets) - 1
+            if share:
+                cls = self._lookup(key)
+                new = np.flatnonzero(cls < 0)
+                new = new[np.unique(key[new], return_index=True)[1]]     # one per new key
+                self._remember(key[new], self._extract(A, dofs, offsets, code, nsigma, new,
+                                                       classes))
+                cls = self._lookup(key)
+            else:
+                cls = self._extract(A, dofs, offsets, code, nsigma, np.arange(npatch), classes)
+            error, ref = self._probe(A, route, offsets, code, cls, classes)
+            ok = error <= tolerance * ref
+            bad = np.flatnonzero(~ok)
+            if self.comm.allreduce(bad.size, op=MPI.SUM):
+                cls[bad] = self._extract(A, dofs, offsets, code, nsigma, bad, classes)
+            self.rejected += bad.size
+            if np.any(ok):
+                self.worst = max(self.worst, float((error[ok] / ref[ok]).max()))
+            del dofs
+            groups.append((offsets, code.astype(np.int16), cls, route))
         A.destroy()
         self._layout(groups, classes)
-        # only the home layout, the scatters and the inverses are kept
+        # only the home layout, the routes and the inverses are kept
         for name in ("position", "entity", "code", "by_rank", "c2f", "facet_shared",
                      "facet_owned_cells", "facet_cells", "cell_global", "cell_h", "rt_dofs",
-                     "dg_dofs"):
+                     "dg_dofs", "known"):
             delattr(self, name)
+
+    def _lookup(self, key):
+        """The classes of the keys (-1: not seen yet on this process)."""
+        keys, cls = self.known
+        at = np.minimum(np.searchsorted(keys, key), max(keys.size - 1, 0))
+        return np.where(keys[at] == key, cls[at], -1) if keys.size else np.full(key.size, -1)
+
+    def _remember(self, key, cls):
+        keys = np.concatenate([self.known[0], key])
+        order = np.argsort(keys, kind="stable")
+        self.known = keys[order], np.concatenate([self.known[1], cls])[order]
+
+    def _extract(self, A, dofs, offsets, code, nsigma, which, classes):
+        """New classes for the blocks of the patches `which` of a group, taken from A (rows
+        and columns at the patches' kept dofs, a chunk at a time: collective) and made
+        canonical."""
+        which = np.asarray(which, dtype=np.int64)
+        n = offsets[which + 1] - offsets[which]
+        sub = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+        rows = np.repeat(offsets[which] - sub[:-1], n) + np.arange(sub[-1])
+        out = np.zeros(which.size, dtype=np.int64)
+        for first, last in self._chunks(sub):
+            r = rows[sub[first]:sub[last]]
+            iset = PETSc.IS().createGeneral(dofs[r].astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+            block = A.createSubMatrices(iset)[0]
+            iset.destroy()
+            ia, ja, a = block.getValuesCSR()
+            block.destroy()
+            ia, ja = ia.astype(np.int64), ja.astype(np.int64)
+            a = canonical_block(ia, ja, a, code[r], self.blocks)
+            out[first:last] = classes.add(ia, ja, a, sub[first:last + 1] - sub[first],
+                                          nsigma[which[first:last]])
+        return out
+
+    def _probe(self, A, route, offsets, code, cls, classes):
+        """(error, ref) per patch of a group: max_i |(Ã_p v - u)_i| for its class's probe v and
+        u = Ã_class v, all patches of the group at once through one product with A (the
+        patches share no cell), and the class's reference magnitude (see `congruence`).
+        Collective."""
+        v, u, start, size, _, ref = classes.probes()
+        n = np.diff(offsets)
+        mismatch = size[cls] != n if cls.size else np.zeros(0, dtype=bool)
+        cls_ok = np.where(mismatch, 0, cls)
+        at = np.repeat(start[cls_ok] - offsets[:-1], n) + np.arange(offsets[-1])
+        at[np.repeat(mismatch, n)] = 0
+        pairs = _pairs(code)
+        # A carries the signs of G already: only its interior blocks act here
+        w = to_canonical(v[at], 1.0, pairs, self.blocks, transpose=False)
+        x, y = A.createVecs()
+        x.set(0.0)
+        self._to_owners(route, w, x.array, add=False)
+        A.mult(x, y)
+        got = self._to_home(route, y.array_r, np.empty(offsets[-1]))
+        x.destroy()
+        y.destroy()
+        got = to_canonical(got, 1.0, pairs, self.blocks, transpose=True)
+        diff = np.abs(got - u[at])
+        error = np.maximum.reduceat(diff, offsets[:-1]) if n.size else diff[:0]
+        error[mismatch] = np.inf
+        return error, ref[cls_ok]
+
+    def _to_home(self, route, values, home):
+        """home[dest] ← values[send] (owned W entries) through the route of a group."""
+        send, sc, rc, dest = route
+        home[dest] = alltoallv(self.comm, values[send], sc, rc)
+        return home
+
+    def _to_owners(self, route, home, values, add):
+        """values[send] ← (or +=) home[dest]: the reverse of `_to_home`."""
+        send, sc, rc, dest = route
+        got = alltoallv(self.comm, home[dest], rc, sc)
+        if add:
+            values[send] += got
+        else:
+            values[send] = got
+        return values
 
     def _chunks(self, offsets):
         """Ranges of patches (first, last) of about CHUNK rows, as many on every process
@@ -362,8 +444,8 @@ class PatchSystems:
     def _home_dofs(self, pid, inner):
         """The kept W dofs of the group's patches at home on this process (global indices), in
         canonical order patch by patch (RT dofs first), the patches' offsets, the dofs' codes,
-        the patches' tolerances and numbers of RT dofs (a collective call: every process hands
-        over its owned kept dofs)."""
+        the patches' tolerances, numbers of RT dofs and keys, and the group's route (see
+        `_to_home`). A collective call: every process hands over its owned kept dofs."""
         comm = self.comm
         # per facet, over its (at most two) cells: the largest and smallest patch id + 1
         # (0 = no patch), and whether a cell's patch is not interior; reduced across processes
@@ -420,24 +502,26 @@ class PatchSystems:
         order = np.argsort(home, kind="stable") if comm.size > 1 else slice(None)
         send = np.bincount(home, minlength=comm.size).astype(np.int64)
         recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
-        rows = np.empty((kept.size, 6), dtype=np.int64)
+        rows = np.empty((kept.size, 8), dtype=np.int64)
         kept = kept[order]
         rows[:, 0], rows[:, 1], rows[:, 4] = kept + self.rstart, kp[order], code[order]
-        rows[:, 2], rows[:, 3] = self.position[kept].view(np.int64), self.entity[kept]
-        rows[:, 5] = h[order].view(np.int64)
+        rows[:, 2:4] = self.position[kept].view(np.int64)
+        rows[:, 5] = self.entity[kept]
+        rows[:, 6] = h[order].view(np.int64)
         got = alltoallv(comm, rows, send, recv)
+        got[:, 7] = np.arange(len(got))                     # received order
+        del rows
         if comm.size > 1:
-            by_patch = np.argsort(got[:, 1], kind="stable")
-            got = got[by_patch]
+            got = got[np.argsort(got[:, 1], kind="stable")]
             # a patch with dofs from several processes: merge them in canonical order
-            source = np.repeat(np.arange(comm.size), recv)[by_patch]
+            source = np.repeat(np.arange(comm.size), recv)[got[:, 7]]
             new = np.flatnonzero(np.diff(got[:, 1], prepend=-1) != 0)
             mixed = (np.minimum.reduceat(source, new) != np.maximum.reduceat(source, new)
                      if new.size else np.zeros(0, dtype=bool))
             redo = np.flatnonzero(np.repeat(mixed, np.diff(np.append(new, len(got)))))
             if redo.size:
                 part = got[redo]
-                got[redo] = part[np.lexsort((part[:, 3], part[:, 2].view(np.float64),
+                got[redo] = part[np.lexsort((part[:, 5], part[:, 2].view(np.float64),
                                              _kind(part[:, 4]) == DG, part[:, 1]))]
         # patch offsets; interior patches lose their first DG dof
         new = np.flatnonzero(np.diff(got[:, 1], prepend=-1) != 0)
@@ -448,18 +532,30 @@ class PatchSystems:
         keep[pinned] = False
         start = np.searchsorted(np.flatnonzero(keep), np.append(new, len(got)))
         tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius
-                               / got[new, 5].view(np.float64))
-        dofs, code = got[keep, 0], got[keep, 4]
+                               / got[new, 6].view(np.float64))
+        # the route: each received dof's place at home; the owners forget the pinned dofs
+        received = len(got)
+        dest = np.full(received, -1, dtype=np.int64)
+        dest[got[keep, 7]] = np.arange(start[-1])
+        sent_kept = alltoallv(comm, dest >= 0, recv, send)
+        source = np.repeat(np.arange(comm.size), recv)
+        route = (kept[sent_kept].astype(np.int32),
+                 np.bincount(home[order][sent_kept], minlength=comm.size).astype(np.int64),
+                 np.bincount(source[dest >= 0], minlength=comm.size).astype(np.int64),
+                 dest[dest >= 0].astype(np.int32))
+        h = got[new, 6].view(np.float64)
+        got = got[keep]
+        dofs, code = got[:, 0], got[:, 4]
         nsigma = np.add.reduceat(_kind(code) != DG, start[:-1]) if code.size else start[:0]
-        return dofs, start, code, tolerance, nsigma
-
+        key = patch_keys(start, code, got[:, 2:4].view(np.float64), h)
+        return dofs, start, code, tolerance, nsigma, key, route
     def _layout(self, groups, classes):
-        """Home order (size, class multiplicity, class, group, patch), the scatters, the
+        """Home order (size, class multiplicity, class, group, patch), the routes to it, the
         canonical change of basis in home order, and the inverses of the classes."""
         comm = self.comm
-        n = np.concatenate([np.diff(g[1]) for g in groups])
-        cls = np.concatenate([g[3] for g in groups])
-        group = np.concatenate([np.full(len(g[1]) - 1, c) for c, g in enumerate(groups)])
+        n = np.concatenate([np.diff(g[0]) for g in groups])
+        cls = np.concatenate([g[2] for g in groups])
+        group = np.concatenate([np.full(len(g[0]) - 1, c) for c, g in enumerate(groups)])
         nclasses = classes.count()
         count = np.bincount(cls, minlength=nclasses)
         rt = np.array([classes.shape(k)[2] for k in range(nclasses)], dtype=np.int64)
@@ -468,25 +564,16 @@ class PatchSystems:
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
         code = np.zeros(self.home_size, dtype=np.int64)
-        template = PETSc.Vec().createMPI((self.nowned, PETSc.DECIDE), comm=comm)
-        home = self.home_vector()
-        hv = PETSc.Vec().createWithArray(home, comm=PETSc.COMM_SELF)
-        self.scatters, self.group_sizes = [], []
+        self.routes, self.group_sizes = [], []
         first = 0
-        for c, (dofs, offsets, gcode, _) in enumerate(groups):
+        for offsets, gcode, _, (send, sc, rc, dest) in groups:
             k = np.diff(offsets)
             at = (np.repeat(start[first:first + k.size] - offsets[:-1], k)
                   + np.arange(offsets[-1]))
             first += k.size
             code[at] = gcode
-            src = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
-            dst = PETSc.IS().createGeneral(at.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
-            self.scatters.append(PETSc.Scatter().create(template, src, hv, dst))
-            src.destroy()
-            dst.destroy()
+            self.routes.append((send, sc, rc, at[dest].astype(np.int32)))
             self.group_sizes.append(comm.allreduce(int(offsets[-1]), op=MPI.SUM))
-        template.destroy()
-        hv.destroy()
         self.sign = np.where(code & NEGATIVE, -1, 1).astype(np.int8)
         self.pairs = _pairs(code)
 
@@ -518,22 +605,15 @@ class PatchSystems:
         if not comm.allreduce(ok, op=MPI.LAND):
             raise RuntimeError("a patch problem is singular")
         self.nclasses, self.npatches = nclasses, cls.size
-        self.rejected, self.worst = classes.rejected, classes.worst
         classes.release()
 
     def home_vector(self):
         """A zero home vector (numpy): the kept dofs of the patches at home, all groups."""
         return np.zeros(self.home_size)
 
-    def _vec(self, array):
-        return PETSc.Vec().createWithArray(array, comm=PETSc.COMM_SELF)
-
     def gather(self, c, b, home):
         """home ← the entries of the W vector b at group c's kept dofs (dolfinx's basis)."""
-        hv = self._vec(home)
-        self.scatters[c].scatter(b, hv, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
-        hv.destroy()
-        return home
+        return self._to_home(self.routes[c], b.array_r, home)
 
     def canonical(self, home):
         """Gᵀ home in place: gathered right-hand sides in the canonical basis."""
@@ -558,10 +638,7 @@ class PatchSystems:
         added, or written with zeros at the dofs the group does not keep."""
         if not add:
             out.set(0.0)
-        xv = self._vec(x)
-        self.scatters[c].scatter(xv, out, PETSc.InsertMode.ADD if add else
-                                 PETSc.InsertMode.INSERT, PETSc.ScatterMode.REVERSE)
-        xv.destroy()
+        self._to_owners(self.routes[c], x, out.array, add)
         return out
 
     def solve(self, c, b, out=None, extra=None):
@@ -596,6 +673,4 @@ class PatchSystems:
         return out
 
     def destroy(self):
-        for s in self.scatters:
-            s.destroy()
-        self.scatters, self.solves = [], []
+        self.routes, self.solves = [], []
