@@ -14,9 +14,9 @@ the orientation of a facet by global vertex indices). This module removes that d
   change) and a 2 × 2 integer block on the two interior RT dofs of a cell (`basis_changes`
   checks this form on basix's elements); `canonical_block` forms Ã_p = G_pᵀ A_p G_p on the rows
   of the patches, `to_canonical` applies Gᵀ and G to vectors.
-* `Blocks`: the blocks Ã_p are fingerprinted and grouped, and a patch joins a class only after
-  its block is checked entry by entry against the class's first block, to the round-off of the
-  patch's coordinates.
+* `patch_keys` and `Blocks`: translated patches get equal keys (dof kinds and rounded relative
+  positions); `Blocks` keeps one block per class with a random probe, against which every
+  patch of the class is checked (in `patches`) to the round-off of its coordinates.
 
 The canonical basis only decides what is shared: with any invertible G the solves are exact,
 and each patch is solved with the inverse of a matrix equal to its own to round-off.
