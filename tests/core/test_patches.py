@@ -5,9 +5,9 @@
   and the blocks of `basis_changes` (which itself checks that dolfinx's RT and DG bases differ
   from the canonical ones by signed facet permutations, 2 × 2 interior blocks and vertex
   relabelling).
-* The classes: a block joins a class only if its pattern and entries match (a pattern that
-  differs under equal values, and an entry off by 1e-11 relative, are kept apart; a 1e-16
-  perturbation is shared).
+* The classes: translated patches get equal keys, other shapes, codes or positions other keys;
+  a block kept for a class comes with its random probe v and u = Ã v; with keys that only know
+  a patch's size the probe rejects the patches of other shapes, and the solves stay exact.
 * Shared and unshared solves agree to round-off: the patch solutions of the vertex patches of
   a refined disk for random right-hand sides, with and without sharing, differ by at most
   ROUND_OFF relative (measured ~1e-15); the shared blocks differ from their class's first by
@@ -120,29 +120,70 @@ def _csr(blocks):
             np.array(offsets, dtype=np.int64))
 
 
-def test_classes_check_pattern_and_entries():
+def test_keys_of_translates_agree():
+    """Keys are equal for a translated patch (positions shifted by far more than the grid,
+    with round-off), and differ for another shape, another code or a moved entity."""
+    rng = np.random.default_rng(4)
+    code = np.array([0, 1, 0, 1, (INNER << 2), (INNER << 2) | 1, 8, 9, 10])
+    point = rng.random((9, 2))
+    h = np.array([0.25])
+    offsets = np.array([0, 9])
+    key = engine.patch_keys(offsets, code, point, h)
+    shifted = (point + [3.7, -1.3]) * (1.0 + 1e-15)
+    assert engine.patch_keys(offsets, code, shifted, h) == key
+    moved = point.copy()
+    moved[3, 0] += 1e-3 * h[0]
+    assert engine.patch_keys(offsets, code, moved, h) != key
+    other = code.copy()
+    other[6] ^= engine.INTERIOR
+    assert engine.patch_keys(offsets, other, point, h) != key
+    assert engine.patch_keys(offsets, code, point * 2.0, h) != key
+    two = engine.patch_keys(np.array([0, 9, 18]), np.tile(code, 2),
+                            np.vstack([point, shifted]), np.array([0.25, 0.25]))
+    assert two[0] == two[1] == key[0]
+
+
+def test_blocks_keep_their_probes():
+    """Blocks.add: each new class keeps its block (dense) and u = Ã v for its random v, and
+    ref = max|Ã| · max_i Σ_{j in row i} |v_j|."""
     rng = np.random.default_rng(2)
     full = [[0, 1, 2]] * 3
-    M = rng.standard_normal(9) + 2.0
-    off = M.copy()
-    off[4] *= 1.0 + 1e-11
-    close = M * (1.0 + 1e-16 * rng.standard_normal(9))
     other = [[0, 1], [0, 1], [1, 2]]
-    moved = [[0, 2], [0, 1], [1, 2]]                     # same values, another pattern
-    ia, ja, a, offsets = _csr([(full, M), (full, close), (full, off), (other, M[:6]),
-                               (moved, M[:6])])
-    tolerance, nsigma = np.full(5, engine.SAME), np.full(5, 2)
+    M = rng.standard_normal(9) + 2.0
+    ia, ja, a, offsets = _csr([(full, M), (other, M[:6])])
     classes = Blocks()
-    cls = classes.classify(ia, ja, a, offsets, tolerance, nsigma)
-    assert cls[0] == cls[1]
-    assert len(set(cls.tolist())) == 4
-    assert classes.rejected >= 1                          # the pattern, at least
-    assert classes.worst <= engine.SAME
-    # a second group finds the classes of the first
-    again = classes.classify(ia, ja, a, offsets, tolerance, nsigma)
-    assert np.array_equal(again[[0, 1, 3]], cls[[0, 1, 3]])
-    unshared = Blocks(share=False).classify(ia, ja, a, offsets, tolerance, nsigma)
-    assert len(set(unshared.tolist())) == 5
+    cls = classes.add(ia, ja, a, offsets, np.array([2, 2]))
+    assert cls.tolist() == [0, 1]
+    v, u, start, size, nsigma, ref = classes.probes()
+    dense = [classes.dense([k])[0] for k in cls]
+    assert np.array_equal(dense[0], M.reshape(3, 3))
+    for k, D in enumerate(dense):
+        vk = v[start[k]:start[k] + 3]
+        assert np.allclose(u[start[k]:start[k] + 3], D @ vk, rtol=1e-15, atol=0)
+        reach = max(np.abs(vk[np.flatnonzero(row)]).sum() for row in D)
+        assert np.isclose(ref[k], np.abs(D).max() * reach, rtol=1e-15)
+    assert size.tolist() == [3, 3] and nsigma.tolist() == [2, 2]
+    # more classes append to the probes
+    assert classes.add(ia, ja, a, offsets, np.array([2, 2])).tolist() == [2, 3]
+    assert classes.count() == 4 and classes.probes()[2].tolist() == [0, 3, 6, 9]
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial reference")
+def test_probe_rejects_wrong_candidates(monkeypatch):
+    """With keys that only know a patch's size, patches of one size but other shapes become
+    candidates of one class: the probe must reject them (each gets its own block), and the
+    solves still equal the unshared ones to round-off."""
+    from membranes.estimation import patches as module
+    mesh = refined_disk(MPI.COMM_WORLD, 0.3, 1)
+    _, unshared, scale, _ = random_solutions(mesh)
+    monkeypatch.setattr(module, "patch_keys",
+                        lambda offsets, code, point, h: np.diff(offsets).astype(np.uint64))
+    careless, _, scale2, diff = random_solutions(mesh)
+    stats = careless.stats()
+    assert stats["rejected"] > 0.3 * stats["patches"]
+    assert stats["classes"] >= stats["rejected"]
+    assert scale2 == scale
+    assert diff <= ROUND_OFF * scale
 
 
 # ## Shared and unshared solves, and the sharing rate
