@@ -195,6 +195,56 @@ def to_canonical(values, sign, pairs, blocks, transpose=True):
     return values
 
 
+class BasisChange:
+    """G and Gᵀ on home vectors (`apply`), as `to_canonical` but by slices: the patches are
+    cut into runs of consecutive patches with the same size n, number F of facet dofs and
+    number c of cells; in canonical order a patch holds its F facet dofs, then its c pairs of
+    interior RT dofs, then its DG dofs, so that in a run (M patches) the signs act on the
+    columns [0, F) of an (M, n) view and the 2 × 2 blocks on the pairs of the columns [F, F +
+    2c). Kept per run: the signs (M, F) and the blocks (M, c, 2, 2), as int8."""
+
+    def __init__(self, code, offsets, blocks):
+        kind = _kind(code)
+        n = np.diff(offsets)
+        self.runs = []
+        if n.size == 0:
+            return
+        F = np.add.reduceat(kind == FACET, offsets[:-1])
+        c = np.add.reduceat(kind == INNER, offsets[:-1]) // 2
+        shape = np.stack([n, F, c], axis=1)
+        cut = np.flatnonzero(np.any(shape[1:] != shape[:-1], axis=1)) + 1
+        bounds = np.concatenate([[0], cut, [n.size]])
+        table = np.asarray(np.rint(blocks), dtype=np.int8)
+        for first, last in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
+            m, f, k = (int(x) for x in shape[first])
+            h0, count = int(offsets[first]), last - first
+            view = code[h0:h0 + count * m].reshape(count, m)
+            expected = np.repeat([FACET, INNER, DG], [f, 2 * k, m - f - 2 * k])
+            if (np.any(_kind(view) != expected)
+                    or np.any((view[:, f:f + 2 * k] & 3) != np.arange(2 * k) % 2)):
+                raise RuntimeError("a patch's dofs are not in the canonical order")
+            sign = np.where(view[:, :f] & NEGATIVE, -1, 1).astype(np.int8)
+            block = table[(view[:, f:f + 2 * k:2] >> BLOCK) & 7]
+            self.runs.append((h0, count, m, f, k, sign, block))
+
+    def apply(self, values, transpose=True):
+        """values ← Gᵀ values (transpose) or G values, in place."""
+        for h0, count, m, f, k, sign, block in self.runs:
+            rows = values[h0:h0 + count * m].reshape(count, m)
+            if f:
+                rows[:, :f] *= sign
+            if k:
+                pairs = rows[:, f:f + 2 * k].reshape(count, k, 2)
+                v0, v1 = pairs[:, :, 0].copy(), pairs[:, :, 1].copy()
+                a, b = (1, 0) if transpose else (0, 1)
+                pairs[:, :, 0] = v0 * block[:, :, 0, 0] + v1 * block[:, :, a, b]
+                pairs[:, :, 1] = v0 * block[:, :, b, a] + v1 * block[:, :, 1, 1]
+        return values
+
+    def nbytes(self):
+        return sum(r[5].nbytes + r[6].nbytes for r in self.runs)
+
+
 def _pairs(code):
     """Positions of the first interior dof of each cell, by block (see `to_canonical`)."""
     first = np.flatnonzero((_kind(code) == INNER) & ((code & 3) == 0))

@@ -60,6 +60,7 @@ from .congruence import (
     NEGATIVE,
     ROUNDING,
     SAME,
+    BasisChange,
     Blocks,
     _kind,
     _pairs,
@@ -126,9 +127,10 @@ class PatchSystems:
         self.position, self.entity, self.code, self.blocks, self.disagree = canonical_dofs(
             mesh, W, self.c2f, self.rt_dofs, self.dg_dofs)
         n = self.nowned
-        # canonical order in a patch: its RT dofs, then its DG dofs, each by position
+        # canonical order in a patch: its RT facet dofs, its interior RT dofs (a cell's two
+        # adjacent), its DG dofs, each by position
         self.by_rank = np.lexsort((self.entity[:n], self.position[:n, 0],
-                                   _kind(self.code[:n]) == DG))
+                                   _kind(self.code[:n])))
 
         # A over the whole mesh, once; each group's rows at home are taken from it, made
         # canonical and classified, one group at a time
@@ -359,56 +361,59 @@ class PatchSystems:
         home = (first >> 1) % comm.size
         code = self.code[kept] | np.where(first & 1, 0, INTERIOR)
 
-        # send every kept dof to its patch's home (in order), which keeps the patches whole
+        # send every kept dof to its patch's home (in order), which keeps the patches whole;
+        # column by column (no copies on one process)
         order = np.argsort(home, kind="stable") if comm.size > 1 else slice(None)
         send = np.bincount(home, minlength=comm.size).astype(np.int64)
         recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
-        rows = np.empty((kept.size, 8), dtype=np.int64)
         kept = kept[order]
-        rows[:, 0], rows[:, 1], rows[:, 4] = kept + self.rstart, kp[order], code[order]
-        rows[:, 2:4] = self.position[kept].view(np.int64)
-        rows[:, 5] = self.entity[kept]
-        rows[:, 6] = h[order].view(np.int64)
-        got = alltoallv(comm, rows, send, recv)
-        got[:, 7] = np.arange(len(got))                     # received order
-        del rows
+
+        def move(column):
+            return alltoallv(comm, column, send, recv)
+
+        gdof, gpatch, gcode = move(kept + self.rstart), move(kp[order]), move(code[order])
+        gpoint, gh = move(self.position[kept]), move(h[order])
+        received = gdof.size
+        perm = None                  # received → canonical order, patch by patch (None: same)
         if comm.size > 1:
-            got = got[np.argsort(got[:, 1], kind="stable")]
+            entity = move(self.entity[kept])
+            perm = np.argsort(gpatch, kind="stable")
             # a patch with dofs from several processes: merge them in canonical order
-            source = np.repeat(np.arange(comm.size), recv)[got[:, 7]]
-            new = np.flatnonzero(np.diff(got[:, 1], prepend=-1) != 0)
+            source = np.repeat(np.arange(comm.size), recv)[perm]
+            new = np.flatnonzero(np.diff(gpatch[perm], prepend=-1) != 0)
             mixed = (np.minimum.reduceat(source, new) != np.maximum.reduceat(source, new)
                      if new.size else np.zeros(0, dtype=bool))
-            redo = np.flatnonzero(np.repeat(mixed, np.diff(np.append(new, len(got)))))
+            redo = np.flatnonzero(np.repeat(mixed, np.diff(np.append(new, received))))
             if redo.size:
-                part = got[redo]
-                got[redo] = part[np.lexsort((part[:, 5], part[:, 2].view(np.float64),
-                                             _kind(part[:, 4]) == DG, part[:, 1]))]
+                r = perm[redo]
+                perm[redo] = r[np.lexsort((entity[r], gpoint[r, 0], _kind(gcode[r]),
+                                           gpatch[r]))]
+        patch = gpatch if perm is None else gpatch[perm]
+        code = gcode if perm is None else gcode[perm]
         # patch offsets; interior patches lose their first DG dof
-        new = np.flatnonzero(np.diff(got[:, 1], prepend=-1) != 0)
-        dg = np.flatnonzero(_kind(got[:, 4]) == DG)
-        pinned = dg[np.flatnonzero(np.diff(got[dg, 1], prepend=-1) != 0)]
-        pinned = pinned[(got[pinned, 4] & INTERIOR) != 0]
-        keep = np.ones(len(got), dtype=bool)
+        new = np.flatnonzero(np.diff(patch, prepend=-1) != 0)
+        dg = np.flatnonzero(_kind(code) == DG)
+        pinned = dg[np.flatnonzero(np.diff(patch[dg], prepend=-1) != 0)]
+        pinned = pinned[(code[pinned] & INTERIOR) != 0]
+        bounds = np.append(new, received)
+        start = bounds - np.searchsorted(pinned, bounds)
+        keep = np.ones(received, dtype=bool)
         keep[pinned] = False
-        start = np.searchsorted(np.flatnonzero(keep), np.append(new, len(got)))
-        tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius
-                               / got[new, 6].view(np.float64))
+        sel = np.flatnonzero(keep) if perm is None else perm[keep]      # received indices
+        h = gh[new] if perm is None else gh[perm[new]]
+        tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius / h)
         # the route: each received dof's place at home; the owners forget the pinned dofs
-        received = len(got)
         dest = np.full(received, -1, dtype=np.int64)
-        dest[got[keep, 7]] = np.arange(start[-1])
+        dest[sel] = np.arange(sel.size)
         sent_kept = alltoallv(comm, dest >= 0, recv, send)
         source = np.repeat(np.arange(comm.size), recv)
         route = (kept[sent_kept].astype(np.int32),
                  np.bincount(home[order][sent_kept], minlength=comm.size).astype(np.int64),
                  np.bincount(source[dest >= 0], minlength=comm.size).astype(np.int64),
                  dest[dest >= 0].astype(np.int32))
-        h = got[new, 6].view(np.float64)
-        got = got[keep]
-        dofs, code = got[:, 0], got[:, 4]
+        dofs, code = gdof[sel], code[keep]
         nsigma = np.add.reduceat(_kind(code) != DG, start[:-1]) if code.size else start[:0]
-        key = patch_keys(start, code, got[:, 2:4].view(np.float64), h)
+        key = patch_keys(start, code, gpoint[sel], h)
         return dofs, start, code, tolerance, nsigma, key, route
     def _layout(self, groups, classes):
         """Home order (size, class multiplicity, class, group, patch), the routes to it, the
@@ -424,7 +429,7 @@ class PatchSystems:
         start = np.zeros(cls.size, dtype=np.int64)
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
-        code = np.zeros(self.home_size, dtype=np.int64)
+        code = np.zeros(self.home_size, dtype=np.int16)
         self.routes, self.group_sizes = [], []
         first = 0
         for offsets, gcode, _, (send, sc, rc, dest) in groups:
@@ -435,8 +440,8 @@ class PatchSystems:
             code[at] = gcode
             self.routes.append((send, sc, rc, at[dest].astype(np.int32)))
             self.group_sizes.append(comm.allreduce(int(offsets[-1]), op=MPI.SUM))
-        self.sign = np.where(code & NEGATIVE, -1, 1).astype(np.int8)
-        self.pairs = _pairs(code)
+        self.change = BasisChange(code, np.append(start[order], self.home_size), self.blocks)
+        del code
 
         # per class the block of its inverse from the right-hand side entries used to the
         # solution entries wanted (RT dofs first, DG dofs last in a patch); one product per
@@ -478,7 +483,7 @@ class PatchSystems:
 
     def canonical(self, home):
         """Gᵀ home in place: gathered right-hand sides in the canonical basis."""
-        return to_canonical(home, self.sign, self.pairs, self.blocks, transpose=True)
+        return self.change.apply(home, transpose=True)
 
     def solve_home(self, home, extra=None):
         """The solutions of all patches for the gathered right-hand sides `home` (overwritten)
@@ -492,7 +497,7 @@ class PatchSystems:
             h1 = h0 + K * m * n
             np.matmul(rhs[h0:h1].reshape(K, m, n)[:, :, inputs], operator_t,
                       out=x[h0:h1].reshape(K, m, n)[:, :, outputs])
-        return to_canonical(x, self.sign, self.pairs, self.blocks, transpose=False)
+        return self.change.apply(x, transpose=False)
 
     def scatter(self, c, x, out, add=False):
         """The solutions of group c (home vector x) into the W vector `out` (owned entries):
