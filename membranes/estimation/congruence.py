@@ -134,8 +134,12 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     vglobal = np.asarray(mesh.topology.index_map(0).local_to_global(c2v.ravel()),
                          dtype=np.int64)
     # π: the vertices of each cell by position, ties by global index
-    rank = np.lexsort((vglobal, along.ravel(), np.repeat(np.arange(nall), 3)))
-    order = (rank - np.repeat(3 * np.arange(nall), 3)).reshape(nall, 3)
+    vglobal = vglobal.reshape(nall, 3)
+    before = ((along[:, None, :] < along[:, :, None])                  # [c, i, j]: j before i
+              | ((along[:, None, :] == along[:, :, None])
+                 & (vglobal[:, None, :] < vglobal[:, :, None])))
+    order = np.zeros((nall, 3), dtype=np.int64)
+    np.put_along_axis(order, before.sum(axis=2), np.arange(3)[None, :], axis=1)
     lookup = np.zeros(27, dtype=np.int64)
     for p, o in enumerate(ORDERS):
         lookup[9 * o[0] + 3 * o[1] + o[2]] = p
@@ -318,12 +322,14 @@ KEY_CODE = 15 | INTERIOR                # the code bits in a key: index, kind, i
 
 
 def _mix(z):
-    """splitmix64's finaliser on uint64 (wrapping arithmetic)."""
-    z = z ^ (z >> np.uint64(30))
-    z = z * np.uint64(0xBF58476D1CE4E5B9)
-    z = z ^ (z >> np.uint64(27))
-    z = z * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
+    """splitmix64's finaliser on uint64 (wrapping arithmetic), in place."""
+    with np.errstate(over="ignore"):
+        z ^= z >> np.uint64(30)
+        z *= np.uint64(0xBF58476D1CE4E5B9)
+        z ^= z >> np.uint64(27)
+        z *= np.uint64(0x94D049BB133111EB)
+        z ^= z >> np.uint64(31)
+    return z
 
 
 def patch_keys(offsets, code, point, h):
@@ -335,15 +341,17 @@ def patch_keys(offsets, code, point, h):
     if n.size == 0:
         return np.zeros(0, dtype=np.uint64)
     first = np.repeat(offsets[:-1], n)
-    rel = np.rint((point - point[first]) * (KEY_GRID / np.repeat(h, n))[:, None])
-    rel = rel.astype(np.int64).view(np.uint64)
-    j = (np.arange(offsets[-1]) - first).astype(np.uint64)
+    rel = point - point[first]
+    rel *= np.repeat(KEY_GRID / h, n)[:, None]
+    word = np.rint(rel, out=rel).astype(np.int64).view(np.uint64)
+    first -= np.arange(offsets[-1])                                # minus the index in the patch
     with np.errstate(over="ignore"):
-        word = (rel[:, 0] * np.uint64(0x9E3779B97F4A7C15)
-                + rel[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
-                + (code & KEY_CODE).astype(np.uint64) * np.uint64(0x165667B19E3779F9)
-                + j * np.uint64(0x27D4EB2F165667C5))
-        return np.add.reduceat(_mix(word), offsets[:-1]) + _mix(n.astype(np.uint64))
+        word[:, 0] *= np.uint64(0x9E3779B97F4A7C15)
+        word[:, 1] *= np.uint64(0xC2B2AE3D27D4EB4F)
+        mixed = word[:, 0] + word[:, 1]
+        mixed += (code & KEY_CODE).astype(np.uint64) * np.uint64(0x165667B19E3779F9)
+        mixed -= first.view(np.uint64) * np.uint64(0x27D4EB2F165667C5)
+        return np.add.reduceat(_mix(mixed), offsets[:-1]) + _mix(n.astype(np.uint64))
 
 
 class _Rows:

@@ -453,8 +453,9 @@ class PatchSystems:
         try:
             first = np.full(nclasses, np.iinfo(np.int64).max)
             np.minimum.at(first, cls, start)                  # each class's first patch
-            ranked = np.unique(np.stack([n[order], shape[cls[order], 2], count[cls[order]],
-                                         cls[order]], axis=1), axis=0)
+            used = np.flatnonzero(count > 0)              # (n, n_σ, count, class) by rows
+            ranked = np.stack([shape[used, 0], shape[used, 2], count[used], used], axis=1)
+            ranked = ranked[np.lexsort(ranked.T[::-1])]
             for size, rt in np.unique(ranked[:, :2], axis=0).tolist():
                 these = ranked[(ranked[:, 0] == size) & (ranked[:, 1] == rt)]
                 inputs = slice(rt if self.rhs == "divergence" else 0, size)
