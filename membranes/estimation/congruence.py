@@ -153,10 +153,10 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     across = mesh.geometry.x[:, :2][nodes] @ np.array([-DIRECTION[1], DIRECTION[0]])
     side = across.sum(axis=1)
     nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
-    position = np.zeros(nlocal)
-    normal = np.zeros(nlocal)
+    point = np.zeros((nlocal, 2))
+    position, normal = point[:, 0], point[:, 1]
     entity = np.zeros(nlocal, dtype=np.int64)
-    code = np.zeros(nlocal, dtype=np.int64)
+    code = np.zeros(nlocal, dtype=np.int16)
     cells = np.arange(nall)
     facet_cols = np.array(W.sub(0).element.basix_element.entity_dofs[1])
     inner_cols = W.sub(0).element.basix_element.entity_dofs[2][0]
@@ -182,7 +182,7 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
         code[dof] = (DG << 2) | k
     # one integer per dof for ties of position: entity, kind, index in the entity
     entity = (entity * 4 + _kind(code)) * 4 + (code & 3)
-    return np.stack([position, normal], axis=1), entity, code, blocks, disagree
+    return point, entity, code, blocks, disagree
 
 
 def to_canonical(values, sign, pairs, blocks, transpose=True):
@@ -227,7 +227,7 @@ class BasisChange:
             if (np.any(_kind(view) != expected)
                     or np.any((view[:, f:f + 2 * k] & 3) != np.arange(2 * k) % 2)):
                 raise RuntimeError("a patch's dofs are not in the canonical order")
-            sign = np.where(view[:, :f] & NEGATIVE, -1, 1).astype(np.int8)
+            sign = np.where(view[:, :f] & NEGATIVE, np.int8(-1), np.int8(1))
             block = table[(view[:, f:f + 2 * k:2] >> BLOCK) & 7]
             self.runs.append((h0, count, m, f, k, sign, block))
 
@@ -338,8 +338,17 @@ def patch_keys(offsets, code, point, h):
     edge. Translated patches get equal keys (but for positions within round-off of a rounding
     boundary)."""
     n = np.diff(offsets)
-    if n.size == 0:
-        return np.zeros(0, dtype=np.uint64)
+    keys = np.zeros(n.size, dtype=np.uint64)
+    step = 1 << 14                                   # patches at a time (bounds the memory)
+    for lo in range(0, n.size, step):
+        hi = min(lo + step, n.size)
+        a, b = offsets[lo], offsets[hi]
+        keys[lo:hi] = _keys(offsets[lo:hi + 1] - a, code[a:b], point[a:b], h[lo:hi])
+    return keys
+
+
+def _keys(offsets, code, point, h):
+    n = np.diff(offsets)
     first = np.repeat(offsets[:-1], n)
     rel = point - point[first]
     rel *= np.repeat(KEY_GRID / h, n)[:, None]

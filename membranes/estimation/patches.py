@@ -359,7 +359,7 @@ class PatchSystems:
         first = reduce_by_key(comm, keys, values, np.minimum)[at]
         h = reduce_by_key(comm, keys, h, np.minimum)[at]
         home = (first >> 1) % comm.size
-        code = self.code[kept] | np.where(first & 1, 0, INTERIOR)
+        code = self.code[kept] | np.where(first & 1, np.int16(0), np.int16(INTERIOR))
 
         # send every kept dof to its patch's home (in order), which keeps the patches whole;
         # column by column (no copies on one process)
@@ -483,7 +483,11 @@ class PatchSystems:
         return self._to_home(self.routes[c], b.array_r, home)
 
     def canonical(self, home):
-        """Gᵀ home in place: gathered right-hand sides in the canonical basis."""
+        """Gᵀ home in place: gathered right-hand sides in the canonical basis. With
+        rhs="divergence" the right-hand sides vanish on the RT dofs, where alone G differs from
+        the identity: nothing to do."""
+        if self.rhs == "divergence":
+            return home
         return self.change.apply(home, transpose=True)
 
     def solve_home(self, home, extra=None):
@@ -527,10 +531,10 @@ class PatchSystems:
 
     def stats(self):
         """Global facts of the sharing: patches, classes (distinct inverses, summed over the
-        processes), blocks rejected by the entry check, inverse memory in bytes, facet dofs
-        whose two cells disagree on the canonical basis (0), and the largest difference of a
-        shared block from its class's first, relative to its largest entry (within the
-        tolerance of `Blocks`)."""
+        processes), patches rejected by the probe of their key's class (they have their own
+        block), inverse memory in bytes, facet dofs whose two cells disagree on the canonical
+        basis (0), and the largest probe residual of an accepted patch relative to its class's
+        reference magnitude (within the tolerance, see `congruence`)."""
         memory = sum(s[6].nbytes for s in self.solves)
         local = np.array([self.npatches, self.nclasses, self.rejected, memory, self.disagree])
         total = self.comm.allreduce(local, op=MPI.SUM)

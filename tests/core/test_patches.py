@@ -1,7 +1,8 @@
 """The patch engine's sharing of inverses between congruent patches (§5, §6, §12).
 
 * The canonical change of basis: `canonical_block` (in place on CSR rows) equals the dense
-  Gᵀ A G, and `to_canonical` the products with Gᵀ and G, G built independently from the codes
+  Gᵀ A G, and `to_canonical` and `BasisChange` (by runs of one patch shape) the products with
+  Gᵀ and G, G built independently from the codes
   and the blocks of `basis_changes` (which itself checks that dolfinx's RT and DG bases differ
   from the canonical ones by signed facet permutations, 2 × 2 interior blocks and vertex
   relabelling).
@@ -95,6 +96,39 @@ def test_canonical_block_is_the_dense_product():
                        rtol=0, atol=1e-14)
     assert np.allclose(to_canonical(v.copy(), sign8, pairs, blocks, transpose=False), G @ v,
                        rtol=0, atol=1e-14)
+
+
+def test_basis_change_by_runs_is_the_dense_product():
+    """BasisChange (G and Gᵀ by slices over runs of patches of one shape) equals the dense G
+    built from the codes, for patches in canonical order (facets, interior pairs, DG) of three
+    shapes, two runs of one of them."""
+    _, blocks = basis_changes(mixed_space(_square(2)))
+    rng = np.random.default_rng(5)
+    code, offsets = [], [0]
+    for f, c, d in [(3, 2, 5)] * 4 + [(4, 1, 2)] * 3 + [(3, 2, 5)] * 2 + [(0, 0, 3)]:
+        code += [(FACET << 2) | (i % 2) | (NEGATIVE if rng.random() < 0.5 else 0)
+                 for i in range(f)]
+        for _ in range(c):
+            p = int(rng.integers(len(blocks)))
+            code += [(INNER << 2) | (p << engine.BLOCK), (INNER << 2) | 1 | (p << engine.BLOCK)]
+        code += [(engine.DG << 2) | (i % 3) for i in range(d)]
+        offsets.append(len(code))
+    code = np.array(code, dtype=np.int16)
+    G = np.zeros((code.size, code.size))
+    for i, k in enumerate(code.tolist()):
+        if (k >> 2) & 3 == INNER:
+            if k & 3 == 0:
+                G[i:i + 2, i:i + 2] = blocks[(k >> engine.BLOCK) & 7]
+        else:
+            G[i, i] = -1.0 if k & NEGATIVE else 1.0
+    change = engine.BasisChange(code, np.array(offsets), blocks)
+    assert len(change.runs) == 4
+    v = rng.standard_normal(code.size)
+    assert np.allclose(change.apply(v.copy(), transpose=True), G.T @ v, rtol=0, atol=1e-14)
+    assert np.allclose(change.apply(v.copy(), transpose=False), G @ v, rtol=0, atol=1e-14)
+    # dofs out of the canonical order are refused
+    with pytest.raises(RuntimeError):
+        engine.BasisChange(code[::-1].copy(), np.array([0, code.size]), blocks)
 
 
 def test_basis_changes_are_integer_and_invertible():
