@@ -339,7 +339,7 @@ def patch_keys(offsets, code, point, h):
     boundary)."""
     n = np.diff(offsets)
     keys = np.zeros(n.size, dtype=np.uint64)
-    step = 1 << 14                                   # patches at a time (bounds the memory)
+    step = 1 << 11                                   # patches at a time (bounds the memory)
     for lo in range(0, n.size, step):
         hi = min(lo + step, n.size)
         a, b = offsets[lo], offsets[hi]

@@ -334,8 +334,10 @@ class PatchSystems:
         # the owned kept dofs in canonical order, patch by patch
         kept = self.by_rank[patch[self.by_rank] >= 0]
         kp = patch[kept]
+        del patch
         by_patch = np.argsort(kp, kind="stable")
         kept, kp = kept[by_patch], kp[by_patch]
+        del by_patch
 
         # home of each patch: the owner of its cell of least global index, found with the
         # patch's interior flag in one distributed reduction over the patches seen here
@@ -366,13 +368,14 @@ class PatchSystems:
         order = np.argsort(home, kind="stable") if comm.size > 1 else slice(None)
         send = np.bincount(home, minlength=comm.size).astype(np.int64)
         recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
-        kept = kept[order]
+        kept, home = kept[order], home[order]
 
         def move(column):
             return alltoallv(comm, column, send, recv)
 
         gdof, gpatch, gcode = move(kept + self.rstart), move(kp[order]), move(code[order])
         gpoint, gh = move(self.position[kept]), move(h[order])
+        del kp, code, h, first, at
         received = gdof.size
         perm = None                  # received → canonical order, patch by patch (None: same)
         if comm.size > 1:
@@ -408,13 +411,14 @@ class PatchSystems:
         sent_kept = alltoallv(comm, dest >= 0, recv, send)
         source = np.repeat(np.arange(comm.size), recv)
         route = (kept[sent_kept].astype(np.int32),
-                 np.bincount(home[order][sent_kept], minlength=comm.size).astype(np.int64),
+                 np.bincount(home[sent_kept], minlength=comm.size).astype(np.int64),
                  np.bincount(source[dest >= 0], minlength=comm.size).astype(np.int64),
                  dest[dest >= 0].astype(np.int32))
         dofs, code = gdof[sel], code[keep]
         nsigma = np.add.reduceat(_kind(code) != DG, start[:-1]) if code.size else start[:0]
         key = patch_keys(start, code, gpoint[sel], h)
         return dofs, start, code, tolerance, nsigma, key, route
+
     def _layout(self, groups, classes):
         """Home order (size, class multiplicity, class, group, patch), the routes to it, the
         canonical change of basis in home order, and the inverses of the classes."""
