@@ -311,6 +311,15 @@ def test_reduced_operators():
         PatchSystems(mesh, patches, interior, W, rhs="data")
 
 
+def test_stable_order_is_a_stable_argsort():
+    from membranes.estimation.patches import stable_order
+    rng = np.random.default_rng(6)
+    for top in (5, 70000, 1 << 40):
+        keys = rng.integers(0, top, 5000)
+        assert np.array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
+    assert stable_order(np.zeros(0, dtype=np.int64)).size == 0
+
+
 def test_colouring_and_boundary_helpers_used_by_the_groups():
     """vertex_patches: every owned cell is in exactly three groups (one per vertex)."""
     from dolfinx import fem
