@@ -185,7 +185,7 @@ class PatchSystems:
         # only the home layout, the routes and the inverses are kept
         for name in ("position", "entity", "code", "by_rank", "c2f", "facet_shared",
                      "facet_owned_cells", "facet_cells", "cell_global", "cell_h", "rt_dofs",
-                     "dg_dofs", "known"):
+                     "dg_dofs", "facet_dofs", "cell_dofs", "known"):
             delattr(self, name)
 
     def _lookup(self, key):
@@ -301,10 +301,13 @@ class PatchSystems:
         self.facet_cells = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
 
         rt = W.sub(0).element.basix_element.entity_dofs
-        self.rt_facet_cols = np.array(rt[tdim - 1])              # (3, 2): dofs of local facet i
-        self.rt_cell_cols = np.array(rt[tdim][0])                 # interior dofs
         self.rt_dofs = W.sub(0).dofmap.list.array.reshape(nall, -1)
         self.dg_dofs = W.sub(1).dofmap.list.array.reshape(nall, -1)
+        # the RT dofs of each local facet, and the interior RT and DG dofs of each local cell
+        self.facet_dofs = np.zeros((self.nfacets, len(rt[tdim - 1][0])), dtype=np.int32)
+        for i, cols in enumerate(rt[tdim - 1]):
+            self.facet_dofs[self.c2f[:, i]] = self.rt_dofs[:, cols]
+        self.cell_dofs = np.hstack([self.rt_dofs[:, rt[tdim][0]], self.dg_dofs])
         # the shortest edge of each owned cell, and the largest |x| of the mesh (§12: the
         # tolerance of the block comparisons)
         nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:self.ncells]
@@ -338,12 +341,9 @@ class PatchSystems:
 
         # the patch of every local dof the group keeps (-1: not kept)
         patch = np.full(self.nlocal, -1, dtype=np.int64)
-        cols = self.rt_facet_cols
-        patch[self.rt_dofs[:, cols.ravel()]] = np.repeat(facet_patch[self.c2f], cols.shape[1],
-                                                         axis=1)
+        patch[self.facet_dofs] = facet_patch[:, None]
         cells = np.flatnonzero(pid >= 0)
-        patch[self.rt_dofs[cells][:, self.rt_cell_cols]] = pid[cells, None]
-        patch[self.dg_dofs[cells]] = pid[cells, None]
+        patch[self.cell_dofs[cells]] = pid[cells, None]
         # the owned kept dofs in canonical order, patch by patch
         kept = self.by_rank[patch[self.by_rank] >= 0]
         kp = patch[kept]
@@ -355,13 +355,14 @@ class PatchSystems:
         # home of each patch: the owner of its cell of least global index, found with the
         # patch's interior flag in one distributed reduction over the patches seen here
         # (and its shortest edge)
-        keys, at = np.unique(pid[cells], return_inverse=True)
-        values = np.full(keys.size, np.iinfo(np.int64).max, dtype=np.int64)
-        np.minimum.at(values, at, ((self.cell_global[cells] * comm.size + comm.rank) << 1)
-                      | ~inner[cells])
-        h = np.full(keys.size, np.inf)
-        np.minimum.at(h, at, self.cell_h[cells])
-        seen = kp[np.flatnonzero(np.diff(kp, prepend=-1))]          # unique, sorted
+        by_cell = cells[stable_order(pid[cells])]
+        new = np.flatnonzero(np.diff(pid[by_cell], prepend=-1))
+        keys = pid[by_cell[new]]
+        values = ((self.cell_global[by_cell] * comm.size + comm.rank) << 1) | ~inner[by_cell]
+        values = np.minimum.reduceat(values, new) if new.size else values[:0]
+        h = np.minimum.reduceat(self.cell_h[by_cell], new) if new.size else np.zeros(0)
+        new = np.flatnonzero(np.diff(kp, prepend=-1))
+        seen = kp[new]                                              # unique, sorted
         extra = seen[keys[np.minimum(np.searchsorted(keys, seen), keys.size - 1)] != seen] \
             if keys.size else seen                      # patches with no owned cell here
         if extra.size:
@@ -370,9 +371,10 @@ class PatchSystems:
             h = np.concatenate([h, np.full(extra.size, np.inf)])
             order = np.argsort(keys)
             keys, values, h = keys[order], values[order], h[order]
-        at = np.searchsorted(keys, kp)
-        first = reduce_by_key(comm, keys, values, np.minimum)[at]
-        h = reduce_by_key(comm, keys, h, np.minimum)[at]
+        at = np.searchsorted(keys, seen)
+        count = np.diff(np.append(new, kp.size))
+        first = np.repeat(reduce_by_key(comm, keys, values, np.minimum)[at], count)
+        h = np.repeat(reduce_by_key(comm, keys, h, np.minimum)[at], count)
         home = (first >> 1) % comm.size
         code = self.code[kept] | np.where(first & 1, np.int16(0), np.int16(INTERIOR))
 
