@@ -332,19 +332,26 @@ def _mix(z):
     return z
 
 
-def patch_keys(offsets, code, point, h):
-    """The key of each patch (uint64): rows offsets[k]:offsets[k+1] of `code` and `point`
-    (entity positions, (dofs, 2)) are patch k's dofs in canonical order, h[k] its shortest
-    edge. Translated patches get equal keys (but for positions within round-off of a rounding
-    boundary)."""
+def patch_keys(offsets, code, point, h, rows=None):
+    """The key of each patch (uint64): entries offsets[k]:offsets[k+1] of `code` and of
+    point[rows] (entity positions, (dofs, 2); rows=None: all) are patch k's dofs in canonical
+    order, h[k] its shortest edge. Translated patches get equal keys (but for positions within
+    round-off of a rounding boundary)."""
     n = np.diff(offsets)
     keys = np.zeros(n.size, dtype=np.uint64)
+    if n.size == 0:
+        return keys
+    # the first dof of each entity stands for its entity (the others differ only by index)
+    first = (code & 3) == 0
+    start = np.concatenate([[0], np.cumsum(np.add.reduceat(first, offsets[:-1]))])
+    code, point = code[first], point[first if rows is None else rows[first]]
     step = 1 << 11                                   # patches at a time (bounds the memory)
     for lo in range(0, n.size, step):
         hi = min(lo + step, n.size)
-        a, b = offsets[lo], offsets[hi]
-        keys[lo:hi] = _keys(offsets[lo:hi + 1] - a, code[a:b], point[a:b], h[lo:hi])
-    return keys
+        a, b = start[lo], start[hi]
+        keys[lo:hi] = _keys(start[lo:hi + 1] - a, code[a:b], point[a:b], h[lo:hi])
+    with np.errstate(over="ignore"):
+        return keys + _mix(n.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15))
 
 
 def _keys(offsets, code, point, h):
@@ -360,7 +367,7 @@ def _keys(offsets, code, point, h):
         mixed = word[:, 0] + word[:, 1]
         mixed += (code & KEY_CODE).astype(np.uint64) * np.uint64(0x165667B19E3779F9)
         mixed -= first.view(np.uint64) * np.uint64(0x27D4EB2F165667C5)
-        return np.add.reduceat(_mix(mixed), offsets[:-1]) + _mix(n.astype(np.uint64))
+        return np.add.reduceat(_mix(mixed), offsets[:-1])
 
 
 class _Rows:

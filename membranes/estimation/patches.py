@@ -431,7 +431,7 @@ class PatchSystems:
                  dest[dest >= 0].astype(np.int32))
         dofs, code = gdof[sel], code[keep]
         nsigma = np.add.reduceat(_kind(code) != DG, start[:-1]) if code.size else start[:0]
-        key = patch_keys(start, code, gpoint[sel], h)
+        key = patch_keys(start, code, gpoint, h, sel)
         return dofs, start, code, tolerance, nsigma, key, route
 
     def _layout(self, groups, classes):
