@@ -144,6 +144,10 @@ class PatchSystems:
         # adjacent), its DG dofs, each by position
         self.by_rank = np.lexsort((self.entity[:n], self.position[:n, 0],
                                    _kind(self.code[:n])))
+        rank = np.full(self.nlocal, n, dtype=np.int32)            # ghost dofs: n
+        rank[self.by_rank] = np.arange(n, dtype=np.int32)
+        self.facet_rank, self.cell_rank = rank[self.facet_dofs], rank[self.cell_dofs]
+        del rank, self.facet_dofs, self.cell_dofs
 
         # A over the whole mesh, once; each group's rows at home are taken from it, made
         # canonical and classified, one group at a time
@@ -185,7 +189,7 @@ class PatchSystems:
         # only the home layout, the routes and the inverses are kept
         for name in ("position", "entity", "code", "by_rank", "c2f", "facet_shared",
                      "facet_owned_cells", "facet_cells", "cell_global", "cell_h", "rt_dofs",
-                     "dg_dofs", "facet_dofs", "cell_dofs", "known"):
+                     "dg_dofs", "facet_rank", "cell_rank", "known"):
             delattr(self, name)
 
     def _lookup(self, key):
@@ -340,14 +344,15 @@ class PatchSystems:
         facet_patch = np.where(inside | on_boundary, hi - 1, -1)
 
         # the patch of every local dof the group keeps (-1: not kept)
-        patch = np.full(self.nlocal, -1, dtype=np.int64)
-        patch[self.facet_dofs] = facet_patch[:, None]
+        # (by rank in the canonical order of the owned dofs; ghost dofs share the last entry)
+        patch = np.full(self.nowned + 1, -1, dtype=np.int64)
+        patch[self.facet_rank] = facet_patch[:, None]
         cells = np.flatnonzero(pid >= 0)
-        patch[self.cell_dofs[cells]] = pid[cells, None]
+        patch[self.cell_rank[cells]] = pid[cells, None]
         # the owned kept dofs in canonical order, patch by patch
-        kept = self.by_rank[patch[self.by_rank] >= 0]
-        kp = patch[kept]
-        del patch
+        ranked = np.flatnonzero(patch[:-1] >= 0)
+        kept, kp = self.by_rank[ranked], patch[ranked]
+        del patch, ranked
         by_patch = stable_order(kp)
         kept, kp = kept[by_patch], kp[by_patch]
         del by_patch
