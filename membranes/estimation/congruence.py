@@ -8,12 +8,14 @@ the orientation of a facet by global vertex indices). This module removes that d
 
 * `canonical_dofs`: on every cell the *canonical* basis is the Piola image of the reference
   basis through the vertices ordered along a fixed direction d, every facet oriented along d,
-  and a patch's dofs are ordered RT dofs first, DG dofs last, each by the position of their
-  entity along d — all translation invariant. The change of basis G (canonical → dolfinx) is
+  and a patch's dofs are ordered RT facet dofs first, then the interior RT dofs (a cell's two
+  adjacent), DG dofs last, each by the position of their entity along d — all translation
+  invariant. The change of basis G (canonical → dolfinx) is
   ±1 on facet dofs, the identity on the DG dofs (Lagrange at the vertices: only their labels
   change) and a 2 × 2 integer block on the two interior RT dofs of a cell (`basis_changes`
   checks this form on basix's elements); `canonical_block` forms Ã_p = G_pᵀ A_p G_p on the rows
-  of the patches, `to_canonical` applies Gᵀ and G to vectors.
+  of the patches, `to_canonical` applies Gᵀ and G to vectors, `BasisChange` the same on home
+  vectors by slices.
 * `patch_keys` and `Blocks`: translated patches get equal keys (dof kinds and rounded relative
   positions); `Blocks` keeps one block per class with a random probe, against which every
   patch of the class is checked (in `patches`) to the round-off of its coordinates.

@@ -326,9 +326,10 @@ class PatchSystems:
 
     def _home_dofs(self, pid, inner):
         """The kept W dofs of the group's patches at home on this process (global indices), in
-        canonical order patch by patch (RT dofs first), the patches' offsets, the dofs' codes,
-        the patches' tolerances, numbers of RT dofs and keys, and the group's route (see
-        `_to_home`). A collective call: every process hands over its owned kept dofs."""
+        canonical order patch by patch (RT facet dofs, interior RT dofs, DG dofs), the patches'
+        offsets, the dofs' codes, the patches' tolerances, numbers of RT dofs and keys, and the
+        group's route (see `_to_home`). A collective call: every process hands over its owned
+        kept dofs."""
         comm = self.comm
         # per facet, over its (at most two) cells: the largest and smallest patch id + 1
         # (0 = no patch), and whether a cell's patch is not interior; reduced across processes
