@@ -496,6 +496,8 @@ class PatchSystems:
             ok = False
         if not comm.allreduce(ok, op=MPI.LAND):
             raise RuntimeError("a patch problem is singular")
+        if ok and sum(s[1] * s[2] * s[3] for s in self.solves) != self.home_size:
+            raise RuntimeError("the products do not cover the home vector")
         self.nclasses, self.npatches = nclasses, cls.size
         classes.release()
 
@@ -522,11 +524,13 @@ class PatchSystems:
         rhs = self.canonical(home)
         if extra is not None:
             rhs += extra
-        x = np.zeros_like(rhs)
+        x = np.empty_like(rhs)                     # every patch is in one product below
         for h0, K, m, n, inputs, outputs, operator_t in self.solves:
             h1 = h0 + K * m * n
+            out = x[h0:h1].reshape(K, m, n)
             np.matmul(rhs[h0:h1].reshape(K, m, n)[:, :, inputs], operator_t,
-                      out=x[h0:h1].reshape(K, m, n)[:, :, outputs])
+                      out=out[:, :, outputs])
+            out[:, :, outputs.stop:] = 0.0
         return self.change.apply(x, transpose=False)
 
     def scatter(self, c, x, out, add=False):
