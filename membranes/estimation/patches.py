@@ -16,10 +16,11 @@ group is supported on the cells of one patch (a facet dof is kept only if both i
 that patch, or its one cell if the facet lies on ∂Ω), so the entry of the matrix A of the form
 above, assembled by dolfinx over the whole mesh (forms.equilibration.patch_system), between two
 kept dofs is the sum of the cell blocks of that patch only: each patch's matrix is a principal
-submatrix A_p of A. Each patch is solved on one process, its *home*. A *route* per group (one
-MPI Alltoallv each way, `_to_home`/`_to_owners`) moves right-hand sides from the dofs' owners
-to the homes and solutions back; PETSc's MatCreateSubMatrices brings the rows of the blocks
-that are needed to the homes (as for overlapping Schwarz subdomains).
+submatrix A_p of A. Each patch is solved on one process, its *home*. A VecScatter per group
+moves right-hand sides from the dofs' owners to the homes and solutions back (in the set-up, a
+*route* of one MPI Alltoallv each way, `_to_home`/`_to_owners`, does the same before the home
+layout is known); PETSc's MatCreateSubMatrices brings the rows of the blocks that are needed to
+the homes (as for overlapping Schwarz subdomains).
 
 **Shared dense inverses.** The blocks are taken in the canonical basis of `congruence`, where
 the blocks of translated patches are equal to round-off. Patches with equal translation
@@ -182,8 +183,8 @@ class PatchSystems:
             self.rejected += bad.size
             if np.any(ok):
                 self.worst = max(self.worst, float((error[ok] / ref[ok]).max()))
-            del dofs
-            groups.append((offsets, code.astype(np.int16), cls, route))
+            del route
+            groups.append((dofs.astype(PETSc.IntType), offsets, code.astype(np.int16), cls))
         A.destroy()
         self._layout(groups, classes)
         # only the home layout, the routes and the inverses are kept
@@ -444,9 +445,9 @@ class PatchSystems:
         """Home order (size, class multiplicity, class, group, patch), the routes to it, the
         canonical change of basis in home order, and the inverses of the classes."""
         comm = self.comm
-        n = np.concatenate([np.diff(g[0]) for g in groups])
-        cls = np.concatenate([g[2] for g in groups])
-        group = np.concatenate([np.full(len(g[0]) - 1, c) for c, g in enumerate(groups)])
+        n = np.concatenate([np.diff(g[1]) for g in groups])
+        cls = np.concatenate([g[3] for g in groups])
+        group = np.concatenate([np.full(len(g[1]) - 1, c) for c, g in enumerate(groups)])
         nclasses = classes.count()
         count = np.bincount(cls, minlength=nclasses)
         rt = np.array([classes.shape(k)[2] for k in range(nclasses)], dtype=np.int64)
@@ -455,16 +456,25 @@ class PatchSystems:
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
         code = np.zeros(self.home_size, dtype=np.int16)
-        self.routes, self.group_sizes = [], []
+        # per group a VecScatter from the owners to the home positions: one pass per call
+        template = PETSc.Vec().createMPI((self.nowned, PETSc.DECIDE), comm=comm)
+        hv = PETSc.Vec().createWithArray(self.home_vector(), comm=PETSc.COMM_SELF)
+        self.scatters, self.group_sizes = [], []
         first = 0
-        for offsets, gcode, _, (send, sc, rc, dest) in groups:
+        for dofs, offsets, gcode, _ in groups:
             k = np.diff(offsets)
             at = (np.repeat(start[first:first + k.size] - offsets[:-1], k)
                   + np.arange(offsets[-1]))
             first += k.size
             code[at] = gcode
-            self.routes.append((send, sc, rc, at[dest].astype(np.int32)))
+            src = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
+            dst = PETSc.IS().createGeneral(at.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+            self.scatters.append(PETSc.Scatter().create(template, src, hv, dst))
+            src.destroy()
+            dst.destroy()
             self.group_sizes.append(comm.allreduce(int(offsets[-1]), op=MPI.SUM))
+        template.destroy()
+        hv.destroy()
         self.change = BasisChange(code, np.append(start[order], self.home_size), self.blocks)
         del code
 
@@ -505,9 +515,15 @@ class PatchSystems:
         """A zero home vector (numpy): the kept dofs of the patches at home, all groups."""
         return np.zeros(self.home_size)
 
+    def _vec(self, array):
+        return PETSc.Vec().createWithArray(array, comm=PETSc.COMM_SELF)
+
     def gather(self, c, b, home):
         """home ← the entries of the W vector b at group c's kept dofs (dolfinx's basis)."""
-        return self._to_home(self.routes[c], b.array_r, home)
+        hv = self._vec(home)
+        self.scatters[c].scatter(b, hv, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+        hv.destroy()
+        return home
 
     def canonical(self, home):
         """Gᵀ home in place: gathered right-hand sides in the canonical basis. With
@@ -538,7 +554,10 @@ class PatchSystems:
         added, or written with zeros at the dofs the group does not keep."""
         if not add:
             out.set(0.0)
-        self._to_owners(self.routes[c], x, out.array, add)
+        xv = self._vec(x)
+        self.scatters[c].scatter(xv, out, PETSc.InsertMode.ADD if add else
+                                 PETSc.InsertMode.INSERT, PETSc.ScatterMode.REVERSE)
+        xv.destroy()
         return out
 
     def solve(self, c, b, out=None, extra=None):
@@ -573,4 +592,6 @@ class PatchSystems:
         return out
 
     def destroy(self):
-        self.routes, self.solves = [], []
+        for s in self.scatters:
+            s.destroy()
+        self.scatters, self.solves = [], []
