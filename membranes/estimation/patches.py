@@ -161,7 +161,7 @@ class PatchSystems:
         signs.destroy()
         classes, self.known = Blocks(), (np.zeros(0, dtype=np.uint64), np.zeros(0, np.int64))
         self.rejected, self.worst = 0, 0.0
-        groups = []
+        groups, vecs = [], A.createVecs()
         for pid, inner in zip(patches, interior):
             dofs, offsets, code, tolerance, nsigma, key, route = self._home_dofs(
                 np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
@@ -175,7 +175,7 @@ class PatchSystems:
                 cls = self._lookup(key)
             else:
                 cls = self._extract(A, dofs, offsets, code, nsigma, np.arange(npatch), classes)
-            error, ref = self._probe(A, route, offsets, code, cls, classes)
+            error, ref = self._probe(A, vecs, route, offsets, code, cls, classes)
             ok = error <= tolerance * ref
             bad = np.flatnonzero(~ok)
             if self.comm.allreduce(bad.size, op=MPI.SUM):
@@ -186,8 +186,10 @@ class PatchSystems:
             del route
             groups.append((dofs.astype(PETSc.IntType), offsets, code.astype(np.int16), cls))
         A.destroy()
+        for v in vecs:
+            v.destroy()
         self._layout(groups, classes)
-        # only the home layout, the routes and the inverses are kept
+        # only the home layout, the scatters and the inverses are kept
         for name in ("position", "entity", "code", "by_rank", "c2f", "facet_shared",
                      "facet_owned_cells", "facet_cells", "cell_global", "cell_h", "rt_dofs",
                      "dg_dofs", "facet_rank", "cell_rank", "known"):
@@ -226,7 +228,7 @@ class PatchSystems:
                                           nsigma[which[first:last]])
         return out
 
-    def _probe(self, A, route, offsets, code, cls, classes):
+    def _probe(self, A, vecs, route, offsets, code, cls, classes):
         """(error, ref) per patch of a group: max_i |(Ã_p v - u)_i| for its class's probe v and
         u = Ã_class v, all patches of the group at once through one product with A (the
         patches share no cell), and the class's reference magnitude (see `congruence`).
@@ -240,13 +242,11 @@ class PatchSystems:
         pairs = _pairs(code)
         # A carries the signs of G already: only its interior blocks act here
         w = to_canonical(v[at], 1.0, pairs, self.blocks, transpose=False)
-        x, y = A.createVecs()
+        x, y = vecs
         x.set(0.0)
         self._to_owners(route, w, x.array, add=False)
         A.mult(x, y)
         got = self._to_home(route, y.array_r, np.empty(offsets[-1]))
-        x.destroy()
-        y.destroy()
         got = to_canonical(got, 1.0, pairs, self.blocks, transpose=True)
         diff = np.abs(got - u[at])
         error = np.maximum.reduceat(diff, offsets[:-1]) if n.size else diff[:0]
