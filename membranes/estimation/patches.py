@@ -542,13 +542,11 @@ class PatchSystems:
         rhs = self.canonical(home)
         if extra is not None:
             rhs += extra
-        x = np.empty_like(rhs)                     # every patch is in one product below
+        x = np.zeros_like(rhs)
         for h0, K, m, n, inputs, outputs, operator_t in self.solves:
             h1 = h0 + K * m * n
-            out = x[h0:h1].reshape(K, m, n)
             np.matmul(rhs[h0:h1].reshape(K, m, n)[:, :, inputs], operator_t,
-                      out=out[:, :, outputs])
-            out[:, :, outputs.stop:] = 0.0
+                      out=x[h0:h1].reshape(K, m, n)[:, :, outputs])
         return self.change.apply(x, transpose=False)
 
     def scatter(self, c, x, out, add=False):
