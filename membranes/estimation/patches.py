@@ -53,29 +53,21 @@ import ufl
 from mpi4py import MPI
 from petsc4py import PETSc
 
-import forms.equilibration as equilibration_forms
-
 from .congruence import (
-    DG,
-    INTERIOR,
     NEGATIVE,
-    ROUNDING,
-    SAME,
     BasisChange,
     Blocks,
     _kind,
     _pairs,
     canonical_block,
     canonical_dofs,
-    patch_keys,
     to_canonical,
 )
 from .exchange import Shared, alltoallv, colour_vertices, reduce_by_key
+from .homes import Action, HomeSetup, assemble_on, stable_order
 
-__all__ = ["PatchSystems", "Shared", "alltoallv", "colour_vertices", "mixed_space",
+__all__ = ["PatchSystems", "Shared", "alltoallv", "colour_vertices", "mixed_space", "stable_order",
            "reduce_by_key"]
-
-CHUNK = 1 << 18          # rows of patch blocks taken from A at a time (bounds the set-up memory)
 
 
 def mixed_space(mesh):
@@ -86,22 +78,9 @@ def mixed_space(mesh):
     return fem.FunctionSpace(mesh, element)
 
 
-def stable_order(keys):
-    """np.argsort(keys, kind="stable") for non-negative integers, by passes over 16 bits
-    (numpy's stable sort of uint16 is a radix sort: linear time)."""
-    order, shift, top = None, 0, int(keys.max(initial=0))
-    while True:
-        digit = ((keys if order is None else keys[order]) >> shift).astype(np.uint16)
-        step = np.argsort(digit, kind="stable")
-        order = step if order is None else order[step]
-        shift += 16
-        if top >> shift == 0:
-            return order
-
-
 # ## The coloured patch systems
 
-class PatchSystems:
+class PatchSystems(HomeSetup):
     """The patch problems of one mesh in groups, set up once (see the module docstring).
 
     `patches[c]`: int array over the owned cells, the global id of the patch of group (colour)
@@ -126,8 +105,6 @@ class PatchSystems:
 
     def __init__(self, mesh, patches, interior, W=None, share=True, rhs="full",
                  solution="full"):
-        from dolfinx import fem
-        from dolfinx.fem.petsc import assemble_matrix
         if rhs not in ("full", "divergence") or solution not in ("full", "flux"):
             raise ValueError(f"rhs must be 'full' or 'divergence', solution 'full' or 'flux'; "
                              f"got {rhs!r}, {solution!r}")
@@ -150,49 +127,65 @@ class PatchSystems:
         self.facet_rank, self.cell_rank = rank[self.facet_dofs], rank[self.cell_dofs]
         del rank, self.facet_dofs, self.cell_dofs
 
-        # A over the whole mesh, once; each group's rows at home are taken from it, made
-        # canonical and classified, one group at a time
-        (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
-        A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q)))
-        A.assemble()
-        signs = A.createVecLeft()
-        signs.array[:] = np.where(self.code[:n] & NEGATIVE, -1.0, 1.0)
-        A.diagonalScale(signs, signs)                 # the ±1 of G on facet dofs
-        signs.destroy()
+        # per group its patches at home, and the patches whose blocks are needed: the first
+        # of each new key (all patches without sharing); their class numbers are given now
+        # (in the order `_extract` makes them)
+        self.signs = np.where(self.code[:n] & NEGATIVE, -1.0, 1.0)     # the ±1 of G
         classes, self.known = Blocks(), (np.zeros(0, dtype=np.uint64), np.zeros(0, np.int64))
         self.rejected, self.worst = 0, 0.0
-        groups, vecs = [], A.createVecs()
+        pending, count = [], 0
         for pid, inner in zip(patches, interior):
-            dofs, offsets, code, tolerance, nsigma, key, route = self._home_dofs(
+            dofs, offsets, code, tolerance, nsigma, key, route, ids = self._home_dofs(
                 np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
             npatch = len(offsets) - 1
             if share:
                 cls = self._lookup(key)
                 new = np.flatnonzero(cls < 0)
                 new = new[np.unique(key[new], return_index=True)[1]]     # one per new key
-                self._remember(key[new], self._extract(A, dofs, offsets, code, nsigma, new,
-                                                       classes))
+                self._remember(key[new], count + np.arange(new.size))
                 cls = self._lookup(key)
             else:
-                cls = self._extract(A, dofs, offsets, code, nsigma, np.arange(npatch), classes)
-            error, ref = self._probe(A, vecs, route, offsets, code, cls, classes)
+                new = np.arange(npatch)
+                cls = count + new
+            count += new.size
+            pending.append([dofs, offsets, code, tolerance, nsigma, route, ids, new, cls])
+        patches = [np.asarray(p, dtype=np.int64) for p in patches]
+        # A on the cells of those patches only; their blocks, made canonical
+        A = assemble_on(W, self._marked_cells(patches, [p[6][p[7]] for p in pending]),
+                        self.signs)
+        for dofs, offsets, code, _, nsigma, _, _, new, cls in pending:
+            if not np.array_equal(self._extract(A, dofs, offsets, code, nsigma, new, classes),
+                                  cls[new]):
+                raise RuntimeError("the classes were not made in the expected order")
+        A.destroy()
+        # every patch checked against its class by the form's action (no matrix); the
+        # rejected ones get their own blocks, from A on their cells
+        action = Action(W, self.signs)
+        bad = []
+        for p in pending:
+            dofs, offsets, code, tolerance, nsigma, route, ids, new, cls = p
+            error, ref = self._probe(action, route, offsets, code, cls, classes)
             ok = error <= tolerance * ref
-            bad = np.flatnonzero(~ok)
-            if self.comm.allreduce(bad.size, op=MPI.SUM):
-                cls[bad] = self._extract(A, dofs, offsets, code, nsigma, bad, classes)
-            self.rejected += bad.size
+            bad.append(np.flatnonzero(~ok))
+            self.rejected += bad[-1].size
             if np.any(ok):
                 self.worst = max(self.worst, float((error[ok] / ref[ok]).max()))
-            del route
-            groups.append((dofs.astype(PETSc.IntType), offsets, code.astype(np.int16), cls))
-        A.destroy()
-        for v in vecs:
-            v.destroy()
+            p[5] = None                                               # the route
+        action.destroy()
+        if self.comm.allreduce(self.rejected, op=MPI.SUM):
+            A = assemble_on(W, self._marked_cells(
+                patches, [p[6][b] for p, b in zip(pending, bad)]), self.signs)
+            for (dofs, offsets, code, _, nsigma, _, _, _, cls), b in zip(pending, bad):
+                cls[b] = self._extract(A, dofs, offsets, code, nsigma, b, classes)
+            A.destroy()
+        groups = [(p[0].astype(PETSc.IntType), p[1], p[2].astype(np.int16), p[8])
+                  for p in pending]
+        del pending
         self._layout(groups, classes)
         # only the home layout, the scatters and the inverses are kept
         for name in ("position", "entity", "code", "by_rank", "c2f", "facet_shared",
                      "facet_owned_cells", "facet_cells", "cell_global", "cell_h", "rt_dofs",
-                     "dg_dofs", "facet_rank", "cell_rank", "known"):
+                     "dg_dofs", "facet_rank", "cell_rank", "known", "signs"):
             delattr(self, name)
 
     def _lookup(self, key):
@@ -228,11 +221,11 @@ class PatchSystems:
                                           nsigma[which[first:last]])
         return out
 
-    def _probe(self, A, vecs, route, offsets, code, cls, classes):
+    def _probe(self, action, route, offsets, code, cls, classes):
         """(error, ref) per patch of a group: max_i |(Ã_p v - u)_i| for its class's probe v and
         u = Ã_class v, all patches of the group at once through one product with A (the
-        patches share no cell), and the class's reference magnitude (see `congruence`).
-        Collective."""
+        form's action: the patches share no cell), and the class's reference magnitude (see
+        `congruence`). Collective."""
         v, u, start, size, _, ref = classes.probes()
         n = np.diff(offsets)
         mismatch = size[cls] != n if cls.size else np.zeros(0, dtype=bool)
@@ -240,206 +233,17 @@ class PatchSystems:
         at = np.repeat(start[cls_ok] - offsets[:-1], n) + np.arange(offsets[-1])
         at[np.repeat(mismatch, n)] = 0
         pairs = _pairs(code)
-        # A carries the signs of G already: only its interior blocks act here
+        # the action carries the signs of G: only the interior blocks act here
         w = to_canonical(v[at], 1.0, pairs, self.blocks, transpose=False)
-        x, y = vecs
-        x.set(0.0)
-        self._to_owners(route, w, x.array, add=False)
-        A.mult(x, y)
-        got = self._to_home(route, y.array_r, np.empty(offsets[-1]))
+        x = action.input()
+        x[:] = 0.0
+        self._to_owners(route, w, x, add=False)
+        got = self._to_home(route, action(), np.empty(offsets[-1]))
         got = to_canonical(got, 1.0, pairs, self.blocks, transpose=True)
         diff = np.abs(got - u[at])
         error = np.maximum.reduceat(diff, offsets[:-1]) if n.size else diff[:0]
         error[mismatch] = np.inf
         return error, ref[cls_ok]
-
-    def _to_home(self, route, values, home):
-        """home[dest] ← values[send] (owned W entries) through the route of a group."""
-        send, sc, rc, dest = route
-        home[dest] = alltoallv(self.comm, values[send], sc, rc)
-        return home
-
-    def _to_owners(self, route, home, values, add):
-        """values[send] ← (or +=) home[dest]: the reverse of `_to_home`."""
-        send, sc, rc, dest = route
-        got = alltoallv(self.comm, home[dest], rc, sc)
-        if add:
-            values[send] += got
-        else:
-            values[send] = got
-        return values
-
-    def _chunks(self, offsets):
-        """Ranges of patches (first, last) of about CHUNK rows, as many on every process
-        (MatCreateSubMatrices is collective): the blocks are taken a chunk at a time."""
-        npatch = len(offsets) - 1
-        count = self.comm.allreduce(max(1, -(-int(offsets[-1]) // CHUNK)), op=MPI.MAX)
-        bounds = np.searchsorted(offsets, np.linspace(0, offsets[-1], count + 1)[1:-1])
-        bounds = np.concatenate([[0], np.minimum(bounds, npatch), [npatch]])
-        return list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
-
-    def _topology(self, mesh, W):
-        """Cell → facet and cell → dof tables (all local cells), facet cell counts (global)."""
-        tdim = mesh.topology.dim
-        mesh.topology.create_connectivity(tdim, tdim - 1)
-        mesh.topology.create_connectivity(tdim - 1, tdim)
-        cmap = mesh.topology.index_map(tdim)
-        self.ncells = cmap.size_local
-        nall = cmap.size_local + cmap.num_ghosts
-        self.cell_global = np.asarray(cmap.local_to_global(np.arange(self.ncells, dtype=np.int32)),
-                                      dtype=np.int64)
-        self.c2f = mesh.topology.connectivity(tdim, tdim - 1).array.reshape(nall, 3)
-        fmap = mesh.topology.index_map(tdim - 1)
-        self.nfacets = fmap.size_local + fmap.num_ghosts
-        self.facet_shared = Shared(fmap, self.comm)
-        # the (at most two) owned cells of each local facet (-1: none), and the number of cells
-        # of each facet over the whole mesh (owned cells only, each counted by its owner)
-        facets = self.c2f[:self.ncells].ravel()
-        order = stable_order(facets)
-        count = np.bincount(facets, minlength=self.nfacets)
-        start = np.concatenate([[0], np.cumsum(count)[:-1]])
-        self.facet_owned_cells = np.full((self.nfacets, 2), -1, dtype=np.int64)
-        has = count > 0
-        self.facet_owned_cells[has, 0] = order[start[has]] // 3
-        two = count > 1
-        self.facet_owned_cells[two, 1] = order[start[two] + 1] // 3
-        self.facet_cells = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
-
-        rt = W.sub(0).element.basix_element.entity_dofs
-        self.rt_dofs = W.sub(0).dofmap.list.array.reshape(nall, -1)
-        self.dg_dofs = W.sub(1).dofmap.list.array.reshape(nall, -1)
-        # the RT dofs of each local facet, and the interior RT and DG dofs of each local cell
-        self.facet_dofs = np.zeros((self.nfacets, len(rt[tdim - 1][0])), dtype=np.int32)
-        for i, cols in enumerate(rt[tdim - 1]):
-            self.facet_dofs[self.c2f[:, i]] = self.rt_dofs[:, cols]
-        self.cell_dofs = np.hstack([self.rt_dofs[:, rt[tdim][0]], self.dg_dofs])
-        # the shortest edge of each owned cell, and the largest |x| of the mesh (§12: the
-        # tolerance of the block comparisons)
-        nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:self.ncells]
-        x = mesh.geometry.x[:, :2][nodes]
-        self.cell_h = np.linalg.norm(x - np.roll(x, 1, axis=1), axis=2).min(axis=1)
-        self.radius = self.comm.allreduce(float(np.abs(mesh.geometry.x).max(initial=0.0)),
-                                          op=MPI.MAX)
-        imap = W.dofmap.index_map
-        self.nowned = imap.size_local
-        self.nlocal = imap.size_local + imap.num_ghosts
-        self.rstart = imap.local_range[0]
-
-    def _home_dofs(self, pid, inner):
-        """The kept W dofs of the group's patches at home on this process (global indices), in
-        canonical order patch by patch (RT facet dofs, interior RT dofs, DG dofs), the patches'
-        offsets, the dofs' codes, the patches' tolerances, numbers of RT dofs and keys, and the
-        group's route (see `_to_home`). A collective call: every process hands over its owned
-        kept dofs."""
-        comm = self.comm
-        # per facet, over its (at most two) cells: the largest and smallest patch id + 1
-        # (0 = no patch), and whether a cell's patch is not interior; reduced across processes
-        least = np.iinfo(np.int64).min
-        cell_info = np.stack([pid + 1, -(pid + 1), ((pid >= 0) & ~inner)], axis=1)
-        cell_info = np.vstack([cell_info, np.full((1, 3), least)])     # row -1: no cell
-        info = np.maximum(cell_info[self.facet_owned_cells[:, 0]],
-                          cell_info[self.facet_owned_cells[:, 1]])
-        self.facet_shared.forward(self.facet_shared.reverse(info, np.maximum))
-        hi, lo, free = info[:, 0], -info[:, 1], info[:, 2]
-        inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
-        on_boundary = (self.facet_cells == 1) & (free == 1)
-        facet_patch = np.where(inside | on_boundary, hi - 1, -1)
-
-        # the patch of every local dof the group keeps (-1: not kept)
-        # (by rank in the canonical order of the owned dofs; ghost dofs share the last entry)
-        patch = np.full(self.nowned + 1, -1, dtype=np.int64)
-        patch[self.facet_rank] = facet_patch[:, None]
-        cells = np.flatnonzero(pid >= 0)
-        patch[self.cell_rank[cells]] = pid[cells, None]
-        # the owned kept dofs in canonical order, patch by patch
-        ranked = np.flatnonzero(patch[:-1] >= 0)
-        kept, kp = self.by_rank[ranked], patch[ranked]
-        del patch, ranked
-        by_patch = stable_order(kp)
-        kept, kp = kept[by_patch], kp[by_patch]
-        del by_patch
-
-        # home of each patch: the owner of its cell of least global index, found with the
-        # patch's interior flag in one distributed reduction over the patches seen here
-        # (and its shortest edge)
-        by_cell = cells[stable_order(pid[cells])]
-        new = np.flatnonzero(np.diff(pid[by_cell], prepend=-1))
-        keys = pid[by_cell[new]]
-        values = ((self.cell_global[by_cell] * comm.size + comm.rank) << 1) | ~inner[by_cell]
-        values = np.minimum.reduceat(values, new) if new.size else values[:0]
-        h = np.minimum.reduceat(self.cell_h[by_cell], new) if new.size else np.zeros(0)
-        new = np.flatnonzero(np.diff(kp, prepend=-1))
-        seen = kp[new]                                              # unique, sorted
-        extra = seen[keys[np.minimum(np.searchsorted(keys, seen), keys.size - 1)] != seen] \
-            if keys.size else seen                      # patches with no owned cell here
-        if extra.size:
-            keys = np.concatenate([keys, extra])
-            values = np.concatenate([values, np.full(extra.size, np.iinfo(np.int64).max)])
-            h = np.concatenate([h, np.full(extra.size, np.inf)])
-            order = np.argsort(keys)
-            keys, values, h = keys[order], values[order], h[order]
-        at = np.searchsorted(keys, seen)
-        count = np.diff(np.append(new, kp.size))
-        first = np.repeat(reduce_by_key(comm, keys, values, np.minimum)[at], count)
-        h = np.repeat(reduce_by_key(comm, keys, h, np.minimum)[at], count)
-        home = (first >> 1) % comm.size
-        code = self.code[kept] | np.where(first & 1, np.int16(0), np.int16(INTERIOR))
-
-        # send every kept dof to its patch's home (in order), which keeps the patches whole;
-        # column by column (no copies on one process)
-        order = stable_order(home) if comm.size > 1 else slice(None)
-        send = np.bincount(home, minlength=comm.size).astype(np.int64)
-        recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
-        kept, home = kept[order], home[order]
-
-        def move(column):
-            return alltoallv(comm, column, send, recv)
-
-        gdof, gpatch, gcode = move(kept + self.rstart), move(kp[order]), move(code[order])
-        gpoint, gh = move(self.position[kept]), move(h[order])
-        del kp, code, h, first, at
-        received = gdof.size
-        perm = None                  # received → canonical order, patch by patch (None: same)
-        if comm.size > 1:
-            entity = move(self.entity[kept])
-            perm = stable_order(gpatch)
-            # a patch with dofs from several processes: merge them in canonical order
-            source = np.repeat(np.arange(comm.size), recv)[perm]
-            new = np.flatnonzero(np.diff(gpatch[perm], prepend=-1) != 0)
-            mixed = (np.minimum.reduceat(source, new) != np.maximum.reduceat(source, new)
-                     if new.size else np.zeros(0, dtype=bool))
-            redo = np.flatnonzero(np.repeat(mixed, np.diff(np.append(new, received))))
-            if redo.size:
-                r = perm[redo]
-                perm[redo] = r[np.lexsort((entity[r], gpoint[r, 0], _kind(gcode[r]),
-                                           gpatch[r]))]
-        patch = gpatch if perm is None else gpatch[perm]
-        code = gcode if perm is None else gcode[perm]
-        # patch offsets; interior patches lose their first DG dof
-        new = np.flatnonzero(np.diff(patch, prepend=-1) != 0)
-        dg = np.flatnonzero(_kind(code) == DG)
-        pinned = dg[np.flatnonzero(np.diff(patch[dg], prepend=-1) != 0)]
-        pinned = pinned[(code[pinned] & INTERIOR) != 0]
-        bounds = np.append(new, received)
-        start = bounds - np.searchsorted(pinned, bounds)
-        keep = np.ones(received, dtype=bool)
-        keep[pinned] = False
-        sel = np.flatnonzero(keep) if perm is None else perm[keep]      # received indices
-        h = gh[new] if perm is None else gh[perm[new]]
-        tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius / h)
-        # the route: each received dof's place at home; the owners forget the pinned dofs
-        dest = np.full(received, -1, dtype=np.int64)
-        dest[sel] = np.arange(sel.size)
-        sent_kept = alltoallv(comm, dest >= 0, recv, send)
-        source = np.repeat(np.arange(comm.size), recv)
-        route = (kept[sent_kept].astype(np.int32),
-                 np.bincount(home[sent_kept], minlength=comm.size).astype(np.int64),
-                 np.bincount(source[dest >= 0], minlength=comm.size).astype(np.int64),
-                 dest[dest >= 0].astype(np.int32))
-        dofs, code = gdof[sel], code[keep]
-        nsigma = np.add.reduceat(_kind(code) != DG, start[:-1]) if code.size else start[:0]
-        key = patch_keys(start, code, gpoint, h, sel)
-        return dofs, start, code, tolerance, nsigma, key, route
 
     def _layout(self, groups, classes):
         """Home order (size, class multiplicity, class, group, patch), the routes to it, the

@@ -207,7 +207,7 @@ def test_probe_rejects_wrong_candidates(monkeypatch):
     """With keys that only know a patch's size, patches of one size but other shapes become
     candidates of one class: the probe must reject them (each gets its own block), and the
     solves still equal the unshared ones to round-off."""
-    from membranes.estimation import patches as module
+    from membranes.estimation import homes as module
     mesh = refined_disk(MPI.COMM_WORLD, 0.3, 1)
     _, unshared, scale, _ = random_solutions(mesh)
     monkeypatch.setattr(module, "patch_keys",
