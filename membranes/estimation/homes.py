@@ -272,18 +272,16 @@ def assemble_on(W, cells, signs):
 
 
 class Action:
-    """x ↦ S A S x (owned W entries; A of forms.equilibration.patch_system over the whole
-    mesh, S = diag(signs)) as a vector assembly of the form's action on a Function: the same
-    product as with the assembled matrix, without one. Collective."""
+    """x ↦ S A S x (owned W entries; A of forms.equilibration.patch_system, S = diag(signs)) as
+    a vector assembly of the form's action on a Function: the same product as with the
+    assembled matrix, without one. With `cells` (owned, local indices) the form is assembled on
+    those cells only: for x supported on them (the kept dofs of a group's patches are
+    supported on the patches' cells) the product is the same. Collective."""
 
     def __init__(self, W, signs):
         from dolfinx import fem
-        from dolfinx.fem.petsc import create_vector
-        self.w = fem.Function(W)
-        (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
-        a = equilibration_forms.patch_system(sigma, gamma, tau, q)
-        self.form = fem.form(ufl.action(a, self.w))
-        self.y = create_vector(self.form)
+        self.W, self.w = W, fem.Function(W)
+        self.y = self.w.vector.duplicate()
         self.signs = signs
         self.n = signs.size
 
@@ -291,15 +289,27 @@ class Action:
         """The owned entries of the input x (numpy view, to be filled)."""
         return self.w.x.array[:self.n]
 
-    def __call__(self):
+    def __call__(self, cells=None):
         """S A S x for x in `input()`; returns the owned entries (a numpy view)."""
+        from dolfinx import fem
         from dolfinx.fem.petsc import assemble_vector
+        from dolfinx.mesh import meshtags
+        mesh = self.W.mesh
+        if cells is None:
+            dx = ufl.dx(domain=mesh)
+        else:
+            cells = np.asarray(cells, dtype=np.int32)
+            tags = meshtags(mesh, mesh.topology.dim, cells, np.ones(cells.size, dtype=np.int32))
+            dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
+        (sigma, gamma), (tau, q) = ufl.TrialFunctions(self.W), ufl.TestFunctions(self.W)
+        form = fem.form(ufl.action(
+            equilibration_forms.patch_system(sigma, gamma, tau, q, dx), self.w))
         x = self.w.x.array
         x[:self.n] *= self.signs
         self.w.x.scatter_forward()
         with self.y.localForm() as local:
             local.set(0.0)
-        assemble_vector(self.y, self.form)
+        assemble_vector(self.y, form)
         self.y.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         out = self.y.array
         out *= self.signs

@@ -162,9 +162,10 @@ class PatchSystems(HomeSetup):
         # rejected ones get their own blocks, from A on their cells
         action = Action(W, self.signs)
         bad = []
-        for p in pending:
+        for p, pid in zip(pending, patches):
             dofs, offsets, code, tolerance, nsigma, route, ids, new, cls = p
-            error, ref = self._probe(action, route, offsets, code, cls, classes)
+            error, ref = self._probe(action, np.flatnonzero(pid >= 0), route, offsets, code,
+                                     cls, classes)
             ok = error <= tolerance * ref
             bad.append(np.flatnonzero(~ok))
             self.rejected += bad[-1].size
@@ -221,11 +222,11 @@ class PatchSystems(HomeSetup):
                                           nsigma[which[first:last]])
         return out
 
-    def _probe(self, action, route, offsets, code, cls, classes):
+    def _probe(self, action, cells, route, offsets, code, cls, classes):
         """(error, ref) per patch of a group: max_i |(Ã_p v - u)_i| for its class's probe v and
         u = Ã_class v, all patches of the group at once through one product with A (the
-        form's action: the patches share no cell), and the class's reference magnitude (see
-        `congruence`). Collective."""
+        form's action on the group's `cells`: the patches share no cell), and the class's
+        reference magnitude (see `congruence`). Collective."""
         v, u, start, size, _, ref = classes.probes()
         n = np.diff(offsets)
         mismatch = size[cls] != n if cls.size else np.zeros(0, dtype=bool)
@@ -238,7 +239,7 @@ class PatchSystems(HomeSetup):
         x = action.input()
         x[:] = 0.0
         self._to_owners(route, w, x, add=False)
-        got = self._to_home(route, action(), np.empty(offsets[-1]))
+        got = self._to_home(route, action(cells), np.empty(offsets[-1]))
         got = to_canonical(got, 1.0, pairs, self.blocks, transpose=True)
         diff = np.abs(got - u[at])
         error = np.maximum.reduceat(diff, offsets[:-1]) if n.size else diff[:0]

@@ -92,26 +92,49 @@ def _random_signs(W, seed):
     return np.where(np.random.default_rng(seed).random(n) < 0.5, -1.0, 1.0)
 
 
+def _marked(mesh):
+    """Owned cells of every third patch of the first group (bool per owned cell), and the
+    owned W dofs all of whose cells are marked (bool per owned dof), for the space W."""
+    from dolfinx import fem
+    from dolfinx.la import ScatterMode
+
+    from membranes.estimation.patches import mixed_space
+    W = mixed_space(mesh)
+    pid = vertex_groups(mesh)[0][0]
+    marked = (pid >= 0) & (pid % 3 == 0)
+    # dofs of unmarked owned cells, summed over the processes: 0 = inside
+    count = fem.Function(W)
+    dofs = W.dofmap.list.array.reshape(-1, W.dofmap.dof_layout.num_dofs)[:marked.size]
+    np.add.at(count.x.array, dofs[~marked].ravel(), 1.0)
+    count.x.scatter_reverse(ScatterMode.add)
+    return W, marked, count.x.array[:W.dofmap.index_map.size_local] == 0
+
+
 def action_error(mesh, seed=1):
     """(largest |y_action - y_matrix|, largest |y_matrix|) over all processes, for y = S A S x
-    with random x and signs S: the probe's product by the form's action against MatMult."""
+    with random x and signs S: the probe's product by the form's action against MatMult; the
+    same for x supported inside some patches (see `_marked`) and the action on their cells."""
     from membranes.estimation.homes import Action
-    from membranes.estimation.patches import mixed_space
     comm = mesh.comm
-    W = mixed_space(mesh)
+    W, marked, inside = _marked(mesh)
     signs = _random_signs(W, seed + comm.rank)
     A = _full_matrix(W, signs)
     x, y = A.createVecs()
-    x.array[:] = np.random.default_rng(seed + 7 + comm.rank).standard_normal(x.getLocalSize())
-    A.mult(x, y)
     action = Action(W, signs)
-    action.input()[:] = x.array
-    got = action().copy()
-    diff = comm.allreduce(np.abs(got - y.array).max(initial=0.0), op=MPI.MAX)
-    scale = comm.allreduce(np.abs(y.array).max(initial=0.0), op=MPI.MAX)
+    diff = scale = 0.0
+    for cells in (None, np.flatnonzero(marked)):
+        x.array[:] = np.random.default_rng(seed + 7 + comm.rank).standard_normal(
+            x.getLocalSize())
+        if cells is not None:
+            x.array[~inside] = 0.0
+        A.mult(x, y)
+        action.input()[:] = x.array
+        got = action(cells).copy()
+        diff = max(diff, np.abs(got - y.array).max(initial=0.0))
+        scale = max(scale, np.abs(y.array).max(initial=0.0))
     for obj in (A, x, y, action):
         obj.destroy()
-    return diff, scale
+    return comm.allreduce(diff, op=MPI.MAX), comm.allreduce(scale, op=MPI.MAX)
 
 
 def partial_assembly_error(mesh, seed=2):
@@ -121,27 +144,15 @@ def partial_assembly_error(mesh, seed=2):
     processes. A dof is inside if all its cells are marked: there the principal submatrices
     must agree; elsewhere they differ."""
     import scipy.sparse as sp
-    from dolfinx import fem
-    from dolfinx.la import ScatterMode
 
     from membranes.estimation.homes import assemble_on
-    from membranes.estimation.patches import mixed_space
     comm = mesh.comm
-    W = mixed_space(mesh)
+    W, marked, owned_inside = _marked(mesh)
     signs = _random_signs(W, seed + comm.rank)
-    pid = vertex_groups(mesh)[0][0]
-    marked = (pid >= 0) & (pid % 3 == 0)
-    cells = np.flatnonzero(marked).astype(np.int32)
-    full, part = _full_matrix(W, signs), assemble_on(W, cells, signs)
-    # dofs of unmarked owned cells, summed over the processes: 0 = inside
-    count = fem.Function(W)
-    dofs = W.dofmap.list.array.reshape(-1, W.dofmap.dof_layout.num_dofs)[:marked.size]
-    np.add.at(count.x.array, dofs[~marked].ravel(), 1.0)
-    count.x.scatter_reverse(ScatterMode.add)
+    full, part = _full_matrix(W, signs), assemble_on(W, np.flatnonzero(marked), signs)
     imap = W.dofmap.index_map
     n, start = imap.size_local, imap.local_range[0]
-    inside = np.flatnonzero(count.x.array[:n] == 0) + start
-    inside = np.concatenate(comm.allgather(inside))
+    inside = np.concatenate(comm.allgather(np.flatnonzero(owned_inside) + start))
     mask = np.zeros(imap.size_global, dtype=bool)
     mask[inside] = True
     diffs = []
@@ -149,7 +160,7 @@ def partial_assembly_error(mesh, seed=2):
         ia, ja, a = M.getValuesCSR()
         diffs.append(sp.csr_matrix((a, ja, ia), shape=(n, imap.size_global)))
     d = (diffs[0] - diffs[1]).tocsr()
-    d_inside = d[np.flatnonzero(mask[start:start + n])][:, mask]
+    d_inside = d[np.flatnonzero(owned_inside)][:, mask]
     local = [abs(d_inside).max() if d_inside.nnz else 0.0, abs(d).max() if d.nnz else 0.0,
              abs(diffs[0]).max() if diffs[0].nnz else 0.0]
     full.destroy()
