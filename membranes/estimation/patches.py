@@ -16,18 +16,24 @@ group is supported on the cells of one patch (a facet dof is kept only if both i
 that patch, or its one cell if the facet lies on ∂Ω), so the entry of the matrix A of the form
 above, assembled by dolfinx over the whole mesh (forms.equilibration.patch_system), between two
 kept dofs is the sum of the cell blocks of that patch only: each patch's matrix is a principal
-submatrix A_p of A. Each patch is solved on one process, its *home*. A VecScatter per group
-moves right-hand sides from the dofs' owners to the homes and solutions back (in the set-up, a
-*route* of one MPI Alltoallv each way, `_to_home`/`_to_owners`, does the same before the home
-layout is known); PETSc's MatCreateSubMatrices brings the rows of the blocks that are needed to
-the homes (as for overlapping Schwarz subdomains).
+submatrix A_p of A, and equally of A assembled on any set of cells containing the patch's
+(`homes.assemble_on`: only the cells of the patches whose blocks are taken are assembled, so
+no matrix over the whole mesh is ever made). Each patch is solved on one process, its *home*.
+A VecScatter per group moves right-hand sides from the dofs' owners to the homes and
+solutions back (in the set-up, a *route* of one MPI Alltoallv each way, `_to_home`/
+`_to_owners`, does the same before the home layout is known); PETSc's MatCreateSubMatrices
+brings the rows of the blocks that are needed to the homes (as for overlapping Schwarz
+subdomains).
 
 **Shared dense inverses.** The blocks are taken in the canonical basis of `congruence`, where
 the blocks of translated patches are equal to round-off. Patches with equal translation
 invariant keys (`congruence.patch_keys`) are candidates for one class; only the block of the
-first patch of a new key is taken from A. Every patch of a group is then checked against its
-class's block at once, by one product of A with a random probe (`_probe`; the patches of a
-group share no cell), and a patch that fails gets its own block and class. Each class keeps one
+first patch of a new key is taken, from A assembled on the cells of those patches of all
+groups (their homes mark them for the owners of their cells, `_marked_cells`). Every patch of a
+group is then checked against its class's block at once, by one product of A with a random
+probe (`_probe`; the patches of a group share no cell), computed as the vector assembly of the
+form's action on the group's cells (`homes.Action`: no matrix); a patch that fails gets its own
+block and class (a second assembly on the cells of the failed patches). Each class keeps one
 dense inverse (LAPACK). The home vector holds the patches class by class, so that a call
 solves all patches of a class by one matrix product. Where nothing is congruent (an
 unstructured mesh) every patch has its own block and inverse.
