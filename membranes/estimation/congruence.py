@@ -8,15 +8,17 @@ the orientation of a facet by global vertex indices). This module removes that d
 
 * `canonical_dofs`: on every cell the *canonical* basis is the Piola image of the reference
   basis through the vertices ordered along a fixed direction d, every facet oriented along d,
-  and a patch's dofs are ordered RT dofs first, DG dofs last, each by the position of their
-  entity along d — all translation invariant. The change of basis G (canonical → dolfinx) is
+  and a patch's dofs are ordered RT facet dofs first, then the interior RT dofs (a cell's two
+  adjacent), DG dofs last, each by the position of their entity along d — all translation
+  invariant. The change of basis G (canonical → dolfinx) is
   ±1 on facet dofs, the identity on the DG dofs (Lagrange at the vertices: only their labels
   change) and a 2 × 2 integer block on the two interior RT dofs of a cell (`basis_changes`
   checks this form on basix's elements); `canonical_block` forms Ã_p = G_pᵀ A_p G_p on the rows
-  of the patches, `to_canonical` applies Gᵀ and G to vectors.
-* `Blocks`: the blocks Ã_p are fingerprinted and grouped, and a patch joins a class only after
-  its block is checked entry by entry against the class's first block, to the round-off of the
-  patch's coordinates.
+  of the patches, `to_canonical` applies Gᵀ and G to vectors, `BasisChange` the same on home
+  vectors by slices.
+* `patch_keys` and `Blocks`: translated patches get equal keys (dof kinds and rounded relative
+  positions); `Blocks` keeps one block per class with a random probe, against which every
+  patch of the class is checked (in `patches`) to the round-off of its coordinates.
 
 The canonical basis only decides what is shared: with any invertible G the solves are exact,
 and each patch is solved with the inverse of a matrix equal to its own to round-off.
@@ -114,9 +116,10 @@ def basis_changes(W):
 
 
 def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
-    """Per local W dof (owned and ghost): its entity's position along DIRECTION (facet
-    midpoint or cell centroid), a global integer that orders the dofs of equal position (the
-    entity's global index, the dof's kind and index in it), its code; the interior blocks; and
+    """Per local W dof (owned and ghost): its entity's position (facet midpoint or cell
+    centroid) along DIRECTION and across it (an array (dofs, 2)), a global integer that orders
+    the dofs of equal position (the entity's global index, the dof's kind and index in it), its
+    code; the interior blocks; and
     the number of facet dofs on which the two cells of the facet disagree (0: both see the same
     vertex order)."""
     cmap = mesh.topology.index_map(2)
@@ -133,8 +136,12 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     vglobal = np.asarray(mesh.topology.index_map(0).local_to_global(c2v.ravel()),
                          dtype=np.int64)
     # π: the vertices of each cell by position, ties by global index
-    rank = np.lexsort((vglobal, along.ravel(), np.repeat(np.arange(nall), 3)))
-    order = (rank - np.repeat(3 * np.arange(nall), 3)).reshape(nall, 3)
+    vglobal = vglobal.reshape(nall, 3)
+    before = ((along[:, None, :] < along[:, :, None])                  # [c, i, j]: j before i
+              | ((along[:, None, :] == along[:, :, None])
+                 & (vglobal[:, None, :] < vglobal[:, :, None])))
+    order = np.zeros((nall, 3), dtype=np.int64)
+    np.put_along_axis(order, before.sum(axis=2), np.arange(3)[None, :], axis=1)
     lookup = np.zeros(27, dtype=np.int64)
     for p, o in enumerate(ORDERS):
         lookup[9 * o[0] + 3 * o[1] + o[2]] = p
@@ -145,10 +152,13 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
                          dtype=np.int64).reshape(nall, 3)
     cglobal = np.asarray(cmap.local_to_global(np.arange(nall, dtype=np.int32)), dtype=np.int64)
 
+    across = mesh.geometry.x[:, :2][nodes] @ np.array([-DIRECTION[1], DIRECTION[0]])
+    side = across.sum(axis=1)
     nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
-    position = np.zeros(nlocal)
+    point = np.zeros((nlocal, 2))
+    position, normal = point[:, 0], point[:, 1]
     entity = np.zeros(nlocal, dtype=np.int64)
-    code = np.zeros(nlocal, dtype=np.int64)
+    code = np.zeros(nlocal, dtype=np.int16)
     cells = np.arange(nall)
     facet_cols = np.array(W.sub(0).element.basix_element.entity_dofs[1])
     inner_cols = W.sub(0).element.basix_element.entity_dofs[2][0]
@@ -158,6 +168,7 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
         for t in range(facet_cols.shape[1]):
             dof = rt_dofs[cells, facet_cols[f, t]]
             position[dof] = midpoint[cells, f]
+            normal[dof] = 0.5 * (side - across[cells, f])
             entity[dof] = fglobal[cells, f]
             code[dof] = (FACET << 2) | t | np.where(signs[p, info, i, t] < 0, NEGATIVE, 0)
             facet_dofs.append(dof)
@@ -165,15 +176,15 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     disagree = sum(int(np.count_nonzero(code[d] != k)) for d, k in zip(facet_dofs, facet_codes))
     for t, col in enumerate(inner_cols):
         dof = rt_dofs[:, col]
-        position[dof], entity[dof] = total / 3.0, cglobal
+        position[dof], normal[dof], entity[dof] = total / 3.0, side / 3.0, cglobal
         code[dof] = (INNER << 2) | t | (p << BLOCK)
     for k in range(3):
         dof = dg_dofs[cells, order[:, k]]
-        position[dof], entity[dof] = total / 3.0, cglobal
+        position[dof], normal[dof], entity[dof] = total / 3.0, side / 3.0, cglobal
         code[dof] = (DG << 2) | k
     # one integer per dof for ties of position: entity, kind, index in the entity
     entity = (entity * 4 + _kind(code)) * 4 + (code & 3)
-    return position, entity, code, blocks, disagree
+    return point, entity, code, blocks, disagree
 
 
 def to_canonical(values, sign, pairs, blocks, transpose=True):
@@ -188,6 +199,56 @@ def to_canonical(values, sign, pairs, blocks, transpose=True):
             values[first] = B[0, 0] * v0 + B[0, 1] * v1
             values[first + 1] = B[1, 0] * v0 + B[1, 1] * v1
     return values
+
+
+class BasisChange:
+    """G and Gᵀ on home vectors (`apply`), as `to_canonical` but by slices: the patches are
+    cut into runs of consecutive patches with the same size n, number F of facet dofs and
+    number c of cells; in canonical order a patch holds its F facet dofs, then its c pairs of
+    interior RT dofs, then its DG dofs, so that in a run (M patches) the signs act on the
+    columns [0, F) of an (M, n) view and the 2 × 2 blocks on the pairs of the columns [F, F +
+    2c). Kept per run: the signs (M, F) and the blocks (M, c, 2, 2), as int8."""
+
+    def __init__(self, code, offsets, blocks):
+        kind = _kind(code)
+        n = np.diff(offsets)
+        self.runs = []
+        if n.size == 0:
+            return
+        F = np.add.reduceat(kind == FACET, offsets[:-1])
+        c = np.add.reduceat(kind == INNER, offsets[:-1]) // 2
+        shape = np.stack([n, F, c], axis=1)
+        cut = np.flatnonzero(np.any(shape[1:] != shape[:-1], axis=1)) + 1
+        bounds = np.concatenate([[0], cut, [n.size]])
+        table = np.asarray(np.rint(blocks), dtype=np.int8)
+        for first, last in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
+            m, f, k = (int(x) for x in shape[first])
+            h0, count = int(offsets[first]), last - first
+            view = code[h0:h0 + count * m].reshape(count, m)
+            expected = np.repeat([FACET, INNER, DG], [f, 2 * k, m - f - 2 * k])
+            if (np.any(_kind(view) != expected)
+                    or np.any((view[:, f:f + 2 * k] & 3) != np.arange(2 * k) % 2)):
+                raise RuntimeError("a patch's dofs are not in the canonical order")
+            sign = np.where(view[:, :f] & NEGATIVE, np.int8(-1), np.int8(1))
+            block = table[(view[:, f:f + 2 * k:2] >> BLOCK) & 7]
+            self.runs.append((h0, count, m, f, k, sign, block))
+
+    def apply(self, values, transpose=True):
+        """values ← Gᵀ values (transpose) or G values, in place."""
+        for h0, count, m, f, k, sign, block in self.runs:
+            rows = values[h0:h0 + count * m].reshape(count, m)
+            if f:
+                rows[:, :f] *= sign
+            if k:
+                pairs = rows[:, f:f + 2 * k].reshape(count, k, 2)
+                v0, v1 = pairs[:, :, 0].copy(), pairs[:, :, 1].copy()
+                a, b = (1, 0) if transpose else (0, 1)
+                pairs[:, :, 0] = v0 * block[:, :, 0, 0] + v1 * block[:, :, a, b]
+                pairs[:, :, 1] = v0 * block[:, :, b, a] + v1 * block[:, :, 1, 1]
+        return values
+
+    def nbytes(self):
+        return sum(r[5].nbytes + r[6].nbytes for r in self.runs)
 
 
 def _pairs(code):
@@ -235,24 +296,80 @@ def canonical_block(ia, ja, a, code, blocks):
 
 # ## Classes of equal blocks
 #
-# The patches of a group with the same size n, number of entries L and number of RT dofs n_σ
-# are compared as rows of a (patches, L) array of their CSR values (rows in order, columns
-# sorted). A block's fingerprint
-# is its values against fixed weights over the L positions divided by its largest entry,
-# rounded to 2⁻³² (congruent blocks differ by ~1e-15: they share a fingerprint but for a ~1e-4
-# chance of straddling a rounding boundary, which only loses the sharing). Blocks with the same
-# n, L, n_σ and fingerprint are candidates; a patch joins the class of its candidate only if its
-# pattern (row lengths and columns) is the class's and every entry agrees to `tolerance` times
-# the class's largest entry. Classes persist across groups; each keeps its first block.
+# The canonical basis is translation invariant, so translated patches have the same *key*: the
+# kinds and indices of their kept dofs in canonical order with the positions of their entities
+# relative to the patch's first, in units of the patch's shortest edge h, rounded to 2⁻²⁰
+# (`patch_keys`, hashed to 64 bits). Patches with equal keys are candidates for one class: only
+# the block of the class's first patch (its representative) is taken from A. A key is cheap but
+# not a proof (rounding boundaries, hash collisions, coefficients that are not translation
+# invariant), so every patch is checked against its class's block with a random probe: each
+# class k draws v_k and keeps u_k = Ã_k v_k and ref_k = max|Ã_k| · max_i Σ_{j ∈ row i} |v_k,j|;
+# `patches` applies A to Σ_p G_p v_{class(p)} for all patches of a group at once and compares
+# G_pᵀ (A G_p v) = Ã_p v with u. A patch joins its class only if max_i |(Ã_p v - u)_i| ≤
+# tolerance · ref_k; otherwise its own block is taken and it gets a class of its own. An entry
+# error δ ≤ tolerance · max|Ã_k| passes; a block that differs by more than round-off would have
+# to be orthogonal to the random v in every row to pass.
 #
 # The tolerance is the round-off of the geometry: the coordinates carry an error ε R (R the
 # largest |x|), so the blocks of two translates, functions of the edge vectors of their cells,
 # differ relatively by ~ε R/h (h the patch's shortest edge; measured up to 1.2 ε R/h). A patch
 # is compared with tolerance max(SAME, ROUNDING ε R/h): as close as its own matrix is to the
-# matrix of its exact geometry.
+# matrix of its exact geometry. The probe's own round-off (a sparse product of ≲ 40 terms and
+# the integer 2 × 2 blocks of G) is ≲ 1e-14 relative, below SAME.
 
 SAME = 1e-13
 ROUNDING = 16            # a translate's blocks differ by ~ε R/h (measured 1.2 ε R/h at most)
+KEY_GRID = 2.0 ** 20     # relative positions in a key: multiples of 2⁻²⁰ h
+KEY_CODE = 15 | INTERIOR                # the code bits in a key: index, kind, interior patch
+
+
+def _mix(z):
+    """splitmix64's finaliser on uint64 (wrapping arithmetic), in place."""
+    with np.errstate(over="ignore"):
+        z ^= z >> np.uint64(30)
+        z *= np.uint64(0xBF58476D1CE4E5B9)
+        z ^= z >> np.uint64(27)
+        z *= np.uint64(0x94D049BB133111EB)
+        z ^= z >> np.uint64(31)
+    return z
+
+
+def patch_keys(offsets, code, point, h, rows=None):
+    """The key of each patch (uint64): entries offsets[k]:offsets[k+1] of `code` and of
+    point[rows] (entity positions, (dofs, 2); rows=None: all) are patch k's dofs in canonical
+    order, h[k] its shortest edge. Translated patches get equal keys (but for positions within
+    round-off of a rounding boundary)."""
+    n = np.diff(offsets)
+    keys = np.zeros(n.size, dtype=np.uint64)
+    if n.size == 0:
+        return keys
+    # the first dof of each entity stands for its entity (the others differ only by index)
+    first = (code & 3) == 0
+    start = np.concatenate([[0], np.cumsum(np.add.reduceat(first, offsets[:-1]))])
+    code, point = code[first], point[first if rows is None else rows[first]]
+    step = 1 << 11                                   # patches at a time (bounds the memory)
+    for lo in range(0, n.size, step):
+        hi = min(lo + step, n.size)
+        a, b = start[lo], start[hi]
+        keys[lo:hi] = _keys(start[lo:hi + 1] - a, code[a:b], point[a:b], h[lo:hi])
+    with np.errstate(over="ignore"):
+        return keys + _mix(n.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15))
+
+
+def _keys(offsets, code, point, h):
+    n = np.diff(offsets)
+    first = np.repeat(offsets[:-1], n)
+    rel = point - point[first]
+    rel *= np.repeat(KEY_GRID / h, n)[:, None]
+    word = np.rint(rel, out=rel).astype(np.int64).view(np.uint64)
+    first -= np.arange(offsets[-1])                                # minus the index in the patch
+    with np.errstate(over="ignore"):
+        word[:, 0] *= np.uint64(0x9E3779B97F4A7C15)
+        word[:, 1] *= np.uint64(0xC2B2AE3D27D4EB4F)
+        mixed = word[:, 0] + word[:, 1]
+        mixed += (code & KEY_CODE).astype(np.uint64) * np.uint64(0x165667B19E3779F9)
+        mixed -= first.view(np.uint64) * np.uint64(0x27D4EB2F165667C5)
+        return np.add.reduceat(_mix(mixed), offsets[:-1])
 
 
 class _Rows:
@@ -273,89 +390,74 @@ class _Rows:
 
 
 class Blocks:
-    """The distinct canonical patch blocks of one process (`classify` the patches of each
-    group, then `operators` of the classes)."""
+    """The canonical blocks of the classes of one process (`add` blocks as new classes; the
+    probes of the classes; `operators` of the classes). A block is kept as CSR rows, grouped
+    by shape (n, L, n_σ): size, number of entries, number of RT dofs."""
 
-    def __init__(self, share=True):
-        self.share = share
-        self.index = {}              # (n, L, n_σ, fingerprint) → class
-        self.shapes = {}             # (n, L, n_σ) → [values, columns, row lengths, scales]
+    def __init__(self, seed=0):
+        self.shapes = {}             # (n, L, n_σ) → [values, columns, row lengths]
         self.where = []              # class → ((n, L, n_σ), row in the shape's arrays)
-        self.rejected = 0
-        self.worst = 0.0             # largest relative difference of a block from its class's
+        self.rng = np.random.default_rng(seed)
+        self._probes, self._cache = [], None
 
-    def _add(self, shape, values, columns, lengths, scales):
-        """New classes, one per row of `values`; their numbers."""
-        if shape not in self.shapes:
-            n, L, _ = shape
-            self.shapes[shape] = [_Rows(L, np.float64), _Rows(L, np.int32), _Rows(n, np.int32),
-                                  _Rows(1, np.float64)]
-        store = self.shapes[shape]
-        first = store[0].size
-        for rows, data in zip(store, (values, columns, lengths, scales[:, None])):
-            rows.append(data)
-        numbers = np.arange(len(self.where), len(self.where) + len(values))
-        self.where.extend((shape, first + k) for k in range(len(values)))
-        return numbers
-
-    def classify(self, ia, ja, a, offsets, tolerance, nsigma):
-        """The class of each patch of a group: rows offsets[k]:offsets[k+1] of the canonical
-        CSR block (ia, ja, a) are patch k's, its RT dofs first (nsigma[k] of them); its
-        columns must lie in the same range. `tolerance[k]`: the relative difference of entries
-        allowed for patch k."""
+    def add(self, ia, ja, a, offsets, nsigma):
+        """New classes for the blocks of CSR rows (ia, ja, a): rows offsets[k]:offsets[k+1]
+        are patch k's, its RT dofs first (nsigma[k] of them), its columns in the same range.
+        Returns their class numbers."""
         n = np.diff(offsets)
+        base = len(self.where)
+        if n.size == 0:
+            return np.zeros(0, dtype=np.int64)
         starts = ia[offsets]
         L = np.diff(starts)
-        cls = np.zeros(n.size, dtype=np.int64)
-        if n.size == 0:
-            return cls
-        rowlen = np.diff(ia).astype(np.int32)
+        rowlen = np.diff(ia)
+        if np.any(L == 0):
+            raise RuntimeError("an empty patch block")
+        # the probe of each new class
+        v = self.rng.standard_normal(offsets[-1])
+        row = np.repeat(np.arange(ia.size - 1), rowlen)
+        u = np.bincount(row, weights=a * v[ja], minlength=ia.size - 1)
+        reach = np.bincount(row, weights=np.abs(v[ja]), minlength=ia.size - 1)
+        ref = np.maximum.reduceat(np.abs(a), starts[:-1]) * np.maximum.reduceat(reach,
+                                                                                 offsets[:-1])
+        self._probes.append((v, u, n, np.asarray(nsigma, dtype=np.int64), ref))
+        self._cache = None
+        where = [None] * n.size
         shapes, shape_of = np.unique(np.stack([n, L, nsigma], axis=1), axis=0,
                                      return_inverse=True)
-        for g, (size, length, rt) in enumerate(shapes.tolist()):
-            shape = (size, length, rt)
+        for g, shape in enumerate(map(tuple, shapes.tolist())):
+            size, length, _ = shape
             members = np.flatnonzero(shape_of.ravel() == g)
             entries = starts[members, None] + np.arange(length)
-            values = a[entries]
-            columns = ja[entries]
-            del entries
-            columns -= offsets[members, None].astype(ja.dtype)
-            if length == 0 or columns.min() < 0 or columns.max() >= size:
+            columns = ja[entries] - offsets[members, None].astype(ja.dtype)
+            if columns.min() < 0 or columns.max() >= size:
                 raise RuntimeError("a patch block couples two patches: the patches share a cell")
-            lengths = rowlen[offsets[members, None] + np.arange(size)]
-            scales = np.abs(values).max(axis=1)
-            if not self.share:
-                cls[members] = self._add(shape, values, columns, lengths, scales)
-                continue
-            weights = 1.0 + np.mod(np.arange(length) * 0.6180339887498949, 1.0)
-            fingerprint = np.round(np.ldexp(values @ weights / scales, 32)).astype(np.int64)
-            unique, first, inverse = np.unique(fingerprint, return_index=True,
-                                               return_inverse=True)
-            found = np.array([self.index.get(shape + (k,), -1) for k in unique.tolist()],
-                             dtype=np.int64)
-            new = np.flatnonzero(found < 0)
-            found[new] = self._add(shape, values[first[new]], columns[first[new]],
-                                   lengths[first[new]], scales[first[new]])
-            for k in new:
-                self.index[shape + (int(unique[k]),)] = found[k]
-            found = found[inverse.ravel()]
-
-            # every entry and row length against the class's first block
+            if shape not in self.shapes:
+                self.shapes[shape] = [_Rows(length, np.float64), _Rows(length, np.int32),
+                                      _Rows(size, np.int32)]
             store = self.shapes[shape]
-            row = np.array([self.where[k][1] for k in found.tolist()], dtype=np.int64)
-            error = np.abs(store[0].data[row] - values).max(axis=1)
-            same = ((store[1].data[row] == columns).all(axis=1)
-                    & (store[2].data[row] == lengths).all(axis=1)
-                    & (error <= tolerance[members] * store[3].data[row, 0]))
-            bad = np.flatnonzero(~same)
-            if bad.size < same.size:
-                self.worst = max(self.worst, float((error / store[3].data[row, 0])[same].max()))
-            if bad.size:
-                self.rejected += bad.size
-                found[bad] = self._add(shape, values[bad], columns[bad], lengths[bad],
-                                       scales[bad])
-            cls[members] = found
-        return cls
+            first = store[0].size
+            for rows, data in zip(store, (a[entries], columns,
+                                          rowlen[offsets[members, None] + np.arange(size)])):
+                rows.append(data)
+            for k, m in enumerate(members.tolist()):
+                where[m] = (shape, first + k)
+        self.where.extend(where)
+        return np.arange(base, base + n.size)
+
+    def probes(self):
+        """(v, u, start, n, n_σ, ref): the probe vectors and products of all classes, class k's
+        at start[k]:start[k] + n[k], and per class its size, RT dofs and reference magnitude."""
+        if self._cache is None:
+            if self._probes:
+                v, u, n, nsigma, ref = (np.concatenate(x) for x in zip(*self._probes))
+            else:
+                v = u = ref = np.zeros(0)
+                n = nsigma = np.zeros(0, dtype=np.int64)
+            start = np.concatenate([[0], np.cumsum(n)[:-1]]).astype(np.int64)
+            self._probes = [(v, u, n, nsigma, ref)]
+            self._cache = (v, u, start, n, nsigma, ref)
+        return self._cache
 
     def count(self):
         return len(self.where)
@@ -372,7 +474,7 @@ class Blocks:
         row_of = np.array([self.where[k][1] for k in order], dtype=np.int64)
         for shape in set(shape_of):
             pick = np.array([s == shape for s in shape_of])
-            values, columns, lengths, _ = self.shapes[shape]
+            values, columns, lengths = self.shapes[shape]
             rows = row_of[pick]
             k = np.repeat(np.flatnonzero(pick), shape[1])
             r = np.repeat(np.tile(np.arange(n), rows.size), lengths.data[rows].ravel())
@@ -403,7 +505,7 @@ class Blocks:
         return out
 
     def release(self):
-        self.__init__(self.share)
+        self.__init__()
 
 
 # ## Inverses of the patch blocks

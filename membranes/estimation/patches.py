@@ -16,15 +16,27 @@ group is supported on the cells of one patch (a facet dof is kept only if both i
 that patch, or its one cell if the facet lies on ∂Ω), so the entry of the matrix A of the form
 above, assembled by dolfinx over the whole mesh (forms.equilibration.patch_system), between two
 kept dofs is the sum of the cell blocks of that patch only: each patch's matrix is a principal
-submatrix A_p of A. Each patch is solved on one process, its *home*; PETSc's
-MatCreateSubMatrices brings the rows of the patches at home there (as for overlapping Schwarz
-subdomains), and a VecScatter per group moves right-hand sides and solutions.
+submatrix A_p of A, and equally of A assembled on any set of cells containing the patch's
+(`homes.assemble_on`: only the cells of the patches whose blocks are taken are assembled, so
+no matrix over the whole mesh is ever made). Each patch is solved on one process, its *home*.
+A VecScatter per group moves right-hand sides from the dofs' owners to the homes and
+solutions back (in the set-up, a *route* of one MPI Alltoallv each way, `_to_home`/
+`_to_owners`, does the same before the home layout is known); PETSc's MatCreateSubMatrices
+brings the rows of the blocks that are needed to the homes (as for overlapping Schwarz
+subdomains).
 
 **Shared dense inverses.** The blocks are taken in the canonical basis of `congruence`, where
-the blocks of translated patches are equal to round-off; patches with equal blocks form a
-class (`congruence.Blocks`), and each class keeps one dense inverse (LAPACK). The home vector
-holds the patches class by class, so that a call solves all patches of a class by one matrix
-product. Where nothing is congruent (an unstructured mesh) every patch has its own inverse.
+the blocks of translated patches are equal to round-off. Patches with equal translation
+invariant keys (`congruence.patch_keys`) are candidates for one class; only the block of the
+first patch of a new key is taken, from A assembled on the cells of those patches of all
+groups (their homes mark them for the owners of their cells, `_marked_cells`). Every patch of a
+group is then checked against its class's block at once, by one product of A with a random
+probe (`_probe`; the patches of a group share no cell), computed as the vector assembly of the
+form's action on the group's cells (`homes.Action`: no matrix); a patch that fails gets its own
+block and class (a second assembly on the cells of the failed patches). Each class keeps one
+dense inverse (LAPACK). The home vector holds the patches class by class, so that a call
+solves all patches of a class by one matrix product. Where nothing is congruent (an
+unstructured mesh) every patch has its own block and inverse.
 
 **Zero mean on interior patches.** Instead of a Lagrange multiplier, one DG dof k of the patch
 (its first in the canonical order) is removed, both as unknown (γ_k = 0) and as equation (the
@@ -47,14 +59,9 @@ import ufl
 from mpi4py import MPI
 from petsc4py import PETSc
 
-import forms.equilibration as equilibration_forms
-
 from .congruence import (
-    DG,
-    INTERIOR,
     NEGATIVE,
-    ROUNDING,
-    SAME,
+    BasisChange,
     Blocks,
     _kind,
     _pairs,
@@ -62,156 +69,11 @@ from .congruence import (
     canonical_dofs,
     to_canonical,
 )
+from .exchange import Shared, alltoallv, colour_vertices, reduce_by_key
+from .homes import Action, HomeSetup, assemble_on, stable_order
 
-CHUNK = 1 << 18          # rows of patch blocks taken from A at a time (bounds the set-up memory)
-
-
-# ## Communication on an index map
-#
-# dolfinx's own scatterers add or insert; the colouring needs max and bitwise-or, and the
-# facet exchange max. `Shared` does both directions for any numpy ufunc with MPI Alltoallv.
-
-class Shared:
-    """Owned/ghost communication on a dolfinx IndexMap (block size 1).
-
-    `reverse(values, op)`: every ghost's value is combined into its owner's entry with the ufunc
-    `op` (np.add, np.maximum, np.bitwise_or, ...). `forward(values)`: ghosts receive their
-    owner's value. `values` has one row per local entry (owned then ghosts)."""
-
-    def __init__(self, imap, comm):
-        self.comm = comm
-        n = imap.size_local
-        owners = np.asarray(imap.owners, dtype=np.int64)
-        ghosts = np.asarray(imap.ghosts, dtype=np.int64)
-        order = np.argsort(owners, kind="stable")
-        self.ghost_local = (n + order).astype(np.int64)
-        self.send_counts = np.bincount(owners, minlength=comm.size).astype(np.int64)
-        self.recv_counts = np.asarray(comm.alltoall(self.send_counts.tolist()), dtype=np.int64)
-        received = alltoallv(comm, ghosts[order], self.send_counts, self.recv_counts)
-        self.owned_local = received - imap.local_range[0]
-
-    def reverse(self, values, op):
-        sent = np.ascontiguousarray(values[self.ghost_local])
-        got = alltoallv(self.comm, sent, self.send_counts, self.recv_counts)
-        op.at(values, self.owned_local, got)
-        return values
-
-    def forward(self, values):
-        sent = np.ascontiguousarray(values[self.owned_local])
-        values[self.ghost_local] = alltoallv(self.comm, sent, self.recv_counts, self.send_counts)
-        return values
-
-
-def alltoallv(comm, rows, send_counts, recv_counts):
-    """Rows of `rows` (grouped by destination rank, send_counts[p] rows to rank p) sent with
-    MPI Alltoallv; returns the received rows grouped by source rank."""
-    rows = np.ascontiguousarray(rows)
-    width = int(np.prod(rows.shape[1:], dtype=np.int64))
-    if comm.size == 1:
-        return rows
-    out = np.empty((int(recv_counts.sum()),) + rows.shape[1:], dtype=rows.dtype)
-    sc, rc = send_counts * width, recv_counts * width
-    sd = np.concatenate([[0], np.cumsum(sc)[:-1]])
-    rd = np.concatenate([[0], np.cumsum(rc)[:-1]])
-    comm.Alltoallv([rows.reshape(-1), (sc, sd)], [out.reshape(-1), (rc, rd)])
-    return out
-
-
-def reduce_by_key(comm, keys, values, op):
-    """For integer `keys` spread over the processes, the reduction with ufunc `op` of the
-    `values` of all processes with the same key, returned for each local key (a distributed
-    dictionary: key k lives on rank k mod P)."""
-    keys = np.asarray(keys, dtype=np.int64)
-    values = np.asarray(values)
-    dest = keys % comm.size
-    order = np.argsort(dest, kind="stable")
-    send_counts = np.bincount(dest, minlength=comm.size).astype(np.int64)
-    recv_counts = np.asarray(comm.alltoall(send_counts.tolist()), dtype=np.int64)
-    k = alltoallv(comm, keys[order], send_counts, recv_counts)
-    v = alltoallv(comm, values[order], send_counts, recv_counts)
-    by_key = np.argsort(k, kind="stable")
-    first = np.ones(k.size, dtype=bool)
-    first[1:] = k[by_key][1:] != k[by_key][:-1]
-    reduced = op.reduceat(v[by_key], np.flatnonzero(first)) if k.size else v[:0]
-    inverse = np.empty(k.size, dtype=np.int64)
-    inverse[by_key] = np.cumsum(first) - 1
-    back = alltoallv(comm, reduced[inverse], recv_counts, send_counts)
-    out = np.empty_like(values)
-    out[order] = back
-    return out
-
-
-# ## Vertex colouring
-#
-# Vertices are adjacent when they share a cell (for triangles: an edge). Jones–Plassmann: each
-# round colours the uncoloured vertices whose priority beats all their uncoloured neighbours
-# (an independent set), each with the smallest colour none of its neighbours has. The result is
-# the sequential greedy colouring in order of decreasing priority. Neighbours across process
-# boundaries are seen through the reverse exchange of the vertex index map: each process
-# reduces over its own cells, the owner combines.
-
-def _priority(global_index):
-    """Distinct pseudo-random priorities: 32 hashed bits (splitmix64) above the index + 1."""
-    z = global_index.astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    z = z ^ (z >> np.uint64(31))
-    return ((z >> np.uint64(32)) << np.uint64(32)) | (global_index.astype(np.uint64) + np.uint64(1))
-
-
-def vertex_graph(cells, nlocal):
-    """CSR adjacency (offsets, neighbours) of the local vertices through the given cells."""
-    k = cells.shape[1]
-    i = np.repeat(cells, k - 1, axis=1).ravel()
-    j = np.concatenate([np.roll(cells, -s, axis=1)[:, :, None] for s in range(1, k)],
-                       axis=2).reshape(-1)
-    pairs = np.unique(i.astype(np.int64) * nlocal + j)
-    i, j = pairs // nlocal, pairs % nlocal
-    offsets = np.zeros(nlocal + 1, dtype=np.int64)
-    np.cumsum(np.bincount(i, minlength=nlocal), out=offsets[1:])
-    return offsets, j
-
-
-def _segment_reduce(op, values, offsets, identity):
-    """op over each CSR segment of `values`, `identity` for empty segments."""
-    out = np.full(offsets.size - 1, identity, dtype=values.dtype)
-    nonempty = offsets[1:] > offsets[:-1]
-    if values.size:
-        out[nonempty] = op.reduceat(values, offsets[:-1][nonempty])
-    return out
-
-
-def colour_vertices(cells, imap, comm):
-    """A colouring of the vertices of an index map such that no two vertices of one colour
-    share a cell of `cells` ((owned cells, vertices) local vertex indices). Returns
-    (colour of every local vertex, owned and ghost, int32; number of colours; rounds)."""
-    n, nloc = imap.size_local, imap.size_local + imap.num_ghosts
-    shared = Shared(imap, comm)
-    offsets, nbrs = vertex_graph(cells, nloc)
-    prio = _priority(np.asarray(imap.local_to_global(np.arange(nloc, dtype=np.int32))))
-    colour = np.full(nloc, -1, dtype=np.int64)
-    rounds = 0
-    while comm.allreduce(int(np.count_nonzero(colour[:n] < 0)), op=MPI.SUM) > 0:
-        rounds += 1
-        uncoloured = colour < 0
-        # the largest priority among the uncoloured neighbours, over all processes' cells
-        best = _segment_reduce(np.maximum, np.where(uncoloured, prio, 0)[nbrs], offsets,
-                               np.uint64(0))
-        shared.reverse(best, np.maximum)
-        chosen = np.flatnonzero(uncoloured[:n] & (prio[:n] > best[:n]))
-        # the colours of the coloured neighbours as bits
-        bits = np.where(colour >= 0, np.left_shift(np.uint64(1), np.maximum(colour, 0)
-                                                   .astype(np.uint64)), np.uint64(0))
-        taken = _segment_reduce(np.bitwise_or, bits[nbrs], offsets, np.uint64(0))
-        shared.reverse(taken, np.bitwise_or)
-        free = ~taken[chosen]
-        if np.any(free == 0):
-            raise RuntimeError("vertex colouring needs more than 64 colours")
-        lowest = free & (~free + np.uint64(1))
-        colour[chosen] = np.round(np.log2(lowest.astype(np.float64))).astype(np.int64)
-        shared.forward(colour)
-    ncolours = comm.allreduce(int(colour.max(initial=-1)) + 1, op=MPI.MAX)
-    return colour.astype(np.int32), ncolours, rounds
+__all__ = ["PatchSystems", "Shared", "alltoallv", "colour_vertices", "mixed_space", "stable_order",
+           "reduce_by_key"]
 
 
 def mixed_space(mesh):
@@ -224,7 +86,7 @@ def mixed_space(mesh):
 
 # ## The coloured patch systems
 
-class PatchSystems:
+class PatchSystems(HomeSetup):
     """The patch problems of one mesh in groups, set up once (see the module docstring).
 
     `patches[c]`: int array over the owned cells, the global id of the patch of group (colour)
@@ -249,8 +111,6 @@ class PatchSystems:
 
     def __init__(self, mesh, patches, interior, W=None, share=True, rhs="full",
                  solution="full"):
-        from dolfinx import fem
-        from dolfinx.fem.petsc import assemble_matrix
         if rhs not in ("full", "divergence") or solution not in ("full", "flux"):
             raise ValueError(f"rhs must be 'full' or 'divergence', solution 'full' or 'flux'; "
                              f"got {rhs!r}, {solution!r}")
@@ -264,197 +124,136 @@ class PatchSystems:
         self.position, self.entity, self.code, self.blocks, self.disagree = canonical_dofs(
             mesh, W, self.c2f, self.rt_dofs, self.dg_dofs)
         n = self.nowned
-        # canonical order in a patch: its RT dofs, then its DG dofs, each by position
-        self.by_rank = np.lexsort((self.entity[:n], self.position[:n],
-                                   _kind(self.code[:n]) == DG))
+        # canonical order in a patch: its RT facet dofs, its interior RT dofs (a cell's two
+        # adjacent), its DG dofs, each by position
+        self.by_rank = np.lexsort((self.entity[:n], self.position[:n, 0],
+                                   _kind(self.code[:n])))
+        rank = np.full(self.nlocal, n, dtype=np.int32)            # ghost dofs: n
+        rank[self.by_rank] = np.arange(n, dtype=np.int32)
+        self.facet_rank, self.cell_rank = rank[self.facet_dofs], rank[self.cell_dofs]
+        del rank, self.facet_dofs, self.cell_dofs
 
-        # A over the whole mesh, once; each group's rows at home are taken from it, made
-        # canonical and classified, one group at a time
-        (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
-        A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q)))
-        A.assemble()
-        signs = A.createVecLeft()
-        signs.array[:] = np.where(self.code[:n] & NEGATIVE, -1.0, 1.0)
-        A.diagonalScale(signs, signs)                 # the ±1 of G on facet dofs
-        signs.destroy()
-        classes = Blocks(share)
-        groups = []
+        # per group its patches at home, and the patches whose blocks are needed: the first
+        # of each new key (all patches without sharing); their class numbers are given now
+        # (in the order `_extract` makes them)
+        self.signs = np.where(self.code[:n] & NEGATIVE, -1.0, 1.0)     # the ±1 of G
+        classes, self.known = Blocks(), (np.zeros(0, dtype=np.uint64), np.zeros(0, np.int64))
+        self.rejected, self.worst = 0, 0.0
+        pending, count = [], 0
         for pid, inner in zip(patches, interior):
-            dofs, offsets, code, tolerance, nsigma = self._home_dofs(
+            dofs, offsets, code, tolerance, nsigma, key, route, ids = self._home_dofs(
                 np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
-            cls = np.zeros(len(offsets) - 1, dtype=np.int64)
-            for first, last in self._chunks(offsets):
-                rows = slice(offsets[first], offsets[last])
-                iset = PETSc.IS().createGeneral(dofs[rows].astype(PETSc.IntType),
-                                                comm=PETSc.COMM_SELF)
-                block = A.createSubMatrices(iset)[0]
-                iset.destroy()
-                ia, ja, a = block.getValuesCSR()
-                block.destroy()
-                ia = ia.astype(np.int64)
-                a = canonical_block(ia, ja.astype(np.int64), a, code[rows], self.blocks)
-                cls[first:last] = classes.classify(ia, ja, a,
-                                                   offsets[first:last + 1] - offsets[first],
-                                                   tolerance[first:last], nsigma[first:last])
-                del ia, ja, a
-            groups.append((dofs.astype(PETSc.IntType), offsets, code.astype(np.int16), cls))
+            npatch = len(offsets) - 1
+            if share:
+                cls = self._lookup(key)
+                new = np.flatnonzero(cls < 0)
+                new = new[np.unique(key[new], return_index=True)[1]]     # one per new key
+                self._remember(key[new], count + np.arange(new.size))
+                cls = self._lookup(key)
+            else:
+                new = np.arange(npatch)
+                cls = count + new
+            count += new.size
+            pending.append([dofs, offsets, code, tolerance, nsigma, route, ids, new, cls])
+        patches = [np.asarray(p, dtype=np.int64) for p in patches]
+        # A on the cells of those patches only; their blocks, made canonical
+        A = assemble_on(W, self._marked_cells(patches, [p[6][p[7]] for p in pending]),
+                        self.signs)
+        for dofs, offsets, code, _, nsigma, _, _, new, cls in pending:
+            if not np.array_equal(self._extract(A, dofs, offsets, code, nsigma, new, classes),
+                                  cls[new]):
+                raise RuntimeError("the classes were not made in the expected order")
         A.destroy()
+        # every patch checked against its class by the form's action (no matrix); the
+        # rejected ones get their own blocks, from A on their cells
+        action = Action(W, self.signs)
+        bad = []
+        for p, pid in zip(pending, patches):
+            dofs, offsets, code, tolerance, nsigma, route, ids, new, cls = p
+            error, ref = self._probe(action, np.flatnonzero(pid >= 0), route, offsets, code,
+                                     cls, classes)
+            ok = error <= tolerance * ref
+            bad.append(np.flatnonzero(~ok))
+            self.rejected += bad[-1].size
+            if np.any(ok):
+                self.worst = max(self.worst, float((error[ok] / ref[ok]).max()))
+            p[5] = None                                               # the route
+        action.destroy()
+        if self.comm.allreduce(self.rejected, op=MPI.SUM):
+            A = assemble_on(W, self._marked_cells(
+                patches, [p[6][b] for p, b in zip(pending, bad)]), self.signs)
+            for (dofs, offsets, code, _, nsigma, _, _, _, cls), b in zip(pending, bad):
+                cls[b] = self._extract(A, dofs, offsets, code, nsigma, b, classes)
+            A.destroy()
+        groups = [(p[0].astype(PETSc.IntType), p[1], p[2].astype(np.int16), p[8])
+                  for p in pending]
+        del pending
         self._layout(groups, classes)
         # only the home layout, the scatters and the inverses are kept
         for name in ("position", "entity", "code", "by_rank", "c2f", "facet_shared",
                      "facet_owned_cells", "facet_cells", "cell_global", "cell_h", "rt_dofs",
-                     "dg_dofs"):
+                     "dg_dofs", "facet_rank", "cell_rank", "known", "signs"):
             delattr(self, name)
 
-    def _chunks(self, offsets):
-        """Ranges of patches (first, last) of about CHUNK rows, as many on every process
-        (MatCreateSubMatrices is collective): the blocks are taken a chunk at a time."""
-        npatch = len(offsets) - 1
-        count = self.comm.allreduce(max(1, -(-int(offsets[-1]) // CHUNK)), op=MPI.MAX)
-        bounds = np.searchsorted(offsets, np.linspace(0, offsets[-1], count + 1)[1:-1])
-        bounds = np.concatenate([[0], np.minimum(bounds, npatch), [npatch]])
-        return list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
+    def _lookup(self, key):
+        """The classes of the keys (-1: not seen yet on this process)."""
+        keys, cls = self.known
+        at = np.minimum(np.searchsorted(keys, key), max(keys.size - 1, 0))
+        return np.where(keys[at] == key, cls[at], -1) if keys.size else np.full(key.size, -1)
 
-    def _topology(self, mesh, W):
-        """Cell → facet and cell → dof tables (all local cells), facet cell counts (global)."""
-        tdim = mesh.topology.dim
-        mesh.topology.create_connectivity(tdim, tdim - 1)
-        mesh.topology.create_connectivity(tdim - 1, tdim)
-        cmap = mesh.topology.index_map(tdim)
-        self.ncells = cmap.size_local
-        nall = cmap.size_local + cmap.num_ghosts
-        self.cell_global = np.asarray(cmap.local_to_global(np.arange(self.ncells, dtype=np.int32)),
-                                      dtype=np.int64)
-        self.c2f = mesh.topology.connectivity(tdim, tdim - 1).array.reshape(nall, 3)
-        fmap = mesh.topology.index_map(tdim - 1)
-        self.nfacets = fmap.size_local + fmap.num_ghosts
-        self.facet_shared = Shared(fmap, self.comm)
-        # the (at most two) owned cells of each local facet (-1: none), and the number of cells
-        # of each facet over the whole mesh (owned cells only, each counted by its owner)
-        facets = self.c2f[:self.ncells].ravel()
-        order = np.argsort(facets, kind="stable")
-        count = np.bincount(facets, minlength=self.nfacets)
-        start = np.concatenate([[0], np.cumsum(count)[:-1]])
-        self.facet_owned_cells = np.full((self.nfacets, 2), -1, dtype=np.int64)
-        has = count > 0
-        self.facet_owned_cells[has, 0] = order[start[has]] // 3
-        two = count > 1
-        self.facet_owned_cells[two, 1] = order[start[two] + 1] // 3
-        self.facet_cells = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
+    def _remember(self, key, cls):
+        keys = np.concatenate([self.known[0], key])
+        order = np.argsort(keys, kind="stable")
+        self.known = keys[order], np.concatenate([self.known[1], cls])[order]
 
-        rt = W.sub(0).element.basix_element.entity_dofs
-        self.rt_facet_cols = np.array(rt[tdim - 1])              # (3, 2): dofs of local facet i
-        self.rt_cell_cols = np.array(rt[tdim][0])                 # interior dofs
-        self.rt_dofs = W.sub(0).dofmap.list.array.reshape(nall, -1)
-        self.dg_dofs = W.sub(1).dofmap.list.array.reshape(nall, -1)
-        # the shortest edge of each owned cell, and the largest |x| of the mesh (§12: the
-        # tolerance of the block comparisons)
-        nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:self.ncells]
-        x = mesh.geometry.x[:, :2][nodes]
-        self.cell_h = np.linalg.norm(x - np.roll(x, 1, axis=1), axis=2).min(axis=1)
-        self.radius = self.comm.allreduce(float(np.abs(mesh.geometry.x).max(initial=0.0)),
-                                          op=MPI.MAX)
-        imap = W.dofmap.index_map
-        self.nowned = imap.size_local
-        self.nlocal = imap.size_local + imap.num_ghosts
-        self.rstart = imap.local_range[0]
+    def _extract(self, A, dofs, offsets, code, nsigma, which, classes):
+        """New classes for the blocks of the patches `which` of a group, taken from A (rows
+        and columns at the patches' kept dofs, a chunk at a time: collective) and made
+        canonical."""
+        which = np.asarray(which, dtype=np.int64)
+        n = offsets[which + 1] - offsets[which]
+        sub = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+        rows = np.repeat(offsets[which] - sub[:-1], n) + np.arange(sub[-1])
+        out = np.zeros(which.size, dtype=np.int64)
+        for first, last in self._chunks(sub):
+            r = rows[sub[first]:sub[last]]
+            iset = PETSc.IS().createGeneral(dofs[r].astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+            block = A.createSubMatrices(iset)[0]
+            iset.destroy()
+            ia, ja, a = block.getValuesCSR()
+            block.destroy()
+            ia, ja = ia.astype(np.int64), ja.astype(np.int64)
+            a = canonical_block(ia, ja, a, code[r], self.blocks)
+            out[first:last] = classes.add(ia, ja, a, sub[first:last + 1] - sub[first],
+                                          nsigma[which[first:last]])
+        return out
 
-    def _home_dofs(self, pid, inner):
-        """The kept W dofs of the group's patches at home on this process (global indices), in
-        canonical order patch by patch (RT dofs first), the patches' offsets, the dofs' codes,
-        the patches' tolerances and numbers of RT dofs (a collective call: every process hands
-        over its owned kept dofs)."""
-        comm = self.comm
-        # per facet, over its (at most two) cells: the largest and smallest patch id + 1
-        # (0 = no patch), and whether a cell's patch is not interior; reduced across processes
-        least = np.iinfo(np.int64).min
-        cell_info = np.stack([pid + 1, -(pid + 1), ((pid >= 0) & ~inner)], axis=1)
-        cell_info = np.vstack([cell_info, np.full((1, 3), least)])     # row -1: no cell
-        info = np.maximum(cell_info[self.facet_owned_cells[:, 0]],
-                          cell_info[self.facet_owned_cells[:, 1]])
-        self.facet_shared.forward(self.facet_shared.reverse(info, np.maximum))
-        hi, lo, free = info[:, 0], -info[:, 1], info[:, 2]
-        inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
-        on_boundary = (self.facet_cells == 1) & (free == 1)
-        facet_patch = np.where(inside | on_boundary, hi - 1, -1)
-
-        # the patch of every local dof the group keeps (-1: not kept)
-        patch = np.full(self.nlocal, -1, dtype=np.int64)
-        cols = self.rt_facet_cols
-        patch[self.rt_dofs[:, cols.ravel()]] = np.repeat(facet_patch[self.c2f], cols.shape[1],
-                                                         axis=1)
-        cells = np.flatnonzero(pid >= 0)
-        patch[self.rt_dofs[cells][:, self.rt_cell_cols]] = pid[cells, None]
-        patch[self.dg_dofs[cells]] = pid[cells, None]
-        # the owned kept dofs in canonical order, patch by patch
-        kept = self.by_rank[patch[self.by_rank] >= 0]
-        kp = patch[kept]
-        by_patch = np.argsort(kp, kind="stable")
-        kept, kp = kept[by_patch], kp[by_patch]
-
-        # home of each patch: the owner of its cell of least global index, found with the
-        # patch's interior flag in one distributed reduction over the patches seen here
-        # (and its shortest edge)
-        keys, at = np.unique(pid[cells], return_inverse=True)
-        values = np.full(keys.size, np.iinfo(np.int64).max, dtype=np.int64)
-        np.minimum.at(values, at, ((self.cell_global[cells] * comm.size + comm.rank) << 1)
-                      | ~inner[cells])
-        h = np.full(keys.size, np.inf)
-        np.minimum.at(h, at, self.cell_h[cells])
-        seen = kp[np.flatnonzero(np.diff(kp, prepend=-1))]          # unique, sorted
-        extra = seen[keys[np.minimum(np.searchsorted(keys, seen), keys.size - 1)] != seen] \
-            if keys.size else seen                      # patches with no owned cell here
-        if extra.size:
-            keys = np.concatenate([keys, extra])
-            values = np.concatenate([values, np.full(extra.size, np.iinfo(np.int64).max)])
-            h = np.concatenate([h, np.full(extra.size, np.inf)])
-            order = np.argsort(keys)
-            keys, values, h = keys[order], values[order], h[order]
-        at = np.searchsorted(keys, kp)
-        first = reduce_by_key(comm, keys, values, np.minimum)[at]
-        h = reduce_by_key(comm, keys, h, np.minimum)[at]
-        home = (first >> 1) % comm.size
-        code = self.code[kept] | np.where(first & 1, 0, INTERIOR)
-
-        # send every kept dof to its patch's home (in order), which keeps the patches whole
-        order = np.argsort(home, kind="stable") if comm.size > 1 else slice(None)
-        send = np.bincount(home, minlength=comm.size).astype(np.int64)
-        recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
-        rows = np.empty((kept.size, 6), dtype=np.int64)
-        kept = kept[order]
-        rows[:, 0], rows[:, 1], rows[:, 4] = kept + self.rstart, kp[order], code[order]
-        rows[:, 2], rows[:, 3] = self.position[kept].view(np.int64), self.entity[kept]
-        rows[:, 5] = h[order].view(np.int64)
-        got = alltoallv(comm, rows, send, recv)
-        if comm.size > 1:
-            by_patch = np.argsort(got[:, 1], kind="stable")
-            got = got[by_patch]
-            # a patch with dofs from several processes: merge them in canonical order
-            source = np.repeat(np.arange(comm.size), recv)[by_patch]
-            new = np.flatnonzero(np.diff(got[:, 1], prepend=-1) != 0)
-            mixed = (np.minimum.reduceat(source, new) != np.maximum.reduceat(source, new)
-                     if new.size else np.zeros(0, dtype=bool))
-            redo = np.flatnonzero(np.repeat(mixed, np.diff(np.append(new, len(got)))))
-            if redo.size:
-                part = got[redo]
-                got[redo] = part[np.lexsort((part[:, 3], part[:, 2].view(np.float64),
-                                             _kind(part[:, 4]) == DG, part[:, 1]))]
-        # patch offsets; interior patches lose their first DG dof
-        new = np.flatnonzero(np.diff(got[:, 1], prepend=-1) != 0)
-        dg = np.flatnonzero(_kind(got[:, 4]) == DG)
-        pinned = dg[np.flatnonzero(np.diff(got[dg, 1], prepend=-1) != 0)]
-        pinned = pinned[(got[pinned, 4] & INTERIOR) != 0]
-        keep = np.ones(len(got), dtype=bool)
-        keep[pinned] = False
-        start = np.searchsorted(np.flatnonzero(keep), np.append(new, len(got)))
-        tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius
-                               / got[new, 5].view(np.float64))
-        dofs, code = got[keep, 0], got[keep, 4]
-        nsigma = np.add.reduceat(_kind(code) != DG, start[:-1]) if code.size else start[:0]
-        return dofs, start, code, tolerance, nsigma
+    def _probe(self, action, cells, route, offsets, code, cls, classes):
+        """(error, ref) per patch of a group: max_i |(Ã_p v - u)_i| for its class's probe v and
+        u = Ã_class v, all patches of the group at once through one product with A (the
+        form's action on the group's `cells`: the patches share no cell), and the class's
+        reference magnitude (see `congruence`). Collective."""
+        v, u, start, size, _, ref = classes.probes()
+        n = np.diff(offsets)
+        mismatch = size[cls] != n if cls.size else np.zeros(0, dtype=bool)
+        cls_ok = np.where(mismatch, 0, cls)
+        at = np.repeat(start[cls_ok] - offsets[:-1], n) + np.arange(offsets[-1])
+        at[np.repeat(mismatch, n)] = 0
+        pairs = _pairs(code)
+        # the action carries the signs of G: only the interior blocks act here
+        w = to_canonical(v[at], 1.0, pairs, self.blocks, transpose=False)
+        x = action.input()
+        x[:] = 0.0
+        self._to_owners(route, w, x, add=False)
+        got = self._to_home(route, action(cells), np.empty(offsets[-1]))
+        got = to_canonical(got, 1.0, pairs, self.blocks, transpose=True)
+        diff = np.abs(got - u[at])
+        error = np.maximum.reduceat(diff, offsets[:-1]) if n.size else diff[:0]
+        error[mismatch] = np.inf
+        return error, ref[cls_ok]
 
     def _layout(self, groups, classes):
-        """Home order (size, class multiplicity, class, group, patch), the scatters, the
+        """Home order (size, class multiplicity, class, group, patch), the routes to it, the
         canonical change of basis in home order, and the inverses of the classes."""
         comm = self.comm
         n = np.concatenate([np.diff(g[1]) for g in groups])
@@ -467,28 +266,30 @@ class PatchSystems:
         start = np.zeros(cls.size, dtype=np.int64)
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
-        code = np.zeros(self.home_size, dtype=np.int64)
+        code = np.zeros(self.home_size, dtype=np.int16)
+        # per group a VecScatter from the owners to the home positions: one pass per call
         template = PETSc.Vec().createMPI((self.nowned, PETSc.DECIDE), comm=comm)
-        home = self.home_vector()
-        hv = PETSc.Vec().createWithArray(home, comm=PETSc.COMM_SELF)
+        hv = PETSc.Vec().createWithArray(self.home_vector(), comm=PETSc.COMM_SELF)
         self.scatters, self.group_sizes = [], []
         first = 0
-        for c, (dofs, offsets, gcode, _) in enumerate(groups):
+        for dofs, offsets, gcode, _ in groups:
             k = np.diff(offsets)
             at = (np.repeat(start[first:first + k.size] - offsets[:-1], k)
                   + np.arange(offsets[-1]))
             first += k.size
             code[at] = gcode
-            src = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
-            dst = PETSc.IS().createGeneral(at.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+            by_home = np.argsort(at)                  # in home order: a cheaper set-up
+            src = PETSc.IS().createGeneral(dofs[by_home], comm=PETSc.COMM_SELF)
+            dst = PETSc.IS().createGeneral(at[by_home].astype(PETSc.IntType),
+                                           comm=PETSc.COMM_SELF)
             self.scatters.append(PETSc.Scatter().create(template, src, hv, dst))
             src.destroy()
             dst.destroy()
             self.group_sizes.append(comm.allreduce(int(offsets[-1]), op=MPI.SUM))
         template.destroy()
         hv.destroy()
-        self.sign = np.where(code & NEGATIVE, -1, 1).astype(np.int8)
-        self.pairs = _pairs(code)
+        self.change = BasisChange(code, np.append(start[order], self.home_size), self.blocks)
+        del code
 
         # per class the block of its inverse from the right-hand side entries used to the
         # solution entries wanted (RT dofs first, DG dofs last in a patch); one product per
@@ -500,8 +301,9 @@ class PatchSystems:
         try:
             first = np.full(nclasses, np.iinfo(np.int64).max)
             np.minimum.at(first, cls, start)                  # each class's first patch
-            ranked = np.unique(np.stack([n[order], shape[cls[order], 2], count[cls[order]],
-                                         cls[order]], axis=1), axis=0)
+            used = np.flatnonzero(count > 0)              # (n, n_σ, count, class) by rows
+            ranked = np.stack([shape[used, 0], shape[used, 2], count[used], used], axis=1)
+            ranked = ranked[np.lexsort(ranked.T[::-1])]
             for size, rt in np.unique(ranked[:, :2], axis=0).tolist():
                 these = ranked[(ranked[:, 0] == size) & (ranked[:, 1] == rt)]
                 inputs = slice(rt if self.rhs == "divergence" else 0, size)
@@ -517,8 +319,9 @@ class PatchSystems:
             ok = False
         if not comm.allreduce(ok, op=MPI.LAND):
             raise RuntimeError("a patch problem is singular")
+        if ok and sum(s[1] * s[2] * s[3] for s in self.solves) != self.home_size:
+            raise RuntimeError("the products do not cover the home vector")
         self.nclasses, self.npatches = nclasses, cls.size
-        self.rejected, self.worst = classes.rejected, classes.worst
         classes.release()
 
     def home_vector(self):
@@ -536,8 +339,12 @@ class PatchSystems:
         return home
 
     def canonical(self, home):
-        """Gᵀ home in place: gathered right-hand sides in the canonical basis."""
-        return to_canonical(home, self.sign, self.pairs, self.blocks, transpose=True)
+        """Gᵀ home in place: gathered right-hand sides in the canonical basis. With
+        rhs="divergence" the right-hand sides vanish on the RT dofs, where alone G differs from
+        the identity: nothing to do."""
+        if self.rhs == "divergence":
+            return home
+        return self.change.apply(home, transpose=True)
 
     def solve_home(self, home, extra=None):
         """The solutions of all patches for the gathered right-hand sides `home` (overwritten)
@@ -551,7 +358,7 @@ class PatchSystems:
             h1 = h0 + K * m * n
             np.matmul(rhs[h0:h1].reshape(K, m, n)[:, :, inputs], operator_t,
                       out=x[h0:h1].reshape(K, m, n)[:, :, outputs])
-        return to_canonical(x, self.sign, self.pairs, self.blocks, transpose=False)
+        return self.change.apply(x, transpose=False)
 
     def scatter(self, c, x, out, add=False):
         """The solutions of group c (home vector x) into the W vector `out` (owned entries):
@@ -583,10 +390,10 @@ class PatchSystems:
 
     def stats(self):
         """Global facts of the sharing: patches, classes (distinct inverses, summed over the
-        processes), blocks rejected by the entry check, inverse memory in bytes, facet dofs
-        whose two cells disagree on the canonical basis (0), and the largest difference of a
-        shared block from its class's first, relative to its largest entry (within the
-        tolerance of `Blocks`)."""
+        processes), patches rejected by the probe of their key's class (they have their own
+        block), inverse memory in bytes, facet dofs whose two cells disagree on the canonical
+        basis (0), and the largest probe residual of an accepted patch relative to its class's
+        reference magnitude (within the tolerance, see `congruence`)."""
         memory = sum(s[6].nbytes for s in self.solves)
         local = np.array([self.npatches, self.nclasses, self.rejected, memory, self.disagree])
         total = self.comm.allreduce(local, op=MPI.SUM)

@@ -70,16 +70,118 @@ def straddling(mesh, patches):
     return comm.allreduce(total, op=MPI.SUM)
 
 
+def _full_matrix(W, signs):
+    """The signed A over the whole mesh, as the engine assembled it before (the reference)."""
+    import ufl
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_matrix
+
+    import forms.equilibration as equilibration_forms
+    (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
+    A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q)))
+    A.assemble()
+    s = A.createVecLeft()
+    s.array[:] = signs
+    A.diagonalScale(s, s)
+    s.destroy()
+    return A
+
+
+def _random_signs(W, seed):
+    n = W.dofmap.index_map.size_local
+    return np.where(np.random.default_rng(seed).random(n) < 0.5, -1.0, 1.0)
+
+
+def _marked(mesh):
+    """Owned cells of every third patch of the first group (bool per owned cell), and the
+    owned W dofs all of whose cells are marked (bool per owned dof), for the space W."""
+    from dolfinx import fem
+    from dolfinx.la import ScatterMode
+
+    from membranes.estimation.patches import mixed_space
+    W = mixed_space(mesh)
+    pid = vertex_groups(mesh)[0][0]
+    marked = (pid >= 0) & (pid % 3 == 0)
+    # dofs of unmarked owned cells, summed over the processes: 0 = inside
+    count = fem.Function(W)
+    dofs = W.dofmap.list.array.reshape(-1, W.dofmap.dof_layout.num_dofs)[:marked.size]
+    np.add.at(count.x.array, dofs[~marked].ravel(), 1.0)
+    count.x.scatter_reverse(ScatterMode.add)
+    return W, marked, count.x.array[:W.dofmap.index_map.size_local] == 0
+
+
+def action_error(mesh, seed=1):
+    """(largest |y_action - y_matrix|, largest |y_matrix|) over all processes, for y = S A S x
+    with random x and signs S: the probe's product by the form's action against MatMult; the
+    same for x supported inside some patches (see `_marked`) and the action on their cells."""
+    from membranes.estimation.homes import Action
+    comm = mesh.comm
+    W, marked, inside = _marked(mesh)
+    signs = _random_signs(W, seed + comm.rank)
+    A = _full_matrix(W, signs)
+    x, y = A.createVecs()
+    action = Action(W, signs)
+    diff = scale = 0.0
+    for cells in (None, np.flatnonzero(marked)):
+        x.array[:] = np.random.default_rng(seed + 7 + comm.rank).standard_normal(
+            x.getLocalSize())
+        if cells is not None:
+            x.array[~inside] = 0.0
+        A.mult(x, y)
+        action.input()[:] = x.array
+        got = action(cells).copy()
+        diff = max(diff, np.abs(got - y.array).max(initial=0.0))
+        scale = max(scale, np.abs(y.array).max(initial=0.0))
+    for obj in (A, x, y, action):
+        obj.destroy()
+    return comm.allreduce(diff, op=MPI.MAX), comm.allreduce(scale, op=MPI.MAX)
+
+
+def partial_assembly_error(mesh, seed=2):
+    """(largest difference on the dofs inside the marked cells, largest difference anywhere,
+    largest entry, number of inside dofs) between A assembled on the cells of every third
+    patch of the first group (`homes.assemble_on`) and A over the whole mesh, over all
+    processes. A dof is inside if all its cells are marked: there the principal submatrices
+    must agree; elsewhere they differ."""
+    import scipy.sparse as sp
+
+    from membranes.estimation.homes import assemble_on
+    comm = mesh.comm
+    W, marked, owned_inside = _marked(mesh)
+    signs = _random_signs(W, seed + comm.rank)
+    full, part = _full_matrix(W, signs), assemble_on(W, np.flatnonzero(marked), signs)
+    imap = W.dofmap.index_map
+    n, start = imap.size_local, imap.local_range[0]
+    inside = np.concatenate(comm.allgather(np.flatnonzero(owned_inside) + start))
+    mask = np.zeros(imap.size_global, dtype=bool)
+    mask[inside] = True
+    diffs = []
+    for M in (full, part):
+        ia, ja, a = M.getValuesCSR()
+        diffs.append(sp.csr_matrix((a, ja, ia), shape=(n, imap.size_global)))
+    d = (diffs[0] - diffs[1]).tocsr()
+    d_inside = d[np.flatnonzero(owned_inside)][:, mask]
+    local = [abs(d_inside).max() if d_inside.nnz else 0.0, abs(d).max() if d.nnz else 0.0,
+             abs(diffs[0]).max() if diffs[0].nnz else 0.0]
+    full.destroy()
+    part.destroy()
+    out = [comm.allreduce(float(v), op=MPI.MAX) for v in local]
+    return (*out, int(inside.size))
+
+
 def main():
     comm = MPI.COMM_WORLD
     mesh = refined_disk(comm, 0.3, 2)
     shared, _, scale, diff = random_solutions(mesh)
     stats = shared.stats()
     count = straddling(mesh, vertex_groups(mesh)[0])
+    act, act_scale = action_error(mesh)
+    inside, outside, entry, ninside = partial_assembly_error(mesh)
     if comm.rank == 0:
         print(f"OK P={comm.size} patches={stats['patches']} classes={stats['classes']} "
-              f"straddling={count} scale={scale:.6e} diff={diff:.3e} worst={stats['worst']:.3e}",
-              flush=True)
+              f"straddling={count} scale={scale:.6e} diff={diff:.3e} worst={stats['worst']:.3e} "
+              f"action={act:.3e} action_scale={act_scale:.6e} inside={inside:.3e} "
+              f"outside={outside:.3e} entry={entry:.6e} ninside={ninside}", flush=True)
 
 
 if __name__ == "__main__":

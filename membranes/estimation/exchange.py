@@ -1,0 +1,156 @@
+"""Communication helpers of the patch engine on a distributed mesh (§12): owned/ghost exchange
+with any numpy ufunc on a dolfinx IndexMap (`Shared`), MPI Alltoallv of numpy rows, a
+distributed reduction by key, and the vertex colouring that makes the groups of §5 and §6.
+
+Split off `patches`, which re-exports these names.
+"""
+
+import numpy as np
+from mpi4py import MPI
+
+# ## Communication on an index map
+#
+# dolfinx's own scatterers add or insert; the colouring needs max and bitwise-or, and the
+# facet exchange max. `Shared` does both directions for any numpy ufunc with MPI Alltoallv.
+
+class Shared:
+    """Owned/ghost communication on a dolfinx IndexMap (block size 1).
+
+    `reverse(values, op)`: every ghost's value is combined into its owner's entry with the ufunc
+    `op` (np.add, np.maximum, np.bitwise_or, ...). `forward(values)`: ghosts receive their
+    owner's value. `values` has one row per local entry (owned then ghosts)."""
+
+    def __init__(self, imap, comm):
+        self.comm = comm
+        n = imap.size_local
+        owners = np.asarray(imap.owners, dtype=np.int64)
+        ghosts = np.asarray(imap.ghosts, dtype=np.int64)
+        order = np.argsort(owners, kind="stable")
+        self.ghost_local = (n + order).astype(np.int64)
+        self.send_counts = np.bincount(owners, minlength=comm.size).astype(np.int64)
+        self.recv_counts = np.asarray(comm.alltoall(self.send_counts.tolist()), dtype=np.int64)
+        received = alltoallv(comm, ghosts[order], self.send_counts, self.recv_counts)
+        self.owned_local = received - imap.local_range[0]
+
+    def reverse(self, values, op):
+        sent = np.ascontiguousarray(values[self.ghost_local])
+        got = alltoallv(self.comm, sent, self.send_counts, self.recv_counts)
+        op.at(values, self.owned_local, got)
+        return values
+
+    def forward(self, values):
+        sent = np.ascontiguousarray(values[self.owned_local])
+        values[self.ghost_local] = alltoallv(self.comm, sent, self.recv_counts, self.send_counts)
+        return values
+
+
+def alltoallv(comm, rows, send_counts, recv_counts):
+    """Rows of `rows` (grouped by destination rank, send_counts[p] rows to rank p) sent with
+    MPI Alltoallv; returns the received rows grouped by source rank."""
+    rows = np.ascontiguousarray(rows)
+    width = int(np.prod(rows.shape[1:], dtype=np.int64))
+    if comm.size == 1:
+        return rows
+    out = np.empty((int(recv_counts.sum()),) + rows.shape[1:], dtype=rows.dtype)
+    sc, rc = send_counts * width, recv_counts * width
+    sd = np.concatenate([[0], np.cumsum(sc)[:-1]])
+    rd = np.concatenate([[0], np.cumsum(rc)[:-1]])
+    comm.Alltoallv([rows.reshape(-1), (sc, sd)], [out.reshape(-1), (rc, rd)])
+    return out
+
+
+def reduce_by_key(comm, keys, values, op):
+    """For integer `keys` spread over the processes, the reduction with ufunc `op` of the
+    `values` of all processes with the same key, returned for each local key (a distributed
+    dictionary: key k lives on rank k mod P)."""
+    keys = np.asarray(keys, dtype=np.int64)
+    values = np.asarray(values)
+    dest = keys % comm.size
+    order = np.argsort(dest, kind="stable")
+    send_counts = np.bincount(dest, minlength=comm.size).astype(np.int64)
+    recv_counts = np.asarray(comm.alltoall(send_counts.tolist()), dtype=np.int64)
+    k = alltoallv(comm, keys[order], send_counts, recv_counts)
+    v = alltoallv(comm, values[order], send_counts, recv_counts)
+    by_key = np.argsort(k, kind="stable")
+    first = np.ones(k.size, dtype=bool)
+    first[1:] = k[by_key][1:] != k[by_key][:-1]
+    reduced = op.reduceat(v[by_key], np.flatnonzero(first)) if k.size else v[:0]
+    inverse = np.empty(k.size, dtype=np.int64)
+    inverse[by_key] = np.cumsum(first) - 1
+    back = alltoallv(comm, reduced[inverse], recv_counts, send_counts)
+    out = np.empty_like(values)
+    out[order] = back
+    return out
+
+
+# ## Vertex colouring
+#
+# Vertices are adjacent when they share a cell (for triangles: an edge). Jones–Plassmann: each
+# round colours the uncoloured vertices whose priority beats all their uncoloured neighbours
+# (an independent set), each with the smallest colour none of its neighbours has. The result is
+# the sequential greedy colouring in order of decreasing priority. Neighbours across process
+# boundaries are seen through the reverse exchange of the vertex index map: each process
+# reduces over its own cells, the owner combines.
+
+def _priority(global_index):
+    """Distinct pseudo-random priorities: 32 hashed bits (splitmix64) above the index + 1."""
+    z = global_index.astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    z = z ^ (z >> np.uint64(31))
+    return ((z >> np.uint64(32)) << np.uint64(32)) | (global_index.astype(np.uint64) + np.uint64(1))
+
+
+def vertex_graph(cells, nlocal):
+    """CSR adjacency (offsets, neighbours) of the local vertices through the given cells."""
+    k = cells.shape[1]
+    i = np.repeat(cells, k - 1, axis=1).ravel()
+    j = np.concatenate([np.roll(cells, -s, axis=1)[:, :, None] for s in range(1, k)],
+                       axis=2).reshape(-1)
+    pairs = np.unique(i.astype(np.int64) * nlocal + j)
+    i, j = pairs // nlocal, pairs % nlocal
+    offsets = np.zeros(nlocal + 1, dtype=np.int64)
+    np.cumsum(np.bincount(i, minlength=nlocal), out=offsets[1:])
+    return offsets, j
+
+
+def _segment_reduce(op, values, offsets, identity):
+    """op over each CSR segment of `values`, `identity` for empty segments."""
+    out = np.full(offsets.size - 1, identity, dtype=values.dtype)
+    nonempty = offsets[1:] > offsets[:-1]
+    if values.size:
+        out[nonempty] = op.reduceat(values, offsets[:-1][nonempty])
+    return out
+
+
+def colour_vertices(cells, imap, comm):
+    """A colouring of the vertices of an index map such that no two vertices of one colour
+    share a cell of `cells` ((owned cells, vertices) local vertex indices). Returns
+    (colour of every local vertex, owned and ghost, int32; number of colours; rounds)."""
+    n, nloc = imap.size_local, imap.size_local + imap.num_ghosts
+    shared = Shared(imap, comm)
+    offsets, nbrs = vertex_graph(cells, nloc)
+    prio = _priority(np.asarray(imap.local_to_global(np.arange(nloc, dtype=np.int32))))
+    colour = np.full(nloc, -1, dtype=np.int64)
+    rounds = 0
+    while comm.allreduce(int(np.count_nonzero(colour[:n] < 0)), op=MPI.SUM) > 0:
+        rounds += 1
+        uncoloured = colour < 0
+        # the largest priority among the uncoloured neighbours, over all processes' cells
+        best = _segment_reduce(np.maximum, np.where(uncoloured, prio, 0)[nbrs], offsets,
+                               np.uint64(0))
+        shared.reverse(best, np.maximum)
+        chosen = np.flatnonzero(uncoloured[:n] & (prio[:n] > best[:n]))
+        # the colours of the coloured neighbours as bits
+        bits = np.where(colour >= 0, np.left_shift(np.uint64(1), np.maximum(colour, 0)
+                                                   .astype(np.uint64)), np.uint64(0))
+        taken = _segment_reduce(np.bitwise_or, bits[nbrs], offsets, np.uint64(0))
+        shared.reverse(taken, np.bitwise_or)
+        free = ~taken[chosen]
+        if np.any(free == 0):
+            raise RuntimeError("vertex colouring needs more than 64 colours")
+        lowest = free & (~free + np.uint64(1))
+        colour[chosen] = np.round(np.log2(lowest.astype(np.float64))).astype(np.int64)
+        shared.forward(colour)
+    ncolours = comm.allreduce(int(colour.max(initial=-1)) + 1, op=MPI.MAX)
+    return colour.astype(np.int32), ncolours, rounds

@@ -1,0 +1,319 @@
+"""The set-up side of the patch engine (`patches.PatchSystems`, §5, §12): the local topology,
+each group's kept dofs at their patches' homes (`_home_dofs`) and the routes between owners and
+homes, the cells whose patch blocks are needed, the matrix A assembled on those cells only, and
+the probe's product with A as the action of the form (no matrix).
+
+A kept dof of a patch is supported on that patch's cells only, so the principal submatrix of A
+on a patch's kept dofs is the same whether A is assembled over the whole mesh or over any set
+of cells containing the patch's cells: `assemble_on` assembles A (forms.equilibration
+.patch_system, rows and columns scaled by the ±1 of G) on the cells of the patches whose
+blocks are taken, and `Action` computes A x for the probe as a vector assembly of the form's
+action, without any sparsity pattern.
+"""
+
+import numpy as np
+import ufl
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import forms.equilibration as equilibration_forms
+
+from .congruence import DG, INTERIOR, ROUNDING, SAME, _kind, patch_keys
+from .exchange import Shared, alltoallv, reduce_by_key
+
+CHUNK = 1 << 18          # rows of patch blocks taken from A at a time (bounds the set-up memory)
+
+def stable_order(keys):
+    """np.argsort(keys, kind="stable") for non-negative integers, by passes over 16 bits
+    (numpy's stable sort of uint16 is a radix sort: linear time)."""
+    order, shift, top = None, 0, int(keys.max(initial=0))
+    while True:
+        digit = ((keys if order is None else keys[order]) >> shift).astype(np.uint16)
+        step = np.argsort(digit, kind="stable")
+        order = step if order is None else order[step]
+        shift += 16
+        if top >> shift == 0:
+            return order
+
+
+
+class HomeSetup:
+    """The set-up methods of `patches.PatchSystems` (a mixin)."""
+
+    def _to_home(self, route, values, home):
+        """home[dest] ← values[send] (owned W entries) through the route of a group."""
+        send, sc, rc, dest = route
+        home[dest] = alltoallv(self.comm, values[send], sc, rc)
+        return home
+
+    def _to_owners(self, route, home, values, add):
+        """values[send] ← (or +=) home[dest]: the reverse of `_to_home`."""
+        send, sc, rc, dest = route
+        got = alltoallv(self.comm, home[dest], rc, sc)
+        if add:
+            values[send] += got
+        else:
+            values[send] = got
+        return values
+
+    def _chunks(self, offsets):
+        """Ranges of patches (first, last) of about CHUNK rows, as many on every process
+        (MatCreateSubMatrices is collective): the blocks are taken a chunk at a time."""
+        npatch = len(offsets) - 1
+        count = self.comm.allreduce(max(1, -(-int(offsets[-1]) // CHUNK)), op=MPI.MAX)
+        bounds = np.searchsorted(offsets, np.linspace(0, offsets[-1], count + 1)[1:-1])
+        bounds = np.concatenate([[0], np.minimum(bounds, npatch), [npatch]])
+        return list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
+
+    def _topology(self, mesh, W):
+        """Cell → facet and cell → dof tables (all local cells), facet cell counts (global)."""
+        tdim = mesh.topology.dim
+        mesh.topology.create_connectivity(tdim, tdim - 1)
+        mesh.topology.create_connectivity(tdim - 1, tdim)
+        cmap = mesh.topology.index_map(tdim)
+        self.ncells = cmap.size_local
+        nall = cmap.size_local + cmap.num_ghosts
+        self.cell_global = np.asarray(cmap.local_to_global(np.arange(self.ncells, dtype=np.int32)),
+                                      dtype=np.int64)
+        self.c2f = mesh.topology.connectivity(tdim, tdim - 1).array.reshape(nall, 3)
+        fmap = mesh.topology.index_map(tdim - 1)
+        self.nfacets = fmap.size_local + fmap.num_ghosts
+        self.facet_shared = Shared(fmap, self.comm)
+        # the (at most two) owned cells of each local facet (-1: none), and the number of cells
+        # of each facet over the whole mesh (owned cells only, each counted by its owner)
+        facets = self.c2f[:self.ncells].ravel()
+        order = stable_order(facets)
+        count = np.bincount(facets, minlength=self.nfacets)
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        self.facet_owned_cells = np.full((self.nfacets, 2), -1, dtype=np.int64)
+        has = count > 0
+        self.facet_owned_cells[has, 0] = order[start[has]] // 3
+        two = count > 1
+        self.facet_owned_cells[two, 1] = order[start[two] + 1] // 3
+        self.facet_cells = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
+
+        rt = W.sub(0).element.basix_element.entity_dofs
+        self.rt_dofs = W.sub(0).dofmap.list.array.reshape(nall, -1)
+        self.dg_dofs = W.sub(1).dofmap.list.array.reshape(nall, -1)
+        # the RT dofs of each local facet, and the interior RT and DG dofs of each local cell
+        self.facet_dofs = np.zeros((self.nfacets, len(rt[tdim - 1][0])), dtype=np.int32)
+        for i, cols in enumerate(rt[tdim - 1]):
+            self.facet_dofs[self.c2f[:, i]] = self.rt_dofs[:, cols]
+        self.cell_dofs = np.hstack([self.rt_dofs[:, rt[tdim][0]], self.dg_dofs])
+        # the shortest edge of each owned cell, and the largest |x| of the mesh (§12: the
+        # tolerance of the block comparisons)
+        nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:self.ncells]
+        x = mesh.geometry.x[:, :2][nodes]
+        self.cell_h = np.linalg.norm(x - np.roll(x, 1, axis=1), axis=2).min(axis=1)
+        self.radius = self.comm.allreduce(float(np.abs(mesh.geometry.x).max(initial=0.0)),
+                                          op=MPI.MAX)
+        imap = W.dofmap.index_map
+        self.nowned = imap.size_local
+        self.nlocal = imap.size_local + imap.num_ghosts
+        self.rstart = imap.local_range[0]
+
+    def _home_dofs(self, pid, inner):
+        """The kept W dofs of the group's patches at home on this process (global indices), in
+        canonical order patch by patch (RT facet dofs, interior RT dofs, DG dofs), the patches'
+        offsets, the dofs' codes, the patches' tolerances, numbers of RT dofs and keys, and the
+        group's route (see `_to_home`). A collective call: every process hands over its owned
+        kept dofs."""
+        comm = self.comm
+        # per facet, over its (at most two) cells: the largest and smallest patch id + 1
+        # (0 = no patch), and whether a cell's patch is not interior; reduced across processes
+        least = np.iinfo(np.int64).min
+        cell_info = np.stack([pid + 1, -(pid + 1), ((pid >= 0) & ~inner)], axis=1)
+        cell_info = np.vstack([cell_info, np.full((1, 3), least)])     # row -1: no cell
+        info = np.maximum(cell_info[self.facet_owned_cells[:, 0]],
+                          cell_info[self.facet_owned_cells[:, 1]])
+        self.facet_shared.forward(self.facet_shared.reverse(info, np.maximum))
+        hi, lo, free = info[:, 0], -info[:, 1], info[:, 2]
+        inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
+        on_boundary = (self.facet_cells == 1) & (free == 1)
+        facet_patch = np.where(inside | on_boundary, hi - 1, -1)
+
+        # the patch of every local dof the group keeps (-1: not kept)
+        # (by rank in the canonical order of the owned dofs; ghost dofs share the last entry)
+        patch = np.full(self.nowned + 1, -1, dtype=np.int64)
+        patch[self.facet_rank] = facet_patch[:, None]
+        cells = np.flatnonzero(pid >= 0)
+        patch[self.cell_rank[cells]] = pid[cells, None]
+        # the owned kept dofs in canonical order, patch by patch
+        ranked = np.flatnonzero(patch[:-1] >= 0)
+        kept, kp = self.by_rank[ranked], patch[ranked]
+        del patch, ranked
+        by_patch = stable_order(kp)
+        kept, kp = kept[by_patch], kp[by_patch]
+        del by_patch
+
+        # home of each patch: the owner of its cell of least global index, found with the
+        # patch's interior flag in one distributed reduction over the patches seen here
+        # (and its shortest edge)
+        by_cell = cells[stable_order(pid[cells])]
+        new = np.flatnonzero(np.diff(pid[by_cell], prepend=-1))
+        keys = pid[by_cell[new]]
+        values = ((self.cell_global[by_cell] * comm.size + comm.rank) << 1) | ~inner[by_cell]
+        values = np.minimum.reduceat(values, new) if new.size else values[:0]
+        h = np.minimum.reduceat(self.cell_h[by_cell], new) if new.size else np.zeros(0)
+        new = np.flatnonzero(np.diff(kp, prepend=-1))
+        seen = kp[new]                                              # unique, sorted
+        extra = seen[keys[np.minimum(np.searchsorted(keys, seen), keys.size - 1)] != seen] \
+            if keys.size else seen                      # patches with no owned cell here
+        if extra.size:
+            keys = np.concatenate([keys, extra])
+            values = np.concatenate([values, np.full(extra.size, np.iinfo(np.int64).max)])
+            h = np.concatenate([h, np.full(extra.size, np.inf)])
+            order = np.argsort(keys)
+            keys, values, h = keys[order], values[order], h[order]
+        at = np.searchsorted(keys, seen)
+        count = np.diff(np.append(new, kp.size))
+        first = np.repeat(reduce_by_key(comm, keys, values, np.minimum)[at], count)
+        h = np.repeat(reduce_by_key(comm, keys, h, np.minimum)[at], count)
+        home = (first >> 1) % comm.size
+        code = self.code[kept] | np.where(first & 1, np.int16(0), np.int16(INTERIOR))
+
+        # send every kept dof to its patch's home (in order), which keeps the patches whole;
+        # column by column (no copies on one process)
+        order = stable_order(home) if comm.size > 1 else slice(None)
+        send = np.bincount(home, minlength=comm.size).astype(np.int64)
+        recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
+        kept, home = kept[order], home[order]
+
+        def move(column):
+            return alltoallv(comm, column, send, recv)
+
+        gdof, gpatch, gcode = move(kept + self.rstart), move(kp[order]), move(code[order])
+        gpoint, gh = move(self.position[kept]), move(h[order])
+        del kp, code, h, first, at
+        received = gdof.size
+        perm = None                  # received → canonical order, patch by patch (None: same)
+        if comm.size > 1:
+            entity = move(self.entity[kept])
+            perm = stable_order(gpatch)
+            # a patch with dofs from several processes: merge them in canonical order
+            source = np.repeat(np.arange(comm.size), recv)[perm]
+            new = np.flatnonzero(np.diff(gpatch[perm], prepend=-1) != 0)
+            mixed = (np.minimum.reduceat(source, new) != np.maximum.reduceat(source, new)
+                     if new.size else np.zeros(0, dtype=bool))
+            redo = np.flatnonzero(np.repeat(mixed, np.diff(np.append(new, received))))
+            if redo.size:
+                r = perm[redo]
+                perm[redo] = r[np.lexsort((entity[r], gpoint[r, 0], _kind(gcode[r]),
+                                           gpatch[r]))]
+        patch = gpatch if perm is None else gpatch[perm]
+        code = gcode if perm is None else gcode[perm]
+        # patch offsets; interior patches lose their first DG dof
+        new = np.flatnonzero(np.diff(patch, prepend=-1) != 0)
+        dg = np.flatnonzero(_kind(code) == DG)
+        pinned = dg[np.flatnonzero(np.diff(patch[dg], prepend=-1) != 0)]
+        pinned = pinned[(code[pinned] & INTERIOR) != 0]
+        bounds = np.append(new, received)
+        start = bounds - np.searchsorted(pinned, bounds)
+        keep = np.ones(received, dtype=bool)
+        keep[pinned] = False
+        sel = np.flatnonzero(keep) if perm is None else perm[keep]      # received indices
+        h = gh[new] if perm is None else gh[perm[new]]
+        tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius / h)
+        # the route: each received dof's place at home; the owners forget the pinned dofs
+        dest = np.full(received, -1, dtype=np.int64)
+        dest[sel] = np.arange(sel.size)
+        sent_kept = alltoallv(comm, dest >= 0, recv, send)
+        source = np.repeat(np.arange(comm.size), recv)
+        route = (kept[sent_kept].astype(np.int32),
+                 np.bincount(home[sent_kept], minlength=comm.size).astype(np.int64),
+                 np.bincount(source[dest >= 0], minlength=comm.size).astype(np.int64),
+                 dest[dest >= 0].astype(np.int32))
+        dofs, code = gdof[sel], code[keep]
+        nsigma = np.add.reduceat(_kind(code) != DG, start[:-1]) if code.size else start[:0]
+        key = patch_keys(start, code, gpoint, h, sel)
+        return dofs, start, code, tolerance, nsigma, key, route, patch[new]
+
+    def _marked_cells(self, patches, chosen):
+        """The owned cells (local indices) of the patches `chosen[c]` of each group c (global
+        patch ids, each listed by its home only; the patches' cells may live on other
+        processes). Collective: one reduction over (patch, group) keys."""
+        ngroups = len(patches)
+        keys, values, found = [], [], []
+        for c, pid in enumerate(patches):
+            ids, inverse = np.unique(pid, return_inverse=True)
+            found.append((ids, inverse))
+            keys += [ids * ngroups + c, np.asarray(chosen[c], dtype=np.int64) * ngroups + c]
+            values += [np.zeros(ids.size, dtype=np.int8), np.ones(len(chosen[c]), np.int8)]
+        flag = reduce_by_key(self.comm, np.concatenate(keys), np.concatenate(values),
+                             np.maximum)
+        mark = np.zeros(self.ncells, dtype=bool)
+        at = 0
+        for c, ((ids, inverse), pid) in enumerate(zip(found, patches)):
+            mark |= (flag[at:at + ids.size][inverse.ravel()] > 0) & (pid >= 0)
+            at += ids.size + len(chosen[c])
+        return np.flatnonzero(mark).astype(np.int32)
+
+
+
+def assemble_on(W, cells, signs):
+    """A = forms.equilibration.patch_system assembled by dolfinx on the owned `cells` (local
+    indices) only (its sparsity pattern covers those cells), rows and columns multiplied by
+    `signs` (owned W dofs). Collective."""
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_matrix
+    from dolfinx.mesh import meshtags
+    mesh = W.mesh
+    cells = np.asarray(cells, dtype=np.int32)
+    tags = meshtags(mesh, mesh.topology.dim, cells, np.ones(cells.size, dtype=np.int32))
+    dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
+    (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
+    A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q, dx)))
+    A.assemble()
+    s = A.createVecLeft()
+    s.array[:] = signs
+    A.diagonalScale(s, s)
+    s.destroy()
+    return A
+
+
+class Action:
+    """x ↦ S A S x (owned W entries; A of forms.equilibration.patch_system, S = diag(signs)) as
+    a vector assembly of the form's action on a Function: the same product as with the
+    assembled matrix, without one. With `cells` (owned, local indices) the form is assembled on
+    those cells only: for x supported on them (the kept dofs of a group's patches are
+    supported on the patches' cells) the product is the same. Collective."""
+
+    def __init__(self, W, signs):
+        from dolfinx import fem
+        self.W, self.w = W, fem.Function(W)
+        self.y = self.w.vector.duplicate()
+        self.signs = signs
+        self.n = signs.size
+
+    def input(self):
+        """The owned entries of the input x (numpy view, to be filled)."""
+        return self.w.x.array[:self.n]
+
+    def __call__(self, cells=None):
+        """S A S x for x in `input()`; returns the owned entries (a numpy view)."""
+        from dolfinx import fem
+        from dolfinx.fem.petsc import assemble_vector
+        from dolfinx.mesh import meshtags
+        mesh = self.W.mesh
+        if cells is None:
+            dx = ufl.dx(domain=mesh)
+        else:
+            cells = np.asarray(cells, dtype=np.int32)
+            tags = meshtags(mesh, mesh.topology.dim, cells, np.ones(cells.size, dtype=np.int32))
+            dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
+        (sigma, gamma), (tau, q) = ufl.TrialFunctions(self.W), ufl.TestFunctions(self.W)
+        form = fem.form(ufl.action(
+            equilibration_forms.patch_system(sigma, gamma, tau, q, dx), self.w))
+        x = self.w.x.array
+        x[:self.n] *= self.signs
+        self.w.x.scatter_forward()
+        with self.y.localForm() as local:
+            local.set(0.0)
+        assemble_vector(self.y, form)
+        self.y.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        out = self.y.array
+        out *= self.signs
+        return out
+
+    def destroy(self):
+        self.y.destroy()
