@@ -44,3 +44,37 @@ def test_coarse_tolerance_is_used():
         assert level["final_residual"] <= 1e-2
     assert loose.options["coarse_tol"] == 1e-2
     assert loose.estimates["eta"] >= loose.energy_error
+
+
+def test_newton_iterates_estimated_where_the_test_can_hold(monkeypatch):
+    """driver.LevelEstimates's gate: a Newton iterate of T_J whose η_lin exceeds γ_lin · GATE ·
+    the last full η_disc gets η_lin only (no bound). Against the run that estimates every
+    iterate in full (GATE None): the same iterates (Newton does not depend on the estimates
+    it skips), the same η_lin at the skipped ones to round-off, a skipped test that would
+    indeed have failed, and the same certified final iterate."""
+    from membranes.app import driver
+    problem = scene("disk", 0.2, levels=4)
+    gate = driver.GATE
+    gated = solve(problem)
+    monkeypatch.setattr(driver, "GATE", None)
+    full = solve(problem)
+    newton = [[r for r in run.history if r["level"] == 4 and r["kind"] == "newton"]
+              for run in (gated, full)]
+    assert len(newton[0]) == len(newton[1]) == gated.per_level[-1]["newton_iterations"]
+    skipped = 0
+    last_disc = None
+    for g, f in zip(*newton):
+        assert f["bound"] and f["eta"] is not None
+        assert g["residual"] == f["residual"]
+        assert g["eta_lin"] == pytest.approx(f["eta_lin"], rel=1e-12)
+        if g["eta"] is None:
+            skipped += 1
+            assert not g["bound"] and last_disc is not None
+            assert g["eta_lin"] > 0.3 * gate * last_disc
+            assert f["eta_lin"] > 0.3 * f["eta_disc"]          # its test would fail
+        else:
+            assert g["bound"] and g["eta"] == pytest.approx(f["eta"], rel=1e-12)
+            last_disc = g["eta_disc"]
+    assert skipped >= 1
+    assert gated.final_record["bound"]
+    assert gated.estimates["eta"] == pytest.approx(full.estimates["eta"], rel=1e-12)

@@ -51,6 +51,9 @@ DEFAULT_TOL = 1e-10
 ALG_FLUXES = ("nu", "multilevel")
 INITIAL_GUESSES = ("paper", "zero")
 ERRORS = ("final", "iterates", "none")
+# the Newton test η_lin ≤ γ_lin η_disc is evaluated in full at X^k only where η_lin(X^k) ≤
+# γ_lin GATE η_disc of the last full estimate on the mesh (`LevelEstimates`); None: always
+GATE = 2.0
 COARSE = ("residual", "estimated")
 DEFAULT_COARSE_TOL = 1e-6
 
@@ -144,16 +147,29 @@ class LevelEstimates:
       remainder, and returned marked `of_previous` (Newton accepts that iterate if the
       criterion holds on it). σ_disc of each iterate is solved once (Estimators keeps the last
       two).
+
+    **Where the Newton test needs σ_disc.** At the end of a Newton step (kind 'newton') the
+    test is η_lin ≤ γ_lin η_disc. η_lin needs no flux (`Estimators.linearisation`, one small
+    assembly); η_disc does. Between Newton steps on one mesh η_disc barely moves (the
+    discretisation error of iterates near the discrete solution), while η_lin falls
+    superlinearly. So once a full estimate on the mesh has given η_disc, an iterate with
+    η_lin > γ_lin · GATE · that η_disc (GATE = 2) is returned with η_lin only, marked
+    `partial` and without a bound: its Newton test cannot hold unless η_disc doubled in one
+    step, and Newton goes on. This is a schedule of the estimates, like ν for Krylov (§8);
+    the iterate Newton stops at is always estimated in full and certified. `gate=None`
+    estimates every Newton iterate in full.
     """
 
-    def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA):
+    def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
+                 gamma_lin=DEFAULT_GAMMA, gate=GATE):
         t = time.perf_counter()
         self.est = Estimators(disc, FluxEquilibration(disc.V, disc.dx_data))
         self.multilevel = None
         if alg_flux == "multilevel":
             from ..estimation.multilevel import MultilevelFlux  # only a run that uses it
             self.multilevel = MultilevelFlux(disc, hierarchy)
-        self.gamma_alg = gamma_alg
+        self.gamma_alg, self.gamma_lin, self.gate = gamma_alg, gamma_lin, gate
+        self.eta_disc = None           # η_disc of the last full estimate on this mesh
         self.pending = None            # ('nu') the iterate handed over last: (X, R) copies
         self.setup_time = time.perf_counter() - t
         self.time = 0.0
@@ -183,6 +199,11 @@ class LevelEstimates:
                 if self.multilevel is None:
                     self._keep(X, R)
                 return None
+            if kind == "newton" and self.gate is not None and self.eta_disc is not None:
+                lin = self.est.linearisation(X)
+                if lin["eta_lin"] > self.gamma_lin * self.gate * self.eta_disc:
+                    lin["partial"] = True
+                    return lin
             out = self._evaluate(X, R)
             if kind == "krylov" and self.multilevel is None:
                 if not linear_criterion(out, self.gamma_alg) and self.pending is not None:
@@ -194,6 +215,7 @@ class LevelEstimates:
                 else:
                     self._keep(X, R)
             out["bound"] = True
+            self.eta_disc = out["eta_disc"]
             self.count += 1
             return out
         finally:
@@ -381,7 +403,8 @@ def solve(problem: Problem,
         if alg_flux is not None and (variant == "adaptive" or last):
             estimate = LevelEstimates(disc, alg_flux if last else "nu",
                                       problem.hierarchy.up_to(j),
-                                      gamma_alg or DEFAULT_GAMMA)
+                                      gamma_alg or DEFAULT_GAMMA, gamma_lin or DEFAULT_GAMMA,
+                                      gate=GATE)
             est_setup += estimate.setup_time
         error = clock.off(EnergyError, disc) if problem.exact is not None and \
             errors != "none" and (last or errors == "iterates") else None

@@ -112,7 +112,7 @@ def replay(problem, sol):
         disc = discretise(pj)
         X0 = None if prev is None else \
             prolong(problem.hierarchy.prolongations[j - 1], disc, prev[0], prev[1])
-        certificate = LevelEstimates(disc, "nu")
+        certificate = LevelEstimates(disc, "nu", gate=None)     # every iterate in full
 
         def estimate(X, R, kind, disc=disc, certificate=certificate):
             # Newton hands X⁰ without a residual; X⁰ need not satisfy the linear rows (§4)

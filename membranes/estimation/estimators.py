@@ -228,9 +228,15 @@ class Estimators:
             return (weighted_norm_squared(mu1, r1 - dlam, w[i], dp)
                     + weighted_norm_squared(mu2, r2 + dlam, w[j], dp))
 
+        def linearisation(w):
+            return (energy_squared(mu1, mu2, e1, e2, w[0], dp)
+                    + cell_norm_squared(lam_pos, w[1], dp)
+                    + cell_norm_squared(lam_neg, w[2], dp))
+
         # compiled at first use (a run may never need some of them)
         self._cell_forms = {
             "disc": (6, base), "alg": (10, with_alg), "rem": (2, remainder),
+            "lin": (3, linearisation),
             # `evaluate`'s default remainder in the same assembly as the estimators
             "disc_rem": (8, lambda w: base(w) + remainder(w, REM1, REM2))}
 
@@ -271,6 +277,20 @@ class Estimators:
         for i, v in zip((LPOS, LNEG, E1, E2), constraint_parts(u1, u2, lam)):
             values[:n, i] = v
         self.nodal.x.scatter_forward()
+
+    def linearisation(self, X):
+        """η_lin = η_lin1 + η_lin3 + η_lin2^{1/2} and its parts at X (§7), without σ_disc: the
+        same integrals as `evaluate`'s, one small assembly. It lets a caller skip the flux
+        equilibration where η_lin alone shows that a stopping test fails (driver)."""
+        self._write(X)
+        q = self._cell_form("lin").cells()
+        s = self.comm.allreduce(np.maximum(q, [0.0, -np.inf, 0.0]).sum(axis=0), op=MPI.SUM)
+        eta_lin1 = np.sqrt(max(s[0], 0.0))
+        eta_lin3 = self.kappa * np.sqrt(max(s[2], 0.0))
+        eta_lin2 = 2.0 * self.kappa * np.sqrt(max(s[1], 0.0)) * eta_lin1
+        return {"eta_lin": float(eta_lin1 + eta_lin3 + np.sqrt(eta_lin2)),
+                "eta_lin1": float(eta_lin1), "eta_lin2": float(eta_lin2),
+                "eta_lin3": float(eta_lin3)}
 
     def lifted(self, R, out=None):
         """(r_1h, r_2h): the liftings of R_1, R_2 (§4) as DG1 Functions (zero for R None),
