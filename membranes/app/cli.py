@@ -162,7 +162,7 @@ def _check_before_meshing(args, scene, kwargs, comm):
     domain = scene if scene in ("disk", "square") else kwargs.get("domain", "disk")
     checks.check_request(kwargs.get("h", DEFAULT_H), args.levels, domain, kwargs.get("mesh"),
                          args.max_vertices, comm=comm, estimators=not args.no_estimators,
-                         processes=comm.size, replicated=False,
+                         processes=comm.size, replicated=False, alg_flux=args.alg_flux,
                          **MEMORY_METHOD[args.solver])
     return petsc_options
 

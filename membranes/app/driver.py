@@ -106,7 +106,7 @@ MEMORY_METHOD = {"direct": {"linear_solver": "direct"},
                  "amg": {"linear_solver": "gmres", "pc_type": "vertex_amg"}}
 
 
-def _check_memory(problem, solver, estimators, max_vertices):
+def _check_memory(problem, solver, estimators, max_vertices, alg_flux=None):
     """Refuse a computational mesh whose run needs more memory than the processes have, or
     more vertices than `max_vertices`, before anything is assembled (model.checks)."""
     comm = problem.mesh.comm
@@ -115,7 +115,7 @@ def _check_memory(problem, solver, estimators, max_vertices):
     checks.check_size(problem.mesh.topology.index_map(0).size_global, available, max_vertices,
                       what=f"the computational mesh of {problem.name!r}",
                       estimators=estimators, processes=comm.size, replicated=False,
-                      **MEMORY_METHOD.get(solver, {}))
+                      alg_flux=alg_flux, **MEMORY_METHOD.get(solver, {}))
 
 
 def _algebraic_flux(problem, alg_flux, estimators, newton):
@@ -353,7 +353,8 @@ def solve(problem: Problem,
                     **({} if max_linear_its is None else {"max_it": int(max_linear_its)}))
     if petsc_options:       # refused here if PETSc would not read one of them
         checks.check_petsc_options_used(petsc_options, krylov.merged)
-    _check_memory(problem, solver, estimators, max_vertices)
+    _check_memory(problem, solver, estimators, max_vertices,
+                  alg_flux if alg_flux in ALG_FLUXES else None)
     if system is not None:
         _choice("system", system, ("full", "eliminated"))
     if newton == "adaptive" and not krylov.iterative:

@@ -144,15 +144,15 @@ def estimate_vertices(h=None, levels=0, domain="disk", mesh_file=None):
 # "Time and memory against the peers": h0 = 0.2 refined J = 5, 6 times and h0 = 0.132 six
 # times, 1.1e5, 4.4e5 and 9.3e5 vertices, one fresh process per run): BASE_BYTES plus, per
 # vertex of the finest mesh T_J (its hierarchy included), the slope of the peaks. The default
-# method (adaptive, the amg preset, the ν flux) measured 1.43, 5.33 and 11.04 GiB: slopes of
-# 12.9 and 12.4 kB per vertex, of which the nested SNES VI peer (the same discretisation and an
-# AMG-preconditioned solve, 0.36 / 0.98 / 1.92 GiB) accounts for about 2.5 kB; the rest is the
-# estimators' (the coloured patch systems, their shared inverses and the RT_1 fluxes). The
-# paper's GMRES + ILU(0) and the multilevel flux were not measured on this core: their
-# figures below are the amg solver's and twice the ν flux's, as upper guesses. MUMPS's factors
-# grow faster than N: c N^p, fitted on the serial core at 2.7e4 and 1.1e5 vertices. A run on
-# P processes needs about the per-vertex part over P on each (4.4e5 vertices: 5.33 GiB on one
-# process, 2.89 GiB on each of two).
+# method (adaptive, the amg preset, the ν flux, estimators on T_J only) measured 1.05, 3.76
+# and 8.55 GiB at 1.1e5, 4.4e5 and 9.3e5: 9.2-9.5 kB per vertex above the base, of which the
+# nested SNES VI peer (the same discretisation and an AMG-preconditioned solve, 0.36 / 0.98
+# GiB) accounts for about 2.1 kB; the rest is the estimators' (the coloured patch systems, their home layout and shared
+# inverses, the RT_1 fluxes). The paper's GMRES + ILU(0) and the multilevel flux were not
+# measured on this core: their figures below are the amg solver's and twice the ν flux's, as
+# upper guesses. MUMPS's factors grow faster than N: c N^p, fitted on the serial core at 2.7e4
+# and 1.1e5 vertices. A run on P processes needs about the per-vertex part over P on each
+# (4.4e5 vertices: 3.76 GiB on one process, 2.14 GiB on each of two).
 
 BASE_BYTES = 0.30 * 2 ** 30       # interpreter, dolfinx, PETSc; fixed costs of levels
 SOLVER_BYTES_PER_VERTEX = {       # discretisation, Newton systems and their Krylov solve
@@ -161,8 +161,8 @@ SOLVER_BYTES_PER_VERTEX = {       # discretisation, Newton systems and their Kry
 }
 DIRECT_COEFFICIENT, DIRECT_EXPONENT = 1.9e3, 1.26   # MUMPS LU of the full system: c N^p bytes
 ESTIMATOR_BYTES_PER_VERTEX = {    # the a posteriori estimators (§7), by algebraic flux
-    "nu": 10500.0,
-    "multilevel": 21000.0,        # not measured: twice the ν flux's
+    "nu": 7500.0,
+    "multilevel": 15000.0,        # not measured: twice the ν flux's
 }
 
 
@@ -173,7 +173,7 @@ def _solver_key(linear_solver="gmres", pc_type=None):
 
 
 def estimate_memory(vertices, linear_solver="gmres", pc_type=None, estimators=True,
-                    alg_flux="multilevel", processes=1, replicated=True):
+                    alg_flux="nu", processes=1, replicated=True):
     """Bytes one process needs for a run on a finest mesh of `vertices` vertices (module
     notes): BASE_BYTES, the linear solver's part (`linear_solver` 'gmres' with `pc_type`
     'vertex_amg' or another PETSc PC, or 'direct') and, with `estimators`, the estimators'
@@ -188,7 +188,7 @@ def estimate_memory(vertices, linear_solver="gmres", pc_type=None, estimators=Tr
         grows = DIRECT_COEFFICIENT * n ** DIRECT_EXPONENT if key == "direct" else \
             SOLVER_BYTES_PER_VERTEX[key] * n
         if estimators:
-            grows += ESTIMATOR_BYTES_PER_VERTEX[alg_flux or "multilevel"] * n
+            grows += ESTIMATOR_BYTES_PER_VERTEX[alg_flux or "nu"] * n
     share = 1 if replicated else max(int(processes), 1)
     return BASE_BYTES + grows / share
 
