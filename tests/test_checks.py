@@ -11,7 +11,7 @@ import pytest
 from membranes import scenes, solve
 from membranes.fem.hierarchy import build_hierarchy
 from membranes.fem.meshes import unit_disk, unit_square
-from membranes.model import checks
+from membranes.model import checks, petsc_options
 
 from .conftest import scene
 
@@ -247,13 +247,14 @@ def test_write_outputs_refuses_an_unwritable_folder():
 # ## PETSc options
 
 def test_parse_petsc_options():
-    assert checks.parse_petsc_options(
+    assert petsc_options.parse_petsc_options(
         "-ksp_type gmres -ksp_monitor -pc_factor_shift_amount -1e-3 -pc_type ilu") == \
         {"ksp_type": "gmres", "ksp_monitor": None, "pc_factor_shift_amount": "-1e-3",
          "pc_type": "ilu"}
-    assert checks.parse_petsc_options({"-ksp_gmres_restart": 50, "pc_type": "jacobi"}) == \
+    assert petsc_options.parse_petsc_options({"-ksp_gmres_restart": 50, "pc_type": "jacobi"}) == \
         {"ksp_gmres_restart": 50, "pc_type": "jacobi"}
-    assert checks.parse_petsc_options(None) == {} and checks.parse_petsc_options("") == {}
+    assert petsc_options.parse_petsc_options(None) == {}
+    assert petsc_options.parse_petsc_options("") == {}
 
 
 @pytest.mark.parametrize("bad,message", [
@@ -269,7 +270,7 @@ def test_parse_petsc_options():
 ])
 def test_malformed_petsc_options(bad, message):
     with pytest.raises(ValueError, match=message) as e:
-        checks.parse_petsc_options(bad)
+        petsc_options.parse_petsc_options(bad)
     assert "\n" not in str(e.value)
 
 
@@ -293,12 +294,12 @@ def test_petsc_record_of_used_options_until_the_end_of_a_solve():
         ksp.setOptionsPrefix(prefix)
         ksp.setOperators(A)
         ksp.setFromOptions()
-        assert checks.unused_petsc_options(options, prefix) == ["ksp_gmres_restartt",
+        assert petsc_options.unused_petsc_options(options, prefix) == ["ksp_gmres_restartt",
                                                                "ksp_converged_reason"]
         b, x = A.createVecs()
         b.set(1.0)
         ksp.solve(b, x)
-        assert checks.unused_petsc_options(options, prefix) == ["ksp_gmres_restartt"]
+        assert petsc_options.unused_petsc_options(options, prefix) == ["ksp_gmres_restartt"]
     finally:
         ksp.destroy()
         A.destroy()
@@ -308,21 +309,21 @@ def test_petsc_record_of_used_options_until_the_end_of_a_solve():
 
 def test_unused_options_refused_up_front():
     ilu = {"ksp_type": "gmres", "pc_type": "ilu"}
-    checks.check_petsc_options_used({"ksp_gmres_restart": "50"},
+    petsc_options.check_petsc_options_used({"ksp_gmres_restart": "50"},
                                     {**ilu, "ksp_gmres_restart": "50"})
     with pytest.raises(ValueError, match="-ksp_gmres_restartt is not used"):
-        checks.check_petsc_options_used({"ksp_gmres_restartt": "50"},
+        petsc_options.check_petsc_options_used({"ksp_gmres_restartt": "50"},
                                         {**ilu, "ksp_gmres_restartt": "50"})
     with pytest.raises(ValueError, match=r"-ksp_gmres_restart is not used .*-ksp_type cg"):
-        checks.check_petsc_options_used({"ksp_gmres_restart": "50", "ksp_type": "cg"},
+        petsc_options.check_petsc_options_used({"ksp_gmres_restart": "50", "ksp_type": "cg"},
                                         {**ilu, "ksp_type": "cg", "ksp_gmres_restart": "50"})
     amg = {"pc_type": "hypre", "pc_hypre_type": "boomeramg"}
-    checks.check_petsc_options_used({"inner_pc_hypre_boomeramg_strong_threshold": "0.5"},
+    petsc_options.check_petsc_options_used({"inner_pc_hypre_boomeramg_strong_threshold": "0.5"},
                                     {**ilu, "pc_type": "none"},
                                     {**amg, "pc_hypre_boomeramg_strong_threshold": "0.5"},
                                     "inner_")
     with pytest.raises(ValueError, match="-inner_pc_hypre_boomeramg_strong_treshold"):
-        checks.check_petsc_options_used({"inner_pc_hypre_boomeramg_strong_treshold": "0.5"},
+        petsc_options.check_petsc_options_used({"inner_pc_hypre_boomeramg_strong_treshold": "0.5"},
                                         {**ilu, "pc_type": "none"},
                                         {**amg, "pc_hypre_boomeramg_strong_treshold": "0.5"},
                                         "inner_")

@@ -151,14 +151,15 @@ def _check_before_meshing(args, scene, kwargs, comm):
     the processes have (or more vertices than --max-vertices). Returns the parsed options."""
     from ..linalg.krylov import Krylov
     from ..model import checks
+    from ..model.petsc_options import check_petsc_options_used, parse_petsc_options
     from ..model.scenes import DEFAULT_H
     from .driver import MEMORY_METHOD
-    petsc_options = checks.parse_petsc_options(args.petsc_options)
+    petsc_options = parse_petsc_options(args.petsc_options)
     if args.out is not None:
         checks.check_output_folder(args.out, comm)
     krylov = Krylov(args.solver, petsc_options)
     if petsc_options:
-        checks.check_petsc_options_used(petsc_options, krylov.merged)
+        check_petsc_options_used(petsc_options, krylov.merged)
     domain = scene if scene in ("disk", "square") else kwargs.get("domain", "disk")
     checks.check_request(kwargs.get("h", DEFAULT_H), args.levels, domain, kwargs.get("mesh"),
                          args.max_vertices, comm=comm, estimators=not args.no_estimators,

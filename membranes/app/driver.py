@@ -40,6 +40,7 @@ from ..estimation.estimators import Estimators
 from ..fem.discretisation import Discretisation, discretise
 from ..linalg.krylov import Krylov
 from ..model import checks
+from ..model.petsc_options import check_petsc_options_used, parse_petsc_options
 from ..model.problem import Problem
 from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS, linear_criterion
@@ -348,11 +349,11 @@ def solve(problem: Problem,
     _choice("errors", errors, ERRORS)
     if int(max_newton) < 1:
         raise ValueError(f"max_newton must be at least 1, got {max_newton}")
-    petsc_options = checks.parse_petsc_options(petsc_options)
+    petsc_options = parse_petsc_options(petsc_options)
     krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": int(nu)}),
                     **({} if max_linear_its is None else {"max_it": int(max_linear_its)}))
     if petsc_options:       # refused here if PETSc would not read one of them
-        checks.check_petsc_options_used(petsc_options, krylov.merged)
+        check_petsc_options_used(petsc_options, krylov.merged)
     _check_memory(problem, solver, estimators, max_vertices,
                   alg_flux if alg_flux in ALG_FLUXES else None)
     if system is not None:

@@ -1,0 +1,168 @@
+"""PETSc options checked before a run starts (issue 29; the size and output-folder checks are
+in `membranes.model.checks`).
+
+A token that is not ``-name [value]`` is refused by `parse_petsc_options`; an option PETSc
+never queries (a misspelt name, or one that does not apply to the solver configured) is found
+through PETSc's own record of the options it read (`unused_petsc_options`, PetscOptionsUsed),
+and `check_petsc_options_used` refuses it before the solve by configuring a throw-away KSP
+(and inner PC) with the run's options. Every check raises ValueError with a one-line message;
+the command line turns it into exit code 2.
+"""
+
+import ctypes
+import shlex
+
+# ## PETSc options
+#
+# An option is '-' and a name (a letter, then letters, digits and '_'), followed by at most
+# one value, any token that is not itself an option (so -1e-3 is a value). What is not of
+# that form is refused here rather than passed on: PETSc would store "-pc_type=vertex_amg" as
+# an option of that whole name and never read it.
+
+def _valid_name(name):
+    return bool(name) and name[0].isalpha() and name.replace("_", "a").isalnum() and \
+        name.isascii()
+
+
+def _is_option(token):
+    return token[:1] == "-" and token[1:2].isalpha()
+
+
+def parse_petsc_options(options):
+    """PETSc options as a dict {name: value or None}, names without their '-': from a string
+    ("-ksp_type gmres -ksp_monitor -pc_factor_shift_amount -1e-3") or a dict (whose names
+    may carry the '-'). ValueError for a token that is not -name [value]: '-pc_type=ilu',
+    'pc_type' where an option is expected, a value after a value, a name with other
+    characters; for a value that is not a string, number or bool."""
+    if options is None:
+        return {}
+    if isinstance(options, dict):
+        out = {}
+        for name, value in options.items():
+            bare = str(name)[1:] if str(name).startswith("-") else str(name)
+            if not _valid_name(bare):
+                raise ValueError(f"PETSc option {name!r} is not a valid option name "
+                                 f"(a letter, then letters, digits and '_')")
+            if not (value is None or isinstance(value, (str, bool, int, float))):
+                raise ValueError(f"PETSc option -{bare}: value {value!r} is not a string "
+                                 f"or number")
+            out[bare] = value
+        return out
+    try:
+        tokens = shlex.split(str(options))
+    except ValueError as e:
+        raise ValueError(f"PETSc options {options!r}: {e}") from None
+    out, name = {}, None
+    for token in tokens:
+        if _is_option(token):
+            name = token[1:]
+            if not _valid_name(name):
+                fix = f" (write '-{name.replace('=', ' ', 1)}')" if "=" in name else ""
+                raise ValueError(f"PETSc options: {token!r} is not -name [value]{fix}")
+            out[name] = None
+        elif "=" in token:
+            raise ValueError(f"PETSc options: {token!r} is not -name [value] "
+                             f"(write '-{token.lstrip('-').replace('=', ' ', 1)}')")
+        elif name is not None and out[name] is None:
+            out[name] = token
+        else:
+            raise ValueError(f"PETSc options: value {token!r} follows no option "
+                             f"(an option is -name [value])")
+    return out
+
+
+def _petsc_used():
+    """PETSc's PetscOptionsUsed(options, name, &used) from the library petsc4py runs on (the
+    same options database), or None where it cannot be found. petsc4py 3.18 has no binding for
+    it (its Options has getAll, hasName, delValue, but no 'used')."""
+    from petsc4py import PETSc  # noqa: F401  (loads the library)
+    try:
+        with open("/proc/self/maps") as f:
+            paths = {line.split()[-1] for line in f if "libpetsc" in line.split()[-1]}
+    except OSError:
+        return None
+    for path in sorted(paths):
+        try:
+            fn = ctypes.CDLL(path).PetscOptionsUsed
+        except (OSError, AttributeError):
+            continue
+        fn.argtypes = [ctypes.c_void_p, ctypes.c_char_p, ctypes.POINTER(ctypes.c_int)]
+        fn.restype = ctypes.c_int
+        return fn
+    return None
+
+
+def unused_petsc_options(options, prefix=""):
+    """The names of `options` (names without '-') that PETSc's global options database holds
+    under `prefix` but has never read: no PETSc object queried them. Call it at the end of a
+    run, before the options are taken out of the database. None where PETSc's record cannot be
+    read (`_petsc_used`)."""
+    used = _petsc_used()
+    if used is None:
+        return None
+    from petsc4py import PETSc
+    held = PETSc.Options().getAll()
+    unused = []
+    for name in options:
+        full = prefix + str(name).lstrip("-")
+        flag = ctypes.c_int(0)
+        if full in held and used(None, full.encode(), ctypes.byref(flag)) == 0 and \
+                not flag.value:
+            unused.append(str(name).lstrip("-"))
+    return unused
+
+
+_trials = iter(range(1 << 62))
+
+
+def unused_by_trial(options, kind="ksp"):
+    """The names of `options` that a throw-away PETSc KSP (or PC, `kind='pc'`) configured
+    with them (setFromOptions, no operator) does not read: an option a solve configured the
+    same way cannot read either, when its options are read at configuration (as the current
+    solvers do: they take their options out of the database right after setFromOptions).
+    PETSc errors (an unknown KSP type, a bad value) pass on as ValueError."""
+    from petsc4py import PETSc
+    prefix = f"membranes_check_{next(_trials)}_"
+    database = PETSc.Options()
+    for name, value in options.items():
+        database[prefix + name] = value
+    obj = (PETSc.KSP() if kind == "ksp" else PETSc.PC()).create(PETSc.COMM_SELF)
+    try:
+        obj.setOptionsPrefix(prefix)
+        try:
+            obj.setFromOptions()
+        except PETSc.Error as e:
+            message = str(e).strip().splitlines()[-1].split("] ", 1)[-1]
+            raise ValueError(f"PETSc options: {message}") from None
+        return unused_petsc_options(options, prefix)
+    finally:
+        obj.destroy()
+        for name in options:
+            database.delValue(prefix + name)
+
+
+def check_petsc_options_used(user, ksp_options, pc_options=None, pc_prefix=None,
+                             shown=None):
+    """Refuse the first of the user's options `user` (names without '-') that PETSc would not
+    read: those whose name starts with `pc_prefix` go (without it) to an inner PC configured
+    with `pc_options`, the others to a KSP configured with `ksp_options` (both the complete
+    options the solve applies, defaults included). ValueError naming it, in one line, with the
+    KSP and PC types of `shown` (default `ksp_options`)."""
+    inner = {name[len(pc_prefix):] for name in user
+             if pc_prefix and pc_options is not None and name.startswith(pc_prefix)}
+    outer = [name for name in user
+             if not (pc_prefix and pc_options is not None and name.startswith(pc_prefix))]
+    unused = unused_by_trial(ksp_options, "ksp")
+    if unused is None:
+        return
+    unused = [name for name in outer if name in unused]
+    if pc_options is not None and inner:
+        unused += [pc_prefix + name for name in unused_by_trial(pc_options, "pc") or []
+                   if name in inner]
+    if unused:
+        what = " ".join(f"-{k} {v}" for k, v in (shown or ksp_options).items()
+                        if k in ("ksp_type", "pc_type"))
+        raise ValueError(f"PETSc option -{unused[0]} is not used by the solver of this run "
+                         f"({what}): misspelt, not an option of this KSP/PC, or one that is "
+                         f"read during a solve only (the solvers drop their options once "
+                         f"configured)")
