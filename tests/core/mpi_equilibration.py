@@ -161,23 +161,11 @@ def equilibrate(data):
 
 def straddling(eq):
     """Number of patches (over all colours) whose cells live on more than one process."""
-    from membranes.estimation.patches import reduce_by_key
-    comm = eq.comm
-    count = 0
-    nc = eq.mesh.topology.index_map(2).size_local
-    cells = eq.V.dofmap.list.array.reshape(-1, 3)[:nc]
-    gdofs = np.asarray(eq.V.dofmap.index_map.local_to_global(
-        np.arange(eq.colour.size, dtype=np.int32)), dtype=np.int64)
-    for c in range(eq.ncolours):
-        hit = eq.colour[cells] == c
-        pid = gdofs[cells[hit]]                       # one per cell touching colour c
-        ranks = np.full(pid.size, comm.rank, dtype=np.int64)
-        lo = reduce_by_key(comm, pid, ranks, np.minimum)
-        hi = reduce_by_key(comm, pid, ranks, np.maximum)
-        # count each straddling patch once: on the process of least rank holding it
-        mine = np.unique(pid[(lo != hi) & (lo == comm.rank)])
-        count += comm.allreduce(mine.size, op=MPI.SUM)
-    return count
+    from mpi_patches import straddling as count  # run as a script from tests/core
+
+    from membranes.estimation.equilibration import vertex_patches
+    patches, _ = vertex_patches(eq.V, eq.colour, eq.ncolours, eq.on_boundary)
+    return count(eq.comm, patches)
 
 
 def main(mode):

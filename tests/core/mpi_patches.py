@@ -55,36 +55,28 @@ def random_solutions(mesh, seed=0):
             comm.allreduce(diff, op=MPI.MAX))
 
 
-def straddling(mesh, patches):
-    """Global number of patches (all groups) whose cells lie on more than one process."""
+def straddling(comm, groups):
+    """Global number of patches (all groups) whose cells lie on more than one process; each
+    group an array over the owned cells of their patch's global id (-1: none)."""
     from membranes.estimation.patches import reduce_by_key
-    comm = mesh.comm
     total = 0
-    for pid in patches:
+    for pid in groups:
         ids = np.unique(pid[pid >= 0])
         ranks = reduce_by_key(comm, ids, np.full(ids.shape, 1 << comm.rank, dtype=np.int64),
                               np.bitwise_or)
-        lowest = (ranks & -ranks) == (1 << comm.rank)
+        lowest = (ranks & -ranks) == (1 << comm.rank)       # counted by its lowest rank
         many = np.array([bin(int(v)).count("1") > 1 for v in ranks], dtype=bool)
         total += int(np.count_nonzero(many & lowest))
     return comm.allreduce(total, op=MPI.SUM)
 
 
 def _full_matrix(W, signs):
-    """The signed A over the whole mesh, as the engine assembled it before (the reference)."""
-    import ufl
-    from dolfinx import fem
-    from dolfinx.fem.petsc import assemble_matrix
-
-    import forms.equilibration as equilibration_forms
-    (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
-    A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q)))
-    A.assemble()
-    s = A.createVecLeft()
-    s.array[:] = signs
-    A.diagonalScale(s, s)
-    s.destroy()
-    return A
+    """The signed A over the whole mesh (every owned cell), as the engine assembled it before
+    (the reference of the partial assembly and of the action)."""
+    from membranes.estimation.homes import assemble_on
+    mesh = W.mesh
+    return assemble_on(W, np.arange(mesh.topology.index_map(mesh.topology.dim).size_local),
+                       signs)
 
 
 def _random_signs(W, seed):
@@ -174,7 +166,7 @@ def main():
     mesh = refined_disk(comm, 0.3, 2)
     shared, _, scale, diff = random_solutions(mesh)
     stats = shared.stats()
-    count = straddling(mesh, vertex_groups(mesh)[0])
+    count = straddling(mesh.comm, vertex_groups(mesh)[0])
     act, act_scale = action_error(mesh)
     inside, outside, entry, ninside = partial_assembly_error(mesh)
     if comm.rank == 0:
