@@ -80,10 +80,9 @@ def row(label, r):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--commit", default="6b2f081", help="the earlier commit (6b2f081)")
-    parser.add_argument("--sizes", nargs="+", default=["5", "6:0.132"], metavar="J[:H0]")
     parser.add_argument("--repeat", type=int, default=1, metavar="N",
                         help="pairs of runs per size (default 1)")
-    args = fresh.parse_common(parser, argv)
+    args = fresh.parse_common(parser, argv, ("5", "6:0.132"))
     tree = tempfile.mkdtemp(prefix="membranes-then-")
     os.rmdir(tree)
     subprocess.run(["git", "worktree", "add", "--detach", tree, args.commit], cwd=fresh.ROOT,

@@ -93,18 +93,7 @@ def parse(argv=None):
     parser = argparse.ArgumentParser(
         description="Peak memory per process of ours on 1, 2, 4 processes (issue 28); the "
                     "module notes say what is measured.")
-    parser.add_argument("--sizes", nargs="+", default=list(DEFAULT_SIZES), metavar="J[:H0]",
-                        help=f"refinements J of the gmsh mesh of size H0 (default {fresh.H0}); "
-                             f"default {' '.join(DEFAULT_SIZES)}")
-    parser.add_argument("--procs", nargs="+", type=int, default=[1, 2, 4], metavar="P",
-                        help="numbers of processes (default 1 2 4)")
-    args = fresh.parse_common(parser, argv)
-    if any(p < 1 for p in args.procs):
-        parser.error("every P must be at least 1")
-    if args.blas_threads is not None and args.blas_threads < 1:
-        parser.error("--blas-threads must be at least 1")
-    if not 0 < args.margin <= 1:
-        parser.error("--margin must lie in (0, 1]")
+    args = fresh.parse_common(parser, argv, DEFAULT_SIZES, (1, 2, 4))
     args.procs = sorted(set(args.procs))
     return args
 

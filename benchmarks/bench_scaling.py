@@ -193,21 +193,12 @@ def parse(argv=None):
     parser = argparse.ArgumentParser(
         description="Ours against the SNES VI peers on the disk, serial and on P processes "
                     "(issue 31); the module notes say what is measured.")
-    parser.add_argument("--sizes", nargs="+", default=list(DEFAULT_SIZES), metavar="J[:H0]",
-                        help=f"refinements J of the gmsh mesh of size H0 (default {fresh.H0}); "
-                             f"default {' '.join(DEFAULT_SIZES)}")
-    parser.add_argument("--procs", nargs="+", type=int, default=[1, 2], metavar="P",
-                        help="numbers of processes (default 1 2)")
     parser.add_argument("--repeat", type=int, default=1, metavar="N",
                         help="runs of each (P, method) per size (default 1)")
     parser.add_argument("--no-plain", action="store_true", help="leave out the plain peer")
-    args = fresh.parse_common(parser, argv)
-    if args.repeat < 1 or any(p < 1 for p in args.procs):
-        parser.error("--repeat and every P must be at least 1")
-    if args.blas_threads is not None and args.blas_threads < 1:
-        parser.error("--blas-threads must be at least 1")
-    if not 0 < args.margin <= 1:
-        parser.error("--margin must lie in (0, 1]")
+    args = fresh.parse_common(parser, argv, DEFAULT_SIZES, (1, 2))
+    if args.repeat < 1:
+        parser.error("--repeat must be at least 1")
     return args
 
 

@@ -217,9 +217,17 @@ if __name__ == "__main__":
     child(sys.argv[1], sys.argv[2])
 
 
-def parse_common(parser, argv=None):
-    """Add the options both benchmarks share (--no-warmup, --blas-threads, --timeout,
-    --margin), parse `argv` and check the sizes (`size`)."""
+def parse_common(parser, argv=None, sizes=(), procs=None):
+    """Add the options the benchmarks share (--sizes with default `sizes`, --procs with default
+    `procs` unless None, --no-warmup, --blas-threads, --timeout, --margin), parse `argv` and
+    check the sizes (`size`), the process counts and BLAS threads (at least 1) and the margin
+    (in (0, 1])."""
+    parser.add_argument("--sizes", nargs="+", default=list(sizes), metavar="J[:H0]",
+                        help=f"refinements J of the gmsh mesh of size H0 (default {H0}); "
+                             f"default {' '.join(sizes)}")
+    if procs is not None:
+        parser.add_argument("--procs", nargs="+", type=int, default=list(procs), metavar="P",
+                            help=f"numbers of processes (default {' '.join(map(str, procs))})")
     parser.add_argument("--no-warmup", action="store_true",
                         help="no small unreported run first (the JIT cache is then warm)")
     parser.add_argument("--blas-threads", type=int, default=None, metavar="T",
@@ -236,4 +244,10 @@ def parse_common(parser, argv=None):
             size(s)
         except ValueError as e:
             parser.error(str(e))
+    if procs is not None and any(p < 1 for p in args.procs):
+        parser.error("every P must be at least 1")
+    if args.blas_threads is not None and args.blas_threads < 1:
+        parser.error("--blas-threads must be at least 1")
+    if not 0 < args.margin <= 1:
+        parser.error("--margin must lie in (0, 1]")
     return args
