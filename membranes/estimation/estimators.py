@@ -206,13 +206,16 @@ class Estimators:
         s1, s2 = self.sigma
         a1, a2 = self.sigma_alg
 
+        def linearisation(w, i=0, j=1, k=2):
+            return (energy_squared(mu1, mu2, e1, e2, w[i], dp)
+                    + cell_norm_squared(lam_pos, w[j], dp)
+                    + cell_norm_squared(lam_neg, w[k], dp))
+
         def base(w):
             return (flux_squared(mu1, u1, s1, w[DISC1], df)
                     + flux_squared(mu2, u2, s2, w[DISC2], df)
                     + contact_estimator(u1, u2, lam_pos, w[CONTACT], dp)
-                    + energy_squared(mu1, mu2, e1, e2, w[LIN1], dp)
-                    + cell_norm_squared(lam_pos, w[LAM_POS], dp)
-                    + cell_norm_squared(lam_neg, w[LAM_NEG], dp))
+                    + linearisation(w, LIN1, LAM_POS, LAM_NEG))
 
         def with_alg(w):
             return (base(w)
@@ -227,11 +230,6 @@ class Estimators:
         def remainder(w, i=0, j=1):
             return (weighted_norm_squared(mu1, r1 - dlam, w[i], dp)
                     + weighted_norm_squared(mu2, r2 + dlam, w[j], dp))
-
-        def linearisation(w):
-            return (energy_squared(mu1, mu2, e1, e2, w[0], dp)
-                    + cell_norm_squared(lam_pos, w[1], dp)
-                    + cell_norm_squared(lam_neg, w[2], dp))
 
         # compiled at first use (a run may never need some of them)
         self._cell_forms = {
@@ -284,10 +282,17 @@ class Estimators:
         equilibration where η_lin alone shows that a stopping test fails (driver)."""
         self._write(X)
         q = self._cell_form("lin").cells()
-        s = self.comm.allreduce(np.maximum(q, [0.0, -np.inf, 0.0]).sum(axis=0), op=MPI.SUM)
-        eta_lin1 = np.sqrt(max(s[0], 0.0))
-        eta_lin3 = self.kappa * np.sqrt(max(s[2], 0.0))
-        eta_lin2 = 2.0 * self.kappa * np.sqrt(max(s[1], 0.0)) * eta_lin1
+        lin1, lam_pos, lam_neg = self.comm.allreduce(
+            np.maximum(q, [0.0, -np.inf, 0.0]).sum(axis=0), op=MPI.SUM)
+        return self._linearisation_parts(lin1, self.kappa ** 2 * lam_neg, lam_pos)
+
+    def _linearisation_parts(self, lin1_sq, lin3_sq, lam_pos_sq):
+        """η_lin1, η_lin2, η_lin3 and η_lin (§7) from the global sums of η_lin1,K², η_lin3,K²
+        and ‖λ^pos‖_K²."""
+        eta_lin1, eta_lin3 = np.sqrt(max(lin1_sq, 0.0)), np.sqrt(max(lin3_sq, 0.0))
+        # η_lin2 = (Σ_K η_lin2,K²)^{1/2} = 2 C_PF h_Ω (1/μ1 + 1/μ2)^{1/2} ‖λ^pos‖ η_lin1: a
+        # product of two energy-norm quantities, which enters η² as it is (§7)
+        eta_lin2 = 2.0 * self.kappa * np.sqrt(max(lam_pos_sq, 0.0)) * eta_lin1
         return {"eta_lin": float(eta_lin1 + eta_lin3 + np.sqrt(eta_lin2)),
                 "eta_lin1": float(eta_lin1), "eta_lin2": float(eta_lin2),
                 "eta_lin3": float(eta_lin3)}
@@ -468,11 +473,8 @@ class Estimators:
             eta_rem = float(self.cpf * np.sqrt(max(s[-2:].sum(), 0.0)))
         eta_1, disc_part, eta_F, eta_osc = np.sqrt(np.maximum(s[[0, 1, 2, 3]], 0.0))
         sum_C = float(s[4])
-        eta_lin1, eta_lin3 = np.sqrt(max(s[5], 0.0)), np.sqrt(max(s[6], 0.0))
-        lam_pos_norm = np.sqrt(max(s[7], 0.0))
-        # η_lin2 = (Σ_K η_lin2,K²)^{1/2} = 2 C_PF h_Ω (1/μ1 + 1/μ2)^{1/2} ‖λ^pos‖ η_lin1: a
-        # product of two energy-norm quantities, which enters η² as it is (§7)
-        eta_lin2 = 2.0 * self.kappa * lam_pos_norm * eta_lin1
+        lin = self._linearisation_parts(s[5], s[6], s[7])
+        eta_lin1, eta_lin2, eta_lin3 = lin["eta_lin1"], lin["eta_lin2"], lin["eta_lin3"]
         alg_flux = np.sqrt(max(s[8], 0.0)) if with_alg else 0.0
         eta = np.sqrt((eta_1 + eta_rem + eta_lin1 + eta_lin3) ** 2 + eta_lin2 + max(0.0, sum_C))
         eta_1_sq += lin1_sq
@@ -482,10 +484,7 @@ class Estimators:
         return {
             "eta": float(eta),
             "eta_disc": float(disc_part + np.sqrt(abs(sum_C))),
-            "eta_lin": float(eta_lin1 + eta_lin3 + np.sqrt(eta_lin2)),
             "eta_alg": float(alg_flux + eta_rem),
             "eta_F": float(eta_F), "eta_osc": float(eta_osc), "eta_C": sum_C,
-            "eta_lin1": float(eta_lin1), "eta_lin2": float(eta_lin2),
-            "eta_lin3": float(eta_lin3), "eta_rem": float(eta_rem), "eta_1": float(eta_1),
-            "eta_K": eta_K,
+            "eta_rem": float(eta_rem), "eta_1": float(eta_1), "eta_K": eta_K, **lin,
         }
