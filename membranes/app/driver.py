@@ -156,9 +156,12 @@ class LevelEstimates:
     superlinearly. So once a full estimate on the mesh has given η_disc, an iterate with
     η_lin > γ_lin · GATE · that η_disc (GATE = 2) is returned with η_lin only, marked
     `partial` and without a bound: its Newton test cannot hold unless η_disc doubled in one
-    step, and Newton goes on. This is a schedule of the estimates, like ν for Krylov (§8);
-    the iterate Newton stops at is always estimated in full and certified. `gate=None`
-    estimates every Newton iterate in full.
+    step, and Newton goes on. Before the first full estimate on the mesh, the gradient
+    recovery estimate η_rec (`Estimators.recovered`, two small assemblies) stands in for
+    η_disc: both estimate the same discretisation error. This is a schedule of the
+    estimates, like ν for Krylov (§8): a wrong guess costs at most one more Newton step,
+    never the bound; the iterate Newton stops at is always estimated in full and certified.
+    `gate=None` estimates every Newton iterate in full.
     """
 
     def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
@@ -200,9 +203,11 @@ class LevelEstimates:
                 if self.multilevel is None:
                     self._keep(X, R)
                 return None
-            if kind == "newton" and self.gate is not None and self.eta_disc is not None:
+            if kind == "newton" and self.gate is not None:
                 lin = self.est.linearisation(X)
-                if lin["eta_lin"] > self.gamma_lin * self.gate * self.eta_disc:
+                reference = self.eta_disc if self.eta_disc is not None else \
+                    self.est.recovered(X)
+                if lin["eta_lin"] > self.gamma_lin * self.gate * reference:
                     lin["partial"] = True
                     return lin
             out = self._evaluate(X, R)

@@ -55,8 +55,10 @@ from forms.estimators import (
     contact_estimator,
     energy_squared,
     flux_squared,
+    lumped_mass,
     oscillation_squared,
     projection_load,
+    recovery_load,
     weighted_norm_squared,
 )
 
@@ -194,6 +196,7 @@ class Estimators:
         self._recent = []                                               # σ_disc's last two
         self._u_sigma = [fem.Function(V) for _ in range(3)]             # σ_disc's iterate
         self._layouts = {}                                              # `_alike`'s verdicts
+        self._recovery = None                                           # `recovered`'s forms
 
     # ## Set-up
 
@@ -285,6 +288,49 @@ class Estimators:
         lin1, lam_pos, lam_neg = self.comm.allreduce(
             np.maximum(q, [0.0, -np.inf, 0.0]).sum(axis=0), op=MPI.SUM)
         return self._linearisation_parts(lin1, self.kappa ** 2 * lam_neg, lam_pos)
+
+    def recovered(self, X):
+        """η_rec = (Σ_α ‖μ_α^{1/2} ∇u_αh - μ_α^{-1/2} G_α‖²)^{1/2} at X, G_α ∈ P1² the vertex
+        average of μ_α ∇u_αh (`forms.estimators.recovery_load`, lumped mass): the gradient
+        recovery estimate of the discretisation error (Zienkiewicz–Zhu), the expression of η_F
+        (§7) with -G_α in place of the equilibrated σ_α,disc. Not a bound, since G_α is not
+        equilibrated: it stands in for η_disc only where none has been computed on the mesh,
+        to decide whether the flux equilibration is worth computing (driver.LevelEstimates).
+        Two small assemblies, no patch problem."""
+        from dolfinx import fem, la
+        if self._recovery is None:
+            self._recovery = self._recovery_forms()
+        load, G, inverse_mass, cells = self._recovery
+        self._write(X)
+        G.x.array[:] = 0.0
+        fem.assemble_vector(G.x.array, load)
+        G.x.scatter_reverse(la.ScatterMode.add)
+        G.x.array.reshape(-1, 4)[:] *= inverse_mass[:, None]
+        G.x.scatter_forward()
+        total = global_sums(self.comm, cells.cells()).sum()
+        return float(np.sqrt(max(total, 0.0)))
+
+    def _recovery_forms(self):
+        """`recovered`'s forms, compiled at its first use: the loads (μ_α ∇u_αh, ψ_a) of both
+        membranes into one P1⁴ Function G = (G_1, G_2), 1/(1, ψ_a), and the per-cell norms."""
+        from dolfinx import fem, la
+        mesh, V = self.disc.mesh, self.disc.V
+        G = fem.Function(fem.VectorFunctionSpace(mesh, ("Lagrange", 1), dim=4))
+        if not self.comm.allreduce(same_numbering(G.function_space, V), op=MPI.LAND):
+            raise RuntimeError("vector P1 numbers its vertices unlike P1")
+        dp = ufl.dx(domain=mesh, metadata=P1_RULE)      # exact: G_α ∈ P1², ∇u_αh constant
+        v = ufl.TestFunction(G.function_space)
+        u1, u2 = self.nodal[U1], self.nodal[U2]
+        mu1, mu2 = self._mu
+        load = fem.form(recovery_load(mu1, u1, ufl.as_vector([v[0], v[1]]), dp)
+                        + recovery_load(mu2, u2, ufl.as_vector([v[2], v[3]]), dp))
+        mass = fem.assemble_vector(fem.form(lumped_mass(ufl.TestFunction(V), dp)))
+        mass.scatter_reverse(la.ScatterMode.add)
+        mass.scatter_forward()
+        G1, G2 = ufl.as_vector([G[0], G[1]]), ufl.as_vector([G[2], G[3]])
+        cells = CellForm(mesh, 2, lambda w: flux_squared(mu1, u1, -G1, w[0], dp)
+                         + flux_squared(mu2, u2, -G2, w[1], dp))
+        return load, G, 1.0 / mass.array, cells
 
     def _linearisation_parts(self, lin1_sq, lin3_sq, lam_pos_sq):
         """η_lin1, η_lin2, η_lin3 and η_lin (§7) from the global sums of η_lin1,K², η_lin3,K²

@@ -239,8 +239,48 @@ def cell_areas(disc):
     return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
+def recovered_reference(disc, values):
+    """η_rec of `Estimators.recovered` by numpy, independently: per cell the gradient of the P1
+    interpolant, the lumped average G_a = Σ_{K∋a} |K| μ ∇u_K / Σ_{K∋a} |K| (the lumped mass
+    of vertex a is Σ_{K∋a} |K|/3), and ∫_K |d|² = |K|/12 (Σ_i |d_i|² + |Σ_i d_i|²), exact for the
+    P1 field d = μ ∇u_K - G with vertex values d_i."""
+    x = disc.V.tabulate_dof_coordinates()[:, :2]
+    ncells = disc.mesh.topology.index_map(2).size_local
+    d = np.array([disc.V.dofmap.cell_dofs(c) for c in range(ncells)])
+    area = cell_areas(disc)
+    jac = np.stack([x[d[:, 1]] - x[d[:, 0]], x[d[:, 2]] - x[d[:, 0]]], axis=1)   # rows: edges
+    total = 0.0
+    for mu, u in zip((disc.mu1, disc.mu2), values):
+        du = np.stack([u[d[:, 1]] - u[d[:, 0]], u[d[:, 2]] - u[d[:, 0]]], axis=1)
+        flux = mu * np.linalg.solve(jac, du)                                  # (cells, 2)
+        weight = np.zeros(x.shape[0])
+        np.add.at(weight, d, np.repeat(area[:, None], 3, axis=1))
+        G = np.zeros((x.shape[0], 2))
+        np.add.at(G, d, (area[:, None] * flux)[:, None, :].repeat(3, axis=1))
+        G /= weight[:, None]
+        diff = flux[:, None, :] - G[d]                                        # (cells, 3, 2)
+        total += (area / 12 * ((diff ** 2).sum(axis=(1, 2))
+                               + (diff.sum(axis=1) ** 2).sum(axis=1))).sum() / mu
+    return np.sqrt(total)
+
+
+def test_recovered_flux_against_numpy(setup):
+    """η_rec (the Newton gate's stand-in for η_disc) equals the numpy computation to
+    round-off, and vanishes for linear u1h, u2h (the average of a constant flux is itself)."""
+    disc, X, *_ = setup
+    n = disc.n
+    est = Estimators(disc)
+    values = (X[:n], X[n:2 * n])
+    expected = recovered_reference(disc, values)
+    assert expected > 0
+    assert np.isclose(est.recovered(X), expected, rtol=TOL, atol=0)
+    x = disc.V.tabulate_dof_coordinates()[:n, :2].T
+    linear = np.concatenate([0.3 * x[0] - x[1], 2 * x[1] + 0.1, X[2 * n:]])
+    assert est.recovered(linear) <= 1e-12 * expected
+
+
 FORMS = ["flux_squared", "weighted_norm_squared", "cell_norm_squared", "contact_estimator",
-         "energy_squared", "oscillation_squared"]
+         "energy_squared", "oscillation_squared", "recovery_load"]
 
 
 @pytest.mark.parametrize("name", FORMS)
@@ -257,6 +297,10 @@ def test_a_changed_form_changes_the_result(setup, monkeypatch, name):
     if name == "weighted_norm_squared":
         cpf = 1 / (np.pi * np.sqrt(2))
         moved += [] if np.isclose(rem, cpf * np.sqrt(ref["rem"].sum()), rtol=1e-8) else ["rem"]
+    if name == "recovery_load":
+        n = disc.n
+        expected = recovered_reference(disc, (X[:n], X[n:2 * n]))
+        moved += [] if np.isclose(est.recovered(X), expected, rtol=1e-8) else ["rec"]
     assert moved, name
 
 
