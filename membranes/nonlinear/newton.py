@@ -14,7 +14,9 @@ The step is solved on the full 3N system or on the eliminated 2N one
 
 * exact: ‖R_alg‖/‖B‖ ≤ 2e-12 at every step; Newton stops at ‖R_lin‖/‖(F, 0)‖ ≤ tol;
 * inexact: the Krylov solve stops at ‖R_alg‖/‖B‖ ≤ ‖R_lin(X^{k-1})‖/‖(F, 0)‖ (tested every ν
-  iterations: see krylov), Newton stops as for exact;
+  iterations: see krylov), Newton stops as for exact; with `forcing` η instead at
+  ‖R_alg‖ ≤ η ‖R_alg(X^{k,0})‖, tested at every iteration (a constant forcing term: the
+  nested run's coarse levels, membranes.app.driver);
 * adaptive (Algorithm 1): every ν Krylov steps the iterate X^{k,i} and its residual R^{k,i}
   go to the estimators (`estimate(X, R, 'krylov')`), and the solve stops at the first with
   η_alg ≤ γ_alg max(η_disc, η_lin) (or at the exact floor 2e-12); that iterate is X^k, whose
@@ -115,7 +117,7 @@ def newton_criterion(est, gamma_lin):
 
 def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg",
            estimate=None, gamma_lin=0.3, gamma_alg=0.3, tol=1e-10, max_newton=100,
-           progress=None):
+           progress=None, forcing=None):
     """Semismooth Newton on `disc` (a membranes.fem.discretisation.Discretisation) from X0 (a
     PETSc Vec in the iterate layout; default (g, 0, 0)).
 
@@ -123,10 +125,21 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
     (default: the preset's); krylov: a preset name ('amg', 'paper', 'direct'), a dict of
     `membranes.linalg.krylov.Krylov` fields (preset, options, nu, max_it) or a Krylov;
     estimate: see the module notes; progress: True (print on rank 0) or a callable taking one
-    line per Newton step (called on rank 0 only). Returns a `NewtonResult`."""
+    line per Newton step (called on rank 0 only); forcing (inexact only): the Krylov solve of a
+    step stops instead at ‖R_alg‖ ≤ forcing ‖R_alg(X^{k,0})‖, tested at every iteration (the
+    module notes). Returns a `NewtonResult`."""
     spec = as_krylov(krylov)
     system = spec.system if system is None else system
     _check(cfun, variant, system, spec, estimate, gamma_lin, gamma_alg, tol, max_newton)
+    if forcing is not None:
+        if variant != "inexact":
+            raise ValueError("forcing applies to the inexact Newton variant only")
+        try:
+            ok = 0.0 < float(forcing) < 1.0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"forcing must lie in (0, 1), got {forcing!r}")
     comm = disc.comm
     say = None
     if progress and comm.rank == 0:
@@ -234,9 +247,11 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
 
             t = time.perf_counter()
             t_est = times["estimate"]
-            every = spec.nu if variant == "inexact" else 1
+            bound, every = lin_tol * lin.norm_B, spec.nu if variant == "inexact" else 1
+            if forcing is not None:         # relative to X^{k,0}'s residual (R: scratch here)
+                bound, every = forcing * step.residual(y, R), 1
             its, name, solved, norm = solver.solve(
-                step, y, lin_tol * lin.norm_B, every, on_iterate if adaptive else None,
+                step, y, bound, every, on_iterate if adaptive else None,
                 split if step.system == "eliminated" else None)
             t_solve = time.perf_counter() - t - (times["estimate"] - t_est)
             times["solve"] += t_solve
