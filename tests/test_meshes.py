@@ -49,3 +49,29 @@ def test_read_msh(tmp_path):
     m = read_msh(write_msh(tmp_path / "rect.msh", "triangles"))
     assert m.geometry.dim == 2 and m.topology.index_map(2).size_local > 50
     assert np.isclose(m.geometry.x[:, 0].max(), 2.0)
+
+
+def test_prolongation_interpolates_p1():
+    """P_j of a nested hierarchy (no boundary projection) maps the coarse interpolant of a
+    linear function to the fine one (P1 ⊂ P1, exactly: weights 1 and 1/2), and every row
+    holds one entry 1 or two entries 1/2 (plaza: coarse vertices and edge midpoints)."""
+    from dolfinx import fem
+    h = build_hierarchy(unit_disk(0.3), 2)
+    for j in (1, 2):
+        Vc, Vf = (fem.FunctionSpace(h.meshes[i], ("Lagrange", 1)) for i in (j - 1, j))
+        P = h.prolongations[j - 1]
+        uc, uf = fem.Function(Vc), fem.Function(Vf)
+        for u in (uc, uf):
+            u.interpolate(lambda x: 0.3 + 2.0 * x[0] - 0.7 * x[1])
+        n = Vf.dofmap.index_map.size_local
+        out = P.createVecLeft()
+        xc = P.createVecRight()
+        xc.array[:] = uc.x.array[:Vc.dofmap.index_map.size_local]
+        P.mult(xc, out)
+        assert np.abs(out.array - uf.x.array[:n]).max() <= 1e-14
+        ia, ja, a = P.getValuesCSR()
+        rows = np.diff(ia)
+        assert set(rows.tolist()) <= {1, 2}
+        assert np.all(np.where(np.repeat(rows, rows) == 1, a == 1.0, a == 0.5))
+        for v in (out, xc):
+            v.destroy()

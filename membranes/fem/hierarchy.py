@@ -88,48 +88,46 @@ def _cell_dofs(V):
 
 def prolongation(coarse, fine, parents):
     """P1 prolongation P : P1(coarse) → P1(fine) as a distributed PETSc matrix (rows: fine
-    dofs, columns: coarse dofs), from the barycentric coordinates of each fine cell's vertices
-    in its parent. Plaza's vertices are coarse vertices or edge midpoints, so the coordinates
-    are 0, 1/2 or 1 and are rounded to those values (they are exact before boundary vertices
-    move, which is when this is called)."""
+    dofs, columns: coarse dofs), from the barycentric coordinates of each fine vertex in the
+    parent of a cell holding it. Plaza's vertices are coarse vertices or edge midpoints, so the
+    coordinates are 0, 1/2 or 1 and are rounded to those values (they are exact before boundary
+    vertices move, which is when this is called); every cell holding a vertex gives the same
+    row, so one cell per vertex is read. A row has one entry (1) or two (1/2, 1/2)."""
     from petsc4py import PETSc
     Vc, Vf = _p1(coarse), _p1(fine)
     ncf = fine.topology.index_map(2).size_local
+    imf, imc = Vf.dofmap.index_map, Vc.dofmap.index_map
+    # one (owned cell, local vertex k) per fine dof of the owned cells
+    rows_local = _cell_dofs(Vf)[:ncf]
+    at = np.full(imf.size_local + imf.num_ghosts, -1, dtype=np.int64)
+    at[rows_local.ravel()] = np.arange(rows_local.size)
+    dofs = np.flatnonzero(at >= 0).astype(np.int32)
+    cell, k = np.divmod(at[dofs], 3)
+    del at
+    # its barycentric coordinates in the parent (geometry nodes and P1 dofs are both
+    # vertex-based but numbered apart: the cell-local order k is shared)
     xc, xf = coarse.geometry.x[:, :2], fine.geometry.x[:, :2]
     gc = coarse.geometry.dofmap.array.reshape(-1, 3)
-    gf = fine.geometry.dofmap.array.reshape(-1, 3)[:ncf]
-    corners = xc[gc[parents]]                                    # (c, 3, 2) parent corners
-    pts = xf[gf]                                                 # (c, 3, 2) fine vertices
+    gf = fine.geometry.dofmap.array.reshape(-1, 3)
+    corners = xc[gc[parents[cell]]]                               # (n, 3, 2)
     e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    d = xf[gf[cell, k]] - corners[:, 0]
     det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    d = pts - corners[:, None, 0]
-    l1 = (d[..., 0] * e2[:, None, 1] - d[..., 1] * e2[:, None, 0]) / det[:, None]
-    l2 = (e1[:, None, 0] * d[..., 1] - e1[:, None, 1] * d[..., 0]) / det[:, None]
-    bary = np.stack([1.0 - l1 - l2, l1, l2], axis=2)             # (c, 3 fine, 3 coarse)
-    bary = np.round(2.0 * bary) / 2.0
-    # geometry nodes and P1 dofs are both vertex-based but numbered apart: use the dofmaps
-    rows_local = _cell_dofs(Vf)[:ncf]                            # fine dofs of each cell
-    cols_local = _cell_dofs(Vc)[parents]                         # coarse dofs of the parent
-    imf, imc = Vf.dofmap.index_map, Vc.dofmap.index_map
-    rows = imf.local_to_global(rows_local.ravel()).reshape(rows_local.shape)
-    cols = imc.local_to_global(cols_local.ravel()).reshape(cols_local.shape)
+    l1 = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
+    l2 = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
+    bary = np.round(2.0 * np.stack([1.0 - l1 - l2, l1, l2], axis=1)) / 2.0    # (n, 3)
+    del corners, e1, e2, d, det, l1, l2
+    keep = bary != 0.0
+    cols = imc.local_to_global(_cell_dofs(Vc)[parents[cell]][keep])   # row by row
+    ptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))]).astype(PETSc.IntType)
     P = PETSc.Mat().createAIJ(((imf.size_local, imf.size_global),
                                (imc.size_local, imc.size_global)), comm=fine.comm)
-    P.setPreallocationNNZ((3, 3))
+    P.setPreallocationNNZ((2, 2))
     P.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
-    # one entry per (fine vertex k, coarse corner m) of every cell with a nonzero weight; a
-    # vertex shared by several cells repeats its entries with equal values: keep one
-    r = np.repeat(rows, 3, axis=1).ravel()                      # (cells, k, m) flattened
-    c = np.tile(cols, (1, 3)).ravel()
-    w = bary.reshape(len(bary), 9).ravel()
-    keep = w != 0.0
-    entries = np.unique(np.stack([r[keep], c[keep]], axis=1), axis=0, return_index=True)[1]
-    r, c, w = r[keep][entries], c[keep][entries], w[keep][entries]
-    order = np.lexsort((c, r))
-    r, c, w = r[order], c[order], w[order]
-    row_ids, starts = np.unique(r, return_index=True)
-    ptr = np.append(starts, len(r)).astype(PETSc.IntType)
-    P.setValuesIJV(ptr, c.astype(PETSc.IntType), w, rowmap=row_ids.astype(PETSc.IntType),
+    # a vertex on a process boundary is written by each process holding a cell of it, with
+    # the same values
+    P.setValuesIJV(ptr, np.asarray(cols, dtype=PETSc.IntType), bary[keep],
+                   rowmap=np.asarray(imf.local_to_global(dofs), dtype=PETSc.IntType),
                    addv=PETSc.InsertMode.INSERT_VALUES)
     P.assemble()
     return P
