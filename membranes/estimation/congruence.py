@@ -156,34 +156,35 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     side = across.sum(axis=1)
     nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
     point = np.zeros((nlocal, 2))
-    position, normal = point[:, 0], point[:, 1]
     entity = np.zeros(nlocal, dtype=np.int64)
     code = np.zeros(nlocal, dtype=np.int16)
-    cells = np.arange(nall)
+    cells = np.arange(nall)[:, None]
     facet_cols = np.array(W.sub(0).element.basix_element.entity_dofs[1])
-    inner_cols = W.sub(0).element.basix_element.entity_dofs[2][0]
+    inner_cols = np.array(W.sub(0).element.basix_element.entity_dofs[2][0])
+    # each write covers the dofs of all local cells at once, (cells, dofs of the entity);
+    # `entity` is written as (global index, kind, index in the entity) in one integer
     facet_dofs, facet_codes = [], []
+    index = np.arange(facet_cols.shape[1])
     for i in range(3):
-        f = order[:, i]                                   # dolfinx facet of canonical facet i
-        for t in range(facet_cols.shape[1]):
-            dof = rt_dofs[cells, facet_cols[f, t]]
-            position[dof] = midpoint[cells, f]
-            normal[dof] = 0.5 * (side - across[cells, f])
-            entity[dof] = fglobal[cells, f]
-            code[dof] = (FACET << 2) | t | np.where(signs[p, info, i, t] < 0, NEGATIVE, 0)
-            facet_dofs.append(dof)
-            facet_codes.append(code[dof])
+        f = order[:, i:i + 1]                             # dolfinx facet of canonical facet i
+        dof = rt_dofs[cells, facet_cols[f[:, 0]]]
+        point[dof] = np.stack([np.take_along_axis(midpoint, f, axis=1),
+                               0.5 * (side[:, None] - np.take_along_axis(across, f, axis=1))],
+                              axis=2)
+        entity[dof] = 16 * np.take_along_axis(fglobal, f, axis=1) + (FACET << 2) + index
+        code[dof] = (FACET << 2) | index | np.where(signs[p, info, i] < 0, NEGATIVE, 0)
+        facet_dofs.append(dof)
+        facet_codes.append(code[dof])
     disagree = sum(int(np.count_nonzero(code[d] != k)) for d, k in zip(facet_dofs, facet_codes))
-    for t, col in enumerate(inner_cols):
-        dof = rt_dofs[:, col]
-        position[dof], normal[dof], entity[dof] = total / 3.0, side / 3.0, cglobal
-        code[dof] = (INNER << 2) | t | (p << BLOCK)
-    for k in range(3):
-        dof = dg_dofs[cells, order[:, k]]
-        position[dof], normal[dof], entity[dof] = total / 3.0, side / 3.0, cglobal
-        code[dof] = (DG << 2) | k
-    # one integer per dof for ties of position: entity, kind, index in the entity
-    entity = (entity * 4 + _kind(code)) * 4 + (code & 3)
+    centroid = np.stack([total / 3.0, side / 3.0], axis=1)[:, None, :]
+    dof = rt_dofs[:, inner_cols]
+    point[dof] = centroid
+    entity[dof] = 16 * cglobal[:, None] + (INNER << 2) + np.arange(inner_cols.size)
+    code[dof] = (INNER << 2) | np.arange(inner_cols.size) | (p[:, None] << BLOCK)
+    dof = np.take_along_axis(dg_dofs, order, axis=1)    # canonical vertex k's DG dof
+    point[dof] = centroid
+    entity[dof] = 16 * cglobal[:, None] + (DG << 2) + np.arange(3)
+    code[dof] = (DG << 2) | np.arange(3)
     return point, entity, code, blocks, disagree
 
 
@@ -347,7 +348,7 @@ def patch_keys(offsets, code, point, h, rows=None):
     first = (code & 3) == 0
     start = np.concatenate([[0], np.cumsum(np.add.reduceat(first, offsets[:-1]))])
     code, point = code[first], point[first if rows is None else rows[first]]
-    step = 1 << 11                                   # patches at a time (bounds the memory)
+    step = 1 << 14                                   # patches at a time (bounds the memory)
     for lo in range(0, n.size, step):
         hi = min(lo + step, n.size)
         a, b = start[lo], start[hi]
