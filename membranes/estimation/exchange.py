@@ -1,12 +1,38 @@
 """Communication helpers of the patch engine on a distributed mesh (§12): owned/ghost exchange
 with any numpy ufunc on a dolfinx IndexMap (`Shared`), MPI Alltoallv of numpy rows, a
-distributed reduction by key, and the vertex colouring that makes the groups of §5 and §6.
+distributed reduction by key, and the vertex colouring that makes the groups of §5 and §6; and
+two array helpers they and the set-up share (a linear-time stable sort of integer keys, the
+entries of segments).
 
 Split off `patches`, which re-exports these names.
 """
 
 import numpy as np
 from mpi4py import MPI
+
+# ## Sorting and segments
+
+def stable_order(keys):
+    """np.argsort(keys, kind="stable") for non-negative integers, by passes over 16 bits
+    (numpy's stable sort of uint16 is a radix sort: linear time)."""
+    order, shift, top = None, 0, int(keys.max(initial=0))
+    while True:
+        digit = ((keys if order is None else keys[order]) >> shift).astype(np.uint16)
+        step = np.argsort(digit, kind="stable")
+        order = step if order is None else order[step]
+        shift += 16
+        if top >> shift == 0:
+            return order
+
+
+def ranges(starts, lengths):
+    """The concatenation of arange(s, s + n) over zip(starts, lengths) (int64): the entries of
+    segments given by their starts and lengths, in one pass."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    ends = np.cumsum(lengths)
+    return (np.repeat(np.asarray(starts, dtype=np.int64) - ends + lengths, lengths)
+            + np.arange(ends[-1] if ends.size else 0, dtype=np.int64))
+
 
 # ## Communication on an index map
 #

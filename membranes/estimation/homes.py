@@ -19,22 +19,9 @@ from petsc4py import PETSc
 import forms.equilibration as equilibration_forms
 
 from .congruence import DG, INTERIOR, ROUNDING, SAME, _kind, patch_keys
-from .exchange import Shared, alltoallv, reduce_by_key
+from .exchange import Shared, alltoallv, ranges, reduce_by_key, stable_order
 
 CHUNK = 1 << 18          # rows of patch blocks taken from A at a time (bounds the set-up memory)
-
-def stable_order(keys):
-    """np.argsort(keys, kind="stable") for non-negative integers, by passes over 16 bits
-    (numpy's stable sort of uint16 is a radix sort: linear time)."""
-    order, shift, top = None, 0, int(keys.max(initial=0))
-    while True:
-        digit = ((keys if order is None else keys[order]) >> shift).astype(np.uint16)
-        step = np.argsort(digit, kind="stable")
-        order = step if order is None else order[step]
-        shift += 16
-        if top >> shift == 0:
-            return order
-
 
 
 class HomeSetup:
@@ -112,6 +99,37 @@ class HomeSetup:
         self.nlocal = imap.size_local + imap.num_ghosts
         self.rstart = imap.local_range[0]
 
+    def _canonical_order(self):
+        """The owned dofs in canonical order (`by_rank`: by kind, position along the direction,
+        entity; the order of the dofs in every patch), cut into *runs*, one per entity (a
+        facet's RT dofs, a cell's interior RT dofs, a cell's DG dofs, each by index: the order
+        keeps an entity's dofs together): each run's first rank and length, and the run of
+        each local facet's dofs and of each local cell's interior RT and DG dofs (the number
+        of runs where they are not owned). A patch keeps whole entities, so `_home_dofs`
+        selects and sorts runs, not dofs."""
+        n = self.nowned
+        self.by_rank = np.lexsort((self.entity[:n], self.position[:n, 0], _kind(self.code[:n])))
+        index = self.code[self.by_rank] & 3
+        start = np.flatnonzero(index == 0)
+        length = np.diff(np.append(start, n))
+        entity = self.entity[self.by_rank] >> 2                       # global index and kind
+        run = np.cumsum(index == 0) - 1
+        if n and (start.size == 0 or start[0] != 0
+                  or np.any(entity != entity[start][run])
+                  or np.any(index != np.arange(n) - start[run])):
+            raise RuntimeError("an entity's dofs are not consecutive in the canonical order")
+        rank = np.full(self.nlocal, start.size, dtype=np.int64)      # ghost dofs: no run
+        rank[self.by_rank] = run
+        facet_run, cell_run = rank[self.facet_dofs], rank[self.cell_dofs]
+        inner = self.cell_dofs.shape[1] - 3                  # interior RT dofs, then DG1's 3
+        cell_run = cell_run[:, [0, inner]]
+        if (np.any(facet_run != facet_run[:, :1])
+                or np.any(rank[self.cell_dofs] != np.repeat(cell_run, [inner, 3], axis=1))):
+            raise RuntimeError("an entity's dofs have several owners")
+        self.run_start, self.run_length = start, length
+        self.facet_run, self.cell_run = facet_run[:, 0], cell_run
+        del self.facet_dofs, self.cell_dofs
+
     def _home_dofs(self, pid, inner):
         """The kept W dofs of the group's patches at home on this process (global indices), in
         canonical order patch by patch (RT facet dofs, interior RT dofs, DG dofs), the patches'
@@ -132,19 +150,24 @@ class HomeSetup:
         on_boundary = (self.facet_cells == 1) & (free == 1)
         facet_patch = np.where(inside | on_boundary, hi - 1, -1)
 
-        # the patch of every local dof the group keeps (-1: not kept)
-        # (by rank in the canonical order of the owned dofs; ghost dofs share the last entry)
-        patch = np.full(self.nowned + 1, -1, dtype=np.int64)
-        patch[self.facet_rank] = facet_patch[:, None]
+        # the patch of every owned run the group keeps (-1: not kept; the last entry takes the
+        # runs that are not owned); the kept runs in canonical order, patch by patch; their dofs
+        run_patch = np.full(self.run_start.size + 1, -1, dtype=np.int64)
+        run_patch[self.facet_run] = facet_patch
         cells = np.flatnonzero(pid >= 0)
-        patch[self.cell_rank[cells]] = pid[cells, None]
-        # the owned kept dofs in canonical order, patch by patch
-        ranked = np.flatnonzero(patch[:-1] >= 0)
-        kept, kp = self.by_rank[ranked], patch[ranked]
-        del patch, ranked
+        run_patch[self.cell_run[cells]] = pid[cells, None]
+        runs = np.flatnonzero(run_patch[:-1] >= 0)
+        kp = run_patch[runs]
+        del run_patch
         by_patch = stable_order(kp)
-        kept, kp = kept[by_patch], kp[by_patch]
+        runs, kp = runs[by_patch], kp[by_patch]
         del by_patch
+        length = self.run_length[runs]
+        kept = self.by_rank[ranges(self.run_start[runs], length)]
+        new = np.flatnonzero(np.diff(kp, prepend=-1))
+        seen = kp[new]                                              # unique, sorted
+        count = np.add.reduceat(length, new) if new.size else new
+        del runs, kp, length
 
         # home of each patch: the owner of its cell of least global index, found with the
         # patch's interior flag in one distributed reduction over the patches seen here
@@ -155,8 +178,6 @@ class HomeSetup:
         values = ((self.cell_global[by_cell] * comm.size + comm.rank) << 1) | ~inner[by_cell]
         values = np.minimum.reduceat(values, new) if new.size else values[:0]
         h = np.minimum.reduceat(self.cell_h[by_cell], new) if new.size else np.zeros(0)
-        new = np.flatnonzero(np.diff(kp, prepend=-1))
-        seen = kp[new]                                              # unique, sorted
         extra = seen[keys[np.minimum(np.searchsorted(keys, seen), keys.size - 1)] != seen] \
             if keys.size else seen                      # patches with no owned cell here
         if extra.size:
@@ -166,25 +187,28 @@ class HomeSetup:
             order = np.argsort(keys)
             keys, values, h = keys[order], values[order], h[order]
         at = np.searchsorted(keys, seen)
-        count = np.diff(np.append(new, kp.size))
-        first = np.repeat(reduce_by_key(comm, keys, values, np.minimum)[at], count)
+        # per patch seen here, then per kept dof
+        first = reduce_by_key(comm, keys, values, np.minimum)[at]
         h = np.repeat(reduce_by_key(comm, keys, h, np.minimum)[at], count)
         home = (first >> 1) % comm.size
-        code = self.code[kept] | np.where(first & 1, np.int16(0), np.int16(INTERIOR))
+        send = np.bincount(home, weights=count, minlength=comm.size).astype(np.int64)
+        home = np.repeat(home, count)
+        code = self.code[kept] | np.repeat(np.where(first & 1, np.int16(0), np.int16(INTERIOR)),
+                                           count)
 
         # send every kept dof to its patch's home (in order), which keeps the patches whole;
         # column by column (no copies on one process)
         order = stable_order(home) if comm.size > 1 else slice(None)
-        send = np.bincount(home, minlength=comm.size).astype(np.int64)
         recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
         kept, home = kept[order], home[order]
 
         def move(column):
             return alltoallv(comm, column, send, recv)
 
-        gdof, gpatch, gcode = move(kept + self.rstart), move(kp[order]), move(code[order])
+        gdof, gpatch = move(kept + self.rstart), move(np.repeat(seen, count)[order])
+        gcode = move(code[order])
         gpoint, gh = move(self.position[kept]), move(h[order])
-        del kp, code, h, first, at
+        del code, h, first, at
         received = gdof.size
         perm = None                  # received → canonical order, patch by patch (None: same)
         if comm.size > 1:
@@ -202,11 +226,15 @@ class HomeSetup:
                                            gpatch[r]))]
         patch = gpatch if perm is None else gpatch[perm]
         code = gcode if perm is None else gcode[perm]
-        # patch offsets; interior patches lose their first DG dof
+        # patch offsets; interior patches lose their first DG dof (the DG dofs come last in a
+        # patch, so the dofs before a patch's first DG dof are its RT dofs)
         new = np.flatnonzero(np.diff(patch, prepend=-1) != 0)
         dg = np.flatnonzero(_kind(code) == DG)
-        pinned = dg[np.flatnonzero(np.diff(patch[dg], prepend=-1) != 0)]
-        pinned = pinned[(code[pinned] & INTERIOR) != 0]
+        first_dg = dg[np.flatnonzero(np.diff(patch[dg], prepend=-1) != 0)]
+        if first_dg.size != new.size:
+            raise RuntimeError("a patch without DG dofs")
+        nsigma = first_dg - new
+        pinned = first_dg[(code[first_dg] & INTERIOR) != 0]
         bounds = np.append(new, received)
         start = bounds - np.searchsorted(pinned, bounds)
         keep = np.ones(received, dtype=bool)
@@ -224,7 +252,6 @@ class HomeSetup:
                  np.bincount(source[dest >= 0], minlength=comm.size).astype(np.int64),
                  dest[dest >= 0].astype(np.int32))
         dofs, code = gdof[sel], code[keep]
-        nsigma = np.add.reduceat(_kind(code) != DG, start[:-1]) if code.size else start[:0]
         key = patch_keys(start, code, gpoint, h, sel)
         return dofs, start, code, tolerance, nsigma, key, route, patch[new]
 
@@ -235,17 +262,20 @@ class HomeSetup:
         ngroups = len(patches)
         keys, values, found = [], [], []
         for c, pid in enumerate(patches):
-            ids, inverse = np.unique(pid, return_inverse=True)
-            found.append((ids, inverse))
+            cells = np.flatnonzero(pid >= 0)
+            by_patch = cells[stable_order(pid[cells])]            # the cells patch by patch
+            new = np.flatnonzero(np.diff(pid[by_patch], prepend=-1))
+            ids = pid[by_patch[new]]
+            found.append((by_patch, np.diff(np.append(new, by_patch.size))))
             keys += [ids * ngroups + c, np.asarray(chosen[c], dtype=np.int64) * ngroups + c]
             values += [np.zeros(ids.size, dtype=np.int8), np.ones(len(chosen[c]), np.int8)]
         flag = reduce_by_key(self.comm, np.concatenate(keys), np.concatenate(values),
                              np.maximum)
         mark = np.zeros(self.ncells, dtype=bool)
         at = 0
-        for c, ((ids, inverse), pid) in enumerate(zip(found, patches)):
-            mark |= (flag[at:at + ids.size][inverse.ravel()] > 0) & (pid >= 0)
-            at += ids.size + len(chosen[c])
+        for c, (by_patch, count) in enumerate(found):
+            mark[by_patch] |= np.repeat(flag[at:at + count.size] > 0, count)
+            at += count.size + len(chosen[c])
         return np.flatnonzero(mark).astype(np.int32)
 
 

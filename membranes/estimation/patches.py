@@ -63,14 +63,13 @@ from .congruence import (
     NEGATIVE,
     BasisChange,
     Blocks,
-    _kind,
     _pairs,
     canonical_block,
     canonical_dofs,
     to_canonical,
 )
-from .exchange import Shared, alltoallv, colour_vertices, reduce_by_key
-from .homes import Action, HomeSetup, assemble_on, stable_order
+from .exchange import Shared, alltoallv, colour_vertices, ranges, reduce_by_key, stable_order
+from .homes import Action, HomeSetup, assemble_on
 
 __all__ = ["PatchSystems", "Shared", "alltoallv", "colour_vertices", "mixed_space", "stable_order",
            "reduce_by_key"]
@@ -123,15 +122,8 @@ class PatchSystems(HomeSetup):
         self._topology(mesh, W)
         self.position, self.entity, self.code, self.blocks, self.disagree = canonical_dofs(
             mesh, W, self.c2f, self.rt_dofs, self.dg_dofs)
+        self._canonical_order()
         n = self.nowned
-        # canonical order in a patch: its RT facet dofs, its interior RT dofs (a cell's two
-        # adjacent), its DG dofs, each by position
-        self.by_rank = np.lexsort((self.entity[:n], self.position[:n, 0],
-                                   _kind(self.code[:n])))
-        rank = np.full(self.nlocal, n, dtype=np.int32)            # ghost dofs: n
-        rank[self.by_rank] = np.arange(n, dtype=np.int32)
-        self.facet_rank, self.cell_rank = rank[self.facet_dofs], rank[self.cell_dofs]
-        del rank, self.facet_dofs, self.cell_dofs
 
         # per group its patches at home, and the patches whose blocks are needed: the first
         # of each new key (all patches without sharing); their class numbers are given now
@@ -192,7 +184,8 @@ class PatchSystems(HomeSetup):
         # only the home layout, the scatters and the inverses are kept
         for name in ("position", "entity", "code", "by_rank", "c2f", "facet_shared",
                      "facet_owned_cells", "facet_cells", "cell_global", "cell_h", "rt_dofs",
-                     "dg_dofs", "facet_rank", "cell_rank", "known", "signs"):
+                     "dg_dofs", "run_start", "run_length", "facet_run", "cell_run", "known",
+                     "signs"):
             delattr(self, name)
 
     def _lookup(self, key):
@@ -274,14 +267,16 @@ class PatchSystems(HomeSetup):
         first = 0
         for dofs, offsets, gcode, _ in groups:
             k = np.diff(offsets)
-            at = (np.repeat(start[first:first + k.size] - offsets[:-1], k)
-                  + np.arange(offsets[-1]))
+            # the group's patches by home position: their entries in home order (a cheaper
+            # scatter set-up) and those entries' places at home (increasing)
+            at = start[first:first + k.size]
             first += k.size
-            code[at] = gcode
-            by_home = np.argsort(at)                  # in home order: a cheaper set-up
+            by_start = np.argsort(at)
+            by_home = ranges(offsets[:-1][by_start], k[by_start])
+            at = ranges(at[by_start], k[by_start])
+            code[at] = gcode[by_home]
             src = PETSc.IS().createGeneral(dofs[by_home], comm=PETSc.COMM_SELF)
-            dst = PETSc.IS().createGeneral(at[by_home].astype(PETSc.IntType),
-                                           comm=PETSc.COMM_SELF)
+            dst = PETSc.IS().createGeneral(at.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
             self.scatters.append(PETSc.Scatter().create(template, src, hv, dst))
             src.destroy()
             dst.destroy()
