@@ -158,19 +158,27 @@ def colour_vertices(cells, imap, comm):
     offsets, nbrs = vertex_graph(cells, nloc)
     prio = _priority(np.asarray(imap.local_to_global(np.arange(nloc, dtype=np.int32))))
     colour = np.full(nloc, -1, dtype=np.int64)
+    degree = np.diff(offsets)
     rounds = 0
     while comm.allreduce(int(np.count_nonzero(colour[:n] < 0)), op=MPI.SUM) > 0:
         rounds += 1
         uncoloured = colour < 0
+        # only the uncoloured local vertices' neighbours are read (fewer at every round)
+        todo = np.flatnonzero(uncoloured)
+        seen = nbrs[ranges(offsets[todo], degree[todo])]
+        segments = np.zeros(todo.size + 1, dtype=np.int64)
+        np.cumsum(degree[todo], out=segments[1:])
         # the largest priority among the uncoloured neighbours, over all processes' cells
-        best = _segment_reduce(np.maximum, np.where(uncoloured, prio, 0)[nbrs], offsets,
-                               np.uint64(0))
+        best = np.zeros(nloc, dtype=np.uint64)
+        best[todo] = _segment_reduce(np.maximum, np.where(uncoloured, prio, 0)[seen], segments,
+                                     np.uint64(0))
         shared.reverse(best, np.maximum)
         chosen = np.flatnonzero(uncoloured[:n] & (prio[:n] > best[:n]))
         # the colours of the coloured neighbours as bits
         bits = np.where(colour >= 0, np.left_shift(np.uint64(1), np.maximum(colour, 0)
                                                    .astype(np.uint64)), np.uint64(0))
-        taken = _segment_reduce(np.bitwise_or, bits[nbrs], offsets, np.uint64(0))
+        taken = np.zeros(nloc, dtype=np.uint64)
+        taken[todo] = _segment_reduce(np.bitwise_or, bits[seen], segments, np.uint64(0))
         shared.reverse(taken, np.bitwise_or)
         free = ~taken[chosen]
         if np.any(free == 0):
