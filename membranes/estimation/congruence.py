@@ -28,6 +28,8 @@ import itertools
 
 import numpy as np
 
+from .exchange import counts_before
+
 # ## Dof transformations and the Piola pull-back on the reference cell
 #
 # dolfinx's basis on a cell K is the Piola image of T_K φ̂ (T_K the dof transformation of the
@@ -192,7 +194,8 @@ def to_canonical(values, sign, pairs, blocks, transpose=True):
     """values ← Gᵀ values (transpose) or G values, in place, for home vectors: `sign` ±1 per
     entry, `pairs[p]` the positions of the first interior dof of the cells with block p (the
     second follows it)."""
-    values *= sign
+    if not (np.isscalar(sign) and sign == 1.0):
+        values *= sign
     for p, first in enumerate(pairs):
         if first.size:
             B = blocks[p].T if transpose else blocks[p]
@@ -216,8 +219,8 @@ class BasisChange:
         self.runs = []
         if n.size == 0:
             return
-        F = np.add.reduceat(kind == FACET, offsets[:-1])
-        c = np.add.reduceat(kind == INNER, offsets[:-1]) // 2
+        F = np.diff(counts_before(kind == FACET, offsets))
+        c = np.diff(counts_before(kind == INNER, offsets)) // 2
         shape = np.stack([n, F, c], axis=1)
         cut = np.flatnonzero(np.any(shape[1:] != shape[:-1], axis=1)) + 1
         bounds = np.concatenate([[0], cut, [n.size]])
@@ -346,7 +349,8 @@ def patch_keys(offsets, code, point, h, rows=None):
         return keys
     # the first dof of each entity stands for its entity (the others differ only by index)
     first = (code & 3) == 0
-    start = np.concatenate([[0], np.cumsum(np.add.reduceat(first, offsets[:-1]))])
+    start = counts_before(first, offsets)
+    first = np.flatnonzero(first)
     code, point = code[first], point[first if rows is None else rows[first]]
     step = 1 << 14                                   # patches at a time (bounds the memory)
     for lo in range(0, n.size, step):

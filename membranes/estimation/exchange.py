@@ -1,8 +1,8 @@
 """Communication helpers of the patch engine on a distributed mesh (§12): owned/ghost exchange
 with any numpy ufunc on a dolfinx IndexMap (`Shared`), MPI Alltoallv of numpy rows, a
 distributed reduction by key, and the vertex colouring that makes the groups of §5 and §6; and
-two array helpers they and the set-up share (a linear-time stable sort of integer keys, the
-entries of segments).
+the array helpers they and the set-up share (a linear-time stable sort of integer keys, runs
+and segments).
 
 Split off `patches`, which re-exports these names.
 """
@@ -32,6 +32,21 @@ def ranges(starts, lengths):
     ends = np.cumsum(lengths)
     return (np.repeat(np.asarray(starts, dtype=np.int64) - ends + lengths, lengths)
             + np.arange(ends[-1] if ends.size else 0, dtype=np.int64))
+
+
+def run_starts(values):
+    """The index of the first entry of each run of equal consecutive values."""
+    if values.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(np.concatenate([[True], values[1:] != values[:-1]]))
+
+
+def counts_before(flags, offsets):
+    """The number of true `flags` before each offset (one cumulative sum: the counts of
+    segments offsets[k]:offsets[k + 1] are its differences)."""
+    total = np.zeros(flags.size + 1, dtype=np.int64)
+    np.cumsum(flags, out=total[1:])
+    return total[offsets]
 
 
 # ## Communication on an index map

@@ -19,7 +19,7 @@ from petsc4py import PETSc
 import forms.equilibration as equilibration_forms
 
 from .congruence import DG, INTERIOR, ROUNDING, SAME, _kind, patch_keys
-from .exchange import Shared, alltoallv, ranges, reduce_by_key, stable_order
+from .exchange import Shared, alltoallv, ranges, reduce_by_key, run_starts, stable_order
 
 CHUNK = 1 << 18          # rows of patch blocks taken from A at a time (bounds the set-up memory)
 
@@ -91,7 +91,8 @@ class HomeSetup:
         # tolerance of the block comparisons)
         nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:self.ncells]
         x = mesh.geometry.x[:, :2][nodes]
-        self.cell_h = np.linalg.norm(x - np.roll(x, 1, axis=1), axis=2).min(axis=1)
+        edge = x - x[:, [2, 0, 1]]
+        self.cell_h = np.sqrt((edge * edge).sum(axis=2).min(axis=1))
         self.radius = self.comm.allreduce(float(np.abs(mesh.geometry.x).max(initial=0.0)),
                                           op=MPI.MAX)
         imap = W.dofmap.index_map
@@ -109,25 +110,23 @@ class HomeSetup:
         selects and sorts runs, not dofs."""
         n = self.nowned
         self.by_rank = np.lexsort((self.entity[:n], self.position[:n, 0], _kind(self.code[:n])))
-        index = self.code[self.by_rank] & 3
+        entity = self.entity[self.by_rank]               # global index, kind, index in entity
+        index = entity & 3
         start = np.flatnonzero(index == 0)
         length = np.diff(np.append(start, n))
-        entity = self.entity[self.by_rank] >> 2                       # global index and kind
-        run = np.cumsum(index == 0) - 1
-        if n and (start.size == 0 or start[0] != 0
-                  or np.any(entity != entity[start][run])
-                  or np.any(index != np.arange(n) - start[run])):
+        # a run: one entity's dofs by index (the entity integers step by one within it)
+        if n and (index[0] != 0 or np.any(np.diff(entity)[index[1:] != 0] != 1)):
             raise RuntimeError("an entity's dofs are not consecutive in the canonical order")
         rank = np.full(self.nlocal, start.size, dtype=np.int64)      # ghost dofs: no run
-        rank[self.by_rank] = run
+        rank[self.by_rank] = np.repeat(np.arange(start.size), length)
         facet_run, cell_run = rank[self.facet_dofs], rank[self.cell_dofs]
         inner = self.cell_dofs.shape[1] - 3                  # interior RT dofs, then DG1's 3
-        cell_run = cell_run[:, [0, inner]]
-        if (np.any(facet_run != facet_run[:, :1])
-                or np.any(rank[self.cell_dofs] != np.repeat(cell_run, [inner, 3], axis=1))):
+        if (np.any(facet_run != facet_run[:, :1]) or np.any(cell_run[:, :inner] != cell_run[:, :1])
+                or np.any(cell_run[:, inner:] != cell_run[:, inner:inner + 1])):
             raise RuntimeError("an entity's dofs have several owners")
         self.run_start, self.run_length = start, length
-        self.facet_run, self.cell_run = facet_run[:, 0], cell_run
+        self.facet_run, self.cell_run = facet_run[:, 0], cell_run[:, [0, inner]]
+        self.run_point = self.position[self.by_rank[start]]   # an entity's dofs share it
         del self.facet_dofs, self.cell_dofs
 
     def _home_dofs(self, pid, inner):
@@ -164,7 +163,8 @@ class HomeSetup:
         del by_patch
         length = self.run_length[runs]
         kept = self.by_rank[ranges(self.run_start[runs], length)]
-        new = np.flatnonzero(np.diff(kp, prepend=-1))
+        point = np.repeat(self.run_point[runs], length, axis=0)
+        new = run_starts(kp)
         seen = kp[new]                                              # unique, sorted
         count = np.add.reduceat(length, new) if new.size else new
         del runs, kp, length
@@ -173,7 +173,7 @@ class HomeSetup:
         # patch's interior flag in one distributed reduction over the patches seen here
         # (and its shortest edge)
         by_cell = cells[stable_order(pid[cells])]
-        new = np.flatnonzero(np.diff(pid[by_cell], prepend=-1))
+        new = run_starts(pid[by_cell])
         keys = pid[by_cell[new]]
         values = ((self.cell_global[by_cell] * comm.size + comm.rank) << 1) | ~inner[by_cell]
         values = np.minimum.reduceat(values, new) if new.size else values[:0]
@@ -200,15 +200,15 @@ class HomeSetup:
         # column by column (no copies on one process)
         order = stable_order(home) if comm.size > 1 else slice(None)
         recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
-        kept, home = kept[order], home[order]
+        kept = kept[order]
 
         def move(column):
             return alltoallv(comm, column, send, recv)
 
         gdof, gpatch = move(kept + self.rstart), move(np.repeat(seen, count)[order])
         gcode = move(code[order])
-        gpoint, gh = move(self.position[kept]), move(h[order])
-        del code, h, first, at
+        gpoint, gh = move(point[order]), move(h[order])
+        del code, h, first, at, point
         received = gdof.size
         perm = None                  # received → canonical order, patch by patch (None: same)
         if comm.size > 1:
@@ -216,7 +216,7 @@ class HomeSetup:
             perm = stable_order(gpatch)
             # a patch with dofs from several processes: merge them in canonical order
             source = np.repeat(np.arange(comm.size), recv)[perm]
-            new = np.flatnonzero(np.diff(gpatch[perm], prepend=-1) != 0)
+            new = run_starts(gpatch[perm])
             mixed = (np.minimum.reduceat(source, new) != np.maximum.reduceat(source, new)
                      if new.size else np.zeros(0, dtype=bool))
             redo = np.flatnonzero(np.repeat(mixed, np.diff(np.append(new, received))))
@@ -228,9 +228,9 @@ class HomeSetup:
         code = gcode if perm is None else gcode[perm]
         # patch offsets; interior patches lose their first DG dof (the DG dofs come last in a
         # patch, so the dofs before a patch's first DG dof are its RT dofs)
-        new = np.flatnonzero(np.diff(patch, prepend=-1) != 0)
+        new = run_starts(patch)
         dg = np.flatnonzero(_kind(code) == DG)
-        first_dg = dg[np.flatnonzero(np.diff(patch[dg], prepend=-1) != 0)]
+        first_dg = dg[run_starts(patch[dg])]
         if first_dg.size != new.size:
             raise RuntimeError("a patch without DG dofs")
         nsigma = first_dg - new
@@ -243,14 +243,16 @@ class HomeSetup:
         h = gh[new] if perm is None else gh[perm[new]]
         tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius / h)
         # the route: each received dof's place at home; the owners forget the pinned dofs
-        dest = np.full(received, -1, dtype=np.int64)
-        dest[sel] = np.arange(sel.size)
-        sent_kept = alltoallv(comm, dest >= 0, recv, send)
-        source = np.repeat(np.arange(comm.size), recv)
-        route = (kept[sent_kept].astype(np.int32),
-                 np.bincount(home[sent_kept], minlength=comm.size).astype(np.int64),
-                 np.bincount(source[dest >= 0], minlength=comm.size).astype(np.int64),
-                 dest[dest >= 0].astype(np.int32))
+        pinned = pinned if perm is None else perm[pinned]                # received indices
+        kept_here = np.ones(received, dtype=bool)
+        kept_here[pinned] = False
+        rc = recv - np.bincount(np.searchsorted(np.cumsum(recv), pinned, side="right"),
+                                minlength=comm.size)
+        sc = np.asarray(comm.alltoall(rc.tolist()), dtype=np.int64)
+        dest = np.empty(received, dtype=np.int32)
+        dest[sel] = np.arange(sel.size, dtype=np.int32)
+        route = (kept[alltoallv(comm, kept_here, recv, send)].astype(np.int32), sc, rc,
+                 dest[kept_here])
         dofs, code = gdof[sel], code[keep]
         key = patch_keys(start, code, gpoint, h, sel)
         return dofs, start, code, tolerance, nsigma, key, route, patch[new]
@@ -264,7 +266,7 @@ class HomeSetup:
         for c, pid in enumerate(patches):
             cells = np.flatnonzero(pid >= 0)
             by_patch = cells[stable_order(pid[cells])]            # the cells patch by patch
-            new = np.flatnonzero(np.diff(pid[by_patch], prepend=-1))
+            new = run_starts(pid[by_patch])
             ids = pid[by_patch[new]]
             found.append((by_patch, np.diff(np.append(new, by_patch.size))))
             keys += [ids * ngroups + c, np.asarray(chosen[c], dtype=np.int64) * ngroups + c]

@@ -230,8 +230,9 @@ class PatchSystems(HomeSetup):
         n = np.diff(offsets)
         mismatch = size[cls] != n if cls.size else np.zeros(0, dtype=bool)
         cls_ok = np.where(mismatch, 0, cls)
-        at = np.repeat(start[cls_ok] - offsets[:-1], n) + np.arange(offsets[-1])
-        at[np.repeat(mismatch, n)] = 0
+        at = ranges(start[cls_ok], n)
+        if np.any(mismatch):
+            at[np.repeat(mismatch, n)] = 0
         pairs = _pairs(code)
         # the action carries the signs of G: only the interior blocks act here
         w = to_canonical(v[at], 1.0, pairs, self.blocks, transpose=False)
