@@ -338,12 +338,13 @@ def _mix(z):
     return z
 
 
-def patch_keys(offsets, code, point, h, rows=None):
-    """The key of each patch (uint64): entries offsets[k]:offsets[k+1] of `code` and of
-    point[rows] (entity positions, (dofs, 2); rows=None: all) are patch k's dofs in canonical
-    order, h[k] its shortest edge. Translated patches get equal keys (but for positions within
-    round-off of a rounding boundary)."""
-    n = np.diff(offsets)
+def patch_keys(offsets, code, point, h, sizes=None):
+    """The key of each patch (uint64): entries offsets[k]:offsets[k+1] of `code` and `point`
+    (entity positions, (entries, 2)) are patch k's dofs in canonical order (or only the first
+    dof of each entity), h[k] its shortest edge, sizes[k] its number of dofs (None: the
+    entries). Translated patches get equal keys (but for positions within round-off of a
+    rounding boundary)."""
+    n = np.diff(offsets) if sizes is None else np.asarray(sizes)
     keys = np.zeros(n.size, dtype=np.uint64)
     if n.size == 0:
         return keys
@@ -351,7 +352,7 @@ def patch_keys(offsets, code, point, h, rows=None):
     first = (code & 3) == 0
     start = counts_before(first, offsets)
     first = np.flatnonzero(first)
-    code, point = code[first], point[first if rows is None else rows[first]]
+    code, point = code[first], point.take(first, axis=0)
     step = 1 << 14                                   # patches at a time (bounds the memory)
     for lo in range(0, n.size, step):
         hi = min(lo + step, n.size)
@@ -364,7 +365,7 @@ def patch_keys(offsets, code, point, h, rows=None):
 def _keys(offsets, code, point, h):
     n = np.diff(offsets)
     first = np.repeat(offsets[:-1], n)
-    rel = point - point[first]
+    rel = point - point.take(first, axis=0)
     rel *= np.repeat(KEY_GRID / h, n)[:, None]
     word = np.rint(rel, out=rel).astype(np.int64).view(np.uint64)
     first -= np.arange(offsets[-1])                                # minus the index in the patch

@@ -19,7 +19,15 @@ from petsc4py import PETSc
 import forms.equilibration as equilibration_forms
 
 from .congruence import DG, INTERIOR, ROUNDING, SAME, _kind, patch_keys
-from .exchange import Shared, alltoallv, ranges, reduce_by_key, run_starts, stable_order
+from .exchange import (
+    Shared,
+    alltoallv,
+    counts_before,
+    ranges,
+    reduce_by_key,
+    run_starts,
+    stable_order,
+)
 
 CHUNK = 1 << 18          # rows of patch blocks taken from A at a time (bounds the set-up memory)
 
@@ -101,32 +109,49 @@ class HomeSetup:
         self.rstart = imap.local_range[0]
 
     def _canonical_order(self):
-        """The owned dofs in canonical order (`by_rank`: by kind, position along the direction,
-        entity; the order of the dofs in every patch), cut into *runs*, one per entity (a
-        facet's RT dofs, a cell's interior RT dofs, a cell's DG dofs, each by index: the order
-        keeps an entity's dofs together): each run's first rank and length, and the run of
-        each local facet's dofs and of each local cell's interior RT and DG dofs (the number
-        of runs where they are not owned). A patch keeps whole entities, so `_home_dofs`
-        selects and sorts runs, not dofs."""
+        """The owned entities in canonical order, as *runs* of dofs: a facet's RT dofs, a
+        cell's interior RT dofs, a cell's DG dofs, each by index. The canonical order of the
+        dofs in a patch is by kind, position along the direction, entity and index
+        (`congruence`), and an entity's dofs share kind and position, so the entities of each
+        kind are sorted (by position and global index) and their dofs follow them. Kept: per
+        run its dofs (local indices, padded with -1) and codes, length, position and entity
+        (global index and kind); the run of each local facet's dofs and of each local cell's
+        interior RT and DG dofs (the number of runs where they are not owned). A patch keeps
+        whole entities, so `_home_dofs` selects and sorts runs, not dofs."""
         n = self.nowned
-        self.by_rank = np.lexsort((self.entity[:n], self.position[:n, 0], _kind(self.code[:n])))
-        entity = self.entity[self.by_rank]               # global index, kind, index in entity
-        index = entity & 3
-        start = np.flatnonzero(index == 0)
-        length = np.diff(np.append(start, n))
-        # a run: one entity's dofs by index (the entity integers step by one within it)
-        if n and (index[0] != 0 or np.any(np.diff(entity)[index[1:] != 0] != 1)):
-            raise RuntimeError("an entity's dofs are not consecutive in the canonical order")
-        rank = np.full(self.nlocal, start.size, dtype=np.int64)      # ghost dofs: no run
-        rank[self.by_rank] = np.repeat(np.arange(start.size), length)
-        facet_run, cell_run = rank[self.facet_dofs], rank[self.cell_dofs]
         inner = self.cell_dofs.shape[1] - 3                  # interior RT dofs, then DG1's 3
-        if (np.any(facet_run != facet_run[:, :1]) or np.any(cell_run[:, :inner] != cell_run[:, :1])
-                or np.any(cell_run[:, inner:] != cell_run[:, inner:inner + 1])):
-            raise RuntimeError("an entity's dofs have several owners")
-        self.run_start, self.run_length = start, length
-        self.facet_run, self.cell_run = facet_run[:, 0], cell_run[:, [0, inner]]
-        self.run_point = self.position[self.by_rank[start]]   # an entity's dofs share it
+        tables = [self.facet_dofs, self.cell_dofs[:, :inner], self.cell_dofs[:, inner:]]
+        width = max(table.shape[1] for table in tables)
+        dofs, lengths, where, total = [], [], [], 0
+        for table in tables:                                 # FACET, INNER, DG: by kind
+            # the columns by index in the entity
+            by_index = np.full_like(table, -1)
+            np.put_along_axis(by_index, (self.code[table] & 3).astype(np.int64), table, axis=1)
+            if np.any(by_index < 0):
+                raise RuntimeError("an entity's dofs are not indexed 0, 1, ...")
+            owned = by_index < n
+            mine = owned.all(axis=1)
+            if np.any(owned.any(axis=1) != mine):
+                raise RuntimeError("an entity's dofs have several owners")
+            rows = np.flatnonzero(mine)
+            first = by_index[rows, 0]
+            rows = rows[np.lexsort((self.entity[first], self.position[first, 0]))]
+            run = np.full(table.shape[0], -1, dtype=np.int64)
+            run[rows] = total + np.arange(rows.size)
+            where.append(run)
+            dofs.append(np.pad(by_index[rows], ((0, 0), (0, width - table.shape[1])),
+                               constant_values=-1))
+            lengths.append(np.full(rows.size, table.shape[1], dtype=np.int64))
+            total += rows.size
+        for run in where:
+            run[run < 0] = total                              # not owned: no run
+        self.facet_run, self.cell_run = where[0], np.stack(where[1:], axis=1)
+        self.run_dofs = np.concatenate(dofs).astype(np.int32)
+        self.run_length = np.concatenate(lengths)
+        self.run_code = np.where(self.run_dofs < 0, np.int16(0), self.code[self.run_dofs])
+        first = self.run_dofs[:, 0]
+        self.run_point = self.position.take(first, axis=0)
+        self.run_entity = self.entity[first] >> 2
         del self.facet_dofs, self.cell_dofs
 
     def _home_dofs(self, pid, inner):
@@ -141,8 +166,8 @@ class HomeSetup:
         least = np.iinfo(np.int64).min
         cell_info = np.stack([pid + 1, -(pid + 1), ((pid >= 0) & ~inner)], axis=1)
         cell_info = np.vstack([cell_info, np.full((1, 3), least)])     # row -1: no cell
-        info = np.maximum(cell_info[self.facet_owned_cells[:, 0]],
-                          cell_info[self.facet_owned_cells[:, 1]])
+        info = np.maximum(cell_info.take(self.facet_owned_cells[:, 0], axis=0),
+                          cell_info.take(self.facet_owned_cells[:, 1], axis=0))
         self.facet_shared.forward(self.facet_shared.reverse(info, np.maximum))
         hi, lo, free = info[:, 0], -info[:, 1], info[:, 2]
         inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
@@ -150,8 +175,8 @@ class HomeSetup:
         facet_patch = np.where(inside | on_boundary, hi - 1, -1)
 
         # the patch of every owned run the group keeps (-1: not kept; the last entry takes the
-        # runs that are not owned); the kept runs in canonical order, patch by patch; their dofs
-        run_patch = np.full(self.run_start.size + 1, -1, dtype=np.int64)
+        # runs that are not owned); the kept runs in canonical order, patch by patch
+        run_patch = np.full(self.run_length.size + 1, -1, dtype=np.int64)
         run_patch[self.facet_run] = facet_patch
         cells = np.flatnonzero(pid >= 0)
         run_patch[self.cell_run[cells]] = pid[cells, None]
@@ -161,13 +186,9 @@ class HomeSetup:
         by_patch = stable_order(kp)
         runs, kp = runs[by_patch], kp[by_patch]
         del by_patch
-        length = self.run_length[runs]
-        kept = self.by_rank[ranges(self.run_start[runs], length)]
-        point = np.repeat(self.run_point[runs], length, axis=0)
         new = run_starts(kp)
         seen = kp[new]                                              # unique, sorted
-        count = np.add.reduceat(length, new) if new.size else new
-        del runs, kp, length
+        count = np.diff(np.append(new, runs.size))                  # runs per patch
 
         # home of each patch: the owner of its cell of least global index, found with the
         # patch's interior flag in one distributed reduction over the patches seen here
@@ -187,34 +208,36 @@ class HomeSetup:
             order = np.argsort(keys)
             keys, values, h = keys[order], values[order], h[order]
         at = np.searchsorted(keys, seen)
-        # per patch seen here, then per kept dof
         first = reduce_by_key(comm, keys, values, np.minimum)[at]
-        h = np.repeat(reduce_by_key(comm, keys, h, np.minimum)[at], count)
+        h = reduce_by_key(comm, keys, h, np.minimum)[at]
         home = (first >> 1) % comm.size
-        send = np.bincount(home, weights=count, minlength=comm.size).astype(np.int64)
-        home = np.repeat(home, count)
-        code = self.code[kept] | np.repeat(np.where(first & 1, np.int16(0), np.int16(INTERIOR)),
-                                           count)
+        interior = np.where(first & 1, np.int16(0), np.int16(INTERIOR))
 
-        # send every kept dof to its patch's home (in order), which keeps the patches whole;
+        # send every kept run to its patch's home (in order), which keeps the patches whole;
         # column by column (no copies on one process)
-        order = stable_order(home) if comm.size > 1 else slice(None)
+        order = stable_order(np.repeat(home, count)) if comm.size > 1 else slice(None)
+        send = np.bincount(home, weights=count, minlength=comm.size).astype(np.int64)
         recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
-        kept = kept[order]
+        runs = runs[order]
 
         def move(column):
             return alltoallv(comm, column, send, recv)
 
-        gdof, gpatch = move(kept + self.rstart), move(np.repeat(seen, count)[order])
-        gcode = move(code[order])
-        gpoint, gh = move(point[order]), move(h[order])
-        del code, h, first, at, point
-        received = gdof.size
+        gpatch = move(np.repeat(seen, count)[order])
+        # (np.take of rows: numpy's fast gather of small rows)
+        length, local = self.run_length[runs], self.run_dofs.take(runs, axis=0)
+        glength, gdofs = move(length), move(local + np.int64(self.rstart))
+        gcode = move(self.run_code.take(runs, axis=0)
+                     | np.repeat(interior, count)[order][:, None])
+        gpoint = move(self.run_point.take(runs, axis=0))
+        gh = move(np.repeat(h, count)[order])
+        del h, first, at, interior
+        received = gpatch.size
         perm = None                  # received → canonical order, patch by patch (None: same)
         if comm.size > 1:
-            entity = move(self.entity[kept])
+            entity = move(self.run_entity[runs])
             perm = stable_order(gpatch)
-            # a patch with dofs from several processes: merge them in canonical order
+            # a patch with runs from several processes: merge them in canonical order
             source = np.repeat(np.arange(comm.size), recv)[perm]
             new = run_starts(gpatch[perm])
             mixed = (np.minimum.reduceat(source, new) != np.maximum.reduceat(source, new)
@@ -222,40 +245,59 @@ class HomeSetup:
             redo = np.flatnonzero(np.repeat(mixed, np.diff(np.append(new, received))))
             if redo.size:
                 r = perm[redo]
-                perm[redo] = r[np.lexsort((entity[r], gpoint[r, 0], _kind(gcode[r]),
+                perm[redo] = r[np.lexsort((entity[r], gpoint[r, 0], _kind(gcode[r, 0]),
                                            gpatch[r]))]
-        patch = gpatch if perm is None else gpatch[perm]
-        code = gcode if perm is None else gcode[perm]
-        # patch offsets; interior patches lose their first DG dof (the DG dofs come last in a
-        # patch, so the dofs before a patch's first DG dof are its RT dofs)
-        new = run_starts(patch)
-        dg = np.flatnonzero(_kind(code) == DG)
-        first_dg = dg[run_starts(patch[dg])]
+            gpatch, glength, gh = gpatch[perm], glength[perm], gh[perm]
+            gdofs, gcode = gdofs.take(perm, axis=0), gcode.take(perm, axis=0)
+            gpoint = gpoint.take(perm, axis=0)
+        # patch offsets; interior patches lose their first DG dof, the first of their first
+        # DG run (the DG runs come last in a patch, so the runs before are its RT dofs)
+        new = run_starts(gpatch)
+        dg = np.flatnonzero(_kind(gcode[:, 0]) == DG)
+        first_dg = dg[run_starts(gpatch[dg])]
         if first_dg.size != new.size:
             raise RuntimeError("a patch without DG dofs")
-        nsigma = first_dg - new
-        pinned = first_dg[(code[first_dg] & INTERIOR) != 0]
-        bounds = np.append(new, received)
-        start = bounds - np.searchsorted(pinned, bounds)
-        keep = np.ones(received, dtype=bool)
-        keep[pinned] = False
-        sel = np.flatnonzero(keep) if perm is None else perm[keep]      # received indices
-        h = gh[new] if perm is None else gh[perm[new]]
+        before = np.zeros(received + 1, dtype=np.int64)               # dofs before each run
+        np.cumsum(glength, out=before[1:])
+        nsigma = before[first_dg] - before[new]
+        pinned = first_dg[(gcode[first_dg, 0] & INTERIOR) != 0]         # runs
+        kept = np.arange(gcode.shape[1]) < glength[:, None]              # (runs, index)
+        kept[pinned, 0] = False
+        size = glength.copy()
+        size[pinned] -= 1
+        np.cumsum(size, out=before[1:])
+        start = before[np.append(new, received)]
+        dofs, code = gdofs[kept], gcode[kept]
+        h = gh[new]
         tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius / h)
-        # the route: each received dof's place at home; the owners forget the pinned dofs
-        pinned = pinned if perm is None else perm[pinned]                # received indices
-        kept_here = np.ones(received, dtype=bool)
-        kept_here[pinned] = False
-        rc = recv - np.bincount(np.searchsorted(np.cumsum(recv), pinned, side="right"),
-                                minlength=comm.size)
+        # the keys hash the first dof of each entity: every run but the pinned ones
+        keyed = np.ones(received, dtype=bool)
+        keyed[pinned] = False
+        runs_before = counts_before(keyed, np.append(new, received))
+        keyed = np.flatnonzero(keyed)
+        key = patch_keys(runs_before, gcode[:, 0][keyed], gpoint.take(keyed, axis=0), h,
+                         np.diff(start))
+
+        # the route: each kept dof's place at home, in the received order of the runs; the
+        # owners learn which first dofs are pinned
+        first_pinned = np.zeros(received, dtype=bool)
+        first_pinned[pinned if perm is None else perm[pinned]] = True
+        if perm is not None:
+            placed = np.empty_like(before[:-1])
+            placed[perm] = before[:-1]
+            size[perm] = size.copy()
+        else:
+            placed = before[:-1]
+        size_at = np.zeros(received + 1, dtype=np.int64)
+        np.cumsum(size, out=size_at[1:])
+        rc = np.diff(size_at[np.append(0, np.cumsum(recv))])
         sc = np.asarray(comm.alltoall(rc.tolist()), dtype=np.int64)
-        dest = np.empty(received, dtype=np.int32)
-        dest[sel] = np.arange(sel.size, dtype=np.int32)
-        route = (kept[alltoallv(comm, kept_here, recv, send)].astype(np.int32), sc, rc,
-                 dest[kept_here])
-        dofs, code = gdof[sel], code[keep]
-        key = patch_keys(start, code, gpoint, h, sel)
-        return dofs, start, code, tolerance, nsigma, key, route, patch[new]
+        dest = ranges(placed, size)
+        sent_pinned = alltoallv(comm, first_pinned, recv, send)
+        sent = np.arange(gcode.shape[1]) < length[:, None]
+        sent[:, 0] &= ~sent_pinned
+        route = (local[sent], sc, rc, dest.astype(np.int32))
+        return dofs, start, code, tolerance, nsigma, key, route, gpatch[new]
 
     def _marked_cells(self, patches, chosen):
         """The owned cells (local indices) of the patches `chosen[c]` of each group c (global

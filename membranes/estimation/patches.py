@@ -182,10 +182,10 @@ class PatchSystems(HomeSetup):
         del pending
         self._layout(groups, classes)
         # only the home layout, the scatters and the inverses are kept
-        for name in ("position", "entity", "code", "by_rank", "c2f", "facet_shared",
-                     "facet_owned_cells", "facet_cells", "cell_global", "cell_h", "rt_dofs",
-                     "dg_dofs", "run_start", "run_length", "facet_run", "cell_run", "known",
-                     "signs"):
+        for name in ("position", "entity", "code", "c2f", "facet_shared", "facet_owned_cells",
+                     "facet_cells", "cell_global", "cell_h", "rt_dofs", "dg_dofs", "run_length",
+                     "run_dofs", "run_code", "run_point", "run_entity", "facet_run", "cell_run",
+                     "known", "signs"):
             delattr(self, name)
 
     def _lookup(self, key):
