@@ -118,12 +118,12 @@ def basis_changes(W):
 
 
 def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
-    """Per local W dof (owned and ghost): its entity's position (facet midpoint or cell
-    centroid) along DIRECTION and across it (an array (dofs, 2)), a global integer that orders
-    the dofs of equal position (the entity's global index, the dof's kind and index in it), its
-    code; the interior blocks; and
-    the number of facet dofs on which the two cells of the facet disagree (0: both see the same
-    vertex order)."""
+    """The code of every local W dof (owned and ghost); the interior blocks; the number of
+    facet dofs on which the two cells of the facet disagree (0: both see the same vertex
+    order); and the positions of the entities along DIRECTION and across it, which order the
+    dofs of a patch: of every local facet (its midpoint, as seen by the last of its cells,
+    (facets, 2)) and of every local cell (its centroid, (cells, 2)). The dofs of an entity
+    share its position; its global index breaks ties."""
     cmap = mesh.topology.index_map(2)
     nall = cmap.size_local + cmap.num_ghosts
     signs, blocks = basis_changes(W)
@@ -150,44 +150,32 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     p = lookup[9 * order[:, 0] + 3 * order[:, 1] + order[:, 2]]
     total = along.sum(axis=1)
     midpoint = 0.5 * (total[:, None] - along)                 # facet i is opposite vertex i
-    fglobal = np.asarray(mesh.topology.index_map(1).local_to_global(c2f.ravel()),
-                         dtype=np.int64).reshape(nall, 3)
-    cglobal = np.asarray(cmap.local_to_global(np.arange(nall, dtype=np.int32)), dtype=np.int64)
-
     across = mesh.geometry.x[:, :2][nodes] @ np.array([-DIRECTION[1], DIRECTION[0]])
     side = across.sum(axis=1)
     nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
-    point = np.zeros((nlocal, 2))
-    entity = np.zeros(nlocal, dtype=np.int64)
+    fmap = mesh.topology.index_map(1)
+    facet_point = np.zeros((fmap.size_local + fmap.num_ghosts, 2))
     code = np.zeros(nlocal, dtype=np.int16)
     cells = np.arange(nall)[:, None]
     facet_cols = np.array(W.sub(0).element.basix_element.entity_dofs[1])
     inner_cols = np.array(W.sub(0).element.basix_element.entity_dofs[2][0])
-    # each write covers the dofs of all local cells at once, (cells, dofs of the entity);
-    # `entity` is written as (global index, kind, index in the entity) in one integer
+    # each write covers all local cells at once: the facets, or the dofs (cells, dofs of the
+    # entity); of a facet's two cells the later writes last
     facet_dofs, facet_codes = [], []
     index = np.arange(facet_cols.shape[1])
     for i in range(3):
         f = order[:, i:i + 1]                             # dolfinx facet of canonical facet i
+        facet_point[np.take_along_axis(c2f[:nall], f, axis=1)[:, 0]] = np.stack(
+            [np.take_along_axis(midpoint, f, axis=1)[:, 0],
+             0.5 * (side - np.take_along_axis(across, f, axis=1)[:, 0])], axis=1)
         dof = rt_dofs[cells, facet_cols[f[:, 0]]]
-        point[dof] = np.stack([np.take_along_axis(midpoint, f, axis=1),
-                               0.5 * (side[:, None] - np.take_along_axis(across, f, axis=1))],
-                              axis=2)
-        entity[dof] = 16 * np.take_along_axis(fglobal, f, axis=1) + (FACET << 2) + index
         code[dof] = (FACET << 2) | index | np.where(signs[p, info, i] < 0, NEGATIVE, 0)
         facet_dofs.append(dof)
         facet_codes.append(code[dof])
     disagree = sum(int(np.count_nonzero(code[d] != k)) for d, k in zip(facet_dofs, facet_codes))
-    centroid = np.stack([total / 3.0, side / 3.0], axis=1)[:, None, :]
-    dof = rt_dofs[:, inner_cols]
-    point[dof] = centroid
-    entity[dof] = 16 * cglobal[:, None] + (INNER << 2) + np.arange(inner_cols.size)
-    code[dof] = (INNER << 2) | np.arange(inner_cols.size) | (p[:, None] << BLOCK)
-    dof = np.take_along_axis(dg_dofs, order, axis=1)    # canonical vertex k's DG dof
-    point[dof] = centroid
-    entity[dof] = 16 * cglobal[:, None] + (DG << 2) + np.arange(3)
-    code[dof] = (DG << 2) | np.arange(3)
-    return point, entity, code, blocks, disagree
+    code[rt_dofs[:, inner_cols]] = (INNER << 2) | np.arange(inner_cols.size) | (p[:, None] << BLOCK)
+    code[np.take_along_axis(dg_dofs, order, axis=1)] = (DG << 2) | np.arange(3)  # vertex k's
+    return code, blocks, disagree, facet_point, np.stack([total / 3.0, side / 3.0], axis=1)
 
 
 def to_canonical(values, sign, pairs, blocks, transpose=True):

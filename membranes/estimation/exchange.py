@@ -27,11 +27,19 @@ def stable_order(keys):
 
 def ranges(starts, lengths):
     """The concatenation of arange(s, s + n) over zip(starts, lengths) (int64): the entries of
-    segments given by their starts and lengths, in one pass."""
+    segments given by their starts and lengths, as one cumulative sum of steps (1 within a
+    segment, the jump to the next segment's start at its first entry)."""
+    starts = np.asarray(starts, dtype=np.int64)
     lengths = np.asarray(lengths, dtype=np.int64)
+    if np.any(lengths == 0):
+        starts, lengths = starts[lengths > 0], lengths[lengths > 0]
     ends = np.cumsum(lengths)
-    return (np.repeat(np.asarray(starts, dtype=np.int64) - ends + lengths, lengths)
-            + np.arange(ends[-1] if ends.size else 0, dtype=np.int64))
+    out = np.ones(int(ends[-1]) if ends.size else 0, dtype=np.int64)
+    if out.size:
+        out[0] = starts[0]
+        out[ends[:-1]] = starts[1:] - starts[:-1] - lengths[:-1] + 1
+        np.cumsum(out, out=out)
+    return out
 
 
 def run_starts(values):
@@ -42,11 +50,9 @@ def run_starts(values):
 
 
 def counts_before(flags, offsets):
-    """The number of true `flags` before each offset (one cumulative sum: the counts of
-    segments offsets[k]:offsets[k + 1] are its differences)."""
-    total = np.zeros(flags.size + 1, dtype=np.int64)
-    np.cumsum(flags, out=total[1:])
-    return total[offsets]
+    """The number of true `flags` before each offset (the counts of the segments
+    offsets[k]:offsets[k + 1] are its differences)."""
+    return np.searchsorted(np.flatnonzero(flags), offsets)
 
 
 # ## Communication on an index map

@@ -108,23 +108,29 @@ class HomeSetup:
         self.nlocal = imap.size_local + imap.num_ghosts
         self.rstart = imap.local_range[0]
 
-    def _canonical_order(self):
+    def _canonical_order(self, facet_point, cell_point):
         """The owned entities in canonical order, as *runs* of dofs: a facet's RT dofs, a
         cell's interior RT dofs, a cell's DG dofs, each by index. The canonical order of the
         dofs in a patch is by kind, position along the direction, entity and index
-        (`congruence`), and an entity's dofs share kind and position, so the entities of each
-        kind are sorted (by position and global index) and their dofs follow them. Kept: per
-        run its dofs (local indices, padded with -1) and codes, length, position and entity
-        (global index and kind); the run of each local facet's dofs and of each local cell's
-        interior RT and DG dofs (the number of runs where they are not owned). A patch keeps
-        whole entities, so `_home_dofs` selects and sorts runs, not dofs."""
+        (`congruence`), and an entity's dofs share kind and position (`facet_point`,
+        `cell_point`: of the local facets and cells), so the entities of each kind are sorted
+        (by position and global index) and their dofs follow them. Kept: per run its dofs
+        (local indices, padded with -1) and codes, length, position and entity (global index
+        and kind); the run of each local facet's dofs and of each local cell's interior RT and
+        DG dofs (the number of runs where they are not owned). A patch keeps whole entities,
+        so `_home_dofs` selects and sorts runs, not dofs."""
         n = self.nowned
         inner = self.cell_dofs.shape[1] - 3                  # interior RT dofs, then DG1's 3
         tables = [self.facet_dofs, self.cell_dofs[:, :inner], self.cell_dofs[:, inner:]]
+        fmap, cmap = (self.mesh.topology.index_map(d) for d in (1, 2))
+        fglobal, cglobal = (np.asarray(m.local_to_global(np.arange(k, dtype=np.int32)),
+                                       dtype=np.int64)
+                            for m, k in ((fmap, self.nfacets), (cmap, len(self.cell_dofs))))
+        entities = [(fglobal, facet_point), (cglobal, cell_point), (cglobal, cell_point)]
         width = max(table.shape[1] for table in tables)
-        dofs, lengths, where, total = [], [], [], 0
-        for table in tables:                                 # FACET, INNER, DG: by kind
-            # the columns by index in the entity
+        dofs, lengths, where, points, ids, total = [], [], [], [], [], 0
+        for kind, (table, (glob, point)) in enumerate(zip(tables, entities)):
+            # FACET, INNER, DG: by kind; the columns by index in the entity
             by_index = np.full_like(table, -1)
             np.put_along_axis(by_index, (self.code[table] & 3).astype(np.int64), table, axis=1)
             if np.any(by_index < 0):
@@ -134,14 +140,15 @@ class HomeSetup:
             if np.any(owned.any(axis=1) != mine):
                 raise RuntimeError("an entity's dofs have several owners")
             rows = np.flatnonzero(mine)
-            first = by_index[rows, 0]
-            rows = rows[np.lexsort((self.entity[first], self.position[first, 0]))]
+            rows = rows[np.lexsort((glob[rows], point[rows, 0]))]
             run = np.full(table.shape[0], -1, dtype=np.int64)
             run[rows] = total + np.arange(rows.size)
             where.append(run)
             dofs.append(np.pad(by_index[rows], ((0, 0), (0, width - table.shape[1])),
                                constant_values=-1))
             lengths.append(np.full(rows.size, table.shape[1], dtype=np.int64))
+            points.append(point.take(rows, axis=0))
+            ids.append(4 * glob[rows] + kind)
             total += rows.size
         for run in where:
             run[run < 0] = total                              # not owned: no run
@@ -149,9 +156,7 @@ class HomeSetup:
         self.run_dofs = np.concatenate(dofs).astype(np.int32)
         self.run_length = np.concatenate(lengths)
         self.run_code = np.where(self.run_dofs < 0, np.int16(0), self.code[self.run_dofs])
-        first = self.run_dofs[:, 0]
-        self.run_point = self.position.take(first, axis=0)
-        self.run_entity = self.entity[first] >> 2
+        self.run_point, self.run_entity = np.concatenate(points), np.concatenate(ids)
         del self.facet_dofs, self.cell_dofs
 
     def _home_dofs(self, pid, inner):

@@ -120,9 +120,10 @@ class PatchSystems(HomeSetup):
         self.rt_map = np.asarray(rt_map, dtype=np.int64)
         self.ngroups = len(patches)
         self._topology(mesh, W)
-        self.position, self.entity, self.code, self.blocks, self.disagree = canonical_dofs(
+        self.code, self.blocks, self.disagree, facet_point, cell_point = canonical_dofs(
             mesh, W, self.c2f, self.rt_dofs, self.dg_dofs)
-        self._canonical_order()
+        self._canonical_order(facet_point, cell_point)
+        del facet_point, cell_point
         n = self.nowned
 
         # per group its patches at home, and the patches whose blocks are needed: the first
@@ -182,7 +183,7 @@ class PatchSystems(HomeSetup):
         del pending
         self._layout(groups, classes)
         # only the home layout, the scatters and the inverses are kept
-        for name in ("position", "entity", "code", "c2f", "facet_shared", "facet_owned_cells",
+        for name in ("code", "c2f", "facet_shared", "facet_owned_cells",
                      "facet_cells", "cell_global", "cell_h", "rt_dofs", "dg_dofs", "run_length",
                      "run_dofs", "run_code", "run_point", "run_entity", "facet_run", "cell_run",
                      "known", "signs"):
