@@ -338,9 +338,11 @@ def patch_keys(offsets, code, point, h, sizes=None):
         return keys
     # the first dof of each entity stands for its entity (the others differ only by index)
     first = (code & 3) == 0
-    start = counts_before(first, offsets)
-    first = np.flatnonzero(first)
-    code, point = code[first], point.take(first, axis=0)
+    start = offsets
+    if not first.all():
+        start = counts_before(first, offsets)
+        first = np.flatnonzero(first)
+        code, point = code[first], point.take(first, axis=0)
     step = 1 << 14                                   # patches at a time (bounds the memory)
     for lo in range(0, n.size, step):
         hi = min(lo + step, n.size)

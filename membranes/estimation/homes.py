@@ -127,10 +127,9 @@ class HomeSetup:
                                        dtype=np.int64)
                             for m, k in ((fmap, self.nfacets), (cmap, len(self.cell_dofs))))
         entities = [(fglobal, facet_point), (cglobal, cell_point), (cglobal, cell_point)]
-        width = max(table.shape[1] for table in tables)
-        dofs, lengths, where, points, ids, total = [], [], [], [], [], 0
-        for kind, (table, (glob, point)) in enumerate(zip(tables, entities)):
-            # FACET, INNER, DG: by kind; the columns by index in the entity
+        sorted_rows, done = [], {}                 # done: the cells' order, for both tables
+        for table, (glob, point) in zip(tables, entities):
+            # the columns by index in the entity; the owned rows by position and global index
             by_index = np.full_like(table, -1)
             np.put_along_axis(by_index, (self.code[table] & 3).astype(np.int64), table, axis=1)
             if np.any(by_index < 0):
@@ -140,23 +139,31 @@ class HomeSetup:
             if np.any(owned.any(axis=1) != mine):
                 raise RuntimeError("an entity's dofs have several owners")
             rows = np.flatnonzero(mine)
-            rows = rows[np.lexsort((glob[rows], point[rows, 0]))]
-            run = np.full(table.shape[0], -1, dtype=np.int64)
-            run[rows] = total + np.arange(rows.size)
+            seen = done.get(id(glob))
+            if seen is None or not np.array_equal(seen[0], rows):
+                seen = done[id(glob)] = (rows, rows[np.lexsort((glob[rows], point[rows, 0]))])
+            sorted_rows.append((by_index, seen[1]))
+        # the runs of the kinds FACET, INNER, DG one after the other
+        total = sum(rows.size for _, rows in sorted_rows)
+        width = max(table.shape[1] for table in tables)
+        self.run_dofs = np.full((total, width), -1, dtype=np.int32)
+        self.run_code = np.zeros((total, width), dtype=np.int16)
+        self.run_length = np.zeros(total, dtype=np.int64)
+        self.run_point = np.zeros((total, 2))
+        self.run_entity = np.zeros(total, dtype=np.int64)
+        where, first = [], 0
+        for kind, ((by_index, rows), (glob, point)) in enumerate(zip(sorted_rows, entities)):
+            last, k = first + rows.size, by_index.shape[1]
+            run = np.full(by_index.shape[0], total, dtype=np.int64)     # not owned: no run
+            run[rows] = np.arange(first, last)
             where.append(run)
-            dofs.append(np.pad(by_index[rows], ((0, 0), (0, width - table.shape[1])),
-                               constant_values=-1))
-            lengths.append(np.full(rows.size, table.shape[1], dtype=np.int64))
-            points.append(point.take(rows, axis=0))
-            ids.append(4 * glob[rows] + kind)
-            total += rows.size
-        for run in where:
-            run[run < 0] = total                              # not owned: no run
+            self.run_dofs[first:last, :k] = by_index.take(rows, axis=0)
+            self.run_code[first:last, :k] = self.code[self.run_dofs[first:last, :k]]
+            self.run_length[first:last] = k
+            self.run_point[first:last] = point.take(rows, axis=0)
+            self.run_entity[first:last] = 4 * glob[rows] + kind
+            first = last
         self.facet_run, self.cell_run = where[0], np.stack(where[1:], axis=1)
-        self.run_dofs = np.concatenate(dofs).astype(np.int32)
-        self.run_length = np.concatenate(lengths)
-        self.run_code = np.where(self.run_dofs < 0, np.int16(0), self.code[self.run_dofs])
-        self.run_point, self.run_entity = np.concatenate(points), np.concatenate(ids)
         del self.facet_dofs, self.cell_dofs
 
     def _home_dofs(self, pid, inner):
