@@ -173,18 +173,19 @@ class HomeSetup:
         group's route (see `_to_home`). A collective call: every process hands over its owned
         kept dofs."""
         comm = self.comm
-        # per facet, over its (at most two) cells: the largest and smallest patch id + 1
-        # (0 = no patch), and whether a cell's patch is not interior; reduced across processes
+        # per facet, over its (at most two) cells: the largest and smallest of 2 (patch id + 1)
+        # + (the patch is not interior) (0 = no patch; the flag is the patch's, so the two
+        # agree when the patch ids do); reduced across processes
         least = np.iinfo(np.int64).min
-        cell_info = np.stack([pid + 1, -(pid + 1), ((pid >= 0) & ~inner)], axis=1)
-        cell_info = np.vstack([cell_info, np.full((1, 3), least)])     # row -1: no cell
+        tag = np.where(pid >= 0, 2 * (pid + 1) + ~inner, 0)
+        cell_info = np.vstack([np.stack([tag, -tag], axis=1), [[least, least]]])  # -1: none
         info = np.maximum(cell_info.take(self.facet_owned_cells[:, 0], axis=0),
                           cell_info.take(self.facet_owned_cells[:, 1], axis=0))
         self.facet_shared.forward(self.facet_shared.reverse(info, np.maximum))
-        hi, lo, free = info[:, 0], -info[:, 1], info[:, 2]
+        hi, lo = info[:, 0], -info[:, 1]
         inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
-        on_boundary = (self.facet_cells == 1) & (free == 1)
-        facet_patch = np.where(inside | on_boundary, hi - 1, -1)
+        on_boundary = (self.facet_cells == 1) & ((hi & 1) == 1)
+        facet_patch = np.where(inside | on_boundary, (hi >> 1) - 1, -1)
 
         # the patch of every owned run the group keeps (-1: not kept; the last entry takes the
         # runs that are not owned); the kept runs in canonical order, patch by patch

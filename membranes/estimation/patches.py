@@ -116,8 +116,12 @@ class PatchSystems(HomeSetup):
         self.rhs, self.solution = rhs, solution
         self.mesh, self.comm = mesh, mesh.comm
         self.W = W = W if W is not None else mixed_space(mesh)
-        self.rt_space, rt_map = W.sub(0).collapse()
-        self.rt_map = np.asarray(rt_map, dtype=np.int64)
+        # RT_1 as a space of its own, and the W dof of each of its dofs (from the cells'
+        # dofs: collapse's own map is a Python list, slow to convert)
+        self.rt_space = W.sub(0).collapse()[0]
+        imap = self.rt_space.dofmap.index_map
+        self.rt_map = np.empty(imap.size_local + imap.num_ghosts, dtype=np.int64)
+        self.rt_map[self.rt_space.dofmap.list.array] = W.sub(0).dofmap.list.array
         self.ngroups = len(patches)
         self._topology(mesh, W)
         self.code, self.blocks, self.disagree, facet_point, cell_point = canonical_dofs(
@@ -178,8 +182,8 @@ class PatchSystems(HomeSetup):
             for (dofs, offsets, code, _, nsigma, _, _, _, cls), b in zip(pending, bad):
                 cls[b] = self._extract(A, dofs, offsets, code, nsigma, b, classes)
             A.destroy()
-        groups = [(p[0].astype(PETSc.IntType), p[1], p[2].astype(np.int16), p[8])
-                  for p in pending]
+        groups = [(p[0].astype(PETSc.IntType, copy=False), p[1],
+                   p[2].astype(np.int16, copy=False), p[8]) for p in pending]
         del pending
         self._layout(groups, classes)
         # only the home layout, the scatters and the inverses are kept
