@@ -132,7 +132,8 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     if info.max(initial=0) >= 8:
         raise RuntimeError("unexpected cell permutation info (not a triangle mesh?)")
     nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:nall]
-    along = mesh.geometry.x[:, :2][nodes] @ DIRECTION                      # (cells, 3)
+    xy = mesh.geometry.x[:, :2][nodes]                                      # (cells, 3, 2)
+    along = xy @ DIRECTION                                                  # (cells, 3)
     mesh.topology.create_connectivity(2, 0)
     c2v = mesh.topology.connectivity(2, 0).array.reshape(-1, 3)[:nall]
     vglobal = np.asarray(mesh.topology.index_map(0).local_to_global(c2v.ravel()),
@@ -150,7 +151,7 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     p = lookup[9 * order[:, 0] + 3 * order[:, 1] + order[:, 2]]
     total = along.sum(axis=1)
     midpoint = 0.5 * (total[:, None] - along)                 # facet i is opposite vertex i
-    across = mesh.geometry.x[:, :2][nodes] @ np.array([-DIRECTION[1], DIRECTION[0]])
+    across = xy @ np.array([-DIRECTION[1], DIRECTION[0]])
     side = across.sum(axis=1)
     nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
     fmap = mesh.topology.index_map(1)

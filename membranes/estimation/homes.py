@@ -1,7 +1,13 @@
 """The set-up side of the patch engine (`patches.PatchSystems`, §5, §12): the local topology,
-each group's kept dofs at their patches' homes (`_home_dofs`) and the routes between owners and
-homes, the cells whose patch blocks are needed, the matrix A assembled on those cells only, and
-the probe's product with A as the action of the form (no matrix).
+the owned entities in canonical order (`_canonical_order`), each group's kept dofs at their
+patches' homes (`_home_dofs`) and the routes between owners and homes, the cells whose patch
+blocks are needed, the matrix A assembled on those cells only, and the probe's product with A
+as the action of the form (no matrix).
+
+The dofs of one entity (a facet's RT dofs, a cell's interior RT dofs, a cell's DG dofs) are kept
+or not together and are consecutive in the canonical order, so the set-up selects, sorts and
+moves *runs* (one per entity, about 2.3 times fewer than the dofs) and expands them to dofs once,
+at the homes.
 
 A kept dof of a patch is supported on that patch's cells only, so the principal submatrix of A
 on a patch's kept dofs is the same whether A is assembled over the whole mesh or over any set
