@@ -194,17 +194,18 @@ def colour_vertices(cells, imap, comm):
         seen = nbrs[ranges(offsets[todo], degree[todo])]
         segments = np.zeros(todo.size + 1, dtype=np.int64)
         np.cumsum(degree[todo], out=segments[1:])
+        near = colour[seen]
         # the largest priority among the uncoloured neighbours, over all processes' cells
         best = np.zeros(nloc, dtype=np.uint64)
-        best[todo] = _segment_reduce(np.maximum, np.where(uncoloured, prio, 0)[seen], segments,
-                                     np.uint64(0))
+        best[todo] = _segment_reduce(np.maximum, np.where(near < 0, prio[seen], np.uint64(0)),
+                                     segments, np.uint64(0))
         shared.reverse(best, np.maximum)
         chosen = np.flatnonzero(uncoloured[:n] & (prio[:n] > best[:n]))
         # the colours of the coloured neighbours as bits
-        bits = np.where(colour >= 0, np.left_shift(np.uint64(1), np.maximum(colour, 0)
-                                                   .astype(np.uint64)), np.uint64(0))
+        bits = np.where(near >= 0, np.left_shift(np.uint64(1), np.maximum(near, 0)
+                                                 .astype(np.uint64)), np.uint64(0))
         taken = np.zeros(nloc, dtype=np.uint64)
-        taken[todo] = _segment_reduce(np.bitwise_or, bits[seen], segments, np.uint64(0))
+        taken[todo] = _segment_reduce(np.bitwise_or, bits, segments, np.uint64(0))
         shared.reverse(taken, np.bitwise_or)
         free = ~taken[chosen]
         if np.any(free == 0):
