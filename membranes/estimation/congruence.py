@@ -28,6 +28,8 @@ import itertools
 
 import numpy as np
 
+from .exchange import counts_before
+
 # ## Dof transformations and the Piola pull-back on the reference cell
 #
 # dolfinx's basis on a cell K is the Piola image of T_K φ̂ (T_K the dof transformation of the
@@ -116,12 +118,12 @@ def basis_changes(W):
 
 
 def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
-    """Per local W dof (owned and ghost): its entity's position (facet midpoint or cell
-    centroid) along DIRECTION and across it (an array (dofs, 2)), a global integer that orders
-    the dofs of equal position (the entity's global index, the dof's kind and index in it), its
-    code; the interior blocks; and
-    the number of facet dofs on which the two cells of the facet disagree (0: both see the same
-    vertex order)."""
+    """The code of every local W dof (owned and ghost); the interior blocks; the number of
+    facet dofs on which the two cells of the facet disagree (0: both see the same vertex
+    order); and the positions of the entities along DIRECTION and across it, which order the
+    dofs of a patch: of every local facet (its midpoint, as seen by the last of its cells,
+    (facets, 2)) and of every local cell (its centroid, (cells, 2)). The dofs of an entity
+    share its position; its global index breaks ties."""
     cmap = mesh.topology.index_map(2)
     nall = cmap.size_local + cmap.num_ghosts
     signs, blocks = basis_changes(W)
@@ -130,7 +132,8 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     if info.max(initial=0) >= 8:
         raise RuntimeError("unexpected cell permutation info (not a triangle mesh?)")
     nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:nall]
-    along = mesh.geometry.x[:, :2][nodes] @ DIRECTION                      # (cells, 3)
+    xy = mesh.geometry.x[:, :2][nodes]                                      # (cells, 3, 2)
+    along = xy @ DIRECTION                                                  # (cells, 3)
     mesh.topology.create_connectivity(2, 0)
     c2v = mesh.topology.connectivity(2, 0).array.reshape(-1, 3)[:nall]
     vglobal = np.asarray(mesh.topology.index_map(0).local_to_global(c2v.ravel()),
@@ -148,50 +151,40 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     p = lookup[9 * order[:, 0] + 3 * order[:, 1] + order[:, 2]]
     total = along.sum(axis=1)
     midpoint = 0.5 * (total[:, None] - along)                 # facet i is opposite vertex i
-    fglobal = np.asarray(mesh.topology.index_map(1).local_to_global(c2f.ravel()),
-                         dtype=np.int64).reshape(nall, 3)
-    cglobal = np.asarray(cmap.local_to_global(np.arange(nall, dtype=np.int32)), dtype=np.int64)
-
-    across = mesh.geometry.x[:, :2][nodes] @ np.array([-DIRECTION[1], DIRECTION[0]])
+    across = xy @ np.array([-DIRECTION[1], DIRECTION[0]])
     side = across.sum(axis=1)
     nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
-    point = np.zeros((nlocal, 2))
-    position, normal = point[:, 0], point[:, 1]
-    entity = np.zeros(nlocal, dtype=np.int64)
+    fmap = mesh.topology.index_map(1)
+    facet_point = np.zeros((fmap.size_local + fmap.num_ghosts, 2))
     code = np.zeros(nlocal, dtype=np.int16)
-    cells = np.arange(nall)
+    cells = np.arange(nall)[:, None]
     facet_cols = np.array(W.sub(0).element.basix_element.entity_dofs[1])
-    inner_cols = W.sub(0).element.basix_element.entity_dofs[2][0]
+    inner_cols = np.array(W.sub(0).element.basix_element.entity_dofs[2][0])
+    # each write covers all local cells at once: the facets, or the dofs (cells, dofs of the
+    # entity); of a facet's two cells the later writes last
     facet_dofs, facet_codes = [], []
+    index = np.arange(facet_cols.shape[1])
     for i in range(3):
-        f = order[:, i]                                   # dolfinx facet of canonical facet i
-        for t in range(facet_cols.shape[1]):
-            dof = rt_dofs[cells, facet_cols[f, t]]
-            position[dof] = midpoint[cells, f]
-            normal[dof] = 0.5 * (side - across[cells, f])
-            entity[dof] = fglobal[cells, f]
-            code[dof] = (FACET << 2) | t | np.where(signs[p, info, i, t] < 0, NEGATIVE, 0)
-            facet_dofs.append(dof)
-            facet_codes.append(code[dof])
+        f = order[:, i:i + 1]                             # dolfinx facet of canonical facet i
+        facet_point[np.take_along_axis(c2f[:nall], f, axis=1)[:, 0]] = np.stack(
+            [np.take_along_axis(midpoint, f, axis=1)[:, 0],
+             0.5 * (side - np.take_along_axis(across, f, axis=1)[:, 0])], axis=1)
+        dof = rt_dofs[cells, facet_cols[f[:, 0]]]
+        code[dof] = (FACET << 2) | index | np.where(signs[p, info, i] < 0, NEGATIVE, 0)
+        facet_dofs.append(dof)
+        facet_codes.append(code[dof])
     disagree = sum(int(np.count_nonzero(code[d] != k)) for d, k in zip(facet_dofs, facet_codes))
-    for t, col in enumerate(inner_cols):
-        dof = rt_dofs[:, col]
-        position[dof], normal[dof], entity[dof] = total / 3.0, side / 3.0, cglobal
-        code[dof] = (INNER << 2) | t | (p << BLOCK)
-    for k in range(3):
-        dof = dg_dofs[cells, order[:, k]]
-        position[dof], normal[dof], entity[dof] = total / 3.0, side / 3.0, cglobal
-        code[dof] = (DG << 2) | k
-    # one integer per dof for ties of position: entity, kind, index in the entity
-    entity = (entity * 4 + _kind(code)) * 4 + (code & 3)
-    return point, entity, code, blocks, disagree
+    code[rt_dofs[:, inner_cols]] = (INNER << 2) | np.arange(inner_cols.size) | (p[:, None] << BLOCK)
+    code[np.take_along_axis(dg_dofs, order, axis=1)] = (DG << 2) | np.arange(3)  # vertex k's
+    return code, blocks, disagree, facet_point, np.stack([total / 3.0, side / 3.0], axis=1)
 
 
 def to_canonical(values, sign, pairs, blocks, transpose=True):
     """values ← Gᵀ values (transpose) or G values, in place, for home vectors: `sign` ±1 per
     entry, `pairs[p]` the positions of the first interior dof of the cells with block p (the
     second follows it)."""
-    values *= sign
+    if not (np.isscalar(sign) and sign == 1.0):
+        values *= sign
     for p, first in enumerate(pairs):
         if first.size:
             B = blocks[p].T if transpose else blocks[p]
@@ -215,8 +208,8 @@ class BasisChange:
         self.runs = []
         if n.size == 0:
             return
-        F = np.add.reduceat(kind == FACET, offsets[:-1])
-        c = np.add.reduceat(kind == INNER, offsets[:-1]) // 2
+        F = np.diff(counts_before(kind == FACET, offsets))
+        c = np.diff(counts_before(kind == INNER, offsets)) // 2
         shape = np.stack([n, F, c], axis=1)
         cut = np.flatnonzero(np.any(shape[1:] != shape[:-1], axis=1)) + 1
         bounds = np.concatenate([[0], cut, [n.size]])
@@ -334,20 +327,24 @@ def _mix(z):
     return z
 
 
-def patch_keys(offsets, code, point, h, rows=None):
-    """The key of each patch (uint64): entries offsets[k]:offsets[k+1] of `code` and of
-    point[rows] (entity positions, (dofs, 2); rows=None: all) are patch k's dofs in canonical
-    order, h[k] its shortest edge. Translated patches get equal keys (but for positions within
-    round-off of a rounding boundary)."""
-    n = np.diff(offsets)
+def patch_keys(offsets, code, point, h, sizes=None):
+    """The key of each patch (uint64): entries offsets[k]:offsets[k+1] of `code` and `point`
+    (entity positions, (entries, 2)) are patch k's dofs in canonical order (or only the first
+    dof of each entity), h[k] its shortest edge, sizes[k] its number of dofs (None: the
+    entries). Translated patches get equal keys (but for positions within round-off of a
+    rounding boundary)."""
+    n = np.diff(offsets) if sizes is None else np.asarray(sizes)
     keys = np.zeros(n.size, dtype=np.uint64)
     if n.size == 0:
         return keys
     # the first dof of each entity stands for its entity (the others differ only by index)
     first = (code & 3) == 0
-    start = np.concatenate([[0], np.cumsum(np.add.reduceat(first, offsets[:-1]))])
-    code, point = code[first], point[first if rows is None else rows[first]]
-    step = 1 << 11                                   # patches at a time (bounds the memory)
+    start = offsets
+    if not first.all():
+        start = counts_before(first, offsets)
+        first = np.flatnonzero(first)
+        code, point = code[first], point.take(first, axis=0)
+    step = 1 << 14                                   # patches at a time (bounds the memory)
     for lo in range(0, n.size, step):
         hi = min(lo + step, n.size)
         a, b = start[lo], start[hi]
@@ -359,7 +356,7 @@ def patch_keys(offsets, code, point, h, rows=None):
 def _keys(offsets, code, point, h):
     n = np.diff(offsets)
     first = np.repeat(offsets[:-1], n)
-    rel = point - point[first]
+    rel = point - point.take(first, axis=0)
     rel *= np.repeat(KEY_GRID / h, n)[:, None]
     word = np.rint(rel, out=rel).astype(np.int64).view(np.uint64)
     first -= np.arange(offsets[-1])                                # minus the index in the patch

@@ -1,12 +1,59 @@
 """Communication helpers of the patch engine on a distributed mesh (§12): owned/ghost exchange
 with any numpy ufunc on a dolfinx IndexMap (`Shared`), MPI Alltoallv of numpy rows, a
-distributed reduction by key, and the vertex colouring that makes the groups of §5 and §6.
+distributed reduction by key, and the vertex colouring that makes the groups of §5 and §6; and
+the array helpers they and the set-up share (a linear-time stable sort of integer keys, runs
+and segments).
 
 Split off `patches`, which re-exports these names.
 """
 
 import numpy as np
 from mpi4py import MPI
+
+# ## Sorting and segments
+
+def stable_order(keys):
+    """np.argsort(keys, kind="stable") for non-negative integers, by passes over 16 bits
+    (numpy's stable sort of uint16 is a radix sort: linear time)."""
+    order, shift, top = None, 0, int(keys.max(initial=0))
+    while True:
+        digit = ((keys if order is None else keys[order]) >> shift).astype(np.uint16)
+        step = np.argsort(digit, kind="stable")
+        order = step if order is None else order[step]
+        shift += 16
+        if top >> shift == 0:
+            return order
+
+
+def ranges(starts, lengths):
+    """The concatenation of arange(s, s + n) over zip(starts, lengths) (int64): the entries of
+    segments given by their starts and lengths, as one cumulative sum of steps (1 within a
+    segment, the jump to the next segment's start at its first entry)."""
+    starts = np.asarray(starts, dtype=np.int64)
+    lengths = np.asarray(lengths, dtype=np.int64)
+    if np.any(lengths == 0):
+        starts, lengths = starts[lengths > 0], lengths[lengths > 0]
+    ends = np.cumsum(lengths)
+    out = np.ones(int(ends[-1]) if ends.size else 0, dtype=np.int64)
+    if out.size:
+        out[0] = starts[0]
+        out[ends[:-1]] = starts[1:] - starts[:-1] - lengths[:-1] + 1
+        np.cumsum(out, out=out)
+    return out
+
+
+def run_starts(values):
+    """The index of the first entry of each run of equal consecutive values."""
+    if values.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(np.concatenate([[True], values[1:] != values[:-1]]))
+
+
+def counts_before(flags, offsets):
+    """The number of true `flags` before each offset (the counts of the segments
+    offsets[k]:offsets[k + 1] are its differences)."""
+    return np.searchsorted(np.flatnonzero(flags), offsets)
+
 
 # ## Communication on an index map
 #
@@ -107,8 +154,13 @@ def vertex_graph(cells, nlocal):
     i = np.repeat(cells, k - 1, axis=1).ravel()
     j = np.concatenate([np.roll(cells, -s, axis=1)[:, :, None] for s in range(1, k)],
                        axis=2).reshape(-1)
-    pairs = np.unique(i.astype(np.int64) * nlocal + j)
-    i, j = pairs // nlocal, pairs % nlocal
+    # the pairs sorted and without repeats; numpy's stable sort of int64 (timsort) is fast on
+    # these keys, which come in runs along the cells
+    pairs = np.sort(i.astype(np.int64) * nlocal + j, kind="stable")
+    if pairs.size:
+        pairs = pairs[np.concatenate([[True], pairs[1:] != pairs[:-1]])]
+    i = pairs // nlocal
+    j = pairs - i * nlocal
     offsets = np.zeros(nlocal + 1, dtype=np.int64)
     np.cumsum(np.bincount(i, minlength=nlocal), out=offsets[1:])
     return offsets, j
@@ -132,19 +184,28 @@ def colour_vertices(cells, imap, comm):
     offsets, nbrs = vertex_graph(cells, nloc)
     prio = _priority(np.asarray(imap.local_to_global(np.arange(nloc, dtype=np.int32))))
     colour = np.full(nloc, -1, dtype=np.int64)
+    degree = np.diff(offsets)
     rounds = 0
     while comm.allreduce(int(np.count_nonzero(colour[:n] < 0)), op=MPI.SUM) > 0:
         rounds += 1
         uncoloured = colour < 0
+        # only the uncoloured local vertices' neighbours are read (fewer at every round)
+        todo = np.flatnonzero(uncoloured)
+        seen = nbrs[ranges(offsets[todo], degree[todo])]
+        segments = np.zeros(todo.size + 1, dtype=np.int64)
+        np.cumsum(degree[todo], out=segments[1:])
+        near = colour[seen]
         # the largest priority among the uncoloured neighbours, over all processes' cells
-        best = _segment_reduce(np.maximum, np.where(uncoloured, prio, 0)[nbrs], offsets,
-                               np.uint64(0))
+        best = np.zeros(nloc, dtype=np.uint64)
+        best[todo] = _segment_reduce(np.maximum, np.where(near < 0, prio[seen], np.uint64(0)),
+                                     segments, np.uint64(0))
         shared.reverse(best, np.maximum)
         chosen = np.flatnonzero(uncoloured[:n] & (prio[:n] > best[:n]))
         # the colours of the coloured neighbours as bits
-        bits = np.where(colour >= 0, np.left_shift(np.uint64(1), np.maximum(colour, 0)
-                                                   .astype(np.uint64)), np.uint64(0))
-        taken = _segment_reduce(np.bitwise_or, bits[nbrs], offsets, np.uint64(0))
+        bits = np.where(near >= 0, np.left_shift(np.uint64(1), np.maximum(near, 0)
+                                                 .astype(np.uint64)), np.uint64(0))
+        taken = np.zeros(nloc, dtype=np.uint64)
+        taken[todo] = _segment_reduce(np.bitwise_or, bits, segments, np.uint64(0))
         shared.reverse(taken, np.bitwise_or)
         free = ~taken[chosen]
         if np.any(free == 0):

@@ -63,14 +63,13 @@ from .congruence import (
     NEGATIVE,
     BasisChange,
     Blocks,
-    _kind,
     _pairs,
     canonical_block,
     canonical_dofs,
     to_canonical,
 )
-from .exchange import Shared, alltoallv, colour_vertices, reduce_by_key
-from .homes import Action, HomeSetup, assemble_on, stable_order
+from .exchange import Shared, alltoallv, colour_vertices, ranges, reduce_by_key, stable_order
+from .homes import Action, HomeSetup, assemble_on
 
 __all__ = ["PatchSystems", "Shared", "alltoallv", "colour_vertices", "mixed_space", "stable_order",
            "reduce_by_key"]
@@ -117,21 +116,19 @@ class PatchSystems(HomeSetup):
         self.rhs, self.solution = rhs, solution
         self.mesh, self.comm = mesh, mesh.comm
         self.W = W = W if W is not None else mixed_space(mesh)
-        self.rt_space, rt_map = W.sub(0).collapse()
-        self.rt_map = np.asarray(rt_map, dtype=np.int64)
+        # RT_1 as a space of its own, and the W dof of each of its dofs (from the cells'
+        # dofs: collapse's own map is a Python list, slow to convert)
+        self.rt_space = W.sub(0).collapse()[0]
+        imap = self.rt_space.dofmap.index_map
+        self.rt_map = np.empty(imap.size_local + imap.num_ghosts, dtype=np.int64)
+        self.rt_map[self.rt_space.dofmap.list.array] = W.sub(0).dofmap.list.array
         self.ngroups = len(patches)
         self._topology(mesh, W)
-        self.position, self.entity, self.code, self.blocks, self.disagree = canonical_dofs(
+        self.code, self.blocks, self.disagree, facet_point, cell_point = canonical_dofs(
             mesh, W, self.c2f, self.rt_dofs, self.dg_dofs)
+        self._canonical_order(facet_point, cell_point)
+        del facet_point, cell_point
         n = self.nowned
-        # canonical order in a patch: its RT facet dofs, its interior RT dofs (a cell's two
-        # adjacent), its DG dofs, each by position
-        self.by_rank = np.lexsort((self.entity[:n], self.position[:n, 0],
-                                   _kind(self.code[:n])))
-        rank = np.full(self.nlocal, n, dtype=np.int32)            # ghost dofs: n
-        rank[self.by_rank] = np.arange(n, dtype=np.int32)
-        self.facet_rank, self.cell_rank = rank[self.facet_dofs], rank[self.cell_dofs]
-        del rank, self.facet_dofs, self.cell_dofs
 
         # per group its patches at home, and the patches whose blocks are needed: the first
         # of each new key (all patches without sharing); their class numbers are given now
@@ -185,14 +182,15 @@ class PatchSystems(HomeSetup):
             for (dofs, offsets, code, _, nsigma, _, _, _, cls), b in zip(pending, bad):
                 cls[b] = self._extract(A, dofs, offsets, code, nsigma, b, classes)
             A.destroy()
-        groups = [(p[0].astype(PETSc.IntType), p[1], p[2].astype(np.int16), p[8])
-                  for p in pending]
+        groups = [(p[0].astype(PETSc.IntType, copy=False), p[1],
+                   p[2].astype(np.int16, copy=False), p[8]) for p in pending]
         del pending
         self._layout(groups, classes)
         # only the home layout, the scatters and the inverses are kept
-        for name in ("position", "entity", "code", "by_rank", "c2f", "facet_shared",
-                     "facet_owned_cells", "facet_cells", "cell_global", "cell_h", "rt_dofs",
-                     "dg_dofs", "facet_rank", "cell_rank", "known", "signs"):
+        for name in ("code", "c2f", "facet_shared", "facet_owned_cells",
+                     "facet_cells", "cell_global", "cell_h", "rt_dofs", "dg_dofs", "run_length",
+                     "run_dofs", "run_code", "run_point", "run_entity", "facet_run", "cell_run",
+                     "known", "signs"):
             delattr(self, name)
 
     def _lookup(self, key):
@@ -237,8 +235,9 @@ class PatchSystems(HomeSetup):
         n = np.diff(offsets)
         mismatch = size[cls] != n if cls.size else np.zeros(0, dtype=bool)
         cls_ok = np.where(mismatch, 0, cls)
-        at = np.repeat(start[cls_ok] - offsets[:-1], n) + np.arange(offsets[-1])
-        at[np.repeat(mismatch, n)] = 0
+        at = ranges(start[cls_ok], n)
+        if np.any(mismatch):
+            at[np.repeat(mismatch, n)] = 0
         pairs = _pairs(code)
         # the action carries the signs of G: only the interior blocks act here
         w = to_canonical(v[at], 1.0, pairs, self.blocks, transpose=False)
@@ -274,14 +273,16 @@ class PatchSystems(HomeSetup):
         first = 0
         for dofs, offsets, gcode, _ in groups:
             k = np.diff(offsets)
-            at = (np.repeat(start[first:first + k.size] - offsets[:-1], k)
-                  + np.arange(offsets[-1]))
+            # the group's patches by home position: their entries in home order (a cheaper
+            # scatter set-up) and those entries' places at home (increasing)
+            at = start[first:first + k.size]
             first += k.size
-            code[at] = gcode
-            by_home = np.argsort(at)                  # in home order: a cheaper set-up
+            by_start = np.argsort(at)
+            by_home = ranges(offsets[:-1][by_start], k[by_start])
+            at = ranges(at[by_start], k[by_start])
+            code[at] = gcode[by_home]
             src = PETSc.IS().createGeneral(dofs[by_home], comm=PETSc.COMM_SELF)
-            dst = PETSc.IS().createGeneral(at[by_home].astype(PETSc.IntType),
-                                           comm=PETSc.COMM_SELF)
+            dst = PETSc.IS().createGeneral(at.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
             self.scatters.append(PETSc.Scatter().create(template, src, hv, dst))
             src.destroy()
             dst.destroy()
