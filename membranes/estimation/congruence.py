@@ -291,8 +291,13 @@ def canonical_block(ia, ja, a, code, blocks):
 #
 # The canonical basis is translation invariant, so translated patches have the same *key*: the
 # kinds and indices of their kept dofs in canonical order with the positions of their entities
-# relative to the patch's first, in units of the patch's shortest edge h, rounded to 2⁻²⁰
-# (`patch_keys`, hashed to 64 bits). Patches with equal keys are candidates for one class: only
+# relative to the patch's first, in units of the patch's shortest edge h, rounded to 2⁻³⁶
+# (`patch_keys`, hashed to 64 bits). The grid is fine because a rejected candidate (below)
+# gets a block of its own: meshers make many cells congruent to 1e-7 h but not to round-off
+# (gmsh's disk at h = 0.132: at 2⁻²⁰ a tenth of the patches had the key of such a near
+# translate and were rejected), while the positions of true translates agree to ~ε R/h, far
+# below 2⁻³⁶, so that few straddle a rounding boundary. Patches with equal keys are
+# candidates for one class: only
 # the block of the class's first patch (its representative) is taken from A. A key is cheap but
 # not a proof (rounding boundaries, hash collisions, coefficients that are not translation
 # invariant), so every patch is checked against its class's block with a random probe: each
@@ -312,7 +317,7 @@ def canonical_block(ia, ja, a, code, blocks):
 
 SAME = 1e-13
 ROUNDING = 16            # a translate's blocks differ by ~ε R/h (measured 1.2 ε R/h at most)
-KEY_GRID = 2.0 ** 20     # relative positions in a key: multiples of 2⁻²⁰ h
+KEY_GRID = 2.0 ** 36     # relative positions in a key: multiples of 2⁻³⁶ h
 KEY_CODE = 15 | INTERIOR                # the code bits in a key: index, kind, interior patch
 
 
