@@ -80,6 +80,17 @@ def same_numbering(V, W):
                 and a.size_local == b.size_local and np.array_equal(a.ghosts, b.ghosts))
 
 
+def nodal_function(V, dim):
+    """A vector-P1 Function of `dim` components on V's mesh that numbers its vertices as the P1
+    space V does (checked on every process; collective): the nodal fields of a form packed as
+    one coefficient, one gather per vertex when dolfinx packs a cell."""
+    from dolfinx import fem
+    f = fem.Function(fem.VectorFunctionSpace(V.mesh, ("Lagrange", 1), dim=dim))
+    if not V.mesh.comm.allreduce(same_numbering(f.function_space, V), op=MPI.LAND):
+        raise RuntimeError("vector P1 numbers its vertices unlike P1")
+    return f
+
+
 def colour_cells(colour, cells, ncolours):
     """Per colour c: the cells (rows of `cells`, ascending) with a vertex of colour c and, on
     each, the local index of that vertex (one at most, by the colouring); one stable sort."""
@@ -196,9 +207,7 @@ class FluxEquilibration:
         # ψ_c, Λ_c and u_αh are the components PSI, LAMC, U of one vector-P1 Function: dolfinx
         # packs a form's coefficients cell by cell, and a vertex's values then lie side by side
         # (one gather instead of three). It numbers the vertices as V does (checked).
-        self.nodal = fem.Function(fem.VectorFunctionSpace(mesh, ("Lagrange", 1), dim=3))
-        if not self.comm.allreduce(same_numbering(self.nodal.function_space, V), op=MPI.LAND):
-            raise RuntimeError("vector P1 numbers its vertices unlike P1")
+        self.nodal = nodal_function(V, 3)
         self._nodal = self.nodal.x.array.reshape(-1, 3)
         self.lam = fem.Function(V)
         self.r = fem.Function(fem.FunctionSpace(mesh, ("DG", 1)))

@@ -55,7 +55,6 @@ from forms.estimators import (
     contact_estimator,
     energy_squared,
     flux_squared,
-    lumped_mass,
     oscillation_squared,
     projection_load,
     recovery_load,
@@ -63,7 +62,7 @@ from forms.estimators import (
 )
 
 from ..fem.quadrature import over
-from .equilibration import same_numbering
+from .equilibration import nodal_function
 
 # Components of the per-cell vector of one evaluation (the vector-DG0 test function's index)
 DISC1, DISC2, CONTACT, LIN1, LAM_POS, LAM_NEG = range(6)      # always
@@ -182,9 +181,7 @@ class Estimators:
         # s_h - u_h and δλ = λ'_h - λh (ν flux) are the components of ONE vector-P1 Function:
         # dolfinx packs a form's coefficients cell by cell, and the values of a vertex then lie
         # side by side (one gather instead of one per field)
-        self.nodal = fem.Function(fem.VectorFunctionSpace(mesh, ("Lagrange", 1), dim=DLAM + 1))
-        if not self.comm.allreduce(same_numbering(self.nodal.function_space, V), op=MPI.LAND):
-            raise RuntimeError("vector P1 numbers its vertices unlike P1")
+        self.nodal = nodal_function(V, DLAM + 1)
         self._nodal = self.nodal.x.array.reshape(-1, DLAM + 1)         # (vertices, fields)
         self.sigma = [fem.Function(self.RT) for _ in range(2)]          # σ_α,disc
         self.sigma_alg = [fem.Function(self.RT) for _ in range(2)]
@@ -300,37 +297,35 @@ class Estimators:
         from dolfinx import fem, la
         if self._recovery is None:
             self._recovery = self._recovery_forms()
-        load, G, inverse_mass, cells = self._recovery
+        load, G, cells = self._recovery
         self._write(X)
         G.x.array[:] = 0.0
         fem.assemble_vector(G.x.array, load)
         G.x.scatter_reverse(la.ScatterMode.add)
-        G.x.array.reshape(-1, 4)[:] *= inverse_mass[:, None]
+        # the owned vertices' averages (the ghosts' follow): the lumped mass (1, ψ_a) is the
+        # discretisation's contact weight D
+        n = self.n
+        G.x.array.reshape(-1, 4)[:n] /= self.disc.D.array_r[:, None]
         G.x.scatter_forward()
         total = global_sums(self.comm, cells.cells()).sum()
         return float(np.sqrt(max(total, 0.0)))
 
     def _recovery_forms(self):
         """`recovered`'s forms, compiled at its first use: the loads (μ_α ∇u_αh, ψ_a) of both
-        membranes into one P1⁴ Function G = (G_1, G_2), 1/(1, ψ_a), and the per-cell norms."""
-        from dolfinx import fem, la
-        mesh, V = self.disc.mesh, self.disc.V
-        G = fem.Function(fem.VectorFunctionSpace(mesh, ("Lagrange", 1), dim=4))
-        if not self.comm.allreduce(same_numbering(G.function_space, V), op=MPI.LAND):
-            raise RuntimeError("vector P1 numbers its vertices unlike P1")
+        membranes into one P1⁴ Function G = (G_1, G_2), and the per-cell norms."""
+        from dolfinx import fem
+        mesh = self.disc.mesh
+        G = nodal_function(self.disc.V, 4)
         dp = ufl.dx(domain=mesh, metadata=P1_RULE)      # exact: G_α ∈ P1², ∇u_αh constant
         v = ufl.TestFunction(G.function_space)
         u1, u2 = self.nodal[U1], self.nodal[U2]
         mu1, mu2 = self._mu
         load = fem.form(recovery_load(mu1, u1, ufl.as_vector([v[0], v[1]]), dp)
                         + recovery_load(mu2, u2, ufl.as_vector([v[2], v[3]]), dp))
-        mass = fem.assemble_vector(fem.form(lumped_mass(ufl.TestFunction(V), dp)))
-        mass.scatter_reverse(la.ScatterMode.add)
-        mass.scatter_forward()
         G1, G2 = ufl.as_vector([G[0], G[1]]), ufl.as_vector([G[2], G[3]])
         cells = CellForm(mesh, 2, lambda w: flux_squared(mu1, u1, -G1, w[0], dp)
                          + flux_squared(mu2, u2, -G2, w[1], dp))
-        return load, G, 1.0 / mass.array, cells
+        return load, G, cells
 
     def _linearisation_parts(self, lin1_sq, lin3_sq, lam_pos_sq):
         """η_lin1, η_lin2, η_lin3 and η_lin (§7) from the global sums of η_lin1,K², η_lin3,K²

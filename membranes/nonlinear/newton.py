@@ -134,11 +134,8 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
     if forcing is not None:
         if variant != "inexact":
             raise ValueError("forcing applies to the inexact Newton variant only")
-        try:
-            ok = 0.0 < float(forcing) < 1.0
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
+        _positive("forcing", forcing)
+        if forcing >= 1.0:
             raise ValueError(f"forcing must lie in (0, 1), got {forcing!r}")
     comm = disc.comm
     say = None
