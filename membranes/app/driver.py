@@ -53,8 +53,9 @@ ALG_FLUXES = ("nu", "multilevel")
 INITIAL_GUESSES = ("paper", "zero")
 ERRORS = ("final", "iterates", "none")
 # the Newton test η_lin ≤ γ_lin η_disc is evaluated in full at X^k only where η_lin(X^k) ≤
-# γ_lin GATE η_disc of the last full estimate on the mesh (`LevelEstimates`); None: always
-GATE = 2.0
+# γ_lin GATE η_disc of the last full estimate on the mesh, or η_rec before it
+# (`LevelEstimates`); None: always
+GATE = 1.0
 COARSE = ("residual", "estimated")
 DEFAULT_COARSE_TOL = 1e-6
 # coarse='residual': a Krylov solve stops at ‖R_alg‖ ≤ COARSE_FORCING ‖R_alg(X^{k,0})‖
@@ -156,14 +157,17 @@ class LevelEstimates:
     assembly); η_disc does. Between Newton steps on one mesh η_disc barely moves (the
     discretisation error of iterates near the discrete solution), while η_lin falls
     superlinearly. So once a full estimate on the mesh has given η_disc, an iterate with
-    η_lin > γ_lin · GATE · that η_disc (GATE = 2) is returned with η_lin only, marked
-    `partial` and without a bound: its Newton test cannot hold unless η_disc doubled in one
+    η_lin > γ_lin · GATE · that η_disc (GATE = 1) is returned with η_lin only, marked
+    `partial` and without a bound: its Newton test would hold only if η_disc grew in one
     step, and Newton goes on. Before the first full estimate on the mesh, the gradient
     recovery estimate η_rec (`Estimators.recovered`, two small assemblies) stands in for
     η_disc: both estimate the same discretisation error. This is a schedule of the
     estimates, like ν for Krylov (§8): a wrong guess costs at most one more Newton step,
     never the bound; the iterate Newton stops at is always estimated in full and certified.
-    `gate=None` estimates every Newton iterate in full.
+    GATE = 1 because a full estimate whose test fails is wasted, and on T_J it costs more
+    than the Newton step that a skipped, passing test costs: estimating an iterate pays only
+    if its test is likely to hold (docs/choices.md). `gate=None` estimates every Newton
+    iterate in full.
     """
 
     def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
