@@ -210,9 +210,10 @@ class LevelEstimates:
                     self._keep(X, R)
                 return None
             if kind == "newton" and self.gate is not None:
-                lin = self.est.linearisation(X)
-                reference = self.eta_disc if self.eta_disc is not None else \
-                    self.est.recovered(X)
+                if self.eta_disc is not None:
+                    lin, reference = self.est.linearisation(X), self.eta_disc
+                else:                            # η_rec and η_lin in one assembly
+                    reference, lin = self.est.recovered(X, linearisation=True)
                 if lin["eta_lin"] > self.gamma_lin * self.gate * reference:
                     lin["partial"] = True
                     return lin

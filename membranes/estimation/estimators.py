@@ -206,10 +206,7 @@ class Estimators:
         s1, s2 = self.sigma
         a1, a2 = self.sigma_alg
 
-        def linearisation(w, i=0, j=1, k=2):
-            return (energy_squared(mu1, mu2, e1, e2, w[i], dp)
-                    + cell_norm_squared(lam_pos, w[j], dp)
-                    + cell_norm_squared(lam_neg, w[k], dp))
+        linearisation = self._linearisation_form
 
         def base(w):
             return (flux_squared(mu1, u1, s1, w[DISC1], df)
@@ -237,6 +234,16 @@ class Estimators:
             "lin": (3, linearisation),
             # `evaluate`'s default remainder in the same assembly as the estimators
             "disc_rem": (8, lambda w: base(w) + remainder(w, REM1, REM2))}
+
+    def _linearisation_form(self, w, i=0, j=1, k=2):
+        """The integrals of η_lin1,K², ‖λ^pos‖_K², ‖λ^neg‖_K² tested with w[i], w[j], w[k]."""
+        mesh = self.disc.mesh
+        _, _, lam_pos, lam_neg, e1, e2, _ = (self.nodal[m] for m in range(DLAM + 1))
+        mu1, mu2 = self._mu
+        dp = ufl.dx(domain=mesh, metadata=P1_RULE)
+        return (energy_squared(mu1, mu2, e1, e2, w[i], dp)
+                + cell_norm_squared(lam_pos, w[j], dp)
+                + cell_norm_squared(lam_neg, w[k], dp))
 
     def _cell_form(self, name):
         entry = self._cell_forms[name]
@@ -282,18 +289,24 @@ class Estimators:
         equilibration where η_lin alone shows that a stopping test fails (driver)."""
         self._write(X)
         q = self._cell_form("lin").cells()
+        return self._linearisation_parts(*self._linearisation_sums(q))
+
+    def _linearisation_sums(self, q):
+        """The global sums of η_lin1,K², η_lin3,K² and ‖λ^pos‖_K² from the columns of q
+        (cells, 3) of `_linearisation_form`."""
         lin1, lam_pos, lam_neg = self.comm.allreduce(
             np.maximum(q, [0.0, -np.inf, 0.0]).sum(axis=0), op=MPI.SUM)
-        return self._linearisation_parts(lin1, self.kappa ** 2 * lam_neg, lam_pos)
+        return lin1, self.kappa ** 2 * lam_neg, lam_pos
 
-    def recovered(self, X):
+    def recovered(self, X, linearisation=False):
         """η_rec = (Σ_α ‖μ_α^{1/2} ∇u_αh - μ_α^{-1/2} G_α‖²)^{1/2} at X, G_α ∈ P1² the vertex
         average of μ_α ∇u_αh (`forms.estimators.recovery_load`, lumped mass): the gradient
         recovery estimate of the discretisation error (Zienkiewicz–Zhu), the expression of η_F
         (§7) with -G_α in place of the equilibrated σ_α,disc. Not a bound, since G_α is not
         equilibrated: it stands in for η_disc only where none has been computed on the mesh,
         to decide whether the flux equilibration is worth computing (driver.LevelEstimates).
-        Two small assemblies, no patch problem."""
+        Two small assemblies, no patch problem; the second also integrates η_lin's terms, so
+        `linearisation=True` returns (η_rec, `linearisation(X)`) at no extra assembly."""
         from dolfinx import fem, la
         if self._recovery is None:
             self._recovery = self._recovery_forms()
@@ -307,12 +320,16 @@ class Estimators:
         n = self.n
         G.x.array.reshape(-1, 4)[:n] /= self.disc.D.array_r[:, None]
         G.x.scatter_forward()
-        total = global_sums(self.comm, cells.cells()).sum()
-        return float(np.sqrt(max(total, 0.0)))
+        q = cells.cells()                              # (cells, 2 + 3): η_rec's, η_lin's
+        eta_rec = float(np.sqrt(max(global_sums(self.comm, q[:, :2]).sum(), 0.0)))
+        if not linearisation:
+            return eta_rec
+        return eta_rec, self._linearisation_parts(*self._linearisation_sums(q[:, 2:]))
 
     def _recovery_forms(self):
         """`recovered`'s forms, compiled at its first use: the loads (μ_α ∇u_αh, ψ_a) of both
-        membranes into one P1⁴ Function G = (G_1, G_2), and the per-cell norms."""
+        membranes into one P1⁴ Function G = (G_1, G_2), and the per-cell norms (η_rec's two,
+        then η_lin's three)."""
         from dolfinx import fem
         mesh = self.disc.mesh
         G = nodal_function(self.disc.V, 4)
@@ -323,8 +340,9 @@ class Estimators:
         load = fem.form(recovery_load(mu1, u1, ufl.as_vector([v[0], v[1]]), dp)
                         + recovery_load(mu2, u2, ufl.as_vector([v[2], v[3]]), dp))
         G1, G2 = ufl.as_vector([G[0], G[1]]), ufl.as_vector([G[2], G[3]])
-        cells = CellForm(mesh, 2, lambda w: flux_squared(mu1, u1, -G1, w[0], dp)
-                         + flux_squared(mu2, u2, -G2, w[1], dp))
+        cells = CellForm(mesh, 5, lambda w: flux_squared(mu1, u1, -G1, w[0], dp)
+                         + flux_squared(mu2, u2, -G2, w[1], dp)
+                         + self._linearisation_form(w, 2, 3, 4))
         return load, G, cells
 
     def _linearisation_parts(self, lin1_sq, lin3_sq, lam_pos_sq):

@@ -277,6 +277,14 @@ def test_recovered_flux_against_numpy(setup):
     x = disc.V.tabulate_dof_coordinates()[:n, :2].T
     linear = np.concatenate([0.3 * x[0] - x[1], 2 * x[1] + 0.1, X[2 * n:]])
     assert est.recovered(linear) <= 1e-12 * expected
+    # with linearisation=True the same assembly also gives `linearisation`'s η_lin and parts
+    # (the same integrals summed in another order: round-off)
+    eta_rec, lin = est.recovered(X, linearisation=True)
+    assert eta_rec == pytest.approx(expected, rel=TOL)
+    alone = est.linearisation(X)
+    assert alone["eta_lin"] > 0
+    for key, value in alone.items():
+        assert lin[key] == pytest.approx(value, rel=1e-12, abs=1e-15 * alone["eta_lin"])
 
 
 FORMS = ["flux_squared", "weighted_norm_squared", "cell_norm_squared", "contact_estimator",
