@@ -129,10 +129,12 @@ class Load:
     """The data part -(ψ_c f, q) of the patch right-hand sides of all colours, gathered at the
     patches' homes in the canonical basis (`PatchSystems.canonical`), assembled with the data
     measures once per load f and mesh and reused at every call of `sigma`; `home` holds it.
-    Made by `FluxEquilibration.loads` (several loads in one assembly) or `load`."""
+    `moments`: (owned cells, 3), (f, q_m)_K for the DG1 basis q_m of each cell (the sum of the
+    slots' blocks, Σ_s φ_s = 1), the load of f's DG1 projection (η_osc, §7). Made by
+    `FluxEquilibration.loads` (several loads in one assembly) or `load`."""
 
-    def __init__(self, f, home):
-        self.f, self.home = f, home
+    def __init__(self, f, home, moments=None):
+        self.f, self.home, self.moments = f, home, moments
 
 
 def assemble_loads(eq, fs, measures):
@@ -161,6 +163,8 @@ def assemble_loads(eq, fs, measures):
     blocks.scatter_reverse(la.ScatterMode.add)
     blocks = blocks.array                         # entry 3k z + 3i + s: dof z, load i, slot s
     zdofs = Z.dofmap.list.array.reshape(-1, 3)[:wdofs.shape[0]]
+    # Σ_s -(φ_s f_i, q_m)_K = -(f_i, q_m)_K: per cell, DG1 dof m and load i
+    moments = -blocks.reshape(-1, k, 3).sum(axis=2).take(zdofs, axis=0)      # (cells, 3, k)
     homes = [eq.systems.home_vector() for _ in fs]
     eq.b.set(0.0)
     for c, (touching, s) in enumerate(eq.touching()):
@@ -170,7 +174,8 @@ def assemble_loads(eq, fs, measures):
             eq.b.array[dofs] = blocks[entry + 3 * i]
             eq.systems.gather(c, eq.b, home)
         eq.b.array[dofs] = 0.0
-    return [Load(f, eq.systems.canonical(home)) for f, home in zip(fs, homes)]
+    return [Load(f, eq.systems.canonical(home), np.ascontiguousarray(moments[:, :, i]))
+            for i, (f, home) in enumerate(zip(fs, homes))]
 
 
 class FluxEquilibration:

@@ -111,24 +111,28 @@ def global_sums(comm, columns):
     return comm.allreduce(local, op=MPI.SUM)
 
 
-def dg1_projections(disc, fs, lifting):
+def dg1_projections(disc, fs, lifting, moments=None):
     """Π_P1 f for each f of `fs` (η_osc, §7): the L² projections onto discontinuous P1 (cell
     by cell), as Functions of `lifting.Q`. The loads (f, q) are assembled in one pass (vector
-    DG1 with a component per f, the data measures); the DG1 mass matrix is block diagonal with
-    the block
+    DG1 with a component per f, the data measures), unless `moments` gives them (per f an
+    (owned cells, 3) array of (f, q_m)_K, e.g. `equilibration.Load.moments`, the same
+    integrals); the DG1 mass matrix is block diagonal with the block
     M_K = |K|/12 (I + 1 1ᵀ), whose inverse (3/|K|)(4 I - 1 1ᵀ) (`lifting`) is applied cell by
     cell on the owned cells."""
     from dolfinx import fem, la
 
     from .lifting import MINV_REF
     mesh, k = disc.mesh, len(fs)
-    Z = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=k)
-    q = ufl.TestFunction(Z)
-    b = fem.assemble_vector(fem.form(over(disc.dx_data, lambda dx: sum(
-        projection_load(f, q[i], dx) for i, f in enumerate(fs)))))
-    b.scatter_reverse(la.ScatterMode.add)
     nc = lifting.ncells
-    blocks = b.array.reshape(-1, k)[Z.dofmap.list.array.reshape(-1, 3)[:nc]]   # (nc, 3, k)
+    if moments is not None:
+        blocks = np.stack(moments, axis=2)                                     # (nc, 3, k)
+    else:
+        Z = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=k)
+        q = ufl.TestFunction(Z)
+        b = fem.assemble_vector(fem.form(over(disc.dx_data, lambda dx: sum(
+            projection_load(f, q[i], dx) for i, f in enumerate(fs)))))
+        b.scatter_reverse(la.ScatterMode.add)
+        blocks = b.array.reshape(-1, k)[Z.dofmap.list.array.reshape(-1, 3)[:nc]]
     out = []
     for i in range(k):
         pf = fem.Function(lifting.Q)
@@ -262,7 +266,13 @@ class Estimators:
     def _oscillation(self):
         """η_osc,K,α for every owned cell (cells, 2): iterate-independent, once per mesh."""
         disc = self.disc
-        pf = dg1_projections(disc, (disc.f1, disc.f2), self.lifting)
+        loads = getattr(self, "loads", None)    # the same integrals, if assembled alike
+        if loads is not None and self.equilibration.measures is not disc.dx_data:
+            loads = None
+        pf = dg1_projections(disc, (disc.f1, disc.f2), self.lifting,
+                             None if loads is None else [load.moments for load in loads])
+        for load in getattr(self, "loads", ()):
+            load.moments = None                          # used once: not kept for the run
         mu1, mu2 = self._mu
         osc = CellForm(disc.mesh, 2, lambda w: over(disc.dx_data, lambda dx: (
             oscillation_squared(mu1, disc.f1, pf[0], w[0], dx)

@@ -140,6 +140,20 @@ def test_per_cell_against_numpy_quadrature(setup):
         assert np.abs(ref[key]).max() > 1e-12, key
 
 
+def test_oscillation_from_the_equilibration_loads(setup):
+    """With the flux equilibration, η_osc takes the loads (f_α, q)_K of Π_P1 f_α from the
+    equilibration's data assembly (the slots' blocks summed) instead of its own: the same
+    numpy quadrature values on every cell."""
+    from membranes.estimation.equilibration import FluxEquilibration
+    disc, *_, ref = setup
+    eq = FluxEquilibration(disc.V, disc.dx_data)
+    loads = eq.loads((disc.f1, disc.f2))
+    assert all(load.moments.shape == (disc.mesh.topology.index_map(2).size_local, 3)
+               for load in loads)
+    est = Estimators(disc, eq)
+    assert close(est.osc[:, 0] ** 2, ref["osc1"]) and close(est.osc[:, 1] ** 2, ref["osc2"])
+
+
 def test_global_values_and_bound(setup):
     """The global values and η_K from the independent per-cell values by §7's formulas, with
     the remainder of §6 against its own quadrature."""
