@@ -18,8 +18,8 @@ call and colour the right-hand side is ONE dolfinx assembly of `forms.equilibrat
 Λ_c = Σ_{a of colour c} λ_a ψ_a (on a patch of colour c they are ψ_a and λ_a ψ_a), plus the data
 part -(ψ_c f, q), which does not change with the iterate: it is assembled once per mesh for
 both loads (`assemble_loads`: one assembly for all colours, since it lives on the cell-local DG1
-dofs). All patches are then solved at once; the RT parts of the colours' solutions add up to
-σ_α,disc.
+dofs) and added to the colour's assembled vector at its DG1 dofs. All patches are then solved
+at once; the RT parts of the colours' solutions add up to σ_α,disc.
 
 Cost (§12). Each cell touches three colours, so the per-call assemblies run the kernel three
 times per cell; the kernel and dolfinx's packing of the coefficients (a gather per cell and
@@ -126,15 +126,16 @@ def vertex_patches(V, colour, ncolours, on_boundary, touching=None):
 
 
 class Load:
-    """The data part -(ψ_c f, q) of the patch right-hand sides of all colours, gathered at the
-    patches' homes in the canonical basis (`PatchSystems.canonical`), assembled with the data
-    measures once per load f and mesh and reused at every call of `sigma`; `home` holds it.
-    `moments`: (owned cells, 3), (f, q_m)_K for the DG1 basis q_m of each cell (the sum of the
-    slots' blocks, Σ_s φ_s = 1), the load of f's DG1 projection (η_osc, §7). Made by
-    `FluxEquilibration.loads` (several loads in one assembly) or `load`."""
+    """The data part -(ψ_c f, q) of the patch right-hand sides of all colours, assembled with
+    the data measures once per load f and mesh and added at every call of `sigma` to the
+    colour's assembled right-hand side: `values[c]` (cells touching colour c, 3) holds it at
+    the DG1 dofs `FluxEquilibration.dg_dofs(c)` of those cells (the only dofs where it is not
+    zero). `moments`: (owned cells, 3), (f, q_m)_K for the DG1 basis q_m of each cell (the sum
+    of the slots' blocks, Σ_s φ_s = 1), the load of f's DG1 projection (η_osc, §7), for one
+    use. Made by `FluxEquilibration.loads` (several loads in one assembly) or `load`."""
 
-    def __init__(self, f, home, moments=None):
-        self.f, self.home, self.moments = f, home, moments
+    def __init__(self, f, values, moments=None):
+        self.f, self.values, self.moments = f, values, moments
 
 
 def assemble_loads(eq, fs, measures):
@@ -162,20 +163,16 @@ def assemble_loads(eq, fs, measures):
     blocks = fem.assemble_vector(form)
     blocks.scatter_reverse(la.ScatterMode.add)
     blocks = blocks.array                         # entry 3k z + 3i + s: dof z, load i, slot s
-    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:wdofs.shape[0]]
+    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:wdofs.shape[0]].astype(np.int64)
     # Σ_s -(φ_s f_i, q_m)_K = -(f_i, q_m)_K: per cell, DG1 dof m and load i
     moments = -blocks.reshape(-1, k, 3).sum(axis=2).take(zdofs, axis=0)      # (cells, 3, k)
-    homes = [eq.systems.home_vector() for _ in fs]
-    eq.b.set(0.0)
-    for c, (touching, s) in enumerate(eq.touching()):
-        dofs = wdofs[touching]
-        entry = 3 * k * zdofs[touching].astype(np.int64) + s[:, None]
-        for i, home in enumerate(homes):
-            eq.b.array[dofs] = blocks[entry + 3 * i]
-            eq.systems.gather(c, eq.b, home)
-        eq.b.array[dofs] = 0.0
-    return [Load(f, eq.systems.canonical(home), np.ascontiguousarray(moments[:, :, i]))
-            for i, (f, home) in enumerate(zip(fs, homes))]
+    values = [[] for _ in fs]
+    for touching, s in eq.touching():
+        entry = 3 * k * zdofs[touching] + s[:, None]
+        for i in range(k):
+            values[i].append(blocks[entry + 3 * i])
+    return [Load(f, v, np.ascontiguousarray(moments[:, :, i]))
+            for i, (f, v) in enumerate(zip(fs, values))]
 
 
 class FluxEquilibration:
@@ -202,7 +199,7 @@ class FluxEquilibration:
         imap = V.dofmap.index_map
         self.colour, self.ncolours, self.colour_rounds = colour_vertices(cells, imap, self.comm)
         self.on_boundary = boundary_dofs(V)
-        self._touching = self._home = None
+        self._touching = self._home = self._dg_dofs = None
         patches, interior = vertex_patches(V, self.colour, self.ncolours, self.on_boundary,
                                            self.touching())
         self.systems = PatchSystems(mesh, patches, interior, solution="flux")
@@ -256,11 +253,23 @@ class FluxEquilibration:
         values = hats.x.array.reshape(-1, 3)
         for s in range(3):
             values[blocks[:, s], s] = 1.0
+        return hats, self._cell_dg_dofs()
+
+    def _cell_dg_dofs(self):
+        """The (owned cells, 3) W dofs of the cells' DG1 dofs, checked to be owned."""
         wdofs = self.systems.W.sub(1).dofmap.list.array.reshape(-1, 3)[:self.cells.shape[0]]
         owned = not wdofs.size or wdofs.max() < self.b.getLocalSize()
         if not self.comm.allreduce(bool(owned), op=MPI.LAND):
             raise RuntimeError("a DG1 dof of an owned cell is not owned")
-        return hats, wdofs
+        return wdofs
+
+    def dg_dofs(self, c):
+        """The W dofs (cells touching colour c, 3) of the DG1 dofs of the cells touching
+        colour c, where the colour's `Load.values` go. Collective at the first call."""
+        if self._dg_dofs is None:
+            wdofs = self._cell_dg_dofs()
+            self._dg_dofs = [wdofs[touching] for touching, _ in self.touching()]
+        return self._dg_dofs[c]
 
     def set_colour(self, c, lam=None):
         """ψ = indicator of colour c at the P1 dofs (owned and ghost); Λ = λ there."""
@@ -315,8 +324,9 @@ class FluxEquilibration:
                 local.set(0.0)
             assemble_vector(self.b, self.rhs_forms[c])
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            self.b.array[self.dg_dofs(c)] += f.values[c]          # the data part
             systems.gather(c, self.b, home)
-        x = systems.solve_home(home, extra=f.home)
+        x = systems.solve_home(home)
         # the colours' solutions add up; their RT parts are σ_α,disc
         with self.x.localForm() as local:
             local.set(0.0)
