@@ -305,13 +305,13 @@ class HomeSetup:
             placed = np.empty_like(before[:-1])
             placed[perm] = before[:-1]
             size[perm] = size.copy()
-        else:
-            placed = before[:-1]
+            dest = ranges(placed, size)
+        else:                           # received in place: the runs' dofs follow each other
+            dest = np.arange(before[-1])
         size_at = np.zeros(received + 1, dtype=np.int64)
         np.cumsum(size, out=size_at[1:])
         rc = np.diff(size_at[np.append(0, np.cumsum(recv))])
         sc = np.asarray(comm.alltoall(rc.tolist()), dtype=np.int64)
-        dest = ranges(placed, size)
         sent_pinned = alltoallv(comm, first_pinned, recv, send)
         sent = np.arange(gcode.shape[1]) < length[:, None]
         sent[:, 0] &= ~sent_pinned
