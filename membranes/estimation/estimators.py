@@ -81,16 +81,26 @@ def owned_cells(mesh):
     return mesh.topology.index_map(mesh.topology.dim).size_local
 
 
+CHUNK_CELLS = 1 << 17     # cells per assembly of a CellForm (bounds dolfinx's packed coefficients)
+
+
 class CellForm:
     """A linear form Σ_i q_i(w[i]) tested with vector DG0 (k components), compiled once: one
     assembly gives the k integrals on every owned cell, as an array (owned cells, k) in the
-    mesh's cell order."""
+    mesh's cell order.
+
+    dolfinx packs every coefficient of a form on every cell of its integration domain before
+    it assembles (an array of (cells, coefficient dofs per cell)): for the estimators' forms
+    that is several times the iterate's size, on top of everything a run keeps. A form over
+    the whole mesh is therefore assembled a chunk of CHUNK_CELLS owned cells at a time (the
+    same integrand restricted to tagged cells: one compiled kernel, `chunks`); the integrals
+    are the same, the transient memory is bounded."""
 
     def __init__(self, mesh, k, build):
         from dolfinx import fem
         self.W = fem.VectorFunctionSpace(mesh, ("DG", 0), dim=k)
         self.k = k
-        self.form = fem.form(build(ufl.TestFunction(self.W)))
+        self.forms = [fem.form(f) for f in chunks(build(ufl.TestFunction(self.W)), mesh)]
         imap = self.W.dofmap.index_map
         self._b = np.zeros((imap.size_local + imap.num_ghosts) * k)
         nc = owned_cells(mesh)
@@ -101,8 +111,33 @@ class CellForm:
         """The k integrals on every owned cell, shape (owned cells, k)."""
         from dolfinx import fem
         self._b[:] = 0.0
-        fem.assemble_vector(self._b, self.form)
+        for form in self.forms:
+            fem.assemble_vector(self._b, form)
         return self._b.reshape(-1, self.k)[self._cells]
+
+
+def chunks(form, mesh, size=None):
+    """The UFL `form` restricted to consecutive chunks of about `size` owned cells (as many
+    chunks on every process: creating a dolfinx form is collective), or [form] if it has an
+    integral that is not over the whole mesh (data measures with tagged cut cells) or one
+    chunk suffices. Their sum is `form` on the owned cells. `size`: CHUNK_CELLS."""
+    from dolfinx.mesh import meshtags
+    size = CHUNK_CELLS if size is None else size
+    if any(itg.subdomain_id() != "everywhere" or itg.subdomain_data() is not None
+           for itg in form.integrals()):
+        return [form]
+    nc = owned_cells(mesh)
+    count = mesh.comm.allreduce(max(1, -(-nc // size)), op=MPI.MAX)
+    if count == 1:
+        return [form]
+    bounds = np.linspace(0, nc, count + 1).astype(np.int64)
+    out = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        cells = np.arange(a, b, dtype=np.int32)
+        tags = meshtags(mesh, mesh.topology.dim, cells, np.ones(cells.size, dtype=np.int32))
+        out.append(ufl.Form([itg.reconstruct(subdomain_id=1, subdomain_data=tags)
+                             for itg in form.integrals()]))
+    return out
 
 
 def global_sums(comm, columns):
@@ -323,7 +358,8 @@ class Estimators:
         load, G, cells = self._recovery
         self._write(X)
         G.x.array[:] = 0.0
-        fem.assemble_vector(G.x.array, load)
+        for part in load:                                    # `chunks`
+            fem.assemble_vector(G.x.array, part)
         G.x.scatter_reverse(la.ScatterMode.add)
         # the owned vertices' averages (the ghosts' follow): the lumped mass (1, ψ_a) is the
         # discretisation's contact weight D
@@ -347,8 +383,9 @@ class Estimators:
         v = ufl.TestFunction(G.function_space)
         u1, u2 = self.nodal[U1], self.nodal[U2]
         mu1, mu2 = self._mu
-        load = fem.form(recovery_load(mu1, u1, ufl.as_vector([v[0], v[1]]), dp)
-                        + recovery_load(mu2, u2, ufl.as_vector([v[2], v[3]]), dp))
+        load = [fem.form(part) for part in chunks(
+            recovery_load(mu1, u1, ufl.as_vector([v[0], v[1]]), dp)
+            + recovery_load(mu2, u2, ufl.as_vector([v[2], v[3]]), dp), mesh)]
         G1, G2 = ufl.as_vector([G[0], G[1]]), ufl.as_vector([G[2], G[3]])
         cells = CellForm(mesh, 5, lambda w: flux_squared(mu1, u1, -G1, w[0], dp)
                          + flux_squared(mu2, u2, -G2, w[1], dp)

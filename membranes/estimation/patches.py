@@ -71,6 +71,8 @@ from .congruence import (
 from .exchange import Shared, alltoallv, colour_vertices, ranges, reduce_by_key, stable_order
 from .homes import Action, HomeSetup, assemble_on
 
+SOLVE_CHUNK = 1 << 20     # home entries per product in `solve_home`
+
 __all__ = ["PatchSystems", "Shared", "alltoallv", "colour_vertices", "mixed_space", "stable_order",
            "reduce_by_key"]
 
@@ -348,18 +350,24 @@ class PatchSystems(HomeSetup):
         return self.change.apply(home, transpose=True)
 
     def solve_home(self, home, extra=None):
-        """The solutions of all patches for the gathered right-hand sides `home` (overwritten)
-        plus `extra` (canonical, e.g. `canonical(gathered)` of a fixed part), as a home vector
-        in dolfinx's basis."""
+        """The solutions of all patches for the gathered right-hand sides `home` plus `extra`
+        (canonical, e.g. `canonical(gathered)` of a fixed part), as a home vector in dolfinx's
+        basis: `home` itself, overwritten."""
         rhs = self.canonical(home)
         if extra is not None:
             rhs += extra
-        x = np.zeros_like(rhs)
+        # K classes of m patches of n dofs each, one inverse per class; in place, about
+        # SOLVE_CHUNK entries at a time: the inputs are copied out before their slice is
+        # overwritten (one home vector less at the peak of an evaluation)
         for h0, K, m, n, inputs, outputs, operator_t in self.solves:
-            h1 = h0 + K * m * n
-            np.matmul(rhs[h0:h1].reshape(K, m, n)[:, :, inputs], operator_t,
-                      out=x[h0:h1].reshape(K, m, n)[:, :, outputs])
-        return self.change.apply(x, transpose=False)
+            step = max(1, SOLVE_CHUNK // (m * n))
+            for k0 in range(0, K, step):
+                k1 = min(K, k0 + step)
+                rows = rhs[h0 + k0 * m * n:h0 + k1 * m * n].reshape(k1 - k0, m, n)
+                x = np.matmul(rows[:, :, inputs], operator_t[k0:k1])
+                rows[:] = 0.0
+                rows[:, :, outputs] = x
+        return self.change.apply(rhs, transpose=False)
 
     def scatter(self, c, x, out, add=False):
         """The solutions of group c (home vector x) into the W vector `out` (owned entries):

@@ -49,6 +49,17 @@ def test_divergence_on_every_cell(data, fluxes, alpha):
     assert defect <= ROUND_OFF * scale
 
 
+def test_patch_solves_by_chunks(data, fluxes, monkeypatch):
+    """`solve_home` in place, a few entries at a time (SOLVE_CHUNK), gives the same σ to the
+    last bit as whole products: the same products of the same rows."""
+    from membranes.estimation import patches
+    eq, sigmas = fluxes
+    monkeypatch.setattr(patches, "SOLVE_CHUNK", 50)
+    assert any(K > max(1, 50 // (m * n)) for _, K, m, n, *_ in eq.systems.solves)
+    again = eq.sigma(1, data.u, data.lam, data.r[1], data.f, MU)
+    assert np.array_equal(again.x.array, sigmas[1].x.array)
+
+
 def test_colouring_is_proper(data, fluxes):
     """No two vertices of one colour share a cell; few colours (a planar mesh graph)."""
     eq, _ = fluxes
