@@ -285,6 +285,10 @@ class LinearSolver:
                 ksp.getPC().setType(PETSc.PC.Type.NONE)
                 self._context.destroy()
                 self._context = None
+            # the Krylov basis and the PC's data are the step's: freed now, so that they are
+            # not alive under the estimates that follow the solve (the next step's matrix
+            # needs a new set-up anyway; the mean's AMG, kept in `mean`, is not the KSP's)
+            ksp.reset()
 
     def destroy(self):
         """Free the KSP and the mean's PC, and take the solver's options out of PETSc's
