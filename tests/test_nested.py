@@ -80,3 +80,27 @@ def test_newton_iterates_estimated_where_the_test_can_hold(monkeypatch):
     assert skipped == 2 and newton[0][0]["eta"] is None
     assert gated.final_record["bound"]
     assert gated.estimates["eta"] == pytest.approx(full.estimates["eta"], rel=1e-12)
+
+
+def test_gate_with_recovered_estimate_below_eta_disc(monkeypatch):
+    """On a mesh of aspect ratio 100 η_rec underestimates η_disc (3× here): with η_rec
+    standing in, an iterate within REC_MARGIN of the gate and no Newton rate yet is
+    estimated in full, so the gated run stops where the run that estimates every iterate
+    does (a gate against η_rec alone skips the first iterate, whose test holds, and
+    Newton-min then runs on for many steps)."""
+    from membranes.app import driver
+    from membranes.fem.meshes import structured_square
+    from membranes.model import scenes
+    problem = scenes.square(mesh=structured_square(4, 400, 1.0))
+    gated = solve(problem)
+    first = [r for r in gated.history if r["kind"] == "newton"][0]
+    assert first["bound"]
+    monkeypatch.setattr(driver, "GATE", None)
+    full = solve(problem)
+    assert gated.newton_iterations == full.newton_iterations
+    assert gated.estimates["eta"] == pytest.approx(full.estimates["eta"], rel=1e-12)
+    # without the margin the first iterate is skipped, and Newton-min goes on for long
+    monkeypatch.setattr(driver, "GATE", 1.0)
+    monkeypatch.setattr(driver, "REC_MARGIN", 1.0)
+    plain = solve(problem)
+    assert plain.newton_iterations > full.newton_iterations + 5

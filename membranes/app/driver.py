@@ -56,6 +56,10 @@ ERRORS = ("final", "iterates", "none")
 # γ_lin GATE η_disc of the last full estimate on the mesh, or η_rec before it
 # (`LevelEstimates`); None: always
 GATE = 1.0
+# before the first full estimate η_rec stands in for η_disc, which may exceed it: an iterate
+# with η_lin within REC_MARGIN of the gate is estimated unless the last step's rate takes η_lin
+# below the gate at the next step (`LevelEstimates._skip`)
+REC_MARGIN = 2.0
 COARSE = ("residual", "estimated")
 DEFAULT_COARSE_TOL = 1e-6
 # coarse='residual': a Krylov solve stops at ‖R_alg‖ ≤ COARSE_FORCING ‖R_alg(X^{k,0})‖
@@ -161,13 +165,15 @@ class LevelEstimates:
     `partial` and without a bound: its Newton test would hold only if η_disc grew in one
     step, and Newton goes on. Before the first full estimate on the mesh, the gradient
     recovery estimate η_rec (`Estimators.recovered`, two small assemblies) stands in for
-    η_disc: both estimate the same discretisation error. This is a schedule of the
-    estimates, like ν for Krylov (§8): a wrong guess costs at most one more Newton step,
-    never the bound; the iterate Newton stops at is always estimated in full and certified.
-    GATE = 1 because a full estimate whose test fails is wasted, and on T_J it costs more
-    than the Newton step that a skipped, passing test costs: estimating an iterate pays only
-    if its test is likely to hold (docs/choices.md). `gate=None` estimates every Newton
-    iterate in full.
+    η_disc: both estimate the same discretisation error, but η_rec is no bound and η_disc
+    may exceed it (by 3× on a mesh of aspect ratio 100). So within REC_MARGIN (2) of the
+    gate an iterate is estimated in full, unless the rate of the last Newton step takes η_lin
+    below the gate at the next step (`_skip`). This is a schedule of the estimates, like ν
+    for Krylov (§8): a wrong guess costs about one more Newton step, never the bound; the
+    iterate Newton stops at is always estimated in full and certified. GATE = 1 because a
+    full estimate whose test fails is wasted, and on T_J it costs more than the Newton step
+    that a skipped, passing test costs: estimating an iterate pays only if its test is
+    likely to hold (docs/choices.md). `gate=None` estimates every Newton iterate in full.
     """
 
     def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
@@ -180,10 +186,22 @@ class LevelEstimates:
             self.multilevel = MultilevelFlux(disc, hierarchy)
         self.gamma_alg, self.gamma_lin, self.gate = gamma_alg, gamma_lin, gate
         self.eta_disc = None           # η_disc of the last full estimate on this mesh
+        self.eta_lin = None            # η_lin of the last Newton iterate on this mesh
         self.pending = None            # ('nu') the iterate handed over last: (X, R) copies
         self.setup_time = time.perf_counter() - t
         self.time = 0.0
         self.count = 0
+
+    def _skip(self, eta_lin, target, previous):
+        """Whether the Newton test η_lin ≤ target is not worth a full estimate: it fails
+        against the last η_disc on the mesh, or, with η_rec standing in (not a bound; η_disc
+        may exceed it), η_lin is above REC_MARGIN · target, or it is within that margin but
+        the rate of the last Newton step (from `previous`) takes it below target at the next."""
+        if eta_lin <= target:
+            return False
+        if self.eta_disc is not None or eta_lin > REC_MARGIN * target:
+            return True
+        return previous is not None and eta_lin * (eta_lin / previous) <= target
 
     def _keep(self, X, R):
         self._drop()
@@ -214,7 +232,9 @@ class LevelEstimates:
                     lin, reference = self.est.linearisation(X), self.eta_disc
                 else:                            # η_rec and η_lin in one assembly
                     reference, lin = self.est.recovered(X, linearisation=True)
-                if lin["eta_lin"] > self.gamma_lin * self.gate * reference:
+                previous, self.eta_lin = self.eta_lin, lin["eta_lin"]
+                if self._skip(lin["eta_lin"], self.gamma_lin * self.gate * reference,
+                              previous):
                     lin["partial"] = True
                     return lin
             out = self._evaluate(X, R)
