@@ -571,7 +571,7 @@ def _lu_inverse(block):
     from scipy.linalg import lapack
     lu, pivots, info = lapack.dgetrf(block)
     if info == 0:
-        inverse, info = lapack.dgetri(lu, pivots)
+        inverse, info = lapack.dgetri(lu, pivots, overwrite_lu=True)
     if info != 0:
         raise np.linalg.LinAlgError("singular patch block")
     return inverse
