@@ -171,13 +171,17 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
                   | np.where(signs < 0, NEGATIVE, 0)).astype(np.int16).reshape(-1, 3,
                                                                                facet_cols.shape[1])
     which = 8 * p + info
-    # each write covers all local cells at once: the facets, or the dofs (cells, dofs of the
-    # entity); of a facet's two cells the later writes last
+    # each write covers all local cells at once: the facets (one write, canonical facet 0 of
+    # every cell, then 1, then 2), or the dofs (cells, dofs of the entity); of a facet's two
+    # cells the later writes last
+    point = np.empty((3, nall, 2))
+    point[:, :, 0] = np.take_along_axis(midpoint, order, axis=1).T
+    point[:, :, 1] = 0.5 * (side - np.take_along_axis(across, order, axis=1).T)
+    facet_point[np.take_along_axis(c2f[:nall], order, axis=1).T] = point
+    del point
     facet_dofs, facet_codes = [], []
     for i in range(3):
         f = order[:, i]                                   # dolfinx facet of canonical facet i
-        facet_point[c2f[cells, f]] = np.stack(
-            [midpoint[cells, f], 0.5 * (side - across[cells, f])], axis=1)
         dof = rt_dofs[cells[:, None], facet_cols[f]]
         code[dof] = facet_code[:, i][which]
         facet_dofs.append(dof)
