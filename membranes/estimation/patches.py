@@ -68,7 +68,15 @@ from .congruence import (
     canonical_dofs,
     pair_change,
 )
-from .exchange import Shared, alltoallv, colour_vertices, ranges, reduce_by_key, stable_order
+from .exchange import (
+    Shared,
+    alltoallv,
+    colour_vertices,
+    ranges,
+    reduce_by_key,
+    run_starts,
+    stable_order,
+)
 from .homes import Action, HomeSetup, assemble_on
 
 SOLVE_CHUNK = 1 << 20     # home entries per product in `solve_home`
@@ -307,8 +315,10 @@ class PatchSystems(HomeSetup):
         shape = shape.reshape(-1, 3)
         ok = True
         try:
+            # each class's first patch: its patches are consecutive in home order
             first = np.full(nclasses, np.iinfo(np.int64).max)
-            np.minimum.at(first, cls, start)                  # each class's first patch
+            new = run_starts(cls[order])
+            first[cls[order[new]]] = start[order[new]]
             used = np.flatnonzero(count > 0)              # (n, n_σ, count, class) by rows
             ranked = np.stack([shape[used, 0], shape[used, 2], count[used], used], axis=1)
             ranked = ranked[np.lexsort(ranked.T[::-1])]
