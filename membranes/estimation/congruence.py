@@ -216,13 +216,14 @@ class BasisChange:
     2c). Kept per run: the signs (M, F) and the blocks (M, c, 2, 2), as int8."""
 
     def __init__(self, code, offsets, blocks):
-        kind = _kind(code)
         n = np.diff(offsets)
         self.runs = []
         if n.size == 0:
             return
-        F = np.diff(counts_before(kind == FACET, offsets))
-        c = np.diff(counts_before(kind == INNER, offsets)) // 2
+        kind = code & 12                                  # the kind bits, in place
+        F = np.diff(counts_before(kind == FACET << 2, offsets))
+        c = np.diff(counts_before(kind == INNER << 2, offsets)) // 2
+        del kind
         shape = np.stack([n, F, c], axis=1)
         cut = np.flatnonzero(np.any(shape[1:] != shape[:-1], axis=1)) + 1
         bounds = np.concatenate([[0], cut, [n.size]])
@@ -277,9 +278,10 @@ def pair_change(values, first, B, transpose=True):
     2 × 2 blocks B[k] (rows dolfinx's) on the entries first[k], first[k] + 1: `to_canonical`
     with sign 1 in one pass, the block of each pair given (the same products and sums)."""
     b01, b10 = (B[:, 1, 0], B[:, 0, 1]) if transpose else (B[:, 0, 1], B[:, 1, 0])
-    v0, v1 = values[first], values[first + 1]
+    second = first + 1
+    v0, v1 = values[first], values[second]
     values[first] = B[:, 0, 0] * v0 + b01 * v1
-    values[first + 1] = b10 * v0 + B[:, 1, 1] * v1
+    values[second] = b10 * v0 + B[:, 1, 1] * v1
     return values
 
 
@@ -448,8 +450,10 @@ class Blocks:
         # the probe of each new class
         v = self.rng.standard_normal(offsets[-1])
         row = np.repeat(np.arange(ia.size - 1), rowlen)
-        u = np.bincount(row, weights=a * v[ja], minlength=ia.size - 1)
-        reach = np.bincount(row, weights=np.abs(v[ja]), minlength=ia.size - 1)
+        vj = v[ja]
+        u = np.bincount(row, weights=a * vj, minlength=ia.size - 1)
+        reach = np.bincount(row, weights=np.abs(vj, out=vj), minlength=ia.size - 1)
+        del vj
         ref = np.maximum.reduceat(np.abs(a), starts[:-1]) * np.maximum.reduceat(reach,
                                                                                  offsets[:-1])
         self._probes.append((v, u, n, np.asarray(nsigma, dtype=np.int64), ref))
