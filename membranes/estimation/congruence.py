@@ -79,18 +79,24 @@ DIRECTION = np.array([np.cos(1.0), np.sin(1.0)])     # parallel to no edge of us
 ORDERS = list(itertools.permutations(range(3)))
 FACET, INNER, DG = 0, 1, 2
 NEGATIVE, BLOCK, INTERIOR = 1 << 4, 5, 1 << 8
+# the vertex order p = ORDERS.index(π) of a cell by 3 r_0 + r_1, r_v the rank of its vertex v
+_BY_RANKS = np.zeros(9, dtype=np.int64)
+for _p, _o in enumerate(ORDERS):
+    _BY_RANKS[3 * _o.index(0) + _o.index(1)] = _p
 
 
 def _kind(code):
     return (code >> 2) & 3
 
 
-def basis_changes(W):
+def basis_changes(W, rt=None):
     """(signs, blocks): signs[p, info, i, t] = ±1, the canonical dof t of facet i against
     dolfinx's dof t of its facet π(i), for the vertex order p = ORDERS.index(π) and permutation
     info of a cell; blocks[p] the block of G on the interior RT dofs (rows dolfinx's, columns
-    canonical). Raises if the elements' transformations are not of that form."""
-    rt, dg = (W.sub(i).element.basix_element for i in (0, 1))
+    canonical). Raises if the elements' transformations are not of that form. `rt`: W's RT
+    basix element if at hand (each W.sub builds a dofmap)."""
+    rt = rt if rt is not None else W.sub(0).element.basix_element
+    dg = W.sub(1).element.basix_element
     facet = [list(d) for d in rt.entity_dofs[1]]
     inner = list(rt.entity_dofs[2][0])
     corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
@@ -126,9 +132,10 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     share its position; its global index breaks ties."""
     cmap = mesh.topology.index_map(2)
     nall = cmap.size_local + cmap.num_ghosts
-    signs, blocks = basis_changes(W)
+    rt = W.sub(0).element.basix_element
+    signs, blocks = basis_changes(W, rt)
     mesh.topology.create_entity_permutations()
-    info = np.asarray(mesh.topology.get_cell_permutation_info())[:nall].astype(np.int64)
+    info = np.asarray(mesh.topology.get_cell_permutation_info())[:nall]
     if info.max(initial=0) >= 8:
         raise RuntimeError("unexpected cell permutation info (not a triangle mesh?)")
     nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:nall]
@@ -137,18 +144,17 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     mesh.topology.create_connectivity(2, 0)
     c2v = mesh.topology.connectivity(2, 0).array.reshape(-1, 3)[:nall]
     vglobal = np.asarray(mesh.topology.index_map(0).local_to_global(c2v.ravel()),
-                         dtype=np.int64)
-    # π: the vertices of each cell by position, ties by global index
-    vglobal = vglobal.reshape(nall, 3)
-    before = ((along[:, None, :] < along[:, :, None])                  # [c, i, j]: j before i
-              | ((along[:, None, :] == along[:, :, None])
-                 & (vglobal[:, None, :] < vglobal[:, :, None])))
-    order = np.zeros((nall, 3), dtype=np.int64)
-    np.put_along_axis(order, before.sum(axis=2), np.arange(3)[None, :], axis=1)
-    lookup = np.zeros(27, dtype=np.int64)
-    for p, o in enumerate(ORDERS):
-        lookup[9 * o[0] + 3 * o[1] + o[2]] = p
-    p = lookup[9 * order[:, 0] + 3 * order[:, 1] + order[:, 2]]
+                         dtype=np.int64).reshape(nall, 3)
+    # π: the vertices of each cell by position, ties by global index; from the three
+    # comparisons of the cell's vertices (distinct global indices: one of i, j is first)
+    # the ranks of vertices 0 and 1 determine π (the table `_BY_RANKS`)
+    ahead = [(along[:, i] < along[:, j]) | ((along[:, i] == along[:, j])
+                                            & (vglobal[:, i] < vglobal[:, j]))
+             for i, j in ((0, 1), (0, 2), (1, 2))]                   # vertex i before j
+    ranks = 3 * (2 - ahead[0].astype(np.int8) - ahead[1]) + ahead[0] + 1 - ahead[2]
+    p = _BY_RANKS[ranks]
+    order = np.array(ORDERS, dtype=np.int64)[p]
+    del ahead, ranks
     total = along.sum(axis=1)
     midpoint = 0.5 * (total[:, None] - along)                 # facet i is opposite vertex i
     across = xy @ np.array([-DIRECTION[1], DIRECTION[0]])
@@ -157,20 +163,27 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     fmap = mesh.topology.index_map(1)
     facet_point = np.zeros((fmap.size_local + fmap.num_ghosts, 2))
     code = np.zeros(nlocal, dtype=np.int16)
-    cells = np.arange(nall)[:, None]
-    facet_cols = np.array(W.sub(0).element.basix_element.entity_dofs[1])
-    inner_cols = np.array(W.sub(0).element.basix_element.entity_dofs[2][0])
-    # each write covers all local cells at once: the facets, or the dofs (cells, dofs of the
-    # entity); of a facet's two cells the later writes last
+    cells = np.arange(nall)
+    facet_cols = np.array(rt.entity_dofs[1])
+    inner_cols = np.array(rt.entity_dofs[2][0])
+    # the codes of canonical facet i's dofs per (vertex order, permutation info)
+    facet_code = ((FACET << 2) | np.arange(facet_cols.shape[1])
+                  | np.where(signs < 0, NEGATIVE, 0)).astype(np.int16).reshape(-1, 3,
+                                                                               facet_cols.shape[1])
+    which = 8 * p + info
+    # each write covers all local cells at once: the facets (one write, canonical facet 0 of
+    # every cell, then 1, then 2), or the dofs (cells, dofs of the entity); of a facet's two
+    # cells the later writes last
+    point = np.empty((3, nall, 2))
+    point[:, :, 0] = np.take_along_axis(midpoint, order, axis=1).T
+    point[:, :, 1] = 0.5 * (side - np.take_along_axis(across, order, axis=1).T)
+    facet_point[np.take_along_axis(c2f[:nall], order, axis=1).T] = point
+    del point
     facet_dofs, facet_codes = [], []
-    index = np.arange(facet_cols.shape[1])
     for i in range(3):
-        f = order[:, i:i + 1]                             # dolfinx facet of canonical facet i
-        facet_point[np.take_along_axis(c2f[:nall], f, axis=1)[:, 0]] = np.stack(
-            [np.take_along_axis(midpoint, f, axis=1)[:, 0],
-             0.5 * (side - np.take_along_axis(across, f, axis=1)[:, 0])], axis=1)
-        dof = rt_dofs[cells, facet_cols[f[:, 0]]]
-        code[dof] = (FACET << 2) | index | np.where(signs[p, info, i] < 0, NEGATIVE, 0)
+        f = order[:, i]                                   # dolfinx facet of canonical facet i
+        dof = rt_dofs[cells[:, None], facet_cols[f]]
+        code[dof] = facet_code[:, i][which]
         facet_dofs.append(dof)
         facet_codes.append(code[dof])
     disagree = sum(int(np.count_nonzero(code[d] != k)) for d, k in zip(facet_dofs, facet_codes))
@@ -203,13 +216,14 @@ class BasisChange:
     2c). Kept per run: the signs (M, F) and the blocks (M, c, 2, 2), as int8."""
 
     def __init__(self, code, offsets, blocks):
-        kind = _kind(code)
         n = np.diff(offsets)
         self.runs = []
         if n.size == 0:
             return
-        F = np.diff(counts_before(kind == FACET, offsets))
-        c = np.diff(counts_before(kind == INNER, offsets)) // 2
+        kind = code & 12                                  # the kind bits, in place
+        F = np.diff(counts_before(kind == FACET << 2, offsets))
+        c = np.diff(counts_before(kind == INNER << 2, offsets)) // 2
+        del kind
         shape = np.stack([n, F, c], axis=1)
         cut = np.flatnonzero(np.any(shape[1:] != shape[:-1], axis=1)) + 1
         bounds = np.concatenate([[0], cut, [n.size]])
@@ -244,13 +258,31 @@ class BasisChange:
         return sum(r[5].nbytes + r[6].nbytes for r in self.runs)
 
 
+def _pair_blocks(code):
+    """Positions of the first interior dof of each cell (kind and index in the low four bits of
+    the code), and the block of each."""
+    first = np.flatnonzero((code & 15) == INNER << 2)
+    if first.size and not np.all((code[first + 1] & 15) == (INNER << 2 | 1)):
+        raise RuntimeError("the interior dofs of a cell are not adjacent in a patch")
+    return first, (code[first] >> BLOCK) & 7
+
+
 def _pairs(code):
     """Positions of the first interior dof of each cell, by block (see `to_canonical`)."""
-    first = np.flatnonzero((_kind(code) == INNER) & ((code & 3) == 0))
-    p = (code[first] >> BLOCK) & 7
-    if first.size and not np.all((_kind(code[first + 1]) == INNER) & ((code[first + 1] & 3) == 1)):
-        raise RuntimeError("the interior dofs of a cell are not adjacent in a patch")
+    first, p = _pair_blocks(code)
     return [first[p == k] for k in range(len(ORDERS))]
+
+
+def pair_change(values, first, B, transpose=True):
+    """values ← Gᵀ values (transpose) or G values in place, where G is the identity but for the
+    2 × 2 blocks B[k] (rows dolfinx's) on the entries first[k], first[k] + 1: `to_canonical`
+    with sign 1 in one pass, the block of each pair given (the same products and sums)."""
+    b01, b10 = (B[:, 1, 0], B[:, 0, 1]) if transpose else (B[:, 0, 1], B[:, 1, 0])
+    second = first + 1
+    v0, v1 = values[first], values[second]
+    values[first] = B[:, 0, 0] * v0 + b01 * v1
+    values[second] = b10 * v0 + B[:, 1, 1] * v1
+    return values
 
 
 def canonical_block(ia, ja, a, code, blocks):
@@ -418,8 +450,10 @@ class Blocks:
         # the probe of each new class
         v = self.rng.standard_normal(offsets[-1])
         row = np.repeat(np.arange(ia.size - 1), rowlen)
-        u = np.bincount(row, weights=a * v[ja], minlength=ia.size - 1)
-        reach = np.bincount(row, weights=np.abs(v[ja]), minlength=ia.size - 1)
+        vj = v[ja]
+        u = np.bincount(row, weights=a * vj, minlength=ia.size - 1)
+        reach = np.bincount(row, weights=np.abs(vj, out=vj), minlength=ia.size - 1)
+        del vj
         ref = np.maximum.reduceat(np.abs(a), starts[:-1]) * np.maximum.reduceat(reach,
                                                                                  offsets[:-1])
         self._probes.append((v, u, n, np.asarray(nsigma, dtype=np.int64), ref))
@@ -545,7 +579,7 @@ def _lu_inverse(block):
     from scipy.linalg import lapack
     lu, pivots, info = lapack.dgetrf(block)
     if info == 0:
-        inverse, info = lapack.dgetri(lu, pivots)
+        inverse, info = lapack.dgetri(lu, pivots, overwrite_lu=True)
     if info != 0:
         raise np.linalg.LinAlgError("singular patch block")
     return inverse

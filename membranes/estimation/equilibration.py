@@ -93,8 +93,11 @@ def nodal_function(V, dim):
 
 def colour_cells(colour, cells, ncolours):
     """Per colour c: the cells (rows of `cells`, ascending) with a vertex of colour c and, on
-    each, the local index of that vertex (one at most, by the colouring); one stable sort."""
+    each, the local index of that vertex (one at most, by the colouring); one stable sort
+    (of int8 keys when the colours fit: numpy then sorts by radix)."""
     flat = colour[cells].ravel()                                   # cell-major: 3 cell + slot
+    if flat.size and -128 <= flat.min() and flat.max() < 128:
+        flat = flat.astype(np.int8)
     order = np.argsort(flat, kind="stable")
     bounds = np.searchsorted(flat[order], np.arange(ncolours + 1))
     return [((order[a:b] // 3).astype(np.int32), (order[a:b] % 3).astype(np.int8))

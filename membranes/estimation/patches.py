@@ -63,12 +63,20 @@ from .congruence import (
     NEGATIVE,
     BasisChange,
     Blocks,
-    _pairs,
+    _pair_blocks,
     canonical_block,
     canonical_dofs,
-    to_canonical,
+    pair_change,
 )
-from .exchange import Shared, alltoallv, colour_vertices, ranges, reduce_by_key, stable_order
+from .exchange import (
+    Shared,
+    alltoallv,
+    colour_vertices,
+    ranges,
+    reduce_by_key,
+    run_starts,
+    stable_order,
+)
 from .homes import Action, HomeSetup, assemble_on
 
 SOLVE_CHUNK = 1 << 20     # home entries per product in `solve_home`
@@ -120,10 +128,12 @@ class PatchSystems(HomeSetup):
         self.W = W = W if W is not None else mixed_space(mesh)
         # RT_1 as a space of its own, and the W dof of each of its dofs (from the cells'
         # dofs: collapse's own map is a Python list, slow to convert)
-        self.rt_space = W.sub(0).collapse()[0]
+        rt = W.sub(0)
+        self.rt_space = rt.collapse()[0]
         imap = self.rt_space.dofmap.index_map
         self.rt_map = np.empty(imap.size_local + imap.num_ghosts, dtype=np.int64)
-        self.rt_map[self.rt_space.dofmap.list.array] = W.sub(0).dofmap.list.array
+        self.rt_map[self.rt_space.dofmap.list.array] = rt.dofmap.list.array
+        del rt
         self.ngroups = len(patches)
         self._topology(mesh, W)
         self.code, self.blocks, self.disagree, facet_point, cell_point = canonical_dofs(
@@ -240,15 +250,18 @@ class PatchSystems(HomeSetup):
         at = ranges(start[cls_ok], n)
         if np.any(mismatch):
             at[np.repeat(mismatch, n)] = 0
-        pairs = _pairs(code)
+        first, p = _pair_blocks(code)
+        B = self.blocks[p]
+        del p
         # the action carries the signs of G: only the interior blocks act here
-        w = to_canonical(v[at], 1.0, pairs, self.blocks, transpose=False)
+        w = pair_change(v[at], first, B, transpose=False)
         x = action.input()
         x[:] = 0.0
         self._to_owners(route, w, x, add=False)
-        got = self._to_home(route, action(cells), np.empty(offsets[-1]))
-        got = to_canonical(got, 1.0, pairs, self.blocks, transpose=True)
-        diff = np.abs(got - u[at])
+        got = self._to_home(route, action(cells), w)
+        got = pair_change(got, first, B, transpose=True)
+        got -= u[at]
+        diff = np.abs(got, out=got)
         error = np.maximum.reduceat(diff, offsets[:-1]) if n.size else diff[:0]
         error[mismatch] = np.inf
         return error, ref[cls_ok]
@@ -302,8 +315,10 @@ class PatchSystems(HomeSetup):
         shape = shape.reshape(-1, 3)
         ok = True
         try:
+            # each class's first patch: its patches are consecutive in home order
             first = np.full(nclasses, np.iinfo(np.int64).max)
-            np.minimum.at(first, cls, start)                  # each class's first patch
+            new = run_starts(cls[order])
+            first[cls[order[new]]] = start[order[new]]
             used = np.flatnonzero(count > 0)              # (n, n_σ, count, class) by rows
             ranked = np.stack([shape[used, 0], shape[used, 2], count[used], used], axis=1)
             ranked = ranked[np.lexsort(ranked.T[::-1])]
