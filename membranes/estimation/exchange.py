@@ -14,15 +14,16 @@ from mpi4py import MPI
 
 def stable_order(keys):
     """np.argsort(keys, kind="stable") for non-negative integers, by passes over 16 bits
-    (numpy's stable sort of uint16 is a radix sort: linear time)."""
-    order, shift, top = None, 0, int(keys.max(initial=0))
-    while True:
-        digit = ((keys if order is None else keys[order]) >> shift).astype(np.uint16)
-        step = np.argsort(digit, kind="stable")
-        order = step if order is None else order[step]
+    (numpy's stable sort of uint16 is a radix sort: linear time). Each pass gathers its
+    16-bit digits in the order so far, not the keys (a quarter of the memory traffic)."""
+    top = int(keys.max(initial=0))
+    order = np.argsort(keys.astype(np.uint16), kind="stable")
+    shift = 16
+    while top >> shift:
+        digit = (keys >> shift).astype(np.uint16)
+        order = order[np.argsort(digit[order], kind="stable")]
         shift += 16
-        if top >> shift == 0:
-            return order
+    return order
 
 
 def ranges(starts, lengths):
