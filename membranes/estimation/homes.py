@@ -80,17 +80,21 @@ class HomeSetup:
         fmap = mesh.topology.index_map(tdim - 1)
         self.nfacets = fmap.size_local + fmap.num_ghosts
         self.facet_shared = Shared(fmap, self.comm)
-        # the (at most two) owned cells of each local facet (-1: none), and the number of cells
-        # of each facet over the whole mesh (owned cells only, each counted by its owner)
-        facets = self.c2f[:self.ncells].ravel()
-        order = stable_order(facets)
-        count = np.bincount(facets, minlength=self.nfacets)
-        start = np.concatenate([[0], np.cumsum(count)[:-1]])
-        self.facet_owned_cells = np.full((self.nfacets, 2), -1, dtype=np.int64)
-        has = count > 0
-        self.facet_owned_cells[has, 0] = order[start[has]] // 3
-        two = count > 1
-        self.facet_owned_cells[two, 1] = order[start[two] + 1] // 3
+        # the (at most two) owned cells of each local facet, least first (-1: none), from
+        # the facet → cell table (its cells, owned or ghost); and the number of cells of each
+        # facet over the whole mesh (owned cells only, each counted by its owner)
+        f2c = mesh.topology.connectivity(tdim - 1, tdim)
+        first, ncell = f2c.offsets[:-1], np.diff(f2c.offsets)
+        if np.any((ncell < 1) | (ncell > 2)):
+            raise RuntimeError("a facet without cells or with more than two")
+        none = np.iinfo(np.int64).max
+        a = f2c.array[first].astype(np.int64)
+        b = np.where(ncell == 2, f2c.array[np.minimum(first + 1, f2c.array.size - 1)], none)
+        a[a >= self.ncells] = none
+        b[b >= self.ncells] = none
+        self.facet_owned_cells = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
+        self.facet_owned_cells[self.facet_owned_cells == none] = -1
+        count = np.bincount(self.c2f[:self.ncells].ravel(), minlength=self.nfacets)
         self.facet_cells = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
 
         rt = W.sub(0).element.basix_element.entity_dofs
@@ -104,9 +108,14 @@ class HomeSetup:
         # the shortest edge of each owned cell, and the largest |x| of the mesh (§12: the
         # tolerance of the block comparisons)
         nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:self.ncells]
-        x = mesh.geometry.x[:, :2][nodes]
-        edge = x - x[:, [2, 0, 1]]
-        self.cell_h = np.sqrt((edge * edge).sum(axis=2).min(axis=1))
+        x, y = mesh.geometry.x[:, 0].take(nodes), mesh.geometry.x[:, 1].take(nodes)
+        for i, j in ((0, 2), (1, 0), (2, 1)):                 # the edges x_i - x_j
+            dx, dy = x[:, i] - x[:, j], y[:, i] - y[:, j]
+            dx *= dx
+            dy *= dy
+            dx += dy
+            self.cell_h = dx if i == 0 else np.minimum(self.cell_h, dx, out=self.cell_h)
+        np.sqrt(self.cell_h, out=self.cell_h)
         self.radius = self.comm.allreduce(float(np.abs(mesh.geometry.x).max(initial=0.0)),
                                           op=MPI.MAX)
         imap = W.dofmap.index_map
