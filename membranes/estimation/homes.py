@@ -190,12 +190,21 @@ class HomeSetup:
         comm = self.comm
         # per facet, over its (at most two) cells: the largest and smallest of 2 (patch id + 1)
         # + (the patch is not interior) (0 = no patch; the flag is the patch's, so the two
-        # agree when the patch ids do); reduced across processes
-        least = np.iinfo(np.int64).min
-        tag = np.where(pid >= 0, 2 * (pid + 1) + ~inner, 0)
-        cell_info = np.vstack([np.stack([tag, -tag], axis=1), [[least, least]]])  # -1: none
-        info = np.maximum(cell_info.take(self.facet_owned_cells[:, 0], axis=0),
-                          cell_info.take(self.facet_owned_cells[:, 1], axis=0))
+        # agree when the patch ids do); reduced across processes. No cell (-1) has the least
+        # int64 in both columns (its own negative).
+        tag = np.empty(pid.size + 1, dtype=np.int64)
+        np.add(pid, 1, out=tag[:-1])
+        tag[:-1] *= 2
+        tag[:-1] += ~inner
+        tag[:-1][pid < 0] = 0
+        tag[-1] = np.iinfo(np.int64).min
+        first = tag.take(self.facet_owned_cells[:, 0])
+        second = tag.take(self.facet_owned_cells[:, 1])
+        info = np.empty((first.size, 2), dtype=np.int64)
+        np.maximum(first, second, out=info[:, 0])
+        np.maximum(np.negative(first, out=first), np.negative(second, out=second),
+                   out=info[:, 1])
+        del tag, first, second
         self.facet_shared.forward(self.facet_shared.reverse(info, np.maximum))
         hi, lo = info[:, 0], -info[:, 1]
         inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
@@ -314,9 +323,9 @@ class HomeSetup:
             placed = np.empty_like(before[:-1])
             placed[perm] = before[:-1]
             size[perm] = size.copy()
-            dest = ranges(placed, size)
+            dest = ranges(placed, size).astype(np.int32)
         else:                           # received in place: the runs' dofs follow each other
-            dest = np.arange(before[-1])
+            dest = np.arange(before[-1], dtype=np.int32)
         size_at = np.zeros(received + 1, dtype=np.int64)
         np.cumsum(size, out=size_at[1:])
         rc = np.diff(size_at[np.append(0, np.cumsum(recv))])
@@ -324,7 +333,7 @@ class HomeSetup:
         sent_pinned = alltoallv(comm, first_pinned, recv, send)
         sent = np.arange(gcode.shape[1]) < length[:, None]
         sent[:, 0] &= ~sent_pinned
-        route = (local[sent], sc, rc, dest.astype(np.int32))
+        route = (local[sent], sc, rc, dest)
         return dofs, start, code, tolerance, nsigma, key, route, gpatch[new]
 
     def _marked_cells(self, patches, chosen):
