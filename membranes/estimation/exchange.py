@@ -179,34 +179,41 @@ def _segment_reduce(op, values, offsets, identity):
 def colour_vertices(cells, imap, comm):
     """A colouring of the vertices of an index map such that no two vertices of one colour
     share a cell of `cells` ((owned cells, vertices) local vertex indices). Returns
-    (colour of every local vertex, owned and ghost, int32; number of colours; rounds)."""
+    (colour of every local vertex, owned and ghost, int32; number of colours; rounds).
+
+    A round reads, for the priorities, only the uncoloured neighbours of the uncoloured
+    vertices: those lists are kept from round to round and shrunk (a coloured neighbour
+    adds 0 to the maximum, and the priorities are positive). The colours taken around a
+    vertex are gathered from its whole neighbour list, for the chosen vertices only (the
+    owners' choice is sent to the ghosts first), which are the only ones read."""
     n, nloc = imap.size_local, imap.size_local + imap.num_ghosts
     shared = Shared(imap, comm)
     offsets, nbrs = vertex_graph(cells, nloc)
     prio = _priority(np.asarray(imap.local_to_global(np.arange(nloc, dtype=np.int32))))
-    colour = np.full(nloc, -1, dtype=np.int64)
-    degree = np.diff(offsets)
+    colour = np.full(nloc, -1, dtype=np.int8)               # at most 64 colours
+    full = np.diff(offsets)
+    todo, degree, seen = np.arange(nloc), full, nbrs       # uncoloured, uncoloured neighbours
     rounds = 0
     while comm.allreduce(int(np.count_nonzero(colour[:n] < 0)), op=MPI.SUM) > 0:
         rounds += 1
-        uncoloured = colour < 0
-        # only the uncoloured local vertices' neighbours are read (fewer at every round)
-        todo = np.flatnonzero(uncoloured)
-        seen = nbrs[ranges(offsets[todo], degree[todo])]
         segments = np.zeros(todo.size + 1, dtype=np.int64)
-        np.cumsum(degree[todo], out=segments[1:])
-        near = colour[seen]
+        np.cumsum(degree, out=segments[1:])
         # the largest priority among the uncoloured neighbours, over all processes' cells
         best = np.zeros(nloc, dtype=np.uint64)
-        best[todo] = _segment_reduce(np.maximum, np.where(near < 0, prio[seen], np.uint64(0)),
-                                     segments, np.uint64(0))
+        best[todo] = _segment_reduce(np.maximum, prio[seen], segments, np.uint64(0))
         shared.reverse(best, np.maximum)
-        chosen = np.flatnonzero(uncoloured[:n] & (prio[:n] > best[:n]))
-        # the colours of the coloured neighbours as bits
+        chosen = np.flatnonzero((colour[:n] < 0) & (prio[:n] > best[:n]))
+        # the colours of the chosen vertices' coloured neighbours as bits
+        pick = np.zeros(nloc, dtype=bool)
+        pick[chosen] = True
+        picked = np.flatnonzero(shared.forward(pick))
+        near = colour[nbrs[ranges(offsets[picked], full[picked])]]
+        part = np.zeros(picked.size + 1, dtype=np.int64)
+        np.cumsum(full[picked], out=part[1:])
         bits = np.where(near >= 0, np.left_shift(np.uint64(1), np.maximum(near, 0)
                                                  .astype(np.uint64)), np.uint64(0))
         taken = np.zeros(nloc, dtype=np.uint64)
-        taken[todo] = _segment_reduce(np.bitwise_or, bits, segments, np.uint64(0))
+        taken[picked] = _segment_reduce(np.bitwise_or, bits, part, np.uint64(0))
         shared.reverse(taken, np.bitwise_or)
         free = ~taken[chosen]
         if np.any(free == 0):
@@ -214,5 +221,13 @@ def colour_vertices(cells, imap, comm):
         lowest = free & (~free + np.uint64(1))
         colour[chosen] = np.round(np.log2(lowest.astype(np.float64))).astype(np.int64)
         shared.forward(colour)
+        # drop the coloured vertices and neighbours
+        left = colour[seen] < 0
+        before = np.zeros(seen.size + 1, dtype=np.int64)
+        np.cumsum(left, out=before[1:])
+        keep = colour[todo] < 0
+        left &= np.repeat(keep, degree)
+        seen = seen[left]
+        todo, degree = todo[keep], (before[segments[1:]] - before[segments[:-1]])[keep]
     ncolours = comm.allreduce(int(colour.max(initial=-1)) + 1, op=MPI.MAX)
     return colour.astype(np.int32), ncolours, rounds
