@@ -144,9 +144,15 @@ class HomeSetup:
         entities = [(fglobal, facet_point), (cglobal, cell_point), (cglobal, cell_point)]
         sorted_rows, done = [], {}                 # done: the cells' order, for both tables
         for table, (glob, point) in zip(tables, entities):
-            # the columns by index in the entity; the owned rows by position and global index
-            by_index = np.full_like(table, -1)
-            np.put_along_axis(by_index, (self.code[table] & 3).astype(np.int64), table, axis=1)
+            # the columns by index in the entity (often already so: then the table itself);
+            # the owned rows by position and global index
+            index = self.code[table] & 3
+            if np.array_equal(index, np.broadcast_to(np.arange(table.shape[1]), index.shape)):
+                by_index = table
+            else:
+                by_index = np.full_like(table, -1)
+                np.put_along_axis(by_index, index.astype(np.int64), table, axis=1)
+            del index
             if np.any(by_index < 0):
                 raise RuntimeError("an entity's dofs are not indexed 0, 1, ...")
             owned = by_index < n
