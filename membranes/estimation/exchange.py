@@ -150,21 +150,39 @@ def _priority(global_index):
 
 
 def vertex_graph(cells, nlocal):
-    """CSR adjacency (offsets, neighbours) of the local vertices through the given cells."""
-    k = cells.shape[1]
-    i = np.repeat(cells, k - 1, axis=1).ravel()
-    j = np.concatenate([np.roll(cells, -s, axis=1)[:, :, None] for s in range(1, k)],
-                       axis=2).reshape(-1)
-    # the pairs sorted and without repeats; numpy's stable sort of int64 (timsort) is fast on
-    # these keys, which come in runs along the cells
-    pairs = np.sort(i.astype(np.int64) * nlocal + j, kind="stable")
-    if pairs.size:
-        pairs = pairs[np.concatenate([[True], pairs[1:] != pairs[:-1]])]
-    i = pairs // nlocal
-    j = pairs - i * nlocal
+    """CSR adjacency (offsets, neighbours) of the local vertices through the given cells.
+
+    The graph is symmetric, so each pair of vertices of a cell is listed once, as an edge
+    {lo ≤ hi} (half the pairs to sort and deduplicate). A vertex's neighbours are then the
+    lo of its edges by hi (all ≤ it) followed by the hi of its edges by lo (all > it): its
+    neighbours in increasing order."""
+    a, b = np.triu_indices(cells.shape[1], 1)
+    u, v = cells[:, a], cells[:, b]
+    edges = np.minimum(u, v).astype(np.int64)
+    edges *= nlocal
+    edges += np.maximum(u, v)
+    # sorted and without repeats; numpy's stable sort of int64 (timsort) is fast on these
+    # keys, which come in runs along the cells
+    edges = np.sort(edges.ravel(), kind="stable")
+    if edges.size:
+        edges = edges[np.concatenate([[True], edges[1:] != edges[:-1]])]
+    lo = edges // nlocal
+    hi = edges - lo * nlocal
+    del edges
+    below = np.bincount(hi, minlength=nlocal)                  # neighbours ≤ each vertex
+    strict = lo < hi
+    above = np.bincount(lo[strict], minlength=nlocal)          # neighbours > each vertex
     offsets = np.zeros(nlocal + 1, dtype=np.int64)
-    np.cumsum(np.bincount(i, minlength=nlocal), out=offsets[1:])
-    return offsets, j
+    np.cumsum(below + above, out=offsets[1:])
+    nbrs = np.empty(int(offsets[-1]), dtype=np.int64)
+    by_hi = stable_order(hi)                                   # the edges by (hi, lo)
+    h = hi[by_hi]
+    first = np.cumsum(below) - below
+    nbrs[offsets[h] - first[h] + np.arange(h.size)] = lo[by_hi]
+    lo, hi = lo[strict], hi[strict]                            # by (lo, hi)
+    first = np.cumsum(above) - above
+    nbrs[offsets[lo] + below[lo] - first[lo] + np.arange(lo.size)] = hi
+    return offsets, nbrs
 
 
 def _segment_reduce(op, values, offsets, identity):
