@@ -133,7 +133,11 @@ class HomeSetup:
         (local indices, padded with -1) and codes, length, position and entity (global index
         and kind); the run of each local facet's dofs and of each local cell's interior RT and
         DG dofs (the number of runs where they are not owned). A patch keeps whole entities,
-        so `_home_dofs` selects and sorts runs, not dofs."""
+        so `_home_dofs` selects and sorts runs, not dofs.
+
+        The rows of dofs and codes are padded (dofs -1, codes -1: real codes are ≥ 0) to a
+        power of two entries, 16 or 8 bytes for 3 dofs, which numpy's np.take gathers as
+        single words and elementwise operations see as contiguous rows."""
         n = self.nowned
         inner = self.cell_dofs.shape[1] - 3                  # interior RT dofs, then DG1's 3
         tables = [self.facet_dofs, self.cell_dofs[:, :inner], self.cell_dofs[:, inner:]]
@@ -167,8 +171,9 @@ class HomeSetup:
         # the runs of the kinds FACET, INNER, DG one after the other
         total = sum(rows.size for _, rows in sorted_rows)
         width = max(table.shape[1] for table in tables)
-        self.run_dofs = np.full((total, width), -1, dtype=np.int32)
-        self.run_code = np.zeros((total, width), dtype=np.int16)
+        padded = 1 << (width - 1).bit_length()
+        self.run_dofs = np.full((total, padded), -1, dtype=np.int32)
+        self.run_code = np.full((total, padded), -1, dtype=np.int16)
         self.run_length = np.zeros(total, dtype=np.int64)
         self.run_point = np.zeros((total, 2))
         self.run_entity = np.zeros(total, dtype=np.int64)
@@ -219,7 +224,10 @@ class HomeSetup:
 
         # the patch of every owned run the group keeps (-1: not kept; the last entry takes the
         # runs that are not owned); the kept runs in canonical order, patch by patch
-        run_patch = np.full(self.run_length.size + 1, -1, dtype=np.int64)
+        # (as int32 when the patch ids fit: half the memory traffic of the sort)
+        top = max(int(pid.max(initial=-1)), int(facet_patch.max(initial=-1)))
+        run_patch = np.full(self.run_length.size + 1, -1,
+                            dtype=np.int32 if top < np.iinfo(np.int32).max else np.int64)
         run_patch[self.facet_run] = facet_patch
         cells = np.flatnonzero(pid >= 0)
         run_patch[self.cell_run[cells]] = pid[cells, None]
@@ -230,7 +238,7 @@ class HomeSetup:
         runs, kp = runs[by_patch], kp[by_patch]
         del by_patch
         new = run_starts(kp)
-        seen = kp[new]                                              # unique, sorted
+        seen = kp[new].astype(np.int64)                             # unique, sorted
         count = np.diff(np.append(new, runs.size))                  # runs per patch
 
         # home of each patch: the owner of its cell of least global index, found with the
@@ -267,7 +275,7 @@ class HomeSetup:
             return alltoallv(comm, column, send, recv)
 
         gpatch = move(np.repeat(seen, count)[order])
-        # (np.take of rows: numpy's fast gather of small rows)
+        # (np.take of padded rows: numpy's fast gather of small rows; -1 past a run's dofs)
         length, local = self.run_length[runs], self.run_dofs.take(runs, axis=0)
         glength, gdofs = move(length), move(local + np.int64(self.rstart))
         gcode = move(self.run_code.take(runs, axis=0)
@@ -304,7 +312,7 @@ class HomeSetup:
         np.cumsum(glength, out=before[1:])
         nsigma = before[first_dg] - before[new]
         pinned = first_dg[(gcode[first_dg, 0] & INTERIOR) != 0]         # runs
-        kept = np.arange(gcode.shape[1]) < glength[:, None]              # (runs, index)
+        kept = gcode >= 0                                                # (runs, index)
         kept[pinned, 0] = False
         size = glength.copy()
         size[pinned] -= 1
@@ -337,7 +345,7 @@ class HomeSetup:
         rc = np.diff(size_at[np.append(0, np.cumsum(recv))])
         sc = np.asarray(comm.alltoall(rc.tolist()), dtype=np.int64)
         sent_pinned = alltoallv(comm, first_pinned, recv, send)
-        sent = np.arange(gcode.shape[1]) < length[:, None]
+        sent = local >= 0
         sent[:, 0] &= ~sent_pinned
         route = (local[sent], sc, rc, dest)
         return dofs, start, code, tolerance, nsigma, key, route, gpatch[new]
