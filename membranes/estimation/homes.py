@@ -159,9 +159,12 @@ class HomeSetup:
             del index
             if np.any(by_index < 0):
                 raise RuntimeError("an entity's dofs are not indexed 0, 1, ...")
-            owned = by_index < n
-            mine = owned.all(axis=1)
-            if np.any(owned.any(axis=1) != mine):
+            owned = by_index < n                      # all and any by columns (a few)
+            mine, some = owned[:, 0].copy(), owned[:, 0].copy()
+            for column in owned.T[1:]:
+                mine &= column
+                some |= column
+            if np.any(some != mine):
                 raise RuntimeError("an entity's dofs have several owners")
             rows = np.flatnonzero(mine)
             seen = done.get(id(glob))
