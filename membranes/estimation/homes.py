@@ -28,7 +28,6 @@ from .congruence import DG, INTERIOR, ROUNDING, SAME, _kind, patch_keys
 from .exchange import (
     Shared,
     alltoallv,
-    counts_before,
     ranges,
     reduce_by_key,
     run_starts,
@@ -325,9 +324,12 @@ class HomeSetup:
         h = gh[new]
         tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius / h)
         # the keys hash the first dof of each entity: every run but the pinned ones
+        # (the keyed runs before an offset: the runs before it but the pinned ones, which
+        # are in increasing order)
+        offsets = np.append(new, received)
+        runs_before = offsets - np.searchsorted(pinned, offsets)
         keyed = np.ones(received, dtype=bool)
         keyed[pinned] = False
-        runs_before = counts_before(keyed, np.append(new, received))
         keyed = np.flatnonzero(keyed)
         key = patch_keys(runs_before, gcode[:, 0][keyed], gpoint.take(keyed, axis=0), h,
                          np.diff(start))
