@@ -203,8 +203,8 @@ class HomeSetup:
         comm = self.comm
         # per facet, over its (at most two) cells: the largest and smallest of 2 (patch id + 1)
         # + (the patch is not interior) (0 = no patch; the flag is the patch's, so the two
-        # agree when the patch ids do); reduced across processes. No cell (-1) has the least
-        # int64 in both columns (its own negative).
+        # agree when the patch ids do); reduced across processes. A missing cell (-1) gives
+        # the least int64 in both columns (the least int64 is its own negative).
         tag = np.empty(pid.size + 1, dtype=np.int64)
         np.add(pid, 1, out=tag[:-1])
         tag[:-1] *= 2
