@@ -14,15 +14,16 @@ from mpi4py import MPI
 
 def stable_order(keys):
     """np.argsort(keys, kind="stable") for non-negative integers, by passes over 16 bits
-    (numpy's stable sort of uint16 is a radix sort: linear time)."""
-    order, shift, top = None, 0, int(keys.max(initial=0))
-    while True:
-        digit = ((keys if order is None else keys[order]) >> shift).astype(np.uint16)
-        step = np.argsort(digit, kind="stable")
-        order = step if order is None else order[step]
+    (numpy's stable sort of uint16 is a radix sort: linear time). Each pass gathers its
+    16-bit digits in the order so far, not the keys (a quarter of the memory traffic)."""
+    top = int(keys.max(initial=0))
+    order = np.argsort(keys.astype(np.uint16), kind="stable")
+    shift = 16
+    while top >> shift:
+        digit = (keys >> shift).astype(np.uint16)
+        order = order[np.argsort(digit[order], kind="stable")]
         shift += 16
-        if top >> shift == 0:
-            return order
+    return order
 
 
 def ranges(starts, lengths):
@@ -149,21 +150,39 @@ def _priority(global_index):
 
 
 def vertex_graph(cells, nlocal):
-    """CSR adjacency (offsets, neighbours) of the local vertices through the given cells."""
-    k = cells.shape[1]
-    i = np.repeat(cells, k - 1, axis=1).ravel()
-    j = np.concatenate([np.roll(cells, -s, axis=1)[:, :, None] for s in range(1, k)],
-                       axis=2).reshape(-1)
-    # the pairs sorted and without repeats; numpy's stable sort of int64 (timsort) is fast on
-    # these keys, which come in runs along the cells
-    pairs = np.sort(i.astype(np.int64) * nlocal + j, kind="stable")
-    if pairs.size:
-        pairs = pairs[np.concatenate([[True], pairs[1:] != pairs[:-1]])]
-    i = pairs // nlocal
-    j = pairs - i * nlocal
+    """CSR adjacency (offsets, neighbours) of the local vertices through the given cells.
+
+    The graph is symmetric, so each pair of vertices of a cell is listed once, as an edge
+    {lo ≤ hi} (half the pairs to sort and deduplicate). A vertex's neighbours are then the
+    lo of its edges by hi (all ≤ it) followed by the hi of its edges by lo (all > it): its
+    neighbours in increasing order."""
+    a, b = np.triu_indices(cells.shape[1], 1)
+    u, v = cells[:, a], cells[:, b]
+    edges = np.minimum(u, v).astype(np.int64)
+    edges *= nlocal
+    edges += np.maximum(u, v)
+    # sorted and without repeats; numpy's stable sort of int64 (timsort) is fast on these
+    # keys, which come in runs along the cells
+    edges = np.sort(edges.ravel(), kind="stable")
+    if edges.size:
+        edges = edges[np.concatenate([[True], edges[1:] != edges[:-1]])]
+    lo = edges // nlocal
+    hi = edges - lo * nlocal
+    del edges
+    below = np.bincount(hi, minlength=nlocal)                  # neighbours ≤ each vertex
+    strict = lo < hi
+    above = np.bincount(lo[strict], minlength=nlocal)          # neighbours > each vertex
     offsets = np.zeros(nlocal + 1, dtype=np.int64)
-    np.cumsum(np.bincount(i, minlength=nlocal), out=offsets[1:])
-    return offsets, j
+    np.cumsum(below + above, out=offsets[1:])
+    nbrs = np.empty(int(offsets[-1]), dtype=np.int64)
+    by_hi = stable_order(hi)                                   # the edges by (hi, lo)
+    h = hi[by_hi]
+    first = np.cumsum(below) - below
+    nbrs[offsets[h] - first[h] + np.arange(h.size)] = lo[by_hi]
+    lo, hi = lo[strict], hi[strict]                            # by (lo, hi)
+    first = np.cumsum(above) - above
+    nbrs[offsets[lo] + below[lo] - first[lo] + np.arange(lo.size)] = hi
+    return offsets, nbrs
 
 
 def _segment_reduce(op, values, offsets, identity):
@@ -178,34 +197,41 @@ def _segment_reduce(op, values, offsets, identity):
 def colour_vertices(cells, imap, comm):
     """A colouring of the vertices of an index map such that no two vertices of one colour
     share a cell of `cells` ((owned cells, vertices) local vertex indices). Returns
-    (colour of every local vertex, owned and ghost, int32; number of colours; rounds)."""
+    (colour of every local vertex, owned and ghost, int32; number of colours; rounds).
+
+    A round reads, for the priorities, only the uncoloured neighbours of the uncoloured
+    vertices: those lists are kept from round to round and shrunk (a coloured neighbour
+    adds 0 to the maximum, and the priorities are positive). The colours taken around a
+    vertex are gathered from its whole neighbour list, for the chosen vertices only (the
+    owners' choice is sent to the ghosts first), which are the only ones read."""
     n, nloc = imap.size_local, imap.size_local + imap.num_ghosts
     shared = Shared(imap, comm)
     offsets, nbrs = vertex_graph(cells, nloc)
     prio = _priority(np.asarray(imap.local_to_global(np.arange(nloc, dtype=np.int32))))
-    colour = np.full(nloc, -1, dtype=np.int64)
-    degree = np.diff(offsets)
+    colour = np.full(nloc, -1, dtype=np.int8)               # at most 64 colours
+    full = np.diff(offsets)
+    todo, degree, seen = np.arange(nloc), full, nbrs       # uncoloured, uncoloured neighbours
     rounds = 0
     while comm.allreduce(int(np.count_nonzero(colour[:n] < 0)), op=MPI.SUM) > 0:
         rounds += 1
-        uncoloured = colour < 0
-        # only the uncoloured local vertices' neighbours are read (fewer at every round)
-        todo = np.flatnonzero(uncoloured)
-        seen = nbrs[ranges(offsets[todo], degree[todo])]
         segments = np.zeros(todo.size + 1, dtype=np.int64)
-        np.cumsum(degree[todo], out=segments[1:])
-        near = colour[seen]
+        np.cumsum(degree, out=segments[1:])
         # the largest priority among the uncoloured neighbours, over all processes' cells
         best = np.zeros(nloc, dtype=np.uint64)
-        best[todo] = _segment_reduce(np.maximum, np.where(near < 0, prio[seen], np.uint64(0)),
-                                     segments, np.uint64(0))
+        best[todo] = _segment_reduce(np.maximum, prio[seen], segments, np.uint64(0))
         shared.reverse(best, np.maximum)
-        chosen = np.flatnonzero(uncoloured[:n] & (prio[:n] > best[:n]))
-        # the colours of the coloured neighbours as bits
+        chosen = np.flatnonzero((colour[:n] < 0) & (prio[:n] > best[:n]))
+        # the colours of the chosen vertices' coloured neighbours as bits
+        pick = np.zeros(nloc, dtype=bool)
+        pick[chosen] = True
+        picked = np.flatnonzero(shared.forward(pick))
+        near = colour[nbrs[ranges(offsets[picked], full[picked])]]
+        part = np.zeros(picked.size + 1, dtype=np.int64)
+        np.cumsum(full[picked], out=part[1:])
         bits = np.where(near >= 0, np.left_shift(np.uint64(1), np.maximum(near, 0)
                                                  .astype(np.uint64)), np.uint64(0))
         taken = np.zeros(nloc, dtype=np.uint64)
-        taken[todo] = _segment_reduce(np.bitwise_or, bits, segments, np.uint64(0))
+        taken[picked] = _segment_reduce(np.bitwise_or, bits, part, np.uint64(0))
         shared.reverse(taken, np.bitwise_or)
         free = ~taken[chosen]
         if np.any(free == 0):
@@ -213,5 +239,13 @@ def colour_vertices(cells, imap, comm):
         lowest = free & (~free + np.uint64(1))
         colour[chosen] = np.round(np.log2(lowest.astype(np.float64))).astype(np.int64)
         shared.forward(colour)
+        # drop the coloured vertices and neighbours
+        left = colour[seen] < 0
+        before = np.zeros(seen.size + 1, dtype=np.int64)
+        np.cumsum(left, out=before[1:])
+        keep = colour[todo] < 0
+        left &= np.repeat(keep, degree)
+        seen = seen[left]
+        todo, degree = todo[keep], (before[segments[1:]] - before[segments[:-1]])[keep]
     ncolours = comm.allreduce(int(colour.max(initial=-1)) + 1, op=MPI.MAX)
     return colour.astype(np.int32), ncolours, rounds

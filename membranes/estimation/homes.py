@@ -28,7 +28,6 @@ from .congruence import DG, INTERIOR, ROUNDING, SAME, _kind, patch_keys
 from .exchange import (
     Shared,
     alltoallv,
-    counts_before,
     ranges,
     reduce_by_key,
     run_starts,
@@ -80,17 +79,21 @@ class HomeSetup:
         fmap = mesh.topology.index_map(tdim - 1)
         self.nfacets = fmap.size_local + fmap.num_ghosts
         self.facet_shared = Shared(fmap, self.comm)
-        # the (at most two) owned cells of each local facet (-1: none), and the number of cells
-        # of each facet over the whole mesh (owned cells only, each counted by its owner)
-        facets = self.c2f[:self.ncells].ravel()
-        order = stable_order(facets)
-        count = np.bincount(facets, minlength=self.nfacets)
-        start = np.concatenate([[0], np.cumsum(count)[:-1]])
-        self.facet_owned_cells = np.full((self.nfacets, 2), -1, dtype=np.int64)
-        has = count > 0
-        self.facet_owned_cells[has, 0] = order[start[has]] // 3
-        two = count > 1
-        self.facet_owned_cells[two, 1] = order[start[two] + 1] // 3
+        # the (at most two) owned cells of each local facet, least first (-1: none), from
+        # the facet → cell table (its cells, owned or ghost); and the number of cells of each
+        # facet over the whole mesh (owned cells only, each counted by its owner)
+        f2c = mesh.topology.connectivity(tdim - 1, tdim)
+        first, ncell = f2c.offsets[:-1], np.diff(f2c.offsets)
+        if np.any((ncell < 1) | (ncell > 2)):
+            raise RuntimeError("a facet without cells or with more than two")
+        none = np.iinfo(np.int64).max
+        a = f2c.array[first].astype(np.int64)
+        b = np.where(ncell == 2, f2c.array[np.minimum(first + 1, f2c.array.size - 1)], none)
+        a[a >= self.ncells] = none
+        b[b >= self.ncells] = none
+        self.facet_owned_cells = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
+        self.facet_owned_cells[self.facet_owned_cells == none] = -1
+        count = np.bincount(self.c2f[:self.ncells].ravel(), minlength=self.nfacets)
         self.facet_cells = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
 
         rt = W.sub(0).element.basix_element.entity_dofs
@@ -104,9 +107,14 @@ class HomeSetup:
         # the shortest edge of each owned cell, and the largest |x| of the mesh (§12: the
         # tolerance of the block comparisons)
         nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:self.ncells]
-        x = mesh.geometry.x[:, :2][nodes]
-        edge = x - x[:, [2, 0, 1]]
-        self.cell_h = np.sqrt((edge * edge).sum(axis=2).min(axis=1))
+        x, y = mesh.geometry.x[:, 0].take(nodes), mesh.geometry.x[:, 1].take(nodes)
+        for i, j in ((0, 2), (1, 0), (2, 1)):                 # the edges x_i - x_j
+            dx, dy = x[:, i] - x[:, j], y[:, i] - y[:, j]
+            dx *= dx
+            dy *= dy
+            dx += dy
+            self.cell_h = dx if i == 0 else np.minimum(self.cell_h, dx, out=self.cell_h)
+        np.sqrt(self.cell_h, out=self.cell_h)
         self.radius = self.comm.allreduce(float(np.abs(mesh.geometry.x).max(initial=0.0)),
                                           op=MPI.MAX)
         imap = W.dofmap.index_map
@@ -124,7 +132,11 @@ class HomeSetup:
         (local indices, padded with -1) and codes, length, position and entity (global index
         and kind); the run of each local facet's dofs and of each local cell's interior RT and
         DG dofs (the number of runs where they are not owned). A patch keeps whole entities,
-        so `_home_dofs` selects and sorts runs, not dofs."""
+        so `_home_dofs` selects and sorts runs, not dofs.
+
+        The rows of dofs and codes are padded (dofs -1, codes -1: real codes are ≥ 0) to a
+        power of two entries, 16 or 8 bytes for 3 dofs, which numpy's np.take gathers as
+        single words and elementwise operations see as contiguous rows."""
         n = self.nowned
         inner = self.cell_dofs.shape[1] - 3                  # interior RT dofs, then DG1's 3
         tables = [self.facet_dofs, self.cell_dofs[:, :inner], self.cell_dofs[:, inner:]]
@@ -135,14 +147,23 @@ class HomeSetup:
         entities = [(fglobal, facet_point), (cglobal, cell_point), (cglobal, cell_point)]
         sorted_rows, done = [], {}                 # done: the cells' order, for both tables
         for table, (glob, point) in zip(tables, entities):
-            # the columns by index in the entity; the owned rows by position and global index
-            by_index = np.full_like(table, -1)
-            np.put_along_axis(by_index, (self.code[table] & 3).astype(np.int64), table, axis=1)
+            # the columns by index in the entity (often already so: then the table itself);
+            # the owned rows by position and global index
+            index = self.code[table] & 3
+            if np.array_equal(index, np.broadcast_to(np.arange(table.shape[1]), index.shape)):
+                by_index = table
+            else:
+                by_index = np.full_like(table, -1)
+                np.put_along_axis(by_index, index.astype(np.int64), table, axis=1)
+            del index
             if np.any(by_index < 0):
                 raise RuntimeError("an entity's dofs are not indexed 0, 1, ...")
-            owned = by_index < n
-            mine = owned.all(axis=1)
-            if np.any(owned.any(axis=1) != mine):
+            owned = by_index < n                      # all and any by columns (a few)
+            mine, some = owned[:, 0].copy(), owned[:, 0].copy()
+            for column in owned.T[1:]:
+                mine &= column
+                some |= column
+            if np.any(some != mine):
                 raise RuntimeError("an entity's dofs have several owners")
             rows = np.flatnonzero(mine)
             seen = done.get(id(glob))
@@ -152,8 +173,9 @@ class HomeSetup:
         # the runs of the kinds FACET, INNER, DG one after the other
         total = sum(rows.size for _, rows in sorted_rows)
         width = max(table.shape[1] for table in tables)
-        self.run_dofs = np.full((total, width), -1, dtype=np.int32)
-        self.run_code = np.zeros((total, width), dtype=np.int16)
+        padded = 1 << (width - 1).bit_length()
+        self.run_dofs = np.full((total, padded), -1, dtype=np.int32)
+        self.run_code = np.full((total, padded), -1, dtype=np.int16)
         self.run_length = np.zeros(total, dtype=np.int64)
         self.run_point = np.zeros((total, 2))
         self.run_entity = np.zeros(total, dtype=np.int64)
@@ -181,12 +203,21 @@ class HomeSetup:
         comm = self.comm
         # per facet, over its (at most two) cells: the largest and smallest of 2 (patch id + 1)
         # + (the patch is not interior) (0 = no patch; the flag is the patch's, so the two
-        # agree when the patch ids do); reduced across processes
-        least = np.iinfo(np.int64).min
-        tag = np.where(pid >= 0, 2 * (pid + 1) + ~inner, 0)
-        cell_info = np.vstack([np.stack([tag, -tag], axis=1), [[least, least]]])  # -1: none
-        info = np.maximum(cell_info.take(self.facet_owned_cells[:, 0], axis=0),
-                          cell_info.take(self.facet_owned_cells[:, 1], axis=0))
+        # agree when the patch ids do); reduced across processes. A missing cell (-1) gives
+        # the least int64 in both columns (the least int64 is its own negative).
+        tag = np.empty(pid.size + 1, dtype=np.int64)
+        np.add(pid, 1, out=tag[:-1])
+        tag[:-1] *= 2
+        tag[:-1] += ~inner
+        tag[:-1][pid < 0] = 0
+        tag[-1] = np.iinfo(np.int64).min
+        first = tag.take(self.facet_owned_cells[:, 0])
+        second = tag.take(self.facet_owned_cells[:, 1])
+        info = np.empty((first.size, 2), dtype=np.int64)
+        np.maximum(first, second, out=info[:, 0])
+        np.maximum(np.negative(first, out=first), np.negative(second, out=second),
+                   out=info[:, 1])
+        del tag, first, second
         self.facet_shared.forward(self.facet_shared.reverse(info, np.maximum))
         hi, lo = info[:, 0], -info[:, 1]
         inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
@@ -195,7 +226,10 @@ class HomeSetup:
 
         # the patch of every owned run the group keeps (-1: not kept; the last entry takes the
         # runs that are not owned); the kept runs in canonical order, patch by patch
-        run_patch = np.full(self.run_length.size + 1, -1, dtype=np.int64)
+        # (as int32 when the patch ids fit: half the memory traffic of the sort)
+        top = max(int(pid.max(initial=-1)), int(facet_patch.max(initial=-1)))
+        run_patch = np.full(self.run_length.size + 1, -1,
+                            dtype=np.int32 if top < np.iinfo(np.int32).max else np.int64)
         run_patch[self.facet_run] = facet_patch
         cells = np.flatnonzero(pid >= 0)
         run_patch[self.cell_run[cells]] = pid[cells, None]
@@ -206,7 +240,7 @@ class HomeSetup:
         runs, kp = runs[by_patch], kp[by_patch]
         del by_patch
         new = run_starts(kp)
-        seen = kp[new]                                              # unique, sorted
+        seen = kp[new].astype(np.int64)                             # unique, sorted
         count = np.diff(np.append(new, runs.size))                  # runs per patch
 
         # home of each patch: the owner of its cell of least global index, found with the
@@ -243,7 +277,7 @@ class HomeSetup:
             return alltoallv(comm, column, send, recv)
 
         gpatch = move(np.repeat(seen, count)[order])
-        # (np.take of rows: numpy's fast gather of small rows)
+        # (np.take of padded rows: numpy's fast gather of small rows; -1 past a run's dofs)
         length, local = self.run_length[runs], self.run_dofs.take(runs, axis=0)
         glength, gdofs = move(length), move(local + np.int64(self.rstart))
         gcode = move(self.run_code.take(runs, axis=0)
@@ -280,7 +314,7 @@ class HomeSetup:
         np.cumsum(glength, out=before[1:])
         nsigma = before[first_dg] - before[new]
         pinned = first_dg[(gcode[first_dg, 0] & INTERIOR) != 0]         # runs
-        kept = np.arange(gcode.shape[1]) < glength[:, None]              # (runs, index)
+        kept = gcode >= 0                                                # (runs, index)
         kept[pinned, 0] = False
         size = glength.copy()
         size[pinned] -= 1
@@ -290,9 +324,12 @@ class HomeSetup:
         h = gh[new]
         tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius / h)
         # the keys hash the first dof of each entity: every run but the pinned ones
+        # (the keyed runs before an offset: the runs before it but the pinned ones, which
+        # are in increasing order)
+        offsets = np.append(new, received)
+        runs_before = offsets - np.searchsorted(pinned, offsets)
         keyed = np.ones(received, dtype=bool)
         keyed[pinned] = False
-        runs_before = counts_before(keyed, np.append(new, received))
         keyed = np.flatnonzero(keyed)
         key = patch_keys(runs_before, gcode[:, 0][keyed], gpoint.take(keyed, axis=0), h,
                          np.diff(start))
@@ -305,17 +342,17 @@ class HomeSetup:
             placed = np.empty_like(before[:-1])
             placed[perm] = before[:-1]
             size[perm] = size.copy()
-            dest = ranges(placed, size)
+            dest = ranges(placed, size).astype(np.int32)
         else:                           # received in place: the runs' dofs follow each other
-            dest = np.arange(before[-1])
+            dest = np.arange(before[-1], dtype=np.int32)
         size_at = np.zeros(received + 1, dtype=np.int64)
         np.cumsum(size, out=size_at[1:])
         rc = np.diff(size_at[np.append(0, np.cumsum(recv))])
         sc = np.asarray(comm.alltoall(rc.tolist()), dtype=np.int64)
         sent_pinned = alltoallv(comm, first_pinned, recv, send)
-        sent = np.arange(gcode.shape[1]) < length[:, None]
+        sent = local >= 0
         sent[:, 0] &= ~sent_pinned
-        route = (local[sent], sc, rc, dest.astype(np.int32))
+        route = (local[sent], sc, rc, dest)
         return dofs, start, code, tolerance, nsigma, key, route, gpatch[new]
 
     def _marked_cells(self, patches, chosen):

@@ -322,6 +322,25 @@ def test_stable_order_is_a_stable_argsort():
         keys = rng.integers(0, top, 5000)
         assert np.array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
     assert stable_order(np.zeros(0, dtype=np.int64)).size == 0
+    keys = rng.integers(0, 1 << 20, 5000).astype(np.int32)
+    assert np.array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
+
+
+def test_vertex_graph_lists_the_sorted_neighbours():
+    """vertex_graph against sets of pairs: every vertex's neighbours through the cells, once,
+    in increasing order (a vertex repeated in a cell is its own neighbour)."""
+    from membranes.estimation.exchange import vertex_graph
+    rng = np.random.default_rng(7)
+    for width, nv in ((2, 30), (3, 40), (4, 25), (3, 5)):
+        cells = rng.integers(0, nv, (60, width)).astype(np.int32)
+        offsets, nbrs = vertex_graph(cells, nv + 2)
+        assert offsets.size == nv + 3 and nbrs.dtype == np.int64
+        for v in range(nv + 2):
+            want = sorted({int(c[q]) for c in cells for p in range(width)
+                           for q in range(width) if p != q and c[p] == v})
+            assert nbrs[offsets[v]:offsets[v + 1]].tolist() == want
+    offsets, nbrs = vertex_graph(np.zeros((0, 3), dtype=np.int32), 4)
+    assert offsets.tolist() == [0] * 5 and nbrs.size == 0
 
 
 def test_colouring_and_boundary_helpers_used_by_the_groups():
