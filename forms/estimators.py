@@ -79,7 +79,7 @@ def projection_load(f, q, dx=ufl.dx):
 
 def recovery_load(mu, u, v, dx=ufl.dx):
     """(μ_α ∇u_αh, v) for v a P1² test function: with the lumped mass (1, ψ_a) of each vertex
-    (`forms.membrane.contact_weight`), the nodal values G_a = (μ ∇u_h, ψ_a)/(1, ψ_a) of the
+    (`forms.membrane.contact_term` with λ = 1), the nodal values G_a = (μ ∇u_h, ψ_a)/(1, ψ_a) of the
     averaged (recovered) flux G_α ∈ P1² of the Newton gate
     (`membranes.estimation.estimators.Estimators.recovered`). Exact with `P1_RULE` (a constant
     times P1)."""

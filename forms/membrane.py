@@ -25,13 +25,9 @@ def membrane_linear(f, v, dx=ufl.dx):
 def contact_term(lam, v, dx=ufl.dx):
     """The lumped contact term λ_a (ψ_a, 1) of row a (§2), for λ a P1 trial function or
     coefficient: (λ, v) integrated with the vertex rule (`VERTEX_RULE`). As a bilinear form it
-    assembles into the diagonal matrix D of E = [[μ1 S, 0, -D], [0, μ2 S, D]]."""
+    assembles into the diagonal matrix D of E = [[μ1 S, 0, -D], [0, μ2 S, D]]; with λ = 1 into
+    its diagonal, the lumped weights D_a = (ψ_a, 1)."""
     return lam * v * dx(metadata=VERTEX_RULE)
-
-
-def contact_weight(v, dx=ufl.dx):
-    """(ψ_a, 1): the lumped contact weight D_aa of vertex a (§2), as a linear form."""
-    return v * dx
 
 
 def energy_density(mu1, mu2, e1, e2):

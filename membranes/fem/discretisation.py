@@ -3,7 +3,8 @@
 `discretise(problem)` assembles, once per mesh, from the UFL forms of `forms/membrane.py`:
 
     S_ab  = (∇ψ_b, ∇ψ_a)       stiffness            (membrane_bilinear with μ = 1)
-    D     = diag((ψ_a, 1))     lumped contact term  (contact_term: the vertex rule)
+    D_a   = (ψ_a, 1)           lumped contact term  (contact_term with λ = 1: the vertex rule
+                                                     makes the matrix diagonal, D_a its entry)
     F_α,a = (f_α, ψ_a)         loads                (membrane_linear, data measures)
 
 into distributed PETSc objects on the mesh's communicator, and finds the Dirichlet vertices
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import ufl
 
-from forms.membrane import contact_term, contact_weight, membrane_bilinear, membrane_linear
+from forms.membrane import contact_term, membrane_bilinear, membrane_linear
 
 from .quadrature import data_measures, load, over
 
@@ -30,7 +31,6 @@ class Discretisation:
     problem: object
     V: object                 # P1 space on the computational mesh
     S: object                 # PETSc Mat: (∇ψ_b, ∇ψ_a), no boundary conditions
-    Dm: object                # PETSc Mat: diag((ψ_a, 1)) from the lumped form
     D: object                 # PETSc Vec (owned): (ψ_a, 1)
     F1: object                # PETSc Vec (owned): (f1, ψ_a)
     F2: object                # PETSc Vec (owned): (f2, ψ_a)
@@ -157,10 +157,10 @@ def discretise(problem):
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
     S = assemble_matrix(membrane_bilinear(1.0, u, v))
-    Dm = assemble_matrix(contact_term(u, v))
-    D = assemble_vector(contact_weight(v))
+    # the lumped contact matrix is diagonal: its diagonal is the form's action on λ = 1
+    D = assemble_vector(contact_term(ufl.as_ufl(1.0), v))
     dx_data = data_measures(mesh, problem.interface)
     f1, f2 = load(problem.f1, mesh), load(problem.f2, mesh)
     F1 = assemble_vector(over(dx_data, lambda dx: membrane_linear(f1, v, dx)))
     F2 = assemble_vector(over(dx_data, lambda dx: membrane_linear(f2, v, dx)))
-    return Discretisation(problem, V, S, Dm, D, F1, F2, f1, f2, boundary_dofs(V), dx_data)
+    return Discretisation(problem, V, S, D, F1, F2, f1, f2, boundary_dofs(V), dx_data)

@@ -112,7 +112,7 @@ class NewtonSystem:
         self.S_D = disc.S.copy()
         self.S_D.zeroRows(_ints(self.boundary + r0), 1.0)
         # D_l = (ψ_l, 1) from the lumped (vertex-rule) contact form, 0 in Dirichlet rows
-        d = np.where(inner, disc.Dm.getDiagonal().array_r, 0.0)
+        d = np.where(inner, disc.D.array_r[:n], 0.0)
         self.D = d
         self._D1 = diagonal_matrix(-d / mu1, r0, N, comm)
         self._D2 = diagonal_matrix(d / mu2, r0, N, comm)
