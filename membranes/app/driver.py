@@ -201,7 +201,7 @@ class LevelEstimates:
             return False
         if self.eta_disc is not None or eta_lin > REC_MARGIN * target:
             return True
-        return previous is not None and eta_lin * (eta_lin / previous) <= target
+        return bool(previous) and eta_lin * (eta_lin / previous) <= target
 
     def _keep(self, X, R):
         self._drop()
