@@ -233,8 +233,9 @@ class FluxEquilibration:
             self.rhs_forms.append(fem.form(equilibration_forms.patch_rhs(
                 self.nodal[PSI], self.nodal[LAMC], self.sign, self.mu, self.nodal[U], self.r,
                 tau, q, dx)))
+        # one W vector for the colours' right-hand sides and, once they are gathered, for the
+        # sum of their solutions
         self.b = create_vector(self.rhs_forms[0])
-        self.x = self.b.duplicate()
         self._loads = {}
 
     def touching(self):
@@ -330,13 +331,13 @@ class FluxEquilibration:
             self.b.array[self.dg_dofs(c)] += f.values[c]          # the data part
             systems.gather(c, self.b, home)
         x = systems.solve_home(home)
-        # the colours' solutions add up; their RT parts are σ_α,disc
-        with self.x.localForm() as local:
+        # the colours' solutions add up (in b, free again); their RT parts are σ_α,disc
+        with self.b.localForm() as local:
             local.set(0.0)
         for c in range(self.ncolours):
-            systems.scatter(c, x, self.x, add=True)
+            systems.scatter(c, x, self.b, add=True)
         sigma.x.array[:] = 0.0
-        systems.add_flux(self.x, sigma)
+        systems.add_flux(self.b, sigma)
         sigma.x.scatter_forward()
         return sigma
 
@@ -344,7 +345,6 @@ class FluxEquilibration:
         """Free the factorisations and PETSc vectors (the object is unusable afterwards)."""
         self.systems.destroy()
         self.b.destroy()
-        self.x.destroy()
 
     def summary(self):
         """Global facts of the set-up: colours, Jones–Plassmann rounds, unknowns per colour,
