@@ -131,7 +131,7 @@ class PatchSystems(HomeSetup):
         rt = W.sub(0)
         self.rt_space = rt.collapse()[0]
         imap = self.rt_space.dofmap.index_map
-        self.rt_map = np.empty(imap.size_local + imap.num_ghosts, dtype=np.int64)
+        self.rt_map = np.empty(imap.size_local + imap.num_ghosts, dtype=np.int32)     # local W dofs
         self.rt_map[self.rt_space.dofmap.list.array] = rt.dofmap.list.array
         del rt
         self.ngroups = len(patches)
