@@ -19,7 +19,7 @@ import ufl
 from forms.estimators import energy_squared
 
 from ..fem.quadrature import over
-from .estimators import CellForm, global_sums
+from .cell_forms import CellForm, global_sums
 
 
 class EnergyError:

@@ -62,6 +62,7 @@ from forms.estimators import (
 )
 
 from ..fem.quadrature import over
+from .cell_forms import CellForm, chunks, global_sums
 from .equilibration import nodal_function
 
 # Components of the per-cell vector of one evaluation (the vector-DG0 test function's index)
@@ -75,75 +76,6 @@ U1, U2, LPOS, LNEG, E1, E2, DLAM = range(7)
 def owned(X):
     """The owned entries of an iterate-layout PETSc Vec (read-only), or the array itself."""
     return X.array_r if hasattr(X, "array_r") else np.asarray(X)
-
-
-def owned_cells(mesh):
-    return mesh.topology.index_map(mesh.topology.dim).size_local
-
-
-CHUNK_CELLS = 1 << 17     # cells per assembly of a CellForm (bounds dolfinx's packed coefficients)
-
-
-class CellForm:
-    """A linear form Σ_i q_i(w[i]) tested with vector DG0 (k components), compiled once: one
-    assembly gives the k integrals on every owned cell, as an array (owned cells, k) in the
-    mesh's cell order.
-
-    dolfinx packs every coefficient of a form on every cell of its integration domain before
-    it assembles (an array of (cells, coefficient dofs per cell)): for the estimators' forms
-    that is several times the iterate's size, on top of everything a run keeps. A form over
-    the whole mesh is therefore assembled a chunk of CHUNK_CELLS owned cells at a time (the
-    same integrand restricted to tagged cells: one compiled kernel, `chunks`); the integrals
-    are the same, the transient memory is bounded."""
-
-    def __init__(self, mesh, k, build):
-        from dolfinx import fem
-        self.W = fem.VectorFunctionSpace(mesh, ("DG", 0), dim=k)
-        self.k = k
-        self.forms = [fem.form(f) for f in chunks(build(ufl.TestFunction(self.W)), mesh)]
-        imap = self.W.dofmap.index_map
-        self._b = np.zeros((imap.size_local + imap.num_ghosts) * k)
-        nc = owned_cells(mesh)
-        # the block (one per cell) of each owned cell: DG0 dofs need not follow the cells
-        self._cells = self.W.dofmap.list.array.reshape(-1)[:nc].copy()
-
-    def cells(self):
-        """The k integrals on every owned cell, shape (owned cells, k)."""
-        from dolfinx import fem
-        self._b[:] = 0.0
-        for form in self.forms:
-            fem.assemble_vector(self._b, form)
-        return self._b.reshape(-1, self.k)[self._cells]
-
-
-def chunks(form, mesh, size=None):
-    """The UFL `form` restricted to consecutive chunks of about `size` owned cells (as many
-    chunks on every process: creating a dolfinx form is collective), or [form] if it has an
-    integral that is not over the whole mesh (data measures with tagged cut cells) or one
-    chunk suffices. Their sum is `form` on the owned cells. `size`: CHUNK_CELLS."""
-    from dolfinx.mesh import meshtags
-    size = CHUNK_CELLS if size is None else size
-    if any(itg.subdomain_id() != "everywhere" or itg.subdomain_data() is not None
-           for itg in form.integrals()):
-        return [form]
-    nc = owned_cells(mesh)
-    count = mesh.comm.allreduce(max(1, -(-nc // size)), op=MPI.MAX)
-    if count == 1:
-        return [form]
-    bounds = np.linspace(0, nc, count + 1).astype(np.int64)
-    out = []
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        cells = np.arange(a, b, dtype=np.int32)
-        tags = meshtags(mesh, mesh.topology.dim, cells, np.ones(cells.size, dtype=np.int32))
-        out.append(ufl.Form([itg.reconstruct(subdomain_id=1, subdomain_data=tags)
-                             for itg in form.integrals()]))
-    return out
-
-
-def global_sums(comm, columns):
-    """Σ over the owned cells of every column, summed over the communicator."""
-    local = np.asarray(columns, dtype=float).sum(axis=0)
-    return comm.allreduce(local, op=MPI.SUM)
 
 
 def dg1_projections(disc, fs, lifting, moments=None):
@@ -223,7 +155,7 @@ class Estimators:
         self.nodal = nodal_function(V, DLAM + 1)
         self._nodal = self.nodal.x.array.reshape(-1, DLAM + 1)         # (vertices, fields)
         self.sigma = [fem.Function(self.RT) for _ in range(2)]          # σ_α,disc
-        self.sigma_alg = [fem.Function(self.RT) for _ in range(2)]
+        self._sigma_alg = None                                          # σ_α,alg, at first use
         self.rho = [fem.Function(self.DG1) for _ in range(2)]           # r_αh (lifted R_α)
         self._build_forms()
         self.osc = self._oscillation()                                  # (cells, 2)
@@ -243,7 +175,6 @@ class Estimators:
         dp = ufl.dx(domain=mesh, metadata=P1_RULE)
         df = ufl.dx(domain=mesh, metadata=FLUX_RULE)
         s1, s2 = self.sigma
-        a1, a2 = self.sigma_alg
 
         linearisation = self._linearisation_form
 
@@ -254,6 +185,7 @@ class Estimators:
                     + linearisation(w, LIN1, LAM_POS, LAM_NEG))
 
         def with_alg(w):
+            a1, a2 = self.sigma_alg
             return (base(w)
                     + flux_squared(mu1, u1, s1 + a1, w[FLUX1], df)
                     + flux_squared(mu2, u2, s2 + a2, w[FLUX2], df)
@@ -283,6 +215,15 @@ class Estimators:
         return (energy_squared(mu1, mu2, e1, e2, w[i], dp)
                 + cell_norm_squared(lam_pos, w[j], dp)
                 + cell_norm_squared(lam_neg, w[k], dp))
+
+    @property
+    def sigma_alg(self):
+        """(σ_1,alg, σ_2,alg), the RT_1 Functions an algebraic flux is written into; made at
+        the first use (a run whose Krylov solves meet their test before ν needs none)."""
+        if self._sigma_alg is None:
+            from dolfinx import fem
+            self._sigma_alg = [fem.Function(self.RT) for _ in range(2)]
+        return self._sigma_alg
 
     def _cell_form(self, name):
         entry = self._cell_forms[name]

@@ -72,6 +72,7 @@ from petsc4py import PETSc
 import forms.equilibration as equilibration_forms
 from forms.membrane import membrane_linear
 
+from ..fem.meshes import owned_cells
 from .congruence import dof_transformation, piola_reference_block
 from .equilibration import boundary_dofs
 from .lifting import MINV_REF
@@ -83,10 +84,6 @@ ROUND_OFF = 1e-8      # tolerance on the barycentric coordinates 0, 1/2, 1 of pl
 def _p1(mesh):
     from dolfinx import fem
     return fem.FunctionSpace(mesh, ("Lagrange", 1))
-
-
-def _owned_cells(mesh):
-    return mesh.topology.index_map(mesh.topology.dim).size_local
 
 
 def _check(comm, ok, message):
@@ -228,8 +225,8 @@ class _Level:
         self.mesh = hierarchy.meshes[j]
         comm = self.mesh.comm
         self.parents = parents = np.asarray(hierarchy.parent_cells[j - 1], dtype=np.int64)
-        nc, ncc = len(parents), _owned_cells(hierarchy.meshes[j - 1])
-        _check(comm, nc == _owned_cells(self.mesh) and parents.max(initial=-1) < ncc,
+        nc, ncc = len(parents), owned_cells(hierarchy.meshes[j - 1])
+        _check(comm, nc == owned_cells(self.mesh) and parents.max(initial=-1) < ncc,
                "the parent of an owned cell is not an owned cell")
         P = hierarchy.prolongations[j - 1]
         self.beta = child_positions(Vc, Vf, P, parents)
@@ -350,7 +347,7 @@ class MultilevelFlux:
         self.data_form = fem.form(equilibration_forms.multilevel_data(psi, self.r, self.rho, q))
         self.B = create_matrix(self.data_form)
         self.y = self.B.createVecLeft()
-        ncJ = _owned_cells(mesh)
+        ncJ = owned_cells(mesh)
         self.dgJ = self.Q.dofmap.list.array.reshape(-1, 3)[:ncJ].ravel()
         self.rhs_form = fem.form(membrane_linear(self.r, ufl.TestFunction(disc.V)))
         self.rhs = create_vector(self.rhs_form)

@@ -420,7 +420,8 @@ def test_chunked_assemblies_equal_whole(setup, monkeypatch):
     whole_q = per_cell(whole, X, sigma, alg)
     whole_rec = whole.recovered(X, linearisation=True)
     nc = disc.mesh.topology.index_map(2).size_local
-    monkeypatch.setattr(est_module, "CHUNK_CELLS", max(1, nc // 5))
+    from membranes.estimation import cell_forms
+    monkeypatch.setattr(cell_forms, "CHUNK_CELLS", max(1, nc // 5))
     chunked = Estimators(disc)
     assert len(chunked.cells_alg.forms) > 2
     for key, value in per_cell(chunked, X, sigma, alg).items():
