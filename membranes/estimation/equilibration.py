@@ -133,16 +133,17 @@ class Load:
     the data measures once per load f and mesh and added at every call of `sigma` to the
     colour's assembled right-hand side: `values[c]` (cells touching colour c, 3) holds it at
     the DG1 dofs `FluxEquilibration.dg_dofs(c)` of those cells (the only dofs where it is not
-    zero). `moments`: (owned cells, 3), (f, q_m)_K for the DG1 basis q_m of each cell (the sum
-    of the slots' blocks, Σ_s φ_s = 1), the load of f's DG1 projection (η_osc, §7), for one
-    use. Made by `FluxEquilibration.loads` (several loads in one assembly) or `load`."""
+    zero). Made by `FluxEquilibration.loads` (several loads in one assembly) or `load`."""
 
-    def __init__(self, f, values, moments=None):
-        self.f, self.values, self.moments = f, values, moments
+    def __init__(self, f, values):
+        self.f, self.values = f, values
 
 
 def assemble_loads(eq, fs, measures):
-    """The `Load`s of the expressions `fs` on the mesh of `eq` (a FluxEquilibration).
+    """(loads, moments): the `Load`s of the expressions `fs` on the mesh of `eq` (a
+    FluxEquilibration), and (owned cells, 3, len(fs)) (f_i, q_m)_K for the DG1 basis q_m of
+    each cell, the loads of the fs' DG1 projections (η_osc, §7): the sum over the slots below,
+    since Σ_s φ_s = 1.
 
     The data part lives on the DG1 dofs, which belong to one cell each: on a cell K touching
     colour c it is -(φ_j f, q_m)_K, φ_j the hat function of K's vertex of colour c. So one
@@ -174,8 +175,7 @@ def assemble_loads(eq, fs, measures):
         entry = 3 * k * zdofs[touching] + s[:, None]
         for i in range(k):
             values[i].append(blocks[entry + 3 * i])
-    return [Load(f, v, np.ascontiguousarray(moments[:, :, i]))
-            for i, (f, v) in enumerate(zip(fs, values))]
+    return [Load(f, v) for f, v in zip(fs, values)], moments
 
 
 class FluxEquilibration:
@@ -282,12 +282,14 @@ class FluxEquilibration:
         if lam is not None:
             self._nodal[:, LAMC] = np.where(mask, lam, 0.0)
 
-    def loads(self, fs, measures=None):
+    def loads(self, fs, measures=None, moments=False):
         """The `Load`s of the expressions f_α in `fs`, in one assembly (data measures:
-        `measures`, else the constructor's, else dx)."""
+        `measures`, else the constructor's, else dx); with `moments`, also the cells' DG1
+        loads of the fs (`assemble_loads`)."""
         measures = measures if measures is not None else self.measures
         measures = measures if measures is not None else [ufl.dx(domain=self.mesh)]
-        return assemble_loads(self, list(fs), measures)
+        loads, cell_moments = assemble_loads(self, list(fs), measures)
+        return (loads, cell_moments) if moments else loads
 
     def load(self, f, measures=None):
         """The `Load` of the expression f_α (`loads`)."""

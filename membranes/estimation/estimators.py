@@ -81,9 +81,9 @@ def owned(X):
 def dg1_projections(disc, fs, lifting, moments=None):
     """Π_P1 f for each f of `fs` (η_osc, §7): the L² projections onto discontinuous P1 (cell
     by cell), as Functions of `lifting.Q`. The loads (f, q) are assembled in one pass (vector
-    DG1 with a component per f, the data measures), unless `moments` gives them (per f an
-    (owned cells, 3) array of (f, q_m)_K, e.g. `equilibration.Load.moments`, the same
-    integrals); the DG1 mass matrix is block diagonal with the block
+    DG1 with a component per f, the data measures), unless `moments` gives them ((owned cells,
+    3, len(fs)), (f, q_m)_K with the same measures, e.g. from `FluxEquilibration.loads`); the
+    DG1 mass matrix is block diagonal with the block
     M_K = |K|/12 (I + 1 1ᵀ), whose inverse (3/|K|)(4 I - 1 1ᵀ) (`lifting`) is applied cell by
     cell on the owned cells."""
     from dolfinx import fem, la
@@ -92,7 +92,7 @@ def dg1_projections(disc, fs, lifting, moments=None):
     mesh, k = disc.mesh, len(fs)
     nc = lifting.ncells
     if moments is not None:
-        blocks = np.stack(moments, axis=2)                                     # (nc, 3, k)
+        blocks = moments                                                       # (nc, 3, k)
     else:
         Z = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=k)
         q = ufl.TestFunction(Z)
@@ -146,8 +146,11 @@ class Estimators:
         self.DG1 = self.lifting.Q
         self.RT = (equilibration.rt_space if equilibration is not None
                    else fem.FunctionSpace(mesh, ("RT", 2)))
+        moments = None                  # η_osc's DG1 loads, from the equilibration's if alike
         if equilibration is not None:                                   # data parts, once
-            self.loads = equilibration.loads((disc.f1, disc.f2))
+            self.loads, moments = equilibration.loads((disc.f1, disc.f2), moments=True)
+            if equilibration.measures is not disc.dx_data:              # other integrals
+                moments = None
         # coefficients the evaluations write into. The nodal fields u1h, u2h, λ^pos, λ^neg,
         # s_h - u_h and δλ = λ'_h - λh (ν flux) are the components of ONE vector-P1 Function:
         # dolfinx packs a form's coefficients cell by cell, and the values of a vertex then lie
@@ -158,7 +161,8 @@ class Estimators:
         self._sigma_alg = None                                          # σ_α,alg, at first use
         self.rho = [fem.Function(self.DG1) for _ in range(2)]           # r_αh (lifted R_α)
         self._build_forms()
-        self.osc = self._oscillation()                                  # (cells, 2)
+        self.osc = self._oscillation(moments)                           # (cells, 2)
+        del moments
         self._osc_t = np.ascontiguousarray(self.osc.T)
         self._osc_sum = (self._osc_t ** 2).sum()                        # η_osc², local
         self._recent = []                                               # σ_disc's last two
@@ -239,16 +243,11 @@ class Estimators:
     cells_disc_rem = property(lambda self: self._cell_form("disc_rem"),
                               doc="`cells_disc` and η_rem's terms in one CellForm")
 
-    def _oscillation(self):
-        """η_osc,K,α for every owned cell (cells, 2): iterate-independent, once per mesh."""
+    def _oscillation(self, moments=None):
+        """η_osc,K,α for every owned cell (cells, 2): iterate-independent, once per mesh.
+        `moments`: the loads (f_α, q)_K of the DG1 projections, if at hand (`dg1_projections`)."""
         disc = self.disc
-        loads = getattr(self, "loads", None)    # the same integrals, if assembled alike
-        if loads is not None and self.equilibration.measures is not disc.dx_data:
-            loads = None
-        pf = dg1_projections(disc, (disc.f1, disc.f2), self.lifting,
-                             None if loads is None else [load.moments for load in loads])
-        for load in getattr(self, "loads", ()):
-            load.moments = None                          # used once: not kept for the run
+        pf = dg1_projections(disc, (disc.f1, disc.f2), self.lifting, moments)
         mu1, mu2 = self._mu
         osc = CellForm(disc.mesh, 2, lambda w: over(disc.dx_data, lambda dx: (
             oscillation_squared(mu1, disc.f1, pf[0], w[0], dx)
