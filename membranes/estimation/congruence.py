@@ -14,8 +14,8 @@ the orientation of a facet by global vertex indices). This module removes that d
   ±1 on facet dofs, the identity on the DG dofs (Lagrange at the vertices: only their labels
   change) and a 2 × 2 integer block on the two interior RT dofs of a cell (`basis_changes`
   checks this form on basix's elements); `canonical_block` forms Ã_p = G_pᵀ A_p G_p on the rows
-  of the patches, `to_canonical` applies Gᵀ and G to vectors, `BasisChange` the same on home
-  vectors by slices.
+  of the patches, `pair_change` applies the blocks of Gᵀ and G to vectors, `BasisChange` all
+  of G on home vectors by slices.
 * `patch_keys` and `Blocks`: translated patches get equal keys (dof kinds and rounded relative
   positions); `Blocks` keeps one block per class with a random probe, against which every
   patch of the class is checked (in `patches`) to the round-off of its coordinates.
@@ -192,23 +192,8 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     return code, blocks, disagree, facet_point, np.stack([total / 3.0, side / 3.0], axis=1)
 
 
-def to_canonical(values, sign, pairs, blocks, transpose=True):
-    """values ← Gᵀ values (transpose) or G values, in place, for home vectors: `sign` ±1 per
-    entry, `pairs[p]` the positions of the first interior dof of the cells with block p (the
-    second follows it)."""
-    if not (np.isscalar(sign) and sign == 1.0):
-        values *= sign
-    for p, first in enumerate(pairs):
-        if first.size:
-            B = blocks[p].T if transpose else blocks[p]
-            v0, v1 = values[first], values[first + 1]
-            values[first] = B[0, 0] * v0 + B[0, 1] * v1
-            values[first + 1] = B[1, 0] * v0 + B[1, 1] * v1
-    return values
-
-
 class BasisChange:
-    """G and Gᵀ on home vectors (`apply`), as `to_canonical` but by slices: the patches are
+    """G and Gᵀ on home vectors (`apply`) by slices: the patches are
     cut into runs of consecutive patches with the same size n, number F of facet dofs and
     number c of cells; in canonical order a patch holds its F facet dofs, then its c pairs of
     interior RT dofs, then its DG dofs, so that in a run (M patches) the signs act on the
@@ -268,15 +253,16 @@ def _pair_blocks(code):
 
 
 def _pairs(code):
-    """Positions of the first interior dof of each cell, by block (see `to_canonical`)."""
+    """Positions of the first interior dof of each cell, by block (`canonical_block`)."""
     first, p = _pair_blocks(code)
     return [first[p == k] for k in range(len(ORDERS))]
 
 
 def pair_change(values, first, B, transpose=True):
     """values ← Gᵀ values (transpose) or G values in place, where G is the identity but for the
-    2 × 2 blocks B[k] (rows dolfinx's) on the entries first[k], first[k] + 1: `to_canonical`
-    with sign 1 in one pass, the block of each pair given (the same products and sums)."""
+    2 × 2 blocks B[k] (rows dolfinx's) on the entries first[k], first[k] + 1 (`_pair_blocks`):
+    the blocks of G for a home vector whose signs are applied elsewhere (the probe's, whose
+    action carries them)."""
     b01, b10 = (B[:, 1, 0], B[:, 0, 1]) if transpose else (B[:, 0, 1], B[:, 1, 0])
     second = first + 1
     v0, v1 = values[first], values[second]

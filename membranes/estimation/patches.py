@@ -112,10 +112,9 @@ class PatchSystems(HomeSetup):
     index. The kept dofs of all patches at home on a process form its *home vector* (numpy),
     class by class. A call goes: `home = home_vector()`; `gather(c, b, home)` for each group c
     (b a PETSc Vec on W with final owned entries, the right-hand side of group c's patches);
-    `x = solve_home(home, extra)` (extra: canonical home values to add, see `canonical`); then
-    `scatter(c, x, out, add)` puts group c's solutions into a W Vec (zero elsewhere unless
-    `add`), and `add_flux(out, sigma)` adds its RT part to an RT_1 Function. `solve(c, b, out,
-    extra)` does all this for one group.
+    `x = solve_home(home)`; then `scatter(c, x, out, add)` puts group c's solutions into a W
+    Vec (zero elsewhere unless `add`), and `add_flux(out, sigma)` adds its RT part to an RT_1
+    Function. `solve(c, b, out)` does all this for one group.
     """
 
     def __init__(self, mesh, patches, interior, W=None, share=True, rhs="full",
@@ -364,13 +363,10 @@ class PatchSystems(HomeSetup):
             return home
         return self.change.apply(home, transpose=True)
 
-    def solve_home(self, home, extra=None):
-        """The solutions of all patches for the gathered right-hand sides `home` plus `extra`
-        (canonical, e.g. `canonical(gathered)` of a fixed part), as a home vector in dolfinx's
-        basis: `home` itself, overwritten."""
+    def solve_home(self, home):
+        """The solutions of all patches for the gathered right-hand sides `home`, as a home
+        vector in dolfinx's basis: `home` itself, overwritten."""
         rhs = self.canonical(home)
-        if extra is not None:
-            rhs += extra
         # K classes of m patches of n dofs each, one inverse per class; in place, about
         # SOLVE_CHUNK entries at a time: the inputs are copied out before their slice is
         # overwritten (one home vector less at the peak of an evaluation)
@@ -395,13 +391,13 @@ class PatchSystems(HomeSetup):
         xv.destroy()
         return out
 
-    def solve(self, c, b, out=None, extra=None):
-        """Solve group c for the W vector `b` (+ `extra`, canonical home values); the W vector
-        `out` holds the solution at the kept dofs and zero elsewhere (owned entries)."""
+    def solve(self, c, b, out=None):
+        """Solve group c for the W vector `b`; the W vector `out` holds the solution at the
+        kept dofs and zero elsewhere (owned entries)."""
         if out is None:
             out = b.duplicate()
         home = self.gather(c, b, self.home_vector())
-        return self.scatter(c, self.solve_home(home, extra), out)
+        return self.scatter(c, self.solve_home(home), out)
 
     def add_flux(self, x, sigma):
         """sigma.x (owned part) += the RT part of the W vector x (owned part)."""

@@ -1,8 +1,8 @@
 """The patch engine's sharing of inverses between congruent patches (§5, §6, §12).
 
 * The canonical change of basis: `canonical_block` (in place on CSR rows) equals the dense
-  Gᵀ A G, and `to_canonical` and `BasisChange` (by runs of one patch shape) the products with
-  Gᵀ and G, G built independently from the codes
+  Gᵀ A G, and `pair_change` (with the signs applied beside it) and `BasisChange` (by runs of
+  one patch shape) the products with Gᵀ and G, G built independently from the codes
   and the blocks of `basis_changes` (which itself checks that dolfinx's RT and DG bases differ
   from the canonical ones by signed facet permutations, 2 × 2 interior blocks and vertex
   relabelling).
@@ -39,7 +39,7 @@ from membranes.estimation.congruence import (
     Blocks,
     basis_changes,
     canonical_block,
-    to_canonical,
+    pair_change,
 )
 from membranes.estimation.equilibration import FluxEquilibration, boundary_dofs, vertex_patches
 from membranes.estimation.patches import PatchSystems, colour_vertices, mixed_space
@@ -95,10 +95,10 @@ def test_canonical_block_is_the_dense_product():
     # the same G on vectors, with the home vectors' sign and pair arrays
     v = rng.standard_normal(40)
     sign8 = np.where(code & NEGATIVE, -1, 1).astype(np.int8)
-    pairs = engine._pairs(code)
-    assert np.allclose(to_canonical(v.copy(), sign8, pairs, blocks, transpose=True), G.T @ v,
+    first, p = engine._pair_blocks(code)
+    assert np.allclose(pair_change(v * sign8, first, blocks[p], transpose=True), G.T @ v,
                        rtol=0, atol=1e-14)
-    assert np.allclose(to_canonical(v.copy(), sign8, pairs, blocks, transpose=False), G @ v,
+    assert np.allclose(pair_change(v * sign8, first, blocks[p], transpose=False), G @ v,
                        rtol=0, atol=1e-14)
 
 
