@@ -21,7 +21,11 @@ The step is solved on the full 3N system or on the eliminated 2N one
   go to the estimators (`estimate(X, R, 'krylov')`), and the solve stops at the first with
   η_alg ≤ γ_alg max(η_disc, η_lin) (or at the exact floor 2e-12); that iterate is X^k, whose
   estimates are then known. Newton stops at the first X^k, k ≥ 1, with η_lin ≤ γ_lin η_disc.
-  X⁰ is not estimated (Algorithm 1 makes at least one step).
+  X⁰ is not estimated (Algorithm 1 makes at least one step). With `forcing` η, a step that
+  the estimates expect not to be the last (the first step, or the last answer to kind
+  'newton' carries `more_steps` = True) stops its solve instead at ‖R_alg‖ ≤ η ‖R_alg(X^{k,0})‖,
+  tested at every iteration; its iterate then stops Newton only if the linear criterion holds
+  on its estimates too (docs/choices.md).
 
 **Estimates that need a later iterate.** The ν algebraic flux of X^{k,i} is built from
 X^{k,i+ν} (§6): an `estimate` may answer the call for X^{k,i+ν} with the estimates of the
@@ -125,15 +129,16 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
     (default: the preset's); krylov: a preset name ('amg', 'paper', 'direct'), a dict of
     `membranes.linalg.krylov.Krylov` fields (preset, options, nu, max_it) or a Krylov;
     estimate: see the module notes; progress: True (print on rank 0) or a callable taking one
-    line per Newton step (called on rank 0 only); forcing (inexact only): the Krylov solve of a
-    step stops instead at ‖R_alg‖ ≤ forcing ‖R_alg(X^{k,0})‖, tested at every iteration (the
-    module notes). Returns a `NewtonResult`."""
+    line per Newton step (called on rank 0 only); forcing (inexact: every step; adaptive: the
+    steps not expected to be the last): the Krylov solve of a step stops instead at ‖R_alg‖ ≤
+    forcing ‖R_alg(X^{k,0})‖, tested at every iteration (the module notes). Returns a
+    `NewtonResult`."""
     spec = as_krylov(krylov)
     system = spec.system if system is None else system
     _check(cfun, variant, system, spec, estimate, gamma_lin, gamma_alg, tol, max_newton)
     if forcing is not None:
-        if variant != "inexact":
-            raise ValueError("forcing applies to the inexact Newton variant only")
+        if variant == "exact":
+            raise ValueError("forcing applies to the inexact and adaptive variants only")
         _positive("forcing", forcing)
         if forcing >= 1.0:
             raise ValueError(f"forcing must lie in (0, 1), got {forcing!r}")
@@ -175,9 +180,17 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
     est0 = estimated(X, None, "initial") if estimate is not None and not adaptive else None
     last = record("initial", 0, 0, 0, X, None, est0)
     total, k, reason, converged = 0, 0, None, False
+    forced = False          # whether the last step's solve stopped at the forcing term
 
-    def met(rec):
-        """The variant's Newton stopping test at `rec`: (met, description)."""
+    def more_steps(rec):
+        """Adaptive: whether the step after `rec` is expected not to be the last (the first
+        step, or the estimates at `rec` say so: key `more_steps`)."""
+        return rec["kind"] == "initial" or bool(rec["estimates"].get("more_steps"))
+
+    def met(rec, forced):
+        """The variant's Newton stopping test at `rec`: (met, description). An adaptive
+        iterate whose solve was `forced` (stopped by the forcing term) must also meet the
+        linear criterion, which its solve did not test."""
         if adaptive:
             if rec["kind"] == "initial":
                 return False, ""
@@ -185,14 +198,18 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             if e.get("partial"):        # η_lin only: the test fails (module notes)
                 return False, f"eta_lin {e['eta_lin']:.3e} (eta_disc not evaluated)"
             ok = newton_criterion(e, gamma_lin)
-            return ok, (f"eta_lin {e['eta_lin']:.3e} {'<=' if ok else '>'} gamma_lin eta_disc "
-                        f"= {gamma_lin * e['eta_disc']:.3e}")
+            description = (f"eta_lin {e['eta_lin']:.3e} {'<=' if ok else '>'} gamma_lin "
+                           f"eta_disc = {gamma_lin * e['eta_disc']:.3e}")
+            if ok and forced and not linear_criterion(e, gamma_alg):
+                return False, description + (f", but eta_alg {e['eta_alg']:.3e} > gamma_alg "
+                                             f"max(eta_disc, eta_lin) after a forced solve")
+            return ok, description
         ok = rec["residual"] <= tol
         return ok, f"relative residual {rec['residual']:.3e} {'<=' if ok else '>'} {tol:.1e}"
 
     try:
         while True:
-            ok, description = met(last)
+            ok, description = met(last, forced)
             if ok:
                 reason, converged = f"converged: {description}", True
                 break
@@ -245,8 +262,9 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             t = time.perf_counter()
             t_est = times["estimate"]
             bound, every = lin_tol * lin.norm_B, spec.nu if variant == "inexact" else 1
-            if forcing is not None:         # relative to X^{k,0}'s residual (R: scratch here)
-                bound, every = forcing * step.residual(y, R), 1
+            forced = forcing is not None and (not adaptive or more_steps(last))
+            if forced:                      # relative to X^{k,0}'s residual (R: scratch here)
+                bound, every = forcing * (norm0 if adaptive else step.residual(y, R)), 1
             its, name, solved, norm = solver.solve(
                 step, y, bound, every, on_iterate if adaptive else None,
                 split if step.system == "eliminated" else None)

@@ -278,6 +278,40 @@ def test_adaptive_newton_stops_where_the_estimators_say():
     assert res.krylov_steps < 0.5 * solved("disk", 0.1, "paper").krylov_steps
 
 
+def test_adaptive_newton_with_a_forcing_term():
+    """Adaptive with forcing η: a step the estimates expect not to be the last (key
+    `more_steps`; always here) stops its Krylov solve at ‖R_alg‖ ≤ η ‖R_alg(X^{k,0})‖, so its
+    iterate is not tested by the linear criterion; Newton may then stop there only if the
+    linear criterion holds on its estimates as well. With η = 0.5 each solve is one Krylov
+    step; with γ_alg = 0.01 there is an iterate whose Newton test holds but whose linear
+    criterion fails, and the run goes on to the first iterate where both hold."""
+    from membranes.estimation.equilibration import FluxEquilibration
+    from membranes.estimation.estimators import Estimators
+    from membranes.nonlinear.newton import linear_criterion, newton_criterion
+    disc = disc_of("disk", 0.1)
+    est = Estimators(disc, FluxEquilibration(disc))
+
+    def estimate(X, R, kind):
+        if kind == "step":
+            return None
+        e = est.evaluate(X, R)
+        e.pop("eta_K")
+        e["more_steps"] = True
+        return e
+
+    res = newton(disc, variant="adaptive", krylov="amg", estimate=estimate, forcing=0.5,
+                 gamma_alg=0.01)
+    exact = newton(disc, variant="adaptive", krylov="amg", estimate=estimate, gamma_alg=0.01)
+    assert res.converged and exact.converged, (res.reason, exact.reason)
+    steps = [r for r in res.history if r["kind"] == "newton"]
+    assert all(r["i"] == 1 for r in steps)
+    assert res.krylov_steps < exact.krylov_steps
+    tests = [(newton_criterion(r["estimates"], 0.3), linear_criterion(r["estimates"], 0.01))
+             for r in steps]
+    assert tests[-1] == (True, True) and (True, True) not in tests[:-1]
+    assert (True, False) in tests            # Newton's test alone would have stopped there
+
+
 def test_adaptive_newton_with_estimates_of_the_previous_iterate():
     # the ν flux's estimates of X^{k,i} come with X^{k,i+ν} (`of_previous`): Newton must
     # return the accepted earlier iterate, never X^{k,0} = X^{k-1}
