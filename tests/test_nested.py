@@ -52,8 +52,10 @@ def test_newton_iterates_estimated_where_the_test_can_hold(monkeypatch):
     two of three are skipped. Against the run that estimates every
     iterate in full (GATE None): the same iterates (Newton does not depend on the estimates
     it skips), the same η_lin at the skipped ones to round-off, a skipped test that would
-    indeed have failed, and the same certified final iterate."""
+    indeed have failed, and the same certified final iterate. Without the forcing term of the
+    steps before the last (tested below), which makes the iterates depend on the gate."""
     from membranes.app import driver
+    monkeypatch.setattr(driver, "ADAPTIVE_FORCING", None)
     problem = scene("disk", 0.2, levels=4)
     gate = driver.GATE
     gated = solve(problem)
@@ -129,3 +131,23 @@ def test_newton_steps_before_the_last_stop_at_the_forcing_term(monkeypatch):
     assert forced.estimates["eta"] >= forced.energy_error
     assert abs(forced.estimates["eta"] - plain.estimates["eta"]) <= \
         forced.estimates["eta_lin"] + plain.estimates["eta_lin"]
+
+
+def test_a_forced_step_whose_test_may_hold_is_solved_to_the_floor(monkeypatch):
+    """J = 1: the second Newton step of T_1 is forced (η_lin of the first is 5× the gate, no
+    rate yet) but its iterate passes the gate, so the solve goes on to the exact floor before
+    the full estimate, and the forced solve's η_alg never reaches the certificate. Newton-min
+    with the same active set solves the same linear system whatever its start, so η equals
+    that of the run without forcing to the floor's round-off."""
+    from membranes.app import driver
+    problem = scene("disk", 0.2, levels=1)
+    forced = solve(problem)
+    monkeypatch.setattr(driver, "ADAPTIVE_FORCING", None)
+    plain = solve(problem)
+    steps = [[r for r in run.history if r["level"] == 1 and r["kind"] == "newton"]
+             for run in (forced, plain)]
+    assert len(steps[0]) == len(steps[1]) == 2
+    assert steps[0][0]["linear_it"] == 1 < steps[1][0]["linear_it"]
+    assert steps[0][-1]["alg_residual"] <= 2e-12 and forced.final_record["bound"]
+    assert forced.estimates["eta_alg"] <= 1e-10 * forced.estimates["eta"]
+    assert forced.estimates["eta"] == pytest.approx(plain.estimates["eta"], rel=1e-8)

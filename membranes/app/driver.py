@@ -181,7 +181,10 @@ class LevelEstimates:
 
     Each answer to kind 'newton' whose test fails says whether the next step is expected not
     to be the last either (`more_steps`, `_more_steps`): Newton then stops that step's Krylov
-    solve at the forcing term ADAPTIVE_FORCING instead of solving it to the exact floor.
+    solve at the forcing term ADAPTIVE_FORCING instead of solving it to the exact floor, and
+    hands the iterate over as kind 'forced'. Where the gate skips it, it is answered as a
+    'newton' iterate; otherwise its test may hold, and the answer None makes Newton finish
+    the solve to the floor first (the iterate is then estimated as 'newton').
     """
 
     def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
@@ -215,8 +218,10 @@ class LevelEstimates:
     def _more_steps(eta_lin, target, previous):
         """Whether the Newton step after an iterate whose test failed is expected not to be
         the last: η_lin, taken on at the last step's rate (from `previous`; rate 1 without
-        it), stays above REC_MARGIN · target. Such a step's Krylov solve may stop at the
-        forcing term (membranes.nonlinear.newton)."""
+        it), stays above REC_MARGIN · target. Such a step's Krylov solve stops at the
+        forcing term; if the gate then says its test may hold after all, the solve goes on
+        to the exact floor (kind 'forced', membranes.nonlinear.newton), so a wrong guess
+        costs only the gate."""
         rate = eta_lin / previous if previous else 1.0
         return eta_lin * rate > REC_MARGIN * target
 
@@ -245,17 +250,22 @@ class LevelEstimates:
                     self._keep(X, R)
                 return None
             previous = self.eta_lin
-            if kind == "newton" and self.gate is not None:
+            if kind == "forced" and self.gate is None:
+                return None                      # finish the solve: every test in full
+            if kind in ("newton", "forced") and self.gate is not None:
                 if self.eta_disc is not None:
                     lin, reference = self.est.linearisation(X), self.eta_disc
                 else:                            # η_rec and η_lin in one assembly
                     reference, lin = self.est.recovered(X, linearisation=True)
-                self.eta_lin = lin["eta_lin"]
                 target = self.gamma_lin * self.gate * reference
                 if self._skip(lin["eta_lin"], target, previous):
+                    self.eta_lin = lin["eta_lin"]
                     lin["partial"] = True
                     lin["more_steps"] = self._more_steps(lin["eta_lin"], target, previous)
                     return lin
+                if kind == "forced":             # its test may hold: finish the solve
+                    return None
+                self.eta_lin = lin["eta_lin"]
             out = self._evaluate(X, R)
             if kind == "newton":
                 self.eta_lin = out["eta_lin"]
@@ -294,6 +304,8 @@ class _Recorder:
 
     def __call__(self, X, R, kind):
         out = self.estimate(X, R, kind) if self.estimate is not None else None
+        if kind == "forced" and out is None:   # not a record: Newton finishes the solve
+            return out
         t = self.clock.now()
         err = self.clock.off(self.error, X) if self.error is not None else None
         earlier, self.previous = self.previous, err

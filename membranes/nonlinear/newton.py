@@ -24,8 +24,11 @@ The step is solved on the full 3N system or on the eliminated 2N one
   X⁰ is not estimated (Algorithm 1 makes at least one step). With `forcing` η, a step that
   the estimates expect not to be the last (the first step, or the last answer to kind
   'newton' carries `more_steps` = True) stops its solve instead at ‖R_alg‖ ≤ η ‖R_alg(X^{k,0})‖,
-  tested at every iteration; its iterate then stops Newton only if the linear criterion holds
-  on its estimates too (docs/choices.md).
+  tested at every iteration, and hands its iterate over with kind 'forced'. An answer None
+  says its Newton test may hold: the solve then goes on to the exact floor from there, and
+  the iterate is estimated as 'newton'. Otherwise the answer is the iterate's estimates, and
+  if they are full and Newton's test holds, the iterate stops Newton only if the linear
+  criterion holds on them too (docs/choices.md).
 
 **Estimates that need a later iterate.** The ν algebraic flux of X^{k,i} is built from
 X^{k,i+ν} (§6): an `estimate` may answer the call for X^{k,i+ν} with the estimates of the
@@ -41,9 +44,9 @@ without the flux equilibration, see membranes.app.driver.LevelEstimates): Newton
 `estimate(X, R, kind)` is any callable returning a dict with at least eta_disc, eta_lin,
 eta_alg (e.g. `membranes.estimation.estimators.Estimators.evaluate`, wrapped): X, R are PETSc
 Vecs in the iterate layout, R = B - A X unweighted (§4; None for X⁰), kind 'initial',
-'step' (its answer is not used), 'krylov' or 'newton'. The exact and inexact variants estimate
-X⁰ and every Newton iterate when given one, for the record. The Vecs are the loop's own: a
-callback that keeps one copies it.
+'step' (its answer is not used), 'krylov', 'forced' (None allowed) or 'newton'. The exact and
+inexact variants estimate X⁰ and every Newton iterate when given one, for the record. The
+Vecs are the loop's own: a callback that keeps one copies it.
 
 No line search and no safeguards: a Newton step is the plain semismooth step of §3 (for
 Newton-min with exact solves, the primal–dual active set method). A Krylov solve that fails
@@ -265,9 +268,19 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             forced = forcing is not None and (not adaptive or more_steps(last))
             if forced:                      # relative to X^{k,0}'s residual (R: scratch here)
                 bound, every = forcing * (norm0 if adaptive else step.residual(y, R)), 1
+            split_ = split if step.system == "eliminated" else None
             its, name, solved, norm = solver.solve(
-                step, y, bound, every, on_iterate if adaptive else None,
-                split if step.system == "eliminated" else None)
+                step, y, bound, every, on_iterate if adaptive else None, split_)
+            answer = None               # the estimates of a forced adaptive step's iterate
+            if forced and adaptive and solved and not accepted:
+                step.expand(y, X_try)
+                step.residual(y, R)
+                answer = estimated(X_try, R, "forced")
+                if answer is None:      # its Newton test may hold: finish the solve
+                    forced = False
+                    more, name, solved, norm = solver.solve(step, y, lin_tol * lin.norm_B, 1,
+                                                            None, split_)
+                    its += more
             t_solve = time.perf_counter() - t - (times["estimate"] - t_est)
             times["solve"] += t_solve
             total += its
@@ -298,7 +311,8 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 last = accepted[0][0]
                 last["kind"], last["krylov_total"] = "newton", total
             else:
-                e = estimated(X, R, "newton") if estimate is not None else None
+                e = answer if answer is not None else \
+                    estimated(X, R, "newton") if estimate is not None else None
                 last = record("newton", k, its, total, X, norm / lin.norm_B, e)
             last["times"] = {"assembly": t_assembly, "solve": t_solve}
             if say is not None:
