@@ -48,8 +48,9 @@ With Y = (u1, z), z_l = u2_l where λ_l goes and z_l = λ_l where u2_l goes,
     λ eliminated:  u2 = z,                   λ = B3/β - (α/β) u1 + (α/β) z
     u2 eliminated: u2 = u1 + (β/α) z - B3/α,  λ = z,
 
-and the system is (W E T) Y = W F - W E t: T is a sparse PETSc matrix (its zero factors not
-stored), W E T one MatMatMult per step. Every iterate X = T Y + t satisfies the complementarity
+and the system is (W E T) Y = W F - W E t: T is a sparse PETSc matrix whose pattern (five
+entries per vertex, zero factors kept) is the same at every step, so W E T is one numeric
+MatMatMult per step on the symbolic product of the first. Every iterate X = T Y + t satisfies the complementarity
 rows exactly, so R3 = 0 and the residual is W⁻¹ (b - A Y) in the two membrane blocks.
 """
 
@@ -118,6 +119,7 @@ class NewtonSystem:
         self._D2 = diagonal_matrix(d / mu2, r0, N, comm)
         self.E = _converted([[self.S_D, None, self._D1], [None, self.S_D, self._D2]], comm)
         self._A = None                                       # the full matrix, when asked for
+        self._T = self._AT = None                            # T and A = E T of the eliminated
         # the weights W (3N; 1 in the third block) and the weighted right side W (F, 0)
         self.W = disc.vector3()
         self.W.array[:n] = np.where(inner, 1.0 / mu1, 1.0)
@@ -210,6 +212,27 @@ class NewtonSystem:
         b.array[2 * n:] = lin.B3
         return FullStep(self, A, b, lin.norm_B)
 
+    def _elimination(self, values):
+        """T of `EliminatedStep` with the CSR `values` (5 per vertex: row u1 (1), rows u2 and
+        λ (2 each)), and A = E T. The pattern of T is the same at every step (zeros kept), so
+        both are made once and refilled, and the product reuses its symbolic part. One step
+        at a time: the matrices of the step before are overwritten."""
+        if self._T is None:
+            n, N, r0 = self.n, self.N, self.offset
+            y0 = 2 * r0 + np.arange(n)
+            pair = np.stack([y0, y0 + n], axis=1).ravel()
+            self._T_pattern = (_ints(np.concatenate([np.arange(n + 1), n + 2 * np.arange(
+                1, 2 * n + 1)])), _ints(np.concatenate([y0, pair, pair])))
+            self._T = PETSc.Mat().createAIJ(((3 * n, 3 * N), (2 * n, 2 * N)),
+                                            csr=(*self._T_pattern, values), comm=self.comm)
+            self._T.assemble()
+            self._AT = self.E.matMult(self._T)
+        else:
+            self._T.setValuesCSR(*self._T_pattern, values)
+            self._T.assemble()
+            self.E.matMult(self._T, result=self._AT)
+        return self._T, self._AT
+
     def eliminated_step(self, lin):
         """The eliminated 2N system of the module notes at `lin` (`EliminatedStep`)."""
         return EliminatedStep(self, lin)
@@ -224,7 +247,7 @@ class NewtonSystem:
 
     def destroy(self):
         for obj in (self.S_D, self._D1, self._D2, self.E, self._A, self.W, self.WF, self.WF2,
-                    self._r2):
+                    self._r2, self._T, self._AT):
             if obj is not None:
                 obj.destroy()
 
@@ -274,7 +297,7 @@ class EliminatedStep:
 
     def __init__(self, sys, lin):
         self.sys, self.norm_B = sys, lin.norm_B
-        n, N, r0, comm = sys.n, sys.N, sys.offset, sys.comm
+        n = sys.n
         alpha, beta, B3 = lin.alpha, lin.beta, lin.B3
         lam_out = np.abs(beta) >= sys.kappa * np.abs(alpha)
         u2_out = ~lam_out
@@ -287,24 +310,17 @@ class EliminatedStep:
         self.lam_out = lam_out
         self.c = np.where(lam_out, alpha / b_safe, 0.0)
         self.d = np.where(u2_out, beta / a_safe, 0.0)
-        # T (3N × 2N), its nonzero factors only: row l of u1 holds 1 in column l (Y's u1);
-        # rows of u2 and λ hold (U, H) and (G, Q) in columns l and n + l (Y's u1 and z)
-        l = np.arange(n)  # noqa: E741  (the vertex index l of §3)
-        y0, y1 = 2 * r0 + l, 2 * r0 + n + l
-        first = np.concatenate([np.ones(n), U, G])
-        second = np.concatenate([np.zeros(n), H, Q])
-        cols = np.stack([np.concatenate([y0, y0, y0]), np.concatenate([y1, y1, y1])], axis=1)
-        vals = np.stack([first, second], axis=1)
-        keep = vals != 0.0
-        indptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))])
-        self.T = PETSc.Mat().createAIJ(((3 * n, 3 * N), (2 * n, 2 * N)),
-                                       csr=(_ints(indptr), _ints(cols[keep]), vals[keep]),
-                                       comm=comm)
-        self.T.assemble()
+        # T (3N × 2N): row l of u1 holds 1 in column l (Y's u1); rows of u2 and λ hold (U, H)
+        # and (G, Q) in columns l and n + l (Y's u1 and z); A = E T. Both are the system's,
+        # refilled at every step (`NewtonSystem._elimination`)
+        values = np.empty(5 * n)
+        values[:n] = 1.0
+        values[n:3 * n:2], values[n + 1:3 * n:2] = U, H
+        values[3 * n::2], values[3 * n + 1::2] = G, Q
+        self.T, self.A = sys._elimination(values)
         self.t = sys.disc.vector3()
         self.t.array[n:2 * n] = -U * B3 / a_safe
         self.t.array[2 * n:] = L * B3 / b_safe
-        self.A = sys.E.matMult(self.T)
         self.b = sys.WF2.duplicate()
         sys.E.mult(self.t, self.b)
         self.b.aypx(-1.0, sys.WF2)                            # W F - W E t
@@ -339,5 +355,5 @@ class EliminatedStep:
         return norm
 
     def destroy(self):
-        for obj in (self.T, self.t, self.A, self.b):
+        for obj in (self.t, self.b):           # T and A are the system's
             obj.destroy()
