@@ -75,8 +75,9 @@ def child(method, arg):
 
     from membranes import scenes, solve
     from membranes.app.cli import quiet_jit_logging
-    from membranes.app.driver import LevelEstimates, _final_residual
+    from membranes.app.driver import _final_residual
     from membranes.app.peer import nested_peer, plain_peer
+    from membranes.app.schedule import LevelEstimates
     from membranes.estimation.energy_error import EnergyError
     quiet_jit_logging()
     comm = MPI.COMM_WORLD

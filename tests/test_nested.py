@@ -47,7 +47,7 @@ def test_coarse_tolerance_is_used():
 
 
 def test_newton_iterates_estimated_where_the_test_can_hold(monkeypatch):
-    """driver.LevelEstimates's gate: a Newton iterate of T_J whose η_lin exceeds γ_lin · GATE ·
+    """schedule.LevelEstimates's gate: a Newton iterate of T_J whose η_lin exceeds γ_lin · GATE ·
     the last full η_disc (before the first: η_rec) gets η_lin only (no bound). Here the first
     two of three are skipped. Against the run that estimates every
     iterate in full (GATE None): the same iterates (Newton does not depend on the estimates
@@ -90,7 +90,7 @@ def test_gate_with_recovered_estimate_below_eta_disc(monkeypatch):
     estimated in full, so the gated run stops where the run that estimates every iterate
     does (a gate against η_rec alone skips the first iterate, whose test holds, and
     Newton-min then runs on for many steps)."""
-    from membranes.app import driver
+    from membranes.app import driver, schedule
     from membranes.fem.meshes import structured_square
     from membranes.model import scenes
     problem = scenes.square(mesh=structured_square(4, 400, 1.0))
@@ -103,7 +103,7 @@ def test_gate_with_recovered_estimate_below_eta_disc(monkeypatch):
     assert gated.estimates["eta"] == pytest.approx(full.estimates["eta"], rel=1e-12)
     # without the margin the first iterate is skipped, and Newton-min goes on for long
     monkeypatch.setattr(driver, "GATE", 1.0)
-    monkeypatch.setattr(driver, "REC_MARGIN", 1.0)
+    monkeypatch.setattr(schedule, "REC_MARGIN", 1.0)
     plain = solve(problem)
     assert plain.newton_iterations > full.newton_iterations + 5
 
@@ -112,7 +112,7 @@ def test_newton_steps_before_the_last_stop_at_the_forcing_term(monkeypatch):
     """On T_J a Newton step that the estimates expect not to be the last (η_lin taken on at
     the last step's rate stays above REC_MARGIN · the gate; the first step on the mesh)
     stops its Krylov solve at ADAPTIVE_FORCING (0.1) times its initial residual instead of
-    the exact floor (driver.LevelEstimates._more_steps). Against the run without forcing:
+    the exact floor (schedule.LevelEstimates._more_steps). Against the run without forcing:
     the same Newton steps, fewer Krylov steps, the last step solved to the floor 2e-12, and
     the same certified answer. Both final iterates meet η_lin ≤ γ_lin η_disc; their η may
     differ by the linearisation error left in each, whose scale is their η_lin."""

@@ -35,31 +35,21 @@ import numpy as np
 from petsc4py import PETSc
 
 from ..estimation.energy_error import EnergyError
-from ..estimation.equilibration import FluxEquilibration
-from ..estimation.estimators import Estimators
 from ..fem.discretisation import Discretisation, discretise
 from ..linalg.krylov import Krylov
 from ..model import checks
 from ..model.petsc_options import check_petsc_options_used, parse_petsc_options
 from ..model.problem import Problem
 from ..nonlinear import cfunctions
-from ..nonlinear.newton import VARIANTS, linear_criterion
+from ..nonlinear.newton import VARIANTS
 from ..nonlinear.newton import newton as run_newton
+from .schedule import DEFAULT_GAMMA, GATE, LevelEstimates
 from .solution import ESTIMATOR_COLUMNS, Solution
 
-DEFAULT_GAMMA = 0.3
 DEFAULT_TOL = 1e-10
 ALG_FLUXES = ("nu", "multilevel")
 INITIAL_GUESSES = ("paper", "zero")
 ERRORS = ("final", "iterates", "none")
-# the Newton test η_lin ≤ γ_lin η_disc is evaluated in full at X^k only where η_lin(X^k) ≤
-# γ_lin GATE η_disc of the last full estimate on the mesh, or η_rec before it
-# (`LevelEstimates`); None: always
-GATE = 1.0
-# before the first full estimate η_rec stands in for η_disc, which may exceed it: an iterate
-# with η_lin within REC_MARGIN of the gate is estimated unless the last step's rate takes η_lin
-# below the gate at the next step (`LevelEstimates._skip`)
-REC_MARGIN = 2.0
 COARSE = ("residual", "estimated")
 DEFAULT_COARSE_TOL = 1e-6
 # coarse='residual': a Krylov solve stops at ‖R_alg‖ ≤ COARSE_FORCING ‖R_alg(X^{k,0})‖
@@ -143,149 +133,6 @@ def _algebraic_flux(problem, alg_flux, estimators, newton):
         raise ValueError("the multilevel algebraic flux needs a mesh hierarchy: levels >= 1 "
                          "(--levels J)")
     return alg_flux
-
-
-class LevelEstimates:
-    """The estimators of one mesh (§7) with the run's algebraic flux (§6), set up once: the
-    `estimate(X, R, kind)` callback of Newton (membranes.nonlinear.newton). Only a run that
-    estimates builds one.
-
-    * 'multilevel': every iterate gets σ_alg with ∇·σ_alg = r_αh exactly (no remainder).
-    * 'nu': an iterate is first estimated without algebraic flux, its whole lifted residual
-      bounded by Poincaré–Friedrichs (η_rem; enough where the residual is at round-off). If
-      that does not meet the linear criterion η_alg ≤ γ_alg max(η_disc, η_lin), the iterate
-      handed over before in the same Newton step, X^{k,i-ν} (X^{k,0} = X^{k-1} announced with
-      kind 'step'), is estimated with the ν flux σ_disc(X^{k,i}) - σ_disc(X^{k,i-ν}) and its
-      remainder, and returned marked `of_previous` (Newton accepts that iterate if the
-      criterion holds on it). σ_disc of each iterate is solved once (Estimators keeps the last
-      two).
-
-    **Where the Newton test needs σ_disc.** At the end of a Newton step (kind 'newton') the
-    test is η_lin ≤ γ_lin η_disc. η_lin needs no flux (`Estimators.linearisation`, one small
-    assembly); η_disc does. Between Newton steps on one mesh η_disc barely moves (the
-    discretisation error of iterates near the discrete solution), while η_lin falls
-    superlinearly. So once a full estimate on the mesh has given η_disc, an iterate with
-    η_lin > γ_lin · GATE · that η_disc (GATE = 1) is returned with η_lin only, marked
-    `partial` and without a bound: its Newton test would hold only if η_disc grew in one
-    step, and Newton goes on. Before the first full estimate on the mesh, the gradient
-    recovery estimate η_rec (`Estimators.recovered`, two small assemblies) stands in for
-    η_disc: both estimate the same discretisation error, but η_rec is no bound and η_disc
-    may exceed it (by 3× on a mesh of aspect ratio 100). So within REC_MARGIN (2) of the
-    gate an iterate is estimated in full, unless the rate of the last Newton step takes η_lin
-    below the gate at the next step (`_skip`). This is a schedule of the estimates, like ν
-    for Krylov (§8): a wrong guess costs about one more Newton step, never the bound; the
-    iterate Newton stops at is always estimated in full and certified. GATE = 1 because a
-    full estimate whose test fails is wasted, and on T_J it costs more than the Newton step
-    that a skipped, passing test costs: estimating an iterate pays only if its test is
-    likely to hold (docs/choices.md). `gate=None` estimates every Newton iterate in full.
-
-    Each answer to kind 'newton' whose test fails says whether the next step is expected not
-    to be the last either (`more_steps`, `_more_steps`): Newton then stops that step's Krylov
-    solve at the forcing term ADAPTIVE_FORCING instead of solving it to the exact floor, and
-    hands the iterate over as kind 'forced'. Where the gate skips it, it is answered as a
-    'newton' iterate; otherwise its test may hold, and the answer None makes Newton finish
-    the solve to the floor first (the iterate is then estimated as 'newton').
-    """
-
-    def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
-                 gamma_lin=DEFAULT_GAMMA, gate=GATE):
-        t = time.perf_counter()
-        self.est = Estimators(disc, FluxEquilibration(disc.V, disc.dx_data))
-        self.multilevel = None
-        if alg_flux == "multilevel":
-            from ..estimation.multilevel import MultilevelFlux  # only a run that uses it
-            self.multilevel = MultilevelFlux(disc, hierarchy)
-        self.gamma_alg, self.gamma_lin, self.gate = gamma_alg, gamma_lin, gate
-        self.eta_disc = None           # η_disc of the last full estimate on this mesh
-        self.eta_lin = None            # η_lin of the last Newton iterate on this mesh
-        self.pending = None            # ('nu') the iterate handed over last: (X, R) copies
-        self.setup_time = time.perf_counter() - t
-        self.time = 0.0
-        self.count = 0
-
-    def _skip(self, eta_lin, target, previous):
-        """Whether the Newton test η_lin ≤ target is not worth a full estimate: it fails
-        against the last η_disc on the mesh, or, with η_rec standing in (not a bound; η_disc
-        may exceed it), η_lin is above REC_MARGIN · target, or it is within that margin but
-        the rate of the last Newton step (from `previous`) takes it below target at the next."""
-        if eta_lin <= target:
-            return False
-        if self.eta_disc is not None or eta_lin > REC_MARGIN * target:
-            return True
-        return bool(previous) and eta_lin * (eta_lin / previous) <= target
-
-    @staticmethod
-    def _more_steps(eta_lin, target, previous):
-        """Whether the Newton step after an iterate whose test failed is expected not to be
-        the last: η_lin, taken on at the last step's rate (from `previous`; rate 1 without
-        it), stays above REC_MARGIN · target. Such a step's Krylov solve stops at the
-        forcing term; if the gate then says its test may hold after all, the solve goes on
-        to the exact floor (kind 'forced', membranes.nonlinear.newton), so a wrong guess
-        costs only the gate."""
-        rate = eta_lin / previous if previous else 1.0
-        return eta_lin * rate > REC_MARGIN * target
-
-    def _keep(self, X, R):
-        self._drop()
-        self.pending = (X.copy(), R.copy())
-
-    def _drop(self):
-        if self.pending is not None:
-            for v in self.pending:
-                v.destroy()
-            self.pending = None
-
-    def _evaluate(self, X, R):
-        if R is not None and self.multilevel is not None:
-            rh = self.est.lifted(R)
-            sigma_alg = [self.multilevel.sigma(r) for r in rh]
-            return self.est.evaluate(X, R, sigma_alg=sigma_alg)
-        return self.est.evaluate(X, R)
-
-    def __call__(self, X, R, kind=None):
-        t = time.perf_counter()
-        try:
-            if kind == "step":                 # X^{k,0} of a new Newton step
-                if self.multilevel is None:
-                    self._keep(X, R)
-                return None
-            previous = self.eta_lin
-            if kind == "forced" and self.gate is None:
-                return None                      # finish the solve: every test in full
-            if kind in ("newton", "forced") and self.gate is not None:
-                if self.eta_disc is not None:
-                    lin, reference = self.est.linearisation(X), self.eta_disc
-                else:                            # η_rec and η_lin in one assembly
-                    reference, lin = self.est.recovered(X, linearisation=True)
-                target = self.gamma_lin * self.gate * reference
-                if self._skip(lin["eta_lin"], target, previous):
-                    self.eta_lin = lin["eta_lin"]
-                    lin["partial"] = True
-                    lin["more_steps"] = self._more_steps(lin["eta_lin"], target, previous)
-                    return lin
-                if kind == "forced":             # its test may hold: finish the solve
-                    return None
-                self.eta_lin = lin["eta_lin"]
-            out = self._evaluate(X, R)
-            if kind == "newton":
-                self.eta_lin = out["eta_lin"]
-                out["more_steps"] = self._more_steps(out["eta_lin"],
-                                                     self.gamma_lin * out["eta_disc"], previous)
-            if kind == "krylov" and self.multilevel is None:
-                if not linear_criterion(out, self.gamma_alg) and self.pending is not None:
-                    (Xp, Rp), current = self.pending, (X, R)
-                    sigma_alg, eta_rem = self.est.nu_flux(Xp, Rp, X, R)
-                    out = self.est.evaluate(Xp, Rp, sigma_alg=sigma_alg, eta_rem=eta_rem)
-                    out["of_previous"] = True
-                    self._keep(*current)
-                else:
-                    self._keep(X, R)
-            out["bound"] = True
-            self.eta_disc = out["eta_disc"]
-            self.count += 1
-            return out
-        finally:
-            self.time += time.perf_counter() - t
 
 
 class _Recorder:

@@ -101,7 +101,8 @@ def replay(problem, sol):
     from ..fem.discretisation import discretise
     from ..linalg.krylov import Krylov
     from ..nonlinear.newton import newton
-    from .driver import LevelEstimates, _final_residual, prolong
+    from .driver import _final_residual, prolong
+    from .schedule import LevelEstimates
     from .solution import ESTIMATOR_COLUMNS
     o = sol.options
     krylov = Krylov(o["solver"], o["petsc_options"] or None, nu=o["nu"])

@@ -54,7 +54,7 @@ def warm_scene(name, comm=MPI.COMM_SELF):
             dict(newton="exact", solver="direct")]
     for options in runs:
         solve(problem, **options)
-    # η_lin and η_rec alone (driver.LevelEstimates's gate), which a tiny run need not reach
+    # η_lin and η_rec alone (schedule.LevelEstimates's gate), which a tiny run need not reach
     from ..estimation.estimators import Estimators
     from ..fem.discretisation import discretise
     disc = discretise(problem)

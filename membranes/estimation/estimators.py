@@ -289,7 +289,7 @@ class Estimators:
         recovery estimate of the discretisation error (Zienkiewicz–Zhu), the expression of η_F
         (§7) with -G_α in place of the equilibrated σ_α,disc. Not a bound, since G_α is not
         equilibrated: it stands in for η_disc only where none has been computed on the mesh,
-        to decide whether the flux equilibration is worth computing (driver.LevelEstimates).
+        to decide whether the flux equilibration is worth computing (membranes.app.schedule).
         Two small assemblies, no patch problem; the second also integrates η_lin's terms, so
         `linearisation=True` returns (η_rec, `linearisation(X)`) at no extra assembly."""
         from dolfinx import fem, la

@@ -39,7 +39,7 @@ was verified on, with its own guaranteed bound (X^{k,0} is no candidate: accepti
 would repeat step k unchanged). Each Newton step first calls the callback with kind 'step'
 (X^{k,0} and its residual in the step's system; no estimate wanted). An answer to kind
 'newton' marked `partial` holds η_lin only (the estimates showed that the Newton test fails
-without the flux equilibration, see membranes.app.driver.LevelEstimates): Newton goes on.
+without the flux equilibration, see membranes.app.schedule.LevelEstimates): Newton goes on.
 
 `estimate(X, R, kind)` is any callable returning a dict with at least eta_disc, eta_lin,
 eta_alg (e.g. `membranes.estimation.estimators.Estimators.evaluate`, wrapped): X, R are PETSc
@@ -311,8 +311,10 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 last = accepted[0][0]
                 last["kind"], last["krylov_total"] = "newton", total
             else:
-                e = answer if answer is not None else \
-                    estimated(X, R, "newton") if estimate is not None else None
+                e = answer
+                if e is None and estimate is not None:
+                    ns.release()        # a full estimate may follow: not under its peak
+                    e = estimated(X, R, "newton")
                 last = record("newton", k, its, total, X, norm / lin.norm_B, e)
             last["times"] = {"assembly": t_assembly, "solve": t_solve}
             if say is not None:

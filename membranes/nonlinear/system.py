@@ -50,8 +50,9 @@ With Y = (u1, z), z_l = u2_l where λ_l goes and z_l = λ_l where u2_l goes,
 
 and the system is (W E T) Y = W F - W E t: T is a sparse PETSc matrix whose pattern (five
 entries per vertex, zero factors kept) is the same at every step, so W E T is one numeric
-MatMatMult per step on the symbolic product of the first. Every iterate X = T Y + t satisfies the complementarity
-rows exactly, so R3 = 0 and the residual is W⁻¹ (b - A Y) in the two membrane blocks.
+MatMatMult per step on the symbolic product of the first. Every iterate X = T Y + t satisfies
+the complementarity rows exactly, so R3 = 0 and the residual is W⁻¹ (b - A Y) in the two
+membrane blocks.
 """
 
 from dataclasses import dataclass
@@ -233,6 +234,13 @@ class NewtonSystem:
             self.E.matMult(self._T, result=self._AT)
         return self._T, self._AT
 
+    def release(self):
+        """Free T and A = E T of the eliminated steps (the next step makes them anew)."""
+        for obj in (self._T, self._AT):
+            if obj is not None:
+                obj.destroy()
+        self._T = self._AT = None
+
     def eliminated_step(self, lin):
         """The eliminated 2N system of the module notes at `lin` (`EliminatedStep`)."""
         return EliminatedStep(self, lin)
@@ -246,8 +254,9 @@ class NewtonSystem:
         raise ValueError(f"unknown Newton system {system!r} (choose from: full, eliminated)")
 
     def destroy(self):
+        self.release()
         for obj in (self.S_D, self._D1, self._D2, self.E, self._A, self.W, self.WF, self.WF2,
-                    self._r2, self._T, self._AT):
+                    self._r2):
             if obj is not None:
                 obj.destroy()
 

@@ -105,7 +105,7 @@ def test_history_is_the_solutions(run):
     times = [float(r["wall_time_s"]) for r in rows]
     assert times == sorted(times) and times[-1] <= sol.wall_time_s
     # adaptive: every Newton row of T_J carries η_lin, and its estimates with the bound
-    # unless the gate skipped them (driver.LevelEstimates), the last one is the
+    # unless the gate skipped them (schedule.LevelEstimates), the last one is the
     # certificate; the coarse level stops by its residual, without estimators
     # (coarse='residual', the default)
     finest = str(len(sol.per_level) - 1)

@@ -143,7 +143,7 @@ def test_estimator_curves(made, method):
         assert float(rows[-1]["eta"]) == pytest.approx(sol.estimates["eta"], rel=1e-9)
     with_both = [r for r in rows if r["eta"] and r["energy_error"]]
     # adaptive runs estimate T_J only (coarse='residual'), where the Newton gate lets them
-    # (driver.LevelEstimates: the certified rows); the others are replayed in full
+    # (schedule.LevelEstimates: the certified rows); the others are replayed in full
     J = sol.final_record["level"]
     certified = sum(1 for r in sol.history if r["level"] == J and r["kind"] == "newton"
                     and r["bound"])
