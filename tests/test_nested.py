@@ -111,7 +111,7 @@ def test_gate_with_recovered_estimate_below_eta_disc(monkeypatch):
 def test_newton_steps_before_the_last_stop_at_the_forcing_term(monkeypatch):
     """On T_J a Newton step that the estimates expect not to be the last (η_lin taken on at
     the last step's rate stays above REC_MARGIN · the gate; the first step on the mesh)
-    stops its Krylov solve at ADAPTIVE_FORCING (0.1) times its initial residual instead of
+    stops its Krylov solve at ADAPTIVE_FORCING (0.01) times its initial residual instead of
     the exact floor (schedule.LevelEstimates._more_steps). Against the run without forcing:
     the same Newton steps, fewer Krylov steps, the last step solved to the floor 2e-12, and
     the same certified answer. Both final iterates meet η_lin ≤ γ_lin η_disc; their η may
@@ -147,7 +147,7 @@ def test_a_forced_step_whose_test_may_hold_is_solved_to_the_floor(monkeypatch):
     steps = [[r for r in run.history if r["level"] == 1 and r["kind"] == "newton"]
              for run in (forced, plain)]
     assert len(steps[0]) == len(steps[1]) == 2
-    assert steps[0][0]["linear_it"] == 1 < steps[1][0]["linear_it"]
+    assert steps[0][0]["linear_it"] < steps[1][0]["linear_it"]
     assert steps[0][-1]["alg_residual"] <= 2e-12 and forced.final_record["bound"]
     assert forced.estimates["eta_alg"] <= 1e-10 * forced.estimates["eta"]
     assert forced.estimates["eta"] == pytest.approx(plain.estimates["eta"], rel=1e-8)

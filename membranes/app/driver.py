@@ -57,7 +57,7 @@ COARSE_FORCING = 0.1
 # adaptive with the amg preset: a Newton step expected not to be the last stops its Krylov
 # solve at ‖R_alg‖ ≤ ADAPTIVE_FORCING ‖R_alg(X^{k,0})‖ (`LevelEstimates._more_steps`; the
 # paper preset keeps Algorithm 1 as the paper ran it); None: Algorithm 1's test everywhere
-ADAPTIVE_FORCING = 0.1
+ADAPTIVE_FORCING = 0.01
 
 
 def _choice(name, value, choices):
