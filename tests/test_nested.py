@@ -108,6 +108,19 @@ def test_gate_with_recovered_estimate_below_eta_disc(monkeypatch):
     assert plain.newton_iterations > full.newton_iterations + 5
 
 
+def _with_and_without_forcing(monkeypatch, J):
+    """The disk (h0 = 0.2, J levels) solved with the defaults and with ADAPTIVE_FORCING None,
+    and the Newton records of T_J of each."""
+    from membranes.app import driver
+    problem = scene("disk", 0.2, levels=J)
+    forced = solve(problem)
+    monkeypatch.setattr(driver, "ADAPTIVE_FORCING", None)
+    plain = solve(problem)
+    steps = [[r for r in run.history if r["level"] == J and r["kind"] == "newton"]
+             for run in (forced, plain)]
+    return forced, plain, steps
+
+
 def test_newton_steps_before_the_last_stop_at_the_forcing_term(monkeypatch):
     """On T_J a Newton step that the estimates expect not to be the last (η_lin taken on at
     the last step's rate stays above REC_MARGIN · the gate; the first step on the mesh)
@@ -116,13 +129,7 @@ def test_newton_steps_before_the_last_stop_at_the_forcing_term(monkeypatch):
     the same Newton steps, fewer Krylov steps, the last step solved to the floor 2e-12, and
     the same certified answer. Both final iterates meet η_lin ≤ γ_lin η_disc; their η may
     differ by the linearisation error left in each, whose scale is their η_lin."""
-    from membranes.app import driver
-    problem = scene("disk", 0.2, levels=4)
-    forced = solve(problem)
-    monkeypatch.setattr(driver, "ADAPTIVE_FORCING", None)
-    plain = solve(problem)
-    steps = [[r for r in run.history if r["level"] == 4 and r["kind"] == "newton"]
-             for run in (forced, plain)]
+    forced, plain, steps = _with_and_without_forcing(monkeypatch, 4)
     assert len(steps[0]) == len(steps[1]) >= 3
     its = [[r["linear_it"] for r in s] for s in steps]
     assert all(f < p for f, p in zip(its[0][:-1], its[1][:-1])), its
@@ -139,13 +146,7 @@ def test_a_forced_step_whose_test_may_hold_is_solved_to_the_floor(monkeypatch):
     the full estimate, and the forced solve's η_alg never reaches the certificate. Newton-min
     with the same active set solves the same linear system whatever its start, so η equals
     that of the run without forcing to the floor's round-off."""
-    from membranes.app import driver
-    problem = scene("disk", 0.2, levels=1)
-    forced = solve(problem)
-    monkeypatch.setattr(driver, "ADAPTIVE_FORCING", None)
-    plain = solve(problem)
-    steps = [[r for r in run.history if r["level"] == 1 and r["kind"] == "newton"]
-             for run in (forced, plain)]
+    forced, plain, steps = _with_and_without_forcing(monkeypatch, 1)
     assert len(steps[0]) == len(steps[1]) == 2
     assert steps[0][0]["linear_it"] < steps[1][0]["linear_it"]
     assert steps[0][-1]["alg_residual"] <= 2e-12 and forced.final_record["bound"]
