@@ -237,7 +237,9 @@ def solve(problem: Problem,
 
     newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
     or 'adaptive' (Algorithm 1 of §8: Krylov stops at η_alg ≤ γ_alg max(η_disc, η_lin),
-    Newton at η_lin ≤ γ_lin η_disc, γ = `gamma_lin`, `gamma_alg`, 0.3 by default);
+    Newton at η_lin ≤ γ_lin η_disc, γ = `gamma_lin`, `gamma_alg`, 0.3 by default; with the
+    amg preset a step not expected to be the last stops Krylov at ADAPTIVE_FORCING, see
+    membranes.app.schedule);
     cfun: 'min' or 'fb'; solver: a Krylov preset of membranes.linalg.krylov, 'amg' (the
     eliminated system, FGMRES with the mean/gap BoomerAMG preconditioner), 'paper' (the full
     system, GMRES + ILU(0), block Jacobi across processes) or 'direct' (MUMPS); system:
