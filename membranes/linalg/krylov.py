@@ -290,6 +290,12 @@ class LinearSolver:
             # needs a new set-up anyway; the mean's AMG, kept in `mean`, is not the KSP's)
             ksp.reset()
 
+    def release(self):
+        """Free the mean's PC (made again at the next eliminated solve)."""
+        if self.mean is not None:
+            self.mean.destroy()
+            self.mean = None
+
     def destroy(self):
         """Free the KSP and the mean's PC, and take the solver's options out of PETSc's
         database."""

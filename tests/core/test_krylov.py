@@ -164,6 +164,15 @@ def test_mean_gap_split_is_the_exact_inverse(scene, cfun):
     its, reason, ok, norm = amg.solve(step, y, EXACT_TOL * lin.norm_B, split=split)
     assert ok and its <= 12, (its, reason)            # one V-cycle each: 5-9 measured
     assert norm <= EXACT_TOL * lin.norm_B
+    # the mean's AMG, freed (`release`, before a full estimate), is made again: the same
+    # iterations and iterate (BoomerAMG's set-up is deterministic)
+    amg.release()
+    assert amg.mean is None
+    again = step.guess(X)
+    assert amg.solve(step, again, EXACT_TOL * lin.norm_B, split=split)[:3] == (its, reason, ok)
+    assert amg.mean is not None
+    again.axpy(-1.0, y)
+    assert again.norm() == 0.0
     amg.destroy()
     step.destroy()
     sys_.destroy()
