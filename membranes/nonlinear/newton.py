@@ -313,8 +313,9 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             else:
                 e = answer
                 if e is None and estimate is not None:
-                    ns.release()        # a full estimate may follow: not under its peak
-                    solver.release()
+                    if adaptive:        # a full estimate may follow: not under its peak
+                        ns.release()
+                        solver.release()
                     e = estimated(X, R, "newton")
                 last = record("newton", k, its, total, X, norm / lin.norm_B, e)
             last["times"] = {"assembly": t_assembly, "solve": t_solve}
