@@ -118,7 +118,7 @@ class NewtonSystem:
         self.D = d
         self._D1 = diagonal_matrix(-d / mu1, r0, N, comm)
         self._D2 = diagonal_matrix(d / mu2, r0, N, comm)
-        self.E = _converted([[self.S_D, None, self._D1], [None, self.S_D, self._D2]], comm)
+        self._E = None                                       # W E, made when needed (`E`)
         self._A = None                                       # the full matrix, when asked for
         self._T = self._AT = None                            # T and A = E T of the eliminated
         # the weights W (3N; 1 in the third block) and the weighted right side W (F, 0)
@@ -234,12 +234,21 @@ class NewtonSystem:
             self.E.matMult(self._T, result=self._AT)
         return self._T, self._AT
 
+    @property
+    def E(self):
+        """W E, the weighted linear rows (2N × 3N): S_D blocks and the contact diagonals."""
+        if self._E is None:
+            self._E = _converted([[self.S_D, None, self._D1], [None, self.S_D, self._D2]],
+                                 self.comm)
+        return self._E
+
     def release(self):
-        """Free T and A = E T of the eliminated steps (the next step makes them anew)."""
-        for obj in (self._T, self._AT):
+        """Free W E and the eliminated steps' T and A = E T (made anew when next needed): less
+        alive under an estimate that may be full."""
+        for obj in (self._T, self._AT, self._E):
             if obj is not None:
                 obj.destroy()
-        self._T = self._AT = None
+        self._T = self._AT = self._E = None
 
     def eliminated_step(self, lin):
         """The eliminated 2N system of the module notes at `lin` (`EliminatedStep`)."""
@@ -255,7 +264,7 @@ class NewtonSystem:
 
     def destroy(self):
         self.release()
-        for obj in (self.S_D, self._D1, self._D2, self.E, self._A, self.W, self.WF, self.WF2,
+        for obj in (self.S_D, self._D1, self._D2, self._A, self.W, self.WF, self.WF2,
                     self._r2):
             if obj is not None:
                 obj.destroy()
