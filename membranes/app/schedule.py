@@ -95,18 +95,22 @@ class LevelEstimates:
             return False
         if self.eta_disc is not None or eta_lin > REC_MARGIN * target:
             return True
-        return bool(previous) and eta_lin * (eta_lin / previous) <= target
+        return self._forecast(eta_lin, previous) <= target    # (rate 1: never, η_lin > target)
 
     @staticmethod
-    def _more_steps(eta_lin, target, previous):
+    def _forecast(eta_lin, previous):
+        """η_lin of the next Newton iterate, taken on at the last step's rate η_lin / `previous`
+        (rate 1 without a previous η_lin on the mesh)."""
+        return eta_lin * (eta_lin / previous) if previous else eta_lin
+
+    @classmethod
+    def _more_steps(cls, eta_lin, target, previous):
         """Whether the Newton step after an iterate whose test failed is expected not to be
-        the last: η_lin, taken on at the last step's rate (from `previous`; rate 1 without
-        it), stays above REC_MARGIN · target. Such a step's Krylov solve stops at the
-        forcing term; if the gate then says its test may hold after all, the solve goes on
-        to the exact floor (kind 'forced', membranes.nonlinear.newton), so a wrong guess
-        costs only the gate."""
-        rate = eta_lin / previous if previous else 1.0
-        return eta_lin * rate > REC_MARGIN * target
+        the last: the `_forecast` of η_lin stays above REC_MARGIN · target. Such a step's
+        Krylov solve stops at the forcing term; if the gate then says its test may hold after
+        all, the solve goes on to the exact floor (kind 'forced', membranes.nonlinear.newton),
+        so a wrong guess costs only the gate."""
+        return cls._forecast(eta_lin, previous) > REC_MARGIN * target
 
     def _keep(self, X, R):
         self._drop()

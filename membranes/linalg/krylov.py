@@ -300,8 +300,7 @@ class LinearSolver:
         """Free the KSP and the mean's PC, and take the solver's options out of PETSc's
         database."""
         self.ksp.destroy()
-        if self.mean is not None:
-            self.mean.destroy()
+        self.release()
         take_options(self.prefix, self.options)
 
 

@@ -292,8 +292,9 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 step.destroy()
                 y.destroy()
                 break
-            step.expand(y, X_try)
-            step.residual(y, R)
+            if answer is None:          # else X_try and R are those of y already
+                step.expand(y, X_try)
+                step.residual(y, R)
             if accepted and accepted[0][1] is not None:     # an earlier iterate accepted
                 accepted[0][1].copy(X_try)
                 accepted[0][2].copy(R)

@@ -120,7 +120,7 @@ class NewtonSystem:
         self._D2 = diagonal_matrix(d / mu2, r0, N, comm)
         self._E = None                                       # W E, made when needed (`E`)
         self._A = None                                       # the full matrix, when asked for
-        self._T = self._AT = None                            # T and A = E T of the eliminated
+        self._T = self._AT = self._T_pattern = None          # T and A = E T of the eliminated
         # the weights W (3N; 1 in the third block) and the weighted right side W (F, 0)
         self.W = disc.vector3()
         self.W.array[:n] = np.where(inner, 1.0 / mu1, 1.0)
@@ -248,7 +248,7 @@ class NewtonSystem:
         for obj in (self._T, self._AT, self._E):
             if obj is not None:
                 obj.destroy()
-        self._T = self._AT = self._E = None
+        self._T = self._AT = self._E = self._T_pattern = None
 
     def eliminated_step(self, lin):
         """The eliminated 2N system of the module notes at `lin` (`EliminatedStep`)."""
