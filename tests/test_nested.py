@@ -155,25 +155,26 @@ def test_a_forced_step_whose_test_may_hold_is_solved_to_the_floor(monkeypatch):
 
 
 def test_one_mean_amg_per_level(monkeypatch):
-    """The mean's AMG (S_D does not change on a mesh) and the eliminated step's symbolic
-    product are made once per level: freed only before an adaptive 'newton' estimate, which
-    ends the run on the disk (a regression made the coarse levels' inexact steps rebuild
-    both at every step)."""
+    """The mean's AMG (S_D does not change on a mesh) and the eliminated step's T are made
+    once per level: freed only before an adaptive 'newton' estimate, which ends the run on the
+    disk (a regression made the coarse levels' inexact steps rebuild both at every step). The
+    mean/gap preconditioner needs no assembled eliminated matrix: no product is formed."""
     from membranes.linalg import preconditioners
     from membranes.nonlinear import system
-    made = {"mean": 0, "product": 0}
+    made = {"mean": 0, "T": 0, "product": 0}
     inner, elimination = preconditioners.InnerPC.__init__, system.NewtonSystem._elimination
 
     def counted_inner(self, M, prefix):
         made["mean"] += prefix.endswith("mean_")
         inner(self, M, prefix)
 
-    def counted_elimination(self, values):
-        made["product"] += self._T is None
-        return elimination(self, values)
+    def counted_elimination(self, values, assembled):
+        made["T"] += self._T is None
+        made["product"] += assembled
+        return elimination(self, values, assembled)
 
     monkeypatch.setattr(preconditioners.InnerPC, "__init__", counted_inner)
     monkeypatch.setattr(system.NewtonSystem, "_elimination", counted_elimination)
     sol = solve(scene("disk", 0.2, levels=3))
     assert sol.converged and sol.newton_iterations > 4 * 2
-    assert made == {"mean": 4, "product": 4}
+    assert made == {"mean": 4, "T": 4, "product": 0}

@@ -34,17 +34,21 @@ class CellForm:
         self.forms = [fem.form(f) for f in chunks(build(ufl.TestFunction(self.W)), mesh)]
         imap = self.W.dofmap.index_map
         self._b = np.zeros((imap.size_local + imap.num_ghosts) * k)
-        nc = owned_cells(mesh)
+        self.nc = nc = owned_cells(mesh)
         # the block (one per cell) of each owned cell: DG0 dofs need not follow the cells
-        self._cells = self.W.dofmap.list.array.reshape(-1)[:nc].copy()
+        # (None where they do: the integrals are then returned without a copy)
+        cells = self.W.dofmap.list.array.reshape(-1)[:nc]
+        self._cells = None if np.array_equal(cells, np.arange(nc)) else cells.copy()
 
     def cells(self):
-        """The k integrals on every owned cell, shape (owned cells, k)."""
+        """The k integrals on every owned cell, shape (owned cells, k): a view of the form's
+        vector where the DG0 dofs follow the cells, valid until the next call."""
         from dolfinx import fem
         self._b[:] = 0.0
         for form in self.forms:
             fem.assemble_vector(self._b, form)
-        return self._b.reshape(-1, self.k)[self._cells]
+        q = self._b.reshape(-1, self.k)
+        return q[:self.nc] if self._cells is None else q[self._cells]
 
 
 def chunks(form, mesh, size=None):

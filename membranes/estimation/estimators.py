@@ -495,8 +495,9 @@ class Estimators:
     def _combine(self, q, flux, with_alg, eta_rem, rem=False):
         """The global values and η_K from the per-cell integrals q (§7): `flux` the columns of
         η_F,K,α²; with `rem`, η_rem from q's columns REM1, REM2 (as `remainder`). Column by
-        column on contiguous copies; the global sums in one reduction."""
-        qt = np.ascontiguousarray(q.T)                                  # (k, cells)
+        column (views of q: no copy of it at the peak of an evaluation); the global sums in
+        one reduction."""
+        qt = q.T                                                        # (k, cells)
         o1, o2 = self._osc_t
         disc_K = [np.sqrt(np.maximum(qt[i], 0.0)) for i in (DISC1, DISC2)]   # η_disc,K,α
         flux_K = (disc_K if list(flux) == [DISC1, DISC2]

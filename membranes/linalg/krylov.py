@@ -19,8 +19,9 @@
 * ``amg`` (the default): FGMRES on the eliminated 2N system, preconditioned by the mean/gap
   split of §10 with one BoomerAMG V-cycle on the mean and one on the gap (`preconditioners.
   MeanGapPC`; for Newton-min and Fischer–Burmeister alike). Iterations per Newton step do not
-  grow with the mesh. The user's ``pc_type`` replaces the split by a PETSc PC on the
-  eliminated matrix (e.g. ``hypre``).
+  grow with the mesh. The split reads no entry of the eliminated matrix, which is then the
+  operator W E (T Y) (`membranes.nonlinear.system`). The user's ``pc_type`` replaces the split
+  by a PETSc PC on the eliminated matrix, then assembled (e.g. ``hypre``).
 
 FGMRES keeps the preconditioned basis, so building an iterate costs no extra PC application;
 for a fixed preconditioner it is right-preconditioned GMRES.

@@ -49,10 +49,19 @@ With Y = (u1, z), z_l = u2_l where λ_l goes and z_l = λ_l where u2_l goes,
     u2 eliminated: u2 = u1 + (β/α) z - B3/α,  λ = z,
 
 and the system is (W E T) Y = W F - W E t: T is a sparse PETSc matrix whose pattern (five
-entries per vertex, zero factors kept) is the same at every step, so W E T is one numeric
-MatMatMult per step on the symbolic product of the first. Every iterate X = T Y + t satisfies
-the complementarity rows exactly, so R3 = 0 and the residual is W⁻¹ (b - A Y) in the two
-membrane blocks.
+entries per vertex, zero factors kept) is the same at every step. Every iterate X = T Y + t
+satisfies the complementarity rows exactly, so R3 = 0 and the residual is W⁻¹ (b - A Y) in the
+two membrane blocks.
+
+**W E is never assembled for a product with a vector.** W E is a MatNest of S_D and the two
+diagonals (`E_op`: no copy of S_D), whose products with vectors in the iterate layout are
+those of the assembled matrix. The eliminated matrix A = W E T is needed as a matrix only by
+a PETSc preconditioner that reads its entries (a user's ``pc_type``, `eliminated_step`
+``assembled=True``): then W E is converted to one AIJ matrix once and A is one numeric
+MatMatMult per step on the symbolic product of the first. The mean/gap preconditioner
+(membranes.linalg.preconditioners) reads S_D only, so for it A is the operator Y ↦ W E (T Y)
+(a PETSc shell matrix): the same products (A has about the nonzeros of E and T together) and
+no product to form at every step, nor its memory.
 """
 
 from dataclasses import dataclass
@@ -118,7 +127,12 @@ class NewtonSystem:
         self.D = d
         self._D1 = diagonal_matrix(-d / mu1, r0, N, comm)
         self._D2 = diagonal_matrix(d / mu2, r0, N, comm)
-        self._E = None                                       # W E, made when needed (`E`)
+        # W E as an operator (a MatNest: the blocks are referenced, not copied), and as one
+        # AIJ matrix only where an assembled eliminated matrix is asked for (`E`)
+        self.E_op = PETSc.Mat().createNest([[self.S_D, None, self._D1],
+                                            [None, self.S_D, self._D2]], comm=comm)
+        self._E = None
+        self._operator = None                                # A = W E T as a shell (`_product`)
         self._A = None                                       # the full matrix, when asked for
         self._T = self._AT = self._T_pattern = None          # T and A = E T of the eliminated
         # the weights W (3N; 1 in the third block) and the weighted right side W (F, 0)
@@ -130,7 +144,7 @@ class NewtonSystem:
         self.WF.array[:n] = np.where(inner, disc.F1.array_r[:n] / mu1, disc.g)
         self.WF.array[n:2 * n] = np.where(inner, disc.F2.array_r[:n] / mu2, 0.0)
         self.norm_F = self.WF.norm()                         # ‖W (F, 0)‖
-        self.WF2 = self.E.createVecLeft()                    # W F in the 2N layout
+        self.WF2 = PETSc.Vec().createMPI((2 * n, 2 * N), comm=comm)    # W F, 2N layout
         self.WF2.array[:] = self.WF.array_r[:2 * n]
         self._r2 = self.WF2.duplicate()
 
@@ -162,7 +176,7 @@ class NewtonSystem:
         """(R_lin, ‖W R_lin‖/‖W F‖): R_lin = (F - E X, -C) unweighted (a 3N Vec, `out` if
         given), and its weighted size relative to the data (module notes)."""
         r = self._r2
-        self.E.mult(X, r)
+        self.E_op.mult(X, r)
         r.aypx(-1.0, self.WF2)                               # W (F - E X)
         C = self.constraint(X, cfun)
         n = self.n
@@ -175,7 +189,7 @@ class NewtonSystem:
     def relative_residual(self, X, cfun):
         """‖W R_lin(X)‖/‖W F‖ (§8, §11)."""
         r = self._r2
-        self.E.mult(X, r)
+        self.E_op.mult(X, r)
         r.aypx(-1.0, self.WF2)
         C = self.constraint(X, cfun)
         return np.sqrt(r.norm() ** 2 + self._sum(C @ C)) / self.norm_F
@@ -213,11 +227,12 @@ class NewtonSystem:
         b.array[2 * n:] = lin.B3
         return FullStep(self, A, b, lin.norm_B)
 
-    def _elimination(self, values):
+    def _elimination(self, values, assembled):
         """T of `EliminatedStep` with the CSR `values` (5 per vertex: row u1 (1), rows u2 and
-        λ (2 each)), and A = E T. The pattern of T is the same at every step (zeros kept), so
-        both are made once and refilled, and the product reuses its symbolic part. One step
-        at a time: the matrices of the step before are overwritten."""
+        λ (2 each)), and A = W E T: assembled (then the product reuses its symbolic part) or
+        as the shell operator (module notes). The pattern of T is the same at every step
+        (zeros kept), so T is made once and refilled. One step at a time: the matrices of the
+        step before are overwritten."""
         if self._T is None:
             n, N, r0 = self.n, self.N, self.offset
             y0 = 2 * r0 + np.arange(n)
@@ -226,46 +241,61 @@ class NewtonSystem:
                 1, 2 * n + 1)])), _ints(np.concatenate([y0, pair, pair])))
             self._T = PETSc.Mat().createAIJ(((3 * n, 3 * N), (2 * n, 2 * N)),
                                             csr=(*self._T_pattern, values), comm=self.comm)
-            self._T.assemble()
-            self._AT = self.E.matMult(self._T)
         else:
             self._T.setValuesCSR(*self._T_pattern, values)
-            self._T.assemble()
+        self._T.assemble()
+        if not assembled:
+            return self._T, self._product()
+        if self._AT is None:
+            self._AT = self.E.matMult(self._T)
+        else:
             self.E.matMult(self._T, result=self._AT)
         return self._T, self._AT
 
+    def _product(self):
+        """A = W E T as a PETSc shell matrix: Y ↦ E_op (T Y) (module notes)."""
+        if self._operator is None:
+            n, N = self.n, self.N
+            self._operator = PETSc.Mat().createPython(((2 * n, 2 * N), (2 * n, 2 * N)),
+                                                      _Product(self), comm=self.comm)
+            self._operator.setUp()
+        return self._operator
+
     @property
     def E(self):
-        """W E, the weighted linear rows (2N × 3N): S_D blocks and the contact diagonals."""
+        """W E, the weighted linear rows (2N × 3N), as one AIJ matrix: for the assembled
+        eliminated matrix only (products with vectors use `E_op`)."""
         if self._E is None:
             self._E = _converted([[self.S_D, None, self._D1], [None, self.S_D, self._D2]],
                                  self.comm)
         return self._E
 
     def release(self):
-        """Free W E and the eliminated steps' T and A = E T (made anew when next needed): less
-        alive under an estimate that may be full."""
-        for obj in (self._T, self._AT, self._E):
+        """Free the eliminated steps' T and A (and the AIJ W E; made anew when next
+        needed): less alive under an estimate that may be full."""
+        for obj in (self._T, self._AT, self._E, self._operator):
             if obj is not None:
                 obj.destroy()
-        self._T = self._AT = self._E = self._T_pattern = None
+        self._T = self._AT = self._E = self._T_pattern = self._operator = None
 
-    def eliminated_step(self, lin):
-        """The eliminated 2N system of the module notes at `lin` (`EliminatedStep`)."""
-        return EliminatedStep(self, lin)
+    def eliminated_step(self, lin, assembled=True):
+        """The eliminated 2N system of the module notes at `lin` (`EliminatedStep`); its
+        matrix assembled, or the shell operator W E T (`assembled=False`: for a
+        preconditioner that reads no entries of it)."""
+        return EliminatedStep(self, lin, assembled)
 
-    def step(self, lin, system):
-        """The Newton system at `lin`: system 'full' or 'eliminated'."""
+    def step(self, lin, system, assembled=True):
+        """The Newton system at `lin`: system 'full' or 'eliminated' (`eliminated_step`)."""
         if system == "full":
             return self.full_step(lin)
         if system == "eliminated":
-            return self.eliminated_step(lin)
+            return self.eliminated_step(lin, assembled)
         raise ValueError(f"unknown Newton system {system!r} (choose from: full, eliminated)")
 
     def destroy(self):
         self.release()
-        for obj in (self.S_D, self._D1, self._D2, self._A, self.W, self.WF, self.WF2,
-                    self._r2):
+        for obj in (self.E_op, self.S_D, self._D1, self._D2, self._A, self.W, self.WF,
+                    self.WF2, self._r2):
             if obj is not None:
                 obj.destroy()
 
@@ -304,6 +334,27 @@ class FullStep:
         self.b.destroy()                       # A is the system's, kept for the next step
 
 
+class _Product:
+    """The context of the shell matrix A = W E T (`NewtonSystem._product`): A y = E_op (T y),
+    through one 3N work vector; T is looked up at every product (it is made anew after a
+    `release`)."""
+
+    def __init__(self, sys):
+        self.sys, self.work = sys, None
+
+    def mult(self, mat, y, out):
+        T = self.sys._T
+        if self.work is None:
+            self.work = T.createVecLeft()
+        T.mult(y, self.work)
+        self.sys.E_op.mult(self.work, out)
+
+    def destroy(self, mat):
+        if self.work is not None:
+            self.work.destroy()
+            self.work = None
+
+
 class EliminatedStep:
     """The eliminated 2N system (module notes): A = W E T, b = W F - W E t, X = T Y + t.
 
@@ -313,7 +364,7 @@ class EliminatedStep:
     const)."""
     system = "eliminated"
 
-    def __init__(self, sys, lin):
+    def __init__(self, sys, lin, assembled=True):
         self.sys, self.norm_B = sys, lin.norm_B
         n = sys.n
         alpha, beta, B3 = lin.alpha, lin.beta, lin.B3
@@ -329,18 +380,18 @@ class EliminatedStep:
         self.c = np.where(lam_out, alpha / b_safe, 0.0)
         self.d = np.where(u2_out, beta / a_safe, 0.0)
         # T (3N × 2N): row l of u1 holds 1 in column l (Y's u1); rows of u2 and λ hold (U, H)
-        # and (G, Q) in columns l and n + l (Y's u1 and z); A = E T. Both are the system's,
-        # refilled at every step (`NewtonSystem._elimination`)
+        # and (G, Q) in columns l and n + l (Y's u1 and z); A = E T, assembled or an operator.
+        # Both are the system's, refilled at every step (`NewtonSystem._elimination`)
         values = np.empty(5 * n)
         values[:n] = 1.0
         values[n:3 * n:2], values[n + 1:3 * n:2] = U, H
         values[3 * n::2], values[3 * n + 1::2] = G, Q
-        self.T, self.A = sys._elimination(values)
+        self.T, self.A = sys._elimination(values, assembled)
         self.t = sys.disc.vector3()
         self.t.array[n:2 * n] = -U * B3 / a_safe
         self.t.array[2 * n:] = L * B3 / b_safe
         self.b = sys.WF2.duplicate()
-        sys.E.mult(self.t, self.b)
+        sys.E_op.mult(self.t, self.b)
         self.b.aypx(-1.0, sys.WF2)                            # W F - W E t
 
     def guess(self, X):

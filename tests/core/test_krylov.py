@@ -98,9 +98,11 @@ def test_full_and_eliminated_systems(scene, cfun):
     lam_out = np.abs(lin.beta) >= sys_.kappa * np.abs(lin.alpha)
     assert (~lam_out).sum() > 0 and lam_out.sum() > 0      # both eliminations occur
     steps = {s: sys_.step(lin, s) for s in ("full", "eliminated")}
+    # the eliminated matrix as the operator W E T (the mean/gap preconditioner's), not formed
+    operator = sys_.step(lin, "eliminated", assembled=False)
     # (1) the residual handed to the estimators is B - A X unweighted (§4): at a perturbed
     # iterate, against the rows assembled independently
-    for step in steps.values():
+    for step in (*steps.values(), operator):
         Y = disc.vector3()
         Y.array[:] = X.array_r * (1 + 0.01 * RNG.normal(size=3 * disc.n))
         y = step.guess(Y)
@@ -112,6 +114,18 @@ def test_full_and_eliminated_systems(scene, cfun):
         assert np.abs(R.array_r - ref).max() <= 1e-13 * scale
         if step.system == "eliminated":         # R3 = 0: complementarity rows hold exactly
             assert np.abs(ref[2 * disc.n:]).max() <= 1e-13 * np.abs(Z.array_r).max()
+    # the operator and the assembled matrix: the same right-hand side, and products equal to
+    # round-off (W E (T y) against (W E T) y: a few ulps of the rows' largest terms)
+    eliminated = steps["eliminated"]
+    assert (operator.b - eliminated.b).norm() == 0.0
+    y = eliminated.b.duplicate()
+    y.array[:] = RNG.normal(size=y.getLocalSize())
+    a, b = y.duplicate(), y.duplicate()
+    eliminated.A.mult(y, a)
+    operator.A.mult(y, b)
+    assert (a - b).norm(PETSc.NormType.INFINITY) <= 1e-14 * a.norm(PETSc.NormType.INFINITY)
+    assert operator.A.getType() == "python"
+    operator.destroy()
     # (2) both systems give the same Newton step (MUMPS on each)
     sols = {}
     for name, step in steps.items():

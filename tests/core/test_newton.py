@@ -104,6 +104,19 @@ def test_krylov_presets_reach_the_same_solution(scene, preset):
     assert_same(disc, res.X, solved(scene, 0.1).X)
 
 
+def test_a_user_pc_on_the_eliminated_system_reads_the_assembled_matrix():
+    """The amg preset's mean/gap split works on the operator W E T; a PETSc PC of the user's
+    reads the matrix's entries, so the eliminated matrix is then assembled: LU of it solves
+    every Newton step in one FGMRES iteration, to the same solution."""
+    from membranes.linalg.krylov import Krylov
+    disc = disc_of("disk", 0.1)
+    res = newton(disc, cfun="min", krylov=Krylov("amg", {"pc_type": "lu"}))
+    assert res.converged, res.reason
+    steps = [h for h in res.history if h.get("kind") == "newton"]
+    assert steps and all(h["i"] == 1 for h in steps), steps
+    assert_same(disc, res.X, solved("disk", 0.1).X)
+
+
 # ## (c) min and Fischer–Burmeister
 
 @pytest.mark.parametrize("preset", ["direct", "amg"])
