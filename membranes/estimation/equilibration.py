@@ -222,7 +222,6 @@ class FluxEquilibration:
         # one form per colour, integrated over the cells touching the colour (elsewhere ψ_c
         # and Λ_c vanish); the same compiled kernel, the cell tags are data
         from dolfinx import mesh as dmesh
-        from dolfinx.fem.petsc import create_vector
         owned = np.arange(nc, dtype=np.int32)
         self.rhs_forms = []
         for touching, _ in self.touching():
@@ -233,10 +232,18 @@ class FluxEquilibration:
             self.rhs_forms.append(fem.form(equilibration_forms.patch_rhs(
                 self.nodal[PSI], self.nodal[LAMC], self.sign, self.mu, self.nodal[U], self.r,
                 tau, q, dx)))
-        # one W vector for the colours' right-hand sides and, once they are gathered, for the
-        # sum of their solutions
-        self.b = create_vector(self.rhs_forms[0])
+        self._b = None
         self._loads = {}
+
+    @property
+    def b(self):
+        """One W vector for the colours' right-hand sides and, once they are gathered, for
+        the sum of their solutions: made at the first `sigma` (not alive under the Newton
+        steps before the first full estimate)."""
+        if self._b is None:
+            from dolfinx.fem.petsc import create_vector
+            self._b = create_vector(self.rhs_forms[0])
+        return self._b
 
     def touching(self):
         """`colour_cells` of the owned cells: per colour c the cells touching c and the local
@@ -262,7 +269,7 @@ class FluxEquilibration:
     def _cell_dg_dofs(self):
         """The (owned cells, 3) W dofs of the cells' DG1 dofs, checked to be owned."""
         wdofs = self.systems.W.sub(1).dofmap.list.array.reshape(-1, 3)[:self.cells.shape[0]]
-        owned = not wdofs.size or wdofs.max() < self.b.getLocalSize()
+        owned = not wdofs.size or wdofs.max() < self.systems.W.dofmap.index_map.size_local
         if not self.comm.allreduce(bool(owned), op=MPI.LAND):
             raise RuntimeError("a DG1 dof of an owned cell is not owned")
         return wdofs
@@ -346,7 +353,9 @@ class FluxEquilibration:
     def destroy(self):
         """Free the factorisations and PETSc vectors (the object is unusable afterwards)."""
         self.systems.destroy()
-        self.b.destroy()
+        if self._b is not None:
+            self._b.destroy()
+            self._b = None
 
     def summary(self):
         """Global facts of the set-up: colours, Jones–Plassmann rounds, unknowns per colour,

@@ -161,9 +161,8 @@ class Estimators:
         self._sigma_alg = None                                          # σ_α,alg, at first use
         self.rho = [fem.Function(self.DG1) for _ in range(2)]           # r_αh (lifted R_α)
         self._build_forms()
-        self.osc = self._oscillation(moments)                           # (cells, 2)
+        self._osc_t = self._oscillation(moments)                        # (2, cells)
         del moments
-        self._osc_t = np.ascontiguousarray(self.osc.T)
         self._osc_sum = (self._osc_t ** 2).sum()                        # η_osc², local
         self._recent = []                                               # σ_disc's last two
         self._u_sigma = [fem.Function(V) for _ in range(3)]             # σ_disc's iterate
@@ -243,17 +242,22 @@ class Estimators:
     cells_disc_rem = property(lambda self: self._cell_form("disc_rem"),
                               doc="`cells_disc` and η_rem's terms in one CellForm")
 
+    @property
+    def osc(self):
+        """η_osc,K,α for every owned cell, (cells, 2) (a view)."""
+        return self._osc_t.T
+
     def _oscillation(self, moments=None):
-        """η_osc,K,α for every owned cell (cells, 2): iterate-independent, once per mesh.
-        `moments`: the loads (f_α, q)_K of the DG1 projections, if at hand (`dg1_projections`)."""
+        """η_osc,K,α for every owned cell, as (2, cells): iterate-independent, once per mesh.
+        `moments`: the loads (f_α, q)_K of the DG1 projections, if at hand (`dg1_projections`).
+        The projections are not kept."""
         disc = self.disc
         pf = dg1_projections(disc, (disc.f1, disc.f2), self.lifting, moments)
         mu1, mu2 = self._mu
         osc = CellForm(disc.mesh, 2, lambda w: over(disc.dx_data, lambda dx: (
             oscillation_squared(mu1, disc.f1, pf[0], w[0], dx)
             + oscillation_squared(mu2, disc.f2, pf[1], w[1], dx))))
-        self.projections = pf
-        return np.sqrt(np.maximum(osc.cells(), 0.0))
+        return np.sqrt(np.maximum(np.ascontiguousarray(osc.cells().T), 0.0))
 
     # ## Iterate data
 
