@@ -327,7 +327,7 @@ class FluxEquilibration:
         self._copy(self.lam, lam)
         sigma = out if out is not None else fem.Function(self.rt_space)
         systems = self.systems
-        if self._home is None:                    # kept: no fresh pages at every call
+        if self._home is None:                    # kept until `release`
             self._home = systems.home_vector()
         home = self._home
         home.fill(0.0)
@@ -350,12 +350,20 @@ class FluxEquilibration:
         sigma.x.scatter_forward()
         return sigma
 
-    def destroy(self):
-        """Free the factorisations and PETSc vectors (the object is unusable afterwards)."""
-        self.systems.destroy()
+    def release(self):
+        """Free the work vectors of `sigma` (the home vector and the W vector b; made again at
+        the next call): a caller that computes σ for both membranes at once releases them
+        after the pair, so that they are not alive under what follows (the estimators' cell
+        integrals)."""
+        self._home = None
         if self._b is not None:
             self._b.destroy()
             self._b = None
+
+    def destroy(self):
+        """Free the factorisations and PETSc vectors (the object is unusable afterwards)."""
+        self.systems.destroy()
+        self.release()
 
     def summary(self):
         """Global facts of the set-up: colours, Jones–Plassmann rounds, unknowns per colour,

@@ -157,9 +157,8 @@ class Estimators:
         # side by side (one gather instead of one per field)
         self.nodal = nodal_function(V, DLAM + 1)
         self._nodal = self.nodal.x.array.reshape(-1, DLAM + 1)         # (vertices, fields)
-        self.sigma = [fem.Function(self.RT) for _ in range(2)]          # σ_α,disc
-        self._sigma_alg = None                                          # σ_α,alg, at first use
-        self.rho = [fem.Function(self.DG1) for _ in range(2)]           # r_αh (lifted R_α)
+        # the forms' coefficients σ_α,disc, σ_α,alg and r_αh (lifted R_α), made at first use
+        self._sigma = self._sigma_alg = self._rho = None
         self._build_forms()
         self._osc_t = self._oscillation(moments)                        # (2, cells)
         del moments
@@ -177,18 +176,18 @@ class Estimators:
         mu1, mu2 = self._mu
         dp = ufl.dx(domain=mesh, metadata=P1_RULE)
         df = ufl.dx(domain=mesh, metadata=FLUX_RULE)
-        s1, s2 = self.sigma
-
         linearisation = self._linearisation_form
 
+        # (the builders run when their form is first used: the coefficients are made then)
         def base(w):
+            s1, s2 = self.sigma
             return (flux_squared(mu1, u1, s1, w[DISC1], df)
                     + flux_squared(mu2, u2, s2, w[DISC2], df)
                     + contact_estimator(u1, u2, lam_pos, w[CONTACT], dp)
                     + linearisation(w, LIN1, LAM_POS, LAM_NEG))
 
         def with_alg(w):
-            a1, a2 = self.sigma_alg
+            (s1, s2), (a1, a2) = self.sigma, self.sigma_alg
             return (base(w)
                     + flux_squared(mu1, u1, s1 + a1, w[FLUX1], df)
                     + flux_squared(mu2, u2, s2 + a2, w[FLUX2], df)
@@ -196,9 +195,8 @@ class Estimators:
                     + weighted_norm_squared(mu2, a2, w[ALG2], df))
 
         # ρ_1 = r_1h - δλ, ρ_2 = r_2h + δλ (δλ = λ'_h - λh, zero outside the ν flux; §6)
-        r1, r2 = self.rho
-
         def remainder(w, i=0, j=1):
+            r1, r2 = self.rho
             return (weighted_norm_squared(mu1, r1 - dlam, w[i], dp)
                     + weighted_norm_squared(mu2, r2 + dlam, w[j], dp))
 
@@ -218,6 +216,23 @@ class Estimators:
         return (energy_squared(mu1, mu2, e1, e2, w[i], dp)
                 + cell_norm_squared(lam_pos, w[j], dp)
                 + cell_norm_squared(lam_neg, w[k], dp))
+
+    @property
+    def sigma(self):
+        """[σ_1,disc, σ_2,disc], the RT_1 Functions of the forms' σ_disc, made at the first
+        use; the first σ_disc computed on the mesh is solved into them (`sigma_disc`)."""
+        if self._sigma is None:
+            from dolfinx import fem
+            self._sigma = [fem.Function(self.RT) for _ in range(2)]
+        return self._sigma
+
+    @property
+    def rho(self):
+        """[ρ_1, ρ_2], the DG1 Functions of the remainder's r_αh, made at the first use."""
+        if self._rho is None:
+            from dolfinx import fem
+            self._rho = [fem.Function(self.DG1) for _ in range(2)]
+        return self._rho
 
     @property
     def sigma_alg(self):
@@ -374,7 +389,9 @@ class Estimators:
         before is found by comparing X and R on every process (collectively, so that all
         processes compute or none), and a new one is written into the Functions of the
         older kept one: the Functions returned stay valid until σ_disc is asked for two
-        other iterates."""
+        other iterates. Where no kept one has them, σ_disc is solved into the forms' own σ
+        Functions (`sigma`; no second copy under the evaluation), and that kept one is dropped
+        when another σ_disc is copied over them (`_set_flux`)."""
         from dolfinx import fem
         x = np.array(owned(X))
         r = None if R is None else np.array(owned(R))
@@ -388,13 +405,16 @@ class Estimators:
         if len(self._recent) == 2:
             sigma, rh = self._recent.pop()[1]
         else:
-            sigma = tuple(fem.Function(self.RT) for _ in range(2))
+            sigma = (tuple(self.sigma) if not any(value[0][0] is self.sigma[0]
+                                                  for _, value in self._recent)
+                     else tuple(fem.Function(self.RT) for _ in range(2)))
             rh = tuple(fem.Function(self.DG1) for _ in range(2))
         u = self.disc.functions(x, out=self._u_sigma)
         self.lifted(r, rh)
         for alpha in (1, 2):
             eq.sigma(alpha, u[alpha - 1], u[2], rh[alpha - 1], self.loads[alpha - 1],
                      self.mu[alpha - 1], out=sigma[alpha - 1])
+        eq.release()                    # its work vectors: not alive under the cell integrals
         self._recent.insert(0, ((x, r), (sigma, rh)))
         return sigma, rh
 
@@ -444,7 +464,11 @@ class Estimators:
         """Copy the RT_1 Functions `sources` into the forms' coefficients `targets`: the dof
         arrays where the two spaces number the dofs alike (checked once per space: the same
         element and cell dofs), else by interpolation (exact between two RT_1 spaces)."""
+        if targets is self._sigma and sources[0] is not targets[0]:   # drop what they held
+            self._recent = [kept for kept in self._recent if kept[1][0][0] is not targets[0]]
         for target, source in zip(targets, sources):
+            if target is source:
+                continue
             if self._alike(source.function_space, target.function_space):
                 target.x.array[:] = source.x.array
             else:
@@ -506,15 +530,21 @@ class Estimators:
         disc_K = [np.sqrt(np.maximum(qt[i], 0.0)) for i in (DISC1, DISC2)]   # η_disc,K,α
         flux_K = (disc_K if list(flux) == [DISC1, DISC2]
                   else [np.sqrt(np.maximum(qt[i], 0.0)) for i in flux])      # η_F,K,α
+        eta_1_sq = (flux_K[0] + o1) ** 2 + (flux_K[1] + o2) ** 2        # η_1,K²
+        sums = [eta_1_sq.sum(),
+                ((disc_K[0] + o1) ** 2 + (disc_K[1] + o2) ** 2).sum(),  # η_disc's flux part²
+                (flux_K[0] ** 2 + flux_K[1] ** 2).sum(),                # η_F²
+                self._osc_sum]                                          # η_osc²
+        del disc_K, flux_K                      # (one column at a time from here on)
+        eta_C_K = qt[CONTACT]
         lin1_sq = np.maximum(qt[LIN1], 0.0)                             # η_lin1,K²
         lin3_sq = self.kappa ** 2 * np.maximum(qt[LAM_NEG], 0.0)        # η_lin3,K²
-        eta_C_K = qt[CONTACT]
-        eta_1_sq = (flux_K[0] + o1) ** 2 + (flux_K[1] + o2) ** 2        # η_1,K²
-        columns = [eta_1_sq,
-                   (disc_K[0] + o1) ** 2 + (disc_K[1] + o2) ** 2,       # η_disc's flux part²
-                   flux_K[0] ** 2 + flux_K[1] ** 2]                     # η_F²
-        sums = [c.sum() for c in columns] + [self._osc_sum]             # η_osc²
         sums += [c.sum() for c in (eta_C_K, lin1_sq, lin3_sq, qt[LAM_POS])]
+        eta_1_sq += lin1_sq
+        eta_1_sq += lin3_sq
+        del lin1_sq, lin3_sq
+        eta_1_sq += np.abs(eta_C_K)
+        eta_K = np.sqrt(eta_1_sq, out=eta_1_sq)
         if with_alg:
             sums.append(np.maximum(qt[ALG1], 0.0).sum() + np.maximum(qt[ALG2], 0.0).sum())
         if rem:
@@ -528,10 +558,6 @@ class Estimators:
         eta_lin1, eta_lin2, eta_lin3 = lin["eta_lin1"], lin["eta_lin2"], lin["eta_lin3"]
         alg_flux = np.sqrt(max(s[8], 0.0)) if with_alg else 0.0
         eta = np.sqrt((eta_1 + eta_rem + eta_lin1 + eta_lin3) ** 2 + eta_lin2 + max(0.0, sum_C))
-        eta_1_sq += lin1_sq
-        eta_1_sq += lin3_sq
-        eta_1_sq += np.abs(eta_C_K)
-        eta_K = np.sqrt(eta_1_sq)
         return {
             "eta": float(eta),
             "eta_disc": float(disc_part + np.sqrt(abs(sum_C))),

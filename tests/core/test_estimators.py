@@ -409,6 +409,25 @@ def test_evaluate_with_the_equilibration(equilibrated):
     assert got["eta_alg"] > eta_rem > 0
 
 
+def test_the_first_sigma_disc_in_the_forms_coefficients_is_never_stale():
+    """The first σ_disc on a mesh is solved into the forms' own σ Functions (no second copy);
+    an evaluation at another iterate copies that iterate's σ_disc over them, and the first,
+    asked for again, is then solved anew: equal to the last bit to what it was."""
+    from membranes.estimation.equilibration import FluxEquilibration
+    disc = scene(MPI.COMM_WORLD, 6)[0]
+    est = Estimators(disc, FluxEquilibration(disc))
+    X, X2 = iterate(disc, 0.0), iterate(disc, 0.7)
+    R, R2 = residual(disc, X), residual(disc, X2)
+    first, _ = est.sigma_disc(X, R)
+    assert first[0] is est.sigma[0] and first[1] is est.sigma[1]
+    before = [f.x.array.copy() for f in first]
+    est.evaluate(X2, R2)                  # σ_disc(X2) into Functions of its own, then copied
+    assert all(not np.array_equal(f.x.array, b) for f, b in zip(est.sigma, before))
+    again, _ = est.sigma_disc(X, R)
+    assert all(np.array_equal(f.x.array, b) for f, b in zip(again, before))
+    assert est.evaluate(X, R)["eta"] == est.evaluate(X, R)["eta"]
+
+
 def test_chunked_assemblies_equal_whole(setup, monkeypatch):
     """A CellForm (and η_rec's load) assembled a chunk of cells at a time (`chunks`, which
     bounds dolfinx's packed coefficients) gives the same per-cell integrals as one assembly
