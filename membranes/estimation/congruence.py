@@ -192,6 +192,9 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     return code, blocks, disagree, facet_point, np.stack([total / 3.0, side / 3.0], axis=1)
 
 
+APPLY_CHUNK = 1 << 15     # patches per pass of `BasisChange.apply` over the 2 × 2 blocks
+
+
 class BasisChange:
     """G and Gᵀ on home vectors (`apply`) by slices: the patches are
     cut into runs of consecutive patches with the same size n, number F of facet dofs and
@@ -226,17 +229,20 @@ class BasisChange:
             self.runs.append((h0, count, m, f, k, sign, block))
 
     def apply(self, values, transpose=True):
-        """values ← Gᵀ values (transpose) or G values, in place."""
+        """values ← Gᵀ values (transpose) or G values, in place; the 2 × 2 blocks APPLY_CHUNK
+        patches at a time (their temporaries are then small beside the home vector)."""
+        a, b = (1, 0) if transpose else (0, 1)
         for h0, count, m, f, k, sign, block in self.runs:
             rows = values[h0:h0 + count * m].reshape(count, m)
             if f:
                 rows[:, :f] *= sign
-            if k:
-                pairs = rows[:, f:f + 2 * k].reshape(count, k, 2)
+            for p0 in range(0, count if k else 0, APPLY_CHUNK):
+                p1 = min(count, p0 + APPLY_CHUNK)
+                pairs = rows[p0:p1, f:f + 2 * k].reshape(p1 - p0, k, 2)
                 v0, v1 = pairs[:, :, 0].copy(), pairs[:, :, 1].copy()
-                a, b = (1, 0) if transpose else (0, 1)
-                pairs[:, :, 0] = v0 * block[:, :, 0, 0] + v1 * block[:, :, a, b]
-                pairs[:, :, 1] = v0 * block[:, :, b, a] + v1 * block[:, :, 1, 1]
+                B = block[p0:p1]
+                pairs[:, :, 0] = v0 * B[:, :, 0, 0] + v1 * B[:, :, a, b]
+                pairs[:, :, 1] = v0 * B[:, :, b, a] + v1 * B[:, :, 1, 1]
         return values
 
     def nbytes(self):
