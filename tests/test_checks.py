@@ -318,15 +318,13 @@ def test_unused_options_refused_up_front():
         petsc_options.check_petsc_options_used({"ksp_gmres_restart": "50", "ksp_type": "cg"},
                                         {**ilu, "ksp_type": "cg", "ksp_gmres_restart": "50"})
     amg = {"pc_type": "hypre", "pc_hypre_type": "boomeramg"}
-    petsc_options.check_petsc_options_used({"inner_pc_hypre_boomeramg_strong_threshold": "0.5"},
-                                    {**ilu, "pc_type": "none"},
-                                    {**amg, "pc_hypre_boomeramg_strong_threshold": "0.5"},
-                                    "inner_")
+    petsc_options.check_petsc_options_used(
+        {"inner_pc_hypre_boomeramg_strong_threshold": "0.5"}, {**ilu, "pc_type": "none"},
+        {"inner_": {**amg, "pc_hypre_boomeramg_strong_threshold": "0.5"}})
     with pytest.raises(ValueError, match="-inner_pc_hypre_boomeramg_strong_treshold"):
-        petsc_options.check_petsc_options_used({"inner_pc_hypre_boomeramg_strong_treshold": "0.5"},
-                                        {**ilu, "pc_type": "none"},
-                                        {**amg, "pc_hypre_boomeramg_strong_treshold": "0.5"},
-                                        "inner_")
+        petsc_options.check_petsc_options_used(
+            {"inner_pc_hypre_boomeramg_strong_treshold": "0.5"}, {**ilu, "pc_type": "none"},
+            {"inner_": {**amg, "pc_hypre_boomeramg_strong_treshold": "0.5"}})
     from petsc4py import PETSc
     assert not [k for k in PETSc.Options().getAll() if k.startswith("membranes_check_")]
 
@@ -338,6 +336,10 @@ def test_unused_options_refused_up_front():
     ({"pc_type": "vertex_amg"}, "Unable to find requested PC type vertex_amg"),
     ({"pc_type": "hypre", "pc_hypre_boomeramg_strong_treshold": 0.5},
      "-pc_hypre_boomeramg_strong_treshold is not used"),
+    ({"gap_pc_hypre_boomeramg_strong_treshold": 0.5},
+     "-gap_pc_hypre_boomeramg_strong_treshold is not used"),
+    ({"mean_pc_type": "lu", "mean_pc_factor_mat_solver_typ": "mumps"},
+     "-mean_pc_factor_mat_solver_typ is not used"),
 ])
 def test_api_refuses_options_petsc_would_not_use(options, message):
     with pytest.raises(ValueError, match=message):
@@ -350,6 +352,23 @@ def test_api_accepts_options_petsc_uses():
     assert run.converged
     assert run.summary()["petsc_options"]["ksp_gmres_restart"] == "50"
     assert math.isfinite(run.energy_error)
+
+
+def test_api_accepts_options_of_the_mean_and_gap_preconditioners():
+    """The amg preset's inner PCs read the options under 'mean_' and 'gap_' (documented in
+    membranes.linalg.preconditioners); the check up front sends them to those PCs, not to the
+    outer KSP, which would refuse them. With LU on both the split is the exact inverse: one
+    FGMRES iteration per Newton step."""
+    run = solve(scene("disk", 0.3), newton="exact", estimators=False,
+                petsc_options={"gap_pc_hypre_boomeramg_strong_threshold": 0.5,
+                               "mean_pc_hypre_boomeramg_strong_threshold": 0.5})
+    assert run.converged
+    exact = solve(scene("disk", 0.3), newton="exact", estimators=False,
+                  petsc_options={"mean_pc_type": "lu", "gap_pc_type": "lu"})
+    assert exact.converged
+    steps = [h for h in exact.history if h["kind"] == "newton"]
+    assert steps and all(h["linear_it"] == 1 for h in steps), steps
+    assert abs(run.energy_error - exact.energy_error) <= 1e-8 * exact.energy_error
 
 
 def test_two_processes_share_the_node_and_refuse_together(tmp_path):

@@ -159,7 +159,7 @@ def _check_before_meshing(args, scene, kwargs, comm):
         checks.check_output_folder(args.out, comm)
     krylov = Krylov(args.solver, petsc_options)
     if petsc_options:
-        check_petsc_options_used(petsc_options, krylov.merged)
+        check_petsc_options_used(petsc_options, krylov.merged, krylov.inner())
     domain = scene if scene in ("disk", "square") else kwargs.get("domain", "disk")
     checks.check_request(kwargs.get("h", DEFAULT_H), args.levels, domain, kwargs.get("mesh"),
                          args.max_vertices, comm=comm, estimators=not args.no_estimators,

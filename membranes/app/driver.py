@@ -269,7 +269,7 @@ def solve(problem: Problem,
     krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": int(nu)}),
                     **({} if max_linear_its is None else {"max_it": int(max_linear_its)}))
     if petsc_options:       # refused here if PETSc would not read one of them
-        check_petsc_options_used(petsc_options, krylov.merged)
+        check_petsc_options_used(petsc_options, krylov.merged, krylov.inner())
     _check_memory(problem, solver, estimators, max_vertices,
                   alg_flux if alg_flux in ALG_FLUXES else None)
     if system is not None:

@@ -139,6 +139,16 @@ class Krylov:
         """Whether the mean/gap PC is used (the amg preset, no pc_type of the user's)."""
         return self.preset == "amg" and "pc_type" not in self.merged
 
+    def inner(self):
+        """The complete options of the mean/gap split's inner PCs by their prefix ('mean_',
+        'gap_': `inner_defaults` below the user's), or {} without the split: what
+        `check_petsc_options_used` checks the user's prefixed options against."""
+        if not self.mean_gap:
+            return {}
+        return {name + "_": {k[len(name) + 1:]: v
+                             for k, v in inner_defaults(self.merged, name).items()}
+                for name in ("mean", "gap")}
+
 
 def as_krylov(krylov):
     """A `Krylov` from a preset name, a dict of its fields, or a `Krylov`."""

@@ -141,24 +141,28 @@ def unused_by_trial(options, kind="ksp"):
             database.delValue(prefix + name)
 
 
-def check_petsc_options_used(user, ksp_options, pc_options=None, pc_prefix=None,
-                             shown=None):
+def check_petsc_options_used(user, ksp_options, inner=None, shown=None):
     """Refuse the first of the user's options `user` (names without '-') that PETSc would not
-    read: those whose name starts with `pc_prefix` go (without it) to an inner PC configured
-    with `pc_options`, the others to a KSP configured with `ksp_options` (both the complete
-    options the solve applies, defaults included). ValueError naming it, in one line, with the
-    KSP and PC types of `shown` (default `ksp_options`)."""
-    inner = {name[len(pc_prefix):] for name in user
-             if pc_prefix and pc_options is not None and name.startswith(pc_prefix)}
-    outer = [name for name in user
-             if not (pc_prefix and pc_options is not None and name.startswith(pc_prefix))]
+    read: those whose name starts with a prefix of `inner` (a dict: prefix → the complete
+    options of an inner PC, such as the mean/gap split's 'mean_' and 'gap_') go (without it)
+    to a PC configured with those options, the others to a KSP configured with `ksp_options`
+    (the complete options the solve applies, defaults included). ValueError naming it, in one
+    line, with the KSP and PC types of `shown` (default `ksp_options`)."""
+    inner = inner or {}
+
+    def prefix_of(name):
+        return next((p for p in inner if name.startswith(p)), None)
+
+    outer = [name for name in user if prefix_of(name) is None]
     unused = unused_by_trial(ksp_options, "ksp")
     if unused is None:
         return
     unused = [name for name in outer if name in unused]
-    if pc_options is not None and inner:
-        unused += [pc_prefix + name for name in unused_by_trial(pc_options, "pc") or []
-                   if name in inner]
+    for prefix, pc_options in inner.items():
+        mine = {name[len(prefix):] for name in user if prefix_of(name) == prefix}
+        if mine:
+            unused += [prefix + name for name in unused_by_trial(pc_options, "pc") or []
+                       if name in mine]
     if unused:
         what = " ".join(f"-{k} {v}" for k, v in (shown or ksp_options).items()
                         if k in ("ksp_type", "pc_type"))
