@@ -21,7 +21,9 @@
   MeanGapPC`; for Newton-min and Fischer–Burmeister alike). Iterations per Newton step do not
   grow with the mesh. The split reads no entry of the eliminated matrix, which is then the
   operator W E (T Y) (`membranes.nonlinear.system`). The user's ``pc_type`` replaces the split
-  by a PETSc PC on the eliminated matrix, then assembled (e.g. ``hypre``).
+  by a PETSc PC on the eliminated matrix, then assembled (``ilu``, ``lu``; BoomerAMG on the
+  whole eliminated matrix stagnated on the disk once contact vertices carried z = λ, see
+  docs/cli.md: the reason for the split).
 
 FGMRES keeps the preconditioned basis, so building an iterate costs no extra PC application;
 for a fixed preconditioner it is right-preconditioned GMRES.
