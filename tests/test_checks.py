@@ -337,9 +337,11 @@ def test_unused_options_refused_up_front():
     ({"pc_type": "hypre", "pc_hypre_boomeramg_strong_treshold": 0.5},
      "-pc_hypre_boomeramg_strong_treshold is not used"),
     ({"gap_pc_hypre_boomeramg_strong_treshold": 0.5},
-     "-gap_pc_hypre_boomeramg_strong_treshold is not used"),
+     r"-gap_pc_hypre_boomeramg_strong_treshold is not used by the inner preconditioner "
+     r"'gap_' of this run \(-gap_pc_type hypre\)"),
     ({"mean_pc_type": "lu", "mean_pc_factor_mat_solver_typ": "mumps"},
-     "-mean_pc_factor_mat_solver_typ is not used"),
+     r"-mean_pc_factor_mat_solver_typ is not used by the inner preconditioner 'mean_' of this "
+     r"run \(-mean_pc_type lu\)"),
 ])
 def test_api_refuses_options_petsc_would_not_use(options, message):
     with pytest.raises(ValueError, match=message):

@@ -164,9 +164,12 @@ def check_petsc_options_used(user, ksp_options, inner=None, shown=None):
             unused += [prefix + name for name in unused_by_trial(pc_options, "pc") or []
                        if name in mine]
     if unused:
-        what = " ".join(f"-{k} {v}" for k, v in (shown or ksp_options).items()
+        prefix = prefix_of(unused[0])
+        options = inner[prefix] if prefix is not None else (shown or ksp_options)
+        what = " ".join(f"-{prefix or ''}{k} {v}" for k, v in options.items()
                         if k in ("ksp_type", "pc_type"))
-        raise ValueError(f"PETSc option -{unused[0]} is not used by the solver of this run "
+        whose = "the solver" if prefix is None else f"the inner preconditioner '{prefix}'"
+        raise ValueError(f"PETSc option -{unused[0]} is not used by {whose} of this run "
                          f"({what}): misspelt, not an option of this KSP/PC, or one that is "
                          f"read during a solve only (the solvers drop their options once "
                          f"configured)")
