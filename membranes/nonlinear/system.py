@@ -64,6 +64,7 @@ MatMatMult per step on the symbolic product of the first. The mean/gap precondit
 no product to form at every step, nor its memory.
 """
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -337,17 +338,19 @@ class FullStep:
 class _Product:
     """The context of the shell matrix A = W E T (`NewtonSystem._product`): A y = E_op (T y),
     through one 3N work vector; T is looked up at every product (it is made anew after a
-    `release`)."""
+    `release`). The system is held by a weak reference: PETSc holds the context, so a strong
+    one would be a cycle Python cannot collect."""
 
     def __init__(self, sys):
-        self.sys, self.work = sys, None
+        self.sys, self.work = weakref.ref(sys), None
 
     def mult(self, mat, y, out):
-        T = self.sys._T
+        sys = self.sys()
+        T = sys._T
         if self.work is None:
             self.work = T.createVecLeft()
         T.mult(y, self.work)
-        self.sys.E_op.mult(self.work, out)
+        sys.E_op.mult(self.work, out)
 
     def destroy(self, mat):
         if self.work is not None:
