@@ -134,19 +134,18 @@ def estimate_vertices(h=None, levels=0, domain="disk", mesh_file=None):
 
 # ## Memory of a run
 #
-# Peak resident memory of one process of the distributed core on the disk (BENCHMARKS.md, "Time
-# and memory against the peers": h0 = 0.2 refined J = 5, 6 times and h0 = 0.132 six times, 1.1e5,
-# 4.4e5 and 9.3e5 vertices, one fresh process per run): BASE_BYTES plus, per vertex of the finest
-# mesh T_J (its hierarchy included), the slope of the peaks. The default method (adaptive, the amg
-# preset, the ν flux, estimators on T_J only) measured 1.05, 3.76 and 8.55 GiB at 1.1e5, 4.4e5 and
-# 9.3e5: 9.2-9.5 kB per vertex above the base, of which the nested SNES VI peer (the same
-# discretisation and an AMG-preconditioned solve, 0.36 / 0.98 GiB) accounts for about 2.1 kB; the
-# rest is the estimators' (the coloured patch systems, their home layout and shared inverses, the
-# RT_1 fluxes). The paper's GMRES + ILU(0) and the multilevel flux were not measured on this core:
-# their figures below are the amg solver's and twice the ν flux's, as upper guesses. MUMPS's
-# factors grow faster than N: c N^p, fitted on the serial core at 2.7e4 and 1.1e5 vertices. A run
-# on P processes needs about the per-vertex part over P on each (4.4e5 vertices: 3.76 GiB on one
-# process, 2.14 GiB on each of two).
+# Peak resident memory of one process of the distributed core: BASE_BYTES plus, per vertex of
+# the finest mesh T_J (its hierarchy included), a slope for the discretisation and solver and
+# one for the estimators. The slopes are upper bounds of the peaks measured on the disk (h0 =
+# 0.2 refined 5 and 6 times, h0 = 0.132 six times; BENCHMARKS.md, "Memory per vertex"): the
+# default method (adaptive, the amg preset, the ν flux, estimators on T_J only) stays below the
+# 10 kB per vertex they add up to; what the nested SNES VI peer (the same discretisation and
+# an AMG-preconditioned solve) needs is a small part of it, the rest is the estimators' (the
+# coloured patch systems, their home layout and shared inverses, the RT_1 fluxes). The paper's
+# GMRES + ILU(0) and the multilevel flux were not measured on this core: their figures below
+# are the amg solver's and twice the ν flux's, as upper guesses. MUMPS's factors grow faster
+# than N: c N^p, fitted on the serial core at 2.7e4 and 1.1e5 vertices. A run on P processes
+# needs about the per-vertex part over P on each.
 
 BASE_BYTES = 0.30 * 2 ** 30       # interpreter, dolfinx, PETSc; fixed costs of levels
 SOLVER_BYTES_PER_VERTEX = {       # discretisation, Newton systems and their Krylov solve
