@@ -141,13 +141,13 @@ def unused_by_trial(options, kind="ksp"):
             database.delValue(prefix + name)
 
 
-def check_petsc_options_used(user, ksp_options, inner=None, shown=None):
+def check_petsc_options_used(user, ksp_options, inner=None):
     """Refuse the first of the user's options `user` (names without '-') that PETSc would not
     read: those whose name starts with a prefix of `inner` (a dict: prefix → the complete
     options of an inner PC, such as the mean/gap split's 'mean_' and 'gap_') go (without it)
     to a PC configured with those options, the others to a KSP configured with `ksp_options`
     (the complete options the solve applies, defaults included). ValueError naming it, in one
-    line, with the KSP and PC types of `shown` (default `ksp_options`)."""
+    line, with the KSP and PC types of the options it was for."""
     inner = inner or {}
 
     def prefix_of(name):
@@ -165,7 +165,7 @@ def check_petsc_options_used(user, ksp_options, inner=None, shown=None):
                        if name in mine]
     if unused:
         prefix = prefix_of(unused[0])
-        options = inner[prefix] if prefix is not None else (shown or ksp_options)
+        options = inner[prefix] if prefix is not None else ksp_options
         what = " ".join(f"-{prefix or ''}{k} {v}" for k, v in options.items()
                         if k in ("ksp_type", "pc_type"))
         whose = "the solver" if prefix is None else f"the inner preconditioner '{prefix}'"

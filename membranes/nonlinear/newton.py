@@ -172,10 +172,9 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
         times["estimate"] += time.perf_counter() - t
         return est
 
-    def record(kind, k, i, total, Xv, alg, est=None, residual=None):
+    def record(kind, k, i, total, Xv, alg, est=None):
         rec = {"kind": kind, "k": k, "i": i, "krylov_total": total,
-               "residual": ns.relative_residual(Xv, cfun) if residual is None else residual,
-               "alg_residual": alg}
+               "residual": ns.relative_residual(Xv, cfun), "alg_residual": alg}
         if est is not None:
             rec["estimates"] = est
         history.append(rec)
@@ -314,13 +313,13 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 last = accepted[0][0]
                 last["kind"], last["krylov_total"] = "newton", total
             else:
-                e, residual = answer, ns.relative_residual(X, cfun)
+                e = answer
                 if e is None and estimate is not None:
                     if adaptive:        # a full estimate may follow: not under its peak
                         ns.release()
                         solver.release()
                     e = estimated(X, R, "newton")
-                last = record("newton", k, its, total, X, norm / lin.norm_B, e, residual)
+                last = record("newton", k, its, total, X, norm / lin.norm_B, e)
             last["times"] = {"assembly": t_assembly, "solve": t_solve}
             if say is not None:
                 line = (f"Newton {k:3d}: residual {last['residual']:.3e}, {its} Krylov "

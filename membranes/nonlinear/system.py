@@ -128,10 +128,10 @@ class NewtonSystem:
         self.D = d
         self._D1 = diagonal_matrix(-d / mu1, r0, N, comm)
         self._D2 = diagonal_matrix(d / mu2, r0, N, comm)
-        # W E as an operator (a MatNest: the blocks are referenced, not copied), and as one
-        # AIJ matrix only where an assembled eliminated matrix is asked for (`E`)
-        self.E_op = PETSc.Mat().createNest([[self.S_D, None, self._D1],
-                                            [None, self.S_D, self._D2]], comm=comm)
+        # the blocks of W E; as an operator (a MatNest: the blocks are referenced, not copied),
+        # and as one AIJ matrix only where an assembled eliminated matrix is asked for (`E`)
+        self._E_blocks = [[self.S_D, None, self._D1], [None, self.S_D, self._D2]]
+        self.E_op = PETSc.Mat().createNest(self._E_blocks, comm=comm)
         self._E = None
         self._operator = None                                # A = W E T as a shell (`_product`)
         self._A = None                                       # the full matrix, when asked for
@@ -209,8 +209,7 @@ class NewtonSystem:
         """W A with placeholder complementarity rows (made once; `full_step` fills them)."""
         if self._A is None:
             one = diagonal_matrix(np.ones(self.n), self.offset, self.N, self.comm)
-            self._A = _converted([[self.S_D, None, self._D1], [None, self.S_D, self._D2],
-                                  [one, one, one]], self.comm)
+            self._A = _converted(self._E_blocks + [[one, one, one]], self.comm)
             one.destroy()
         return self._A
 
@@ -267,8 +266,7 @@ class NewtonSystem:
         """W E, the weighted linear rows (2N × 3N), as one AIJ matrix: for the assembled
         eliminated matrix only (products with vectors use `E_op`)."""
         if self._E is None:
-            self._E = _converted([[self.S_D, None, self._D1], [None, self.S_D, self._D2]],
-                                 self.comm)
+            self._E = _converted(self._E_blocks, self.comm)
         return self._E
 
     def release(self):
