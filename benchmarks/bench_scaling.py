@@ -22,7 +22,9 @@ where certified, Newton (SNES) steps. The methods alternate run by run (and the 
 reversed every other repeat), so that the machine's drift is shared among them; `--repeat N`
 runs every (P, method) N times and the figures are the medians. Printed: a table, then the
 ratios ours / nested peer (process and method time), ours / certified nested peer, energy
-error ours / peer, peak memory ours / peer, and the speed-up of ours on P processes.
+error ours / peer, peak memory ours / peer, the speed-up of ours on P processes, and where
+the method time goes: the coarse levels, the solve on T_J, the estimator set-up and the
+estimates (`fresh.phases_of_ours`, `fresh.phases_of_peer`).
 Nothing is asserted: the figures depend on the machine and on what else runs on it.
 
 Before each launch the run's memory is estimated (fresh.MemoryGuard) and the run is skipped
@@ -70,6 +72,8 @@ def summarise(runs):
     out["peak_sum_gib"] = statistics.median(sum(r["peaks_gib"]) for r in ok)
     out["vertices"] = ok[0]["vertices"]
     out["per_level"] = ok[0]["per_level"]
+    out["phases"] = {k: statistics.median(r["phases"][k] for r in ok)
+                     for k in ok[0].get("phases", {})}
     out["converged"] = all(r["converged"] for r in ok)
     out["runs"] = len(ok)
     return out
@@ -100,6 +104,30 @@ def table(sizes, procs, methods, stats):
                       f"{r['peak_sum_gib']:.3f} | {fmt(r['energy_error'], '.4e')} | "
                       f"{fmt(r['eta'], '.4e')} | {fmt(eff, '.3f')} | "
                       f"{r['runs']}{'' if r['converged'] else ' NOT CONVERGED'} |")
+
+
+PHASES = (("coarse", "coarse levels"), ("solve", "solve on T_J"),
+          ("set-up", "estimator set-up"), ("estimates", "estimates"), ("rest", "rest"))
+
+
+def phases(sizes, procs, methods, stats):
+    """Where the method time goes (medians, rank 0's clock; `fresh.phases_of_ours`,
+    `phases_of_peer`): the coarse levels, the Newton (SNES) steps on T_J, the estimators'
+    set-up and the estimates (ours: the gates and full evaluations of T_J's iterates; the
+    certified peer: one evaluation), the rest (T_J's discretisation)."""
+    print()
+    print("| size | P | method | " + " | ".join(f"{label} s" for _, label in PHASES)
+          + " | method s |")
+    print("|---|---|---|" + "---|" * (len(PHASES) + 1))
+    for s in sizes:
+        for p in procs:
+            for m in methods:
+                r = stats.get((s, p, m))
+                if r is None or not r["phases"] or m == "plain":
+                    continue
+                cells = [fmt(r["phases"].get(k), ".2f") for k, _ in PHASES]
+                print(f"| {s} | {p} | {LABELS[m]} | " + " | ".join(cells)
+                      + f" | {r['method_s']:.2f} |")
 
 
 def paired(runs, a, b, key):
@@ -187,6 +215,7 @@ def main(args):
     print()
     table(args.sizes, args.procs, methods, stats)
     ratios(args.sizes, args.procs, methods, stats, runs)
+    phases(args.sizes, args.procs, methods, stats)
 
 
 def parse(argv=None):

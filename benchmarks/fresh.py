@@ -66,6 +66,32 @@ def vertices(arg):
 
 # ## The child
 
+def phases_of_ours(sol):
+    """Where the method time of a run of ours went (rank 0's clock), from what `solve`
+    records: the coarse levels (whole levels), then on T_J the Newton steps (linearisation,
+    matrices, Krylov solves), the estimators' set-up, the estimates (the η_rec / η_lin gates and
+    the full evaluations), and the rest (T_J's discretisation, the prolongation onto it).
+    For the default coarse='residual', which sets estimators up on T_J only (with
+    'estimated' the coarse levels' set-ups and estimates would count twice)."""
+    coarse = sum(level["wall_time_s"] for level in sol.per_level[:-1])
+    times = sol.per_level[-1]["times"]
+    setup, estimates = (t or 0.0 for t in sol.estimator_times)
+    phases = {"coarse": coarse, "solve": times["assembly"] + times["solve"],
+              "set-up": setup, "estimates": estimates}
+    phases["rest"] = sol.wall_time_s - sum(phases.values())
+    return phases
+
+
+def phases_of_peer(result):
+    """The same for a peer run: its coarse levels (discretisation and solve), its solve on
+    T_J (prolongation, operators, SNES, λ) and the rest (T_J's discretisation)."""
+    *coarse, last = result.levels
+    phases = {"coarse": sum(r.wall_time_s + r.setup_time_s for r in coarse),
+              "solve": last.wall_time_s}
+    phases["rest"] = result.wall_time_s + result.setup_time_s - sum(phases.values())
+    return phases
+
+
 def _peak_gib():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0 / GIB   # KiB on Linux
 
@@ -95,11 +121,13 @@ def child(method, arg):
                    newton=sol.newton_iterations,
                    per_level=[lv["newton_iterations"] for lv in sol.per_level],
                    linear=sol.linear_iterations, energy_error=sol.energy_error,
-                   eta=est.get("eta"), estimator_s=list(sol.estimator_times))
+                   eta=est.get("eta"), estimator_s=list(sol.estimator_times),
+                   phases=phases_of_ours(sol))
     elif method in ("nested", "certified", "plain"):
         result = (plain_peer if method == "plain" else nested_peer)(problem)
         method_s = result.wall_time_s + result.setup_time_s
         eta = cert_s = None
+        phases = phases_of_peer(result)
         if method == "certified":
             t = time.perf_counter()
             disc = result.disc
@@ -107,13 +135,15 @@ def child(method, arg):
             eta = certificate(result.X, _final_residual(disc, result.X, "min"))["eta"]
             cert_s = time.perf_counter() - t
             method_s += cert_s
+            phases.update({"set-up": certificate.setup_time,
+                           "estimates": cert_s - certificate.setup_time})
         peak = _peak_gib()
         out.update(converged=bool(result.converged), method_s=method_s,
                    newton=result.snes_iterations,
                    per_level=[r.snes_iterations for r in result.levels],
                    linear=result.ksp_iterations,
                    energy_error=EnergyError(result.disc)(result.X), eta=eta,
-                   certificate_s=cert_s)
+                   certificate_s=cert_s, phases=phases)
     else:
         raise ValueError(f"unknown method {method!r} (choose from: {', '.join(METHODS)})")
     # every process's clock and peak: the slowest clock is the method's time

@@ -178,3 +178,20 @@ def test_one_mean_amg_per_level(monkeypatch):
     sol = solve(scene("disk", 0.2, levels=3))
     assert sol.converged and sol.newton_iterations > 4 * 2
     assert made == {"mean": 4, "T": 4, "product": 0}
+
+
+def test_progress_says_where_the_estimators_are_set_up():
+    """The estimators' set-up is a long silent phase on a fine mesh (the patch systems of §5):
+    progress output announces it with T_J's size and gives its time, once, between the coarse
+    levels' Newton steps and T_J's (the coarse levels set no estimator up by default)."""
+    lines = []
+    sol = solve(scene("disk", 0.2, levels=2), progress=lines.append)
+    n = sol.per_level[-1]["n_vertices"]
+    said = [i for i, line in enumerate(lines) if "estimators" in line]
+    assert len(said) == 2 and said[1] == said[0] + 1, lines
+    assert lines[said[0]] == f"level 2: setting up the estimators on {n:,} vertices"
+    head = "level 2: estimators set up in "
+    assert lines[said[1]].startswith(head) and lines[said[1]].endswith(" s")
+    assert 0.0 <= float(lines[said[1]][len(head):-2]) <= sol.wall_time_s
+    assert lines[said[0] - 1].startswith("level 1: Newton")
+    assert lines[said[1] + 1].startswith("level 2: Newton   1")

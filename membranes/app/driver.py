@@ -320,18 +320,23 @@ def solve(problem: Problem,
         if not last and coarse == "residual":
             variant, level_tol, forcing = "inexact", coarse_tol, COARSE_FORCING
         estimate = None
+        tag = f"level {j}: " if nested else ""
         if alg_flux is not None and (variant == "adaptive" or last):
+            # the set-up is a long silent phase on a fine mesh (the patch systems of §5)
+            if say:
+                say(f"{tag}setting up the estimators on {disc.n_global:,} vertices")
             estimate = LevelEstimates(disc, alg_flux if last else "nu",
                                       problem.hierarchy.up_to(j),
                                       gamma_alg or DEFAULT_GAMMA, gamma_lin or DEFAULT_GAMMA,
                                       gate=GATE)
             est_setup += estimate.setup_time
+            if say:
+                say(f"{tag}estimators set up in {estimate.setup_time:.2f} s")
         error = clock.off(EnergyError, disc) if problem.exact is not None and \
             errors != "none" and (last or errors == "iterates") else None
         recorder = _Recorder(estimate if variant == "adaptive" else None,
                              error if errors == "iterates" else None, clock)
         t_start = clock.now()
-        tag = f"level {j}: " if nested else ""
         result = run_newton(disc, X0, cfun=cfun, variant=variant, system=system,
                             krylov=krylov, estimate=recorder,
                             gamma_lin=gamma_lin or DEFAULT_GAMMA,
