@@ -252,7 +252,8 @@ def solve(problem: Problem,
     mesh solved; nested: solve T_0, …, T_J in turn, each from the prolonged solution of the
     last (default where the problem has levels ≥ 1); errors: the energy error at the 'final'
     iterate (default), at all recorded 'iterates', or 'none'; progress: True for one stderr
-    line per Newton step (rank 0), or a callable taking the line; max_vertices: refuse a
+    line per Newton step and two around each estimator set-up (rank 0), or a callable taking
+    the line; max_vertices: refuse a
     computational mesh of more vertices (default: refuse one whose run needs more memory than
     the processes have, model.checks); coarse: how the adaptive variant of a nested run
     leaves the coarse levels T_0 … T_{J-1} (`_coarse_levels`): 'residual' (default: inexact
