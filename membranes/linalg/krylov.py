@@ -221,9 +221,8 @@ class LinearSolver:
         self.comm = comm
         self.prefix = f"membranes_{next(_prefixes)}_"
         options = dict(self.krylov.merged)
-        if self.krylov.mean_gap:
-            options.update(inner_defaults(options, "mean"))
-            options.update(inner_defaults(options, "gap"))
+        for prefix, pc in self.krylov.inner().items():      # the mean/gap split's inner PCs
+            options.update({prefix + name: value for name, value in pc.items()})
         self.options = options
         put_options(self.prefix, options)
         self.ksp = PETSc.KSP().create(comm)
