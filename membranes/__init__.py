@@ -8,6 +8,7 @@ solvers), estimation (liftings, flux equilibration, algebraic fluxes, estimators
 """
 
 from .app.driver import solve  # noqa: F401
+from .app.setups import Setups  # noqa: F401
 from .app.solution import Solution  # noqa: F401
 from .model import scenes  # noqa: F401
 from .model.problem import Problem  # noqa: F401

@@ -44,6 +44,7 @@ from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS
 from ..nonlinear.newton import newton as run_newton
 from .schedule import DEFAULT_GAMMA, GATE, LevelEstimates
+from .setups import Setups
 from .solution import ESTIMATOR_COLUMNS, Solution
 
 DEFAULT_TOL = 1e-10
@@ -232,7 +233,8 @@ def solve(problem: Problem,
           progress: Union[bool, Callable[[str], Any]] = False,
           max_vertices: Optional[int] = None,
           coarse: Literal["residual", "estimated"] = "residual",
-          coarse_tol: Optional[float] = None) -> Solution:
+          coarse_tol: Optional[float] = None,
+          setups: Optional[Setups] = None) -> Solution:
     """Solve the discrete contact problem of `problem` by semismooth Newton and certify it.
 
     newton: 'exact' (linear residual ≤ 2e-12), 'inexact' (≤ the previous nonlinear residual)
@@ -258,7 +260,9 @@ def solve(problem: Problem,
     the processes have, model.checks); coarse: how the adaptive variant of a nested run
     leaves the coarse levels T_0 … T_{J-1} (`_coarse_levels`): 'residual' (default: inexact
     Newton to ‖R_lin‖/‖(F, 0)‖ ≤ coarse_tol, 1e-6, no estimators) or 'estimated' (Algorithm
-    1 with the estimators on every level).
+    1 with the estimators on every level); setups: a `membranes.Setups` that keeps the flux
+    equilibration of each mesh for the next solves on it (a parameter study on one
+    hierarchy: the patch systems of §5 depend on the mesh only; membranes.app.setups).
     """
     started = time.perf_counter()
     _choice("Newton variant", newton, VARIANTS)
@@ -271,6 +275,8 @@ def solve(problem: Problem,
                     **({} if max_linear_its is None else {"max_it": int(max_linear_its)}))
     if petsc_options:       # refused here if PETSc would not read one of them
         check_petsc_options_used(petsc_options, krylov.merged, krylov.inner())
+    if setups is not None and not isinstance(setups, Setups):
+        raise ValueError(f"setups must be a membranes.Setups, got {type(setups).__name__}")
     _check_memory(problem, solver, estimators, max_vertices,
                   alg_flux if alg_flux in ALG_FLUXES else None)
     if system is not None:
@@ -329,7 +335,7 @@ def solve(problem: Problem,
             estimate = LevelEstimates(disc, alg_flux if last else "nu",
                                       problem.hierarchy.up_to(j),
                                       gamma_alg or DEFAULT_GAMMA, gamma_lin or DEFAULT_GAMMA,
-                                      gate=GATE)
+                                      gate=GATE, setups=setups)
             est_setup += estimate.setup_time
             if say:
                 say(f"{tag}estimators set up in {estimate.setup_time:.2f} s")

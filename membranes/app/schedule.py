@@ -71,9 +71,11 @@ class LevelEstimates:
     """
 
     def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
-                 gamma_lin=DEFAULT_GAMMA, gate=GATE):
+                 gamma_lin=DEFAULT_GAMMA, gate=GATE, setups=None):
         t = time.perf_counter()
-        self.est = Estimators(disc, FluxEquilibration(disc.V, disc.dx_data))
+        equilibration = setups.equilibration(disc) if setups is not None \
+            else FluxEquilibration(disc.V, disc.dx_data)            # (membranes.app.setups)
+        self.est = Estimators(disc, equilibration)
         self.multilevel = None
         if alg_flux == "multilevel":
             from ..estimation.multilevel import MultilevelFlux  # only a run that uses it

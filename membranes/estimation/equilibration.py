@@ -302,6 +302,14 @@ class FluxEquilibration:
         """The `Load` of the expression f_α (`loads`)."""
         return self.loads([f], measures)[0]
 
+    def use_data_measures(self, measures):
+        """Integrate the loads of later calls with `measures` (the data measures of another
+        problem on this mesh: a kept set-up, membranes.app.setups). The Loads made with the
+        old measures are dropped: the compatibility of the interior patches needs the rule
+        that assembled the new problem's F_α (module notes)."""
+        self.measures = measures
+        self._loads.clear()
+
     def _copy(self, target, source):
         n = target.function_space.dofmap.index_map.size_local
         target.x.array[:n] = source.x.array[:n]

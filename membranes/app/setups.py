@@ -1,0 +1,68 @@
+"""Set-ups kept between solves on one mesh (§5, §12): `Setups`.
+
+The patch systems of the flux equilibration — the colouring of the vertices, the patch blocks
+checked against dolfinx's assembly of forms.equilibration.patch_system, their inverses and
+the routes between owners and homes — depend on the mesh only: the patch system has no data
+in it. On a fine mesh they are most of what a certificate costs (docs/performance.md). A
+parameter study solves many problems on one hierarchy (other loads, moduli, g, Newton
+variants or solvers); with
+
+    kept = Setups()
+    for mu2 in (1.0, 2.0, 5.0):
+        sol = solve(replace(problem, mu2=mu2), setups=kept)
+    kept.clear()
+
+the flux equilibration of each mesh that gets estimators is set up by the first solve on it
+and taken again by the next ones. Only the data parts are made anew: the loads -(ψ_a f_α, q)
+of §5, integrated with the new problem's data measures (the quadrature that assembled its
+F_α, so that the interior patches stay compatible), and the estimators' own forms.
+
+Nothing else changes: a kept equilibration is the one a fresh set-up builds, so a run's
+iterates, η and counts are those of a run without it (tests/test_setups.py). What it costs is
+memory: the kept systems stay alive between solves, until `clear()`.
+"""
+
+from mpi4py import MPI
+
+from ..estimation.equilibration import FluxEquilibration, same_numbering
+
+
+class Setups:
+    """The flux equilibrations (`membranes.estimation.equilibration.FluxEquilibration`) of the
+    meshes solved on, kept for the next `solve(..., setups=...)` on the same mesh object.
+
+    Use one `Setups` for the solves of one communicator, every process making the same calls
+    (lookups and `clear` are collective)."""
+
+    def __init__(self):
+        self._kept = {}                          # id(mesh) → (mesh, FluxEquilibration)
+        self.hits = 0                            # set-ups taken again, for the caller
+
+    def __len__(self):
+        return len(self._kept)
+
+    def equilibration(self, disc):
+        """The flux equilibration on the mesh of `disc` (a Discretisation), bound to its data
+        measures: the kept one if there is one for this mesh object whose P1 numbering is
+        that of disc.V (the equilibration copies nodal values by index), else a new one,
+        which is kept. Collective."""
+        mesh = disc.mesh
+        entry = self._kept.get(id(mesh))
+        usable = entry is not None and entry[0] is mesh and same_numbering(entry[1].V, disc.V)
+        if disc.comm.allreduce(bool(usable), op=MPI.LAND):
+            equilibration = entry[1]
+            equilibration.use_data_measures(disc.dx_data)
+            self.hits += 1
+            return equilibration
+        if entry is not None:
+            del self._kept[id(mesh)]
+            entry[1].destroy()
+        equilibration = FluxEquilibration(disc.V, disc.dx_data)
+        self._kept[id(mesh)] = (mesh, equilibration)
+        return equilibration
+
+    def clear(self):
+        """Free every kept set-up (collective)."""
+        for _, equilibration in self._kept.values():
+            equilibration.destroy()
+        self._kept.clear()

@@ -1,0 +1,90 @@
+"""Set-ups kept between solves (membranes.app.setups): a run that takes a kept flux
+equilibration is the run without it.
+
+The kept equilibration is the object a fresh set-up builds, and its solves are the same
+operations in the same order, so the iterates, counts and η agree to round-off (asserted at
+1e-12 relative; in practice they are equal). Where the second problem integrates its data
+with other measures (a data jump across an interface: the composite rule of §7), the kept
+equilibration must take them, or the interior patches lose their compatibility (§5): without
+`use_data_measures` η moves by about 1e-5 relative on the radial scene below, far above the
+tolerance. Run as a script under mpirun, `compare()` checks the same on P processes.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from dataclasses import replace
+
+import pytest
+from mpi4py import MPI
+
+from membranes import Setups, scenes, solve
+
+ROUND_OFF = 1e-12
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+
+def rel(a, b):
+    return abs(a - b) / abs(b)
+
+
+def compare(comm=MPI.COMM_WORLD):
+    """Solve the disk for two μ2 with a kept set-up and without; the radial scene without and
+    then with its interface. Returns the largest relative η differences, the counts' equality
+    and the store's size and hits."""
+    disk = scenes.disk(h=0.3, levels=2, comm=comm)
+    kept = Setups()
+    eta, same_counts = 0.0, True
+    for mu2 in (1.0, 4.0):
+        problem = replace(disk, mu2=mu2)
+        a, b = solve(problem, setups=kept), solve(problem)
+        eta = max(eta, rel(a.estimates["eta"], b.estimates["eta"]),
+                  rel(a.estimates["eta_disc"], b.estimates["eta_disc"]))
+        same_counts &= (a.newton_iterations, a.linear_iterations) == \
+            (b.newton_iterations, b.linear_iterations)
+    radial = scenes.radial(h=0.3, levels=1, comm=comm)
+    assert radial.interface is not None
+    solve(replace(radial, interface=None), setups=kept)
+    a, b = solve(radial, setups=kept), solve(radial)
+    measures = rel(a.estimates["eta"], b.estimates["eta"])
+    out = dict(eta=eta, same_counts=same_counts, measures=measures, kept=len(kept),
+               hits=kept.hits)
+    kept.clear()
+    out["cleared"] = len(kept)
+    return out
+
+
+def check(out):
+    assert out["eta"] <= ROUND_OFF
+    assert out["same_counts"]
+    assert out["measures"] <= ROUND_OFF
+    assert out["kept"] == 2 and out["hits"] == 2          # one set-up per mesh, taken again
+    assert out["cleared"] == 0
+
+
+def test_kept_setup_gives_the_run_without_it():
+    check(compare())
+
+
+def test_setups_must_be_a_store():
+    with pytest.raises(ValueError, match="setups must be a membranes.Setups"):
+        solve(scenes.disk(h=0.5), setups={})
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
+def test_kept_setup_on_two_processes():
+    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "2", sys.executable,
+           os.path.abspath(__file__)]
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    check(json.loads(proc.stdout.strip().splitlines()[-1]))
+
+
+if __name__ == "__main__":
+    result = compare()
+    if MPI.COMM_WORLD.rank == 0:
+        print(json.dumps(result))
