@@ -264,6 +264,7 @@ def solve(problem: Problem,
     equilibration of each mesh for the next solves on it (a parameter study on one
     hierarchy: the patch systems of §5 depend on the mesh only; membranes.app.setups).
     """
+    release_garbage(problem)            # what solves before this one left (outside the clock)
     started = time.perf_counter()
     _choice("Newton variant", newton, VARIANTS)
     cfunctions.get(cfun)
@@ -393,6 +394,8 @@ def solve(problem: Problem,
         if not result.converged:
             break
         prev = (result.X, disc.n)
+        if not last:
+            disc.destroy()             # its PETSc objects (Solution keeps only T_J's)
     X = result.X
     wall = clock.now()
     final = history[-1]
@@ -411,7 +414,31 @@ def solve(problem: Problem,
                    is not None else None,
                    functions=disc.functions(X), eta_K=eta_K, estimates=estimates,
                    estimator_times=(est_setup, est_time), per_level=per_level)
+    del estimate, result, recorder, error
+    release_garbage(problem)            # this solve's, outside its clock
     return sol
+
+
+def release_garbage(problem):
+    """Free the memory of objects nothing refers to any more, collectively on the problem's
+    communicator: Python's reference cycles (`gc.collect`), then the PETSc objects they and
+    others held. Since petsc4py 3.18 a PETSc object that Python drops without `destroy()` is
+    only parked, on its communicator, until `PETSc.garbage_cleanup(comm)` (destroying is
+    collective, dropping is not), so a process that solves many problems kept every solve's
+    matrices, vectors and preconditioners. Called at the start and at the end of `solve`; a
+    few hundredths of a second. The communicators are those of the hierarchy's meshes (each
+    refinement has its own) and COMM_SELF (the sequential objects: patch blocks, index sets,
+    the processes' own parts of the preconditioners)."""
+    import gc
+
+    from mpi4py import MPI
+    gc.collect()
+    comms = [MPI.COMM_SELF]
+    for mesh in problem.hierarchy.meshes:
+        if all(MPI.Comm.Compare(mesh.comm, c) != MPI.IDENT for c in comms):
+            comms.append(mesh.comm)
+    for comm in comms:
+        PETSc.garbage_cleanup(comm)
 
 
 def _coarse_levels(coarse, coarse_tol, newton, nested):

@@ -411,9 +411,10 @@ class Action:
     supported on the patches' cells) the product is the same. Collective."""
 
     def __init__(self, W, signs):
-        from dolfinx import fem
+        from dolfinx import fem, la
         self.W, self.w = W, fem.Function(W)
-        self.y = self.w.vector.duplicate()
+        # (not w.vector.duplicate(): dolfinx 0.5 frees the wrapper w.vector only at destroy())
+        self.y = la.create_petsc_vector(W.dofmap.index_map, W.dofmap.index_map_bs)
         self.signs = signs
         self.n = signs.size
 

@@ -107,6 +107,12 @@ class Discretisation:
             f.x.scatter_forward()
         return out
 
+    def destroy(self):
+        """Free S, D, F1 and F2 now (the object is unusable afterwards) rather than when the
+        garbage is next cleaned (membranes.app.driver.release_garbage)."""
+        for obj in (self.S, self.D, self.F1, self.F2):
+            obj.destroy()
+
     def data_scales(self):
         """(u_data, λ_data): the sizes the data give a displacement and a pressure (§11):
         λ_data = max over interior vertices and α of |F_α,a| / D_a, u_data = max(g,
@@ -133,13 +139,19 @@ def boundary_dofs(V):
 
 
 def assemble_vector(L):
-    """Assemble the linear form L into a ghosted PETSc Vec with its owned entries summed."""
+    """Assemble the linear form L into a PETSc Vec of the owned entries (contributions from
+    other processes summed)."""
     from dolfinx import fem
     from dolfinx.fem import petsc
     from petsc4py import PETSc
     b = petsc.assemble_vector(fem.form(L))
     b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-    return b
+    # the owned entries in a Vec of petsc4py's own: dolfinx 0.5's Vec is freed only by an
+    # explicit destroy(), and a Discretisation's vectors live as long as the user keeps it
+    out = PETSc.Vec().createMPI((b.getLocalSize(), b.getSize()), comm=b.getComm())
+    b.copy(out)
+    b.destroy()
+    return out
 
 
 def assemble_matrix(a):
