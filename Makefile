@@ -20,6 +20,7 @@ demo: warmup
 demos: warmup
 	.venv/bin/python demos/demo_disk.py --out out/demos/disk
 	.venv/bin/python demos/demo_user_mesh.py --out out/demos/user_mesh
+	.venv/bin/python demos/demo_sweep.py --out out/demos/sweep
 
 lint: setup
 	.venv/bin/ruff check .

@@ -69,6 +69,21 @@ def test_demo_disk(tmp_path):
         assert (out / "adaptive" / name).stat().st_size > 0
 
 
+def test_demo_sweep(tmp_path):
+    """The load sweep: one row per load, each with its bound; no contact below the onset
+    t = g / max w ≈ 0.68 (the demo's equations), contact above it, growing with the load."""
+    out = tmp_path / "sweep"
+    stdout = run_demo("demo_sweep.py", out)
+    width, height = png_size(out / "sweep.png")
+    assert width >= 600 and height >= 400
+    rows = [line.split() for line in stdout.splitlines()
+            if line.split() and line.split()[-1] in ("True", "False")]
+    assert [float(r[0]) for r in rows] == [0.5, 2.0, 8.0]
+    assert all(r[-1] == "True" for r in rows)
+    share = [float(r[5].rstrip("%")) for r in rows]
+    assert share[0] == 0.0 and 0.0 < share[1] < share[2]
+
+
 @pytest.mark.parametrize("processes", [1, 2])
 def test_demo_user_mesh(tmp_path, processes):
     out = tmp_path / "user_mesh"
