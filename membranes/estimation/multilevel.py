@@ -264,8 +264,16 @@ class _Level:
         self.rt_space = self.systems.rt_space
         W = self.systems.W
         self.dg = W.sub(1).dofmap.list.array.reshape(-1, 3)[:nc].ravel()
-        self.b, self.x = fem.Function(W), fem.Function(W)
+        # the W vectors of the solve (owned entries) and σ_j's owned entries as a Vec: made by
+        # petsc4py (dolfinx 0.5 frees a Function's `.vector` only at an explicit destroy)
+        nw = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
+        self.b = PETSc.Vec().createMPI((nw, PETSc.DECIDE), comm=comm)
+        self.x = self.b.duplicate()
         self.sigma = fem.Function(self.rt_space)
+        rmap = self.rt_space.dofmap.index_map
+        self.sigma_vec = PETSc.Vec().createWithArray(
+            self.sigma.x.array[:rmap.size_local], size=(rmap.size_local, rmap.size_global),
+            comm=comm)
 
         # the prolonged colour sums Σ_{a of colour c} ψ_{j-1,a} on T_J
         n = imap.size_local
@@ -284,7 +292,7 @@ class _Level:
     def solve(self, data):
         """σ_j = Σ_a σ_j^a on T_j for the DG1 moments `data` ((3 n_j, colours): column c
         the moments -(e_j^a, q) of the colour's patches)."""
-        b, x = self.b.vector, self.x.vector
+        b, x = self.b, self.x
         home = self.systems.home_vector()
         for c in range(self.ncolours):
             b.array[:] = 0.0
@@ -299,7 +307,7 @@ class _Level:
 
     def destroy(self):
         self.systems.destroy()
-        for v in self.psi:
+        for v in [self.b, self.x, self.sigma_vec] + self.psi:
             v.destroy()
         if self.transfer is not None:
             self.transfer.destroy()
@@ -435,8 +443,8 @@ class MultilevelFlux:
                 data += level.G @ (level.ET @ moments)
             level.solve(data)
             if previous is not None:
-                s = level.sigma.vector
-                level.transfer.multAdd(previous.sigma.vector, s, s)
+                s = level.sigma_vec
+                level.transfer.multAdd(previous.sigma_vec, s, s)
             previous = level
         result = previous.sigma
         result.x.scatter_forward()
