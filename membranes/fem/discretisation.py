@@ -144,11 +144,14 @@ def assemble_vector(L):
     from dolfinx import fem
     from dolfinx.fem import petsc
     from petsc4py import PETSc
-    b = petsc.assemble_vector(fem.form(L))
+    form = fem.form(L)
+    b = petsc.assemble_vector(form)
     b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
     # the owned entries in a Vec of petsc4py's own: dolfinx 0.5's Vec is freed only by an
-    # explicit destroy(), and a Discretisation's vectors live as long as the user keeps it
-    out = PETSc.Vec().createMPI((b.getLocalSize(), b.getSize()), comm=b.getComm())
+    # explicit destroy(), and a Discretisation's vectors live as long as the user keeps it.
+    # On the mesh's communicator (not b's, PETSc's inner one), where `release_garbage`
+    # cleans what Python drops
+    out = PETSc.Vec().createMPI((b.getLocalSize(), b.getSize()), comm=form.mesh.comm)
     b.copy(out)
     b.destroy()
     return out
