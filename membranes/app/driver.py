@@ -264,7 +264,7 @@ def solve(problem: Problem,
     equilibration of each mesh for the next solves on it (a parameter study on one
     hierarchy: the patch systems of §5 depend on the mesh only; membranes.app.setups).
     """
-    release_garbage(problem)            # what solves before this one left (outside the clock)
+    release_garbage(problem, collect=False)   # what earlier solves left (outside the clock)
     started = time.perf_counter()
     _choice("Newton variant", newton, VARIANTS)
     cfunctions.get(cfun)
@@ -419,20 +419,23 @@ def solve(problem: Problem,
     return sol
 
 
-def release_garbage(problem):
+def release_garbage(problem, collect=True):
     """Free the memory of objects nothing refers to any more, collectively on the problem's
     communicator: Python's reference cycles (`gc.collect`), then the PETSc objects they and
     others held. Since petsc4py 3.18 a PETSc object that Python drops without `destroy()` is
     only parked, on its communicator, until `PETSc.garbage_cleanup(comm)` (destroying is
     collective, dropping is not), so a process that solves many problems kept every solve's
-    matrices, vectors and preconditioners. Called at the start and at the end of `solve`; a
-    few hundredths of a second. The communicators are those of the hierarchy's meshes (each
-    refinement has its own) and COMM_SELF (the sequential objects: patch blocks, index sets,
-    the processes' own parts of the preconditioners)."""
+    matrices, vectors and preconditioners. Called at the end of `solve` (about 0.01 s, most
+    of it the collection) and, without the collection, at its start: what a Solution the
+    caller dropped since holds is freed by reference counting (it is in no cycle) and only
+    its parked PETSc objects are left. The communicators are those of the hierarchy's
+    meshes (each refinement has its own) and COMM_SELF (the sequential objects: patch
+    blocks, index sets, the processes' own parts of the preconditioners)."""
     import gc
 
     from mpi4py import MPI
-    gc.collect()
+    if collect:
+        gc.collect()
     comms = [MPI.COMM_SELF]
     for mesh in problem.hierarchy.meshes:
         if all(MPI.Comm.Compare(mesh.comm, c) != MPI.IDENT for c in comms):

@@ -161,9 +161,9 @@ class PeerCurve:
 
     def __call__(self, level, its, seconds, disc, X):
         from ..estimation.energy_error import EnergyError
-        if id(disc) not in self._errors:
-            self._errors = {id(disc): EnergyError(disc)}
-        self.points.append((level, its, seconds, self._errors[id(disc)](X)))
+        if id(disc) not in self._errors:        # (the disc kept with it: its id stays its own)
+            self._errors = {id(disc): (disc, EnergyError(disc))}
+        self.points.append((level, its, seconds, self._errors[id(disc)][1](X)))
 
     def records(self, method, result, first_level=0):
         """Curve records: the time of an iterate is the solver and discretisation time of
