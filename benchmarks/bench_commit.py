@@ -19,13 +19,11 @@ kernels into its cache and this tree's forms.
 """
 
 import argparse
-import json
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
-import time
 
 import fresh
 
@@ -55,18 +53,8 @@ def run_then(tree, arg, timeout):
     j, h0 = fresh.size(arg)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
     env["PYTHONPATH"] = tree
-    t = time.perf_counter()
-    try:
-        proc = subprocess.run([sys.executable, "-c", THEN, str(j), str(h0)], cwd=tree,
-                              env=env, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return {"failed": f"timed out after {timeout} s"}
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
-    if proc.returncode != 0 or not lines:
-        return {"failed": " | ".join(proc.stderr.strip().splitlines()[-3:])}
-    record = json.loads(lines[-1])
-    record["process_s"] = time.perf_counter() - t
-    return record
+    return fresh.run_json([sys.executable, "-c", THEN, str(j), str(h0)], env, timeout,
+                          cwd=tree)
 
 
 def row(label, r):

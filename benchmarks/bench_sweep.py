@@ -15,11 +15,8 @@ ratio, the sweep's total and ratio, the largest relative difference of η betwee
 """
 
 import argparse
-import json
 import os
-import subprocess
 import sys
-import time
 
 import fresh
 
@@ -58,18 +55,7 @@ def run(way, arg, values, processes, timeout, threads):
     env["PYTHONPATH"] = fresh.ROOT + os.pathsep + env.get("PYTHONPATH", "")
     if threads is not None:
         env.update({k: str(threads) for k in fresh.BLAS_THREADS})
-    t = time.perf_counter()
-    try:
-        proc = subprocess.run(command, cwd=fresh.ROOT, env=env, capture_output=True,
-                              text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return {"failed": f"timed out after {timeout} s"}
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
-    if proc.returncode != 0 or not lines:
-        return {"failed": " | ".join(proc.stderr.strip().splitlines()[-3:])}
-    record = json.loads(lines[-1])
-    record["process_s"] = time.perf_counter() - t
-    return record
+    return fresh.run_json(command, env, timeout)
 
 
 def report(arg, processes, values, fresh_run, kept_run):

@@ -168,6 +168,26 @@ def blas_threads(threads=None):
             "the BLAS library's default (one per core, per process)") + " (environment)"
 
 
+def run_json(command, env, timeout=None, cwd=ROOT):
+    """Run `command` (a child that prints its record as a JSON line) and return that record
+    with `process_s`, the wall time of the whole process measured here, or {"failed":
+    reason} (a time-out, a non-zero exit or no JSON line)."""
+    t = time.perf_counter()
+    try:
+        proc = subprocess.run(command, capture_output=True, text=True, env=env, cwd=cwd,
+                              timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"failed": f"timed out after {timeout} s"}
+    process_s = time.perf_counter() - t
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        tail = " | ".join(proc.stderr.strip().splitlines()[-3:])
+        return {"failed": f"exit {proc.returncode}: {tail}"}
+    record = json.loads(lines[-1])
+    record["process_s"] = process_s
+    return record
+
+
 def launch(method, arg, processes=1, timeout=None, threads=None):
     """Run the child in a fresh process (`mpirun --oversubscribe -n P` for P > 1) and return
     its JSON record with `process_s`, the wall time of the whole process measured here, or
@@ -182,21 +202,9 @@ def launch(method, arg, processes=1, timeout=None, threads=None):
     if processes > 1:
         command = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n",
                    str(processes)] + command
-    t = time.perf_counter()
-    try:
-        proc = subprocess.run(command, capture_output=True, text=True, env=env, cwd=ROOT,
-                              timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return {"method": method, "size": arg, "processes": processes,
-                "failed": f"timed out after {timeout} s"}
-    process_s = time.perf_counter() - t
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
-    if proc.returncode != 0 or not lines:
-        tail = " | ".join(proc.stderr.strip().splitlines()[-3:])
-        return {"method": method, "size": arg, "processes": processes,
-                "failed": f"exit {proc.returncode}: {tail}"}
-    record = json.loads(lines[-1])
-    record["process_s"] = process_s
+    record = run_json(command, env, timeout)
+    if "failed" in record:
+        record.update(method=method, size=arg, processes=processes)
     return record
 
 
