@@ -33,28 +33,17 @@
 # ($\min$ here) turns those into equations, which semismooth Newton solves (§3).
 
 # +
-import argparse
 import os
 
 from mpi4py import MPI
 
 from membranes import scenes, solve
-from membranes.app.cli import quiet_jit_logging
+from membranes.app.demo import options, say
 from membranes.app.outputs import write_outputs
 
-quiet_jit_logging()          # keep stderr for Newton's progress lines
-parser = argparse.ArgumentParser(description="exact, inexact and adaptive Newton on the disk")
-parser.add_argument("--quick", action="store_true", help="a coarse mesh (seconds)")
-parser.add_argument("--out", default=os.path.join("out", "demos", "disk"),
-                    help="folder for the picture and the outputs")
-args = parser.parse_args()
-quick = args.quick or os.environ.get("MEMBRANES_DEMO_QUICK") == "1"
+out, quick = options("disk", "exact, inexact and adaptive Newton on the disk",
+                     "folder for the picture and the outputs")
 comm = MPI.COMM_WORLD
-
-
-def say(*line):
-    if comm.rank == 0:
-        print(*line, flush=True)
 # -
 
 # ## The scene
@@ -145,8 +134,7 @@ for variant, sol in runs.items():
 # Newton steps it saves cost. `membranes report` measures it for every method side by side.
 
 # +
-os.makedirs(args.out, exist_ok=True)
-picture = os.path.join(args.out, "error_vs_time.png")
+picture = os.path.join(out, "error_vs_time.png")
 if comm.rank == 0:
     from matplotlib.figure import Figure
 
@@ -180,4 +168,4 @@ if comm.rank == 0:
 # one value per cell) for ParaView. `membranes solve --scene disk --h 0.2 --levels 3 --out DIR`
 # does the same from the command line (docs/cli.md, docs/outputs.md).
 
-say("written to", write_outputs(adaptive, os.path.join(args.out, "adaptive")))
+say("written to", write_outputs(adaptive, os.path.join(out, "adaptive")))

@@ -31,7 +31,6 @@
 # known: η alone tells how good each answer is.
 
 # +
-import argparse
 import os
 from dataclasses import replace
 
@@ -39,21 +38,10 @@ import numpy as np
 from mpi4py import MPI
 
 from membranes import Setups, scenes, solve
-from membranes.app.cli import quiet_jit_logging
+from membranes.app.demo import options, say
 
-quiet_jit_logging()
-parser = argparse.ArgumentParser(description="a load sweep with kept set-ups")
-parser.add_argument("--quick", action="store_true", help="a coarse mesh (seconds)")
-parser.add_argument("--out", default=os.path.join("out", "demos", "sweep"),
-                    help="folder for the picture")
-args = parser.parse_args()
-quick = args.quick or os.environ.get("MEMBRANES_DEMO_QUICK") == "1"
+out, quick = options("sweep", "a load sweep with kept set-ups", "folder for the picture")
 comm = MPI.COMM_WORLD
-
-
-def say(*line):
-    if comm.rank == 0:
-        print(*line, flush=True)
 # -
 
 # ## One hierarchy, several loads
@@ -104,8 +92,7 @@ for t, seconds, setup, eta, eta_disc, share, bound in rows:
 # ## η and the contact set against the load
 
 # +
-os.makedirs(args.out, exist_ok=True)
-picture = os.path.join(args.out, "sweep.png")
+picture = os.path.join(out, "sweep.png")
 if comm.rank == 0:
     from matplotlib.figure import Figure
 

@@ -23,7 +23,6 @@
 # its surfaces are taken.
 
 # +
-import argparse
 import os
 
 import ufl
@@ -31,25 +30,14 @@ from dolfinx import fem
 from mpi4py import MPI
 
 from membranes import scenes, solve
-from membranes.app.cli import quiet_jit_logging
+from membranes.app.demo import options, say
 from membranes.app.outputs import write_outputs
 from membranes.app.render import snapshot
 
-quiet_jit_logging()
-parser = argparse.ArgumentParser(description="the contact problem on your own gmsh mesh")
-parser.add_argument("--quick", action="store_true", help="a coarse mesh (seconds)")
-parser.add_argument("--out", default=os.path.join("out", "demos", "user_mesh"),
-                    help="folder for the mesh file, the pictures and the outputs")
-args = parser.parse_args()
-quick = args.quick or os.environ.get("MEMBRANES_DEMO_QUICK") == "1"
+out, quick = options("user_mesh", "the contact problem on your own gmsh mesh",
+                     "folder for the mesh file, the pictures and the outputs")
 comm = MPI.COMM_WORLD
-os.makedirs(args.out, exist_ok=True)
-msh = os.path.join(args.out, "l_shape.msh")
-
-
-def say(*line):
-    if comm.rank == 0:
-        print(*line, flush=True)
+msh = os.path.join(out, "l_shape.msh")
 
 
 def l_shape(path, h):
@@ -135,11 +123,11 @@ say(f"|||u_h||| = {norm:.4e}: relative error at most {est['eta'] / norm:.2%}")
 # +
 gap = fem.Function(sol.disc.V)
 gap.x.array[:] = sol.u1.x.array - sol.u2.x.array
-contact_png = os.path.join(args.out, "contact.png")
+contact_png = os.path.join(out, "contact.png")
 snapshot(sol.disc.V, [("u1 - u2", "point", gap, "gap u1 - u2"),
                       ("lambda", "point", sol.lam, "contact pressure lambda")],
          contact_png, cmap="plasma")
-eta_png = os.path.join(args.out, "eta_K.png")
+eta_png = os.path.join(out, "eta_K.png")
 snapshot(sol.disc.V, [("eta_K", "cell", sol.eta_K, "local estimator eta_K")], eta_png,
          log=True)
 say("pictures:", contact_png, eta_png)
@@ -150,4 +138,4 @@ say("pictures:", contact_png, eta_png)
 # `summary.json`, `history.csv` and `solution.xdmf` (with `u1`, `u2`, `lambda` and `eta`)
 # for ParaView, as `membranes solve --out` writes them (docs/outputs.md).
 
-say("written to", write_outputs(sol, os.path.join(args.out, "solution")))
+say("written to", write_outputs(sol, os.path.join(out, "solution")))

@@ -1,0 +1,27 @@
+"""What every literate demo of demos/ starts with: its two options and a print on rank 0."""
+
+import argparse
+import os
+
+from mpi4py import MPI
+
+
+def options(name, description, out_help):
+    """Parse the demo's command line: --quick (a coarse mesh that runs in seconds; also the
+    environment variable MEMBRANES_DEMO_QUICK=1, which the tests set) and --out (default
+    out/demos/NAME; made if missing). Silences the JIT's log lines, so that stderr keeps
+    Newton's progress lines. Returns (out, quick)."""
+    from .cli import quiet_jit_logging
+    quiet_jit_logging()
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true", help="a coarse mesh (seconds)")
+    parser.add_argument("--out", default=os.path.join("out", "demos", name), help=out_help)
+    args = parser.parse_args()
+    os.makedirs(args.out, exist_ok=True)
+    return args.out, args.quick or os.environ.get("MEMBRANES_DEMO_QUICK") == "1"
+
+
+def say(*line):
+    """print(*line) on process 0 of COMM_WORLD only, flushed."""
+    if MPI.COMM_WORLD.rank == 0:
+        print(*line, flush=True)
