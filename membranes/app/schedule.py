@@ -68,13 +68,17 @@ class LevelEstimates:
     hands the iterate over as kind 'forced'. Where the gate skips it, it is answered as a
     'newton' iterate; otherwise its test may hold, and the answer None makes Newton finish
     the solve to the floor first (the iterate is then estimated as 'newton').
+
+    `setups` (a membranes.app.setups.Setups): take the flux equilibration of the mesh from it,
+    set up by an earlier solve on the same mesh, instead of setting one up; `setup_time` then
+    counts only the data parts.
     """
 
     def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
                  gamma_lin=DEFAULT_GAMMA, gate=GATE, setups=None):
         t = time.perf_counter()
         equilibration = setups.equilibration(disc) if setups is not None \
-            else FluxEquilibration(disc.V, disc.dx_data)            # (membranes.app.setups)
+            else FluxEquilibration(disc.V, disc.dx_data)
         self.est = Estimators(disc, equilibration)
         self.multilevel = None
         if alg_flux == "multilevel":
