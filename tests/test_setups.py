@@ -74,9 +74,10 @@ def test_setups_must_be_a_store():
 
 
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
-def test_kept_setup_on_two_processes():
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "2", sys.executable,
-           os.path.abspath(__file__)]
+@pytest.mark.parametrize("processes", [2, 3])
+def test_kept_setup_on_several_processes(processes):
+    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(processes),
+           sys.executable, os.path.abspath(__file__)]
     env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
     env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
