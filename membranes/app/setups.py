@@ -17,6 +17,9 @@ and taken again by the next ones. Only the data parts are made anew: the loads -
 of §5, integrated with the new problem's data measures (the quadrature that assembled its
 F_α, so that the interior patches stay compatible), and the estimators' own forms.
 
+With alg_flux='multilevel' the algebraic flux's own set-up on the hierarchy (§6) is still
+made at every solve; only the equilibration of T_J is kept.
+
 Nothing else changes: a kept equilibration is the one a fresh set-up builds, so a run's
 iterates, η and counts are those of a run without it (tests/test_setups.py). What it costs is
 memory: the kept systems stay alive between solves, until `clear()`.
