@@ -118,6 +118,8 @@ def test_api_problem_and_solve_options():
             solve(base, **kwargs)
     with pytest.raises(ValueError, match="scene"):
         scenes.make("cube")
+    with pytest.raises(ValueError, match="problem must be a membranes.Problem"):
+        solve(base.mesh)
     two = scene("disk", 0.4, levels=1)
     for kwargs, message in (({"coarse": "never"}, "coarse"),
                             ({"coarse_tol": 1.5}, "coarse_tol"),

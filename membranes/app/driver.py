@@ -264,6 +264,9 @@ def solve(problem: Problem,
     equilibration of each mesh for the next solves on it (a parameter study on one
     hierarchy: the patch systems of §5 depend on the mesh only; membranes.app.setups).
     """
+    if not isinstance(problem, Problem):
+        raise ValueError(f"problem must be a membranes.Problem (from membranes.scenes), got "
+                         f"{type(problem).__name__}")
     release_garbage(problem, collect=False)   # what earlier solves left (outside the clock)
     started = time.perf_counter()
     _choice("Newton variant", newton, VARIANTS)
