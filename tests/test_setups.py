@@ -68,6 +68,19 @@ def test_kept_setup_gives_the_run_without_it():
     check(compare())
 
 
+def test_progress_says_the_setup_was_kept():
+    """The second solve's progress line says that it took the kept equilibration."""
+    disk, kept, lines = scenes.disk(h=0.3, levels=1), Setups(), []
+    for mu2 in (1.0, 2.0):
+        lines.append([])
+        solve(replace(disk, mu2=mu2, exact=None), setups=kept, progress=lines[-1].append)
+    said = [[line for line in run if "estimators set up in" in line] for run in lines]
+    assert len(said[0]) == len(said[1]) == 1
+    assert not said[0][0].endswith("(flux equilibration kept from an earlier solve)")
+    assert said[1][0].endswith(" s (flux equilibration kept from an earlier solve)")
+    kept.clear()
+
+
 def test_setups_must_be_a_store():
     with pytest.raises(ValueError, match="setups must be a membranes.Setups"):
         solve(scenes.disk(h=0.5), setups={})

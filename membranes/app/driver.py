@@ -336,13 +336,16 @@ def solve(problem: Problem,
             # the set-up is a long silent phase on a fine mesh (the patch systems of §5)
             if say:
                 say(f"{tag}setting up the estimators on {disc.n_global:,} vertices")
+            hits = setups.hits if setups is not None else 0
             estimate = LevelEstimates(disc, alg_flux if last else "nu",
                                       problem.hierarchy.up_to(j),
                                       gamma_alg or DEFAULT_GAMMA, gamma_lin or DEFAULT_GAMMA,
                                       gate=GATE, setups=setups)
             est_setup += estimate.setup_time
             if say:
-                say(f"{tag}estimators set up in {estimate.setup_time:.2f} s")
+                kept = setups is not None and setups.hits > hits
+                say(f"{tag}estimators set up in {estimate.setup_time:.2f} s" +
+                    (" (flux equilibration kept from an earlier solve)" if kept else ""))
         error = clock.off(EnergyError, disc) if problem.exact is not None and \
             errors != "none" and (last or errors == "iterates") else None
         recorder = _Recorder(estimate if variant == "adaptive" else None,
