@@ -3,7 +3,8 @@
 The patch systems of the flux equilibration — the colouring of the vertices, the patch blocks
 checked against dolfinx's assembly of forms.equilibration.patch_system, their inverses and
 the routes between owners and homes — depend on the mesh only: the patch system has no data
-in it. On a fine mesh they are most of what a certificate costs (docs/performance.md). A
+in it. (DESIGN.md §5 says "the mesh and μ"; in its mixed form μ_α enters only the right-hand
+side, -(ψ_a μ_α ∇u_αh, τ), so problems with other moduli share them too.) On a fine mesh they are most of what a certificate costs (docs/performance.md). A
 parameter study solves many problems on one hierarchy (other loads, moduli, g, Newton
 variants or solvers); with
 
