@@ -4,9 +4,9 @@ The patch systems of the flux equilibration — the colouring of the vertices, t
 checked against dolfinx's assembly of forms.equilibration.patch_system, their inverses and
 the routes between owners and homes — depend on the mesh only: the patch system has no data
 in it. (DESIGN.md §5 says "the mesh and μ"; in its mixed form μ_α enters only the right-hand
-side, -(ψ_a μ_α ∇u_αh, τ), so problems with other moduli share them too.) On a fine mesh they are most of what a certificate costs (docs/performance.md). A
-parameter study solves many problems on one hierarchy (other loads, moduli, g, Newton
-variants or solvers); with
+side, -(ψ_a μ_α ∇u_αh, τ), so problems with other moduli share them too.) On a fine mesh
+they are most of what a certificate costs (docs/performance.md). A parameter study solves
+many problems on one hierarchy (other loads, moduli, g, Newton variants or solvers); with
 
     kept = Setups()
     for mu2 in (1.0, 2.0, 5.0):
