@@ -232,3 +232,25 @@ def test_api_refuses_the_same_with_the_same_message(capsys):
                 str(e.value).split(" and needs")[0]
         else:
             assert cli == "membranes: error: " + str(e.value)
+
+
+# ## A run that names no Newton variant gets one that can run
+
+def test_default_variant_is_one_that_can_run(tmp_path, capsys):
+    """Without `newton`, adaptive (§8) where it can run, exact Newton without the estimators
+    (adaptive stops by them) or with the direct solver (no Krylov iterations to stop); a
+    variant asked for that cannot run is still refused."""
+    from membranes.app import cli
+    base = scene("disk", 0.3)
+    assert solve(base).options["newton"] == "adaptive"
+    plain = solve(base, estimators=False)
+    assert plain.options["newton"] == "exact" and plain.estimates is None
+    direct = solve(base, solver="direct")
+    assert direct.options["newton"] == "exact" and direct.estimates["eta"] > 0
+    with pytest.raises(ValueError, match="needs the estimators"):
+        solve(base, newton="adaptive", estimators=False)
+    with pytest.raises(ValueError, match="not 'direct'"):
+        solve(base, newton="adaptive", solver="direct")
+    assert cli.main(["solve", "--scene", "disk", "--h", "0.3", "--no-estimators",
+                     "--quiet"]) == 0
+    assert '"newton": "exact"' in capsys.readouterr().out

@@ -52,10 +52,11 @@ def _parser():
     s.add_argument("--f1", metavar="EXPR", help="load of membrane 1, formula in x, y "
                    "(pi sin cos exp sqrt abs min max; default 0)")
     s.add_argument("--f2", metavar="EXPR", help="load of membrane 2 (default 0)")
-    s.add_argument("--newton", choices=("exact", "inexact", "adaptive"), default="adaptive",
+    s.add_argument("--newton", choices=("exact", "inexact", "adaptive"),
                    help="adaptive (default): Krylov and Newton stopped by the estimators; "
-                        "exact: linear solves to 2e-12; inexact: to the previous nonlinear "
-                        "residual (theory §8)")
+                        "exact (default with --no-estimators or --solver direct): linear "
+                        "solves to 2e-12; inexact: to the previous nonlinear residual "
+                        "(theory §8)")
     s.add_argument("--gamma-lin", type=float, metavar="G",
                    help="adaptive: stop Newton at eta_lin <= G eta_disc (default 0.3)")
     s.add_argument("--gamma-alg", type=float, metavar="G",
@@ -98,8 +99,8 @@ def _parser():
                    help="refuse a computational mesh of more than N vertices (default: "
                         "refuse a run that needs more memory than the processes have)")
     s.add_argument("--no-estimators", action="store_true",
-                   help="no certificate: skip the estimators of theory §7 (not with "
-                        "--newton adaptive)")
+                   help="no certificate: skip the estimators of theory §7 (Newton then "
+                        "exact by default; not with --newton adaptive)")
     s.add_argument("--quiet", action="store_true", help="no progress lines")
     sub.add_parser("scenes", help="list the scenes")
     from .report import add_parser as add_report_parser

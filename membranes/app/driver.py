@@ -81,6 +81,16 @@ def _gamma(name, value):
     return value
 
 
+def _default_variant(newton, estimators, krylov):
+    """The Newton variant of a run that names none (§8): the adaptive Algorithm 1, unless it
+    cannot run: without the estimators (its stopping tests read them) or with a direct
+    solver (no Krylov iterations to stop); exact Newton then. A variant asked for is kept,
+    and refused later if it cannot run."""
+    if newton is not None:
+        return newton
+    return "adaptive" if estimators and krylov.iterative else "exact"
+
+
 def _stopping(newton, tol, gamma_lin, gamma_alg):
     """(tol, γ_lin, γ_alg) of the variant (§8); the ones it does not use must not be given."""
     if newton != "adaptive":
@@ -213,7 +223,7 @@ def prolong(P, disc, X_coarse, n_coarse):
 
 
 def solve(problem: Problem,
-          newton: Literal["adaptive", "exact", "inexact"] = "adaptive",
+          newton: Optional[Literal["adaptive", "exact", "inexact"]] = None,
           cfun: Literal["min", "fb"] = "min",
           solver: Literal["amg", "paper", "direct"] = "amg",
           system: Optional[Literal["full", "eliminated"]] = None,
@@ -241,7 +251,9 @@ def solve(problem: Problem,
     or 'adaptive' (Algorithm 1 of §8: Krylov stops at η_alg ≤ γ_alg max(η_disc, η_lin),
     Newton at η_lin ≤ γ_lin η_disc, γ = `gamma_lin`, `gamma_alg`, 0.3 by default; with the
     amg preset a step not expected to be the last stops Krylov at ADAPTIVE_FORCING, see
-    membranes.app.schedule);
+    membranes.app.schedule); default (None): 'adaptive', or 'exact' where adaptive cannot
+    run — without the estimators it stops by, or with the direct solver, which has no Krylov
+    iterations to stop (`_default_variant`);
     cfun: 'min' or 'fb'; solver: a Krylov preset of membranes.linalg.krylov, 'amg' (the
     eliminated system, FGMRES with the mean/gap BoomerAMG preconditioner), 'paper' (the full
     system, GMRES + ILU(0), block Jacobi across processes) or 'direct' (MUMPS); system:
@@ -269,7 +281,8 @@ def solve(problem: Problem,
                          f"{type(problem).__name__}")
     release_garbage(problem, collect=False)   # what earlier solves left (outside the clock)
     started = time.perf_counter()
-    _choice("Newton variant", newton, VARIANTS)
+    if newton is not None:
+        _choice("Newton variant", newton, VARIANTS)
     cfunctions.get(cfun)
     _choice("errors", errors, ERRORS)
     if int(max_newton) < 1:
@@ -285,6 +298,7 @@ def solve(problem: Problem,
                   alg_flux if alg_flux in ALG_FLUXES else None)
     if system is not None:
         _choice("system", system, ("full", "eliminated"))
+    newton = _default_variant(newton, estimators, krylov)
     if newton == "adaptive" and not krylov.iterative:
         raise ValueError("the adaptive variant stops a Krylov solver: choose solver 'amg' or "
                          "'paper', not 'direct'")
