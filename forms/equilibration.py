@@ -35,7 +35,25 @@ def patch_load(psi, f, q, dx=ufl.dx):
     return -psi * f * q * dx
 
 
+# ## The divergence identities the bound rests on (§5, §6, §7)
+#
+# Summed over the patches, the divergence rows above give ∇·σ_α,disc = Π f ± λ - r on every
+# cell (Π: the L² projection onto DG1, with the data measures). Its DG1 moments less the
+# data's, (∇·σ ∓ λ + r, q) - (f, q), vanish to round-off; `disc_divergence` is the first part
+# (the loads' data parts, summed over the colours, are the second).
+
+
+def disc_divergence(sigma, sign, lam, r, q, dx=ufl.dx):
+    """(∇·σ - (± λ - r), q) for a DG1 test function q (§5), `sign` as in `patch_rhs`."""
+    return (ufl.div(sigma) - sign * lam + r) * q * dx
+
+
 # ## The multilevel algebraic flux (§6)
+
+
+def flux_divergence(sigma, r, q, dx=ufl.dx):
+    """(∇·σ - r, q): the DG1 moments of the defect of ∇·σ_alg = r_αh (§6)."""
+    return (ufl.div(sigma) - r) * q * dx
 
 
 def multilevel_data(psi, r, rho, q, dx=ufl.dx):

@@ -17,11 +17,14 @@ the orientation of a facet by global vertex indices). This module removes that d
   of the patches, `pair_change` applies the blocks of Gᵀ and G to vectors, `BasisChange` all
   of G on home vectors by slices.
 * `patch_keys` and `Blocks`: translated patches get equal keys (dof kinds and rounded relative
-  positions); `Blocks` keeps one block per class with a random probe, against which every
-  patch of the class is checked (in `patches`) to the round-off of its coordinates.
+  positions); `Blocks` keeps one block per class.
 
-The canonical basis only decides what is shared: with any invertible G the solves are exact,
-and each patch is solved with the inverse of a matrix equal to its own to round-off.
+The canonical basis only decides what is shared: with any invertible G the solves are exact.
+A patch is solved with the inverse of its class's block; in the canonical basis its divergence
+rows are its own whenever its key is (they do not depend on the geometry, see below), so the
+divergence identity that the bound needs holds, and it is checked on every flux made
+(`divergence`). The geometry enters the RT mass rows only, equal to those of the patch's own
+to the key's resolution.
 """
 
 import itertools
@@ -264,19 +267,6 @@ def _pairs(code):
     return [first[p == k] for k in range(len(ORDERS))]
 
 
-def pair_change(values, first, B, transpose=True):
-    """values ← Gᵀ values (transpose) or G values in place, where G is the identity but for the
-    2 × 2 blocks B[k] (rows dolfinx's) on the entries first[k], first[k] + 1 (`_pair_blocks`):
-    the blocks of G for a home vector whose signs are applied elsewhere (the probe's, whose
-    action carries them)."""
-    b01, b10 = (B[:, 1, 0], B[:, 0, 1]) if transpose else (B[:, 0, 1], B[:, 1, 0])
-    second = first + 1
-    v0, v1 = values[first], values[second]
-    values[first] = B[:, 0, 0] * v0 + b01 * v1
-    values[second] = b10 * v0 + B[:, 1, 1] * v1
-    return values
-
-
 def canonical_block(ia, ja, a, code, blocks):
     """Ã = Gᵀ A G in place on the CSR arrays of the home rows (rows and columns in home order,
     `code` per row), A's rows and columns already multiplied by the signs of G. The rows of the
@@ -316,31 +306,25 @@ def canonical_block(ia, ja, a, code, blocks):
 # The canonical basis is translation invariant, so translated patches have the same *key*: the
 # kinds and indices of their kept dofs in canonical order with the positions of their entities
 # relative to the patch's first, in units of the patch's shortest edge h, rounded to 2⁻³⁶
-# (`patch_keys`, hashed to 64 bits). The grid is fine because a rejected candidate (below)
-# gets a block of its own: meshers make many cells congruent to 1e-7 h but not to round-off
-# (gmsh's disk at h = 0.132: at 2⁻²⁰ a tenth of the patches had the key of such a near
-# translate and were rejected), while the positions of true translates agree to ~ε R/h, far
-# below 2⁻³⁶, so that few straddle a rounding boundary. Patches with equal keys are
-# candidates for one class: only
-# the block of the class's first patch (its representative) is taken from A. A key is cheap but
-# not a proof (rounding boundaries, hash collisions, coefficients that are not translation
-# invariant), so every patch is checked against its class's block with a random probe: each
-# class k draws v_k and keeps u_k = Ã_k v_k and ref_k = max|Ã_k| · max_i Σ_{j ∈ row i} |v_k,j|;
-# `patches` applies A to Σ_p G_p v_{class(p)} for all patches of a group at once and compares
-# G_pᵀ (A G_p v) = Ã_p v with u. A patch joins its class only if max_i |(Ã_p v - u)_i| ≤
-# tolerance · ref_k; otherwise its own block is taken and it gets a class of its own. An entry
-# error δ ≤ tolerance · max|Ã_k| passes; a block that differs by more than round-off would have
-# to be orthogonal to the random v in every row to pass.
+# (`patch_keys`, hashed to 64 bits), and their number of dofs. Patches with equal keys form one
+# class: only the block of the class's first patch (its representative) is taken from A. Two
+# patches of one key have the same entities in the same relative places to 2⁻³⁶ h, so:
 #
-# The tolerance is the round-off of the geometry: the coordinates carry an error ε R (R the
-# largest |x|), so the blocks of two translates, functions of the edge vectors of their cells,
-# differ relatively by ~ε R/h (h the patch's shortest edge; measured up to 1.2 ε R/h). A patch
-# is compared with tolerance max(SAME, ROUNDING ε R/h): as close as its own matrix is to the
-# matrix of its exact geometry. The probe's own round-off (a sparse product of ≲ 40 terms and
-# the integer 2 × 2 blocks of G) is ≲ 1e-14 relative, below SAME.
+# * their divergence rows are equal exactly: in the canonical basis the entry (∇·φ_j, q_i)_K
+#   is ±∫_K̂ ∇̂·φ̂_j q̂_i (the contravariant Piola map, the sign that of the canonical
+#   vertex order's orientation), which depends on which entities of the patch carry the dofs
+#   and not on the cells' shapes;
+# * their RT mass rows, functions of the edge vectors of their cells, agree to the key's
+#   resolution (true translates to the round-off of the coordinates, ~ε R/h). Meshers make
+#   many cells congruent to 1e-7 h but not to round-off (gmsh's disk at h = 0.132); the fine
+#   grid gives those keys of their own.
+#
+# So a patch solved with its class's inverse gets a flux with the divergence the bound needs
+# (the mass rows decide only which such flux, i.e. its optimality); a key collision between
+# patches of other shapes would break that, and the check of every flux (`divergence`) would
+# raise. A collision between patches of other sizes is caught at once (`patches`: such a patch
+# gets a class of its own).
 
-SAME = 1e-13
-ROUNDING = 16            # a translate's blocks differ by ~ε R/h (measured 1.2 ε R/h at most)
 KEY_GRID = 2.0 ** 36     # relative positions in a key: multiples of 2⁻³⁶ h
 KEY_CODE = 15 | INTERIOR                # the code bits in a key: index, kind, interior patch
 
@@ -416,15 +400,13 @@ class _Rows:
 
 
 class Blocks:
-    """The canonical blocks of the classes of one process (`add` blocks as new classes; the
-    probes of the classes; `operators` of the classes). A block is kept as CSR rows, grouped
-    by shape (n, L, n_σ): size, number of entries, number of RT dofs."""
+    """The canonical blocks of the classes of one process (`add` blocks as new classes;
+    `operators` of the classes). A block is kept as CSR rows, grouped by shape (n, L, n_σ):
+    size, number of entries, number of RT dofs."""
 
-    def __init__(self, seed=0):
+    def __init__(self):
         self.shapes = {}             # (n, L, n_σ) → [values, columns, row lengths]
         self.where = []              # class → ((n, L, n_σ), row in the shape's arrays)
-        self.rng = np.random.default_rng(seed)
-        self._probes, self._cache = [], None
 
     def add(self, ia, ja, a, offsets, nsigma):
         """New classes for the blocks of CSR rows (ia, ja, a): rows offsets[k]:offsets[k+1]
@@ -439,17 +421,6 @@ class Blocks:
         rowlen = np.diff(ia)
         if np.any(L == 0):
             raise RuntimeError("an empty patch block")
-        # the probe of each new class
-        v = self.rng.standard_normal(offsets[-1])
-        row = np.repeat(np.arange(ia.size - 1), rowlen)
-        vj = v[ja]
-        u = np.bincount(row, weights=a * vj, minlength=ia.size - 1)
-        reach = np.bincount(row, weights=np.abs(vj, out=vj), minlength=ia.size - 1)
-        del vj
-        ref = np.maximum.reduceat(np.abs(a), starts[:-1]) * np.maximum.reduceat(reach,
-                                                                                 offsets[:-1])
-        self._probes.append((v, u, n, np.asarray(nsigma, dtype=np.int64), ref))
-        self._cache = None
         where = [None] * n.size
         shapes, shape_of = np.unique(np.stack([n, L, nsigma], axis=1), axis=0,
                                      return_inverse=True)
@@ -472,20 +443,6 @@ class Blocks:
                 where[m] = (shape, first + k)
         self.where.extend(where)
         return np.arange(base, base + n.size)
-
-    def probes(self):
-        """(v, u, start, n, n_σ, ref): the probe vectors and products of all classes, class k's
-        at start[k]:start[k] + n[k], and per class its size, RT dofs and reference magnitude."""
-        if self._cache is None:
-            if self._probes:
-                v, u, n, nsigma, ref = (np.concatenate(x) for x in zip(*self._probes))
-            else:
-                v = u = ref = np.zeros(0)
-                n = nsigma = np.zeros(0, dtype=np.int64)
-            start = np.concatenate([[0], np.cumsum(n)[:-1]]).astype(np.int64)
-            self._probes = [(v, u, n, nsigma, ref)]
-            self._cache = (v, u, start, n, nsigma, ref)
-        return self._cache
 
     def count(self):
         return len(self.where)

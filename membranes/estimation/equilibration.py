@@ -234,6 +234,7 @@ class FluxEquilibration:
                 tau, q, dx)))
         self._b = None
         self._loads = {}
+        self.defect = None           # the relative divergence defect of the last σ made
 
     @property
     def b(self):
@@ -339,6 +340,10 @@ class FluxEquilibration:
             self._home = systems.home_vector()
         home = self._home
         home.fill(0.0)
+        # the scale of the divergence check (`divergence`): the largest right-hand side entry,
+        # and μ max|u|, the round-off unit of the moments (μ ∇u·∇ψ, q), which cancel in the sum
+        # (large where u is far from 0: u = g = 1e3 on the boundary)
+        scale = float(mu) * float(np.abs(self._nodal[:n, U]).max(initial=0.0))
         for c in range(self.ncolours):
             self.set_colour(c, self.lam.x.array)
             with self.b.localForm() as local:
@@ -346,6 +351,7 @@ class FluxEquilibration:
             assemble_vector(self.b, self.rhs_forms[c])
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
             self.b.array[self.dg_dofs(c)] += f.values[c]          # the data part
+            scale = max(scale, self.b.norm(PETSc.NormType.NORM_INFINITY))
             systems.gather(c, self.b, home)
         x = systems.solve_home(home)
         # the colours' solutions add up (in b, free again); their RT parts are σ_α,disc
@@ -356,7 +362,31 @@ class FluxEquilibration:
         sigma.x.array[:] = 0.0
         systems.add_flux(self.b, sigma)
         sigma.x.scatter_forward()
+        self.defect = self._check(sigma, f, scale)
         return sigma
+
+    def _check(self, sigma, f, scale):
+        """The divergence identity of σ_α,disc (`divergence`): the moments (∇·σ ∓ λ + r, q)
+        assembled into b (its RT entries stay zero), the loads' data parts -(f, q) added;
+        their largest entry against `scale`. Returns the relative defect; raises if the
+        identity fails."""
+        from dolfinx import fem
+        from dolfinx.fem.petsc import assemble_vector
+
+        from .cell_forms import chunks
+        from .divergence import check
+        _, q = ufl.TestFunctions(self.systems.W)
+        with self.b.localForm() as local:
+            local.set(0.0)
+        # a chunk of cells at a time: dolfinx packs the coefficients of all a form's cells
+        for part in chunks(equilibration_forms.disc_divergence(sigma, self.sign, self.lam,
+                                                               self.r, q), self.mesh):
+            assemble_vector(self.b, fem.form(part))
+        self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        for c in range(self.ncolours):
+            self.b.array[self.dg_dofs(c)] += f.values[c]
+        return check(self.b.norm(PETSc.NormType.NORM_INFINITY), scale, self.comm,
+                     "σ_disc (§5)")
 
     def release(self):
         """Free the work vectors of `sigma` (the home vector and the W vector b; made again at

@@ -1,8 +1,7 @@
 """The set-up side of the patch engine (`patches.PatchSystems`, §5, §12): the local topology,
 the owned entities in canonical order (`_canonical_order`), each group's kept dofs at their
-patches' homes (`_home_dofs`) and the routes between owners and homes, the cells whose patch
-blocks are needed, the matrix A assembled on those cells only, and the probe's product with A
-as the action of the form (no matrix).
+patches' homes (`_home_dofs`), the cells whose patch blocks are needed, and the matrix A
+assembled on those cells only.
 
 The dofs of one entity (a facet's RT dofs, a cell's interior RT dofs, a cell's DG dofs) are kept
 or not together and are consecutive in the canonical order, so the set-up selects, sorts and
@@ -13,22 +12,19 @@ A kept dof of a patch is supported on that patch's cells only, so the principal 
 on a patch's kept dofs is the same whether A is assembled over the whole mesh or over any set
 of cells containing the patch's cells: `assemble_on` assembles A (forms.equilibration
 .patch_system, rows and columns scaled by the ±1 of G) on the cells of the patches whose
-blocks are taken, and `Action` computes A x for the probe as a vector assembly of the form's
-action, without any sparsity pattern.
+blocks are taken.
 """
 
 import numpy as np
 import ufl
 from mpi4py import MPI
-from petsc4py import PETSc
 
 import forms.equilibration as equilibration_forms
 
-from .congruence import DG, INTERIOR, ROUNDING, SAME, _kind, patch_keys
+from .congruence import DG, INTERIOR, _kind, patch_keys
 from .exchange import (
     Shared,
     alltoallv,
-    ranges,
     reduce_by_key,
     run_starts,
     stable_order,
@@ -39,22 +35,6 @@ CHUNK = 1 << 18          # rows of patch blocks taken from A at a time (bounds t
 
 class HomeSetup:
     """The set-up methods of `patches.PatchSystems` (a mixin)."""
-
-    def _to_home(self, route, values, home):
-        """home[dest] ← values[send] (owned W entries) through the route of a group."""
-        send, sc, rc, dest = route
-        home[dest] = alltoallv(self.comm, values[send], sc, rc)
-        return home
-
-    def _to_owners(self, route, home, values, add):
-        """values[send] ← (or +=) home[dest]: the reverse of `_to_home`."""
-        send, sc, rc, dest = route
-        got = alltoallv(self.comm, home[dest], rc, sc)
-        if add:
-            values[send] += got
-        else:
-            values[send] = got
-        return values
 
     def _chunks(self, offsets):
         """Ranges of patches (first, last) of about CHUNK rows, as many on every process
@@ -104,8 +84,7 @@ class HomeSetup:
         for i, cols in enumerate(rt[tdim - 1]):
             self.facet_dofs[self.c2f[:, i]] = self.rt_dofs[:, cols]
         self.cell_dofs = np.hstack([self.rt_dofs[:, rt[tdim][0]], self.dg_dofs])
-        # the shortest edge of each owned cell, and the largest |x| of the mesh (§12: the
-        # tolerance of the block comparisons)
+        # the shortest edge of each owned cell (the unit of the patch keys' positions)
         nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:self.ncells]
         x, y = mesh.geometry.x[:, 0].take(nodes), mesh.geometry.x[:, 1].take(nodes)
         for i, j in ((0, 2), (1, 0), (2, 1)):                 # the edges x_i - x_j
@@ -115,8 +94,6 @@ class HomeSetup:
             dx += dy
             self.cell_h = dx if i == 0 else np.minimum(self.cell_h, dx, out=self.cell_h)
         np.sqrt(self.cell_h, out=self.cell_h)
-        self.radius = self.comm.allreduce(float(np.abs(mesh.geometry.x).max(initial=0.0)),
-                                          op=MPI.MAX)
         imap = W.dofmap.index_map
         self.nowned = imap.size_local
         self.nlocal = imap.size_local + imap.num_ghosts
@@ -197,9 +174,8 @@ class HomeSetup:
     def _home_dofs(self, pid, inner):
         """The kept W dofs of the group's patches at home on this process (global indices), in
         canonical order patch by patch (RT facet dofs, interior RT dofs, DG dofs), the patches'
-        offsets, the dofs' codes, the patches' tolerances, numbers of RT dofs and keys, and the
-        group's route (see `_to_home`). A collective call: every process hands over its owned
-        kept dofs."""
+        offsets, the dofs' codes, the patches' numbers of RT dofs, their keys and their ids. A
+        collective call: every process hands over its owned kept dofs."""
         comm = self.comm
         # per facet, over its (at most two) cells: the largest and smallest of 2 (patch id + 1)
         # + (the patch is not interior) (0 = no patch; the flag is the patch's, so the two
@@ -324,7 +300,6 @@ class HomeSetup:
         start = before[np.append(new, received)]
         dofs, code = gdofs[kept], gcode[kept]
         h = gh[new]
-        tolerance = np.maximum(SAME, ROUNDING * np.finfo(float).eps * self.radius / h)
         # the keys hash the first dof of each entity: every run but the pinned ones
         # (the keyed runs before an offset: the runs before it but the pinned ones, which
         # are in increasing order)
@@ -336,26 +311,7 @@ class HomeSetup:
         key = patch_keys(runs_before, gcode[:, 0][keyed], gpoint.take(keyed, axis=0), h,
                          np.diff(start))
 
-        # the route: each kept dof's place at home, in the received order of the runs; the
-        # owners learn which first dofs are pinned
-        first_pinned = np.zeros(received, dtype=bool)
-        first_pinned[pinned if perm is None else perm[pinned]] = True
-        if perm is not None:
-            placed = np.empty_like(before[:-1])
-            placed[perm] = before[:-1]
-            size[perm] = size.copy()
-            dest = ranges(placed, size).astype(np.int32)
-        else:                           # received in place: the runs' dofs follow each other
-            dest = np.arange(before[-1], dtype=np.int32)
-        size_at = np.zeros(received + 1, dtype=np.int64)
-        np.cumsum(size, out=size_at[1:])
-        rc = np.diff(size_at[np.append(0, np.cumsum(recv))])
-        sc = np.asarray(comm.alltoall(rc.tolist()), dtype=np.int64)
-        sent_pinned = alltoallv(comm, first_pinned, recv, send)
-        sent = local >= 0
-        sent[:, 0] &= ~sent_pinned
-        route = (local[sent], sc, rc, dest)
-        return dofs, start, code, tolerance, nsigma, key, route, gpatch[new]
+        return dofs, start, code, nsigma, key, gpatch[new]
 
     def _marked_cells(self, patches, chosen):
         """The owned cells (local indices) of the patches `chosen[c]` of each group c (global
@@ -401,52 +357,3 @@ def assemble_on(W, cells, signs):
     A.diagonalScale(s, s)
     s.destroy()
     return A
-
-
-class Action:
-    """x ↦ S A S x (owned W entries; A of forms.equilibration.patch_system, S = diag(signs)) as
-    a vector assembly of the form's action on a Function: the same product as with the
-    assembled matrix, without one. With `cells` (owned, local indices) the form is assembled on
-    those cells only: for x supported on them (the kept dofs of a group's patches are
-    supported on the patches' cells) the product is the same. Collective."""
-
-    def __init__(self, W, signs):
-        from dolfinx import fem, la
-        self.W, self.w = W, fem.Function(W)
-        # (not w.vector.duplicate(): dolfinx 0.5 frees the wrapper w.vector only at destroy())
-        self.y = la.create_petsc_vector(W.dofmap.index_map, W.dofmap.index_map_bs)
-        self.signs = signs
-        self.n = signs.size
-
-    def input(self):
-        """The owned entries of the input x (numpy view, to be filled)."""
-        return self.w.x.array[:self.n]
-
-    def __call__(self, cells=None):
-        """S A S x for x in `input()`; returns the owned entries (a numpy view)."""
-        from dolfinx import fem
-        from dolfinx.fem.petsc import assemble_vector
-        from dolfinx.mesh import meshtags
-        mesh = self.W.mesh
-        if cells is None:
-            dx = ufl.dx(domain=mesh)
-        else:
-            cells = np.asarray(cells, dtype=np.int32)
-            tags = meshtags(mesh, mesh.topology.dim, cells, np.ones(cells.size, dtype=np.int32))
-            dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
-        (sigma, gamma), (tau, q) = ufl.TrialFunctions(self.W), ufl.TestFunctions(self.W)
-        form = fem.form(ufl.action(
-            equilibration_forms.patch_system(sigma, gamma, tau, q, dx), self.w))
-        x = self.w.x.array
-        x[:self.n] *= self.signs
-        self.w.x.scatter_forward()
-        with self.y.localForm() as local:
-            local.set(0.0)
-        assemble_vector(self.y, form)
-        self.y.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        out = self.y.array
-        out *= self.signs
-        return out
-
-    def destroy(self):
-        self.y.destroy()

@@ -20,23 +20,20 @@ submatrix A_p of A, and equally of A assembled on any set of cells containing th
 (`homes.assemble_on`: only the cells of the patches whose blocks are taken are assembled, so
 no matrix over the whole mesh is ever made). Each patch is solved on one process, its *home*.
 A VecScatter per group moves right-hand sides from the dofs' owners to the homes and
-solutions back (in the set-up, a *route* of one MPI Alltoallv each way, `_to_home`/
-`_to_owners`, does the same before the home layout is known); PETSc's MatCreateSubMatrices
-brings the rows of the blocks that are needed to the homes (as for overlapping Schwarz
-subdomains).
+solutions back; PETSc's MatCreateSubMatrices brings the rows of the blocks that are needed to
+the homes (as for overlapping Schwarz subdomains).
 
 **Shared dense inverses.** The blocks are taken in the canonical basis of `congruence`, where
 the blocks of translated patches are equal to round-off. Patches with equal translation
-invariant keys (`congruence.patch_keys`) are candidates for one class; only the block of the
-first patch of a new key is taken, from A assembled on the cells of those patches of all
-groups (their homes mark them for the owners of their cells, `_marked_cells`). Every patch of a
-group is then checked against its class's block at once, by one product of A with a random
-probe (`_probe`; the patches of a group share no cell), computed as the vector assembly of the
-form's action on the group's cells (`homes.Action`: no matrix); a patch that fails gets its own
-block and class (a second assembly on the cells of the failed patches). Each class keeps one
-dense inverse (LAPACK). The home vector holds the patches class by class, so that a call
-solves all patches of a class by one matrix product. Where nothing is congruent (an
-unstructured mesh) every patch has its own block and inverse.
+invariant keys (`congruence.patch_keys`) form one class; only the block of the first patch of
+a new key is taken, from A assembled on the cells of those patches of all groups (their homes
+mark them for the owners of their cells, `_marked_cells`). A patch whose size differs from its
+key's class (a key collision) gets a class and block of its own. Each class keeps one dense
+inverse (LAPACK). The home vector holds the patches class by class, so that a call solves all
+patches of a class by one matrix product. Where nothing is congruent (an unstructured mesh)
+every patch has its own block and inverse. A patch solved with its class's inverse has its
+own divergence rows (`congruence`); the users of the engine check the divergence identity of
+every flux they make (`divergence`).
 
 **Zero mean on interior patches.** Instead of a Lagrange multiplier, one DG dof k of the patch
 (its first in the canonical order) is removed, both as unknown (γ_k = 0) and as equation (the
@@ -63,10 +60,8 @@ from .congruence import (
     NEGATIVE,
     BasisChange,
     Blocks,
-    _pair_blocks,
     canonical_block,
     canonical_dofs,
-    pair_change,
 )
 from .exchange import (
     Shared,
@@ -77,7 +72,7 @@ from .exchange import (
     run_starts,
     stable_order,
 )
-from .homes import Action, HomeSetup, assemble_on
+from .homes import HomeSetup, assemble_on
 
 SOLVE_CHUNK = 1 << 20     # home entries per product in `solve_home`
 
@@ -142,59 +137,47 @@ class PatchSystems(HomeSetup):
         n = self.nowned
 
         # per group its patches at home, and the patches whose blocks are needed: the first
-        # of each new key (all patches without sharing); their class numbers are given now
-        # (in the order `_extract` makes them)
+        # of each new key (all patches without sharing), and any patch whose size differs from
+        # its key's class (a hash collision: it gets a class of its own); their class numbers
+        # are given now (in the order `_extract` makes them)
         self.signs = np.where(self.code[:n] & NEGATIVE, -1.0, 1.0)     # the ±1 of G
         classes, self.known = Blocks(), (np.zeros(0, dtype=np.uint64), np.zeros(0, np.int64))
-        self.rejected, self.worst = 0, 0.0
+        sizes = np.zeros((0, 2), dtype=np.int64)          # per class: its dofs and RT dofs
+        self.collisions = 0
         pending, count = [], 0
         for pid, inner in zip(patches, interior):
-            dofs, offsets, code, tolerance, nsigma, key, route, ids = self._home_dofs(
+            dofs, offsets, code, nsigma, key, ids = self._home_dofs(
                 np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
             npatch = len(offsets) - 1
+            size = np.stack([np.diff(offsets), nsigma], axis=1)
             if share:
                 cls = self._lookup(key)
                 new = np.flatnonzero(cls < 0)
                 new = new[np.unique(key[new], return_index=True)[1]]     # one per new key
                 self._remember(key[new], count + np.arange(new.size))
+                sizes = np.concatenate([sizes, size[new]])
                 cls = self._lookup(key)
+                other = np.flatnonzero(np.any(sizes[cls] != size, axis=1))
+                self.collisions += other.size
+                cls[other] = count + new.size + np.arange(other.size)
+                sizes = np.concatenate([sizes, size[other]])
+                new = np.concatenate([new, other])
             else:
                 new = np.arange(npatch)
                 cls = count + new
             count += new.size
-            pending.append([dofs, offsets, code, tolerance, nsigma, route, ids, new, cls])
+            pending.append([dofs, offsets, code, nsigma, ids, new, cls])
         patches = [np.asarray(p, dtype=np.int64) for p in patches]
         # A on the cells of those patches only; their blocks, made canonical
-        A = assemble_on(W, self._marked_cells(patches, [p[6][p[7]] for p in pending]),
+        A = assemble_on(W, self._marked_cells(patches, [p[4][p[5]] for p in pending]),
                         self.signs)
-        for dofs, offsets, code, _, nsigma, _, _, new, cls in pending:
+        for dofs, offsets, code, nsigma, _, new, cls in pending:
             if not np.array_equal(self._extract(A, dofs, offsets, code, nsigma, new, classes),
                                   cls[new]):
                 raise RuntimeError("the classes were not made in the expected order")
         A.destroy()
-        # every patch checked against its class by the form's action (no matrix); the
-        # rejected ones get their own blocks, from A on their cells
-        action = Action(W, self.signs)
-        bad = []
-        for p, pid in zip(pending, patches):
-            dofs, offsets, code, tolerance, nsigma, route, ids, new, cls = p
-            error, ref = self._probe(action, np.flatnonzero(pid >= 0), route, offsets, code,
-                                     cls, classes)
-            ok = error <= tolerance * ref
-            bad.append(np.flatnonzero(~ok))
-            self.rejected += bad[-1].size
-            if np.any(ok):
-                self.worst = max(self.worst, float((error[ok] / ref[ok]).max()))
-            p[5] = None                                               # the route
-        action.destroy()
-        if self.comm.allreduce(self.rejected, op=MPI.SUM):
-            A = assemble_on(W, self._marked_cells(
-                patches, [p[6][b] for p, b in zip(pending, bad)]), self.signs)
-            for (dofs, offsets, code, _, nsigma, _, _, _, cls), b in zip(pending, bad):
-                cls[b] = self._extract(A, dofs, offsets, code, nsigma, b, classes)
-            A.destroy()
         groups = [(p[0].astype(PETSc.IntType, copy=False), p[1],
-                   p[2].astype(np.int16, copy=False), p[8]) for p in pending]
+                   p[2].astype(np.int16, copy=False), p[6]) for p in pending]
         del pending
         self._layout(groups, classes)
         # only the home layout, the scatters and the inverses are kept
@@ -236,34 +219,6 @@ class PatchSystems(HomeSetup):
             out[first:last] = classes.add(ia, ja, a, sub[first:last + 1] - sub[first],
                                           nsigma[which[first:last]])
         return out
-
-    def _probe(self, action, cells, route, offsets, code, cls, classes):
-        """(error, ref) per patch of a group: max_i |(Ã_p v - u)_i| for its class's probe v and
-        u = Ã_class v, all patches of the group at once through one product with A (the
-        form's action on the group's `cells`: the patches share no cell), and the class's
-        reference magnitude (see `congruence`). Collective."""
-        v, u, start, size, _, ref = classes.probes()
-        n = np.diff(offsets)
-        mismatch = size[cls] != n if cls.size else np.zeros(0, dtype=bool)
-        cls_ok = np.where(mismatch, 0, cls)
-        at = ranges(start[cls_ok], n)
-        if np.any(mismatch):
-            at[np.repeat(mismatch, n)] = 0
-        first, p = _pair_blocks(code)
-        B = self.blocks[p]
-        del p
-        # the action carries the signs of G: only the interior blocks act here
-        w = pair_change(v[at], first, B, transpose=False)
-        x = action.input()
-        x[:] = 0.0
-        self._to_owners(route, w, x, add=False)
-        got = self._to_home(route, action(cells), w)
-        got = pair_change(got, first, B, transpose=True)
-        got -= u[at]
-        diff = np.abs(got, out=got)
-        error = np.maximum.reduceat(diff, offsets[:-1]) if n.size else diff[:0]
-        error[mismatch] = np.inf
-        return error, ref[cls_ok]
 
     def _layout(self, groups, classes):
         """Home order (size, class multiplicity, class, group, patch), the routes to it, the
@@ -410,17 +365,14 @@ class PatchSystems(HomeSetup):
 
     def stats(self):
         """Global facts of the sharing: patches, classes (distinct inverses, summed over the
-        processes), patches rejected by the probe of their key's class (they have their own
-        block), inverse memory in bytes, facet dofs whose two cells disagree on the canonical
-        basis (0), and the largest probe residual of an accepted patch relative to its class's
-        reference magnitude (within the tolerance, see `congruence`)."""
+        processes), patches whose key's class had another size (a key collision: they have
+        their own block), inverse memory in bytes, and facet dofs whose two cells disagree on
+        the canonical basis (0)."""
         memory = sum(s[6].nbytes for s in self.solves)
-        local = np.array([self.npatches, self.nclasses, self.rejected, memory, self.disagree])
+        local = np.array([self.npatches, self.nclasses, self.collisions, memory, self.disagree])
         total = self.comm.allreduce(local, op=MPI.SUM)
-        out = dict(zip(("patches", "classes", "rejected", "inverse_bytes", "disagree"),
-                       total.tolist()))
-        out["worst"] = self.comm.allreduce(self.worst, op=MPI.MAX)
-        return out
+        return dict(zip(("patches", "classes", "collisions", "inverse_bytes", "disagree"),
+                        total.tolist()))
 
     def destroy(self):
         for s in self.scatters:

@@ -4,6 +4,8 @@
   3: boundary vertices moved onto the circle, §9) and the square (nested); the tolerance 1e-12
   of the cell means of the defect against those of r_h is round-off (the defect comes from the
   back-solves and the compatibility of the interior patches, ~1e-14 measured).
+* Every σ_alg made is checked against that identity (`MultilevelFlux.defect`), and one whose
+  coarse patches were solved with blocks not their own is refused.
 * The RT_1 transfer between levels is the contravariant Piola transfer along plaza's
   combinatorial maps, checked pointwise against dolfinx's evaluation of both fields on the disk
   (where it is not the plain interpolation) and the square (where it is).
@@ -67,6 +69,22 @@ def test_divergence_is_the_residual(name, J):
         defect, scale = divergence_defect(sigma, r, disc.comm)
         assert scale > 1.0
         assert defect <= TOL * scale, (defect, scale)
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial: a monkeypatched engine")
+def test_a_block_not_its_own_is_refused(monkeypatch):
+    """σ_alg is checked against ∇·σ_alg = r_h on every call (`MultilevelFlux.defect`, round-off
+    with the true keys); with keys that only know a patch's size its coarse patches share
+    blocks that are not theirs, and `sigma` raises."""
+    from membranes.estimation import homes
+    problem, disc, flux = flux_of("disk", 2)
+    flux.sigma(random_residual(disc, 0))
+    assert 0.0 <= flux.defect <= TOL
+    monkeypatch.setattr(homes, "patch_keys",
+                        lambda offsets, *_: np.diff(offsets).astype(np.uint64))
+    careless = MultilevelFlux(disc, problem.hierarchy)
+    with pytest.raises(RuntimeError, match="σ_alg .* violates its divergence identity"):
+        careless.sigma(random_residual(disc, 0))
 
 
 def test_output_space_and_linearity():

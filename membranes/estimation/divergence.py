@@ -1,0 +1,38 @@
+"""The divergence identities the guaranteed bound rests on, checked on every flux made (§5,
+§6, §7).
+
+The bound of §7 holds for any σ_α in H(div, Ω) whose divergence is exactly the load it
+equilibrates: ∇·σ_α,disc = Π f_α ± λ_h - r_αh (§5), ∇·σ_α,alg = r_αh (§6). H(div)
+conformity holds by construction (σ is a global RT_1 Function; each patch keeps only the
+dofs of its interior facets, and of its facets on ∂Ω if it touches ∂Ω). The divergence is
+what the patch solves decide: each patch is solved with the inverse of its class's block
+(`congruence`), whose divergence rows must be the patch's own. So every flux is checked:
+the DG1 moments of its divergence defect, one assembly of a form of
+`forms.equilibration`, must vanish to round-off against the moments of the patch
+right-hand sides. A flux that fails raises; the bound is never computed with it.
+
+A wrong divergence row gives a defect of the size of the right-hand sides on the patch's
+cells (measured 0.43 of their largest entry, tests/core/test_equilibration.py); round-off
+gives about (block condition) · ε of the scale, the largest right-hand side entry or the
+round-off unit of the moments that cancel in the sum (for σ_disc μ max|u|: the moments
+(μ ∇u·∇ψ_a, q) of a u far from 0). TOLERANCE sits between the two (measured round-off: up to
+6e-13 on the disk at 9.3e5 vertices, the stability matrix's cases in BENCHMARKS.md).
+"""
+
+from mpi4py import MPI
+
+TOLERANCE = 1e-8
+
+
+def check(defect, scale, comm, what):
+    """`defect` (the largest |moment| of the defect on this process) against TOLERANCE ·
+    `scale` (the right-hand sides' largest |entry|), over all processes; raises RuntimeError
+    naming `what` if it fails. Returns the relative defect."""
+    defect = comm.allreduce(float(defect), op=MPI.MAX)
+    scale = comm.allreduce(float(scale), op=MPI.MAX)
+    relative = defect / scale if scale > 0.0 else defect
+    if not relative <= TOLERANCE:                     # (also for NaN)
+        raise RuntimeError(f"{what} violates its divergence identity: largest DG1 moment of "
+                           f"the defect {defect:.3e}, {relative:.1e} of the right-hand "
+                           f"sides' (a patch was solved with a block not its own)")
+    return relative
