@@ -32,7 +32,8 @@ def check(defect, scale, comm, what):
     scale = comm.allreduce(float(scale), op=MPI.MAX)
     relative = defect / scale if scale > 0.0 else defect
     if not relative <= TOLERANCE:                     # (also for NaN)
-        raise RuntimeError(f"{what} violates its divergence identity: largest DG1 moment of "
-                           f"the defect {defect:.3e}, {relative:.1e} of the right-hand "
-                           f"sides' (a patch was solved with a block not its own)")
+        raise RuntimeError(f"{what} violates its divergence identity, so no bound can rest on "
+                           f"it: largest DG1 moment of the defect {defect:.3e}, {relative:.1e} "
+                           f"of the right-hand sides' (a patch solved with a block not its "
+                           f"own, or data whose interior patches are not compatible, §4)")
     return relative
