@@ -20,14 +20,32 @@ round-off unit of the moments that cancel in the sum (for σ_disc μ max|u|: the
 """
 
 from mpi4py import MPI
+from petsc4py import PETSc
 
 TOLERANCE = 1e-8
 
 
+def assemble(form, mesh, into):
+    """The UFL `form` of a defect's DG1 moments (`forms.equilibration`) assembled into the
+    PETSc Vec `into` (zeroed first, ghost contributions added to their owners), a chunk of
+    cells at a time: dolfinx packs the coefficients of all a form's cells before it
+    assembles. Collective."""
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_vector
+
+    from .cell_forms import chunks
+    with into.localForm() as local:
+        local.set(0.0)
+    for part in chunks(form, mesh):
+        assemble_vector(into, fem.form(part))
+    into.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    return into
+
+
 def check(defect, scale, comm, what):
     """`defect` (the largest |moment| of the defect on this process) against TOLERANCE ·
-    `scale` (the right-hand sides' largest |entry|), over all processes; raises RuntimeError
-    naming `what` if it fails. Returns the relative defect."""
+    `scale` (the size of the right-hand sides, see the module notes), over all processes;
+    raises RuntimeError naming `what` if it fails. Returns the relative defect."""
     defect = comm.allreduce(float(defect), op=MPI.MAX)
     scale = comm.allreduce(float(scale), op=MPI.MAX)
     relative = defect / scale if scale > 0.0 else defect

@@ -370,19 +370,10 @@ class FluxEquilibration:
         assembled into b (its RT entries stay zero), the loads' data parts -(f, q) added;
         their largest entry against `scale`. Returns the relative defect; raises if the
         identity fails."""
-        from dolfinx import fem
-        from dolfinx.fem.petsc import assemble_vector
-
-        from .cell_forms import chunks
-        from .divergence import check
+        from .divergence import assemble, check
         _, q = ufl.TestFunctions(self.systems.W)
-        with self.b.localForm() as local:
-            local.set(0.0)
-        # a chunk of cells at a time: dolfinx packs the coefficients of all a form's cells
-        for part in chunks(equilibration_forms.disc_divergence(sigma, self.sign, self.lam,
-                                                               self.r, q), self.mesh):
-            assemble_vector(self.b, fem.form(part))
-        self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        assemble(equilibration_forms.disc_divergence(sigma, self.sign, self.lam, self.r, q),
+                 self.mesh, self.b)
         for c in range(self.ncolours):
             self.b.array[self.dg_dofs(c)] += f.values[c]
         return check(self.b.norm(PETSc.NormType.NORM_INFINITY), scale, self.comm,
