@@ -42,6 +42,13 @@ def assemble(form, mesh, into):
     return into
 
 
+def largest(vec):
+    """The largest |entry| of a PETSc Vec's owned entries on this process (no temporary, no
+    communication: `check` reduces over the processes once)."""
+    a = vec.array_r
+    return float(max(a.max(initial=0.0), -a.min(initial=0.0)))
+
+
 def check(defect, scale, comm, what):
     """`defect` (the largest |moment| of the defect on this process) against TOLERANCE ·
     `scale` (the size of the right-hand sides, see the module notes), over all processes;

@@ -41,6 +41,7 @@ from petsc4py import PETSc
 
 import forms.equilibration as equilibration_forms
 
+from .divergence import assemble, check, largest
 from .patches import PatchSystems, Shared, colour_vertices
 
 PSI, LAMC, U = range(3)      # components of FluxEquilibration.nodal
@@ -351,7 +352,7 @@ class FluxEquilibration:
             assemble_vector(self.b, self.rhs_forms[c])
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
             self.b.array[self.dg_dofs(c)] += f.values[c]          # the data part
-            scale = max(scale, self.b.norm(PETSc.NormType.NORM_INFINITY))
+            scale = max(scale, largest(self.b))
             systems.gather(c, self.b, home)
         x = systems.solve_home(home)
         # the colours' solutions add up (in b, free again); their RT parts are σ_α,disc
@@ -370,14 +371,12 @@ class FluxEquilibration:
         assembled into b (its RT entries stay zero), the loads' data parts -(f, q) added;
         their largest entry against `scale`. Returns the relative defect; raises if the
         identity fails."""
-        from .divergence import assemble, check
         _, q = ufl.TestFunctions(self.systems.W)
         assemble(equilibration_forms.disc_divergence(sigma, self.sign, self.lam, self.r, q),
                  self.mesh, self.b)
         for c in range(self.ncolours):
             self.b.array[self.dg_dofs(c)] += f.values[c]
-        return check(self.b.norm(PETSc.NormType.NORM_INFINITY), scale, self.comm,
-                     "σ_disc (§5)")
+        return check(largest(self.b), scale, self.comm, "σ_disc (§5)")
 
     def release(self):
         """Free the work vectors of `sigma` (the home vector and the W vector b; made again at
