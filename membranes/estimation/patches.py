@@ -19,9 +19,10 @@ kept dofs is the sum of the cell blocks of that patch only: each patch's matrix 
 submatrix A_p of A, and equally of A assembled on any set of cells containing the patch's
 (`homes.assemble_on`: only the cells of the patches whose blocks are taken are assembled, so
 no matrix over the whole mesh is ever made). Each patch is solved on one process, its *home*.
-A VecScatter per group moves right-hand sides from the dofs' owners to the homes and
-solutions back; PETSc's MatCreateSubMatrices brings the rows of the blocks that are needed to
-the homes (as for overlapping Schwarz subdomains).
+Per group, numpy indexing moves the right-hand sides of the dofs owned by a home's process to
+it and the solutions back, and a VecScatter moves those of the others (none on one process);
+PETSc's MatCreateSubMatrices brings the rows of the blocks that are needed to the homes (as
+for overlapping Schwarz subdomains).
 
 **Shared dense inverses.** The blocks are taken in the canonical basis of `congruence`, where
 the blocks of translated patches are equal to round-off. Patches with equal translation
@@ -235,10 +236,14 @@ class PatchSystems(HomeSetup):
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
         code = np.zeros(self.home_size, dtype=np.int16)
-        # per group a VecScatter from the owners to the home positions: one pass per call
+        # per group the routes from the owners to the home positions: the entries owned here
+        # by numpy indexing (PETSc 3.18's VecScatter keeps two buffers of their size after its
+        # first use), the others by a VecScatter (empty on one process)
         template = PETSc.Vec().createMPI((self.nowned, PETSc.DECIDE), comm=comm)
         hv = PETSc.Vec().createWithArray(self.home_vector(), comm=PETSc.COMM_SELF)
-        self.scatters, self.group_sizes = [], []
+        self.local, self.scatters, self.group_sizes = [], [], []
+        index = np.int32 if self.home_size < np.iinfo(np.int32).max else np.int64
+        lo, hi = self.rstart, self.rstart + self.nowned
         first = 0
         for dofs, offsets, gcode, _ in groups:
             k = np.diff(offsets)
@@ -250,8 +255,12 @@ class PatchSystems(HomeSetup):
             by_home = ranges(offsets[:-1][by_start], k[by_start])
             at = ranges(at[by_start], k[by_start])
             code[at] = gcode[by_home]
-            src = PETSc.IS().createGeneral(dofs[by_home], comm=PETSc.COMM_SELF)
-            dst = PETSc.IS().createGeneral(at.astype(PETSc.IntType), comm=PETSc.COMM_SELF)
+            src = dofs[by_home]
+            mine = (src >= lo) & (src < hi)
+            self.local.append(((src[mine] - lo).astype(np.int32), at[mine].astype(index)))
+            src = PETSc.IS().createGeneral(src[~mine], comm=PETSc.COMM_SELF)
+            dst = PETSc.IS().createGeneral(at[~mine].astype(PETSc.IntType),
+                                           comm=PETSc.COMM_SELF)
             self.scatters.append(PETSc.Scatter().create(template, src, hv, dst))
             src.destroy()
             dst.destroy()
@@ -305,6 +314,8 @@ class PatchSystems(HomeSetup):
 
     def gather(self, c, b, home):
         """home ← the entries of the W vector b at group c's kept dofs (dolfinx's basis)."""
+        rows, at = self.local[c]
+        home[at] = b.array_r.take(rows)
         hv = self._vec(home)
         self.scatters[c].scatter(b, hv, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
         hv.destroy()
@@ -340,6 +351,9 @@ class PatchSystems(HomeSetup):
         added, or written with zeros at the dofs the group does not keep."""
         if not add:
             out.set(0.0)
+        rows, at = self.local[c]
+        owned = out.array                # (a group keeps each dof once: no repeated rows)
+        owned[rows] += x.take(at)
         xv = self._vec(x)
         self.scatters[c].scatter(xv, out, PETSc.InsertMode.ADD if add else
                                  PETSc.InsertMode.INSERT, PETSc.ScatterMode.REVERSE)
@@ -377,4 +391,4 @@ class PatchSystems(HomeSetup):
     def destroy(self):
         for s in self.scatters:
             s.destroy()
-        self.scatters, self.solves = [], []
+        self.local, self.scatters, self.solves = [], [], []
