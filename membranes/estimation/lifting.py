@@ -30,8 +30,9 @@ class Lifting:
         self.Q = fem.FunctionSpace(mesh, ("DG", 1))
         self.ncells = nc = mesh.topology.index_map(mesh.topology.dim).size_local
         self.n = V.dofmap.index_map.size_local
-        self.cells = V.dofmap.list.array.reshape(-1, 3)[:nc].copy()          # int32
-        self.dg = self.Q.dofmap.list.array.reshape(-1, 3)[:nc].copy()
+        # (views of the dofmaps, which they keep alive)
+        self.cells = V.dofmap.list.array.reshape(-1, 3)[:nc]                   # int32
+        self.dg = self.Q.dofmap.list.array.reshape(-1, 3)[:nc]
         x = V.tabulate_dof_coordinates()[:, :2][self.cells]                    # (nc, 3, 2)
         e1, e2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
         self.area = area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
