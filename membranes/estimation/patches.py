@@ -76,6 +76,7 @@ from .exchange import (
 from .homes import HomeSetup, assemble_on
 
 SOLVE_CHUNK = 1 << 20     # home entries per product in `solve_home`
+RUN = 256                 # home entries of a run the routes copy as one slice (`_own_route`)
 
 __all__ = ["PatchSystems", "Shared", "alltoallv", "colour_vertices", "mixed_space", "stable_order",
            "reduce_by_key"]
@@ -257,7 +258,8 @@ class PatchSystems(HomeSetup):
             code[at] = gcode[by_home]
             src = dofs[by_home]
             mine = (src >= lo) & (src < hi)
-            self.local.append(((src[mine] - lo).astype(np.int32), at[mine].astype(index)))
+            self.local.append(self._own_route((src[mine] - lo).astype(np.int32), at[mine],
+                                              index))
             src = PETSc.IS().createGeneral(src[~mine], comm=PETSc.COMM_SELF)
             dst = PETSc.IS().createGeneral(at[~mine].astype(PETSc.IntType),
                                            comm=PETSc.COMM_SELF)
@@ -305,6 +307,21 @@ class PatchSystems(HomeSetup):
         self.nclasses, self.npatches = nclasses, cls.size
         classes.release()
 
+    @staticmethod
+    def _own_route(rows, at, index):
+        """The route of a group's entries owned by the home's process: owned W rows `rows`
+        to home positions `at` (increasing). The positions come in runs (a class's patches of
+        one group are consecutive at home): runs of at least RUN entries are kept as (home
+        start, entry offset, length) and copied as slices, the other entries by their
+        positions."""
+        new = np.flatnonzero(np.diff(at) != 1) + 1       # where at stops counting up by one
+        new = np.concatenate([[0], new]) if at.size else new
+        length = np.diff(np.append(new, at.size))
+        long = length >= RUN
+        runs = list(zip(at[new[long]].tolist(), new[long].tolist(), length[long].tolist()))
+        single = ranges(new[~long], length[~long])
+        return rows, runs, single.astype(index), at[single].astype(index)
+
     def home_vector(self):
         """A zero home vector (numpy): the kept dofs of the patches at home, all groups."""
         return np.zeros(self.home_size)
@@ -314,8 +331,11 @@ class PatchSystems(HomeSetup):
 
     def gather(self, c, b, home):
         """home ← the entries of the W vector b at group c's kept dofs (dolfinx's basis)."""
-        rows, at = self.local[c]
-        home[at] = b.array_r.take(rows)
+        rows, runs, k, at = self.local[c]
+        values = b.array_r.take(rows)
+        for h0, k0, n in runs:
+            home[h0:h0 + n] = values[k0:k0 + n]
+        home[at] = values[k]
         hv = self._vec(home)
         self.scatters[c].scatter(b, hv, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
         hv.destroy()
@@ -351,9 +371,13 @@ class PatchSystems(HomeSetup):
         added, or written with zeros at the dofs the group does not keep."""
         if not add:
             out.set(0.0)
-        rows, at = self.local[c]
+        rows, runs, k, at = self.local[c]
+        values = np.empty(rows.size)
+        for h0, k0, n in runs:
+            values[k0:k0 + n] = x[h0:h0 + n]
+        values[k] = x[at]
         owned = out.array                # (a group keeps each dof once: no repeated rows)
-        owned[rows] += x.take(at)
+        owned[rows] += values
         xv = self._vec(x)
         self.scatters[c].scatter(xv, out, PETSc.InsertMode.ADD if add else
                                  PETSc.InsertMode.INSERT, PETSc.ScatterMode.REVERSE)

@@ -297,6 +297,37 @@ def test_reduced_operators():
         PatchSystems(mesh, patches, interior, W, rhs="data")
 
 
+def test_routes_by_slices_and_by_positions_agree(monkeypatch):
+    """The home's own entries move as slices (runs of at least RUN home positions) or one by
+    one (`PatchSystems._own_route`): both give the same gathers and solutions, bit for bit."""
+    from petsc4py import PETSc
+
+    import membranes.estimation.patches as engine
+
+    from .mpi_patches import vertex_groups
+    mesh = refined_disk(MPI.COMM_WORLD, 0.4, 2)
+    patches, interior = vertex_groups(mesh)
+    W = mixed_space(mesh)
+    n = W.dofmap.index_map.size_local
+    b = PETSc.Vec().createMPI((n, PETSc.DECIDE), comm=mesh.comm)
+    b.array[:] = np.random.default_rng(5 + mesh.comm.rank).standard_normal(n)
+    results = []
+    for run in (1, 1 << 40):                       # every run a slice; none
+        monkeypatch.setattr(engine, "RUN", run)
+        systems = PatchSystems(mesh, patches, interior, W)
+        sliced = sum(sum(r[2] for r in route[1]) for route in systems.local)
+        single = sum(route[2].size for route in systems.local)
+        home = systems.home_vector()
+        for c in range(len(patches)):
+            systems.gather(c, b, home)
+        results.append((sliced, single, home, [systems.solve(c, b).array.copy()
+                                                for c in range(len(patches))]))
+    (sliced, single, home, x), (sliced_0, single_0, home_0, x_0) = results
+    assert single == 0 and sliced_0 == 0 and sliced == single_0 > 0
+    assert np.array_equal(home, home_0)
+    assert all(np.array_equal(a, a_0) for a, a_0 in zip(x, x_0))
+
+
 def test_stable_order_is_a_stable_argsort():
     from membranes.estimation.patches import stable_order
     rng = np.random.default_rng(6)
