@@ -351,7 +351,7 @@ class FluxEquilibration:
                 local.set(0.0)
             assemble_vector(self.b, self.rhs_forms[c])
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            self.b.array[self.dg_dofs(c)] += f.values[c]          # the data part
+            self._add_data(f, c)
             scale = max(scale, largest(self.b))
             systems.gather(c, self.b, home)
         x = systems.solve_home(home)
@@ -375,8 +375,12 @@ class FluxEquilibration:
         assemble(equilibration_forms.disc_divergence(sigma, self.sign, self.lam, self.r, q),
                  self.mesh, self.b)
         for c in range(self.ncolours):
-            self.b.array[self.dg_dofs(c)] += f.values[c]
+            self._add_data(f, c)
         return check(largest(self.b), scale, self.comm, "σ_disc (§5)")
+
+    def _add_data(self, f, c):
+        """b += the data part of colour c's right-hand sides (the `Load` f) at its DG1 dofs."""
+        self.b.array[self.dg_dofs(c)] += f.values[c]
 
     def release(self):
         """Free the work vectors of `sigma` (the home vector and the W vector b; made again at
