@@ -26,26 +26,32 @@ TOLERANCE = 1e-8
 
 
 def assemble(form, mesh, into):
-    """The UFL `form` of a defect's DG1 moments (`forms.equilibration`) assembled into the
-    PETSc Vec `into` (zeroed first, ghost contributions added to their owners), a chunk of
-    cells at a time: dolfinx packs the coefficients of all a form's cells before it
-    assembles. Collective."""
+    """The UFL `form` of a defect's DG1 moments (`forms.equilibration`) assembled into
+    `into`, zeroed first, a chunk of cells at a time (dolfinx packs the coefficients of all a
+    form's cells before it assembles). `into`: a PETSc Vec (ghost contributions are then
+    added to their owners) or a numpy array of the local dofs (the caller sees to the
+    ghosts). Collective."""
     from dolfinx import fem
     from dolfinx.fem.petsc import assemble_vector
 
     from .cell_forms import chunks
-    with into.localForm() as local:
-        local.set(0.0)
+    if isinstance(into, PETSc.Vec):
+        with into.localForm() as local:
+            local.set(0.0)
+        for part in chunks(form, mesh):
+            assemble_vector(into, fem.form(part))
+        into.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        return into
+    into[:] = 0.0
     for part in chunks(form, mesh):
-        assemble_vector(into, fem.form(part))
-    into.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fem.assemble_vector(into, fem.form(part))
     return into
 
 
-def largest(vec):
-    """The largest |entry| of a PETSc Vec's owned entries on this process (no temporary, no
-    communication: `check` reduces over the processes once)."""
-    a = vec.array_r
+def largest(values):
+    """The largest |entry| of a PETSc Vec's owned entries (or of a numpy array) on this
+    process (no temporary, no communication: `check` reduces over the processes once)."""
+    a = values.array_r if isinstance(values, PETSc.Vec) else values
     return float(max(a.max(initial=0.0), -a.min(initial=0.0)))
 
 
