@@ -33,7 +33,7 @@ class CellForm:
         self.k = k
         self.forms = [fem.form(f) for f in chunks(build(ufl.TestFunction(self.W)), mesh)]
         imap = self.W.dofmap.index_map
-        self._b = np.zeros((imap.size_local + imap.num_ghosts) * k)
+        self._size = (imap.size_local + imap.num_ghosts) * k
         self.nc = nc = owned_cells(mesh)
         # the block (one per cell) of each owned cell: DG0 dofs need not follow the cells
         # (None where they do: the integrals are then returned without a copy)
@@ -42,12 +42,13 @@ class CellForm:
 
     def cells(self):
         """The k integrals on every owned cell, shape (owned cells, k): a view of the form's
-        vector where the DG0 dofs follow the cells, valid until the next call."""
+        vector where the DG0 dofs follow the cells. The vector is made per call and not kept
+        (k doubles per cell: it would stay alive under the Krylov solves between calls)."""
         from dolfinx import fem
-        self._b[:] = 0.0
+        b = np.zeros(self._size)
         for form in self.forms:
-            fem.assemble_vector(self._b, form)
-        q = self._b.reshape(-1, self.k)
+            fem.assemble_vector(b, form)
+        q = b.reshape(-1, self.k)
         return q[:self.nc] if self._cells is None else q[self._cells]
 
 
