@@ -123,8 +123,8 @@ class PatchSystems(HomeSetup):
         self.mesh, self.comm = mesh, mesh.comm
         self.W = W = W if W is not None else mixed_space(mesh)
         # RT_1 as a space of its own, and the W dof of each of its dofs, read off the cells'
-        # dofs (a space made anew: W.sub(0).collapse() takes three times as long, and its
-        # map is a Python list)
+        # dofs (a space made anew: W.sub(0).collapse() is slower and gives its map as a
+        # Python list)
         from dolfinx import fem
         rt = W.sub(0)
         self.rt_space = fem.FunctionSpace(mesh, W.ufl_element().sub_elements()[0])
