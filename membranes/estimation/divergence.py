@@ -32,14 +32,11 @@ def assemble(form, mesh, into):
     added to their owners) or a numpy array of the local dofs (the caller sees to the
     ghosts). Collective."""
     from dolfinx import fem
-    from dolfinx.fem.petsc import assemble_vector
 
     from .cell_forms import chunks
     if isinstance(into, PETSc.Vec):
         with into.localForm() as local:
-            local.set(0.0)
-        for part in chunks(form, mesh):
-            assemble_vector(into, fem.form(part))
+            assemble(form, mesh, local.array)
         into.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         return into
     into[:] = 0.0
