@@ -351,7 +351,7 @@ class FluxEquilibration:
                 local.set(0.0)
             assemble_vector(self.b, self.rhs_forms[c])
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            self._add_data(f, c)
+            self._add_data(self.b.array, self.dg_dofs(c), f, c)
             scale = max(scale, largest(self.b))
             systems.gather(c, self.b, home)
         x = systems.solve_home(home)
@@ -376,24 +376,24 @@ class FluxEquilibration:
         and the largest entry is taken over all local entries."""
         Q = self.r.function_space
         imap = Q.dofmap.index_map
+        size = imap.size_local + imap.num_ghosts
         with self.b.localForm() as local:
-            moments = local.array[:imap.size_local + imap.num_ghosts]
-            if moments.size < imap.size_local + imap.num_ghosts:
+            if local.array.size < size:
                 raise RuntimeError("W has fewer local dofs than its DG1 part")
+            moments = local.array[:size]
             assemble(equilibration_forms.disc_divergence(sigma, self.sign, self.lam, self.r,
                                                          ufl.TestFunction(Q)),
                      self.mesh, moments)
             cells = Q.dofmap.list.array.reshape(-1, 3)
             for c, (touching, _) in enumerate(self.touching()):
-                self._add_data(f, c, moments, cells.take(touching, axis=0))
+                self._add_data(moments, cells.take(touching, axis=0), f, c)
             defect = largest(moments)
         return check(defect, scale, self.comm, "σ_disc (§5)")
 
-    def _add_data(self, f, c, into=None, dofs=None):
-        """Add the data part of colour c's right-hand sides (the `Load` f) at its cells' DG1
-        dofs: b at `dg_dofs(c)` by default, else the array `into` at `dofs`."""
-        if into is None:
-            into, dofs = self.b.array, self.dg_dofs(c)
+    @staticmethod
+    def _add_data(into, dofs, f, c):
+        """into[dofs] += the data part of colour c's right-hand sides (the `Load` f), dofs
+        the DG1 dofs (cells touching c, 3) of the space `into` belongs to."""
         into[dofs] += f.values[c]
 
     def release(self):
