@@ -10,7 +10,7 @@ is asserted; η ≥ error holds for both.
 
 import pytest
 
-from membranes import solve
+from membranes import scenes, solve
 
 from .conftest import scene
 
@@ -152,6 +152,21 @@ def test_a_forced_step_whose_test_may_hold_is_solved_to_the_floor(monkeypatch):
     assert steps[0][-1]["alg_residual"] <= 2e-12 and forced.final_record["bound"]
     assert forced.estimates["eta_alg"] <= 1e-10 * forced.estimates["eta"]
     assert forced.estimates["eta"] == pytest.approx(plain.estimates["eta"], rel=1e-8)
+
+
+@pytest.mark.parametrize("solver", ["amg", "paper"])
+def test_an_exact_prolongation_stops_at_the_floor(solver):
+    """Zero loads: u1 = g, u2 = 0 is P1, so T_0's solution prolongs to T_1's exactly and the
+    first (forced) step on T_1 starts at a residual of round-off size. Its forcing bound
+    (0.01 of that residual) lies below what any solve reaches; it is raised to the exact floor
+    2e-12 ‖B‖, so the step stops at once (it ran to the 10000-iteration limit and ended the
+    run unconverged before). η is round-off too."""
+    sol = solve(scenes.user(f1="0", f2="0", domain="square", h=0.2, levels=1), solver=solver)
+    assert sol.converged, sol.reason
+    assert [level["newton_iterations"] for level in sol.per_level] == [0, 1]
+    assert sol.linear_iterations == 0
+    assert sol.final_record["alg_residual"] <= 2e-12
+    assert sol.estimates["eta"] <= 1e-12
 
 
 def test_one_mean_amg_per_level(monkeypatch):

@@ -15,20 +15,22 @@ The step is solved on the full 3N system or on the eliminated 2N one
 * exact: ‖R_alg‖/‖B‖ ≤ 2e-12 at every step; Newton stops at ‖R_lin‖/‖(F, 0)‖ ≤ tol;
 * inexact: the Krylov solve stops at ‖R_alg‖/‖B‖ ≤ ‖R_lin(X^{k-1})‖/‖(F, 0)‖ (tested every ν
   iterations: see krylov), Newton stops as for exact; with `forcing` η instead at
-  ‖R_alg‖ ≤ η ‖R_alg(X^{k,0})‖, tested at every iteration (a constant forcing term: the
-  nested run's coarse levels, membranes.app.driver);
+  ‖R_alg‖ ≤ max(η ‖R_alg(X^{k,0})‖, 2e-12 ‖B‖), tested at every iteration (a constant
+  forcing term, never below the exact floor: the nested run's coarse levels,
+  membranes.app.driver);
 * adaptive (Algorithm 1): every ν Krylov steps the iterate X^{k,i} and its residual R^{k,i}
   go to the estimators (`estimate(X, R, 'krylov')`), and the solve stops at the first with
   η_alg ≤ γ_alg max(η_disc, η_lin) (or at the exact floor 2e-12); that iterate is X^k, whose
   estimates are then known. Newton stops at the first X^k, k ≥ 1, with η_lin ≤ γ_lin η_disc.
   X⁰ is not estimated (Algorithm 1 makes at least one step). With `forcing` η, a step that
   the estimates expect not to be the last (the first step, or the last answer to kind
-  'newton' carries `more_steps` = True) stops its solve instead at ‖R_alg‖ ≤ η ‖R_alg(X^{k,0})‖,
-  tested at every iteration, and hands its iterate over with kind 'forced'. An answer None
-  says its Newton test may hold: the solve then goes on to the exact floor from there, and
-  the iterate is estimated as 'newton'. Otherwise the answer is the iterate's estimates, and
-  if they are full and Newton's test holds, the iterate stops Newton only if the linear
-  criterion holds on them too (docs/choices.md).
+  'newton' carries `more_steps` = True) stops its solve instead at ‖R_alg‖ ≤ η ‖R_alg(X^{k,0})‖
+  (or at the exact floor, if that is larger), tested at every iteration, and hands its
+  iterate over with kind 'forced'. An answer None says its Newton test may hold: the solve
+  then goes on to the exact floor from there, and the iterate is estimated as 'newton'.
+  Otherwise the answer is the iterate's estimates, and if they are full and Newton's test
+  holds, the iterate stops Newton only if the linear criterion holds on them too
+  (docs/choices.md).
 
 **Estimates that need a later iterate.** The ν algebraic flux of X^{k,i} is built from
 X^{k,i+ν} (§6): an `estimate` may answer the call for X^{k,i+ν} with the estimates of the
@@ -268,7 +270,11 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             bound, every = lin_tol * lin.norm_B, spec.nu if variant == "inexact" else 1
             forced = forcing is not None and (not adaptive or more_steps(last))
             if forced:                      # relative to X^{k,0}'s residual (R: scratch here)
-                bound, every = forcing * (norm0 if adaptive else step.residual(y, R)), 1
+                # never below the exact floor: a solve that reaches it is exact (an X^{k,0}
+                # already at round-off, e.g. an exact prolongation, would never stop)
+                bound = max(forcing * (norm0 if adaptive else step.residual(y, R)),
+                            EXACT_TOL * lin.norm_B)
+                every = 1
             split_ = split if step.system == "eliminated" else None
             its, name, solved, norm = solver.solve(
                 step, y, bound, every, on_iterate if adaptive else None, split_)
@@ -279,8 +285,8 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 answer = estimated(X_try, R, "forced")
                 if answer is None:      # its Newton test may hold: finish the solve
                     forced = False
-                    more, name, solved, norm = solver.solve(step, y, lin_tol * lin.norm_B, 1,
-                                                            None, split_)
+                    bound = lin_tol * lin.norm_B
+                    more, name, solved, norm = solver.solve(step, y, bound, 1, None, split_)
                     its += more
             t_solve = time.perf_counter() - t - (times["estimate"] - t_est)
             times["solve"] += t_solve
@@ -288,7 +294,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             if not solved:
                 reason = (f"Krylov solver failed at Newton step {k}: {name} after {its} "
                           f"iterations, ||R_alg||/||B|| = {norm / lin.norm_B:.2e} "
-                          f"(asked {lin_tol:.1e})")
+                          f"(asked {bound / lin.norm_B:.1e})")
                 step.destroy()
                 y.destroy()
                 break
