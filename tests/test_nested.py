@@ -169,6 +169,33 @@ def test_an_exact_prolongation_stops_at_the_floor(solver):
     assert sol.estimates["eta"] <= 1e-12
 
 
+def test_a_repeated_iterate_is_estimated_in_full():
+    """μ1 = 1e-6, μ2 = 1e6, f1 = -1 on the square, Fischer–Burmeister: membrane 1's boundary
+    layer (width about sqrt(μ1 g) = 2e-4) is far below h, so the gradient-recovery estimate
+    η_rec, which stands in for η_disc before the first full estimate on a mesh, is about 100
+    times below η_disc (1.4). On T_2 the iterate reaches the floor and the next Newton step
+    makes no Krylov iteration: it repeats the iterate, whose η_lin then never falls below the
+    gate. Such a step is estimated in full (kind 'stalled'), and the run stops there,
+    certified; the gate alone skipped it until the 100-step limit."""
+    problem = scenes.user(f1="-1", mu1=1e-6, mu2=1e6, domain="square", h=0.1, levels=2)
+    sol = solve(problem, cfun="fb")
+    assert sol.converged, sol.reason
+    assert sol.final_record["bound"] and sol.final_record["linear_it"] == 0
+    assert sol.per_level[-1]["newton_iterations"] <= 5
+    assert sol.estimates["eta_lin"] <= 0.3 * sol.estimates["eta_disc"]
+
+
+def test_newton_stops_where_a_step_repeats_the_iterate():
+    """Exact Newton asked for ‖R_lin‖/‖(F, 0)‖ ≤ 1e-16, below what round-off leaves: once a
+    step's Krylov solve makes no iteration (its initial guess meets the floor 2e-12 ‖B‖), the
+    next steps would repeat the iterate, so the run stops, not converged, and says why
+    (it ran to the 100-step limit before)."""
+    problem = scene("disk", 0.2, levels=1)
+    sol = solve(problem, newton="exact", tol=1e-16)
+    assert not sol.converged and "stalled" in sol.reason, sol.reason
+    assert sol.history[-1]["linear_it"] == 0 and sol.newton_iterations < 20
+
+
 def test_one_mean_amg_per_level(monkeypatch):
     """The mean's AMG (S_D does not change on a mesh) and the eliminated step's T are made
     once per level: freed only before an adaptive 'newton' estimate, which ends the run on the

@@ -60,7 +60,10 @@ class LevelEstimates:
     iterate Newton stops at is always estimated in full and certified. GATE = 1 because a
     full estimate whose test fails is wasted, and on T_J it costs more than the Newton step
     that a skipped, passing test costs: estimating an iterate pays only if its test is
-    likely to hold (docs/choices.md). `gate=None` estimates every Newton iterate in full.
+    likely to hold (docs/choices.md). `gate=None` estimates every Newton iterate in full, and
+    so does kind 'stalled' (an iterate that its Newton step left unchanged: η_lin no longer
+    falls, and η_rec may be far below η_disc where the mesh does not resolve the data, so the
+    gate would skip it at every repetition).
 
     Each answer to kind 'newton' whose test fails says whether the next step is expected not
     to be the last either (`more_steps`, `_more_steps`): Newton then stops that step's Krylov
@@ -160,7 +163,7 @@ class LevelEstimates:
                     return None
                 self.eta_lin = lin["eta_lin"]
             out = self._evaluate(X, R)
-            if kind == "newton":
+            if kind in ("newton", "stalled"):
                 self.eta_lin = out["eta_lin"]
                 out["more_steps"] = self._more_steps(out["eta_lin"],
                                                      self.gamma_lin * out["eta_disc"], previous)

@@ -35,9 +35,10 @@ right side of the 3N system, so that both systems are measured alike), tested af
 iterations that are multiples of `every`:
 
 * exact (§8): tol = `EXACT_TOL` = 2e-12, every iteration (and the initial guess);
-* inexact (§8): tol = ‖R_lin(X^{k-1})‖/‖(F, 0)‖, every ν iterations from i = ν: the initial
-  guess X^{k-1} meets it (B - A X^{k-1} = R_lin(X^{k-1}) and ‖B‖ ≥ ‖(F, 0)‖), so that it is not
-  tested, and GMRES, whose residual never grows, meets it at i = ν (the paper's 10 per step);
+* inexact (§8): tol = ‖R_lin(X^{k-1})‖/‖(F, 0)‖ (or EXACT_TOL, if larger), every ν
+  iterations from i = ν: the initial guess X^{k-1} meets it (B - A X^{k-1} = R_lin(X^{k-1})
+  and ‖B‖ ≥ ‖(F, 0)‖), so that it is not tested, and GMRES, whose residual never grows,
+  meets it at i = ν (the paper's 10 per step);
 * adaptive (§8): the exact floor, and every ν iterations the callback `on_iterate(i, y, r)`
   with the current iterate y (`ksp.buildSolution`) and its weighted residual r = b - A y; it
   returns True to stop (η_alg ≤ γ_alg max(η_disc, η_lin) is decided by the Newton loop, which
@@ -93,8 +94,10 @@ REASONS = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if k.isupper
 
 def linear_tolerance(variant, residual):
     """The tolerance of ‖R_alg‖/‖B‖ for a Newton step; `residual` = ‖R_lin(X^{k-1})‖/‖(F, 0)‖
-    (§8). The adaptive variant's floor is the exact tolerance (its criterion stops first)."""
-    return residual if variant == "inexact" else EXACT_TOL
+    (§8). The adaptive variant's floor is the exact tolerance (its criterion stops first); the
+    inexact one's never falls below it either (a Newton `tol` below round-off would otherwise
+    ask the Krylov solver for what it cannot reach)."""
+    return max(residual, EXACT_TOL) if variant == "inexact" else EXACT_TOL
 
 
 @dataclass

@@ -46,12 +46,18 @@ without the flux equilibration, see membranes.app.schedule.LevelEstimates): Newt
 `estimate(X, R, kind)` is any callable returning a dict with at least eta_disc, eta_lin,
 eta_alg (e.g. `membranes.estimation.estimators.Estimators.evaluate`, wrapped): X, R are PETSc
 Vecs in the iterate layout, R = B - A X unweighted (§4; None for X⁰), kind 'initial',
-'step' (its answer is not used), 'krylov', 'forced' (None allowed) or 'newton'. The exact and
+'step' (its answer is not used), 'krylov', 'forced' (None allowed), 'newton' or 'stalled' (a
+Newton iterate whose step made no Krylov iteration: full estimates wanted). The exact and
 inexact variants estimate X⁰ and every Newton iterate when given one, for the record. The
 Vecs are the loop's own: a callback that keeps one copies it.
 
 No line search and no safeguards: a Newton step is the plain semismooth step of §3 (for
-Newton-min with exact solves, the primal–dual active set method). A Krylov solve that fails
+Newton-min with exact solves, the primal–dual active set method). A step whose Krylov solve
+makes no iteration (its initial guess X^{k,0} = X^{k-1} meets the bound, which is never below
+the exact floor) leaves the iterate where it was, and the next step would repeat it: if the
+Newton test fails there, the run stops, not converged, and says so. The adaptive variant
+asks for such an iterate's estimates with kind 'stalled' (in full, whatever a gate would
+guess: its test decides whether the run stops). A Krylov solve that fails
 (PETSc error, iteration limit, breakdown) ends the run with converged = False and says why;
 nothing is hidden.
 """
@@ -212,11 +218,19 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
         ok = rec["residual"] <= tol
         return ok, f"relative residual {rec['residual']:.3e} {'<=' if ok else '>'} {tol:.1e}"
 
+    stalled = False         # whether the last step's Krylov solve made no iteration
     try:
         while True:
             ok, description = met(last, forced)
             if ok:
                 reason, converged = f"converged: {description}", True
+                break
+            if stalled:
+                # X^{k-1} solved step k's system to the floor: X^k is X^{k-1}, and every
+                # further step would repeat it (module notes)
+                reason = (f"Newton stalled at step {k}: its Krylov solve made no iteration "
+                          f"(the iterate solves the step's system to the floor), so further "
+                          f"steps repeat it ({description})")
                 break
             if k >= max_newton:
                 reason = f"no convergence in {max_newton} Newton steps ({description})"
@@ -278,6 +292,8 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             split_ = split if step.system == "eliminated" else None
             its, name, solved, norm = solver.solve(
                 step, y, bound, every, on_iterate if adaptive else None, split_)
+            if its == 0:        # X^{k,0} met the bound, so the floor: nothing was cut short
+                forced = False
             answer = None               # the estimates of a forced adaptive step's iterate
             if forced and adaptive and solved and not accepted:
                 step.expand(y, X_try)
@@ -291,6 +307,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             t_solve = time.perf_counter() - t - (times["estimate"] - t_est)
             times["solve"] += t_solve
             total += its
+            stalled = its == 0
             if not solved:
                 reason = (f"Krylov solver failed at Newton step {k}: {name} after {its} "
                           f"iterations, ||R_alg||/||B|| = {norm / lin.norm_B:.2e} "
@@ -320,11 +337,14 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 last["kind"], last["krylov_total"] = "newton", total
             else:
                 e = answer
+                # an adaptive step that made no Krylov iteration repeats X^{k-1}: its test
+                # is estimated in full (kind 'stalled'), not left to the gate's guess
+                kind = "stalled" if adaptive and stalled else "newton"
                 if e is None and estimate is not None:
                     if adaptive:        # a full estimate may follow: not under its peak
                         ns.release()
                         solver.release()
-                    e = estimated(X, R, "newton")
+                    e = estimated(X, R, kind)
                 last = record("newton", k, its, total, X, norm / lin.norm_B, e)
             last["times"] = {"assembly": t_assembly, "solve": t_solve}
             if say is not None:
