@@ -51,6 +51,12 @@ CLI_CASES = {
     "coarse tol zero": ["--coarse-tol", "0"],
     "coarse unknown": ["--coarse", "never"],
     "data with disk scene": ["--scene", "disk", "--f1", "1"],
+    # finite data whose scale overflows double precision (theory §11: the solution scales with
+    # f / mu and g): in the weighted loads, and in the estimators only
+    "loads overflow": ["--f1", "-1e300"],
+    "tiny modulus overflows": ["--f1", "-1", "--mu1", "1e-300"],
+    "g overflows": ["--g", "1e300"],
+    "estimators overflow": ["--f1", "-1", "--mu1", "1e300"],
 }
 MESH_CASES = ("missing", "directory", "garbage", "quads", "p2", "box")
 
@@ -59,6 +65,8 @@ MESH_CASES = ("missing", "directory", "garbage", "quads", "p2", "box")
 def test_cli_bad_values(case, tmp_path, capsys):
     err = cli_bad_input(CLI_CASES[case], tmp_path / "out", capsys)
     assert "Traceback" not in err
+    if "overflow" in case:
+        assert "overflow double precision" in err
 
 
 @pytest.mark.parametrize("case", MESH_CASES)

@@ -550,6 +550,10 @@ class Estimators:
         if rem:
             sums += [qt[REM1].sum(), qt[REM2].sum()]
         s = self.comm.allreduce(np.array(sums), op=MPI.SUM)
+        if not np.all(np.isfinite(s)):      # the same on every process
+            raise ValueError(f"the estimators overflow double precision (mu1 = {self.mu[0]:g}, "
+                             f"mu2 = {self.mu[1]:g}): rescale the data; the solution scales "
+                             f"with f / mu and g (theory §11)")
         if rem:
             eta_rem = float(self.cpf * np.sqrt(max(s[-2:].sum(), 0.0)))
         eta_1, disc_part, eta_F, eta_osc = np.sqrt(np.maximum(s[[0, 1, 2, 3]], 0.0))

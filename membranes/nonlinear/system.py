@@ -145,6 +145,11 @@ class NewtonSystem:
         self.WF.array[:n] = np.where(inner, disc.F1.array_r[:n] / mu1, disc.g)
         self.WF.array[n:2 * n] = np.where(inner, disc.F2.array_r[:n] / mu2, 0.0)
         self.norm_F = self.WF.norm()                         # ‖W (F, 0)‖
+        if not (np.isfinite(self.norm_F) and np.isfinite(self.kappa)):
+            raise ValueError(f"the data overflow double precision: ||W (F, 0)|| = "
+                             f"{self.norm_F:g}, kappa = {self.kappa:g} (mu1 = {mu1:g}, "
+                             f"mu2 = {mu2:g}, g = {float(disc.g):g}); rescale them: the "
+                             f"solution scales with f / mu and g (theory §11)")
         self.WF2 = PETSc.Vec().createMPI((2 * n, 2 * N), comm=comm)    # W F, 2N layout
         self.WF2.array[:] = self.WF.array_r[:2 * n]
         self._r2 = self.WF2.duplicate()
