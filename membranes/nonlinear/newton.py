@@ -15,9 +15,11 @@ The step is solved on the full 3N system or on the eliminated 2N one
 * exact: ‖R_alg‖/‖B‖ ≤ 2e-12 at every step; Newton stops at ‖R_lin‖/‖(F, 0)‖ ≤ tol;
 * inexact: the Krylov solve stops at ‖R_alg‖/‖B‖ ≤ ‖R_lin(X^{k-1})‖/‖(F, 0)‖ (tested every ν
   iterations: see krylov), Newton stops as for exact; with `forcing` η instead at
-  ‖R_alg‖ ≤ max(η ‖R_alg(X^{k,0})‖, 2e-12 ‖B‖), tested at every iteration (a constant
-  forcing term, never below the exact floor: the nested run's coarse levels,
-  membranes.app.driver);
+  ‖R_alg‖ ≤ max(η ‖R_alg(X^{k,0})‖, 2e-12 ‖B‖), tested at every iteration (the nested run's
+  coarse levels, membranes.app.driver); η is divided by 10 (`FORCING_SHRINK`) after every
+  forced step whose ‖R_lin‖/‖(F, 0)‖ is no smaller than its predecessor's: with one or two
+  GMRES + ILU(0) iterations per step, Newton-min drifted away (residual 1e11 after 100 steps
+  on a stiff case), while deeper solves converge;
 * adaptive (Algorithm 1): every ν Krylov steps the iterate X^{k,i} and its residual R^{k,i}
   go to the estimators (`estimate(X, R, 'krylov')`), and the solve stops at the first with
   η_alg ≤ γ_alg max(η_disc, η_lin) (or at the exact floor 2e-12); that iterate is X^k, whose
@@ -26,11 +28,12 @@ The step is solved on the full 3N system or on the eliminated 2N one
   the estimates expect not to be the last (the first step, or the last answer to kind
   'newton' carries `more_steps` = True) stops its solve instead at ‖R_alg‖ ≤ η ‖R_alg(X^{k,0})‖
   (or at the exact floor, if that is larger), tested at every iteration, and hands its
-  iterate over with kind 'forced'. An answer None says its Newton test may hold: the solve
-  then goes on to the exact floor from there, and the iterate is estimated as 'newton'.
-  Otherwise the answer is the iterate's estimates, and if they are full and Newton's test
-  holds, the iterate stops Newton only if the linear criterion holds on them too
-  (docs/choices.md).
+  iterate over with kind 'forced' (η is not shrunk here: on T_J the forced steps are the
+  first ones, whose residual may rise while the contact set settles). An answer None says
+  its Newton test may hold: the solve then goes on to the exact floor from there, and the
+  iterate is estimated as 'newton'. Otherwise the answer is the iterate's estimates, and if
+  they are full and Newton's test holds, the iterate stops Newton only if the linear
+  criterion holds on them too (docs/choices.md).
 
 **Estimates that need a later iterate.** The ν algebraic flux of X^{k,i} is built from
 X^{k,i+ν} (§6): an `estimate` may answer the call for X^{k,i+ν} with the estimates of the
@@ -73,6 +76,7 @@ from . import cfunctions
 from .system import NewtonSystem
 
 VARIANTS = ("exact", "inexact", "adaptive")
+FORCING_SHRINK = 0.1    # the forcing term's factor after a forced step that did not help
 SYSTEMS = ("full", "eliminated")
 
 
@@ -219,6 +223,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
         return ok, f"relative residual {rec['residual']:.3e} {'<=' if ok else '>'} {tol:.1e}"
 
     stalled = False         # whether the last step's Krylov solve made no iteration
+    forcing_now = forcing   # the forcing term, shrunk where a forced step did not help
     try:
         while True:
             ok, description = met(last, forced)
@@ -286,7 +291,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             if forced:                      # relative to X^{k,0}'s residual (R: scratch here)
                 # never below the exact floor: a solve that reaches it is exact (an X^{k,0}
                 # already at round-off, e.g. an exact prolongation, would never stop)
-                bound = max(forcing * (norm0 if adaptive else step.residual(y, R)),
+                bound = max(forcing_now * (norm0 if adaptive else step.residual(y, R)),
                             EXACT_TOL * lin.norm_B)
                 every = 1
             split_ = split if step.system == "eliminated" else None
@@ -332,6 +337,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 reason = f"non-finite iterate at Newton step {k}"
                 break
             X_try.copy(X)
+            before = last["residual"]
             if accepted:
                 last = accepted[0][0]
                 last["kind"], last["krylov_total"] = "newton", total
@@ -347,6 +353,10 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                     e = estimated(X, R, kind)
                 last = record("newton", k, its, total, X, norm / lin.norm_B, e)
             last["times"] = {"assembly": t_assembly, "solve": t_solve}
+            if forced and not adaptive and last["residual"] >= before:
+                # the inexact step did not reduce the nonlinear residual: solve the next
+                # steps deeper (module notes)
+                forcing_now *= FORCING_SHRINK
             if say is not None:
                 line = (f"Newton {k:3d}: residual {last['residual']:.3e}, {its} Krylov "
                         f"iterations ({total} in all), ||R_alg||/||B|| "

@@ -37,7 +37,10 @@ def test_case_meshes_are_what_they_claim():
     assert case["tiny"].build(H).mesh.topology.index_map(2).size_global == 18
     d = meshes.cell_diameters(case["graded"].build(H).mesh)
     assert d.max() / d.min() > 100
-    assert len(stability.CASES) == 18 and len(stability.METHODS) == 14
+    assert len(stability.CASES) == 24 and len(stability.METHODS) == 14
+    nested = case["nested_near_total"]
+    assert nested.levels == 2 and nested.klass == "nested"
+    assert len(nested.build(2 * H, nested.levels).hierarchy.meshes) == 3
     assert {m[2] for m in stability.METHODS if m[1] != "exact"} == {"paper", "amg"}
 
 
@@ -51,7 +54,8 @@ def test_select():
             stability.check_h(bad)
 
 
-@pytest.mark.parametrize("names", [("tiny", "far_guess"), ("scaled_1e-08", "grazing")])
+@pytest.mark.parametrize("names", [("tiny", "far_guess"), ("scaled_1e-08", "grazing"),
+                                   ("nested_near_total",)])
 def test_cases_converge_and_are_certified(names):
     rows, runs = matrix(names)
     assert len(rows) == len(METHODS) * len(stability.select(list(names)))
