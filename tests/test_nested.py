@@ -8,6 +8,8 @@ differ only by what η_lin ≤ 0.3 η_disc leaves of linearisation error: the is
 is asserted; η ≥ error holds for both.
 """
 
+import json
+
 import pytest
 
 from membranes import scenes, solve
@@ -250,3 +252,19 @@ def test_progress_says_where_the_estimators_are_set_up():
     assert 0.0 <= float(lines[said[1]][len(head):-2]) <= sol.wall_time_s
     assert lines[said[0] - 1].startswith("level 1: Newton")
     assert lines[said[1] + 1].startswith("level 2: Newton   1")
+
+
+def test_command_line_progress_brackets_the_silent_phases(tmp_path, capsys):
+    """`membranes solve` also says when it meshes and refines (long on a fine hierarchy, before
+    any Newton step), with the finest mesh's size, and when it writes the outputs."""
+    from membranes.app.cli import main
+    out = tmp_path / "out"
+    assert main(["solve", "--h", "0.3", "--levels", "1", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    n = json.loads(captured.out)["n_vertices"]
+    assert lines[0] == "meshing, then 1 uniform refinement(s)"
+    assert lines[1].startswith("mesh hierarchy built in ")
+    assert f"the finest mesh has {n:,} vertices" in lines[1]
+    assert lines[2].startswith("level 0: Newton")
+    assert lines[-1] == f"writing the outputs into {out}" and (out / "summary.json").exists()

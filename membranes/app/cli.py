@@ -12,6 +12,7 @@ import argparse
 import json
 import logging
 import sys
+import time
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 3
@@ -179,7 +180,15 @@ def _solve(args):
     from .outputs import write_outputs
     world = MPI.COMM_WORLD
     petsc_options = _check_before_meshing(args, scene, kwargs, world)
+    say = (lambda line: None) if args.quiet or world.rank != 0 else \
+        (lambda line: print(line, file=sys.stderr, flush=True))
+    say(f"meshing, then {args.levels} uniform refinement(s)")
+    t = time.perf_counter()
     problem = scenes.make(scene, comm=world, max_vertices=args.max_vertices, **kwargs)
+    fine = problem.hierarchy.meshes[-1].topology
+    say(f"mesh hierarchy built in {time.perf_counter() - t:.2f} s: the finest mesh has "
+        f"{fine.index_map(0).size_global:,} vertices and {fine.index_map(2).size_global:,} "
+        f"cells on {world.size} process(es)")
     sol = solve(problem, newton=args.newton, cfun=args.cfun, solver=args.solver,
                 system=args.system, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
@@ -189,6 +198,7 @@ def _solve(args):
                 max_vertices=args.max_vertices, coarse=args.coarse,
                 coarse_tol=args.coarse_tol)
     if args.out is not None:
+        say(f"writing the outputs into {args.out}")
         write_outputs(sol, args.out)
     summary = sol.summary()          # collective (reductions): every rank computes it
     if world.rank == 0:
