@@ -182,13 +182,12 @@ def _solve(args):
     petsc_options = _check_before_meshing(args, scene, kwargs, world)
     say = (lambda line: None) if args.quiet or world.rank != 0 else \
         (lambda line: print(line, file=sys.stderr, flush=True))
-    say(f"meshing, then {args.levels} uniform refinement(s)")
     t = time.perf_counter()
     problem = scenes.make(scene, comm=world, max_vertices=args.max_vertices, **kwargs)
     fine = problem.hierarchy.meshes[-1].topology
-    say(f"mesh hierarchy built in {time.perf_counter() - t:.2f} s: the finest mesh has "
-        f"{fine.index_map(0).size_global:,} vertices and {fine.index_map(2).size_global:,} "
-        f"cells on {world.size} process(es)")
+    say(f"mesh and {args.levels} uniform refinement(s) made in {time.perf_counter() - t:.2f} "
+        f"s: the finest mesh has {fine.index_map(0).size_global:,} vertices and "
+        f"{fine.index_map(2).size_global:,} cells on {world.size} process(es)")
     sol = solve(problem, newton=args.newton, cfun=args.cfun, solver=args.solver,
                 system=args.system, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
