@@ -26,13 +26,20 @@ def solved_with(name, h, **options):
 
 
 def write_msh(path, kind):
-    """Write a small gmsh file: 'triangles', 'quads' (recombined), 'box' (3D) or 'p2'."""
+    """Write a small gmsh file: 'triangles', 'quads' (recombined), 'box' (3D), 'p2' or 'one'
+    (a single triangle)."""
     import gmsh
     gmsh.initialize([])
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add(kind)
-        if kind == "box":
+        if kind == "one":
+            points = [gmsh.model.geo.addPoint(x, y, 0, 10.0) for x, y in ((0, 0), (1, 0), (0, 1))]
+            lines = [gmsh.model.geo.addLine(points[i], points[(i + 1) % 3]) for i in range(3)]
+            gmsh.model.geo.addPlaneSurface([gmsh.model.geo.addCurveLoop(lines)])
+            gmsh.model.geo.synchronize()
+            gmsh.model.mesh.generate(2)
+        elif kind == "box":
             gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
             gmsh.model.occ.synchronize()
             gmsh.model.addPhysicalGroup(3, [1], 1)

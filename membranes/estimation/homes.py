@@ -77,8 +77,10 @@ class HomeSetup:
         self.facet_cells = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
 
         rt = W.sub(0).element.basix_element.entity_dofs
-        self.rt_dofs = W.sub(0).dofmap.list.array.reshape(nall, -1)
-        self.dg_dofs = W.sub(1).dofmap.list.array.reshape(nall, -1)
+        # (by the dofs per cell: a process may hold no cell at all)
+        rt_map, dg_map = W.sub(0).dofmap, W.sub(1).dofmap
+        self.rt_dofs = rt_map.list.array.reshape(nall, rt_map.dof_layout.num_dofs)
+        self.dg_dofs = dg_map.list.array.reshape(nall, dg_map.dof_layout.num_dofs)
         # the RT dofs of each local facet, and the interior RT and DG dofs of each local cell
         self.facet_dofs = np.zeros((self.nfacets, len(rt[tdim - 1][0])), dtype=np.int32)
         for i, cols in enumerate(rt[tdim - 1]):
