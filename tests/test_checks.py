@@ -393,3 +393,45 @@ def test_two_processes_share_the_node_and_refuse_together(tmp_path):
     total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     assert 0 < shared * GiB <= total / 2 * 1.001       # (the message's 3 digits)
     assert not out.exists()
+
+
+LOCAL_ERROR = """
+import sys
+from mpi4py import MPI
+from membranes.model import scenes
+make = scenes.make
+def failing(*args, **kwargs):
+    if MPI.COMM_WORLD.rank == 1:
+        raise ValueError("only process 1 meets this")
+    return make(*args, **kwargs)
+scenes.make = failing
+from membranes.app.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_an_error_of_one_process_ends_the_run(tmp_path):
+    """An error met by one process only (simulated: process 1 refuses its data while process
+    0 goes on meshing, a collective) used to leave the run waiting for ever: the process
+    that failed waited in MPI_Finalize, the other in the collective. The processes that met
+    an error now wait cli.AGREE_SECONDS for the others to meet it too, then the one that
+    failed says why and ends itself; mpirun ends the rest. Exit 2, one error line."""
+    import shutil
+    import subprocess
+    import sys
+    import time
+
+    from membranes.app.cli import AGREE_SECONDS
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(OMP_NUM_THREADS="1")
+    out = tmp_path / "out"
+    t = time.monotonic()
+    proc = subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
+                           "-n", "2", sys.executable, "-c", LOCAL_ERROR, "solve", "--quiet",
+                           "--h", "0.3", "--out", str(out)],
+                          capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 2, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("membranes:")]
+    assert lines == ["membranes: error: only process 1 meets this"], proc.stderr
+    assert AGREE_SECONDS <= time.monotonic() - t < AGREE_SECONDS + 60
+    assert not out.exists()

@@ -11,11 +11,14 @@ the mesh, PETSc the solves; rank 0 prints, every rank writes its part of the sol
 import argparse
 import json
 import logging
+import os
 import sys
 import time
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 3
+# seconds a process that met an error waits for the others to meet it too (`_leave`)
+AGREE_SECONDS = 10.0
 
 DATA_OPTIONS = ("mu1", "mu2", "g", "f1", "f2", "mesh", "domain")
 VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--tol",
@@ -232,27 +235,64 @@ def _glue_values(argv):
     return out
 
 
+def _leave(errors, code, say):
+    """After an error on several processes: the errors of the API are collective (every
+    process meets them at the same point), but one met by some processes only would leave
+    them waiting in MPI_Finalize for processes that wait in a collective for them, and the
+    run would hang. So the processes that met an error wait AGREE_SECONDS on a barrier of
+    their own communicator `errors`: if the others do not join, this process says why (if it
+    has not) and ends itself with `code` without MPI_Finalize (mpirun then ends the rest)."""
+    if errors is None:
+        return
+    request, end = errors.Ibarrier(), time.monotonic() + AGREE_SECONDS
+    while time.monotonic() < end:
+        if request.Test():
+            return
+        time.sleep(0.01)
+    say()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 def main(argv=None):
+    from mpi4py import MPI
+    world = MPI.COMM_WORLD
+    errors = world.Dup() if world.size > 1 else None
     try:
-        argv = sys.argv[1:] if argv is None else list(argv)
-        args = _parser().parse_args(_glue_values(argv))
-        if args.command == "report":
-            from .report import main as report_main
-            quiet_jit_logging()
-            return report_main(args)
-        if args.command == "stability":
-            from .stability import main as stability_main
-            quiet_jit_logging()
-            return stability_main(args)
-        if args.command == "scenes":
-            return _scenes()
-        return _solve(args)
+        return _main(argv)
     except ValueError as e:   # BadInput and every data/mesh error of the API
         message = " ".join(str(e).split())
-        from mpi4py import MPI
-        if MPI.COMM_WORLD.rank == 0:     # every process meets the same error: say it once
-            print(f"membranes: error: {message}", file=sys.stderr)
+
+        def say(rank_zero=False):
+            if rank_zero == (world.rank == 0):
+                print(f"membranes: error: {message}", file=sys.stderr, flush=True)
+        say(rank_zero=True)      # every process meets the same error: say it once
+        _leave(errors, EXIT_BAD_INPUT, say)
         return EXIT_BAD_INPUT
+    except Exception:
+        import traceback
+        _leave(errors, 1, traceback.print_exc)
+        raise
+    finally:
+        if errors is not None:
+            errors.Free()
+
+
+def _main(argv=None):
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = _parser().parse_args(_glue_values(argv))
+    if args.command == "report":
+        from .report import main as report_main
+        quiet_jit_logging()
+        return report_main(args)
+    if args.command == "stability":
+        from .stability import main as stability_main
+        quiet_jit_logging()
+        return stability_main(args)
+    if args.command == "scenes":
+        return _scenes()
+    return _solve(args)
 
 
 if __name__ == "__main__":
