@@ -54,8 +54,9 @@ Newton iterate whose step made no Krylov iteration: full estimates wanted). The 
 inexact variants estimate X⁰ and every Newton iterate when given one, for the record. The
 Vecs are the loop's own: a callback that keeps one copies it.
 
-No line search and no safeguards: a Newton step is the plain semismooth step of §3 (for
-Newton-min with exact solves, the primal–dual active set method). A step whose Krylov solve
+No line search: a Newton step is the plain semismooth step of §3 (for Newton-min with exact
+solves, the primal–dual active set method); the only safeguard is the inexact variant's
+shrinking forcing term above. A step whose Krylov solve
 makes no iteration (its initial guess X^{k,0} = X^{k-1} meets the bound, which is never below
 the exact floor) leaves the iterate where it was, and the next step would repeat it: if the
 Newton test fails there, the run stops, not converged, and says so. The adaptive variant
