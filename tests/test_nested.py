@@ -211,6 +211,23 @@ def test_coarse_levels_do_not_drift_away(kwargs):
     assert sol.estimates["eta"] >= sol.energy_error
 
 
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_nu_flux_on_the_eliminated_system(cfun):
+    """ν = 1 with the amg preset (the eliminated system): every Krylov iterate is estimated,
+    and where the linear criterion fails the ν flux σ_disc(X^{k,1}) - σ_disc(X^{k,0}) is
+    built from X^{k,0}. On the eliminated system X^{k,0} is the expansion of the solver's
+    initial guess, whose eliminated λ or u2 follows the new linearisation: it was paired
+    with X^{k-1} instead, and σ_disc of that pair failed its divergence check (defect 2e-5
+    of the data). The run is now certified, with the same Newton steps as with ν = 10."""
+    problem = scene("disk", 0.2, levels=2)
+    sol = solve(problem, cfun=cfun, nu=1)
+    ref = solve(problem, cfun=cfun)
+    assert sol.converged, sol.reason
+    assert sol.final_record["bound"] and sol.estimates["eta"] >= sol.energy_error
+    assert sol.newton_iterations == ref.newton_iterations
+    assert any(r["kind"] == "krylov" for r in sol.history)
+
+
 def test_one_mean_amg_per_level(monkeypatch):
     """The mean's AMG (S_D does not change on a mesh) and the eliminated step's T are made
     once per level: freed only before an adaptive 'newton' estimate, which ends the run on the

@@ -37,10 +37,10 @@ class LevelEstimates:
     * 'nu': an iterate is first estimated without algebraic flux, its whole lifted residual
       bounded by Poincaré–Friedrichs (η_rem; enough where the residual is at round-off). If
       that does not meet the linear criterion η_alg ≤ γ_alg max(η_disc, η_lin), the iterate
-      handed over before in the same Newton step, X^{k,i-ν} (X^{k,0} = X^{k-1} announced with
-      kind 'step'), is estimated with the ν flux σ_disc(X^{k,i}) - σ_disc(X^{k,i-ν}) and its
-      remainder, and returned marked `of_previous` (Newton accepts that iterate if the
-      criterion holds on it). σ_disc of each iterate is solved once (Estimators keeps the last
+      handed over before in the same Newton step, X^{k,i-ν} (X^{k,0}, the iterate of the
+      solver's initial guess, announced with kind 'step'), is estimated with the ν flux
+      σ_disc(X^{k,i}) - σ_disc(X^{k,i-ν}) and its remainder, and returned marked
+      `of_previous` (Newton accepts that iterate if the criterion holds on it). σ_disc of each iterate is solved once (Estimators keeps the last
       two).
 
     **Where the Newton test needs σ_disc.** At the end of a Newton step (kind 'newton') the

@@ -42,9 +42,13 @@ by the key `of_previous` = True. If the linear criterion holds on them and i ≥
 accepted: the solve ran ν more iterations (they count) and X^k is the iterate the criterion
 was verified on, with its own guaranteed bound (X^{k,0} is no candidate: accepting X^{k-1}
 would repeat step k unchanged). Each Newton step first calls the callback with kind 'step'
-(X^{k,0} and its residual in the step's system; no estimate wanted). An answer to kind
-'newton' marked `partial` holds η_lin only (the estimates showed that the Newton test fails
-without the flux equilibration, see membranes.app.schedule.LevelEstimates): Newton goes on.
+(X^{k,0} and its residual in the step's system; no estimate wanted). X^{k,0} is the iterate
+of the solver's initial guess: X^{k-1} itself on the full system; on the eliminated one,
+X^{k-1} with its eliminated λ (or u2) taken from the new linearisation, the iterate whose
+residual the solver starts from (the ν flux needs an iterate and its own residual). An
+answer to kind 'newton' marked `partial` holds η_lin only (the estimates showed that the
+Newton test fails without the flux equilibration, see membranes.app.schedule.LevelEstimates):
+Newton goes on.
 
 `estimate(X, R, kind)` is any callable returning a dict with at least eta_disc, eta_lin,
 eta_alg (e.g. `membranes.estimation.estimators.Estimators.evaluate`, wrapped): X, R are PETSc
@@ -253,11 +257,16 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             accepted = []
 
             earlier = []        # the iterate handed to the estimators last: (X, R, alg, i)
-            if adaptive:        # X^{k,0} = X^{k-1} and its residual in this step's system
+            if adaptive:        # X^{k,0} and its residual in this step's system
+                # (X^{k,0} is the iterate of the solver's initial guess: X^{k-1} on the full
+                # system; on the eliminated one its eliminated λ or u2 follows this step's
+                # linearisation, and R0 is the residual of that iterate, not of X^{k-1}: the
+                # ν flux of §6 needs the pair of one iterate)
                 R0 = R.copy()
                 norm0 = step.residual(y, R0)
-                estimate(X, R0, "step")
-                earlier.append((X.copy(), R0, norm0 / lin.norm_B, 0))
+                X0k = step.expand(y, X_try).copy()
+                estimate(X0k, R0, "step")
+                earlier.append((X0k, R0, norm0 / lin.norm_B, 0))
 
             def on_iterate(i, yi, ri, k=k, step=step, accepted=accepted, earlier=earlier):
                 """Adaptive: estimate X^{k,i} (or the iterate before it, `of_previous`);
