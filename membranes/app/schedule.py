@@ -40,8 +40,8 @@ class LevelEstimates:
       handed over before in the same Newton step, X^{k,i-ν} (X^{k,0}, the iterate of the
       solver's initial guess, announced with kind 'step'), is estimated with the ν flux
       σ_disc(X^{k,i}) - σ_disc(X^{k,i-ν}) and its remainder, and returned marked
-      `of_previous` (Newton accepts that iterate if the criterion holds on it). σ_disc of each iterate is solved once (Estimators keeps the last
-      two).
+      `of_previous` (Newton accepts that iterate if the criterion holds on it). σ_disc of
+      each iterate is solved once (Estimators keeps the last two).
 
     **Where the Newton test needs σ_disc.** At the end of a Newton step (kind 'newton') the
     test is η_lin ≤ γ_lin η_disc. η_lin needs no flux (`Estimators.linearisation`, one small
