@@ -228,6 +228,18 @@ def test_nu_flux_on_the_eliminated_system(cfun):
     assert any(r["kind"] == "krylov" for r in sol.history)
 
 
+def test_a_coarse_level_that_stalls_moves_up():
+    """coarse_tol = 1e-15 lies below what round-off leaves of ‖R_lin‖/‖(F, 0)‖ on T_0: Newton
+    reaches the discrete solution to the floor, and a step that repeats it ends the level as
+    'stalled'. Its iterate is the best start the level can give, so the run moves up (it
+    ended there, not converged) and T_J is certified as usual."""
+    sol = solve(scene("disk", 0.2, levels=2), coarse_tol=1e-15)
+    assert sol.converged, sol.reason
+    assert "stalled" in sol.per_level[0]["reason"] and not sol.per_level[0]["converged"]
+    assert sol.per_level[0]["final_residual"] <= 1e-10
+    assert sol.final_record["bound"] and sol.estimates["eta"] >= sol.energy_error
+
+
 def test_one_mean_amg_per_level(monkeypatch):
     """The mean's AMG (S_D does not change on a mesh) and the eliminated step's T are made
     once per level: freed only before an adaptive 'newton' estimate, which ends the run on the

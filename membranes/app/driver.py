@@ -411,9 +411,9 @@ def solve(problem: Problem,
                           "wall_time_s": level_time, "final_residual": final["residual"],
                           "energy_error": final["energy_error"], "eta": final.get("eta"),
                           "times": result.times})
-        if not result.converged:
-            break
-        prev = (result.X, disc.n)
+        if not result.converged and not (result.stalled and not last):
+            break               # (a coarse level that stalled holds its discrete solution to
+        prev = (result.X, disc.n)   # the floor: the best start for the next one)
         if not last:
             disc.destroy()             # its PETSc objects (Solution keeps only T_J's)
     X = result.X

@@ -94,6 +94,7 @@ class NewtonResult:
     reason: str
     converged: bool
     times: dict = field(default_factory=dict)   # wall seconds: 'assembly', 'solve', 'estimate'
+    stalled: bool = False        # stopped where a step repeats the iterate (module notes)
     # (a Newton record holds its step's 'times' too: 'assembly' = linearisation and matrices,
     # 'solve' = the linear solve with its preconditioner set-up, estimates excluded)
 
@@ -322,7 +323,6 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             t_solve = time.perf_counter() - t - (times["estimate"] - t_est)
             times["solve"] += t_solve
             total += its
-            stalled = its == 0
             if not solved:
                 reason = (f"Krylov solver failed at Newton step {k}: {name} after {its} "
                           f"iterations, ||R_alg||/||B|| = {norm / lin.norm_B:.2e} "
@@ -330,6 +330,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 step.destroy()
                 y.destroy()
                 break
+            stalled = its == 0
             if answer is None:          # else X_try and R are those of y already
                 step.expand(y, X_try)
                 step.residual(y, R)
@@ -383,7 +384,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
         ns.destroy()
         R.destroy()
         X_try.destroy()
-    return NewtonResult(X, history, k, total, reason, converged, times)
+    return NewtonResult(X, history, k, total, reason, converged, times, stalled)
 
 
 __all__ = ["newton", "NewtonResult", "VARIANTS", "SYSTEMS", "EXACT_TOL",
