@@ -262,3 +262,24 @@ def test_default_variant_is_one_that_can_run(tmp_path, capsys):
     assert cli.main(["solve", "--scene", "disk", "--h", "0.3", "--no-estimators",
                      "--quiet"]) == 0
     assert '"newton": "exact"' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("out", ["", "  "])
+def test_an_empty_output_folder_is_refused(out, tmp_path, monkeypatch, capsys):
+    """`--out ""` (an unset shell variable) is the working folder to os.path.abspath: the
+    outputs spilled into it. Every command and the API refuse an empty or blank path, and
+    nothing appears in the working folder."""
+    from membranes.app.cli import main
+    from membranes.app.outputs import write_outputs
+
+    from .conftest import solved
+    monkeypatch.chdir(tmp_path)
+    for args in (["solve", "--quiet", "--h", "0.3"], ["report", "--quiet", "--h", "0.5",
+                 "--levels", "0"], ["stability", "--quiet", "--cases", "tiny"]):
+        assert main(args + ["--out", out]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("membranes: error: the output folder is an empty or blank "
+                              "path (") and err.endswith("): name a folder") and "\n" not in err
+    with pytest.raises(ValueError, match="empty or blank path"):
+        write_outputs(solved("disk", 0.3), out)
+    assert os.listdir(tmp_path) == []

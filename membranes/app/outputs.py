@@ -126,8 +126,8 @@ def staged_folder(out, comm=MPI.COMM_SELF):
     into `out` (created if missing). The temporary folder goes in any case. ValueError (one
     line, nothing left behind) if `out` cannot be written (checks.check_output_folder); a
     process whose block succeeded while another's failed raises RuntimeError."""
-    out = os.path.abspath(os.fspath(out))
     check_output_folder(out, comm)
+    out = os.path.abspath(os.fspath(out))
     tmp, error = None, None
     if comm.rank == 0:
         try:

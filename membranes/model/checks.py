@@ -394,6 +394,11 @@ def check_output_folder(path, comm=None):
     beside it (as membranes' writers do) and removed. Whatever this created is removed again.
     ValueError with one line otherwise. With `comm`, process 0 looks (it writes the outputs)
     and every process gets its answer."""
+    if not os.fspath(path).strip():
+        # (os.path.abspath('') is the working folder: an unset shell variable would spill
+        # the outputs there; a name of blanks is as likely a slip)
+        raise ValueError(f"the output folder is an empty or blank path ({os.fspath(path)!r}): "
+                         f"name a folder")
     error = None
     if comm is None or comm.rank == 0:
         try:
