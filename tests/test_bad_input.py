@@ -283,3 +283,14 @@ def test_an_empty_output_folder_is_refused(out, tmp_path, monkeypatch, capsys):
     with pytest.raises(ValueError, match="empty or blank path"):
         write_outputs(solved("disk", 0.3), out)
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("option,value", [("nu", 2.5), ("nu", "10"), ("max_newton", True),
+                                          ("max_linear_its", 10.0), ("max_newton", 0)])
+def test_counts_must_be_integers(option, value):
+    """Iteration counts of the API: a float was cut to an int without a word (nu = 2.5 ran
+    with ν = 2), a bool taken as 1. Now a ValueError names the option; numpy integers pass."""
+    problem = scenes.disk(h=0.5)
+    with pytest.raises(ValueError, match=f"{option} must be a positive integer"):
+        solve(problem, **{option: value})
+    assert solve(problem, nu=np.int64(10), max_newton=np.int32(50)).converged

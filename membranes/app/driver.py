@@ -285,11 +285,12 @@ def solve(problem: Problem,
         _choice("Newton variant", newton, VARIANTS)
     cfunctions.get(cfun)
     _choice("errors", errors, ERRORS)
-    if int(max_newton) < 1:
-        raise ValueError(f"max_newton must be at least 1, got {max_newton}")
+    max_newton = checks.positive_integer("max_newton", max_newton)
     petsc_options = parse_petsc_options(petsc_options)
-    krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": int(nu)}),
-                    **({} if max_linear_its is None else {"max_it": int(max_linear_its)}))
+    if max_linear_its is not None:
+        max_linear_its = checks.positive_integer("max_linear_its", max_linear_its)
+    krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": nu}),
+                    **({} if max_linear_its is None else {"max_it": max_linear_its}))
     if petsc_options:       # refused here if PETSc would not read one of them
         check_petsc_options_used(petsc_options, krylov.merged, krylov.inner())
     if setups is not None and not isinstance(setups, Setups):
@@ -369,7 +370,7 @@ def solve(problem: Problem,
                             krylov=krylov, estimate=recorder,
                             gamma_lin=gamma_lin or DEFAULT_GAMMA,
                             gamma_alg=gamma_alg or DEFAULT_GAMMA, tol=level_tol,
-                            max_newton=int(max_newton), forcing=forcing,
+                            max_newton=max_newton, forcing=forcing,
                             progress=(lambda line, tag=tag: say(tag + line)) if say else None)
         # the records Newton made through the recorder (all but the adaptive X⁰), in order
         stamped = result.history[1:] if variant == "adaptive" else result.history

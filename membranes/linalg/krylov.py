@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 
 from petsc4py import PETSc
 
+from ..model.checks import positive_integer
 from .preconditioners import (
     INNER_DEFAULTS,
     InnerPC,
@@ -115,9 +116,7 @@ class Krylov:
             raise ValueError(f"unknown Krylov preset {self.preset!r} (choose from: "
                              f"{', '.join(PRESETS)})")
         for name in ("nu", "max_it"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            setattr(self, name, positive_integer(name, getattr(self, name)))
         user = {}
         for name, value in (self.options or {}).items():
             name = str(name).lstrip("-")

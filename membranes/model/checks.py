@@ -285,6 +285,15 @@ def _count(n):
     return f"{mantissa}e{int(exponent)}"
 
 
+def positive_integer(name, value):
+    """`value` as a positive int: an integer (numpy's too), not a bool and not a float (2.5
+    would be cut to 2 without a word); ValueError naming `name` otherwise."""
+    import numbers
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
 def check_max_vertices(max_vertices):
     """`max_vertices` as a positive int (None stays None); ValueError otherwise."""
     if max_vertices is None:

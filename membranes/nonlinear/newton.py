@@ -77,6 +77,7 @@ import numpy as np
 from mpi4py import MPI
 
 from ..linalg.krylov import EXACT_TOL, LinearSolver, as_krylov, linear_tolerance
+from ..model.checks import positive_integer
 from . import cfunctions
 from .system import NewtonSystem
 
@@ -125,9 +126,7 @@ def _check(cfun, variant, system, solver_spec, estimate, gamma_lin, gamma_alg, t
         raise ValueError("the adaptive Newton variant needs the estimators (estimate=...)")
     for name, value in (("gamma_lin", gamma_lin), ("gamma_alg", gamma_alg), ("tol", tol)):
         _positive(name, value)
-    if isinstance(max_newton, bool) or not isinstance(max_newton, (int, np.integer)) \
-            or max_newton < 1:
-        raise ValueError(f"max_newton must be a positive integer, got {max_newton!r}")
+    max_newton = positive_integer("max_newton", max_newton)
 
 
 def linear_criterion(est, gamma_alg):
