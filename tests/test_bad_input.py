@@ -294,3 +294,17 @@ def test_counts_must_be_integers(option, value):
     with pytest.raises(ValueError, match=f"{option} must be a positive integer"):
         solve(problem, **{option: value})
     assert solve(problem, nu=np.int64(10), max_newton=np.int32(50)).converged
+
+
+def test_scene_arguments_are_checked_before_meshing():
+    """A levels of True was one refinement, a contact of 'no' meant contact, and an h given
+    as text reached gmsh's description as a string ("Unknown format code 'g'"). Now levels
+    and contact must be what they say, and h a number (text that reads as one is taken)."""
+    with pytest.raises(ValueError, match="levels must be a non-negative integer, got True"):
+        scenes.disk(h=0.3, levels=True)
+    with pytest.raises(ValueError, match="contact must be True or False, got 'no'"):
+        scenes.radial(h=0.3, contact="no")
+    with pytest.raises(ValueError, match="mesh size h must be a number, got 'abc'"):
+        scenes.disk(h="abc")
+    assert scenes.disk(h="0.5").mesh.topology.index_map(0).size_global == \
+        scenes.disk(h=0.5).mesh.topology.index_map(0).size_global

@@ -48,12 +48,17 @@ def _coarse_mesh(domain, h, mesh_file, comm):
 
 def _check_size(h, levels, domain, mesh_file, max_vertices, comm):
     """Refuse, before gmsh runs, a mesh and hierarchy that no run could hold in memory (or of
-    more vertices than `max_vertices`): checks.check_request with the leanest method."""
+    more vertices than `max_vertices`): checks.check_request with the leanest method. Returns
+    h as a float (a number given as text too) where gmsh meshes the domain."""
+    if mesh_file is None:
+        h = meshes.check_size(h)
     check_request(h, levels, domain, mesh_file, max_vertices, comm=comm)
+    return h
 
 
 def _check_levels(levels):
-    if isinstance(levels, float) and not levels.is_integer():
+    if isinstance(levels, (bool, np.bool_)) or isinstance(levels, float) and \
+            not levels.is_integer():
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
     if int(levels) < 0:
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
@@ -74,7 +79,7 @@ def disk(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
     """The paper's test case on the unit disk, with its exact solution (§9).
     `max_vertices`: refuse a larger mesh before meshing (every scene has it)."""
     levels = _check_levels(levels)
-    _check_size(h, levels, "disk", None, max_vertices, comm)
+    h = _check_size(h, levels, "disk", None, max_vertices, comm)
     g = DISK_G
     c = g * math.sqrt(2.0) / (math.sqrt(2.0) - 1.0)
 
@@ -131,7 +136,7 @@ def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORL
     anisotropic, graded and tiny meshes of §11, meshes.structured_square)."""
     levels = _check_levels(levels)
     if mesh is None:
-        _check_size(h, levels, "square", None, max_vertices, comm)
+        h = _check_size(h, levels, "square", None, max_vertices, comm)
     else:
         x = mesh.geometry.x[:, :2]
         lo = mesh.comm.allreduce(x.min(initial=np.inf), op=MPI.MIN)
@@ -186,11 +191,13 @@ def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float =
            comm: MPI.Comm = MPI.COMM_WORLD, max_vertices: Optional[int] = None) -> Problem:
     """Unit disk, exact radial solution with contact disk r <= rho (any mu1, mu2, g)."""
     levels = _check_levels(levels)
-    _check_size(h, levels, "disk", None, max_vertices, comm)
+    h = _check_size(h, levels, "disk", None, max_vertices, comm)
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
     rho = float(rho)
     if not (0.0 <= rho < 1.0):
         raise ValueError(f"rho must lie in [0, 1), got {rho}")
+    if not isinstance(contact, (bool, np.bool_)):
+        raise ValueError(f"contact must be True or False, got {contact!r}")
 
     def r2(x):
         return x[0] ** 2 + x[1] ** 2
@@ -247,7 +254,7 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
     if mesh is None and domain not in ("disk", "square"):
         raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
-    _check_size(h, levels, domain, mesh, max_vertices, comm)
+    h = _check_size(h, levels, domain, mesh, max_vertices, comm)
     hierarchy = build_hierarchy(_coarse_mesh(domain, h, mesh, comm), levels,
                                 _projection(domain, mesh))
     where = f"mesh {mesh}" if mesh is not None else f"unit {domain}"
