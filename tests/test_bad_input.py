@@ -308,3 +308,16 @@ def test_scene_arguments_are_checked_before_meshing():
         scenes.disk(h="abc")
     assert scenes.disk(h="0.5").mesh.topology.index_map(0).size_global == \
         scenes.disk(h=0.5).mesh.topology.index_map(0).size_global
+
+
+def test_data_given_as_numbers_are_checked_as_numbers():
+    """f1 = nan as a float read as the unknown name 'nan'; None, True or a Python function as
+    formulas that do not parse; mu1 = True as 1. Each is now refused for what it is."""
+    with pytest.raises(ValueError, match="f1 must be finite, got nan"):
+        scenes.user(h=0.3, f1=float("nan"))
+    for bad in (None, True, len):
+        with pytest.raises(ValueError, match="f2 must be a formula in x, y"):
+            scenes.user(h=0.3, f2=bad)
+    with pytest.raises(ValueError, match="mu1 must be a number, got True"):
+        scenes.user(h=0.3, mu1=True)
+    assert Formula(np.float64(-1.5), "f1").text == "-1.5"

@@ -9,6 +9,7 @@ on the mesh). Allowed: numbers, ``x``, ``y``, ``pi``, ``+ - * / **``, and the fu
 
 import ast
 import math
+import numbers
 
 import numpy as np
 import ufl
@@ -35,6 +36,11 @@ class Formula:
     """A parsed data formula in x and y."""
 
     def __init__(self, text, name="expression"):
+        if isinstance(text, (bool, np.bool_)) or not isinstance(text, (str, numbers.Real)):
+            raise ValueError(f"{name} must be a formula in x, y (text) or a number, got "
+                             f"{text!r}")
+        if isinstance(text, numbers.Real) and not math.isfinite(text):
+            raise ValueError(f"{name} must be finite, got {text}")
         self.text = str(text)
         self.name = name
         try:

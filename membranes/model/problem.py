@@ -46,6 +46,8 @@ def as_builder(data: Data) -> Callable[[Any], Any]:
 
 
 def positive_number(name: str, value: Any) -> float:
+    if isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
     try:
         value = float(value)
     except (TypeError, ValueError):
