@@ -97,3 +97,17 @@ def test_demo_user_mesh(tmp_path, processes):
     assert s["energy_error"] is None            # user data: no exact solution, η alone
     assert math.isfinite(s["eta"]) and s["eta"] > 0 and s["bound_guaranteed"]
     assert "guaranteed bound" in stdout
+
+
+@pytest.mark.parametrize("out", ["/proc/x", ""])
+def test_demo_refuses_an_unwritable_folder(out):
+    """An --out the demo cannot write: one error line and exit 2, as the CLI (it was a
+    FileNotFoundError traceback), before any mesh is made."""
+    command = [sys.executable, os.path.join(DEMOS, "demo_disk.py"), "--quick", "--out", out]
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    proc = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("demo_disk.py: error: ")
+    assert "Traceback" not in proc.stderr and proc.stdout == ""

@@ -2,6 +2,7 @@
 
 import argparse
 import os
+import sys
 
 from mpi4py import MPI
 
@@ -9,15 +10,25 @@ from mpi4py import MPI
 def options(name, description, out_help):
     """Parse the demo's command line: --quick (a coarse mesh that runs in seconds; also the
     environment variable MEMBRANES_DEMO_QUICK=1, which the tests set) and --out (default
-    out/demos/NAME; made if missing). Silences the JIT's log lines, so that stderr keeps
-    Newton's progress lines. Returns (out, quick)."""
+    out/demos/NAME; made if missing; one error line and exit 2 where it cannot be
+    written). Silences the JIT's log lines, so that stderr keeps Newton's progress lines.
+    Returns (out, quick)."""
     from .cli import quiet_jit_logging
     quiet_jit_logging()
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--quick", action="store_true", help="a coarse mesh (seconds)")
     parser.add_argument("--out", default=os.path.join("out", "demos", name), help=out_help)
     args = parser.parse_args()
-    os.makedirs(args.out, exist_ok=True)
+    from ..model.checks import check_output_folder
+    try:            # an unwritable or empty --out: one line and exit 2, as the CLI
+        check_output_folder(args.out, MPI.COMM_WORLD)
+    except ValueError as e:
+        if MPI.COMM_WORLD.rank == 0:
+            print(f"{parser.prog}: error: {e}", file=sys.stderr, flush=True)
+        sys.exit(2)
+    if MPI.COMM_WORLD.rank == 0:
+        os.makedirs(args.out, exist_ok=True)
+    MPI.COMM_WORLD.barrier()
     return args.out, args.quick or os.environ.get("MEMBRANES_DEMO_QUICK") == "1"
 
 
