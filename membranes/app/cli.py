@@ -2,7 +2,8 @@
 ``membranes stability`` (docs/cli.md).
 
 Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out),
-3 the solver did not converge (the outputs are written, with converged = false and a reason).
+3 the solver did not converge (the outputs are written, with converged = false and a reason),
+130 interrupted (Ctrl-C; nothing written).
 Progress: one line per Newton step on stderr (``--quiet`` silences it).
 ``mpirun -n P membranes solve ...`` runs the same code on P processes: dolfinx distributes
 the mesh, PETSc the solves; rank 0 prints, every rank writes its part of the solution.
@@ -17,6 +18,7 @@ import time
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 3
+EXIT_INTERRUPTED = 130    # the shell's code for a run ended by Ctrl-C (128 + SIGINT)
 # seconds a process that met an error waits for the others to meet it too (`_leave`)
 AGREE_SECONDS = 10.0
 
@@ -274,6 +276,13 @@ def main(argv=None):
         import traceback
         _leave(errors, 1, traceback.print_exc)
         raise
+    except KeyboardInterrupt:   # Ctrl-C: one line; the staged outputs are gone already
+        if world.rank == 0:
+            print("membranes: interrupted", file=sys.stderr, flush=True)
+        if errors is not None:  # the others may wait in a collective: no MPI_Finalize
+            sys.stdout.flush()
+            os._exit(EXIT_INTERRUPTED)
+        return EXIT_INTERRUPTED
     finally:
         if errors is not None:
             errors.Free()
