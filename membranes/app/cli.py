@@ -264,13 +264,11 @@ def main(argv=None):
     try:
         return _main(argv)
     except ValueError as e:   # BadInput and every data/mesh error of the API
-        message = " ".join(str(e).split())
-
-        def say(rank_zero=False):
-            if rank_zero == (world.rank == 0):
-                print(f"membranes: error: {message}", file=sys.stderr, flush=True)
-        say(rank_zero=True)      # every process meets the same error: say it once
-        _leave(errors, EXIT_BAD_INPUT, say)
+        line = "membranes: error: " + " ".join(str(e).split())
+        if world.rank == 0:       # every process meets the same error: say it once
+            print(line, file=sys.stderr, flush=True)
+        _leave(errors, EXIT_BAD_INPUT,   # (alone, another process says it)
+               lambda: world.rank != 0 and print(line, file=sys.stderr, flush=True))
         return EXIT_BAD_INPUT
     except Exception:
         import traceback

@@ -26,9 +26,7 @@ def options(name, description, out_help):
         if MPI.COMM_WORLD.rank == 0:
             print(f"{parser.prog}: error: {e}", file=sys.stderr, flush=True)
         sys.exit(2)
-    if MPI.COMM_WORLD.rank == 0:
-        os.makedirs(args.out, exist_ok=True)
-    MPI.COMM_WORLD.barrier()
+    os.makedirs(args.out, exist_ok=True)
     return args.out, args.quick or os.environ.get("MEMBRANES_DEMO_QUICK") == "1"
 
 

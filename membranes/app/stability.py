@@ -120,7 +120,7 @@ def _square(nx, ny, grading=1.0):
     def build(h, levels=0):
         from ..fem.meshes import structured_square
         from ..model import scenes
-        return scenes.square(mesh=structured_square(nx, ny, grading))
+        return scenes.square(mesh=structured_square(nx, ny, grading), levels=levels)
     return build
 
 
