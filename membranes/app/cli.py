@@ -70,7 +70,9 @@ def _parser():
                         "(default 0.3)")
     s.add_argument("--alg-flux", choices=("nu", "multilevel"),
                    help="algebraic flux of the estimators (theory §6; default nu)")
-    s.add_argument("--cfun", choices=("min", "fb"), default="min")
+    s.add_argument("--cfun", choices=("min", "fb"), default="min",
+                   help="C-function of the complementarity rows (theory §3): min (default) "
+                        "or fb (Fischer-Burmeister)")
     s.add_argument("--solver", choices=tuple(PRESETS), default="amg",
                    help="amg (default): eliminated system, FGMRES + mean/gap BoomerAMG; "
                         "paper: full system, GMRES + ILU(0) (block Jacobi on several "
@@ -86,7 +88,8 @@ def _parser():
                    help="Krylov iterations allowed per Newton step (default 10000)")
     s.add_argument("--tol", type=float,
                    help="exact, inexact: stop at ||R_lin|| / ||(F, 0)|| <= TOL (default 1e-10)")
-    s.add_argument("--max-newton", type=int, default=100)
+    s.add_argument("--max-newton", type=int, default=100, metavar="N",
+                   help="Newton steps allowed per level (default 100); exit 3 beyond them")
     s.add_argument("--initial-guess", choices=("paper", "zero"), default="paper",
                    help="X^0: paper (u1 = g, u2 = 0, lambda = 0; default) or zero")
     s.add_argument("--nested", action=argparse.BooleanOptionalAction, default=None,
