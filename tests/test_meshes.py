@@ -106,3 +106,15 @@ def test_processes_without_cells(tmp_path):
     assert line["processes"] == 3 and line["n_cells"] == 4
     assert line["eta"] == pytest.approx(serial.estimates["eta"], rel=1e-10)
     assert (out / "solution.xdmf").exists()
+
+
+def test_poincare_constant_of_each_domain():
+    """C_PF h_Ω of §7: 1/j_{0,1} on the unit disk, whichever scene meshes it (the user scene
+    took the bounding box's 1/(π √(1/4 + 1/4)) = 0.450 there, 8 % above the disk's 0.416);
+    1/(π √2) on the unit square."""
+    from membranes.model import scenes
+    from membranes.model.scenes import J01
+    for scene in (scenes.disk(h=0.5), scenes.radial(h=0.5), scenes.user(h=0.5)):
+        assert scene.poincare_constant() == pytest.approx(1.0 / J01, rel=1e-15), scene.name
+    for scene in (scenes.square(h=0.5), scenes.user(h=0.5, domain="square")):
+        assert scene.poincare_constant() == pytest.approx(1 / (np.pi * np.sqrt(2)), rel=1e-12)

@@ -43,6 +43,7 @@ from ..model.problem import Problem
 from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS
 from ..nonlinear.newton import newton as run_newton
+from ..nonlinear.system import initial_guess as newton_guess
 from .schedule import DEFAULT_GAMMA, GATE, LevelEstimates
 from .setups import Setups
 from .solution import ESTIMATOR_COLUMNS, Solution
@@ -209,7 +210,7 @@ def _initial_guess(initial_guess, disc):
 
 def prolong(P, disc, X_coarse, n_coarse):
     """The nested iteration's initial guess on the next level: u1, u2 and λ each prolonged
-    by the P1 prolongation P (§6; it keeps u1 = g, u2 = λ = 0 on ∂Ω)."""
+    by the P1 prolongation P (§8 nested iteration, §9; it keeps u1 = g, u2 = λ = 0 on ∂Ω)."""
     X = disc.vector3()
     xc, xf = P.createVecRight(), P.createVecLeft()
     a = X_coarse.array_r
@@ -263,8 +264,9 @@ def solve(problem: Problem,
     estimators: certify the final iterate (and let adaptive use them); alg_flux: 'nu' or
     'multilevel' (§6); initial_guess: 'paper' (default, (g, 0, 0)), 'zero', or a PETSc Vec
     in the iterate layout (or a function of the discretisation returning one) on the first
-    mesh solved; nested: solve T_0, …, T_J in turn, each from the prolonged solution of the
-    last (default where the problem has levels ≥ 1); errors: the energy error at the 'final'
+    mesh solved, whose boundary vertices take the Dirichlet values (u1 = g, u2 = λ = 0);
+    nested: solve T_0, …, T_J in turn, each from the prolonged solution of the last
+    (default where the problem has levels ≥ 1); errors: the energy error at the 'final'
     iterate (default), at all recorded 'iterates', or 'none'; progress: True for one stderr
     line per Newton step and two around each estimator set-up (rank 0), or a callable taking
     the line; max_vertices: refuse a
@@ -381,8 +383,7 @@ def solve(problem: Problem,
         if variant == "adaptive":
             result.history[0]["wall_time_s"] = t_start
             result.history[0]["energy_error"] = None if error is None or \
-                errors != "iterates" else clock.off(error, X0 if X0 is not None
-                                                    else _paper_guess(disc))
+                errors != "iterates" else clock.off(error, newton_guess(disc, X0))
         final = result.history[-1]
         if estimate is not None and variant != "adaptive":
             final["estimates"] = estimate(result.X, _final_residual(disc, result.X, cfun))
@@ -506,13 +507,6 @@ def _final_residual(disc, X, cfun):
         sys_.destroy()
     R.array[2 * disc.n:] = 0.0
     return R
-
-
-def _paper_guess(disc):
-    """X⁰ = (g, 0, 0) (§3), the guess Newton takes for X0 None."""
-    X = disc.vector3()
-    X.array[:disc.n] = disc.g
-    return X
 
 
 def _error_kind(problem):

@@ -79,7 +79,7 @@ from mpi4py import MPI
 from ..linalg.krylov import EXACT_TOL, LinearSolver, as_krylov, linear_tolerance
 from ..model.checks import positive_integer
 from . import cfunctions
-from .system import NewtonSystem
+from .system import NewtonSystem, initial_guess
 
 VARIANTS = ("exact", "inexact", "adaptive")
 FORCING_SHRINK = 0.1    # the forcing term's factor after a forced step that did not help
@@ -143,7 +143,8 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
            estimate=None, gamma_lin=0.3, gamma_alg=0.3, tol=1e-10, max_newton=100,
            progress=None, forcing=None):
     """Semismooth Newton on `disc` (a membranes.fem.discretisation.Discretisation) from X0 (a
-    PETSc Vec in the iterate layout; default (g, 0, 0)).
+    PETSc Vec in the iterate layout, not changed; its boundary vertices take the Dirichlet
+    values of §2, `system.initial_guess`; default (g, 0, 0)).
 
     cfun 'min' | 'fb'; variant 'exact' | 'inexact' | 'adaptive'; system 'full' | 'eliminated'
     (default: the preset's); krylov: a preset name ('amg', 'paper', 'direct'), a dict of
@@ -178,7 +179,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
     split = (ns.S_D, ns.D * (1.0 / ns.mu[0] + 1.0 / ns.mu[1]), ns.theta)
     times["assembly"] += time.perf_counter() - t0
 
-    X = ns.initial_guess() if X0 is None else X0.copy()
+    X = initial_guess(disc, X0)     # X0 with the Dirichlet values of §2
     R = disc.vector3()              # the residual handed to the estimators
     X_try = disc.vector3()          # Krylov iterates, built for the callback
     history = []

@@ -35,8 +35,8 @@ mesh from a MatNest of the blocks (S_D, the diagonal D blocks, three diagonal J_
 PETSc's conversion, which keeps the iterate layout. Each Newton step only overwrites the N
 complementarity rows (three entries each, all in the owning process's diagonal block); their
 entries stay stored where they are zero, which natural-order ILU(0) needs (the λ-block diagonal
-β_l is 0 at a min contact vertex: its pivot is then D_l (1/p1_l + 1/p2_l) > 0, p_α the ILU
-pivots of the stiffness rows).
+β_l is 0 at a min contact vertex: its pivot is then D_l (1/(μ1 p1_l) + 1/(μ2 p2_l)) > 0, p_α
+the ILU pivots of the weighted stiffness rows, whose λ entries are ∓D_l/μ_α).
 
 **The eliminated 2N system** (`eliminated_step`): every complementarity row eliminates one
 unknown of its vertex, λ_l where |β_l| ≥ κ |α_l| (the C-function's own derivatives compared:
@@ -87,6 +87,25 @@ def diagonal_matrix(values, offset, size, comm):
                               csr=(indptr, indices, np.asarray(values, dtype=float)), comm=comm)
     M.assemble()
     return M
+
+
+def initial_guess(disc, X0=None):
+    """X⁰ for Newton on `disc` (a new Vec): the paper's (g, 0, 0) (§3) for X0 None, else a copy
+    of X0 with the Dirichlet values of §2 (u1 = g, u2 = 0, λ = 0) at the boundary vertices.
+    The Dirichlet rows are identities in every Newton system, so an exact step sets them
+    anyway; from a guess that has them every Krylov iterate keeps them, and its residual
+    vanishes at the Dirichlet vertices, as the lifting of §4 and the bound of §7 assume."""
+    X = disc.vector3()
+    n = disc.n
+    if X0 is None:
+        X.array[:n] = disc.g
+        return X
+    X0.copy(X)
+    b = disc.boundary_owned
+    X.array[b] = disc.g
+    X.array[n + b] = 0.0
+    X.array[2 * n + b] = 0.0
+    return X
 
 
 def _converted(blocks, comm):
@@ -158,9 +177,7 @@ class NewtonSystem:
 
     def initial_guess(self):
         """X⁰ = (g, 0, 0) of the paper: u1 = g everywhere, u2 = 0, λ = 0 (§3)."""
-        X = self.disc.vector3()
-        X.array[:self.n] = self.disc.g
-        return X
+        return initial_guess(self.disc)
 
     def split(self, X):
         return self.disc.split(X)
