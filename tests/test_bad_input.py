@@ -132,7 +132,10 @@ def test_api_problem_and_solve_options():
     for kwargs, message in (({"coarse": "never"}, "coarse"),
                             ({"coarse_tol": 1.5}, "coarse_tol"),
                             ({"coarse_tol": 1e-3, "newton": "exact"}, "coarse_tol"),
-                            ({"coarse_tol": 1e-3, "coarse": "estimated"}, "coarse_tol")):
+                            ({"coarse_tol": 1e-3, "coarse": "estimated"}, "coarse_tol"),
+                            # (was silently ignored, while coarse_tol was refused)
+                            ({"coarse": "estimated", "newton": "exact"}, "coarse applies"),
+                            ({"coarse": "estimated", "nested": False}, "coarse applies")):
         with pytest.raises(ValueError, match=message):
             solve(two, **kwargs)
 

@@ -373,6 +373,83 @@ def test_api_accepts_options_of_the_mean_and_gap_preconditioners():
     assert abs(run.energy_error - exact.energy_error) <= 1e-8 * exact.energy_error
 
 
+def test_option_names_ignore_case():
+    """PETSc reads -KSP_RTOL as -ksp_rtol: the refusals and the inner prefixes must too."""
+    from membranes.linalg.krylov import Krylov
+    assert petsc_options.parse_petsc_options("-KSP_Type gmres -Mean_PC_Type lu") == \
+        {"ksp_type": "gmres", "mean_pc_type": "lu"}
+    assert petsc_options.parse_petsc_options({"-KSP_MAX_IT": 1}) == {"ksp_max_it": 1}
+    for options in ("-KSP_RTOL 0.5", "-Ksp_Max_It 1"):
+        with pytest.raises(ValueError, match="is not accepted"):
+            solve(scene("disk", 0.3), petsc_options=options)
+    with pytest.raises(ValueError, match="-ksp_atol is not accepted"):
+        Krylov("paper", {"KSP_ATOL": 1.0})
+    assert Krylov("amg", {"MEAN_PC_TYPE": "lu"}).inner()["mean_"]["pc_type"] == "lu"
+
+
+@pytest.mark.parametrize("solver,options", [("paper", "-ksp_type cg"),
+                                            ("paper", "-ksp_pc_side left"),
+                                            ("paper", "-ksp_norm_type preconditioned"),
+                                            ("amg", "-ksp_norm_type preconditioned")])
+def test_norm_type_the_krylov_solver_lacks_is_bad_input(solver, options):
+    """PETSc checks the KSP's norm type against its type and PC side only when asked for it:
+    the solve used to stop in a traceback (PETSc error 56 from KSPGetNormType in the
+    clean-up of the first linear solve); now the check up front and the configuration of the
+    solver refuse it in one line."""
+    from mpi4py import MPI
+
+    from membranes.linalg.krylov import Krylov, LinearSolver
+    with pytest.raises(ValueError, match="does not support norm type") as e:
+        solve(scene("disk", 0.3), solver=solver, petsc_options=options)
+    assert "\n" not in str(e.value)
+    krylov = Krylov(solver, petsc_options.parse_petsc_options(options))
+    with pytest.raises(ValueError, match="does not support norm type"):
+        LinearSolver(krylov, MPI.COMM_SELF)
+
+
+@pytest.mark.parametrize("solver,options", [("amg", {"ksp_type": "preonly"}),
+                                            ("paper", {"ksp_type": "preonly"}),
+                                            ("direct", {"pc_type": "none"}),
+                                            ("direct", {"pc_type": "jacobi"})])
+def test_preonly_without_a_factorisation_is_bad_input(solver, options):
+    """-ksp_type preonly applies the PC once: with the mean/gap split, ILU or no PC the
+    'exact' solves were taken as exact and Newton ran its 100 steps to exit 3."""
+    with pytest.raises(ValueError, match="only as a factorisation"):
+        solve(scene("disk", 0.3), solver=solver, petsc_options=options)
+
+
+def test_preonly_preset_is_named_in_the_variant_refusal():
+    """A preset made direct by -ksp_type preonly -pc_type lu is not called 'paper' when the
+    inexact or adaptive variant is refused for it (it was: "..., not 'paper'")."""
+    for newton in ("inexact", "adaptive"):
+        with pytest.raises(ValueError, match="not 'paper' with -ksp_type preonly"):
+            solve(scene("disk", 0.3), solver="paper", newton=newton,
+                  petsc_options="-ksp_type preonly -pc_type lu")
+
+
+@pytest.mark.parametrize("solver,options", [("paper", "-sub_pc_factor_levels 1"),
+                                            ("direct", "-mat_mumps_icntl_14 200"),
+                                            ("direct", "-mat_mumps_icntl_24 1")])
+def test_options_read_at_set_up_are_accepted(solver, options):
+    """The options of the block Jacobi sub-solvers and of MUMPS are read when the PC is set
+    up, not when the KSP is configured: they were refused as 'not used', even
+    -mat_mumps_icntl_14, which the direct preset sets itself."""
+    run = solve(scene("disk", 0.3), solver=solver, newton="exact", estimators=False,
+                petsc_options=options)
+    assert run.converged
+
+
+@pytest.mark.parametrize("solver,options,name", [
+    ("paper", "-sub_pc_factor_levelz 1", "-sub_pc_factor_levelz"),
+    ("direct", "-mat_mumps_icntl_244 1", "-mat_mumps_icntl_244"),
+    ("amg", "-pc_factor_levels 1", "-pc_factor_levels")])
+def test_options_nothing_reads_are_still_refused(solver, options, name):
+    """A misspelt set-up option is still refused; so is an option of PETSc's default PC that
+    the mean/gap split (a Python PC) does not read."""
+    with pytest.raises(ValueError, match=f"{name} is not used"):
+        solve(scene("disk", 0.3), solver=solver, petsc_options=options)
+
+
 def test_two_processes_share_the_node_and_refuse_together(tmp_path):
     """`mpirun -n 2 membranes solve --levels 12`: both processes refuse (exit 2), process 0
     says it once, with the memory of the node shared between the two."""

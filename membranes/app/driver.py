@@ -303,8 +303,8 @@ def solve(problem: Problem,
         _choice("system", system, ("full", "eliminated"))
     newton = _default_variant(newton, estimators, krylov)
     if newton == "adaptive" and not krylov.iterative:
-        raise ValueError("the adaptive variant stops a Krylov solver: choose solver 'amg' or "
-                         "'paper', not 'direct'")
+        raise ValueError(f"the adaptive variant stops a Krylov solver: choose solver 'amg' "
+                         f"or 'paper', not {krylov.description}")
     tol, gamma_lin, gamma_alg = _stopping(newton, tol, gamma_lin, gamma_alg)
     alg_flux = _algebraic_flux(problem, alg_flux, estimators, newton)
     nested = _nested(problem, nested)
@@ -479,11 +479,13 @@ def _coarse_levels(coarse, coarse_tol, newton, nested):
     iterations it solves each step ν iterations deep, far below what the next step keeps.
     Either way T_J runs Algorithm 1 from the prolonged iterate and its answer carries the
     guaranteed bound of §7: the bound holds for any iterate, so how the start was obtained
-    does not matter to it. Other variants and single-level runs ignore it (returned as
-    None)."""
+    does not matter to it. Other variants and single-level runs have no coarse levels to
+    leave this way: they refuse 'estimated' and coarse_tol, and take the default
+    'residual' as None."""
     _choice("coarse", coarse, COARSE)
     if newton != "adaptive" or not nested:
-        _reject("the adaptive variant with nested iteration", coarse_tol=coarse_tol)
+        _reject("the adaptive variant with nested iteration", coarse_tol=coarse_tol,
+                coarse=None if coarse == "residual" else coarse)   # (the default passes)
         return None, None
     if coarse == "estimated":
         _reject("coarse 'residual'", coarse_tol=coarse_tol)

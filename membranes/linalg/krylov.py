@@ -85,6 +85,8 @@ PRESETS = {
     "amg": {"system": "eliminated",
             "options": {"ksp_type": "fgmres", "ksp_norm_type": "unpreconditioned"}},
 }
+# a KSP of type preonly applies its PC once: the linear solve is exact only by a factorisation
+FACTORISATIONS = ("lu", "cholesky")
 RESERVED = {"ksp_rtol": "the Newton variant sets the linear tolerance",
             "ksp_atol": "the Newton variant sets the linear tolerance",
             "ksp_max_it": "use max_it"}
@@ -119,7 +121,7 @@ class Krylov:
             setattr(self, name, positive_integer(name, getattr(self, name)))
         user = {}
         for name, value in (self.options or {}).items():
-            name = str(name).lstrip("-")
+            name = str(name).lstrip("-").lower()      # PETSc's option names ignore case
             if name in RESERVED:
                 raise ValueError(f"PETSc option -{name} is not accepted: {RESERVED[name]}")
             if not (value is None or isinstance(value, (str, bool, int, float))):
@@ -128,6 +130,21 @@ class Krylov:
             user[name] = value
         self.merged = dict(PRESETS[self.preset]["options"])
         self.merged.update(user)
+        if not self.iterative and (self.mean_gap or
+                                   self.merged.get("pc_type") not in FACTORISATIONS):
+            pc = "the mean/gap split" if self.mean_gap else \
+                f"-pc_type {self.merged.get('pc_type')}"
+            whose = "the direct preset's" if self.preset == "direct" else "PETSc option"
+            raise ValueError(f"{whose} -ksp_type preonly applies the preconditioner once, "
+                             f"which solves the Newton system only as a factorisation "
+                             f"(-pc_type {' or '.join(FACTORISATIONS)}), not {pc}")
+
+    @property
+    def description(self):
+        """The preset's name, and how the user's options made it direct, for messages."""
+        if self.preset == "direct" or self.iterative:
+            return repr(self.preset)
+        return f"{self.preset!r} with -ksp_type preonly"
 
     @property
     def system(self):
@@ -288,7 +305,9 @@ class LinearSolver:
                 name += _mumps_info(ksp.getPC())
             if not iterative:
                 return max(its, 1), name, reason > 0, norm
-            converged = reason > 0 and (test.stopped or norm <= bound)
+            # the true residual decides: a solve cut off by max_it before its test was made
+            # (every > max_it: inexact with --max-linear-its below ν) may have met the bound
+            converged = (reason > 0 and test.stopped) or norm <= bound
             return its, name, converged, norm
         finally:
             if iterative:

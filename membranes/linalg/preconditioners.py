@@ -78,6 +78,8 @@ def configure(obj, prefix):
     obj.setOptionsPrefix(prefix)
     try:
         obj.setFromOptions()
+        if isinstance(obj, PETSc.KSP):
+            obj.getNormType()     # PETSc checks here that the KSP supports its norm and side
     except PETSc.Error as e:
         raise ValueError(f"PETSc options: {petsc_message(e)}") from None
 

@@ -118,7 +118,7 @@ def _check(cfun, variant, system, solver_spec, estimate, gamma_lin, gamma_alg, t
         raise ValueError(f"unknown Newton system {system!r} (choose from: {', '.join(SYSTEMS)})")
     if variant != "exact" and not solver_spec.iterative:
         raise ValueError(f"the {variant} Newton variant needs an iterative Krylov preset "
-                         f"('amg' or 'paper'), not {solver_spec.preset!r}")
+                         f"('amg' or 'paper'), not {solver_spec.description}")
     if solver_spec.mean_gap and system != "eliminated":
         raise ValueError("the amg preset's mean/gap preconditioner works on the eliminated "
                          "system (system='eliminated')")

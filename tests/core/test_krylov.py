@@ -256,6 +256,23 @@ def test_stopping_test_does_not_stop_at_the_initial_guess_every_nu():
     sys_.destroy()
 
 
+def test_solve_cut_off_before_its_test_counts_if_the_true_residual_meets_the_bound():
+    """Tested every ν = 10 iterations and stopped by max_it = 5 first: PETSc says
+    DIVERGED_MAX_IT, but the iterate meets the bound (inexact Newton with --max-linear-its 5
+    stopped with 'Krylov solver failed ... ||R_alg||/||B|| = 6.1e-05 (asked 6.1e-01)')."""
+    disc, sys_, lin, step = _step()
+    solver = LinearSolver(Krylov("paper", max_it=5), disc.comm)
+    y = step.guess(contact_iterate("disk", "min"))
+    its, reason, ok, norm = solver.solve(step, y, 0.5 * lin.norm_B, every=10)
+    assert its == 5 and reason == "DIVERGED_MAX_IT" and norm <= 0.5 * lin.norm_B and ok
+    y = step.guess(contact_iterate("disk", "min"))
+    its, reason, ok, norm = solver.solve(step, y, EXACT_TOL * lin.norm_B, every=10)
+    assert its == 5 and not ok                     # the bound not met: still a failure
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
 def test_user_options_reach_our_ksp_only():
     disc = disc_of("disk", 0.1)
     solver = LinearSolver(Krylov("paper", {"ksp_type": "bcgs", "-ksp_monitor_cancel": None}),
