@@ -536,3 +536,18 @@ def test_ctrl_c_ends_the_run_cleanly(tmp_path):
     assert proc.returncode == 130, rest
     assert rest.strip().splitlines()[-1] == "membranes: interrupted" and "Traceback" not in rest
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("options,name", [("-ksp_divtol 10", "-ksp_divtol"),
+                                          ("-ksp_initial_guess_nonzero 0",
+                                           "-ksp_initial_guess_nonzero"),
+                                          ("-pc_type mg -pc_mg_levels 2", "-pc_type mg"),
+                                          ("-gap_pc_type MG", "-gap_pc_type mg")])
+def test_options_the_method_overrides_or_that_crash_are_refused(options, name):
+    """-ksp_divtol and -ksp_initial_guess_nonzero were accepted and did nothing (the method's
+    tests and Newton's guess override them); -pc_type mg with 2 levels made PETSc crash with a
+    segmentation fault in its set-up (no interpolations are supplied)."""
+    from membranes.linalg.krylov import Krylov
+    with pytest.raises(ValueError, match=name):
+        Krylov("paper" if "gap" not in options else "amg",
+               petsc_options.parse_petsc_options(options))

@@ -89,7 +89,10 @@ PRESETS = {
 FACTORISATIONS = ("lu", "cholesky")
 RESERVED = {"ksp_rtol": "the Newton variant sets the linear tolerance",
             "ksp_atol": "the Newton variant sets the linear tolerance",
-            "ksp_max_it": "use max_it"}
+            "ksp_max_it": "use max_it",
+            "ksp_divtol": "the method's tests decide when a Krylov solve stops",
+            "ksp_initial_guess_nonzero": "every Krylov solve starts from its Newton step's "
+                                         "guess (theory §8)"}
 
 _prefixes = itertools.count()
 REASONS = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if k.isupper()}
@@ -130,6 +133,12 @@ class Krylov:
             user[name] = value
         self.merged = dict(PRESETS[self.preset]["options"])
         self.merged.update(user)
+        for name, value in self.merged.items():
+            # PCMG on more than one level needs interpolations nobody supplies here: PETSc
+            # crashes in its set-up (a segmentation fault, not an error)
+            if name.endswith("pc_type") and str(value).lower() == "mg":
+                raise ValueError(f"PETSc option -{name} mg needs interpolation operators, "
+                                 "which membranes does not supply: use gamg or hypre")
         if not self.iterative and (self.mean_gap or
                                    self.merged.get("pc_type") not in FACTORISATIONS):
             pc = "the mean/gap split" if self.mean_gap else \
