@@ -57,6 +57,12 @@ CLI_CASES = {
     "tiny modulus overflows": ["--f1", "-1", "--mu1", "1e-300"],
     "g overflows": ["--g", "1e300"],
     "estimators overflow": ["--f1", "-1", "--mu1", "1e300"],
+    # formulas that raised RecursionError, OverflowError or a C compile error (probe B)
+    "expr too deep": ["--f1", "+".join(["x"] * 1500)],
+    "expr unary too deep": ["--f1", "-" * 1500 + "x"],
+    "expr constant too large": ["--f1", "min(2**10**10, x)"],
+    "expr huge integer": ["--f1", "1" + "0" * 400],
+    "expr inf inside": ["--f1", "min(1e400, x) - 1"],
 }
 MESH_CASES = ("missing", "directory", "garbage", "quads", "p2", "box")
 
@@ -180,6 +186,12 @@ REFUSED_AT_ONCE = {
                                "-ksp_gmres_restartt 50"], "-ksp_gmres_restartt is not used"),
     "below --max-vertices": (["--scene", "square", "--h", "0.1", "--levels", "2",
                               "--max-vertices", "500"], "more than the limit --max-vertices"),
+    # the estimate overflowed: ZeroDivisionError (h ** 2 = 0), a garbled message, or a loop
+    # over 1e20 levels that never ended (probe B)
+    "h underflows": (["--scene", "disk", "--h", "1e-300"], "more than 1e308 vertices"),
+    "levels overflow": (["--scene", "disk", "--levels", "600"], "more than 1e308 vertices"),
+    "levels absurd": (["--scene", "disk", "--levels", "99999999999999999999"],
+                      "more than 1e308 vertices"),
 }
 
 
@@ -324,3 +336,80 @@ def test_data_given_as_numbers_are_checked_as_numbers():
     with pytest.raises(ValueError, match="mu1 must be a number, got True"):
         scenes.user(h=0.3, mu1=True)
     assert Formula(np.float64(-1.5), "f1").text == "-1.5"
+
+
+# ## Probe B: formulas, and options of the API that must be named when they are wrong
+
+def test_formula_parts_without_x_y_are_evaluated_as_on_the_mesh():
+    """A part without x, y is evaluated in numpy's double arithmetic for UFL too: 1/exp(1000)
+    is 0 to both (Python's floats raised OverflowError when the forms were built, after the
+    numpy check had passed), and one that is not finite is refused when parsed. Long formulas
+    are quoted shortened."""
+    import ufl
+    x = ufl.SpatialCoordinate(ufl.triangle)
+    assert Formula("-1 + 1/exp(1000)", "f1").ufl(x) == -1.0
+    assert Formula("min(2**10**10, 1) + x", "f1").numpy(np.array([[0.5], [0.0]]))[0] == 1.5
+    for bad in ("2**10**10 * x", "1e400", "min(1e400, x)", "0**-1 + x", "(-8)**(1/3)"):
+        with pytest.raises(ValueError, match="is not finite in double precision"):
+            Formula(bad, "f1")
+    with pytest.raises(ValueError, match="nested too deeply") as e:
+        Formula("+".join(["x"] * 100000), "f1")
+    assert len(str(e.value)) < 300
+    assert Formula("+".join(["x"] * 400), "f1").numpy(np.array([[1.0], [0.0]]))[0] == 400.0
+    assert Formula(Formula("x + 1"), "f2").text == "x + 1"
+
+
+def test_formula_change_changes_the_solution_and_folding_does_not():
+    base = solve(scenes.user(h=0.5, f1="-1"), newton="exact", solver="direct")
+    same = solve(scenes.user(h=0.5, f1="-1 + 1/exp(1000) + 0*x"), newton="exact",
+                 solver="direct")
+    other = solve(scenes.user(h=0.5, f1="-2"), newton="exact", solver="direct")
+    assert same.estimates["eta"] == pytest.approx(base.estimates["eta"], rel=1e-12)
+    assert other.estimates["eta"] > 1.5 * base.estimates["eta"]
+
+
+def test_nan_loads_are_named_as_such():
+    """Loads undefined at quadrature points (a builder, or a formula negative under sqrt
+    only between the sample points) were reported as an overflow of double precision."""
+    import dataclasses
+
+    import ufl
+    problem = dataclasses.replace(scenes.user(h=0.5), f1=lambda x: -ufl.sqrt(x[0] - 0.5))
+    with pytest.raises(ValueError, match=r"not a number \(NaN\)"):
+        solve(problem, newton="exact", estimators=False)
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"estimators": "no"}, "estimators must be True or False"),
+    ({"estimators": 0}, "estimators must be True or False"),
+    ({"newton": "exact", "tol": 2.0}, r"tol must lie in \(0, 1\)"),
+    ({"newton": "exact", "tol": "abc"}, "tol must be a number, got 'abc'"),
+    ({"newton": "exact", "tol": [1]}, "tol must be a number"),
+    ({"gamma_lin": "abc"}, "gamma_lin must be a number"),
+    ({"max_vertices": "a"}, "max_vertices must be a positive integer"),
+])
+def test_api_options_are_named_when_wrong(kwargs, message):
+    """estimators='no' ran with the estimators; tol = 2 'converged' in no step; float('abc')
+    and float([1]) gave messages (or a TypeError) naming no option."""
+    with pytest.raises(ValueError, match=message):
+        solve(scenes.disk(h=0.5), **kwargs)
+
+
+def test_scene_numbers_are_named_when_wrong():
+    for levels in (None, "x", 2.5, float("inf")):
+        with pytest.raises(ValueError, match="levels must be a non-negative integer"):
+            scenes.disk(h=0.5, levels=levels)
+    with pytest.raises(ValueError, match="rho must be a number, got 'x'"):
+        scenes.radial(h=0.5, rho="x")
+    with pytest.raises(ValueError, match="max_vertices must be a positive integer"):
+        scenes.disk(h=0.5, max_vertices="a")
+
+
+def test_user_scene_refuses_a_mesh_with_h_or_domain(tmp_path):
+    """The command line refuses --mesh with --h or --domain; the API ignored h and domain
+    beside a mesh file without a word (a finer h had no effect)."""
+    msh = str(write_msh(tmp_path / "t.msh", "triangles"))
+    for extra in ({"h": 0.01}, {"domain": "square"}):
+        with pytest.raises(ValueError, match="give mesh or"):
+            scenes.user(mesh=msh, **extra)
+    assert scenes.user(mesh=msh).domain == msh

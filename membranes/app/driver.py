@@ -75,8 +75,18 @@ def _reject(applies_to, **options):
         raise ValueError(f"{given[0]} applies to {applies_to} only")
 
 
+def _real(name, value):
+    """`value` as a float, or a ValueError naming `name` (float('abc') names nothing)."""
+    if isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+
+
 def _gamma(name, value):
-    value = DEFAULT_GAMMA if value is None else float(value)
+    value = DEFAULT_GAMMA if value is None else _real(name, value)
     if not (np.isfinite(value) and 0.0 < value < 1.0):
         raise ValueError(f"{name} must lie in (0, 1), got {value}")
     return value
@@ -96,9 +106,10 @@ def _stopping(newton, tol, gamma_lin, gamma_alg):
     """(tol, γ_lin, γ_alg) of the variant (§8); the ones it does not use must not be given."""
     if newton != "adaptive":
         _reject("newton 'adaptive'", gamma_lin=gamma_lin, gamma_alg=gamma_alg)
-        tol = DEFAULT_TOL if tol is None else float(tol)
-        if not (np.isfinite(tol) and tol > 0):
-            raise ValueError(f"tol must be a positive finite number, got {tol}")
+        tol = DEFAULT_TOL if tol is None else _real("tol", tol)
+        # (tol >= 1 is met by any start: a run of no step, called converged)
+        if not (np.isfinite(tol) and 0.0 < tol < 1.0):
+            raise ValueError(f"tol must lie in (0, 1), got {tol}")
         return tol, None, None
     _reject("newton 'exact' and 'inexact' (adaptive stops by gamma_lin)", tol=tol)
     return DEFAULT_TOL, _gamma("gamma_lin", gamma_lin), _gamma("gamma_alg", gamma_alg)
@@ -260,7 +271,8 @@ def solve(problem: Problem,
     system, GMRES + ILU(0), block Jacobi across processes) or 'direct' (MUMPS); system:
     'full' or 'eliminated' instead of the preset's; petsc_options: PETSc options on top of the
     preset (a dict, or a string "-name value ..."); nu: estimate (adaptive) and record every
-    ν Krylov steps (10); tol: exact and inexact stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol (1e-10);
+    ν Krylov steps (10); tol: exact and inexact stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol (1e-10, in
+    (0, 1));
     estimators: certify the final iterate (and let adaptive use them); alg_flux: 'nu' or
     'multilevel' (§6); initial_guess: 'paper' (default, (g, 0, 0)), 'zero', or a PETSc Vec
     in the iterate layout (or a function of the discretisation returning one) on the first
@@ -287,6 +299,8 @@ def solve(problem: Problem,
         _choice("Newton variant", newton, VARIANTS)
     cfunctions.get(cfun)
     _choice("errors", errors, ERRORS)
+    if not isinstance(estimators, (bool, np.bool_)):     # ('no' would have meant yes)
+        raise ValueError(f"estimators must be True or False, got {estimators!r}")
     max_newton = checks.positive_integer("max_newton", max_newton)
     petsc_options = parse_petsc_options(petsc_options)
     if max_linear_its is not None:
@@ -490,7 +504,7 @@ def _coarse_levels(coarse, coarse_tol, newton, nested):
     if coarse == "estimated":
         _reject("coarse 'residual'", coarse_tol=coarse_tol)
         return coarse, None
-    coarse_tol = DEFAULT_COARSE_TOL if coarse_tol is None else float(coarse_tol)
+    coarse_tol = DEFAULT_COARSE_TOL if coarse_tol is None else _real("coarse_tol", coarse_tol)
     if not (np.isfinite(coarse_tol) and 0.0 < coarse_tol < 1.0):
         raise ValueError(f"coarse_tol must lie in (0, 1), got {coarse_tol}")
     return coarse, coarse_tol

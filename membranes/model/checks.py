@@ -55,7 +55,8 @@ def coarse_mesh_size(h, domain="disk"):
     if not (math.isfinite(h) and h > 0):
         raise ValueError(f"mesh size h must be a positive finite number, got {h}")
     boundary = length / h
-    vertices = VERTICES_PER_AREA * area / h ** 2 + VERTICES_PER_LENGTH * boundary
+    # (area / h / h: h ** 2 underflows to 0 for h < 1e-154; this overflows to inf instead)
+    vertices = VERTICES_PER_AREA * area / h / h + VERTICES_PER_LENGTH * boundary
     triangles = 2.0 * vertices - boundary - 2.0
     coarsest = COARSEST.get(domain) if isinstance(domain, str) else None
     if coarsest is not None and vertices < coarsest[0]:
@@ -66,16 +67,25 @@ def coarse_mesh_size(h, domain="disk"):
 def refined_vertices(vertices, triangles, levels):
     """Vertices after `levels` uniform refinements of a triangulation with `vertices` and
     `triangles` (V ← V + E, E = V + T - 1, T ← 4 T; module notes). Floats: no overflow for
-    absurd requests."""
+    absurd requests, which end at inf (after ~500 levels, so --levels 1e20 returns at once)."""
+    return _level_vertices(vertices, triangles, levels)[-1]
+
+
+def _level_vertices(vertices, triangles, levels):
+    """[V_0, …, V_J] (module notes), cut short at the first inf (every later level is inf)."""
     v, t = float(vertices), float(triangles)
+    out = [v]
     for _ in range(int(levels)):
+        if math.isinf(v):
+            break
         v, t = v + (v + t - 1.0), 4.0 * t
-    return v
+        out.append(v)
+    return out
 
 
 def hierarchy_vertices(vertices, triangles, levels):
     """Vertices of every level T_0 … T_J (the hierarchy is kept whole): Σ_j V_j ≈ 4/3 V_J."""
-    return sum(refined_vertices(vertices, triangles, j) for j in range(int(levels) + 1))
+    return sum(_level_vertices(vertices, triangles, levels))
 
 
 def mesh_file_vertices(path):
@@ -271,6 +281,12 @@ def available_memory(comm=None):
 
 # ## The size check
 
+def _about(n, show, unit=""):
+    """'about 2.5e10' (`show` formats n), or for an estimate that overflowed (h = 1e-300,
+    --levels 1000) what it exceeds."""
+    return f"about {show(n)}" if math.isfinite(n) else f"more than 1e308{unit}"
+
+
 def _bytes(n):
     for unit, scale in (("TiB", 2 ** 40), ("GiB", 2 ** 30), ("MiB", 2 ** 20)):
         if n >= scale or unit == "MiB":
@@ -298,8 +314,11 @@ def check_max_vertices(max_vertices):
     """`max_vertices` as a positive int (None stays None); ValueError otherwise."""
     if max_vertices is None:
         return None
-    if isinstance(max_vertices, bool) or not float(max_vertices).is_integer() or \
-            max_vertices < 1:
+    try:
+        whole = float(max_vertices).is_integer()
+    except (TypeError, ValueError):
+        whole = False
+    if isinstance(max_vertices, bool) or not whole or max_vertices < 1:
         raise ValueError(f"max_vertices must be a positive integer, got {max_vertices}")
     return int(max_vertices)
 
@@ -324,17 +343,18 @@ def check_size(vertices, available=None, max_vertices=None, what="the run", hint
     if limit is not None:
         if vertices > limit:
             extra = f"; {hint(limit)}" if hint is not None else ""
-            raise ValueError(f"{what} has about {_count(vertices)} vertices, more than "
+            raise ValueError(f"{what} has {_about(vertices, _count)} vertices, more than "
                              f"the limit --max-vertices {limit} (max_vertices){extra}")
         return need
     if available is None or need <= available:
         return need
     largest = largest_fitting(available, **method)
     extra = f" ({hint(largest)})" if hint is not None else ""
-    raise ValueError(f"{what} has about {_count(vertices)} vertices and needs about "
-                     f"{_bytes(need)} of memory, but {_bytes(available)} is available per "
-                     f"process: the largest run that fits has about {_count(largest)} "
-                     f"vertices{extra}; --max-vertices N (max_vertices=N) sets another limit")
+    raise ValueError(f"{what} has {_about(vertices, _count)} vertices and needs "
+                     f"{_about(need, _bytes, ' bytes')} of memory, but {_bytes(available)} is "
+                     f"available per process: the largest run that fits has about "
+                     f"{_count(largest)} vertices{extra}; --max-vertices N (max_vertices=N) sets "
+                     f"another limit")
 
 
 def largest_levels(limit, h=None, domain="disk", mesh_file=None):

@@ -4,7 +4,12 @@ A formula such as ``-1 + 0.5*sin(pi*x)*max(y, 0)`` is parsed once with Python's 
 (never ``eval``) and can then be built twice from the same tree: as a UFL expression of the
 spatial coordinate (for assembly) and as a numpy function (to check that the data are finite
 on the mesh). Allowed: numbers, ``x``, ``y``, ``pi``, ``+ - * / **``, and the functions
-``sin cos exp sqrt abs min max``. Anything else is a :class:`ValueError` naming the problem.
+``sin cos exp sqrt abs min max``. Anything else is a :class:`ValueError` naming the problem,
+and so is a formula nested deeper than MAX_DEPTH (Python's parser and the recursive builds
+would fail with RecursionError or MemoryError) or a part without x, y that is not finite
+(``2**10**10``, ``1e400``). Parts without x, y are evaluated once in double precision (numpy's
+arithmetic, as on the mesh), so that the UFL build and the numpy check agree: Python's float
+arithmetic raises where numpy's gives inf (``1/exp(1000)`` is 0 to both).
 """
 
 import ast
@@ -30,12 +35,39 @@ _BINARY = {ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b,
            ast.Mult: lambda a, b: a * b, ast.Div: lambda a, b: a / b,
            ast.Pow: lambda a, b: a ** b}
 _UNARY = {ast.USub: lambda a: -a, ast.UAdd: lambda a: a}
+MAX_DEPTH = 500        # nesting of a formula (a sum of n terms nests n deep)
+_SHOWN = 80            # characters of a formula quoted in a message
+
+
+def _number(value):
+    """A literal as a numpy double: an integer beyond its range is inf, as 1e400 is."""
+    try:
+        return np.float64(value)
+    except OverflowError:
+        return np.float64(np.inf if value > 0 else -np.inf)
+
+
+def _depth(tree):
+    """Nesting depth of an ast (iteratively: the tree may be too deep to recurse into)."""
+    deepest, stack = 0, [(tree, 1)]
+    while stack:
+        node, d = stack.pop()
+        deepest = max(deepest, d)
+        stack.extend((child, d + 1) for child in ast.iter_child_nodes(node))
+    return deepest
+
+
+def _varies(node):
+    """Whether the subtree `node` contains x or y."""
+    return any(isinstance(n, ast.Name) and n.id in _VARIABLES for n in ast.walk(node))
 
 
 class Formula:
     """A parsed data formula in x and y."""
 
     def __init__(self, text, name="expression"):
+        if isinstance(text, Formula):
+            text = text.text
         if isinstance(text, (bool, np.bool_)) or not isinstance(text, (str, numbers.Real)):
             raise ValueError(f"{name} must be a formula in x, y (text) or a number, got "
                              f"{text!r}")
@@ -43,20 +75,54 @@ class Formula:
             raise ValueError(f"{name} must be finite, got {text}")
         self.text = str(text)
         self.name = name
+        shown = self.shown
         try:
             tree = ast.parse(self.text.strip(), mode="eval")
         except SyntaxError as e:
-            raise ValueError(f"{name}: cannot parse {self.text!r} ({e.msg})") from None
+            raise ValueError(f"{name}: cannot parse {shown!r} ({e.msg})") from None
+        except (RecursionError, MemoryError):
+            tree = None
+        if tree is None or _depth(tree) > MAX_DEPTH:
+            raise ValueError(f"{name}: the formula {shown!r} ({len(self.text)} characters) "
+                             f"is nested too deeply (at most {MAX_DEPTH} levels; a sum of n "
+                             f"terms nests n deep)")
         self._tree = tree.body
         self._check(self._tree)
+        self._check_constants(self._tree)
+
+    @property
+    def shown(self):
+        """The formula as messages quote it: its first characters if it is long."""
+        t = self.text
+        return t if len(t) <= _SHOWN else f"{t[:_SHOWN - 3]}..."
+
+    def _check_constants(self, node):
+        """Refuse a largest part without x, y whose value (numpy's double arithmetic, as in
+        `ufl`) is not finite: it would be inf or nan wherever the formula is evaluated."""
+        if not _varies(node):
+            if not np.isfinite(self._constant(node)):
+                part = ast.get_source_segment(self.text.strip(), node) or ast.unparse(node)
+                raise ValueError(f"{self.name}: {part[:_SHOWN]!r} is not finite in double "
+                                 f"precision, in {self.shown!r}")
+            return
+        children = node.args if isinstance(node, ast.Call) else \
+            [node.operand] if isinstance(node, ast.UnaryOp) else \
+            [node.left, node.right] if isinstance(node, ast.BinOp) else []
+        for child in children:
+            self._check_constants(child)
+
+    def _constant(self, node):
+        with np.errstate(all="ignore"):
+            return self._build(node, None, None, 1)
 
     def _check(self, node):
         if isinstance(node, ast.Constant):
             if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
-                raise ValueError(f"{self.name}: {node.value!r} is not a number in {self.text!r}")
+                raise ValueError(f"{self.name}: {node.value!r} is not a number in "
+                                 f"{self.shown!r}")
         elif isinstance(node, ast.Name):
             if node.id not in _VARIABLES and node.id not in _CONSTANTS:
-                raise ValueError(f"{self.name}: unknown name {node.id!r} in {self.text!r} "
+                raise ValueError(f"{self.name}: unknown name {node.id!r} in {self.shown!r} "
                                  f"(allowed: x, y, pi, {', '.join(_FUNCTIONS)})")
         elif isinstance(node, ast.BinOp) and type(node.op) in _BINARY:
             self._check(node.left)
@@ -66,23 +132,26 @@ class Formula:
         elif isinstance(node, ast.Call):
             if not isinstance(node.func, ast.Name) or node.func.id not in _FUNCTIONS:
                 fname = node.func.id if isinstance(node.func, ast.Name) else ast.unparse(node.func)
-                raise ValueError(f"{self.name}: unknown function {fname!r} in {self.text!r} "
+                raise ValueError(f"{self.name}: unknown function {fname!r} in "
+                                 f"{self.shown!r} "
                                  f"(allowed: {', '.join(_FUNCTIONS)})")
             nargs = _FUNCTIONS[node.func.id][2]
             if node.keywords or (nargs is not None and len(node.args) != nargs) \
                     or (nargs is None and len(node.args) < 2):
                 want = nargs if nargs is not None else "at least 2"
                 raise ValueError(f"{self.name}: {node.func.id}() takes {want} argument(s) "
-                                 f"in {self.text!r}")
+                                 f"in {self.shown!r}")
             for a in node.args:
                 self._check(a)
         else:
-            raise ValueError(f"{self.name}: unsupported syntax {ast.unparse(node)!r} "
-                             f"in {self.text!r}")
+            raise ValueError(f"{self.name}: unsupported syntax {ast.unparse(node)[:_SHOWN]!r} "
+                             f"in {self.shown!r}")
 
     def _build(self, node, x, y, which):
+        if which == 0 and not _varies(node):   # a part without x, y: numpy's value (above)
+            return float(self._constant(node))
         if isinstance(node, ast.Constant):   # numpy floats: 1/0 gives inf, not an exception
-            return float(node.value) if which == 0 else np.float64(node.value)
+            return _number(node.value)
         if isinstance(node, ast.Name):
             value = {"x": x, "y": y}.get(node.id, _CONSTANTS.get(node.id))
             return value if which == 0 or node.id in _VARIABLES else np.float64(value)

@@ -111,7 +111,7 @@ class Problem:
                 bad = ~np.isfinite(values)
                 if bad.any():
                     p = points[:, np.argmax(bad)]
-                    raise ValueError(f"{name} = {data.text!r} is not finite on the mesh "
+                    raise ValueError(f"{name} = {data.shown!r} is not finite on the mesh "
                                      f"(e.g. at x = {p[0]:.6g}, y = {p[1]:.6g})")
             elif not callable(data):
                 v = float(data)

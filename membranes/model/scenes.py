@@ -13,6 +13,7 @@ the data jump. Nothing else is attached, so the driver computes nothing a scene 
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from typing import Any, Optional, Union
 
@@ -57,12 +58,18 @@ def _check_size(h, levels, domain, mesh_file, max_vertices, comm):
 
 
 def _check_levels(levels):
-    if isinstance(levels, (bool, np.bool_)) or isinstance(levels, float) and \
-            not levels.is_integer():
-        raise ValueError(f"levels must be a non-negative integer, got {levels}")
-    if int(levels) < 0:
-        raise ValueError(f"levels must be a non-negative integer, got {levels}")
-    return int(levels)
+    whole = None
+    if isinstance(levels, numbers.Integral) and not isinstance(levels, (bool, np.bool_)):
+        whole = int(levels)
+    elif not isinstance(levels, (bool, np.bool_)):
+        try:                                 # 2.0 and "2" are 2; 2.5, None and "x" are refused
+            value = float(levels)
+            whole = int(value) if value.is_integer() else None
+        except (TypeError, ValueError):
+            pass
+    if whole is None or whole < 0:
+        raise ValueError(f"levels must be a non-negative integer, got {levels!r}")
+    return whole
 
 
 # ## The disk scene (§9)
@@ -193,7 +200,10 @@ def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float =
     levels = _check_levels(levels)
     h = _check_size(h, levels, "disk", None, max_vertices, comm)
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
-    rho = float(rho)
+    try:
+        rho = float(rho)
+    except (TypeError, ValueError):
+        raise ValueError(f"rho must be a number, got {rho!r}") from None
     if not (0.0 <= rho < 1.0):
         raise ValueError(f"rho must lie in [0, 1), got {rho}")
     if not isinstance(contact, (bool, np.bool_)):
@@ -245,10 +255,16 @@ USER_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "g": 0.05, "f1": "0", "f2": "0"}
 
 def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, float] = "0",
          f2: Union[str, float] = "0", mesh: Union[None, str, os.PathLike] = None,
-         domain: str = "disk",
-         h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
+         domain: Optional[str] = None,
+         h: Optional[float] = None, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
          max_vertices: Optional[int] = None) -> Problem:
-    """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square."""
+    """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square.
+    `domain` ('disk' by default) and `h` (DEFAULT_H) apply without `mesh` only."""
+    if mesh is not None and (h is not None or domain is not None):  # (as the command line)
+        raise ValueError(f"give mesh or {'h' if h is not None else 'domain'}, not both: the "
+                         f"mesh file is the coarse mesh")
+    h = DEFAULT_H if h is None else h
+    domain = "disk" if domain is None else domain
     levels = _check_levels(levels)
     f1, f2 = Formula(f1, "f1"), Formula(f2, "f2")   # fail on bad input before any meshing
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))

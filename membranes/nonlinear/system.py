@@ -164,6 +164,10 @@ class NewtonSystem:
         self.WF.array[:n] = np.where(inner, disc.F1.array_r[:n] / mu1, disc.g)
         self.WF.array[n:2 * n] = np.where(inner, disc.F2.array_r[:n] / mu2, 0.0)
         self.norm_F = self.WF.norm()                         # ‖W (F, 0)‖
+        if np.isnan(self.norm_F):    # not an overflow: data undefined where they are integrated
+            raise ValueError("the loads are not a number (NaN) at some quadrature points: f1 "
+                             "or f2 is undefined somewhere on the mesh (e.g. sqrt or a "
+                             "fractional power of a negative number)")
         if not (np.isfinite(self.norm_F) and np.isfinite(self.kappa)):
             raise ValueError(f"the data overflow double precision: ||W (F, 0)|| = "
                              f"{self.norm_F:g}, kappa = {self.kappa:g} (mu1 = {mu1:g}, "
