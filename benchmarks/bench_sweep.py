@@ -24,7 +24,7 @@ CHILD = r"""
 import dataclasses, json, resource, sys, time
 from mpi4py import MPI
 from membranes import Setups, scenes, solve
-from membranes.app.cli import quiet_jit_logging
+from membranes.app.logs import quiet_jit_logging
 quiet_jit_logging()
 way, j, h0 = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
 values = [float(v) for v in sys.argv[4:]]

@@ -100,8 +100,8 @@ def child(method, arg):
     from mpi4py import MPI
 
     from membranes import scenes, solve
-    from membranes.app.cli import quiet_jit_logging
     from membranes.app.driver import _final_residual
+    from membranes.app.logs import quiet_jit_logging
     from membranes.app.peer import nested_peer, plain_peer
     from membranes.app.schedule import LevelEstimates
     from membranes.estimation.energy_error import EnergyError

@@ -3,7 +3,7 @@
 import functools
 
 from membranes import scenes, solve
-from membranes.app.cli import quiet_jit_logging
+from membranes.app.logs import quiet_jit_logging
 
 quiet_jit_logging()
 

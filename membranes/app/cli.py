@@ -11,10 +11,11 @@ the mesh, PETSc the solves; rank 0 prints, every rank writes its part of the sol
 
 import argparse
 import json
-import logging
 import os
 import sys
 import time
+
+from .logs import quiet_jit_logging
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 3
@@ -145,14 +146,6 @@ def _scene_arguments(args):
             if getattr(args, k) is not None:
                 kwargs[k] = getattr(args, k)
     return scene, kwargs
-
-
-def quiet_jit_logging():
-    """Keep stderr for progress lines and real warnings: ffcx installs a root handler when
-    imported, and setuptools (which compiles the JIT kernels) lowers the root level to INFO."""
-    import ffcx  # noqa: F401  (installs its handler now, so that we can raise its level)
-    for handler in logging.getLogger().handlers:
-        handler.setLevel(logging.WARNING)
 
 
 def _check_before_meshing(args, scene, kwargs, comm):

@@ -13,7 +13,7 @@ def options(name, description, out_help):
     out/demos/NAME; made if missing; one error line and exit 2 where it cannot be
     written). Silences the JIT's log lines, so that stderr keeps Newton's progress lines.
     Returns (out, quick)."""
-    from .cli import quiet_jit_logging
+    from .logs import quiet_jit_logging
     quiet_jit_logging()
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--quick", action="store_true", help="a coarse mesh (seconds)")

@@ -44,6 +44,7 @@ from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS
 from ..nonlinear.newton import newton as run_newton
 from ..nonlinear.system import initial_guess as newton_guess
+from .logs import quiet_jit_logging
 from .schedule import DEFAULT_GAMMA, GATE, LevelEstimates
 from .setups import Setups
 from .solution import ESTIMATOR_COLUMNS, Solution
@@ -295,6 +296,7 @@ def solve(problem: Problem,
                          f"{type(problem).__name__}")
     release_garbage(problem, collect=False)   # what earlier solves left (outside the clock)
     started = time.perf_counter()
+    quiet_jit_logging()       # the forms' JIT builds are not the user's business
     if newton is not None:
         _choice("Newton variant", newton, VARIANTS)
     cfunctions.get(cfun)

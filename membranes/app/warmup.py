@@ -87,7 +87,7 @@ def stamp(names):
 
 def main(argv=None):
     """`python -m membranes.app.warmup [--force] [SCENE ...]` (default: every scene of TINY)."""
-    from .cli import quiet_jit_logging
+    from .logs import quiet_jit_logging
     argv = list(sys.argv[1:] if argv is None else argv)
     force = "--force" in argv
     names = [a for a in argv if a != "--force"] or list(TINY)
