@@ -34,23 +34,3 @@ def energy_density(mu1, mu2, e1, e2):
     """μ1 |∇e1|² + μ2 |∇e2|²: the integrand of the energy norm (§1)."""
     return (mu1 * ufl.inner(ufl.grad(e1), ufl.grad(e1))
             + mu2 * ufl.inner(ufl.grad(e2), ufl.grad(e2)))
-
-
-def energy_norm_squared(mu1, mu2, e1, e2, dx=ufl.dx, w=1.0):
-    """|||(e1, e2)|||² = μ1 ‖∇e1‖² + μ2 ‖∇e2‖² (§1); with w a DG0 test function, the
-    squared energy norm on every cell."""
-    return w * energy_density(mu1, mu2, e1, e2) * dx
-
-
-
-def energy_error_expansion(mu1, mu2, e1, e2, w, dx=ufl.dx):
-    """The terms that expand |||(e1 - d1, e2 - d2)|||² for P1 functions d1, d2 (§1).
-
-    With w a test function of (P1)³ (hat functions ψ_a in each component), assembled:
-        b1_a = μ1 (∇e1, ∇ψ_a),  b2_a = μ2 (∇e2, ∇ψ_a),  c_a = (μ1 |∇e1|² + μ2 |∇e2|², ψ_a),
-    and Σ_a ψ_a = 1 gives |||(e1, e2)|||² = Σ_a c_a, so that with S the stiffness matrix
-        |||(e1 - d1, e2 - d2)|||² = Σ_a c_a - 2 (b1·d1 + b2·d2) + μ1 d1ᵀ S d1 + μ2 d2ᵀ S d2.
-    """
-    return (mu1 * ufl.inner(ufl.grad(e1), ufl.grad(w[0]))
-            + mu2 * ufl.inner(ufl.grad(e2), ufl.grad(w[1]))
-            + energy_density(mu1, mu2, e1, e2) * w[2]) * dx

@@ -41,35 +41,11 @@ from petsc4py import PETSc
 
 import forms.equilibration as equilibration_forms
 
+from ..fem.discretisation import boundary_dofs
 from .divergence import assemble, check, largest
-from .patches import PatchSystems, Shared, colour_vertices
+from .patches import PatchSystems, colour_vertices
 
 PSI, LAMC, U = range(3)      # components of FluxEquilibration.nodal
-
-
-def boundary_dofs(V):
-    """Bool over the local P1 dofs (owned and ghost): the dof lies on ∂Ω. A facet is on ∂Ω if one
-    cell of the whole mesh has it; its vertices' flags are then or-ed across processes."""
-    mesh = V.mesh
-    tdim = mesh.topology.dim
-    mesh.topology.create_connectivity(tdim, tdim - 1)
-    nc = mesh.topology.index_map(tdim).size_local
-    fmap = mesh.topology.index_map(tdim - 1)
-    c2f = mesh.topology.connectivity(tdim, tdim - 1).array.reshape(-1, 3)[:nc]
-    facets = Shared(fmap, mesh.comm)
-    count = np.bincount(c2f.ravel(), minlength=fmap.size_local + fmap.num_ghosts)
-    count = facets.forward(facets.reverse(count, np.add))
-    # the dofs of local facet i of a triangle are its vertices other than vertex i
-    cells = V.dofmap.list.array.reshape(-1, 3)[:nc]
-    imap = V.dofmap.index_map
-    on = np.zeros(imap.size_local + imap.num_ghosts, dtype=np.int64)
-    for i in range(3):
-        exterior = count[c2f[:, i]] == 1
-        for j in range(3):
-            if j != i:
-                on[cells[exterior, j]] = 1
-    vertices = Shared(imap, mesh.comm)
-    return vertices.forward(vertices.reverse(on, np.maximum)).astype(bool)
 
 
 def same_numbering(V, W):

@@ -84,11 +84,11 @@ def dg1_projections(disc, fs, lifting, moments=None):
     DG1 with a component per f, the data measures), unless `moments` gives them ((owned cells,
     3, len(fs)), (f, q_m)_K with the same measures, e.g. from `FluxEquilibration.loads`); the
     DG1 mass matrix is block diagonal with the block
-    M_K = |K|/12 (I + 1 1ᵀ), whose inverse (3/|K|)(4 I - 1 1ᵀ) (`lifting`) is applied cell by
-    cell on the owned cells."""
+    M_K = |K|/12 (I + 1 1ᵀ), whose inverse (`lifting.mass_inverse`) is applied cell by cell
+    on the owned cells."""
     from dolfinx import fem, la
 
-    from .lifting import MINV_REF
+    from .lifting import mass_inverse
     mesh, k = disc.mesh, len(fs)
     nc = lifting.ncells
     if moments is not None:
@@ -103,7 +103,7 @@ def dg1_projections(disc, fs, lifting, moments=None):
     out = []
     for i in range(k):
         pf = fem.Function(lifting.Q)
-        pf.x.array[lifting.dg] = (3.0 / lifting.area)[:, None] * (blocks[:, :, i] @ MINV_REF)
+        pf.x.array[lifting.dg] = mass_inverse(lifting.area, blocks[:, :, i])
         pf.x.scatter_forward()
         out.append(pf)
     return out
@@ -138,7 +138,7 @@ class Estimators:
         self.n = disc.n
         self.mu = (float(disc.mu1), float(disc.mu2))
         self.cpf = float(disc.poincare)
-        self.kappa = self.cpf * np.sqrt(1.0 / self.mu[0] + 1.0 / self.mu[1])
+        self.c_lambda = self.cpf * np.sqrt(1.0 / self.mu[0] + 1.0 / self.mu[1])   # C_λ, §7
         mu = [fem.Constant(mesh, PETSc.ScalarType(m)) for m in self.mu]
         self._mu = mu
         V = disc.V
@@ -300,7 +300,7 @@ class Estimators:
         (cells, 3) of `_linearisation_form`."""
         lin1, lam_pos, lam_neg = self.comm.allreduce(
             np.maximum(q, [0.0, -np.inf, 0.0]).sum(axis=0), op=MPI.SUM)
-        return lin1, self.kappa ** 2 * lam_neg, lam_pos
+        return lin1, self.c_lambda ** 2 * lam_neg, lam_pos
 
     def recovered(self, X, linearisation=False):
         """η_rec = (Σ_α ‖μ_α^{1/2} ∇u_αh - μ_α^{-1/2} G_α‖²)^{1/2} at X, G_α ∈ P1² the vertex
@@ -355,9 +355,9 @@ class Estimators:
         """η_lin1, η_lin2, η_lin3 and η_lin (§7) from the global sums of η_lin1,K², η_lin3,K²
         and ‖λ^pos‖_K²."""
         eta_lin1, eta_lin3 = np.sqrt(max(lin1_sq, 0.0)), np.sqrt(max(lin3_sq, 0.0))
-        # η_lin2 = (Σ_K η_lin2,K²)^{1/2} = 2 C_PF h_Ω (1/μ1 + 1/μ2)^{1/2} ‖λ^pos‖ η_lin1: a
-        # product of two energy-norm quantities, which enters η² as it is (§7)
-        eta_lin2 = 2.0 * self.kappa * np.sqrt(max(lam_pos_sq, 0.0)) * eta_lin1
+        # η_lin2 = (Σ_K η_lin2,K²)^{1/2} = 2 C_λ ‖λ^pos‖ η_lin1: a product of two
+        # energy-norm quantities, which enters η² as it is (§7)
+        eta_lin2 = 2.0 * self.c_lambda * np.sqrt(max(lam_pos_sq, 0.0)) * eta_lin1
         return {"eta_lin": float(eta_lin1 + eta_lin3 + np.sqrt(eta_lin2)),
                 "eta_lin1": float(eta_lin1), "eta_lin2": float(eta_lin2),
                 "eta_lin3": float(eta_lin3)}
@@ -538,7 +538,7 @@ class Estimators:
         del disc_K, flux_K                      # (one column at a time from here on)
         eta_C_K = qt[CONTACT]
         lin1_sq = np.maximum(qt[LIN1], 0.0)                             # η_lin1,K²
-        lin3_sq = self.kappa ** 2 * np.maximum(qt[LAM_NEG], 0.0)        # η_lin3,K²
+        lin3_sq = self.c_lambda ** 2 * np.maximum(qt[LAM_NEG], 0.0)     # η_lin3,K²
         sums += [c.sum() for c in (eta_C_K, lin1_sq, lin3_sq, qt[LAM_POS])]
         eta_1_sq += lin1_sq
         eta_1_sq += lin3_sq

@@ -11,13 +11,28 @@ so that (r_h, ψ_l)_Ω = Σ_{K ∋ a_l} R_l / N_l = R_l and the linear rows of �
 On K the P1 mass matrix is M_K = |K|/12 (I + 1 1ᵀ) (vertex order), whose inverse is
 M_K⁻¹ = (3/|K|) (4 I - 1 1ᵀ) = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]]; the DG1 coefficients of
 r_h on K (Lagrange, the same vertex order as P1) are r_K = M_K⁻¹ (R_l / N_l)_{l ∈ K}. This is
-cell-local algebra, vectorised over the owned cells. N_l counts the owned cells at each dof on
-every process, added up on the owner by dolfinx's reverse scatter.
+cell-local algebra, vectorised over the owned cells (`mass_inverse`, which the cellwise
+projections of §7 and the multilevel moments of §6 apply too). N_l counts the owned cells at
+each dof on every process, added up on the owner by dolfinx's reverse scatter.
 """
 
 import numpy as np
 
+from ..fem.meshes import triangle_areas
+
 MINV_REF = np.array([[3.0, -1.0, -1.0], [-1.0, 3.0, -1.0], [-1.0, -1.0, 3.0]])
+
+
+def mass_inverse(area, b):
+    """M_K⁻¹ b_K on every cell K: the inverse of the DG1 (and P1) cell mass matrix
+    M_K = |K|/12 (I + 1 1ᵀ), M_K⁻¹ = (3/|K|) MINV_REF (module notes, §4), applied to the
+    moments b_K,m = (v, φ_m)_K (m in the vertex order of the cell) gives the DG1 coefficients
+    of v's L² projection on K. b: (c, 3), one row of moments per cell, or (c, k, 3), k rows
+    per cell (identity rows give the blocks M_K⁻¹ themselves); `area`: |K| ((c,),
+    `membranes.fem.meshes.triangle_areas`). MINV_REF is symmetric, so b_K MINV_REF is
+    (MINV_REF b_Kᵀ)ᵀ."""
+    scale = 3.0 / area
+    return scale.reshape((-1,) + (1,) * (np.ndim(b) - 1)) * (b @ MINV_REF)
 
 
 class Lifting:
@@ -33,17 +48,14 @@ class Lifting:
         # (views of the dofmaps, which they keep alive)
         self.cells = V.dofmap.list.array.reshape(-1, 3)[:nc]                   # int32
         self.dg = self.Q.dofmap.list.array.reshape(-1, 3)[:nc]
-        x = V.tabulate_dof_coordinates()[:, :2][self.cells]                    # (nc, 3, 2)
-        e1, e2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
-        self.area = area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        self.area = triangle_areas(V.tabulate_dof_coordinates()[:, :2][self.cells])
         # N_l over all processes: owned cells counted locally, ghosts added to their owners
         count = fem.Function(V)
         count.x.array[:] = np.bincount(self.cells.ravel(), minlength=count.x.array.size)
         count.x.scatter_reverse(la.ScatterMode.add)
         count.x.scatter_forward()
         self.count = count.x.array.copy()
-        # r_K = (3/|K|) MINV_REF (R_l / N_l): the cell factor (3/|K|) / N_l per column
-        self.scale = (3.0 / area)[:, None] / self.count[self.cells]                # (nc, 3)
+        self.count_cells = self.count[self.cells]                                  # (nc, 3)
         self._R = fem.Function(V)
 
     def __call__(self, R, out=None):
@@ -54,8 +66,9 @@ class Lifting:
         self._R.x.array[:self.n] = R[:self.n]
         self._R.x.scatter_forward()
         r = out if out is not None else fem.Function(self.Q)
-        values = self._R.x.array[self.cells] * self.scale                          # (nc, 3)
-        r.x.array[self.dg] = values @ MINV_REF                 # MINV_REF is symmetric
+        # r_K = M_K⁻¹ (R_l / N_l)_{l ∈ K}
+        values = self._R.x.array[self.cells] / self.count_cells                   # (nc, 3)
+        r.x.array[self.dg] = mass_inverse(self.area, values)
         r.x.scatter_forward()
         return r
 

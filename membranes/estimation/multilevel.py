@@ -72,10 +72,10 @@ from petsc4py import PETSc
 import forms.equilibration as equilibration_forms
 from forms.membrane import membrane_linear
 
-from ..fem.meshes import owned_cells
+from ..fem.discretisation import boundary_dofs
+from ..fem.meshes import owned_cells, triangle_areas
 from .congruence import dof_transformation, piola_reference_block
-from .equilibration import boundary_dofs
-from .lifting import MINV_REF
+from .lifting import mass_inverse
 from .patches import PatchSystems, colour_vertices
 
 ROUND_OFF = 1e-8      # tolerance on the barycentric coordinates 0, 1/2, 1 of plaza's vertices
@@ -91,13 +91,6 @@ def _check(comm, ok, message):
     from mpi4py import MPI
     if not comm.allreduce(bool(ok), op=MPI.LAND):
         raise RuntimeError(message)
-
-
-def _areas(x, cells):
-    """Areas of the triangles with vertex coordinates x[cells] ((c, 3) indices)."""
-    p = x[cells]
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
 # ## The combinatorial maps
@@ -237,8 +230,8 @@ class _Level:
         self.E = dg_prolongation(self.beta, parents, ncc)
         self.ET = self.E.T.tocsr()
         cells_c = Vc.dofmap.list.array.reshape(-1, 3)[:ncc]
-        area_c = _areas(Vc.tabulate_dof_coordinates()[:, :2], cells_c)
-        minv = (3.0 / area_c)[:, None, None] * MINV_REF
+        area_c = triangle_areas(Vc.tabulate_dof_coordinates()[:, :2][cells_c])
+        minv = mass_inverse(area_c, np.broadcast_to(np.eye(3), (ncc, 3, 3)))     # M_{j-1}⁻¹
         mhat = (area_c[parents] / 48.0)[:, None, None] * (np.eye(3) + 1.0)
         self.G = _block_diagonal(mhat) @ self.E @ _block_diagonal(minv)
         self.C = None                   # restriction of moments from T_J (set by the owner)

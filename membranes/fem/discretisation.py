@@ -23,6 +23,7 @@ import ufl
 
 from forms.membrane import contact_term, membrane_bilinear, membrane_linear
 
+from .meshes import on_boundary
 from .quadrature import data_measures, load, over
 
 
@@ -36,7 +37,7 @@ class Discretisation:
     F2: object                # PETSc Vec (owned): (f2, ψ_a)
     f1: object                # UFL expressions of the loads
     f2: object
-    boundary: np.ndarray      # local dofs (owned and ghost) on ∂Ω
+    boundary: np.ndarray      # local dofs (owned and ghost) on ∂Ω, ascending (int32)
     dx_data: list             # data measures (quadrature.data_measures)
 
     @property
@@ -128,14 +129,10 @@ class Discretisation:
 
 
 def boundary_dofs(V):
-    """The P1 dofs on ∂Ω (local indices, owned and ghost)."""
-    from dolfinx import fem
-    from dolfinx import mesh as dmesh
-    mesh = V.mesh
-    tdim = mesh.topology.dim
-    mesh.topology.create_connectivity(tdim - 1, tdim)
-    facets = dmesh.exterior_facet_indices(mesh.topology)
-    return fem.locate_dofs_topological(V, tdim - 1, facets)
+    """Bool over the local P1 dofs (owned and ghost): the vertex lies on ∂Ω, where §2 puts the
+    Dirichlet rows u1 = g, u2 = 0, λ = 0 and §5, §6 the boundary patches
+    (`membranes.fem.meshes.on_boundary`). Collective."""
+    return on_boundary(V.mesh, V.dofmap.list.array.reshape(-1, 3), V.dofmap.index_map)
 
 
 def assemble_vector(L):
@@ -178,4 +175,5 @@ def discretise(problem):
     f1, f2 = load(problem.f1, mesh), load(problem.f2, mesh)
     F1 = assemble_vector(over(dx_data, lambda dx: membrane_linear(f1, v, dx)))
     F2 = assemble_vector(over(dx_data, lambda dx: membrane_linear(f2, v, dx)))
-    return Discretisation(problem, V, S, D, F1, F2, f1, f2, boundary_dofs(V), dx_data)
+    boundary = np.flatnonzero(boundary_dofs(V)).astype(np.int32)
+    return Discretisation(problem, V, S, D, F1, F2, f1, f2, boundary, dx_data)

@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .meshes import on_boundary
+
 
 @dataclass
 class Hierarchy:
@@ -134,23 +136,10 @@ def prolongation(coarse, fine, parents):
 
 
 def boundary_vertices(mesh):
-    """Local geometry nodes on the boundary ∂Ω of `mesh` (owned and ghost)."""
-    from dolfinx import mesh as dmesh
-    tdim = mesh.topology.dim
-    mesh.topology.create_connectivity(tdim - 1, tdim)
-    facets = dmesh.exterior_facet_indices(mesh.topology)
-    mesh.topology.create_connectivity(tdim - 1, 0)
-    f2v = mesh.topology.connectivity(tdim - 1, 0)
-    verts = np.unique(np.concatenate([f2v.links(f) for f in facets])) if len(facets) else \
-        np.zeros(0, dtype=np.int32)
-    # vertex → geometry node, read off the cells (P1 geometry: one node per vertex)
-    mesh.topology.create_connectivity(tdim, 0)
-    c2v = mesh.topology.connectivity(tdim, 0).array.reshape(-1, 3)
+    """Local geometry nodes on the boundary ∂Ω of `mesh` (owned and ghost; `meshes.on_boundary`,
+    so that a ghost copy held only by ghost cells is found, and moved, too)."""
     g = mesh.geometry.dofmap.array.reshape(-1, 3)
-    node = np.full(mesh.topology.index_map(0).size_local + mesh.topology.index_map(0).num_ghosts,
-                   -1, dtype=np.int64)
-    node[c2v.ravel()] = g.ravel()
-    return node[verts]
+    return np.flatnonzero(on_boundary(mesh, g, mesh.geometry.index_map()))
 
 
 def refine(mesh, projection=None):

@@ -166,6 +166,48 @@ def cell_vertices(mesh):
     return x[cells]
 
 
+def on_boundary(mesh, cell_nodes, imap):
+    """Bool over the local entries (owned and ghost) of a vertex-based numbering of `mesh`
+    (P1 dofs, P1 geometry nodes): the vertex lies on ∂Ω (§2, §9). `cell_nodes` ((cells, 3)):
+    the entries of each cell's vertices, in the cell's vertex order; `imap`: the numbering's
+    dolfinx IndexMap. A facet lies on ∂Ω if exactly one cell of the whole mesh has it: every
+    process counts the facets of its *owned* cells, the counts are added on each facet's owner
+    and sent back to its ghosts, and the flags of the vertices of those facets are combined
+    likewise (§12). Counting owned cells only makes the answer independent of the ghost mode:
+    a facet on a process boundary is counted from both sides, one on the outer rim of a ghost
+    layer (one local cell, a ghost) is not taken for ∂Ω, and every local copy of a boundary
+    vertex is flagged, also one that only ghost cells hold. Collective."""
+    from dolfinx import la
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim, tdim - 1)
+    nc = owned_cells(mesh)
+    c2f = mesh.topology.connectivity(tdim, tdim - 1).array.reshape(-1, 3)[:nc]
+    count = la.vector(mesh.topology.index_map(tdim - 1))
+    count.array[:] = np.bincount(c2f.ravel(), minlength=count.array.size)
+    count.scatter_reverse(la.ScatterMode.add)
+    count.scatter_forward()
+    # the vertices of local facet i of a triangle are its vertices other than vertex i
+    cells = cell_nodes[:nc]
+    on = la.vector(imap)
+    on.array[:] = 0.0
+    for i in range(3):
+        exterior = count.array[c2f[:, i]] == 1.0
+        for j in range(3):
+            if j != i:
+                on.array[cells[exterior, j]] = 1.0
+    on.scatter_reverse(la.ScatterMode.add)
+    on.scatter_forward()
+    return on.array > 0.0
+
+
+def triangle_areas(p):
+    """|K| of the triangles with vertex coordinates p ((c, 3, 2)): half the absolute cross
+    product of two edges. The cell masses M_K = |K|/12 (I + 1 1ᵀ) of the DG1 algebra (§4, §6)
+    and the aspect ratios use it."""
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+
 def cell_diameters(mesh):
     """Longest edge h_K of every owned cell."""
     p = cell_vertices(mesh)
@@ -175,10 +217,7 @@ def cell_diameters(mesh):
 
 def aspect_ratios(mesh):
     """Longest edge over smallest altitude, h_K² / (2 |K|), of every owned cell."""
-    p = cell_vertices(mesh)
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-    return cell_diameters(mesh) ** 2 / (2.0 * area)
+    return cell_diameters(mesh) ** 2 / (2.0 * triangle_areas(cell_vertices(mesh)))
 
 
 def mesh_size(mesh):

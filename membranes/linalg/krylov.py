@@ -36,9 +36,12 @@ iterations that are multiples of `every`:
 
 * exact (§8): tol = `EXACT_TOL` = 2e-12, every iteration (and the initial guess);
 * inexact (§8): tol = ‖R_lin(X^{k-1})‖/‖(F, 0)‖ (or EXACT_TOL, if larger), every ν
-  iterations from i = ν: the initial guess X^{k-1} meets it (B - A X^{k-1} = R_lin(X^{k-1})
-  and ‖B‖ ≥ ‖(F, 0)‖), so that it is not tested, and GMRES, whose residual never grows,
-  meets it at i = ν (the paper's 10 per step);
+  iterations from i = ν. On the full system the initial guess X^{k-1} meets it
+  (B - A X^{k-1} = R_lin(X^{k-1}) and ‖B‖ ≥ ‖(F, 0)‖), so that it is not tested, and GMRES,
+  whose residual never grows, meets it at i = ν (the paper's 10 per step). On the eliminated
+  system the initial guess is X^{k-1} with its eliminated unknowns (λ_l or u2_l) replaced
+  from the new linearisation: its residual is not R_lin(X^{k-1}) and need not meet the
+  bound, so the test may pass only at a later multiple of ν;
 * adaptive (§8): the exact floor, and every ν iterations the callback `on_iterate(i, y, r)`
   with the current iterate y (`ksp.buildSolution`) and its weighted residual r = b - A y; it
   returns True to stop (η_alg ≤ γ_alg max(η_disc, η_lin) is decided by the Newton loop, which

@@ -61,8 +61,9 @@ Vecs are the loop's own: a callback that keeps one copies it.
 No line search: a Newton step is the plain semismooth step of §3 (for Newton-min with exact
 solves, the primal–dual active set method); the only safeguard is the inexact variant's
 shrinking forcing term above. A step whose Krylov solve
-makes no iteration (its initial guess X^{k,0} = X^{k-1} meets the bound, which is never below
-the exact floor) leaves the iterate where it was, and the next step would repeat it: if the
+makes no iteration (its initial guess X^{k,0} meets the bound, which is never below the exact
+floor; X^{k,0} is X^{k-1}, on the eliminated system with its eliminated unknowns made
+consistent) leaves the iterate where it was, and the next step would repeat it: if the
 Newton test fails there, the run stops, not converged, and says so. The adaptive variant
 asks for such an iterate's estimates with kind 'stalled' (in full, whatever a gate would
 guess: its test decides whether the run stops). A Krylov solve that fails

@@ -199,27 +199,25 @@ class NewtonSystem:
         C[self.boundary] = self.kappa * lam[self.boundary]
         return C
 
-    def nonlinear_residual(self, X, cfun, out=None):
-        """(R_lin, ‖W R_lin‖/‖W F‖): R_lin = (F - E X, -C) unweighted (a 3N Vec, `out` if
-        given), and its weighted size relative to the data (module notes)."""
+    def relative_residual(self, X, cfun, out=None):
+        """‖W R_lin(X)‖/‖W F‖ (§8, §11); with `out` (a 3N Vec) also R_lin = (F - E X, -C)
+        itself, unweighted, written there (`nonlinear_residual`)."""
         r = self._r2
         self.E_op.mult(X, r)
         r.aypx(-1.0, self.WF2)                               # W (F - E X)
         C = self.constraint(X, cfun)
-        n = self.n
+        if out is not None:
+            n = self.n
+            out.array[:2 * n] = r.array_r / self.W.array_r[:2 * n]
+            out.array[2 * n:] = -C
+        return np.sqrt(r.norm() ** 2 + self._sum(C @ C)) / self.norm_F
+
+    def nonlinear_residual(self, X, cfun, out=None):
+        """(R_lin, ‖W R_lin‖/‖W F‖): R_lin = (F - E X, -C) unweighted (a 3N Vec, `out` if
+        given), and its weighted size relative to the data (module notes)."""
         if out is None:
             out = self.disc.vector3()
-        out.array[:2 * n] = r.array_r / self.W.array_r[:2 * n]
-        out.array[2 * n:] = -C
-        return out, np.sqrt(r.norm() ** 2 + self._sum(C @ C)) / self.norm_F
-
-    def relative_residual(self, X, cfun):
-        """‖W R_lin(X)‖/‖W F‖ (§8, §11)."""
-        r = self._r2
-        self.E_op.mult(X, r)
-        r.aypx(-1.0, self.WF2)
-        C = self.constraint(X, cfun)
-        return np.sqrt(r.norm() ** 2 + self._sum(C @ C)) / self.norm_F
+        return out, self.relative_residual(X, cfun, out)
 
     # ## The linearisation (§3)
 

@@ -65,6 +65,19 @@ def straddling(flux, comm):
     return [count(comm, level.patches) for level in flux.levels]
 
 
+def ghost_mismatch(mesh):
+    """The largest distance between a local geometry node (owned or ghost) and its owner's
+    copy over all processes: 0 when every process sees the same (curved, §9) mesh, also in
+    its ghost cells."""
+    from dolfinx import la
+    x = mesh.geometry.x[:, :2]
+    v = la.vector(mesh.geometry.index_map(), bs=2)
+    v.array[:] = x.ravel()
+    v.scatter_forward()
+    local = float(np.abs(v.array.reshape(-1, 2) - x).max(initial=0.0))
+    return mesh.comm.allreduce(local, op=MPI.MAX)
+
+
 def main(name, J, h):
     from dolfinx import fem
 
@@ -82,6 +95,7 @@ def main(name, J, h):
     out = dict(processes=comm.size, vertices=disc.n_global, norm=float(norm),
                max_cell=comm.allreduce(float(np.sqrt(s2).max(initial=0.0)), op=MPI.MAX),
                defect=defect, scale=scale, straddling=straddling(flux, comm),
+               ghost_mismatch=max(ghost_mismatch(mesh) for mesh in problem.hierarchy.meshes),
                summary=flux.summary())
     everyone = comm.allgather(json.dumps(out, sort_keys=True))
     if any(text != everyone[0] for text in everyone):

@@ -22,8 +22,9 @@ def refined_disk(comm, h, J):
 def vertex_groups(mesh):
     from dolfinx import fem
 
-    from membranes.estimation.equilibration import boundary_dofs, vertex_patches
+    from membranes.estimation.equilibration import vertex_patches
     from membranes.estimation.patches import colour_vertices
+    from membranes.fem.discretisation import boundary_dofs
     V = fem.FunctionSpace(mesh, ("Lagrange", 1))
     nc = mesh.topology.index_map(2).size_local
     cells = V.dofmap.list.array.reshape(-1, 3)[:nc]

@@ -159,7 +159,7 @@ def test_global_values_and_bound(setup):
     disc, X, sigma, alg, r, dlam, ref = setup
     est = Estimators(disc)
     cpf = 1 / (np.pi * np.sqrt(2))
-    kappa = cpf * np.sqrt(1 / MU1 + 1 / MU2)
+    c_lambda = cpf * np.sqrt(1 / MU1 + 1 / MU2)
     eta_rem = est.remainder(r, dlam)
     assert np.isclose(eta_rem, cpf * np.sqrt(ref["rem"].sum()), rtol=TOL, atol=0)
     got = est.assemble(X, sigma, alg, eta_rem)
@@ -168,8 +168,8 @@ def test_global_values_and_bound(setup):
     D = np.sqrt(np.stack([ref["disc1"], ref["disc2"]], 1))
     eta_1 = np.sqrt(((F + osc) ** 2).sum())
     lin1 = np.sqrt(ref["lin1"].sum())
-    lin2 = 2 * kappa * np.sqrt(ref["lp"].sum()) * lin1
-    lin3 = kappa * np.sqrt(ref["ln"].sum())
+    lin2 = 2 * c_lambda * np.sqrt(ref["lp"].sum()) * lin1
+    lin3 = c_lambda * np.sqrt(ref["ln"].sum())
     sum_C = ref["C"].sum()
     expect = {
         "eta": np.sqrt((eta_1 + eta_rem + lin1 + lin3) ** 2 + lin2 + max(0, sum_C)),
@@ -181,7 +181,7 @@ def test_global_values_and_bound(setup):
         "eta_rem": eta_rem, "eta_1": eta_1}
     for key, value in expect.items():
         assert np.isclose(got[key], value, rtol=TOL, atol=0), key
-    eta_K = np.sqrt(((F + osc) ** 2).sum(1) + ref["lin1"] + kappa ** 2 * ref["ln"]
+    eta_K = np.sqrt(((F + osc) ** 2).sum(1) + ref["lin1"] + c_lambda ** 2 * ref["ln"]
                     + np.abs(ref["C"]))
     assert close(got["eta_K"], eta_K)
     # the components bound η (Corollary 5.6 of the paper, §7)
@@ -235,13 +235,13 @@ def test_constraint_estimators_vanish_on_a_feasible_iterate(setup):
     Xn = np.concatenate([u2 + gap, u2, np.zeros(n)])
     got = est.assemble(Xn, sigma)
     assert got["eta_C"] == got["eta_lin"] == 0.0
-    # and a negative λ is measured by η_lin3 = κ ‖λ^neg‖ alone
+    # and a negative λ is measured by η_lin3 = C_λ ‖λ^neg‖ alone
     Xm = np.concatenate([u2 + gap, u2, -np.ones(n)])
     got = est.assemble(Xm, sigma)
-    kappa = est.kappa
+    c_lambda = est.c_lambda
     area = disc.comm.allreduce(float(cell_areas(disc).sum()), op=MPI.SUM)
     assert got["eta_lin1"] == 0.0 and got["eta_C"] == 0.0
-    assert np.isclose(got["eta_lin3"], kappa * np.sqrt(area), rtol=TOL, atol=0)
+    assert np.isclose(got["eta_lin3"], c_lambda * np.sqrt(area), rtol=TOL, atol=0)
 
 
 def cell_areas(disc):

@@ -39,8 +39,9 @@ from membranes.estimation.congruence import (
     basis_changes,
     canonical_block,
 )
-from membranes.estimation.equilibration import FluxEquilibration, boundary_dofs, vertex_patches
+from membranes.estimation.equilibration import FluxEquilibration, vertex_patches
 from membranes.estimation.patches import PatchSystems, colour_vertices, mixed_space
+from membranes.fem.discretisation import boundary_dofs
 
 from .mpi_patches import partial_assembly_error, random_solutions, refined_disk
 
