@@ -64,28 +64,30 @@ def coarse_mesh_size(h, domain="disk"):
     return vertices, max(triangles, 1.0)
 
 
-def refined_vertices(vertices, triangles, levels):
+def refined_vertices(vertices, triangles, levels, euler=1.0):
     """Vertices after `levels` uniform refinements of a triangulation with `vertices` and
-    `triangles` (V ← V + E, E = V + T - 1, T ← 4 T; module notes). Floats: no overflow for
-    absurd requests, which end at inf (after ~500 levels, so --levels 1e20 returns at once)."""
-    return _level_vertices(vertices, triangles, levels)[-1]
+    `triangles` (V ← V + E, E = V + T - χ, T ← 4 T; module notes) of Euler characteristic
+    χ = `euler` (V - E + T: 1 for a simply connected domain, and refinement keeps it). Floats:
+    no overflow for absurd requests, which end at inf (after ~500 levels, so --levels 1e20
+    returns at once)."""
+    return _level_vertices(vertices, triangles, levels, euler)[-1]
 
 
-def _level_vertices(vertices, triangles, levels):
+def _level_vertices(vertices, triangles, levels, euler=1.0):
     """[V_0, …, V_J] (module notes), cut short at the first inf (every later level is inf)."""
-    v, t = float(vertices), float(triangles)
+    v, t, chi = float(vertices), float(triangles), float(euler)
     out = [v]
     for _ in range(int(levels)):
         if math.isinf(v):
             break
-        v, t = v + (v + t - 1.0), 4.0 * t
+        v, t = v + (v + t - chi), 4.0 * t
         out.append(v)
     return out
 
 
-def hierarchy_vertices(vertices, triangles, levels):
+def hierarchy_vertices(vertices, triangles, levels, euler=1.0):
     """Vertices of every level T_0 … T_J (the hierarchy is kept whole): Σ_j V_j ≈ 4/3 V_J."""
-    return sum(_level_vertices(vertices, triangles, levels))
+    return sum(_level_vertices(vertices, triangles, levels, euler))
 
 
 def mesh_file_vertices(path):
@@ -127,19 +129,24 @@ def mesh_file_vertices(path):
         return size / MIN_FILE_BYTES_PER_VERTEX
 
 
-def estimate_vertices(h=None, levels=0, domain="disk", mesh_file=None):
+def estimate_vertices(h=None, levels=0, domain="disk", mesh_file=None, counts=None):
     """(finest, all levels): the estimated vertices of T_J and of the whole hierarchy
-    T_0 … T_J for a gmsh mesh of `domain` with size h, or of the gmsh file `mesh_file`
-    (T_0 ≈ 2 V_0 there), refined `levels` times. (None, None) for a file whose size cannot
-    be read."""
-    if mesh_file is not None:
+    T_0 … T_J for a gmsh mesh of `domain` with size h, or of the gmsh file `mesh_file`,
+    refined `levels` times; exact from `counts` (V_0, T_0, χ) of a mesh read. From a file's
+    header, a lower bound (its triangles are not counted: T_0 ≥ V_0 - 2, a strip, where a
+    mesh has up to 2 V_0), so that no run within --max-vertices is refused; the exact count
+    once the file is read decides. (None, None) for a file whose size cannot be read."""
+    chi = 1.0
+    if counts is not None:
+        v0, t0, chi = counts
+    elif mesh_file is not None:
         v0 = mesh_file_vertices(mesh_file)
         if v0 is None:
             return None, None
-        t0 = 2.0 * v0
+        t0 = max(v0 - 2.0, 1.0)
     else:
         v0, t0 = coarse_mesh_size(h, domain)
-    return refined_vertices(v0, t0, levels), hierarchy_vertices(v0, t0, levels)
+    return refined_vertices(v0, t0, levels, chi), hierarchy_vertices(v0, t0, levels, chi)
 
 
 # ## Memory of a run
@@ -357,11 +364,11 @@ def check_size(vertices, available=None, max_vertices=None, what="the run", hint
                      f"another limit")
 
 
-def largest_levels(limit, h=None, domain="disk", mesh_file=None):
+def largest_levels(limit, h=None, domain="disk", mesh_file=None, counts=None):
     """The most uniform refinements whose finest mesh keeps within `limit` vertices, or -1."""
     levels = -1
     while levels < 64 and \
-            estimate_vertices(h, levels + 1, domain, mesh_file)[0] <= limit:
+            estimate_vertices(h, levels + 1, domain, mesh_file, counts)[0] <= limit:
         levels += 1
     return levels
 
@@ -384,15 +391,16 @@ def smallest_h(limit, levels=0, domain="disk"):
 
 
 def check_request(h=None, levels=0, domain="disk", mesh_file=None, max_vertices=None,
-                  available=None, comm=None, **method):
+                  available=None, comm=None, counts=None, **method):
     """The size check before meshing (issue 29): the estimated finest mesh of a gmsh mesh of
     `domain` ('disk', 'square' or (area, boundary length)) at size h, or of `mesh_file`,
-    refined `levels` times, against the memory of `method` (`estimate_memory`'s arguments;
+    refined `levels` times (`counts`: the file's mesh read, `estimate_vertices`), against
+    the memory of `method` (`estimate_memory`'s arguments;
     none: the leanest method) on `available` bytes per process (default
     `available_memory(comm)`), or against `max_vertices`. ValueError as `check_size`;
     returns the estimated vertex count (None for a file that cannot be read: the mesh reader
     reports it)."""
-    vertices, _ = estimate_vertices(h, levels, domain, mesh_file)
+    vertices, _ = estimate_vertices(h, levels, domain, mesh_file, counts)
     if vertices is None:
         check_max_vertices(max_vertices)
         return None
@@ -401,7 +409,7 @@ def check_request(h=None, levels=0, domain="disk", mesh_file=None, max_vertices=
     method = method or {"linear_solver": None}
 
     def hint(largest):
-        fit = largest_levels(largest, h, domain, mesh_file)
+        fit = largest_levels(largest, h, domain, mesh_file, counts)
         if mesh_file is not None:
             return f"at most {fit} levels on this file" if fit >= 0 else "not this file"
         h_min = smallest_h(largest, levels, domain)

@@ -271,8 +271,11 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
     if mesh is None and domain not in ("disk", "square"):
         raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
     h = _check_size(h, levels, domain, mesh, max_vertices, comm)
-    hierarchy = build_hierarchy(_coarse_mesh(domain, h, mesh, comm), levels,
-                                _projection(domain, mesh))
+    coarse = _coarse_mesh(domain, h, mesh, comm)
+    if mesh is not None and levels:     # the header's estimate was a lower bound: now exact
+        check_request(levels=levels, mesh_file=mesh, max_vertices=max_vertices, comm=comm,
+                      counts=meshes.mesh_counts(coarse))
+    hierarchy = build_hierarchy(coarse, levels, _projection(domain, mesh))
     where = f"mesh {mesh}" if mesh is not None else f"unit {domain}"
     # on the unit disk its own constant, as for the disk scene (§7); else the bounding box's
     poincare = 1.0 / J01 if mesh is None and domain == "disk" else None

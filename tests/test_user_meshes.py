@@ -1,0 +1,172 @@
+"""gmsh files as user meshes (membranes.fem.meshes.read_msh, §12): physical groups that cover
+part of the surfaces or overlap, files that are no .msh, and cells dolfinx cannot use."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from membranes import scenes, solve
+from membranes.fem.meshes import read_msh
+
+from .conftest import cli_bad_input
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def two_squares(path, groups, save_all=False):
+    """(0, 2) x (0, 1) as two conforming unit squares (surfaces 1 and 2), with the 2D physical
+    groups `groups` ({tag: [surfaces]}), written in msh 4.1 (all elements if `save_all`)."""
+    import gmsh
+    gmsh.initialize([])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.occ.addRectangle(0, 0, 0, 1, 1)
+        gmsh.model.occ.addRectangle(1, 0, 0, 1, 1)
+        gmsh.model.occ.fragment([(2, 1)], [(2, 2)])
+        gmsh.model.occ.synchronize()
+        for tag, surfaces in groups.items():
+            gmsh.model.addPhysicalGroup(2, surfaces, tag)
+        gmsh.option.setNumber("Mesh.SaveAll", int(save_all))
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.25)
+        gmsh.model.mesh.generate(2)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    return str(path)
+
+
+def grid_msh(path, extra=(), step=1):
+    """The 4 x 4 grid of (0, 1)², two triangles per square, plus the triangles `extra` (node
+    indices from 0), hand-written in msh 2.2 ASCII with node tags 1, 1 + step, 1 + 2 step..."""
+    xs = np.linspace(0.0, 1.0, 5)
+    nodes = [(x, y) for y in xs for x in xs]
+    cells = [c for j in range(4) for i in range(4)
+             for a in [5 * j + i] for c in ((a, a + 1, a + 6), (a, a + 6, a + 5))]
+    cells += list(extra)
+    lines = ["$MeshFormat", "2.2 0 8", "$EndMeshFormat", "$Nodes", str(len(nodes))]
+    lines += [f"{step * i + 1} {x!r} {y!r} 0" for i, (x, y) in enumerate(nodes)]
+    lines += ["$EndNodes", "$Elements", str(len(cells))]
+    lines += [f"{k + 1} 2 2 1 1 {step * a + 1} {step * b + 1} {step * c + 1}"
+              for k, (a, b, c) in enumerate(cells)]
+    lines += ["$EndElements"]
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    return str(path)
+
+
+def global_counts(mesh):
+    return mesh.topology.index_map(0).size_global, mesh.topology.index_map(2).size_global
+
+
+def test_physical_group_of_part_of_the_surfaces(tmp_path):
+    """Saved with all elements, a file whose physical group covers one square only holds the
+    other square's nodes too; dolfinx 0.5.2's model_to_mesh crashed on those unused nodes
+    (segmentation fault). The group's square is read, as without Mesh.SaveAll."""
+    part = read_msh(two_squares(tmp_path / "all.msh", {7: [1]}, save_all=True))
+    alone = read_msh(two_squares(tmp_path / "part.msh", {7: [1]}))
+    assert global_counts(part) == global_counts(alone)
+    x = part.geometry.x[:, 0]
+    assert part.comm.allreduce(x.max(initial=0.0), op=MPI.MAX) == pytest.approx(1.0)
+
+
+def test_overlapping_physical_groups(tmp_path):
+    """A surface in two physical groups ('all' and 'left') is meshed once: model_to_mesh
+    listed its triangles twice and the run aborted (malloc corruption)."""
+    both = read_msh(two_squares(tmp_path / "both.msh", {1: [1, 2], 2: [1]}))
+    one = read_msh(two_squares(tmp_path / "one.msh", {1: [1, 2]}))
+    assert global_counts(both) == global_counts(one)
+
+
+@pytest.mark.parametrize("case", ["collinear", "repeated vertex", "twice", "three on an edge"])
+def test_cells_dolfinx_cannot_use(case, tmp_path, capsys):
+    """Zero-area triangles (not converged, NaN estimators), a repeated vertex (a hang), a
+    triangle listed twice (a crash) and an edge of three triangles (a traceback from the
+    estimators) are refused when the file is read, with exit code 2 on the command line."""
+    extra = {"collinear": [(0, 1, 2)], "repeated vertex": [(0, 0, 1)],
+             "twice": [(0, 1, 6)], "three on an edge": [(0, 6, 2)]}[case]
+    msh = grid_msh(tmp_path / "bad.msh", extra)
+    with pytest.raises(ValueError, match="mesh file"):
+        read_msh(msh)
+    err = cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
+    assert msh in err
+
+
+@pytest.mark.parametrize("text", [
+    'SystemCall "touch {marker}";',
+    "Point(1) = {{0, 0, 0}}; Point(2) = {{1, 0, 0}}; Point(3) = {{0, 1, 0}};\n"
+    "Line(1) = {{1, 2}}; Line(2) = {{2, 3}}; Line(3) = {{3, 1}};\n"
+    "Curve Loop(1) = {{1, 2, 3}}; Plane Surface(1) = {{1}}; Mesh 2;",
+    "", "hello world"])
+def test_not_a_msh_file(text, tmp_path, capsys):
+    """gmsh.open runs any file that is no .msh as a .geo script: a SystemCall in it ran a
+    shell command, a script with 'Mesh 2' was meshed (past the size check), and plain text
+    gave gmsh's 'Unknown variable'. A file must begin with $MeshFormat."""
+    marker = tmp_path / "ran"
+    msh = tmp_path / "not.msh"
+    msh.write_text(text.format(marker=marker))
+    with pytest.raises(ValueError, match="is not a gmsh .msh file"):
+        read_msh(str(msh))
+    assert not marker.exists()
+    cli_bad_input(["--mesh", str(msh)], tmp_path / "out", capsys)
+
+
+def test_node_tags_with_gaps(tmp_path):
+    """Node tags 1, 3, 5, ... (another mesher's numbering, or nodes of a removed part):
+    model_to_mesh needs tags 1..N and failed with an empty message ('cannot convert the gmsh
+    model to a dolfinx mesh: ')."""
+    assert global_counts(read_msh(grid_msh(tmp_path / "gaps.msh", step=2))) == (25, 32)
+
+
+def test_api_mesh_with_h_or_domain(tmp_path):
+    """As `--mesh` with `--h` or `--domain` on the command line: h and domain were ignored
+    without a word (h = -1 too)."""
+    msh = grid_msh(tmp_path / "grid.msh")
+    for kwargs in ({"h": 0.1}, {"h": -1}, {"domain": "square"}):
+        with pytest.raises(ValueError, match="not both"):
+            scenes.user(mesh=msh, **kwargs)
+    assert scenes.user(mesh=msh).mesh.topology.index_map(0).size_global == 25
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
+def test_refined_file_mesh_on_three_processes(tmp_path):
+    """Two squares refined once on 3 processes: plaza refinement of the ghosted mesh that
+    model_to_mesh made gave two copies of a ghost cell on some processes, and the estimators
+    stopped with 'a facet without cells or with more than two'. The file's mesh is now
+    unghosted, and the run gives the serial η."""
+    msh = two_squares(tmp_path / "two.msh", {7: [1], 8: [2]})
+    serial = solve(scenes.user(mesh=msh, levels=1, f1="-1"))
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
+    proc = subprocess.run(["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "3",
+                           sys.executable, "-m", "membranes.app.cli", "solve", "--mesh", msh,
+                           "--levels", "1", "--f1", "-1", "--quiet"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    line = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert line["processes"] == 3
+    assert line["eta"] == pytest.approx(serial.estimates["eta"], rel=1e-6)
+
+
+def test_max_vertices_counts_a_file_exactly(tmp_path, capsys):
+    """The size check took T_0 = 2 V_0 for a file (its header gives only V_0): the 4 x 4
+    grid at 3 levels has 1 089 vertices (V_0 = 25, T_0 = 32) and was refused under
+    --max-vertices 1089 as 'about 1 593'. The header now gives a lower bound, and the mesh
+    read the exact count, Euler characteristic included (a ring: χ = 0)."""
+    from membranes.app.cli import main
+    from membranes.model import checks
+    msh = grid_msh(tmp_path / "grid.msh")
+    problem = scenes.user(mesh=msh, levels=3, max_vertices=1089)
+    assert problem.mesh.topology.index_map(0).size_global == 1089
+    with pytest.raises(ValueError, match="about 1089 vertices, more than the limit"):
+        scenes.user(mesh=msh, levels=3, max_vertices=1088)
+    err = cli_bad_input(["--mesh", msh, "--levels", "3", "--max-vertices", "1088"],
+                        tmp_path / "out", capsys)
+    assert "at most 2 levels" in err
+    assert checks.refined_vertices(8, 8, 2, euler=0) == 80     # a ring of 8 triangles
+    assert main(["solve", "--quiet", "--mesh", msh, "--levels", "3",
+                 "--max-vertices", "1089"]) == 0
