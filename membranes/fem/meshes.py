@@ -3,17 +3,16 @@
 
 Every mesh is a dolfinx P1 triangular mesh with geometric dimension 2, partitioned by dolfinx on
 the communicator it is given (default `MPI.COMM_WORLD`): gmsh meshes (or reads) on rank 0 only,
-and dolfinx distributes the cells (`gmshio.model_to_mesh`; `create_mesh` for a file). No
-process holds the whole mesh afterwards.
+and dolfinx's `create_mesh` distributes the cells. No process holds the whole mesh afterwards.
 `dolfinx.io.gmshio.read_from_msh` is broken in dolfinx 0.5.2, and its `model_to_mesh` assumes
 a clean model (every node used, node tags 1..N, each cell in one physical group): nodes no cell
 uses (a physical group covering part of the surfaces) crash it, and so does a surface in two
-physical groups. So a `.msh` file is opened with gmsh on rank 0, the triangles of its 2D
-physical groups (of every surface if it has none) are taken once each, on the nodes they use,
-and checked (no zero-area triangle, no triangle listed twice, no edge of three or more
-triangles), and dolfinx's `create_mesh` distributes them, without ghost cells (§12): plaza
-refinement of a ghosted mesh gave two copies of a ghost cell on some processes (two squares
-on 3 processes), and the estimators met facets of three cells.
+physical groups. So the triangles of a gmsh model's 2D physical groups (of every surface if it
+has none; a generated disk or square, or an opened `.msh` file) are taken once each, on the
+nodes they use, and checked (no zero-area triangle, no triangle listed twice, no edge of three
+or more triangles), and dolfinx's `create_mesh` distributes them, without ghost cells (§12):
+plaza refinement of a ghosted mesh gave two copies of a ghost cell on some processes (a file
+of two squares on 3 processes), and the estimators met facets of three cells.
 
 Bad input raises ValueError on every process with the same one-line message (rank 0 checks,
 the message is broadcast).
@@ -52,33 +51,26 @@ def check_size(h):
 
 
 def _on_rank0(comm, build):
-    """Run `build(gmsh)` in a gmsh session on rank 0, then distribute with dolfinx on `comm`
-    the cells it returns, (cells, x) (a file's), or, if it returns None, the cells of the model
-    it prepared (gmsh.model). A ValueError on rank 0 reaches every rank."""
+    """Run `build(gmsh)` in a gmsh session on rank 0; it returns the coarse mesh as (cells, x)
+    (`_model_cells`), which dolfinx distributes on `comm` without ghost cells (module notes).
+    A ValueError on rank 0 reaches every rank."""
     from dolfinx.io import gmshio
     from dolfinx.mesh import GhostMode, create_mesh
     error, arrays = None, None
     with contextlib.ExitStack() as stack:
-        gmsh = None
         if comm.rank == 0:
             gmsh = stack.enter_context(gmsh_session())
             try:
                 arrays = build(gmsh)
             except ValueError as e:
                 error = str(e)
-        error, given = comm.bcast((error, arrays is not None), root=0)
+        error = comm.bcast(error, root=0)
         if error is not None:
             raise ValueError(error)
-        if given:
-            cells, x = arrays if comm.rank == 0 else \
-                (np.empty((0, 3), dtype=np.int64), np.empty((0, 2)))
-            return create_mesh(comm, cells, x, gmshio.ufl_mesh(GMSH_TRIANGLE, 2),
-                               ghost_mode=GhostMode.none)
-        try:
-            mesh, _, _ = gmshio.model_to_mesh(gmsh.model if gmsh else None, comm, 0, gdim=2)
-        except Exception as e:
-            raise ValueError(f"cannot convert the gmsh model to a dolfinx mesh: {e}") from None
-    return mesh
+        cells, x = arrays if comm.rank == 0 else \
+            (np.empty((0, 3), dtype=np.int64), np.empty((0, 2)))
+    return create_mesh(comm, cells, x, gmshio.ufl_mesh(GMSH_TRIANGLE, 2),
+                       ghost_mode=GhostMode.none)
 
 
 def _shape(shape, h):
@@ -94,6 +86,7 @@ def _shape(shape, h):
         gmsh.option.setNumber("Mesh.CharacteristicLengthMin", 0.0)
         gmsh.option.setNumber("Mesh.CharacteristicLengthMax", h)
         gmsh.model.mesh.generate(2)
+        return _model_cells(gmsh, f"the generated unit {shape}")
     return build
 
 
@@ -146,13 +139,14 @@ def _check_msh(gmsh, path):
     z = np.abs(coords.reshape(-1, 3)[:, 2])
     if z.size and z.max() > 1e-12 * max(1.0, np.abs(coords).max()):
         raise ValueError(f"mesh file {path!r} is 3D (nodes off the plane z = 0)")
-    return _file_cells(gmsh, path)
+    return _model_cells(gmsh, f"mesh file {path!r}")
 
 
-def _file_cells(gmsh, path):
-    """(cells, x) of the opened file: its triangles in 2D physical groups (in every surface
-    if it has none), each once, as rows of indices into x, the (n, 2) coordinates of the n
-    nodes they use (module notes). ValueError for degenerate, repeated or overlapping cells."""
+def _model_cells(gmsh, what):
+    """(cells, x) of gmsh's current model (`what` names it in messages): its triangles in 2D
+    physical groups (in every surface if it has none), each once, as rows of indices into x,
+    the (n, 2) coordinates of the n nodes they use (module notes). ValueError for degenerate,
+    repeated or overlapping cells."""
     groups = gmsh.model.getPhysicalGroups(2)
     surfaces = sorted({int(e) for _, tag in groups
                        for e in gmsh.model.getEntitiesForPhysicalGroup(2, tag)}) if groups \
@@ -166,14 +160,14 @@ def _file_cells(gmsh, path):
     _, first = np.unique(tags, return_index=True)          # an element in two surfaces
     nodes = nodes[np.sort(first)]
     if not len(nodes):
-        raise ValueError(f"mesh file {path!r} has no triangles in its physical surfaces")
+        raise ValueError(f"{what} has no triangles in its physical surfaces")
     node_tags, coords, _ = gmsh.model.mesh.getNodes()
     order = np.argsort(node_tags)
     node_tags, coords = np.asarray(node_tags)[order], coords.reshape(-1, 3)[order, :2]
     used, cells = np.unique(nodes, return_inverse=True)
     at = np.minimum(np.searchsorted(node_tags, used), len(node_tags) - 1)
     if not np.array_equal(node_tags[at], used):
-        raise ValueError(f"mesh file {path!r} has triangles on nodes it does not list")
+        raise ValueError(f"{what} has triangles on nodes it does not list")
     x, cells = coords[at], cells.reshape(-1, 3).astype(np.int64)
     p = x[cells]
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
@@ -181,16 +175,16 @@ def _file_cells(gmsh, path):
     longest = np.max([((p[:, i] - p[:, i - 1]) ** 2).sum(axis=1) for i in range(3)], axis=0)
     flat = np.count_nonzero(twice_area <= 1e-12 * longest)
     if flat:
-        raise ValueError(f"mesh file {path!r} has {flat} degenerate triangle(s) (zero area or "
+        raise ValueError(f"{what} has {flat} degenerate triangle(s) (zero area or "
                          f"a repeated vertex)")
     twice = len(cells) - len(np.unique(np.sort(cells, axis=1), axis=0))
     if twice:
-        raise ValueError(f"mesh file {path!r} lists {twice} triangle(s) twice (overlapping "
+        raise ValueError(f"{what} lists {twice} triangle(s) twice (overlapping "
                          f"surfaces?)")
     edges = np.sort(cells[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
     _, shared = np.unique(edges, axis=0, return_counts=True)
     if shared.max() > 2:
-        raise ValueError(f"mesh file {path!r} has {np.count_nonzero(shared > 2)} edge(s) of "
+        raise ValueError(f"{what} has {np.count_nonzero(shared > 2)} edge(s) of "
                          f"three or more triangles (overlapping surfaces?)")
     return cells, x
 
