@@ -29,3 +29,24 @@ def test_bound_holds_and_is_sharp(J, cfun, newton):
     effectivity = run.estimates["eta"] / run.energy_error
     assert 1.0 <= effectivity <= 1.25, effectivity
     assert run.summary()["energy_error_kind"].startswith("exact solution of the curved domain")
+
+
+@pytest.mark.parametrize("limits", [{"max_linear_its": 3, "nu": 1, "solver": "paper"},
+                                    {"max_newton": 1}, {"max_newton": 2}])
+def test_a_run_stopped_early_certifies_the_iterate_it_returns(limits):
+    """Adaptive Newton ended by a limit (a failed Krylov solve leaves Krylov records after X;
+    the Newton limit may fall on an iterate the gate gave η_lin only): the certificate is X's
+    own, η ≥ |||u - u_h|||, and summary and per-level figures are those of X."""
+    run = solve(scene("disk", 0.3, levels=1), newton="adaptive", nested=False, **limits)
+    assert not run.converged
+    rec = run.final_record
+    assert run.estimates is not None and rec["bound"]
+    assert run.estimates["eta"] == rec["eta"] and rec["energy_error"] == run.energy_error
+    assert run.estimates["eta"] >= run.energy_error
+    assert all(r["energy_error"] is None for r in run.history if r is not rec)
+    s = run.summary()
+    assert s["bound_guaranteed"] and s["effectivity"] >= 1.0
+    assert s["per_level"][-1]["final_residual"] == s["final_residual"] == rec["residual"]
+    assert s["per_level"][-1]["eta"] == s["eta"]
+    times = [r["wall_time_s"] for r in run.history]
+    assert times == sorted(times) and times[-1] <= run.wall_time_s

@@ -338,7 +338,8 @@ def solve(problem: Problem,
     options = {"newton": newton, "cfun": cfun, "solver": solver,
                "system": system or krylov.system, "petsc_options": dict(petsc_options or {}),
                "nu": krylov.nu, "gamma_lin": gamma_lin, "gamma_alg": gamma_alg,
-               "alg_flux": alg_flux, "nested": nested, "tol": tol,
+               "alg_flux": alg_flux, "nested": nested,
+               "tol": None if newton == "adaptive" else tol,        # (adaptive: unused)
                "coarse": coarse, "coarse_tol": coarse_tol,
                "initial_guess": initial_guess if isinstance(initial_guess, str) or
                initial_guess is None else "given"}
@@ -400,10 +401,14 @@ def solve(problem: Problem,
             result.history[0]["wall_time_s"] = t_start
             result.history[0]["energy_error"] = None if error is None or \
                 errors != "iterates" else clock.off(error, newton_guess(disc, X0))
-        final = result.history[-1]
-        if estimate is not None and variant != "adaptive":
+        final = _record_of_X(result.history)
+        if estimate is not None and (variant != "adaptive" or
+                                     not (final.get("estimates") or {}).get("bound")):
+            # exact, inexact: the certificate; adaptive: an X that Newton left before a full
+            # estimate of it (X⁰ or a gated iterate, at the Newton limit or a failed solve)
             final["estimates"] = estimate(result.X, _final_residual(disc, result.X, cfun))
-            final["wall_time_s"] = clock.now()            # the certificate is part of X^k
+            if final is result.history[-1]:   # (else the records' clock would go back)
+                final["wall_time_s"] = clock.now()        # the certificate is part of X^k
         if error is not None and errors == "final":
             final["energy_error"] = clock.off(error, result.X)
         level_time = clock.now() - t_level
@@ -436,7 +441,7 @@ def solve(problem: Problem,
             disc.destroy()             # its PETSc objects (Solution keeps only T_J's)
     X = result.X
     wall = clock.now()
-    final = history[-1]
+    final = _record_of_X(history)
     eta_K = final.pop("_eta_K", None)
     for rec in history:
         rec.pop("_eta_K", None)
@@ -451,7 +456,8 @@ def solve(problem: Problem,
                    energy_error_kind=_error_kind(problem) if final.get("energy_error")
                    is not None else None,
                    functions=disc.functions(X), eta_K=eta_K, estimates=estimates,
-                   estimator_times=(est_setup, est_time), per_level=per_level)
+                   estimator_times=(est_setup, est_time) if alg_flux is not None
+                   else (None, None), per_level=per_level)
     del estimate, result, recorder, error
     release_garbage(problem)            # this solve's, outside its clock
     return sol
@@ -510,6 +516,12 @@ def _coarse_levels(coarse, coarse_tol, newton, nested):
     if not (np.isfinite(coarse_tol) and 0.0 < coarse_tol < 1.0):
         raise ValueError(f"coarse_tol must lie in (0, 1), got {coarse_tol}")
     return coarse, coarse_tol
+
+
+def _record_of_X(history):
+    """The record of the returned iterate X: the last that is not a Krylov iterate (a solve
+    that failed leaves the Krylov records of the step it did not finish after it)."""
+    return next(rec for rec in reversed(history) if rec["kind"] != "krylov")
 
 
 def _final_residual(disc, X, cfun):

@@ -294,8 +294,9 @@ def markdown(rows, h, seconds, processes):
     lines = ["# Stability matrix (§11)", "",
              f"{f['converged']} of {f['runs']} runs converged ({len(cases)} cases; disk "
              f"meshes at h = {h}; {processes} process(es); {seconds:.0f} s in all). Method = "
-             "C-function / Newton variant / solver (direct: MUMPS; paper: GMRES + ILU(0), "
-             "full system; amg: FGMRES + mean/gap BoomerAMG, eliminated system).",
+             "C-function / Newton variant / solver (direct: MUMPS; paper: GMRES + " +
+             ("ILU(0)" if processes == 1 else "block-Jacobi ILU(0)") + ", full system; amg: "
+             "FGMRES + mean/gap BoomerAMG, eliminated system).",
              "Residuals are ‖W R_lin‖/‖W F‖ (rows weighted by 1/μ_α); the complementarity "
              "violation is relative to the data's displacement and pressure sizes; the "
              "effectivity is η/|||u - u_h||| at the final iterate where the exact solution "

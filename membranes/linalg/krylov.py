@@ -197,12 +197,14 @@ def as_krylov(krylov):
 
 class StoppingTest:
     """The KSP convergence test of the module notes: ‖b - A y‖ ≤ bound after iterations
-    i ≡ 0 mod `every` (the initial guess too where every = 1), and every ν iterations the
-    callback `on_iterate(i, y, r)` (y the current iterate, r = b - A y; True stops)."""
+    i ≡ 0 mod `every` (the initial guess too where `guess`, by default where every = 1), and
+    every ν iterations the callback `on_iterate(i, y, r)` (y the current iterate,
+    r = b - A y; True stops)."""
 
-    def __init__(self, A, b, bound, every=1, nu=DEFAULT_NU, on_iterate=None):
+    def __init__(self, A, b, bound, every=1, nu=DEFAULT_NU, on_iterate=None, guess=None):
         self.A, self.b, self.bound = A, b, bound
         self.every, self.nu, self.on_iterate = every, nu, on_iterate
+        self.guess = every == 1 if guess is None else guess
         self.y, self.r = A.createVecRight(), b.duplicate()
         self.last, self.stopped, self.true_norm = -1, False, None
 
@@ -218,7 +220,7 @@ class StoppingTest:
             return PETSc.KSP.ConvergedReason.ITERATING
         self.last = its
         gate = ksp.getNormType() != PETSc.KSP.NormType.UNPRECONDITIONED or rnorm <= self.bound
-        if (its % self.every == 0 and (its > 0 or self.every == 1) or rnorm == 0) and gate \
+        if (its % self.every == 0 and (its > 0 or self.guess) or rnorm == 0) and gate \
                 and self._build(ksp) <= self.bound:
             return PETSc.KSP.ConvergedReason.CONVERGED_ATOL
         if self.on_iterate is not None and its > 0 and its % self.nu == 0:
@@ -277,9 +279,10 @@ class LinearSolver:
         pc.setPythonContext(context)
         self._context = context
 
-    def solve(self, step, y, bound, every=1, on_iterate=None, split=None):
+    def solve(self, step, y, bound, every=1, on_iterate=None, split=None, guess=None):
         """Solve step.A y = step.b from y (changed in place) until ‖b - A y‖ ≤ bound (tested
-        after multiples of `every` iterations) or `on_iterate` stops it (see StoppingTest).
+        after multiples of `every` iterations, and at y itself where `guess`: StoppingTest)
+        or `on_iterate` stops it (see StoppingTest).
         `split`: (S_D, ab, θ) for the mean/gap PC of an eliminated step. Returns (iterations,
         reason name, converged, ‖b - A y‖ at the end)."""
         ksp = self.ksp
@@ -297,7 +300,8 @@ class LinearSolver:
         test = None
         try:
             if iterative:
-                test = StoppingTest(step.A, step.b, bound, every, self.krylov.nu, on_iterate)
+                test = StoppingTest(step.A, step.b, bound, every, self.krylov.nu, on_iterate,
+                                    guess)
                 ksp.setConvergenceTest(test)
                 ksp.setInitialGuessNonzero(True)
                 ksp.setTolerances(max_it=self.krylov.max_it)

@@ -307,8 +307,11 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                             EXACT_TOL * lin.norm_B)
                 every = 1
             split_ = split if step.system == "eliminated" else None
+            # inexact: X^{k,0} = X^{k-1} meets its test ‖R_alg‖ ≤ ‖R_lin(X^{k-1})‖ at once (an
+            # equality where B = (F, 0)): tested at i ≥ ν only, also where ν = 1
             its, name, solved, norm = solver.solve(
-                step, y, bound, every, on_iterate if adaptive else None, split_)
+                step, y, bound, every, on_iterate if adaptive else None, split_,
+                guess=False if variant == "inexact" and not forced else None)
             if its == 0:        # X^{k,0} met the bound, so the floor: nothing was cut short
                 forced = False
             answer = None               # the estimates of a forced adaptive step's iterate

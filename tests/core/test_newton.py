@@ -493,3 +493,15 @@ def test_the_same_solution_on_several_processes(tmp_path, procs, scene, runs, ex
         a, b = parallel[key], serial[f"{spec}/X"]
         assert np.abs(a[:2] - b[:2]).max() <= SAME * u_data
         assert np.abs(a[2] - b[2]).max() <= SAME * lam_data
+
+
+@pytest.mark.parametrize("nu", [1, 10])
+def test_inexact_newton_does_not_stop_at_its_own_guess(nu):
+    """Inexact Newton's linear test ‖R_alg‖ ≤ ‖R_lin(X^{k-1})‖ holds at X^{k,0} = X^{k-1}
+    (an equality for min): it is made from the ν-th Krylov iterate on, also for ν = 1 (which
+    used to end the run at step 1 as 'stalled', its solve 'at the floor')."""
+    disc = discretise(scenes.disk(h=0.3, levels=1))
+    result = newton(disc, cfun="min", variant="inexact", krylov={"preset": "amg", "nu": nu})
+    assert result.converged, result.reason
+    steps = [r for r in result.history if r["kind"] == "newton"]
+    assert all(r["i"] >= nu for r in steps), [r["i"] for r in steps]

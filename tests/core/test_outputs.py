@@ -58,6 +58,8 @@ def test_summary_keys_and_values(run):
         assert summary[key] == expected[key], key
     assert summary["solver"] == "amg" and summary["newton"] == "adaptive"
     assert summary["nested"] is True and len(summary["per_level"]) == 2
+    # adaptive stops by γ_lin: no Newton tolerance of its own, as γ's are null for the others
+    assert summary["tol"] is None and summary["gamma_lin"] == 0.3
     assert summary["converged"] is True and summary["bound_guaranteed"] is True
     # the certificate bounds the error (§7), and the effectivity is their ratio
     assert summary["eta"] >= summary["energy_error"] > 0
@@ -144,6 +146,8 @@ def test_without_estimates_no_eta(tmp_path):
     assert attributes == {"u1", "u2", "lambda"}
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["eta"] is None and summary["effectivity"] is None
+    # not computed: null (docs/outputs.md, "The certificate of X"), not 0 seconds
+    assert summary["estimator_setup_s"] is None and summary["estimator_time_s"] is None
     assert summary["energy_error"] > 0
 
 

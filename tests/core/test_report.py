@@ -6,6 +6,7 @@ behind them."""
 import argparse
 import csv
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -126,6 +127,9 @@ def test_error_curves_are_the_histories(made):
         ["1"] * (table["plain peer"]["newton_iterations"] + 1)
     cert = [r for r in curves if r["method"] == "certified nested peer"]
     assert len(cert) == 1 and float(cert[0]["eta"]) == table["certified nested peer"]["eta"]
+    # the certified iterate is the nested peer's last on T_J: its step on that level
+    last = [r for r in curves if r["method"] == "nested peer"][-1]
+    assert (cert[0]["level"], cert[0]["newton_it"]) == (last["level"], last["newton_it"])
 
 
 @pytest.mark.parametrize("method", METHOD_NAMES)
@@ -183,3 +187,56 @@ def test_cli_refuses_an_unwritable_folder_first(tmp_path):
         report.main(args)
     assert existing.read_text() == "mine\n"
     assert [p.name for p in tmp_path.iterdir()] == ["file"]
+
+
+def test_runs_that_do_not_converge_are_reported(tmp_path, monkeypatch):
+    """A method that does not converge is a row with its reason, and the report is written
+    all the same (docs/cli.md: exit 3), also where adaptive/amg ended on a coarse level,
+    before its certificate: error_distribution has no η_K then."""
+    monkeypatch.setattr(report, "MAX_NEWTON", {"exact": 1, "inexact": 1, "adaptive": 1})
+    out = tmp_path / "disk"
+    runs, rows = write_report(scenes.disk(h=0.4, levels=1), str(out))
+    assert not any(r["converged"] for r in rows if r["method"] in METHOD_NAMES)
+    assert runs["adaptive/amg"].eta_K is None
+    assert {r["eta_K"] for r in _rows(out / "error_distribution.csv")} == {""}
+    text = (out / "report.md").read_text()
+    assert "adaptive/amg: not converged: no convergence in 1 Newton steps" in text
+    assert "no η_K: the run ended before its certificate" in text
+    assert "nan" not in text
+    # every run that reached T_J certifies the iterate it returns (η ≥ error)
+    for m in ("exact/paper", "inexact/paper", "adaptive/paper"):
+        row = next(r for r in rows if r["method"] == m)
+        assert row["bound_guaranteed"] and row["eta"] >= row["energy_error"], m
+
+
+def test_markdown_names_the_parallel_paper_preconditioner(made):
+    """Under mpirun the paper preset is block-Jacobi ILU(0) (docs/cli.md): report.md says so
+    beside the paper's counts, and a serial report says ILU(0) alone."""
+    problem, _, runs, table = made
+    summaries = {m: runs[m].summary() for m in METHOD_NAMES}
+    cells = (np.ones(3), np.ones(3))
+    sources = {m: "run" for m in METHOD_NAMES}
+    serial = report.markdown(problem, runs, summaries, list(table.values()), cells, sources, 1.0)
+    assert "block-Jacobi" not in serial
+    two = {m: dict(s, processes=2) for m, s in summaries.items()}
+    parallel = report.markdown(problem, runs, two, list(table.values()), cells, sources, 1.0)
+    assert "on 2 processes block-Jacobi ILU(0)" in parallel
+    square = replace(problem, name="square")
+    assert "its problem is the disk, not the square scene" in \
+        report.markdown(square, runs, summaries, list(table.values()), cells, sources, 1.0)
+
+
+def test_cli_json_line_has_the_table_columns(tmp_path, monkeypatch, capsys):
+    """stdout's table: the rows of table.csv with each run's reason (docs/cli.md), not the
+    internal extras of a row (the certified peer's eta_rem and certificate_s)."""
+    rows = [{"method": "certified nested peer", "converged": True, "eta": 0.1,
+             "reason": "CONVERGED", "eta_rem": 1e-9, "certificate_s": 0.2}]
+    monkeypatch.setattr(report, "write_report", lambda problem, out, say: (None, rows))
+    parser = argparse.ArgumentParser()
+    report.add_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["report", "--out", str(tmp_path / "r"), "--h", "0.5",
+                              "--levels", "0", "--quiet"])
+    assert report.main(args) == 0
+    import json
+    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert list(line["table"][0]) == list(TABLE_COLUMNS) + ["reason"]

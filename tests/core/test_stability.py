@@ -125,3 +125,12 @@ def test_command_writes_the_matrix(tmp_path):
         with pytest.raises(ValueError):
             stability.main(args)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["stab"]
+
+
+def test_markdown_names_the_parallel_paper_preconditioner():
+    """Under mpirun the paper preset is block-Jacobi ILU(0) (docs/cli.md), and the page says so."""
+    row = dict.fromkeys(stability.COLUMNS)
+    row.update(case="tiny", method="min/exact/paper", converged=True, klass="mesh",
+               description="d", **{"class": "mesh"})
+    assert "paper: GMRES + ILU(0)" in stability.markdown([row], 0.1, 1.0, 1)
+    assert "paper: GMRES + block-Jacobi ILU(0)" in stability.markdown([row], 0.1, 1.0, 2)
