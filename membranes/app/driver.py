@@ -450,8 +450,7 @@ def solve(problem: Problem,
     if estimates is not None:
         estimates["bound"] = final.get("bound")
     sol = Solution(problem if disc.mesh is problem.mesh else pj, disc, X, result.converged,
-                   result.reason if len(levels) == 1 or not result.converged or j == J
-                   else result.reason, newton_total, its_offset, wall, history, options,
+                   result.reason, newton_total, its_offset, wall, history, options,
                    energy_error=final.get("energy_error"),
                    energy_error_kind=_error_kind(problem) if final.get("energy_error")
                    is not None else None,

@@ -469,8 +469,10 @@ def add_parser(sub):
                    help="gmsh target size of the coarse mesh (default 0.16)")
     r.add_argument("--levels", type=int, default=3,
                    help="uniform refinements; the finest mesh is computed on (default 3)")
-    r.add_argument("--out", metavar="DIR", required=True)
-    r.add_argument("--quiet", action="store_true")
+    r.add_argument("--out", metavar="DIR", required=True,
+                   help="folder for the outputs (made if missing; nothing is written on bad "
+                        "input)")
+    r.add_argument("--quiet", action="store_true", help="no progress lines")
     return r
 
 

@@ -371,12 +371,14 @@ def write_stability(out, h=DEFAULT_H, names=None, methods=METHODS, say=lambda li
 def add_parser(sub):
     p = sub.add_parser("stability", help="run the stiff and extreme cases of §11 with every "
                        "method; write stability.md and stability.csv")
-    p.add_argument("--out", metavar="DIR", required=True)
+    p.add_argument("--out", metavar="DIR", required=True,
+                   help="folder for the outputs (made if missing; nothing is written on bad "
+                        "input)")
     p.add_argument("--h", type=float, default=DEFAULT_H,
                    help=f"gmsh size of the disk meshes (default {DEFAULT_H})")
     p.add_argument("--cases", metavar="NAMES",
                    help="comma-separated subset of: " + ", ".join(CASE_NAMES))
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
     return p
 
 

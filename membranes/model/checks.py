@@ -360,8 +360,8 @@ def check_size(vertices, available=None, max_vertices=None, what="the run", hint
     raise ValueError(f"{what} has {_about(vertices, _count)} vertices and needs "
                      f"{_about(need, _bytes, ' bytes')} of memory, but {_bytes(available)} is "
                      f"available per process: the largest run that fits has about "
-                     f"{_count(largest)} vertices{extra}; --max-vertices N (max_vertices=N) sets "
-                     f"another limit")
+                     f"{_count(largest)} vertices{extra}; max_vertices=N (`membranes solve "
+                     f"--max-vertices N`) sets a vertex limit instead")
 
 
 def largest_levels(limit, h=None, domain="disk", mesh_file=None, counts=None):
