@@ -44,6 +44,7 @@ from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS
 from ..nonlinear.newton import newton as run_newton
 from ..nonlinear.system import initial_guess as newton_guess
+from .garbage import release_garbage
 from .logs import quiet_jit_logging
 from .schedule import DEFAULT_GAMMA, GATE, LevelEstimates
 from .setups import Setups
@@ -282,12 +283,13 @@ def solve(problem: Problem,
     (default where the problem has levels ≥ 1); errors: the energy error at the 'final'
     iterate (default), at all recorded 'iterates', or 'none'; progress: True for one stderr
     line per Newton step and two around each estimator set-up (rank 0), or a callable taking
-    the line; max_vertices: refuse a
-    computational mesh of more vertices (default: refuse one whose run needs more memory than
-    the processes have, model.checks); coarse: how the adaptive variant of a nested run
-    leaves the coarse levels T_0 … T_{J-1} (`_coarse_levels`): 'residual' (default: inexact
-    Newton to ‖R_lin‖/‖(F, 0)‖ ≤ coarse_tol, 1e-6, no estimators) or 'estimated' (Algorithm
-    1 with the estimators on every level); setups: a `membranes.Setups` that keeps the flux
+    the line (called on rank 0; an exception it raises stops the run on every process,
+    `_reporter`); max_vertices: refuse a computational mesh of more vertices (default: refuse
+    one whose run needs more memory than the processes have, model.checks); coarse: how the
+    adaptive variant of a nested run leaves the coarse levels T_0 … T_{J-1}
+    (`_coarse_levels`): 'residual' (default: inexact Newton to ‖R_lin‖/‖(F, 0)‖ ≤
+    coarse_tol, 1e-6, no estimators) or 'estimated' (Algorithm 1 with the estimators on
+    every level); setups: a `membranes.Setups` that keeps the flux
     equilibration of each mesh for the next solves on it (a parameter study on one
     hierarchy: the patch systems of §5 depend on the mesh only; membranes.app.setups).
     """
@@ -331,10 +333,7 @@ def solve(problem: Problem,
                          "T_0: give 'paper', 'zero' or a function of the discretisation, or "
                          "nested=False")
     comm = problem.mesh.comm
-    say = None
-    if progress and comm.rank == 0:
-        say = progress if callable(progress) else \
-            (lambda line: print(line, file=sys.stderr, flush=True))
+    say = _reporter(progress, comm)
     options = {"newton": newton, "cfun": cfun, "solver": solver,
                "system": system or krylov.system, "petsc_options": dict(petsc_options or {}),
                "nu": krylov.nu, "gamma_lin": gamma_lin, "gamma_alg": gamma_alg,
@@ -462,29 +461,38 @@ def solve(problem: Problem,
     return sol
 
 
-def release_garbage(problem, collect=True):
-    """Free the memory of objects nothing refers to any more, collectively on the problem's
-    communicator: Python's reference cycles (`gc.collect`), then the PETSc objects they and
-    others held. Since petsc4py 3.18 a PETSc object that Python drops without `destroy()` is
-    only parked, on its communicator, until `PETSc.garbage_cleanup(comm)` (destroying is
-    collective, dropping is not), so a process that solves many problems kept every solve's
-    matrices, vectors and preconditioners. Called at the end of `solve` (about 0.01 s, most
-    of it the collection) and, without the collection, at its start: what a Solution the
-    caller dropped since holds is freed by reference counting (it is in no cycle) and only
-    its parked PETSc objects are left. The communicators are those of the hierarchy's
-    meshes (each refinement has its own) and COMM_SELF (the sequential objects: patch
-    blocks, index sets, the processes' own parts of the preconditioners)."""
-    import gc
+def _reporter(progress, comm):
+    """The run's progress lines: None without `progress`, else a function that every process
+    calls with each line, at the same points of the run (the lines are made of global
+    figures), and that hands the line on process 0 to `progress` (a callable) or to stderr.
+    An exception raised there is raised at once on every process: as itself on process 0,
+    on the others as a RuntimeError naming it (a KeyboardInterrupt as one), since they would
+    otherwise wait for process 0 in the run's next collective call for ever (one broadcast
+    per line)."""
+    if not progress:
+        return None
+    write = progress if callable(progress) else \
+        (lambda line: print(line, file=sys.stderr, flush=True))
+    if comm.size == 1:
+        return write
 
-    from mpi4py import MPI
-    if collect:
-        gc.collect()
-    comms = [MPI.COMM_SELF]
-    for mesh in problem.hierarchy.meshes:
-        if all(MPI.Comm.Compare(mesh.comm, c) != MPI.IDENT for c in comms):
-            comms.append(mesh.comm)
-    for comm in comms:
-        PETSc.garbage_cleanup(comm)
+    def say(line):
+        error = None
+        if comm.rank == 0:
+            try:
+                write(line)
+            except BaseException as e:
+                error = e
+        failed = comm.bcast(None if error is None else (type(error).__name__, str(error)),
+                            root=0)
+        if error is not None:
+            raise error
+        if failed is not None:
+            if failed[0] == "KeyboardInterrupt":
+                raise KeyboardInterrupt
+            raise RuntimeError(f"the progress callable failed on process 0: {failed[0]}: "
+                               f"{failed[1]}")
+    return say
 
 
 def _coarse_levels(coarse, coarse_tol, newton, nested):

@@ -41,7 +41,7 @@ from petsc4py import PETSc
 
 import forms.equilibration as equilibration_forms
 
-from ..fem.discretisation import boundary_dofs
+from ..fem.discretisation import boundary_dofs, ghosted_vector
 from .divergence import assemble, check, largest
 from .patches import PatchSystems, colour_vertices
 
@@ -219,8 +219,9 @@ class FluxEquilibration:
         the sum of their solutions: made at the first `sigma` (not alive under the Newton
         steps before the first full estimate)."""
         if self._b is None:
-            from dolfinx.fem.petsc import create_vector
-            self._b = create_vector(self.rhs_forms[0])
+            # (not dolfinx's create_vector: one left unreleased, by an exception between
+            # `sigma` and `release`, would never be freed; `ghosted_vector`)
+            self._b = ghosted_vector(self.rhs_forms[0].function_spaces[0])
         return self._b
 
     def touching(self):

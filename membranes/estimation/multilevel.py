@@ -72,7 +72,7 @@ from petsc4py import PETSc
 import forms.equilibration as equilibration_forms
 from forms.membrane import membrane_linear
 
-from ..fem.discretisation import boundary_dofs
+from ..fem.discretisation import boundary_dofs, ghosted_vector
 from ..fem.meshes import owned_cells, triangle_areas
 from .congruence import dof_transformation, piola_reference_block
 from .lifting import mass_inverse
@@ -318,7 +318,7 @@ class MultilevelFlux:
 
     def __init__(self, disc, hierarchy):
         from dolfinx import fem
-        from dolfinx.fem.petsc import create_matrix, create_vector
+        from dolfinx.fem.petsc import create_matrix
         if hierarchy.levels < 1:
             raise ValueError("the multilevel algebraic flux needs a hierarchy with at least "
                              "one refinement (J >= 1); use the flux of extra iterations")
@@ -351,7 +351,7 @@ class MultilevelFlux:
         ncJ = owned_cells(mesh)
         self.dgJ = self.Q.dofmap.list.array.reshape(-1, 3)[:ncJ].ravel()
         self.rhs_form = fem.form(membrane_linear(self.r, ufl.TestFunction(disc.V)))
-        self.rhs = create_vector(self.rhs_form)
+        self.rhs = ghosted_vector(disc.V)          # (not dolfinx's: `ghosted_vector`)
         self._coarse_setup(spaces[0])
         self._same_layout = {}
         self.defect = None           # the relative divergence defect of the last σ made

@@ -110,7 +110,7 @@ class Discretisation:
 
     def destroy(self):
         """Free S, D, F1 and F2 now (the object is unusable afterwards) rather than when the
-        garbage is next cleaned (membranes.app.driver.release_garbage)."""
+        garbage is next cleaned (membranes.app.garbage.release_garbage)."""
         for obj in (self.S, self.D, self.F1, self.F2):
             obj.destroy()
 
@@ -152,6 +152,18 @@ def assemble_vector(L):
     b.copy(out)
     b.destroy()
     return out
+
+
+def ghosted_vector(V):
+    """A ghosted PETSc Vec of the dofs of the space V (owned entries and V's ghosts, the layout
+    of dolfinx.fem.petsc.create_vector), made by petsc4py: dolfinx 0.5's is freed only by an
+    explicit destroy(), so one that Python drops stays allocated for the life of the process,
+    whereas petsc4py's is parked on V's mesh communicator until `release_garbage` frees it."""
+    from petsc4py import PETSc
+    imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
+    return PETSc.Vec().createGhost(np.asarray(imap.ghosts, dtype=PETSc.IntType),
+                                   (imap.size_local * bs, imap.size_global * bs), bsize=bs,
+                                   comm=V.mesh.comm)
 
 
 def assemble_matrix(a):

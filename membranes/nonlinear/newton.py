@@ -73,6 +73,7 @@ nothing is hidden.
 
 import time
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from mpi4py import MPI
@@ -151,10 +152,11 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
     (default: the preset's); krylov: a preset name ('amg', 'paper', 'direct'), a dict of
     `membranes.linalg.krylov.Krylov` fields (preset, options, nu, max_it) or a Krylov;
     estimate: see the module notes; progress: True (print on rank 0) or a callable taking one
-    line per Newton step (called on rank 0 only); forcing (inexact: every step; adaptive: the
-    steps not expected to be the last): the Krylov solve of a step stops instead at ‖R_alg‖ ≤
-    forcing ‖R_alg(X^{k,0})‖, tested at every iteration (the module notes). Returns a
-    `NewtonResult`."""
+    line per Newton step (called on every process, with the same lines: the caller chooses
+    which process writes them, `membranes.app.driver._reporter`); forcing (inexact: every
+    step; adaptive: the steps not expected to be the last): the Krylov solve of a step stops
+    instead at ‖R_alg‖ ≤ forcing ‖R_alg(X^{k,0})‖, tested at every iteration (the module
+    notes). Returns a `NewtonResult`."""
     spec = as_krylov(krylov)
     system = spec.system if system is None else system
     _check(cfun, variant, system, spec, estimate, gamma_lin, gamma_alg, tol, max_newton)
@@ -166,8 +168,10 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             raise ValueError(f"forcing must lie in (0, 1), got {forcing!r}")
     comm = disc.comm
     say = None
-    if progress and comm.rank == 0:
-        say = progress if callable(progress) else (lambda line: print(line, flush=True))
+    if callable(progress):
+        say = progress
+    elif progress and comm.rank == 0:
+        say = partial(print, flush=True)
     adaptive = variant == "adaptive"
     times = {"assembly": 0.0, "solve": 0.0, "estimate": 0.0}
 

@@ -1,0 +1,86 @@
+"""The API in a long-lived process and on communicators (membranes.app.driver.solve).
+
+* A progress callable runs on process 0 only: an exception it raises must stop the run on
+  every process (`driver._reporter`), not leave the others waiting for process 0 in the
+  run's next collective call for ever (they did: a hang under mpirun), and the processes
+  must be able to solve again with the same answer.
+* Scenes on sub-communicators (`comm=`): under mpirun -n 3, processes 0-1 solve one problem
+  together and process 2 another alone, each as it would on its own.
+
+Run as a script under mpirun, `main()` returns every process's figures on process 0, which
+prints them as one JSON line.
+"""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+from mpi4py import MPI
+
+from membranes import scenes, solve
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+
+def figures(sol):
+    return [sol.newton_iterations, sol.estimates["eta"], sol.energy_error]
+
+
+def failing_progress():
+    """A progress callable that raises at its third line."""
+    lines = []
+
+    def say(line):
+        lines.append(line)
+        if len(lines) == 3:
+            raise OSError("the log is full")
+    return say
+
+
+def main():
+    world = MPI.COMM_WORLD
+    out = {"rank": world.rank}
+    problem = scenes.disk(h=0.3, levels=2)
+    try:
+        solve(problem, progress=failing_progress())
+        out["raised"] = None
+    except Exception as e:
+        out["raised"] = f"{type(e).__name__}: {e}"
+    out["again"] = figures(solve(problem))
+    comm = world.Split(0 if world.rank < 2 else 1, world.rank)
+    out["split"] = figures(solve(scenes.disk(h=0.3, levels=2, comm=comm)))
+    comm.Free()
+    return world.gather(out)
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
+def test_progress_error_and_sub_communicators_on_three_processes():
+    serial = figures(solve(scenes.disk(h=0.3, levels=2)))
+    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "3", sys.executable,
+           os.path.abspath(__file__)]
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    outs = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert [o["rank"] for o in outs] == [0, 1, 2]
+    assert outs[0]["raised"] == "OSError: the log is full"
+    for o in outs[1:]:
+        assert o["raised"] == ("RuntimeError: the progress callable failed on process 0: "
+                               "OSError: the log is full")
+    for o in outs:
+        n, eta, err = o["again"]
+        assert n == serial[0] and abs(eta - serial[1]) <= 1e-6 * serial[1]
+        n, eta, err = o["split"]
+        assert n == serial[0] and abs(eta - serial[1]) <= 1e-6 * serial[1]
+        assert abs(err - serial[2]) <= 1e-8 * serial[2]
+    assert outs[2]["split"] == serial               # process 2 alone: the serial run
+
+
+if __name__ == "__main__":
+    result = main()
+    if MPI.COMM_WORLD.rank == 0:
+        print(json.dumps(result), flush=True)
