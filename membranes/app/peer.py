@@ -28,6 +28,14 @@ relative to its value at the level's initial guess) and leave every other PETSc 
 (backtracking line search, KSP rtol 1e-5 of the reduced systems, stol 1e-8) unless `options`
 changes it; the z solve's KSP stops at rtol relative to its preconditioned right side.
 
+**Stopping** (`_converged`). PETSc's convergence test for VI solvers, unlike its Newton's,
+ignores stol: a level whose initial guess is already the discrete solution (zero loads: the
+prolongation is exact) starts at a round-off residual that it cannot reduce by rtol, and SNES
+took all its steps to end DIVERGED_MAX_IT. The test here is PETSc's VI test plus its stol test,
+the latter only where the residual is also below rtol times the largest initial residual of
+the run's levels so far (a step that no longer moves w, at a residual the run's own tolerance
+accepts: CONVERGED_SNORM_RELATIVE); a stagnating step at a larger residual does not stop SNES.
+
 **Boundary rows.** The Dirichlet vertices keep their rows in the SNES unknown: the residual
 there is κ (w_a - g), and the Jacobian is κ S with the rows *and columns* of ∂Ω replaced by
 κ times the identity (`MatZeroRowsColumns`: symmetric, so CG applies). Every initial guess
@@ -44,6 +52,14 @@ u1 - u2 = w, and the boundary values g, 0 come out to round-off.
 Φ_a ≥ 0 (an absolute threshold in SNESVIGetActiveSetIS) and gives it a zero step; λ is
 recovered on that set, where w = 0 after PETSc's projection onto the bounds in practice
 (the tests check λ w = 0).
+
+**Units.** Because that threshold is absolute, SNES solves for w / s, s = `gap_scale` (the size
+the data give w: max(g, (C_PF h_Ω)² max b_a⁺/(κ D_a)), §11), with data b / s and g / s; the
+problem is positively homogeneous, so this is the same problem, and w, λ are scaled back.
+Without it a gap of g ≤ 1e-6 (the radial scene) put vertices with 0 < w_a ≤ 1e-8 into the
+active set, frozen off the bound, and the nested peer reported convergence at an iterate 24 %
+to 150 % away from the discrete solution. PETSc options that set absolute sizes (snes_atol)
+act on w / s.
 """
 
 import time
@@ -158,9 +174,12 @@ class DecoupledSolver:
 
     _count = 0
 
-    def __init__(self, disc, rtol=1e-8, ksp="cg", pc="hypre", options=None, max_it=None):
+    def __init__(self, disc, rtol=1e-8, ksp="cg", pc="hypre", options=None, max_it=None,
+                 reference=None):
         from petsc4py import PETSc
         self.disc = disc
+        # [largest initial residual norm so far]: the levels of one run share it (_converged)
+        self.reference = [0.0] if reference is None else reference
         self.rtol, self.ksp_type, self.pc_type, self.max_it = rtol, ksp, pc, max_it
         self.options = dict(options or {})
         mu1, mu2 = disc.mu1, disc.mu2
@@ -177,6 +196,7 @@ class DecoupledSolver:
         self.b.setArray((mu2 * F1 - mu1 * F2) / (mu1 + mu2))
         self.D = disc.D.array_r.copy()
         self.interior = disc.interior
+        self.scale = gap_scale(disc, self.kappa, self.b.array_r, self.D)
         self._A = None
 
     # ## z: the Poisson problem S z = F1 + F2, z = μ1 g on ∂Ω
@@ -212,12 +232,18 @@ class DecoupledSolver:
         self._A = None
         J.scale(kappa)
 
+        # SNES works on w / s (module docstring, Units): data b / s, boundary values g / s
+        scale = self.scale
+        b, g = self.b.copy(), disc.g / scale
+        b.scale(1.0 / scale)
+        w.scale(1.0 / scale)
+
         def residual(snes, x, f):
             S.mult(x, f)                                   # f = κ S w - b
             f.scale(kappa)
-            f.axpy(-1.0, self.b)
+            f.axpy(-1.0, b)
             with f as fa:
-                fa[bl] = kappa * (x.array_r[bl] - disc.g)  # boundary rows κ (w - g)
+                fa[bl] = kappa * (x.array_r[bl] - g)       # boundary rows κ (w - g)
 
         snes = PETSc.SNES().create(disc.comm)
         prefix = f"membranes_peer{DecoupledSolver._count}_"
@@ -232,9 +258,10 @@ class DecoupledSolver:
         upper.set(PETSc.INFINITY)
         snes.setVariableBounds(lower, upper)
         snes.setTolerances(rtol=self.rtol, max_it=self.max_it)
+        snes.setConvergenceTest(_converged, args=(self.reference, [0.0]))
         self._ksp(snes.getKSP())
         if monitor is not None:
-            snes.setMonitor(lambda s, its, fnorm: monitor(its, s.getSolution()))
+            snes.setMonitor(lambda s, its, fnorm: monitor(its, _scaled(s.getSolution(), scale)))
         opts = PETSc.Options()
         for k, v in self.options.items():
             opts[prefix + k] = v
@@ -246,14 +273,17 @@ class DecoupledSolver:
                 del opts[prefix + k]
         its, lin = snes.getIterationNumber(), snes.getLinearSolveIterations()
         reason = snes.getConvergedReason()
+        snes.setConvergenceTest("default")              # (drops the Python callable)
         residual(snes, w, f)
+        w.scale(scale)
+        f.scale(scale)
         lam = self.multiplier(w, f)
-        for obj in (snes, f, lower, upper, J):
+        for obj in (snes, f, lower, upper, J, b):
             obj.destroy()
         return its, lin, reason, lam
 
     def multiplier(self, w, f=None):
-        """λ = Φ(w)/D on PETSc's active set (w_a ≤ 1e-8 and Φ_a ≥ 0, interior), 0 elsewhere;
+        """λ = Φ(w)/D on PETSc's active set (w_a ≤ 1e-8 s and Φ_a ≥ 0, interior), 0 elsewhere;
         f: Φ(w) if already computed."""
         disc = self.disc
         if f is None:
@@ -262,7 +292,7 @@ class DecoupledSolver:
             f.scale(self.kappa)
             f.axpy(-1.0, self.b)
         phi, wa = f.array_r, w.array_r
-        active = (wa <= PETSC_VI_ACTIVE_TOL) & (phi >= 0.0) & self.interior
+        active = (wa <= PETSC_VI_ACTIVE_TOL * self.scale) & (phi >= 0.0) & self.interior
         lam = f.duplicate()
         lam.setArray(np.where(active, phi / self.D, 0.0))
         return lam
@@ -287,14 +317,59 @@ class DecoupledSolver:
         return ksp
 
 
+def gap_scale(disc, kappa, b, D):
+    """s = max(g, (C_PF h_Ω)² max b_a⁺ / (κ D_a)) over the interior vertices: the size the
+    data give the gap w (as `Discretisation.data_scales` for u1, u2, §11). Only b⁺ counts:
+    w is at most the solution of κ S v = b⁺, v = g on ∂Ω (a supersolution), and where b < 0
+    the contact pressure carries the load (μ1 ≪ μ2 makes b/κ large there). Collective."""
+    from mpi4py import MPI
+    inner = disc.interior
+    m = disc.comm.allreduce(float((np.maximum(b[inner], 0.0) / D[inner]).max(initial=0.0)),
+                            op=MPI.MAX)
+    return max(disc.problem.g, disc.poincare ** 2 * m / kappa)
+
+
+def _scaled(v, scale):
+    """A copy of the PETSc Vec v times `scale`."""
+    u = v.copy()
+    u.scale(scale)
+    return u
+
+
+def _converged(snes, its, norms, reference, ttol):
+    """PETSc's convergence test of VI solvers (SNESConvergedDefault_VI: NaN, atol, function
+    count, rtol of the initial residual) plus its stol test where the residual is at most rtol
+    times `reference[0]`, the largest initial residual of the run so far (module docstring);
+    ttol[0]: rtol times this SNES's initial residual."""
+    from petsc4py import PETSc
+    R = PETSc.SNES.ConvergedReason
+    xnorm, ynorm, fnorm = norms
+    rtol, atol, stol, _ = snes.getTolerances()
+    if its == 0:
+        ttol[0] = rtol * fnorm
+        reference[0] = max(reference[0], fnorm)
+    if not np.isfinite(fnorm):
+        return R.DIVERGED_FNORM_NAN
+    if fnorm < atol:
+        return R.CONVERGED_FNORM_ABS
+    max_funcs = snes.getMaxFunctionEvaluations()
+    if 0 <= max_funcs <= snes.getFunctionEvaluations():
+        return R.DIVERGED_FUNCTION_COUNT
+    if its and fnorm < ttol[0]:
+        return R.CONVERGED_FNORM_RELATIVE
+    if its and ynorm < stol * xnorm and fnorm <= rtol * reference[0]:
+        return R.CONVERGED_SNORM_RELATIVE
+    return R.CONVERGED_ITERATING
+
+
 def _run(label, problems, progress, monitor, **settings):
     """Solve the decoupled problem on each of `problems` (a list of callables giving the
     level's Discretisation), each level from the prolongation of the last."""
-    records, prev = [], None
+    records, prev, reference = [], None, [0.0]
     for j, make in enumerate(problems):
         disc, setup = make()
         t0, c0 = time.perf_counter(), time.process_time()
-        solver = DecoupledSolver(disc, **settings)
+        solver = DecoupledSolver(disc, reference=reference, **settings)
         z, w = disc.S.createVecRight(), disc.S.createVecRight()
         if prev is None:                                   # from zero (g on ∂Ω)
             z.set(0.0)

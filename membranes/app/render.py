@@ -19,11 +19,14 @@ vertices.
 """
 
 import os
+import re
 import sys
 
 import numpy as np
 
 VTK_TRIANGLE = 5
+RENDER_SECONDS = 300        # a picture of a report's mesh takes seconds; a hung GL driver not
+ANSI = re.compile(r"\x1b\[[0-9;]*m")     # VTK colours its log lines
 
 
 # ## The script side (numpy and pyvista only)
@@ -132,12 +135,17 @@ def snapshot(V, panels, path, log=False, contour=None, cmap="viridis"):
         np.savez(npz, **data)
         try:
             proc = subprocess.run([sys.executable, os.path.abspath(__file__), npz, path],
-                                  capture_output=True, text=True)
+                                  capture_output=True, text=True, timeout=RENDER_SECONDS)
+            if proc.returncode != 0 or not os.path.exists(path):
+                tail = [line for line in ANSI.sub("", proc.stderr).splitlines() if line.strip()]
+                error = (f"rendering {os.path.basename(path)} failed: "
+                         f"{tail[-1].strip() if tail else f'exit code {proc.returncode}'}")
+        except subprocess.TimeoutExpired:
+            error = f"rendering {os.path.basename(path)} failed: no picture in {RENDER_SECONDS} s"
         finally:
             os.remove(npz)
-        if proc.returncode != 0 or not os.path.exists(path):
-            tail = proc.stderr.strip().splitlines()[-1:] or [f"exit code {proc.returncode}"]
-            error = f"rendering {os.path.basename(path)} failed: {tail[0]}"
+        if error is not None and os.path.exists(path):      # no half-drawn picture
+            os.remove(path)
     error = comm.bcast(error, root=0)
     if error is not None:
         raise RuntimeError(error)

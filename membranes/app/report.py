@@ -307,11 +307,22 @@ def plot_estimators(method, rows, path):
 
 # ## Pictures of the final iterate (pyvista via render.py)
 
+def _picture(V, panels, path, **options):
+    """render.snapshot, or, when pyvista cannot draw (not importable, no OpenGL, ...), the
+    reason in one line (every process): the report then goes without that picture."""
+    from .render import snapshot
+    try:
+        snapshot(V, panels, path, **options)
+    except RuntimeError as e:
+        return str(e)
+    return None
+
+
 def error_distribution(sol, path):
     """|||u - u_h|||_K beside η_K (cells) and the CSV behind them (process 0); returns the
-    gathered (error_K, eta_K) on process 0."""
+    gathered (error_K, eta_K) on process 0 and why the picture is missing (None: drawn)."""
     from ..estimation.energy_error import EnergyError
-    from .render import gather_cells, gather_points, snapshot
+    from .render import gather_cells, gather_points
     V, comm = sol.disc.V, sol.comm
     actual = EnergyError(sol.disc).per_cell(sol.X)
     # a run that ended before its certificate (on a coarse level) has no η_K: empty cells
@@ -321,17 +332,19 @@ def error_distribution(sol, path):
     if comm.rank == 0:
         write_columns(path + ".csv", {"cell": np.arange(len(a)), "x": centres[:, 0],
                                       "y": centres[:, 1], "error_K": a, "eta_K": e})
-    snapshot(V, [("error_K", "cell", actual, "actual error (energy norm on each cell)"),
-                 ("eta_K", "cell", eta_K, "estimated error eta_K")], path + ".png",
-             log=True)
-    return a, e
+    missing = _picture(V, [("error_K", "cell", actual, "actual error (energy norm on each "
+                                                        "cell)"),
+                           ("eta_K", "cell", eta_K, "estimated error eta_K")], path + ".png",
+                       log=True)
+    return (a, e), missing
 
 
 def contact_zone(sol, path):
-    """u1 - u2 and λ with the scene's interface, and the CSV behind them (process 0)."""
+    """u1 - u2 and λ with the scene's interface, and the CSV behind them (process 0); returns
+    why the picture is missing (None: drawn)."""
     from dolfinx import fem
 
-    from .render import _gather, snapshot
+    from .render import _gather
     disc = sol.disc
     V, n = disc.V, disc.n
     u1, u2, lam = disc.split(sol.X)
@@ -342,9 +355,9 @@ def contact_zone(sol, path):
     if sol.comm.rank == 0:
         write_columns(path + ".csv", {"vertex": np.arange(len(cols[0])), "x": cols[0],
                                       "y": cols[1], "gap": cols[2], "lambda": cols[3]})
-    snapshot(V, [("u1 - u2", "point", gap, "gap u1 - u2"),
-                 ("lambda", "point", sol.lam, "contact pressure lambda")], path + ".png",
-             contour=sol.problem.interface, cmap="plasma")
+    return _picture(V, [("u1 - u2", "point", gap, "gap u1 - u2"),
+                        ("lambda", "point", sol.lam, "contact pressure lambda")], path + ".png",
+                    contour=sol.problem.interface, cmap="plasma")
 
 
 # ## report.md
@@ -372,8 +385,17 @@ def paper_comparison(runs, summaries):
     return cells, PAPER["elements"][k], lines
 
 
-def markdown(problem, runs, summaries, rows, cells, sources, seconds):
-    """report.md (process 0: `summaries` are the runs' summaries, made collectively)."""
+def _image(alt, name, missing):
+    """The markdown of picture `name`, or why it is missing (`missing`: {name: reason})."""
+    if name in missing:
+        return f"*No picture: {missing[name]}.*"
+    return f"![{alt}]({name})"
+
+
+def markdown(problem, runs, summaries, rows, cells, sources, seconds, missing=None):
+    """report.md (process 0: `summaries` are the runs' summaries, made collectively);
+    `missing`: {picture: why it was not drawn}."""
+    missing = missing or {}
     s = summaries["exact/paper"]
     actual, eta_K = cells
     ours, theirs, comparison = paper_comparison(runs, summaries)
@@ -414,7 +436,7 @@ def markdown(problem, runs, summaries, rows, cells, sources, seconds):
         lines += [f"![{m}](estimators_{_slug(m)}.png)", "",
                   f"Data: `estimators_{_slug(m)}.csv` (estimators: {sources[m]}).", ""]
     lines += ["## Error distribution (adaptive/amg, final iterate)", "",
-              "![error distribution](error_distribution.png)", "",
+              _image("error distribution", "error_distribution.png", missing), "",
               "Actual |||u - u_h|||_K (left) and η_K (right), one logarithmic colour scale. " +
               (f"Largest cell values {actual.max():.3e} (actual), {eta_K.max():.3e} "
                f"(estimated); root sums of squares {np.sqrt((actual ** 2).sum()):.4e} and "
@@ -422,7 +444,8 @@ def markdown(problem, runs, summaries, rows, cells, sources, seconds):
                f"Largest cell value {actual.max():.3e}, root sum of squares "
                f"{np.sqrt((actual ** 2).sum()):.4e}; no η_K: the run ended before its "
                "certificate.") + " Data: `error_distribution.csv`.", "",
-              "## Contact zone (adaptive/amg, final iterate)", "", "![contact](contact.png)",
+              "## Contact zone (adaptive/amg, final iterate)", "",
+              _image("contact", "contact.png", missing),
               "", "The gap u1 - u2 and the contact pressure λ; red: the scene's interface. "
               "Data: `contact.csv`.", ""]
     return "\n".join(lines)
@@ -441,8 +464,13 @@ def write_report(problem, out, say=lambda line: None):
         figures = {m: estimator_rows(problem, runs[m]) for m in METHOD_NAMES}
         curves = [dict(r, method=m) for m in METHOD_NAMES for r in runs[m].history
                   if r["kind"] != "krylov"] + peer_curves
-        cells = error_distribution(runs["adaptive/amg"], os.path.join(tmp, "error_distribution"))
-        contact_zone(runs["adaptive/amg"], os.path.join(tmp, "contact"))
+        cells, no_errors = error_distribution(runs["adaptive/amg"],
+                                              os.path.join(tmp, "error_distribution"))
+        no_contact = contact_zone(runs["adaptive/amg"], os.path.join(tmp, "contact"))
+        missing = {name: why for name, why in (("error_distribution.png", no_errors),
+                                                ("contact.png", no_contact)) if why}
+        for why in missing.values():
+            say(f"report: warning: {why}; the report goes without that picture")
         if comm.rank == 0:
             write_rows(os.path.join(tmp, "table.csv"), rows, TABLE_COLUMNS)
             write_rows(os.path.join(tmp, "error_vs_time.csv"), curves, CURVE_COLUMNS)
@@ -452,7 +480,8 @@ def write_report(problem, out, say=lambda line: None):
                            CURVE_COLUMNS[1:])
                 plot_estimators(m, frows, os.path.join(tmp, f"estimators_{_slug(m)}.png"))
             text = markdown(problem, runs, summaries, rows, cells,
-                            {m: f[1] for m, f in figures.items()}, time.perf_counter() - t)
+                            {m: f[1] for m, f in figures.items()}, time.perf_counter() - t,
+                            missing)
             with open(os.path.join(tmp, "report.md"), "w") as f:
                 f.write(text)
     return runs, rows

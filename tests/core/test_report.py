@@ -240,3 +240,33 @@ def test_cli_json_line_has_the_table_columns(tmp_path, monkeypatch, capsys):
     import json
     line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert list(line["table"][0]) == list(TABLE_COLUMNS) + ["reason"]
+
+
+def test_a_report_without_pyvista(tmp_path, monkeypatch):
+    """When pyvista cannot draw (here: not importable in the rendering process), the report
+    is written without the two pyvista pictures, says why in report.md and on the progress
+    lines, and leaves no half-drawn picture or data file (docs/outputs.md); it used to end in
+    a traceback after every run, nothing written."""
+    block = tmp_path / "block"
+    block.mkdir()
+    (block / "sitecustomize.py").write_text(
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] == 'pyvista':\n"
+        "            raise ImportError('no pyvista here')\n"
+        "sys.meta_path.insert(0, Block())\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(
+        [str(block)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    out, said = tmp_path / "square", []
+    write_report(scenes.square(h=0.5, levels=1), str(out), said.append)
+    names = set(os.listdir(out))
+    assert "error_distribution.png" not in names and "contact.png" not in names
+    assert {"error_distribution.csv", "contact.csv", "report.md", "error_vs_time.png"} <= names
+    assert not any(n.endswith(".npz") for n in names)
+    text = (out / "report.md").read_text()
+    for name in ("error_distribution.png", "contact.png"):
+        assert f"*No picture: rendering {name} failed: ImportError: no pyvista here.*" in text
+        assert f"]({name})" not in text
+    assert sum("warning: rendering" in line for line in said) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["block", "square"]
