@@ -16,6 +16,10 @@ Both certify their final iterate. Method time is each `solve`'s own wall time; p
 the whole process, measured here; the energy error is computed after the method, outside both
 clocks. A small unreported run of each (J = 3) comes first: it compiles that commit's numba
 kernels into its cache and this tree's forms.
+
+Printed: a table with one row per run (vertices, Newton and Krylov steps, method and process
+time, peak memory, energy error), then per pair the ratios now / then of method and process
+time. Nothing is asserted.
 """
 
 import argparse
@@ -71,6 +75,12 @@ def main(argv=None):
     parser.add_argument("--repeat", type=int, default=1, metavar="N",
                         help="pairs of runs per size (default 1)")
     args = fresh.parse_common(parser, argv, ("5", "6:0.132"))
+    if args.repeat < 1:
+        parser.error("--repeat must be at least 1")
+    known = subprocess.run(["git", "rev-parse", "--verify", "--quiet", f"{args.commit}^{{commit}}"],
+                           cwd=fresh.ROOT, capture_output=True)
+    if known.returncode != 0:
+        parser.error(f"--commit {args.commit!r} is not a commit of this repository")
     tree = tempfile.mkdtemp(prefix="membranes-then-")
     os.rmdir(tree)
     subprocess.run(["git", "worktree", "add", "--detach", tree, args.commit], cwd=fresh.ROOT,

@@ -13,14 +13,27 @@ import argparse
 import math
 
 from membranes import scenes, solve
+from membranes.app.driver import MEMORY_METHOD
+from membranes.model.checks import check_request
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--levels", type=int, default=5)
-    p.add_argument("--eff-levels", type=int, default=4)
-    p.add_argument("--h0", type=float, default=0.2)
+    p.add_argument("--levels", type=int, default=5, metavar="J",
+                   help="(1) exact Newton on J = 1 ... J (default 5)")
+    p.add_argument("--eff-levels", type=int, default=4, metavar="J",
+                   help="(2) every variant and C-function on J = 0 ... J (default 4)")
+    p.add_argument("--h0", type=float, default=0.2, help="gmsh size of T_0 (default 0.2)")
     a = p.parse_args()
+    if a.levels < 0 or a.eff_levels < 0:
+        p.error("--levels and --eff-levels must be non-negative integers")
+    if not (math.isfinite(a.h0) and a.h0 > 0):
+        p.error(f"--h0 must be a positive number, got {a.h0}")
+    try:     # the largest mesh asked for: refused at once if beyond memory (model.checks)
+        check_request(a.h0, max(a.levels, a.eff_levels), "disk", estimators=True,
+                      processes=1, replicated=False, **MEMORY_METHOD["amg"])
+    except ValueError as e:
+        p.error(str(e))
     print("J  vertices  Newton  Krylov  energy_error  order")
     last = None
     for J in range(1, a.levels + 1):

@@ -18,8 +18,9 @@ bytes per vertex, or the figure measured by the larger runs made so far, whichev
 larger) and the run is skipped with a message if that exceeds `--margin` (0.8) of the
 machine's MemAvailable at that moment.
 
-Printed per size and P: the largest per-process peak, the sum over the processes, the peak
-relative to the serial one; then the ratio at the largest P against the target. Nothing is
+Printed per size and P: the largest per-process peak, the sum over the processes, both
+relative to the serial peak, and the sum per 1e5 vertices; then, where the largest P is above
+1 and both runs were made, the ratio at the largest P against the target. Nothing is
 asserted.
 
 Usage: `.venv/bin/python benchmarks/bench_memory.py [--sizes J[:H0] ...] [--procs P ...]

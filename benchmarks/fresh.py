@@ -252,15 +252,11 @@ class MemoryGuard:
         return None
 
 
-if __name__ == "__main__":
-    child(sys.argv[1], sys.argv[2])
-
-
 def parse_common(parser, argv=None, sizes=(), procs=None):
     """Add the options the benchmarks share (--sizes with default `sizes`, --procs with default
     `procs` unless None, --no-warmup, --blas-threads, --timeout, --margin), parse `argv` and
-    check the sizes (`size`), the process counts and BLAS threads (at least 1) and the margin
-    (in (0, 1])."""
+    check the sizes (`size`), the process counts and BLAS threads (at least 1), the time-out
+    (positive) and the margin (in (0, 1])."""
     parser.add_argument("--sizes", nargs="+", default=list(sizes), metavar="J[:H0]",
                         help=f"refinements J of the gmsh mesh of size H0 (default {H0}); "
                              f"default {' '.join(sizes)}")
@@ -287,6 +283,33 @@ def parse_common(parser, argv=None, sizes=(), procs=None):
         parser.error("every P must be at least 1")
     if args.blas_threads is not None and args.blas_threads < 1:
         parser.error("--blas-threads must be at least 1")
+    if args.timeout is not None and not args.timeout > 0:
+        parser.error("--timeout must be a positive number of seconds")
     if not 0 < args.margin <= 1:
         parser.error("--margin must lie in (0, 1]")
     return args
+
+
+def child_main(argv):
+    """The child's command line, `METHOD J[:H0]`: checked before anything is built, a bad one
+    is one error line on stderr and exit 2 (as the benchmarks' own options)."""
+    usage = f"usage: fresh.py {{{','.join(METHODS)}}} J[:H0]"
+    if len(argv) != 2:
+        return f"{usage}\nfresh.py: error: expected a method and a size, got {len(argv)} " \
+               f"argument(s)"
+    if argv[0] not in METHODS:
+        return f"{usage}\nfresh.py: error: unknown method {argv[0]!r} (choose from: " \
+               f"{', '.join(METHODS)})"
+    try:
+        size(argv[1])
+    except ValueError as e:
+        return f"{usage}\nfresh.py: error: {e}"
+    child(argv[0], argv[1])
+    return None
+
+
+if __name__ == "__main__":
+    error = child_main(sys.argv[1:])
+    if error is not None:
+        print(error, file=sys.stderr)
+        sys.exit(2)

@@ -237,6 +237,44 @@ def test_refused_before_the_mesh_is_built(case, tmp_path, capsys, monkeypatch):
     assert not out.exists()
 
 
+# method options that `solve` refuses: refused by the command line before the mesh too (they
+# were refused only after gmsh and the refinement had run, probe I); a negative number in
+# exponent notation is a value, not an unknown option
+METHOD_REFUSED = {
+    "tol with adaptive": (["--tol", "1e-8"], "tol applies to newton 'exact' and 'inexact'"),
+    "nu below 1": (["--nu", "-1"], "nu must be a positive integer"),
+    "gamma out of range": (["--gamma-lin", "-1e-1"], "gamma_lin must lie in (0, 1)"),
+    "nested on one level": (["--nested"], "nested iteration needs a mesh hierarchy"),
+    "multilevel on one level": (["--alg-flux", "multilevel"], "needs a mesh hierarchy"),
+    "adaptive direct": (["--newton", "adaptive", "--solver", "direct"],
+                        "the adaptive variant stops a Krylov solver"),
+    "alg flux without estimators": (["--no-estimators", "--alg-flux", "nu"],
+                                    "alg_flux applies to runs with estimators only"),
+    "coarse-tol negative": (["--levels", "1", "--coarse-tol", "-1e-6"],
+                            "--coarse-tol must lie in (0, 1), got -1e-06"),
+    "max-linear-its exponent": (["--max-linear-its", "-1e3"], "invalid int value: '-1e3'"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(METHOD_REFUSED))
+def test_method_options_refused_before_the_mesh_is_built(case, tmp_path, capsys, monkeypatch):
+    from membranes.app.cli import main
+    from membranes.fem import hierarchy, meshes
+
+    def never(*args, **kwargs):
+        raise AssertionError("the mesh was built")
+    monkeypatch.setattr(meshes, "_on_rank0", never)
+    monkeypatch.setattr(hierarchy, "refine", never)
+    args, expected = METHOD_REFUSED[case]
+    out = tmp_path / "out"
+    assert main(["solve", "--scene", "disk", "--h", "0.3", "--out", str(out)] + args) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert err.startswith("membranes: error: ") and "\n" not in err, err
+    assert expected in err
+    assert not out.exists()
+
+
 def test_api_refuses_the_same_with_the_same_message(capsys):
     """The API raises ValueError with the CLI's message."""
     from membranes.app.cli import main

@@ -25,7 +25,8 @@ AGREE_SECONDS = 10.0
 
 DATA_OPTIONS = ("mu1", "mu2", "g", "f1", "f2", "mesh", "domain")
 VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--tol",
-                 "--petsc-options", "--gamma-lin", "--gamma-alg", "--max-vertices")
+                 "--petsc-options", "--gamma-lin", "--gamma-alg", "--max-vertices",
+                 "--coarse-tol", "--nu", "--max-linear-its", "--max-newton")
 
 
 class BadInput(ValueError):
@@ -52,7 +53,8 @@ def _parser():
                    help="domain of the user scene when no --mesh is given (default disk)")
     s.add_argument("--h", type=float, help="gmsh target size of the coarse mesh (default 0.05)")
     s.add_argument("--levels", type=int, default=0,
-                   help="uniform refinements of the coarse mesh; the finest is computed on")
+                   help="uniform refinements of the coarse mesh; the run computes on the "
+                        "finest (default 0)")
     s.add_argument("--mu1", type=float, help="modulus of membrane 1 (> 0, default 1)")
     s.add_argument("--mu2", type=float, help="modulus of membrane 2 (> 0, default 1)")
     s.add_argument("--g", type=float, help="boundary value of membrane 1 (> 0, default 0.05)")
@@ -150,19 +152,23 @@ def _scene_arguments(args):
 
 def _check_before_meshing(args, scene, kwargs, comm):
     """Refuse at once what cannot work, before any mesh is built: an output folder that cannot
-    be written, PETSc options PETSc would not use, and a mesh whose run needs more memory than
-    the processes have (or more vertices than --max-vertices). Returns the parsed options."""
-    from ..linalg.krylov import Krylov
+    be written, method options that `solve` would refuse (PETSc options PETSc would not use,
+    --tol with adaptive Newton, a γ or --nu out of range, …: `driver.check_method`), and a
+    mesh whose run needs more memory than the processes have (or more vertices than
+    --max-vertices). Returns the parsed PETSc options."""
     from ..model import checks
-    from ..model.petsc_options import check_petsc_options_used, parse_petsc_options
+    from ..model.petsc_options import parse_petsc_options
     from ..model.scenes import DEFAULT_H
-    from .driver import MEMORY_METHOD
+    from .driver import MEMORY_METHOD, check_method
     petsc_options = parse_petsc_options(args.petsc_options)
     if args.out is not None:
         checks.check_output_folder(args.out, comm)
-    krylov = Krylov(args.solver, petsc_options)
-    if petsc_options:
-        check_petsc_options_used(petsc_options, krylov.merged, krylov.inner())
+    check_method(args.levels, newton=args.newton, cfun=args.cfun, solver=args.solver,
+                 system=args.system, petsc_options=petsc_options, nu=args.nu,
+                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
+                 estimators=not args.no_estimators, alg_flux=args.alg_flux,
+                 gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, nested=args.nested,
+                 coarse=args.coarse, coarse_tol=args.coarse_tol)
     domain = scene if scene in ("disk", "square") else kwargs.get("domain", "disk")
     checks.check_request(kwargs.get("h", DEFAULT_H), args.levels, domain, kwargs.get("mesh"),
                          args.max_vertices, comm=comm, estimators=not args.no_estimators,

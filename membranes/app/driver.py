@@ -117,12 +117,12 @@ def _stopping(newton, tol, gamma_lin, gamma_alg):
     return DEFAULT_TOL, _gamma("gamma_lin", gamma_lin), _gamma("gamma_alg", gamma_alg)
 
 
-def _nested(problem, nested):
+def _nested(levels, nested):
     if nested is None:
-        return problem.levels >= 1
+        return levels >= 1
     if not isinstance(nested, (bool, np.bool_)):
         raise ValueError(f"nested must be True, False or None, got {nested!r}")
-    if nested and problem.levels < 1:
+    if nested and levels < 1:
         raise ValueError("nested iteration needs a mesh hierarchy: levels >= 1 (--levels J)")
     return bool(nested)
 
@@ -145,7 +145,7 @@ def _check_memory(problem, solver, estimators, max_vertices, alg_flux=None):
                       alg_flux=alg_flux, **MEMORY_METHOD.get(solver, {}))
 
 
-def _algebraic_flux(problem, alg_flux, estimators, newton):
+def _algebraic_flux(levels, alg_flux, estimators, newton):
     """The algebraic flux of §6 for iterates whose residual is not at round-off: the one
     asked for, else 'nu'; None without estimators."""
     if not estimators:
@@ -154,7 +154,7 @@ def _algebraic_flux(problem, alg_flux, estimators, newton):
         _reject("runs with estimators", alg_flux=alg_flux)
         return None
     alg_flux = "nu" if alg_flux is None else _choice("algebraic flux", alg_flux, ALG_FLUXES)
-    if alg_flux == "multilevel" and problem.levels < 1:
+    if alg_flux == "multilevel" and levels < 1:
         raise ValueError("the multilevel algebraic flux needs a mesh hierarchy: levels >= 1 "
                          "(--levels J)")
     return alg_flux
@@ -236,6 +236,42 @@ def prolong(P, disc, X_coarse, n_coarse):
     return X
 
 
+def check_method(levels, newton=None, cfun="min", solver="amg", system=None,
+                 petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
+                 estimators=True, alg_flux=None, gamma_lin=None, gamma_alg=None, nested=None,
+                 coarse="residual", coarse_tol=None):
+    """`solve`'s method options (its keywords of the same names) checked against each other
+    and against the number of refinements `levels`, with no mesh: what `solve` refuses of
+    them, the command line refuses before it builds a mesh (docs/cli.md). ValueError as
+    `solve`; returns (krylov, newton, max_newton, petsc_options, tol, gamma_lin, gamma_alg,
+    alg_flux, nested, coarse, coarse_tol), completed with their defaults."""
+    if newton is not None:
+        _choice("Newton variant", newton, VARIANTS)
+    cfunctions.get(cfun)
+    if not isinstance(estimators, (bool, np.bool_)):     # ('no' would have meant yes)
+        raise ValueError(f"estimators must be True or False, got {estimators!r}")
+    max_newton = checks.positive_integer("max_newton", max_newton)
+    petsc_options = parse_petsc_options(petsc_options)
+    if max_linear_its is not None:
+        max_linear_its = checks.positive_integer("max_linear_its", max_linear_its)
+    krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": nu}),
+                    **({} if max_linear_its is None else {"max_it": max_linear_its}))
+    if petsc_options:       # refused here if PETSc would not read one of them
+        check_petsc_options_used(petsc_options, krylov.merged, krylov.inner())
+    if system is not None:
+        _choice("system", system, ("full", "eliminated"))
+    newton = _default_variant(newton, estimators, krylov)
+    if newton == "adaptive" and not krylov.iterative:
+        raise ValueError(f"the adaptive variant stops a Krylov solver: choose solver 'amg' "
+                         f"or 'paper', not {krylov.description}")
+    tol, gamma_lin, gamma_alg = _stopping(newton, tol, gamma_lin, gamma_alg)
+    alg_flux = _algebraic_flux(levels, alg_flux, estimators, newton)
+    nested = _nested(levels, nested)
+    coarse, coarse_tol = _coarse_levels(coarse, coarse_tol, newton, nested)
+    return (krylov, newton, max_newton, petsc_options, tol, gamma_lin, gamma_alg, alg_flux,
+            nested, coarse, coarse_tol)
+
+
 def solve(problem: Problem,
           newton: Optional[Literal["adaptive", "exact", "inexact"]] = None,
           cfun: Literal["min", "fb"] = "min",
@@ -273,8 +309,9 @@ def solve(problem: Problem,
     system, GMRES + ILU(0), block Jacobi across processes) or 'direct' (MUMPS); system:
     'full' or 'eliminated' instead of the preset's; petsc_options: PETSc options on top of the
     preset (a dict, or a string "-name value ..."); nu: estimate (adaptive) and record every
-    ν Krylov steps (10); tol: exact and inexact stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol (1e-10, in
-    (0, 1));
+    ν Krylov steps (10); max_linear_its: Krylov iterations allowed per Newton step (10000);
+    tol: exact and inexact stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol (1e-10, in (0, 1)); max_newton:
+    Newton steps allowed on each level (100; beyond them the run ends not converged);
     estimators: certify the final iterate (and let adaptive use them); alg_flux: 'nu' or
     'multilevel' (§6); initial_guess: 'paper' (default, (g, 0, 0)), 'zero', or a PETSc Vec
     in the iterate layout (or a function of the discretisation returning one) on the first
@@ -299,34 +336,16 @@ def solve(problem: Problem,
     release_garbage(problem, collect=False)   # what earlier solves left (outside the clock)
     started = time.perf_counter()
     quiet_jit_logging()       # the forms' JIT builds are not the user's business
-    if newton is not None:
-        _choice("Newton variant", newton, VARIANTS)
-    cfunctions.get(cfun)
     _choice("errors", errors, ERRORS)
-    if not isinstance(estimators, (bool, np.bool_)):     # ('no' would have meant yes)
-        raise ValueError(f"estimators must be True or False, got {estimators!r}")
-    max_newton = checks.positive_integer("max_newton", max_newton)
-    petsc_options = parse_petsc_options(petsc_options)
-    if max_linear_its is not None:
-        max_linear_its = checks.positive_integer("max_linear_its", max_linear_its)
-    krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": nu}),
-                    **({} if max_linear_its is None else {"max_it": max_linear_its}))
-    if petsc_options:       # refused here if PETSc would not read one of them
-        check_petsc_options_used(petsc_options, krylov.merged, krylov.inner())
     if setups is not None and not isinstance(setups, Setups):
         raise ValueError(f"setups must be a membranes.Setups, got {type(setups).__name__}")
-    _check_memory(problem, solver, estimators, max_vertices,
-                  alg_flux if alg_flux in ALG_FLUXES else None)
-    if system is not None:
-        _choice("system", system, ("full", "eliminated"))
-    newton = _default_variant(newton, estimators, krylov)
-    if newton == "adaptive" and not krylov.iterative:
-        raise ValueError(f"the adaptive variant stops a Krylov solver: choose solver 'amg' "
-                         f"or 'paper', not {krylov.description}")
-    tol, gamma_lin, gamma_alg = _stopping(newton, tol, gamma_lin, gamma_alg)
-    alg_flux = _algebraic_flux(problem, alg_flux, estimators, newton)
-    nested = _nested(problem, nested)
-    coarse, coarse_tol = _coarse_levels(coarse, coarse_tol, newton, nested)
+    (krylov, newton, max_newton, petsc_options, tol, gamma_lin, gamma_alg, alg_flux, nested,
+     coarse, coarse_tol) = check_method(
+        problem.levels, newton=newton, cfun=cfun, solver=solver, system=system,
+        petsc_options=petsc_options, nu=nu, max_linear_its=max_linear_its, tol=tol,
+        max_newton=max_newton, estimators=estimators, alg_flux=alg_flux, gamma_lin=gamma_lin,
+        gamma_alg=gamma_alg, nested=nested, coarse=coarse, coarse_tol=coarse_tol)
+    _check_memory(problem, solver, estimators, max_vertices, alg_flux)
     if nested and initial_guess is not None and not isinstance(initial_guess, str) and \
             not callable(initial_guess):
         raise ValueError("with nested iteration the initial guess is that of the coarse mesh "

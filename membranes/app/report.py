@@ -493,11 +493,12 @@ def add_parser(sub):
     r = sub.add_parser("report", help="compare exact, inexact and adaptive Newton (fast and "
                        "paper solvers) with the SNES VI peers on a scene; pictures, CSVs and "
                        "report.md")
-    r.add_argument("--scene", choices=("disk", "square"), default="disk")
+    r.add_argument("--scene", choices=("disk", "square"), default="disk",
+                   help="a scene with an exact solution (default disk)")
     r.add_argument("--h", type=float, default=0.16,
                    help="gmsh target size of the coarse mesh (default 0.16)")
     r.add_argument("--levels", type=int, default=3,
-                   help="uniform refinements; the finest mesh is computed on (default 3)")
+                   help="uniform refinements; the runs compute on the finest mesh (default 3)")
     r.add_argument("--out", metavar="DIR", required=True,
                    help="folder for the outputs (made if missing; nothing is written on bad "
                         "input)")

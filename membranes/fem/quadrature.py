@@ -1,4 +1,4 @@
-"""Quadrature for the data f_α (§7, §9).
+"""Quadrature for the data f_α (§2, §7, §9).
 
 Data integrals use a degree-6 Gauss rule, and on cells cut by the scene's interface (where the
 data jump, e.g. the circle r = 1/√2 of the disk scene) a composite rule: the reference triangle

@@ -20,7 +20,7 @@ from dolfinx.mesh import Mesh
 
 from .expressions import Formula
 
-if TYPE_CHECKING:          # model/ imports nothing above it (docs/architecture.md)
+if TYPE_CHECKING:          # problem imports nothing above model/ (docs/architecture.md)
     from ..fem.hierarchy import Hierarchy
 
 # A data item: a number, a formula in x, y (str or Formula) or a builder x ↦ UFL expression.

@@ -1,0 +1,45 @@
+"""The benchmark scripts' command lines: a bad argument is one error line and exit 2, before
+anything is built or run (probe I: the child `fresh.py`, bench_convergence.py and
+bench_commit.py answered with tracebacks, or ran on a negative level count)."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+from mpi4py import MPI
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BENCH = os.path.join(ROOT, "benchmarks")
+
+pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="one process")
+
+CASES = {
+    "fresh without size": (["fresh.py", "ours"], "expected a method and a size"),
+    "fresh unknown method": (["fresh.py", "bogus", "1"], "unknown method 'bogus'"),
+    "fresh bad size": (["fresh.py", "ours", "x"], "size 'x' is not J or J:H0"),
+    "scaling negative timeout": (["bench_scaling.py", "--sizes", "1", "--timeout", "-1"],
+                                 "--timeout must be a positive number"),
+    "convergence negative levels": (["bench_convergence.py", "--levels", "-1"],
+                                    "must be non-negative integers"),
+    "convergence zero h0": (["bench_convergence.py", "--h0", "0"],
+                            "--h0 must be a positive number"),
+    "convergence beyond memory": (["bench_convergence.py", "--eff-levels", "14"],
+                                  "2.6e10 vertices"),
+    "commit unknown": (["bench_commit.py", "--commit", "zzzz"],
+                       "'zzzz' is not a commit of this repository"),
+    "commit no repeat": (["bench_commit.py", "--repeat", "0"], "--repeat must be at least 1"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_benchmark_arguments(case):
+    args, expected = CASES[case]
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    proc = subprocess.run([sys.executable, os.path.join(BENCH, args[0])] + args[1:],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert ": error: " in last and expected in last, proc.stderr
+    assert proc.stdout == ""
