@@ -195,48 +195,6 @@ REFUSED_AT_ONCE = {
 }
 
 
-@pytest.mark.parametrize("case", sorted(REFUSED_AT_ONCE))
-def test_refused_at_once_by_the_installed_command(case, tmp_path):
-    """Exit 2, one stderr line naming the cause, no traceback, the output folder absent, and
-    back in seconds: the mesh is never built (gmsh alone needs minutes for the first two; the
-    bound is generous, the in-process test below shows that gmsh is not called)."""
-    import time
-    args, expected = REFUSED_AT_ONCE[case]
-    out = "/proc/x" if "/proc/x" in args else str(tmp_path / "out")
-    extra = [] if "--out" in args else ["--out", out]
-    started = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "membranes.app.cli", "solve", "--quiet"] + args
-                          + extra, capture_output=True, text=True, timeout=120)
-    elapsed = time.perf_counter() - started
-    assert proc.returncode == 2, proc.stderr
-    err = proc.stderr.strip()
-    assert err.startswith("membranes: error: ") and "\n" not in err, err
-    assert expected in err and "Traceback" not in err
-    assert proc.stdout == ""
-    assert not os.path.exists(out) and os.listdir(tmp_path) == []
-    assert elapsed < 20.0
-
-
-@pytest.mark.parametrize("case", sorted(REFUSED_AT_ONCE))
-def test_refused_before_the_mesh_is_built(case, tmp_path, capsys, monkeypatch):
-    """The same cases in process, with gmsh and the refinement made to fail: the checks
-    refuse them before either is called."""
-    from membranes.app.cli import main
-    from membranes.fem import hierarchy, meshes
-
-    def never(*args, **kwargs):
-        raise AssertionError("the mesh was built")
-    monkeypatch.setattr(meshes, "_on_rank0", never)
-    monkeypatch.setattr(hierarchy, "refine", never)
-    args, expected = REFUSED_AT_ONCE[case]
-    out = tmp_path / "out"
-    extra = [] if "--out" in args else ["--out", str(out)]
-    assert main(["solve", "--quiet"] + args + extra) == 2
-    err = capsys.readouterr().err.strip()
-    assert expected in err and "\n" not in err
-    assert not out.exists()
-
-
 # method options that `solve` refuses: refused by the command line before the mesh too (they
 # were refused only after gmsh and the refinement had run, probe I); a negative number in
 # exponent notation is a value, not an unknown option
@@ -256,8 +214,15 @@ METHOD_REFUSED = {
 }
 
 
-@pytest.mark.parametrize("case", sorted(METHOD_REFUSED))
-def test_method_options_refused_before_the_mesh_is_built(case, tmp_path, capsys, monkeypatch):
+CASES = {**{("size", k): v for k, v in REFUSED_AT_ONCE.items()},
+         **{("method", k): (["--scene", "disk", "--h", "0.3"] + v[0], v[1])
+            for k, v in METHOD_REFUSED.items()}}
+
+
+@pytest.mark.parametrize("case", sorted(CASES), ids=lambda c: f"{c[0]}: {c[1]}")
+def test_refused_before_the_mesh_is_built(case, tmp_path, capsys, monkeypatch):
+    """The cases above in process, with gmsh and the refinement made to fail: the checks
+    refuse them before either is called, in one line, and write nothing."""
     from membranes.app.cli import main
     from membranes.fem import hierarchy, meshes
 
@@ -265,11 +230,11 @@ def test_method_options_refused_before_the_mesh_is_built(case, tmp_path, capsys,
         raise AssertionError("the mesh was built")
     monkeypatch.setattr(meshes, "_on_rank0", never)
     monkeypatch.setattr(hierarchy, "refine", never)
-    args, expected = METHOD_REFUSED[case]
+    args, expected = CASES[case]
     out = tmp_path / "out"
-    assert main(["solve", "--scene", "disk", "--h", "0.3", "--out", str(out)] + args) == 2
-    captured = capsys.readouterr()
-    err = captured.err.strip()
+    extra = [] if "--out" in args else ["--out", str(out)]
+    assert main(["solve", "--quiet"] + args + extra) == 2
+    err = capsys.readouterr().err.strip()
     assert err.startswith("membranes: error: ") and "\n" not in err, err
     assert expected in err
     assert not out.exists()
