@@ -201,6 +201,8 @@ def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float =
     h = _check_size(h, levels, "disk", None, max_vertices, comm)
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
     try:
+        if isinstance(rho, (bool, np.bool_)):    # False is not ρ = 0 (as mu1, mu2, g)
+            raise TypeError
         rho = float(rho)
     except (TypeError, ValueError):
         raise ValueError(f"rho must be a number, got {rho!r}") from None
