@@ -9,9 +9,9 @@ equilibration of T_J (the patch systems of §5, which depend on the mesh only) i
 (membranes.app.setups). Per size, each way runs in a process of its own, one after the other;
 the hierarchy is built once per process, outside every clock. Printed per size: every
 solve's method time (`Solution.wall_time_s`) and estimator set-up time in both ways, their
-ratio, the sweep's total and ratio, the largest relative difference of η between the two
-(the runs are the same computation: expect 0), and each process's peak resident memory
-(the kept way holds the set-up between solves).
+ratio and the relative difference of η between the two (the runs are the same computation:
+expect 0), the sweep's total and ratio, and the largest peak resident memory of the processes
+in each way (the kept way holds the set-up between solves).
 """
 
 import argparse

@@ -297,3 +297,19 @@ def test_command_line_progress_brackets_the_silent_phases(tmp_path, capsys):
     assert f"the finest mesh has {n:,} vertices" in lines[0]
     assert lines[1].startswith("level 0: Newton")
     assert lines[-1] == f"writing the outputs into {out}" and (out / "summary.json").exists()
+
+
+@pytest.mark.parametrize("coarse", ["residual", "estimated"])
+def test_a_run_that_ends_on_a_coarse_level_reports_its_energy_error(coarse):
+    """errors='final' measures the iterate the run returns, also where the run ends on T_0
+    (Newton limit reached there): docs/outputs.md, `energy_error`."""
+    from membranes.estimation.energy_error import EnergyError
+    sol = solve(scene("disk", 0.3, levels=1), max_newton=1, coarse=coarse)
+    assert not sol.converged and sol.per_level[-1]["level"] == 0
+    expected = EnergyError(sol.disc)(sol.X)
+    assert sol.energy_error == pytest.approx(expected, rel=1e-12)
+    assert sol.per_level[-1]["energy_error"] == sol.energy_error
+    assert sol.energy_error_kind is not None
+    assert sol.history[-1]["energy_error"] == sol.energy_error
+    if coarse == "estimated":
+        assert sol.estimates["eta"] >= sol.energy_error

@@ -427,7 +427,10 @@ def solve(problem: Problem,
             final["estimates"] = estimate(result.X, _final_residual(disc, result.X, cfun))
             if final is result.history[-1]:   # (else the records' clock would go back)
                 final["wall_time_s"] = clock.now()        # the certificate is part of X^k
-        if error is not None and errors == "final":
+        stops = last or not (result.converged or result.stalled)   # (the `break` below)
+        if errors == "final" and stops and problem.exact is not None:
+            if error is None:        # a coarse level the run ends on: its X is the answer
+                error = clock.off(EnergyError, disc)
             final["energy_error"] = clock.off(error, result.X)
         level_time = clock.now() - t_level
         for rec in result.history:
@@ -452,7 +455,7 @@ def solve(problem: Problem,
                           "wall_time_s": level_time, "final_residual": final["residual"],
                           "energy_error": final["energy_error"], "eta": final.get("eta"),
                           "times": result.times})
-        if not result.converged and not (result.stalled and not last):
+        if stops and not last:
             break               # (a coarse level that stalled holds its discrete solution to
         prev = (result.X, disc.n)   # the floor: the best start for the next one)
         if not last:
