@@ -195,6 +195,28 @@ REFUSED_AT_ONCE = {
 }
 
 
+@pytest.mark.parametrize("case", sorted(REFUSED_AT_ONCE))
+def test_refused_at_once_by_the_installed_command(case, tmp_path):
+    """Exit 2, one stderr line naming the cause, no traceback, the output folder absent, and
+    back in seconds: the mesh is never built (gmsh alone needs minutes for the first two; the
+    bound is generous, the in-process test below shows that gmsh is not called)."""
+    import time
+    args, expected = REFUSED_AT_ONCE[case]
+    out = "/proc/x" if "/proc/x" in args else str(tmp_path / "out")
+    extra = [] if "--out" in args else ["--out", out]
+    started = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "membranes.app.cli", "solve", "--quiet"] + args
+                          + extra, capture_output=True, text=True, timeout=120)
+    elapsed = time.perf_counter() - started
+    assert proc.returncode == 2, proc.stderr
+    err = proc.stderr.strip()
+    assert err.startswith("membranes: error: ") and "\n" not in err, err
+    assert expected in err and "Traceback" not in err
+    assert proc.stdout == ""
+    assert not os.path.exists(out) and os.listdir(tmp_path) == []
+    assert elapsed < 20.0
+
+
 # method options that `solve` refuses: refused by the command line before the mesh too (they
 # were refused only after gmsh and the refinement had run, probe I); a negative number in
 # exponent notation is a value, not an unknown option
