@@ -39,7 +39,7 @@ from ..fem.discretisation import Discretisation, discretise
 from ..linalg.krylov import Krylov
 from ..model import checks
 from ..model.petsc_options import check_petsc_options_used, parse_petsc_options
-from ..model.problem import Problem
+from ..model.problem import Problem, real_number
 from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS
 from ..nonlinear.newton import newton as run_newton
@@ -77,18 +77,8 @@ def _reject(applies_to, **options):
         raise ValueError(f"{given[0]} applies to {applies_to} only")
 
 
-def _real(name, value):
-    """`value` as a float, or a ValueError naming `name` (float('abc') names nothing)."""
-    if isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-
-
 def _gamma(name, value):
-    value = DEFAULT_GAMMA if value is None else _real(name, value)
+    value = DEFAULT_GAMMA if value is None else real_number(name, value)
     if not (np.isfinite(value) and 0.0 < value < 1.0):
         raise ValueError(f"{name} must lie in (0, 1), got {value}")
     return value
@@ -108,7 +98,7 @@ def _stopping(newton, tol, gamma_lin, gamma_alg):
     """(tol, γ_lin, γ_alg) of the variant (§8); the ones it does not use must not be given."""
     if newton != "adaptive":
         _reject("newton 'adaptive'", gamma_lin=gamma_lin, gamma_alg=gamma_alg)
-        tol = DEFAULT_TOL if tol is None else _real("tol", tol)
+        tol = DEFAULT_TOL if tol is None else real_number("tol", tol)
         # (tol >= 1 is met by any start: a run of no step, called converged)
         if not (np.isfinite(tol) and 0.0 < tol < 1.0):
             raise ValueError(f"tol must lie in (0, 1), got {tol}")
@@ -541,7 +531,8 @@ def _coarse_levels(coarse, coarse_tol, newton, nested):
     if coarse == "estimated":
         _reject("coarse 'residual'", coarse_tol=coarse_tol)
         return coarse, None
-    coarse_tol = DEFAULT_COARSE_TOL if coarse_tol is None else _real("coarse_tol", coarse_tol)
+    coarse_tol = DEFAULT_COARSE_TOL if coarse_tol is None else \
+        real_number("coarse_tol", coarse_tol)
     if not (np.isfinite(coarse_tol) and 0.0 < coarse_tol < 1.0):
         raise ValueError(f"coarse_tol must lie in (0, 1), got {coarse_tol}")
     return coarse, coarse_tol

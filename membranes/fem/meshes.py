@@ -170,10 +170,8 @@ def _model_cells(gmsh, what):
         raise ValueError(f"{what} has triangles on nodes it does not list")
     x, cells = coords[at], cells.reshape(-1, 3).astype(np.int64)
     p = x[cells]
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    twice_area = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     longest = np.max([((p[:, i] - p[:, i - 1]) ** 2).sum(axis=1) for i in range(3)], axis=0)
-    flat = np.count_nonzero(twice_area <= 1e-12 * longest)
+    flat = np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest)
     if flat:
         raise ValueError(f"{what} has {flat} degenerate triangle(s) (zero area or "
                          f"a repeated vertex)")

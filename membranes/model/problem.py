@@ -45,13 +45,19 @@ def as_builder(data: Data) -> Callable[[Any], Any]:
     return lambda x: value
 
 
-def positive_number(name: str, value: Any) -> float:
+def real_number(name: str, value: Any) -> float:
+    """`value` as a float (a number given as text too), or a ValueError naming `name`: a bool
+    is no number (False would pass for 0), and float('abc') names nothing."""
     if isinstance(value, (bool, np.bool_)):
         raise ValueError(f"{name} must be a number, got {value!r}")
     try:
-        value = float(value)
+        return float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a number, got {value!r}") from None
+
+
+def positive_number(name: str, value: Any) -> float:
+    value = real_number(name, value)
     if not np.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value}")
     if value <= 0:

@@ -26,7 +26,7 @@ from ..fem import meshes
 from ..fem.hierarchy import build_hierarchy, onto_unit_circle
 from .checks import check_request
 from .expressions import Formula
-from .problem import ExactSolution, Problem, positive_number
+from .problem import ExactSolution, Problem, positive_number, real_number
 
 DEFAULT_H = 0.05
 
@@ -200,12 +200,7 @@ def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float =
     levels = _check_levels(levels)
     h = _check_size(h, levels, "disk", None, max_vertices, comm)
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
-    try:
-        if isinstance(rho, (bool, np.bool_)):    # False is not ρ = 0 (as mu1, mu2, g)
-            raise TypeError
-        rho = float(rho)
-    except (TypeError, ValueError):
-        raise ValueError(f"rho must be a number, got {rho!r}") from None
+    rho = real_number("rho", rho)                  # (False is not ρ = 0)
     if not (0.0 <= rho < 1.0):
         raise ValueError(f"rho must lie in [0, 1), got {rho}")
     if not isinstance(contact, (bool, np.bool_)):

@@ -128,7 +128,7 @@ def _check(cfun, variant, system, solver_spec, estimate, gamma_lin, gamma_alg, t
         raise ValueError("the adaptive Newton variant needs the estimators (estimate=...)")
     for name, value in (("gamma_lin", gamma_lin), ("gamma_alg", gamma_alg), ("tol", tol)):
         _positive(name, value)
-    max_newton = positive_integer("max_newton", max_newton)
+    positive_integer("max_newton", max_newton)
 
 
 def linear_criterion(est, gamma_alg):
