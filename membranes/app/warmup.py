@@ -4,9 +4,10 @@ dolfinx turns every UFL form into C code the first time it meets it (FFCx genera
 code, a C compiler builds it, cffi loads it) and keeps the result in its cache,
 ``$XDG_CACHE_HOME/fenics`` (``~/.cache/fenics`` by default). A form is identified by its UFL
 signature: the element, the integrand with the numbers written into it, the quadrature
-degree. It does not depend on the mesh or its size, so compiling on a mesh of a few dozen
-cells serves every later run on the same scene, at any h and any level and on any number of
-processes.
+degree. It does not depend on the mesh or its size (a form over the whole mesh is always
+assembled as tagged chunks of cells, `estimation.cell_forms.chunks`, one chunk on a small
+mesh), so compiling on a mesh of a few dozen cells serves every later run on the same scene,
+at any h and any level and on any number of processes.
 
 The first compilation of the disk scene's forms takes tens of seconds (about 20 s on an
 unloaded machine), all of it inside the wall time that `solve` and the report measure. This

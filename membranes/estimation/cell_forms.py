@@ -55,8 +55,12 @@ class CellForm:
 def chunks(form, mesh, size=None):
     """The UFL `form` restricted to consecutive chunks of about `size` owned cells (as many
     chunks on every process: creating a dolfinx form is collective), or [form] if it has an
-    integral that is not over the whole mesh (data measures with tagged cut cells) or one
-    chunk suffices. Their sum is `form` on the owned cells. `size`: CHUNK_CELLS."""
+    integral that is not over the whole mesh (data measures with tagged cut cells). Their sum
+    is `form` on the owned cells. `size`: CHUNK_CELLS.
+
+    A mesh that needs one chunk gets one tagged chunk too, not `form` itself: the tagged
+    integral is another UFL signature, hence another compiled kernel, and the JIT warm-up's
+    tiny meshes (membranes.app.warmup) must compile the kernel that large meshes use."""
     from dolfinx.mesh import meshtags
     size = CHUNK_CELLS if size is None else size
     if any(itg.subdomain_id() != "everywhere" or itg.subdomain_data() is not None
@@ -64,8 +68,6 @@ def chunks(form, mesh, size=None):
         return [form]
     nc = owned_cells(mesh)
     count = mesh.comm.allreduce(max(1, -(-nc // size)), op=MPI.MAX)
-    if count == 1:
-        return [form]
     bounds = np.linspace(0, nc, count + 1).astype(np.int64)
     out = []
     for a, b in zip(bounds[:-1], bounds[1:]):

@@ -448,3 +448,24 @@ def test_chunked_assemblies_equal_whole(setup, monkeypatch):
     assert len(chunked._recovery[0]) > 2
     assert rec[0] == pytest.approx(whole_rec[0], rel=1e-14)
     assert rec[1] == pytest.approx(whole_rec[1], rel=1e-14)
+
+
+def test_one_kernel_for_every_chunk_count(setup):
+    """A mesh that fits one chunk compiles the kernel that a mesh of many chunks uses (the
+    JIT warm-up runs on tiny meshes, membranes.app.warmup): the UFL signatures of `chunks`
+    with one chunk and with several are the same, and differ from the untagged form's."""
+    import ufl
+    from dolfinx import fem
+
+    from membranes.estimation.cell_forms import chunks
+    disc = setup[0]
+    v = ufl.TestFunction(fem.FunctionSpace(disc.mesh, ("DG", 0)))
+    form = v * ufl.dx(domain=disc.mesh)
+    one = chunks(form, disc.mesh)
+    nc = disc.mesh.topology.index_map(2).size_local
+    several = chunks(form, disc.mesh, size=max(1, nc // 4))
+    assert len(one) == 1 and len(several) >= 4
+    assert {f.signature() for f in several} == {one[0].signature()}
+    assert one[0].signature() != form.signature()
+    assert sum(fem.assemble_scalar(fem.form(ufl.replace(f, {v: 1.0}))) for f in several) \
+        == pytest.approx(fem.assemble_scalar(fem.form(ufl.replace(form, {v: 1.0}))), rel=1e-13)
