@@ -36,7 +36,9 @@ Written into DIR (staged beside it, moved in at the end: `outputs.staged_folder`
 Wall times: `solve`'s clock (discretisation, Newton, Krylov and every estimate the method uses
 or certifies with); the peers' solver time plus their discretisation (the same scope). Under
 `mpirun` every process computes and process 0 writes; the mesh is gathered onto process 0 for
-the two pictures only. matplotlib and pyvista are imported only when a report is asked for.
+the two pictures only. matplotlib and pyvista are imported only when a report is asked for:
+without matplotlib the report is refused before any run (`check_matplotlib`), without a
+pyvista that draws it goes without those two pictures.
 """
 
 import json
@@ -240,6 +242,19 @@ def method_row(label, s):
 
 
 # ## Curves (matplotlib, process 0)
+
+def check_matplotlib():
+    """ValueError unless matplotlib can be imported: the curves need it, but it is no
+    dependency of the package (`solve` does not draw), so a plain `pip install` lacks it. Asked
+    before any run (on every process, which share the environment), not after all of them.
+    The advice pins numpy: an unpinned matplotlib pulls a numpy that dolfinx cannot load."""
+    try:
+        import matplotlib.figure  # noqa: F401
+    except ImportError as e:
+        raise ValueError(f"membranes report draws its curves with matplotlib, which cannot be "
+                         f"imported here ({e}): pip install matplotlib "
+                         f"numpy=={np.__version__}") from None
+
 
 def _points(rows, x, y):
     pts = [(r[x], r[y]) for r in rows if r.get(y) is not None and r[y] > 0]
@@ -454,6 +469,7 @@ def markdown(problem, runs, summaries, rows, cells, sources, seconds, missing=No
 def write_report(problem, out, say=lambda line: None):
     """Run every method and peer on `problem` and write the report into `out` (collective;
     process 0 writes). Returns (runs {label: Solution}, table rows)."""
+    check_matplotlib()
     comm = problem.mesh.comm
     t = time.perf_counter()
     with staged_folder(out, comm) as tmp:
@@ -513,6 +529,7 @@ def main(args):
     from ..model.checks import check_output_folder
     from .cli import EXIT_NOT_CONVERGED
     comm = MPI.COMM_WORLD
+    check_matplotlib()
     check_output_folder(args.out, comm)
     problem = scenes.make(args.scene, h=args.h, levels=args.levels)
     quiet = args.quiet or comm.rank != 0

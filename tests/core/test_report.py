@@ -6,6 +6,8 @@ behind them."""
 import argparse
 import csv
 import os
+import subprocess
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -270,3 +272,34 @@ def test_a_report_without_pyvista(tmp_path, monkeypatch):
         assert f"]({name})" not in text
     assert sum("warning: rendering" in line for line in said) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["block", "square"]
+
+
+def test_a_report_without_matplotlib(tmp_path, monkeypatch):
+    """matplotlib is no dependency of the package (a plain `pip install` lacks it): the
+    report is refused before any run, one line naming it and exit 2 from the command,
+    ValueError from write_report, nothing written. It used to run every method and then end in
+    a ModuleNotFoundError traceback."""
+    block = tmp_path / "block"
+    block.mkdir()
+    (block / "sitecustomize.py").write_text(
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] == 'matplotlib':\n"
+        "            raise ImportError('no matplotlib here')\n"
+        "sys.meta_path.insert(0, Block())\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(block)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    out = tmp_path / "disk"
+    proc = subprocess.run([sys.executable, "-m", "membranes.app.cli", "report", "--h", "0.5",
+                           "--levels", "1", "--out", str(out)], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    err = proc.stderr.strip()
+    assert err.startswith("membranes: error: ") and "\n" not in err, err
+    assert "matplotlib" in err and "no matplotlib here" in err and proc.stdout == ""
+    for name in ("matplotlib", "matplotlib.figure"):
+        monkeypatch.setitem(sys.modules, name, None)
+    with pytest.raises(ValueError, match="matplotlib"):
+        write_report(scenes.disk(h=0.5, levels=1), str(out))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["block"]

@@ -1,0 +1,113 @@
+"""The package as `pip install /path/to/membranes` installs it, used outside the source tree:
+the wheel holds every module of membranes/ and forms/ (pyproject.toml lists the packages by
+hand, so a new subpackage missing there would work in the tree and fail installed), the
+`membranes` command, and a numpy requirement that keeps numpy 2 out (Debian's petsc4py and
+dolfinx 0.5.2 do not load under it); installed elsewhere, it runs from an unrelated folder
+and its warm-up stamp (a hash of forms/ and membranes/ found from warmup.py's own path) is
+the source tree's."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1,
+                                reason="builds and runs the package in processes of its own")
+
+
+def _modules():
+    """Paths (relative to ROOT, '/'-separated) of every module of the two packages (they hold
+    no other files: the code reads nothing else from its own folders)."""
+    found = set()
+    for package in ("membranes", "forms"):
+        for folder, _, files in os.walk(os.path.join(ROOT, package)):
+            found |= {os.path.relpath(os.path.join(folder, f), ROOT).replace(os.sep, "/")
+                      for f in files if f.endswith(".py")}
+    return found
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory):
+    """A wheel built, as pip builds it, from a copy of the sources (a build in the tree would
+    leave build/ and *.egg-info there)."""
+    tmp = tmp_path_factory.mktemp("install")
+    src = tmp / "src"
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
+    for package in ("membranes", "forms"):
+        shutil.copytree(os.path.join(ROOT, package), src / package, ignore=ignore)
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(os.path.join(ROOT, name), src / name)
+    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps",
+                           "--no-build-isolation", "--disable-pip-version-check", "-q",
+                           "-w", str(tmp / "wheel"), str(src)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (path,) = (tmp / "wheel").iterdir()
+    return path
+
+
+def test_wheel_holds_every_file_the_code_needs(wheel):
+    with zipfile.ZipFile(wheel) as z:
+        names = set(z.namelist())
+        info = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
+        entry_points = z.read(info).decode()
+    shipped = {n for n in names if n.split("/")[0] in ("membranes", "forms")}
+    assert _modules() <= shipped, sorted(_modules() - shipped)
+    assert "membranes/app/render.py" in shipped          # run by its path as a script
+    assert "membranes = membranes.app.cli:main" in entry_points
+
+
+def test_numpy_requirement_keeps_numpy_2_out(wheel):
+    """An unbounded `numpy` let `pip install '.[dev]'` (matplotlib, contourpy) replace the
+    system's numpy 1.24 by numpy 2, and then petsc4py fails to import."""
+    from packaging.requirements import Requirement
+    with zipfile.ZipFile(wheel) as z:
+        info = next(n for n in z.namelist() if n.endswith(".dist-info/METADATA"))
+        metadata = z.read(info).decode()
+    requires = [Requirement(line.split(":", 1)[1].strip()) for line in metadata.splitlines()
+                if line.startswith("Requires-Dist:")]
+    (numpy,) = [r for r in requires if r.name == "numpy" and r.marker is None]
+    assert not numpy.specifier.contains("2.0.0")
+    assert numpy.specifier.contains(np.__version__)      # the numpy dolfinx runs with here
+
+
+def test_installed_package_runs_outside_the_tree(wheel, tmp_path):
+    """Installed into a folder of its own and run from another one, with nothing of the
+    source tree on the path: the modules are the installed ones, the warm-up stamp is the one
+    the source tree computes (same code, same hash), and a solve converges."""
+    site, work = tmp_path / "site", tmp_path / "work"
+    work.mkdir()
+    proc = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps",
+                           "--disable-pip-version-check", "-q", "--target", str(site),
+                           str(wheel)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env["PYTHONPATH"] = str(site)
+
+    def run(*args):
+        proc = subprocess.run([sys.executable, *args], cwd=work, env=env, capture_output=True,
+                              text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return proc.stdout
+
+    from membranes.app.warmup import stamp
+    where = json.loads(run("-c", "import json, forms, membranes; "
+                           "from membranes.app.warmup import stamp; "
+                           "print(json.dumps([membranes.__file__, forms.__file__, "
+                           "str(stamp(['disk', 'square']))]))"))
+    assert where[0] == str(site / "membranes" / "__init__.py")
+    assert where[1] == str(site / "forms" / "__init__.py")
+    assert where[2] == str(stamp(["disk", "square"]))
+    summary = json.loads(run("-m", "membranes.app.cli", "solve", "--scene", "disk", "--h",
+                             "0.5", "--levels", "1", "--out", "out", "--quiet"))
+    assert summary["converged"] and summary["eta"] >= summary["energy_error"] > 0
+    assert sorted(os.listdir(work / "out")) == ["history.csv", "solution.h5", "solution.xdmf",
+                                                 "summary.json"]
