@@ -128,10 +128,12 @@ for variant, sol in runs.items():
 # the method estimated it, the estimators. Plotted against time, the error of each method
 # falls level by level with the nested iteration; the adaptive method's η follows its error
 # from above at every iterate it estimated, while exact and inexact Newton carry a single
-# certificate, at the end. The estimates are not free: the adaptive run sets up the flux
-# equilibration of every level (the pause at the start of each level) and evaluates the
-# estimators every ν Krylov steps; whether that pays off depends on how much the Krylov and
-# Newton steps it saves cost. `membranes report` measures it for every method side by side.
+# certificate, at the end. The estimates are not free: the adaptive run leaves the coarse
+# levels by a residual test without estimators (`coarse="residual"`, docs/choices.md),
+# then sets up the flux equilibration of $T_J$ (the pause before its first Newton step)
+# and evaluates the estimators at the iterates its stopping tests read; whether that pays
+# off depends on how much the Krylov and Newton steps it saves cost. `membranes report`
+# measures it for every method side by side.
 
 # +
 picture = os.path.join(out, "error_vs_time.png")

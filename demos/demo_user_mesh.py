@@ -117,8 +117,9 @@ say(f"|||u_h||| = {norm:.4e}: relative error at most {est['eta'] / norm:.2%}")
 # `membranes.app.render.snapshot` draws fields on the (distributed) mesh with pyvista,
 # off-screen: P1 functions at the vertices, per-cell values on the cells. The gap vanishes
 # where the membranes touch, and there the pressure is positive; $\eta_K$ (logarithmic
-# scale) is largest at the re-entrant corner and along the free boundary, the edge of the
-# contact zone, where the solution is least smooth.
+# scale) is largest by far at the re-entrant corner, where the solution is least smooth,
+# smallest inside the contact zone, and a little larger along the free boundary, the edge
+# of the contact zone, than around it.
 
 # +
 gap = fem.Function(sol.disc.V)

@@ -1,8 +1,10 @@
 """The README's Python example runs as printed: its code block is executed, and what it
 computes is checked (a converged, certified disk run; the sweep's η one per μ2, each the η
-of a run without kept set-ups, to round-off)."""
+of a run without kept set-ups, to round-off). docs/cli.md's option tables are those of the
+command line: every option documented, every documented option there, with its choices."""
 
 import os
+import re
 from dataclasses import replace
 
 import pytest
@@ -25,3 +27,22 @@ def test_readme_python_example(capsys):
     from membranes import solve
     fresh = solve(replace(problem, mu2=5, exact=None)).estimates["eta"]
     assert abs(etas[-1] - fresh) <= 1e-12 * fresh
+
+
+def test_cli_md_tables_are_the_options_of_the_command_line():
+    from membranes.app.cli import _parser
+    with open(os.path.join(ROOT, "docs", "cli.md")) as f:
+        text = f.read()
+    commands = next(a for a in _parser()._actions if a.dest == "command").choices
+    for name, after in (("solve", "report"), ("report", "stability"), ("stability", "scenes")):
+        section = text[text.index(f"## `membranes {name}`"):text.index(f"## `membranes {after}`")]
+        cells = [re.split(r"(?<!\\)\|", line)[1] for line in section.splitlines()
+                 if line.startswith("| `--")]         # (a cell's \| is no column)
+        documented = {o for cell in cells for o in re.findall(r"--[a-z][a-z0-9-]*", cell)}
+        actions = [a for a in commands[name]._actions if "--help" not in a.option_strings]
+        assert documented == {o for a in actions for o in a.option_strings}, name
+        for a in actions:
+            if a.choices:
+                cell = next(c for c in cells if f"`{a.option_strings[0]} " in c)
+                listed = re.search(r"\{([^}]*)\}|(\w+\\\|\w+)", cell).group(0)
+                assert set(re.findall(r"\w+", listed)) == set(a.choices), a.option_strings

@@ -81,6 +81,27 @@ def test_progress_says_the_setup_was_kept():
     kept.clear()
 
 
+def test_other_data_drop_the_scene_description_and_exact_solution():
+    """A problem of the README's parameter study, replace(problem, mu2=5, exact=None), is
+    described by its own data in summary.json, not the scene's (mu1 = mu2 = 1, exact
+    solution); keeping the scene's exact solution with other data is refused (its energy
+    error would be that of the wrong solution: effectivity 0.07 on this disk); a copy on
+    another hierarchy, or with the same values, is the scene itself."""
+    disk = scenes.disk(h=0.5, levels=1)
+    other = replace(disk, mu2=5, exact=None)
+    assert other.description == "unit disk, mu1 = 1, mu2 = 5, g = 0.05, f1 of scene disk, " \
+        "f2 of scene disk"
+    with pytest.raises(ValueError, match="exact solution of scene 'disk' does not solve"):
+        replace(disk, mu2=5)
+    for same in (replace(disk, mu2=1), replace(disk, hierarchy=disk.hierarchy.up_to(0))):
+        assert same.description == disk.description and same.exact is disk.exact
+    user = scenes.user(f1="-1", domain="square", h=0.5)
+    assert replace(user, f1="-2").description == \
+        "unit square, mu1 = 1, mu2 = 1, g = 0.05, f1 = -2, f2 = 0"
+    sol = solve(other, newton="exact", estimators=False)
+    assert sol.summary()["description"] == other.description
+
+
 def test_setups_must_be_a_store():
     with pytest.raises(ValueError, match="setups must be a membranes.Setups"):
         solve(scenes.disk(h=0.5), setups={})

@@ -12,7 +12,7 @@ checked to be finite on the mesh). Bad data raise ValueError with a one-line mes
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable, Optional, Union
 
 import numpy as np
@@ -87,6 +87,9 @@ class Problem:
     description: str = ""
     domain: str = ""
     poincare: Optional[float] = None       # C_PF h_Ω where the scene knows a sharper value
+    # the data (μ1, μ2, g, f1, f2) and exact solution that `description` was written for:
+    # set on construction, carried over by dataclasses.replace (`_other_data`)
+    described: Optional[tuple] = field(default=None, repr=False, compare=False)
 
     def poincare_constant(self) -> float:
         """C_PF h_Ω ≥ 1/sqrt(λ_1(Ω)) (§7): the scene's value, else the guaranteed bound
@@ -123,6 +126,31 @@ class Problem:
                 v = float(data)
                 if not np.isfinite(v):
                     raise ValueError(f"{name} must be finite, got {v}")
+        self._other_data()
+
+    def _other_data(self) -> None:
+        """A copy with other data (`dataclasses.replace(problem, mu2=5, exact=None)`, a
+        parameter study; README): the scene's exact solution solves the scene's data only,
+        so keeping it would report the error against the wrong solution (ValueError), and
+        the scene's description is rewritten from the new data (summary.json's
+        `description`, docs/outputs.md)."""
+        data = (self.mu1, self.mu2, self.g, self.f1, self.f2)
+        if self.described is not None:
+            old, exact = self.described
+            if all(a is b or (isinstance(a, float) and a == b) for a, b in zip(old, data)):
+                return
+            if self.exact is not None and self.exact is exact:
+                raise ValueError(f"the exact solution of scene {self.name!r} does not solve "
+                                 f"other data: give exact=None with new mu1, mu2, g, f1 or f2")
+            words = [f"{k} = {v:g}" for k, v in zip(("mu1", "mu2", "g"), data)]
+            words += [f"{k} = {v.text if isinstance(v, Formula) else f'{v:g}'}"
+                      if isinstance(v, (Formula, float, int)) else f"{k} of scene {self.name}"
+                      for k, v in zip(("f1", "f2"), data[3:])]
+            where = {"disk": "unit disk", "square": "unit square"}.get(
+                self.domain, f"mesh {self.domain}" if self.domain else "")
+            self.description = ", ".join(([where] if where else []) + words) + \
+                (", exact solution given" if self.exact is not None else "")
+        self.described = (data, self.exact)
 
     @property
     def mesh(self) -> Mesh:

@@ -6,6 +6,8 @@ the data jump. Nothing else is attached, so the driver computes nothing a scene 
 
 * ``disk``   — the paper's test case with its exact solution (§9).
 * ``square`` — the unit square with a manufactured solution with a genuine contact zone.
+* ``radial`` — the unit disk with exact radial solutions for any μ1, μ2, g, from no contact to
+  near-total contact (API only, not on the command line).
 * ``user``   — μ1, μ2, g, f1, f2 from the command line (f as formulas in x, y) on the unit disk,
   the unit square, or a gmsh file.
 """
