@@ -57,6 +57,10 @@ CLI_CASES = {
     "tiny modulus overflows": ["--f1", "-1", "--mu1", "1e-300"],
     "g overflows": ["--g", "1e300"],
     "estimators overflow": ["--f1", "-1", "--mu1", "1e300"],
+    # ... and whose scale underflows it: residuals at round-off square to 0, and the adaptive
+    # run stopped after one step with λ = 0 and η = 0 at g = 1e-161 (probe C)
+    "g underflows": ["--g", "1e-200"],
+    "data underflow": ["--f1", "-1e-160", "--g", "1e-161"],
     # formulas that raised RecursionError, OverflowError or a C compile error (probe B)
     "expr too deep": ["--f1", "+".join(["x"] * 1500)],
     "expr unary too deep": ["--f1", "-" * 1500 + "x"],
@@ -73,6 +77,8 @@ def test_cli_bad_values(case, tmp_path, capsys):
     assert "Traceback" not in err
     if "overflow" in case:
         assert "overflow double precision" in err
+    if "underflow" in case:
+        assert "underflow double precision" in err
 
 
 @pytest.mark.parametrize("case", MESH_CASES)

@@ -10,7 +10,15 @@
   paper (§8). In parallel PETSc's ILU is block Jacobi: ``pc_type bjacobi`` with one block per
   process and ILU(0) inside it, i.e. the paper's ILU(0) on each process's diagonal block of the
   matrix (its own u1, u2 and λ rows); on one process it *is* the paper's ILU(0). The iteration
-  counts grow with P as the blocks decouple.
+  counts grow with P as the blocks decouple. ILU's zero-pivot threshold is 0 (only an exactly
+  zero pivot is a breakdown; so for every ``ilu`` or ``icc`` of the user's, unless the user
+  sets ``pc_factor_zeropivot``): PETSc's default declares a pivot zero below the absolute
+  100 ε ≈ 2.2e-14, but every entry of the λ column (D/μ_α, κ ∂C/∂b), and so every λ pivot
+  (about κ h²), carries the unit 1/μ. Scaling μ1, μ2, f1, f2 by c scales that column by 1/c
+  and leaves u unchanged (§11); ILU(0) and right-preconditioned GMRES are invariant under
+  column scaling, so the whole run is, save for that test: with it, μ1 = μ2 = 1e11 on the
+  disk at h = 0.1 failed in its first Newton step (DIVERGED_PCSETUP_FAILED), and so did
+  ``-pc_type ilu`` on the eliminated system at μ1 = μ2 = 1e12.
 * ``direct``: MUMPS, distributed LU of the full 3N system (``preonly``, ``lu``), analysed
   anew at every step, with ICNTL(14) = 100 (100 % more working memory than its analysis
   estimates): the zero λ-diagonal of a min contact vertex makes MUMPS delay pivots, and with
@@ -88,6 +96,8 @@ PRESETS = {
     "amg": {"system": "eliminated",
             "options": {"ksp_type": "fgmres", "ksp_norm_type": "unpreconditioned"}},
 }
+# incomplete factorisations: their zero-pivot threshold is set to 0 (module notes)
+INCOMPLETE = ("ilu", "icc")
 # a KSP of type preonly applies its PC once: the linear solve is exact only by a factorisation
 FACTORISATIONS = ("lu", "cholesky")
 RESERVED = {"ksp_rtol": "the Newton variant sets the linear tolerance",
@@ -136,6 +146,11 @@ class Krylov:
             user[name] = value
         self.merged = dict(PRESETS[self.preset]["options"])
         self.merged.update(user)
+        for name, value in list(self.merged.items()):
+            # an incomplete factorisation (the paper's ILU(0), or the user's on either
+            # system) declares only an exact zero pivot a breakdown (module notes)
+            if name.endswith("pc_type") and str(value).lower() in INCOMPLETE:
+                self.merged.setdefault(name[:-len("type")] + "factor_zeropivot", 0.0)
         for name, value in self.merged.items():
             # PCMG on more than one level needs interpolations nobody supplies here: PETSc
             # crashes in its set-up (a segmentation fault, not an error)

@@ -72,6 +72,16 @@ from petsc4py import PETSc
 
 from . import cfunctions
 
+# Every test of §8 compares a norm with a tolerance times ‖W (F, 0)‖, and the norms are roots
+# of sums of squares (PETSc's VecNorm too). Below this size of ‖W (F, 0)‖ the square of a
+# residual at round-off, (ε ‖W (F, 0)‖)², is no longer a normal double: the residuals read
+# 0, and the tests pass on noise. With data scaled by 1e-160 (g = 1e-161 on the square) the
+# adaptive variant stopped after one step with λ = 0 and η = 0; exact Newton reported a
+# relative residual of 0 from 1e-150 on and stopped early from 1e-154 (theory §11: the
+# problem is positively homogeneous, the data can be rescaled). The symmetric limit,
+# ‖W (F, 0)‖² overflowing, is the overflow check of NewtonSystem.
+UNDERFLOW_SCALE = float(np.sqrt(np.finfo(float).tiny) / np.finfo(float).eps)    # ≈ 6.7e-139
+
 
 def _ints(a):
     return np.ascontiguousarray(a, dtype=PETSc.IntType)
@@ -171,6 +181,11 @@ class NewtonSystem:
         if not (np.isfinite(self.norm_F) and np.isfinite(self.kappa)):
             raise ValueError(f"the data overflow double precision: ||W (F, 0)|| = "
                              f"{self.norm_F:g}, kappa = {self.kappa:g} (mu1 = {mu1:g}, "
+                             f"mu2 = {mu2:g}, g = {float(disc.g):g}); rescale them: the "
+                             f"solution scales with f / mu and g (theory §11)")
+        if self.norm_F < UNDERFLOW_SCALE:
+            raise ValueError(f"the data underflow double precision: ||W (F, 0)|| = "
+                             f"{self.norm_F:g} < {UNDERFLOW_SCALE:.1e} (mu1 = {mu1:g}, "
                              f"mu2 = {mu2:g}, g = {float(disc.g):g}); rescale them: the "
                              f"solution scales with f / mu and g (theory §11)")
         self.WF2 = PETSc.Vec().createMPI((2 * n, 2 * N), comm=comm)    # W F, 2N layout
