@@ -134,8 +134,12 @@ class LevelEstimates:
     def _evaluate(self, X, R):
         if R is not None and self.multilevel is not None:
             rh = self.est.lifted(R)
-            sigma_alg = [self.multilevel.sigma(r) for r in rh]
-            return self.est.evaluate(X, R, sigma_alg=sigma_alg)
+            sigma_alg, defects = [], []
+            for r in rh:                 # (each σ_alg's divergence defect, to round-off, §6)
+                sigma_alg.append(self.multilevel.sigma(r))
+                defects.append(self.multilevel.defect_sq)
+            return self.est.evaluate(X, R, sigma_alg=sigma_alg,
+                                     eta_rem=self.est.remainder_of(defects))
         return self.est.evaluate(X, R)
 
     def __call__(self, X, R, kind=None):

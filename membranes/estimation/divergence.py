@@ -23,6 +23,10 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 TOLERANCE = 1e-8
+# σ_alg of the multilevel flux: its defect, whatever its size, is measured and enters the
+# bound as the remainder (multilevel notes), so the check only catches a wrong block (a defect
+# of the size of the right-hand sides) and lets the round-off of strongly graded meshes pass
+ACCOUNTED_TOLERANCE = 1e-4
 
 
 def assemble(form, mesh, into):
@@ -52,14 +56,14 @@ def largest(values):
     return float(max(a.max(initial=0.0), -a.min(initial=0.0)))
 
 
-def check(defect, scale, comm, what):
-    """`defect` (the largest |moment| of the defect on this process) against TOLERANCE ·
+def check(defect, scale, comm, what, tolerance=TOLERANCE):
+    """`defect` (the largest |moment| of the defect on this process) against `tolerance` ·
     `scale` (the size of the right-hand sides, see the module notes), over all processes;
     raises RuntimeError naming `what` if it fails. Returns the relative defect."""
     defect = comm.allreduce(float(defect), op=MPI.MAX)
     scale = comm.allreduce(float(scale), op=MPI.MAX)
     relative = defect / scale if scale > 0.0 else defect
-    if not relative <= TOLERANCE:                     # (also for NaN)
+    if not relative <= tolerance:                     # (also for NaN)
         raise RuntimeError(f"{what} violates its divergence identity, so no bound can rest on "
                            f"it: largest DG1 moment of the defect {defect:.3e}, {relative:.1e} "
                            f"of the right-hand sides' (a patch solved with a block not its "

@@ -427,6 +427,12 @@ class Estimators:
         total = global_sums(self.comm, self.cells_rem.cells()).sum()
         return float(self.cpf * np.sqrt(max(total, 0.0)))
 
+    def remainder_of(self, squares):
+        """η_rem = C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} from the global ‖ρ_1‖², ‖ρ_2‖² (the
+        multilevel flux's measured divergence defects, `multilevel.MultilevelFlux.defect_sq`)."""
+        total = sum(max(float(q), 0.0) / m for q, m in zip(squares, self.mu))
+        return float(self.cpf * np.sqrt(total))
+
     def _set_rho(self, r, dlam=None):
         """r_α and δλ into the remainder's coefficients (`remainder`)."""
         n = self.n
