@@ -29,6 +29,19 @@ def bad_meshes(tmp_path_factory):
             "box": str(write_msh(d / "box.msh", "box"))}
 
 
+def _balanced(terms):
+    """The sum of `terms`, parenthesised as a balanced tree: nested about log2(n) deep."""
+    while len(terms) > 1:
+        terms = [f"({a} + {b})" for a, b in zip(terms[::2], terms[1::2])] + \
+            ([terms[-1]] if len(terms) % 2 else [])
+    return terms[0]
+
+
+def _series(n):
+    """A Fourier series of n terms, 23 n - 2 parts (`expressions.MAX_PARTS` is 20000)."""
+    return _balanced([f"sin({k}*x)*cos({k}*y)/{k**2}" for k in range(1, n + 1)])
+
+
 CLI_CASES = {
     "mu1 zero": ["--mu1", "0"],
     "mu2 negative": ["--mu2", "-2"],
@@ -67,6 +80,8 @@ CLI_CASES = {
     "expr constant too large": ["--f1", "min(2**10**10, x)"],
     "expr huge integer": ["--f1", "1" + "0" * 400],
     "expr inf inside": ["--f1", "min(1e400, x) - 1"],
+    # a long formula kept shallow by parentheses: minutes in the C compiler (probe F)
+    "expr too large": ["--f1", _series(1000)],
 }
 MESH_CASES = ("missing", "directory", "garbage", "quads", "p2", "box")
 
@@ -154,13 +169,30 @@ def test_api_problem_and_solve_options():
 
 def test_formula_accepts_the_documented_language():
     f = Formula("-1 + 0.5*sin(pi*x)*cos(y) + exp(-x**2) - sqrt(abs(y)) + min(x, y, 0) "
-                "+ max(x, 2*y)", "f1")
+                "+ max(x, 2*y) + tanh((x - 0.3)/0.01)", "f1")
     import numpy as np
     p = np.array([[0.3, -0.2], [0.1, 0.4]])
     x, y = p
     expected = (-1 + 0.5 * np.sin(np.pi * x) * np.cos(y) + np.exp(-x ** 2) - np.sqrt(np.abs(y))
-                + np.minimum(np.minimum(x, y), 0) + np.maximum(x, 2 * y))
+                + np.minimum(np.minimum(x, y), 0) + np.maximum(x, 2 * y)
+                + np.tanh((x - 0.3) / 0.01))
     assert np.allclose(f.numpy(p), expected, rtol=1e-15, atol=1e-15)
+
+
+def test_formula_tanh_builds_the_same_in_ufl():
+    """tanh (a steep layer without exp's overflow): UFL's build integrates to the closed form
+    ∫_0^1 ∫_0^1 tanh(3x) = ln(cosh 3)/3; a rule exact for degree 12 on cells of size h = 1/32
+    errs by O((3h)^13) ≈ 1e-13 on tanh(3x), far below the tolerance 1e-10."""
+    import numpy as np
+    import ufl
+    from dolfinx import fem
+    from dolfinx.mesh import create_unit_square
+    from mpi4py import MPI
+    mesh = create_unit_square(MPI.COMM_SELF, 32, 32)
+    f = Formula("tanh(3*x)", "f1")
+    dx = ufl.dx(domain=mesh, metadata={"quadrature_degree": 12})
+    value = fem.assemble_scalar(fem.form(f.ufl(ufl.SpatialCoordinate(mesh)) * dx))
+    assert value == pytest.approx(np.log(np.cosh(3.0)) / 3.0, rel=1e-10)
 
 
 def _filled(X, value):
@@ -388,6 +420,20 @@ def test_formula_parts_without_x_y_are_evaluated_as_on_the_mesh():
     assert len(str(e.value)) < 300
     assert Formula("+".join(["x"] * 400), "f1").numpy(np.array([[1.0], [0.0]]))[0] == 400.0
     assert Formula(Formula("x + 1"), "f2").text == "x + 1"
+
+
+def test_formula_too_large_to_compile_is_refused():
+    """A long formula kept shallow by parentheses passed the nesting limit, and its data forms
+    then went to the C compiler, whose time and memory grow faster than the kernel beyond some
+    20000 parts (docs/performance.md). Refused when parsed, with its size; a series of 800 terms
+    is accepted. The counts are those of Python's syntax tree (`_series`)."""
+    ok = Formula(_series(800), "f1")
+    assert ok.numpy(np.array([[0.0], [0.3]]))[0] == 0.0          # every sin(k*0) is 0
+    with pytest.raises(ValueError, match=r"f1: .* has 91998 parts .* more than 20000") as e:
+        Formula(_series(4000), "f1")
+    assert "\n" not in str(e.value) and len(str(e.value)) < 300
+    with pytest.raises(ValueError, match="more than 20000"):
+        scenes.user(h=0.3, f2=_series(1000))                          # 22998 parts
 
 
 def test_formula_change_changes_the_solution_and_folding_does_not():

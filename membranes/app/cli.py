@@ -59,7 +59,7 @@ def _parser():
     s.add_argument("--mu2", type=float, help="modulus of membrane 2 (> 0, default 1)")
     s.add_argument("--g", type=float, help="boundary value of membrane 1 (> 0, default 0.05)")
     s.add_argument("--f1", metavar="EXPR", help="load of membrane 1, formula in x, y "
-                   "(pi sin cos exp sqrt abs min max; default 0)")
+                   "(pi sin cos exp tanh sqrt abs min max; default 0)")
     s.add_argument("--f2", metavar="EXPR", help="load of membrane 2 (default 0)")
     s.add_argument("--newton", choices=("exact", "inexact", "adaptive"),
                    help="adaptive (default): Krylov and Newton stopped by the estimators; "

@@ -4,12 +4,23 @@ A formula such as ``-1 + 0.5*sin(pi*x)*max(y, 0)`` is parsed once with Python's 
 (never ``eval``) and can then be built twice from the same tree: as a UFL expression of the
 spatial coordinate (for assembly) and as a numpy function (to check that the data are finite
 on the mesh). Allowed: numbers, ``x``, ``y``, ``pi``, ``+ - * / **``, and the functions
-``sin cos exp sqrt abs min max``. Anything else is a :class:`ValueError` naming the problem,
+``sin cos exp tanh sqrt abs min max``. Anything else is a :class:`ValueError` naming the problem,
 and so is a formula nested deeper than MAX_DEPTH (Python's parser and the recursive builds
-would fail with RecursionError or MemoryError) or a part without x, y that is not finite
-(``2**10**10``, ``1e400``). Parts without x, y are evaluated once in double precision (numpy's
-arithmetic, as on the mesh), so that the UFL build and the numpy check agree: Python's float
-arithmetic raises where numpy's gives inf (``1/exp(1000)`` is 0 to both).
+would fail with RecursionError or MemoryError), one of more than MAX_PARTS parts (below), or a
+part without x, y that is not finite (``2**10**10``, ``1e400``). Parts without x, y are
+evaluated once in double precision (numpy's arithmetic, as on the mesh), so that the UFL build
+and the numpy check agree: Python's float arithmetic raises where numpy's gives inf
+(``1/exp(1000)`` is 0 to both).
+
+Size. The formula is written into the C code of every form that integrates the data (the loads,
+the patch loads and the oscillation, §2, §5, §7), and a new formula compiles them on first use.
+The C compiler's time and memory grow with the size of one kernel, in proportion up to some
+MAX_PARTS parts (numbers, names, operations and calls of the syntax tree; a series of n terms
+sin(k*x)*cos(k*y)/k**2 has 23 n - 2) and faster beyond (docs/performance.md has the figures).
+Larger formulas are refused up front rather than left to the compiler. Nesting does not get
+around it (balanced parentheses keep a long sum shallow); the size does not depend on the mesh,
+and the quadrature of the data does not grow with the formula (a fixed rule,
+`membranes.fem.quadrature`).
 """
 
 import ast
@@ -24,6 +35,7 @@ _FUNCTIONS = {
     "sin": (ufl.sin, np.sin, 1),
     "cos": (ufl.cos, np.cos, 1),
     "exp": (ufl.exp, np.exp, 1),
+    "tanh": (ufl.tanh, np.tanh, 1),
     "sqrt": (ufl.sqrt, np.sqrt, 1),
     "abs": (abs, np.abs, 1),
     "min": (ufl.min_value, np.minimum, None),
@@ -36,6 +48,7 @@ _BINARY = {ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b,
            ast.Pow: lambda a, b: a ** b}
 _UNARY = {ast.USub: lambda a: -a, ast.UAdd: lambda a: a}
 MAX_DEPTH = 500        # nesting of a formula (a sum of n terms nests n deep)
+MAX_PARTS = 20000      # nodes of a formula's syntax tree (module notes: the C compiler's cost)
 _SHOWN = 80            # characters of a formula quoted in a message
 
 
@@ -86,6 +99,11 @@ class Formula:
             raise ValueError(f"{name}: the formula {shown!r} ({len(self.text)} characters) "
                              f"is nested too deeply (at most {MAX_DEPTH} levels; a sum of n "
                              f"terms nests n deep)")
+        parts = sum(1 for _ in ast.walk(tree.body))
+        if parts > MAX_PARTS:
+            raise ValueError(f"{name}: the formula {shown!r} has {parts} parts (numbers, names, "
+                             f"operations), more than {MAX_PARTS}: too large to compile (the "
+                             f"C compiler's time grows faster than the formula)")
         self._tree = tree.body
         self._check(self._tree)
         self._check_constants(self._tree)
