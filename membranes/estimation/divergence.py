@@ -56,10 +56,12 @@ def largest(values):
     return float(max(a.max(initial=0.0), -a.min(initial=0.0)))
 
 
-def check(defect, scale, comm, what, tolerance=TOLERANCE):
-    """`defect` (the largest |moment| of the defect on this process) against `tolerance` ·
-    `scale` (the size of the right-hand sides, see the module notes), over all processes;
-    raises RuntimeError naming `what` if it fails. Returns the relative defect."""
+def check(defect, scale, comm, what, tolerance=None):
+    """`defect` (the largest |moment| of the defect on this process) against `tolerance`
+    (TOLERANCE if None) · `scale` (the size of the right-hand sides, see the module notes),
+    over all processes; raises RuntimeError naming `what` if it fails. Returns the relative
+    defect."""
+    tolerance = TOLERANCE if tolerance is None else tolerance
     defect = comm.allreduce(float(defect), op=MPI.MAX)
     scale = comm.allreduce(float(scale), op=MPI.MAX)
     relative = defect / scale if scale > 0.0 else defect
