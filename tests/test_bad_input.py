@@ -211,6 +211,56 @@ def test_bad_initial_guess(guess, message):
         solve(scenes.disk(h=0.3), newton="exact", initial_guess=guess, estimators=False)
 
 
+GUESS_ON_SOME_PROCESSES = """
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+from membranes import scenes, solve
+comm = MPI.COMM_WORLD
+problem = scenes.disk(h=0.3)
+n = problem.mesh.topology.index_map(0).size_local
+# the global size of the iterate layout, but its local sizes on process 0 only
+X = PETSc.Vec().createMPI((3 * n + 3 * (comm.rank == 1) - 3 * (comm.rank == 2), PETSc.DECIDE),
+                          comm=comm)
+X.set(0.0)
+
+def nan_on_the_last(disc):
+    Y = disc.vector3()
+    Y.array[:] = np.nan if comm.rank == comm.size - 1 else 0.0
+    return Y
+
+said = []
+for guess in (X, nan_on_the_last):
+    try:
+        solve(problem, newton="exact", estimators=False, nested=False, initial_guess=guess)
+        said.append(None)
+    except ValueError as e:
+        said.append(str(e))
+said = comm.gather(said, root=0)
+print(repr(said) if comm.rank == 0 else "", flush=True)
+"""
+
+
+def test_bad_initial_guess_on_some_processes_only():
+    """Under mpirun -n 3, a guess that is bad on some processes only: a Vec whose local sizes
+    are the iterate layout's on process 0 only (the others raised, process 0 waited for ever
+    in the next collective), and a guess with NaN on the last process only (refused there,
+    accepted on the others, which summed the processes' verdicts instead of requiring all).
+    Every process raises the same ValueError."""
+    import ast
+    import shutil
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(OMP_NUM_THREADS="1")
+    proc = subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
+                           "-n", "3", sys.executable, "-c", GUESS_ON_SOME_PROCESSES],
+                          capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr
+    said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    layout, nan = zip(*said)
+    assert all(m is not None and "iterate layout" in m for m in layout), said
+    assert all(m == "the initial guess has non-finite values" for m in nan), said
+
+
 # ## Refused at once (issue 29): each case of the issue's table, as a user runs it
 
 REFUSED_AT_ONCE = {

@@ -514,6 +514,62 @@ def test_an_error_of_one_process_ends_the_run(tmp_path):
     assert not out.exists()
 
 
+PART_OF_THE_MESH = """
+import numpy as np
+from mpi4py import MPI
+from membranes import scenes
+comm = MPI.COMM_WORLD
+problem = scenes.square(h=0.3)          # the same mesh as the user scene's below
+x = problem.mesh.geometry.x
+near = bool(np.any(x[:, 0] == 0.0))     # this process holds vertices on the line x = 0
+try:
+    scenes.user(domain="square", h=0.3, f1="1/x")
+    said = None
+except ValueError as e:
+    said = str(e)
+ranks = comm.gather((near, said), root=0)
+print(repr(ranks) if comm.rank == 0 else "", flush=True)
+"""
+
+
+def test_data_not_finite_on_part_of_the_mesh_are_refused_by_every_process(tmp_path):
+    """f1 = 1/x on the unit square on 3 processes: only the processes that hold vertices on
+    x = 0 found the formula not finite; the others went on alone (the API returned them a
+    problem, their solve would wait for ever; the command line printed the error once per
+    process that met it, after AGREE_SECONDS). The check is collective: every process raises
+    the same ValueError at once, and the command line says it once, without the wait."""
+    import ast
+    import shutil
+    import subprocess
+    import sys
+    import time
+
+    from membranes.app.cli import AGREE_SECONDS
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(OMP_NUM_THREADS="1")
+    mpirun = [shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe", "-n", "3",
+              sys.executable]
+    proc = subprocess.run(mpirun + ["-c", PART_OF_THE_MESH], capture_output=True, text=True,
+                          timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr
+    ranks = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    assert not all(near for near, _ in ranks)          # the case this test is about
+    said = {message for _, message in ranks}
+    assert len(said) == 1 and None not in said, ranks
+    assert said.pop().startswith("f1 = '1/x' is not finite on the mesh (e.g. at x = 0, ")
+    out = tmp_path / "out"
+    t = time.monotonic()
+    proc = subprocess.run(mpirun + ["-m", "membranes.app.cli", "solve", "--quiet", "--domain",
+                                    "square", "--h", "0.3", "--f1", "1/x", "--out", str(out)],
+                          capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 2, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("membranes:")]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith("membranes: error: f1 = '1/x' is not finite on the mesh")
+    assert time.monotonic() - t < AGREE_SECONDS
+    assert not out.exists()
+
+
 def test_ctrl_c_ends_the_run_cleanly(tmp_path):
     """SIGINT (Ctrl-C) in the middle of `membranes solve`: one line 'membranes: interrupted'
     (it was a KeyboardInterrupt traceback), exit 130, and neither the output folder nor the

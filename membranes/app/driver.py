@@ -32,6 +32,7 @@ from dataclasses import replace
 from typing import Any, Callable, Literal, Mapping, Optional, Union
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from ..estimation.energy_error import EnergyError
@@ -202,11 +203,13 @@ def _initial_guess(initial_guess, disc):
         _choice("initial guess", initial_guess, INITIAL_GUESSES)
         return disc.vector3()
     X = initial_guess(disc) if callable(initial_guess) else initial_guess
-    if not hasattr(X, "getLocalSize") or X.getLocalSize() != 3 * disc.n:
+    # collective: a Vec whose layout is wrong on some processes only must be refused by all
+    if not disc.comm.allreduce(hasattr(X, "getLocalSize") and X.getLocalSize() == 3 * disc.n,
+                               op=MPI.LAND):
         raise ValueError("an initial guess must be a PETSc Vec in the iterate layout "
                          "(Discretisation.vector3) or a function of the discretisation "
                          "returning one")
-    if not disc.comm.allreduce(bool(np.all(np.isfinite(X.array_r)))):
+    if not disc.comm.allreduce(bool(np.all(np.isfinite(X.array_r))), op=MPI.LAND):
         raise ValueError("the initial guess has non-finite values")
     return X
 

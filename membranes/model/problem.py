@@ -116,10 +116,12 @@ class Problem:
                 setattr(self, name, data)
             if isinstance(data, Formula):
                 points = _sample_points(self.mesh) if points is None else points
-                values = data.numpy(points)
-                bad = ~np.isfinite(values)
-                if bad.any():
-                    p = points[:, np.argmax(bad)]
+                bad = ~np.isfinite(data.numpy(points))
+                # collective: a process whose part of the mesh misses the bad points must
+                # raise too, or it would go on alone into the solve's collectives
+                p = points[:, np.argmax(bad)] if bad.any() else None
+                p = next((q for q in self.mesh.comm.allgather(p) if q is not None), None)
+                if p is not None:
                     raise ValueError(f"{name} = {data.shown!r} is not finite on the mesh "
                                      f"(e.g. at x = {p[0]:.6g}, y = {p[1]:.6g})")
             elif not callable(data):
