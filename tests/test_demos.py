@@ -13,6 +13,8 @@ import sys
 import pytest
 from mpi4py import MPI
 
+from tests.blocked import blocking_folder, with_folder_first
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEMOS = os.path.join(ROOT, "demos")
 
@@ -33,8 +35,7 @@ def run_demo(name, out, processes=1, pythonpath=None):
     # this process is an MPI singleton: its Open MPI variables would confuse a new mpirun
     env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
     if pythonpath is not None:
-        env["PYTHONPATH"] = os.pathsep.join(
-            [str(pythonpath)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+        env["PYTHONPATH"] = with_folder_first(pythonpath, env.get("PYTHONPATH", ""))
     proc = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
@@ -106,17 +107,9 @@ def test_demo_user_mesh(tmp_path, processes):
 def test_demo_user_mesh_without_pyvista(tmp_path):
     """When pyvista cannot draw (here: not importable in the rendering process), the demo
     says so in one line and goes on to its outputs (it ended in a traceback, no outputs)."""
-    block = tmp_path / "block"
-    block.mkdir()
-    (block / "sitecustomize.py").write_text(
-        "import sys\n"
-        "class Block:\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        "        if name.split('.')[0] == 'pyvista':\n"
-        "            raise ImportError('no pyvista here')\n"
-        "sys.meta_path.insert(0, Block())\n")
     out = tmp_path / "user_mesh"
-    stdout = run_demo("demo_user_mesh.py", out, pythonpath=block)
+    stdout = run_demo("demo_user_mesh.py", out,
+                      pythonpath=blocking_folder(tmp_path, "pyvista"))
     skipped = [line for line in stdout.splitlines() if "pictures skipped" in line]
     assert len(skipped) == 1 and "no pyvista here" in skipped[0]
     assert not (out / "contact.png").exists() and not (out / "eta_K.png").exists()

@@ -124,8 +124,10 @@ def staged_folder(out, comm=MPI.COMM_SELF):
     """Yield (on every process of `comm`) the path of a fresh temporary folder beside `out`;
     when the block ends without an error on any process, process 0 moves every file in it
     into `out` (created if missing). The temporary folder goes in any case. ValueError (one
-    line, nothing left behind) if `out` cannot be written (checks.check_output_folder); a
-    process whose block succeeded while another's failed raises RuntimeError."""
+    line, nothing left behind) if `out` cannot be written (checks.check_output_folder), and on
+    every process if a process's block fails to write (an OSError: a full disk, a quota):
+    the same one line everywhere, not a traceback per process; otherwise a process whose
+    block succeeded while another's failed raises RuntimeError."""
     check_output_folder(out, comm)
     out = os.path.abspath(os.fspath(out))
     tmp, error = None, None
@@ -145,6 +147,10 @@ def staged_folder(out, comm=MPI.COMM_SELF):
     except BaseException as e:          # noqa: BLE001  (every process must learn of it)
         failed = e
     everyone = comm.allreduce(failed is None, op=MPI.LAND)
+    written = None                      # why a process could not write, if one could not
+    if not everyone:
+        mine = f"{failed.strerror or failed}" if isinstance(failed, OSError) else None
+        written = next((r for r in comm.allgather(mine) if r is not None), None)
     error = None
     if comm.rank == 0:
         try:
@@ -157,6 +163,9 @@ def staged_folder(out, comm=MPI.COMM_SELF):
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
     error = comm.bcast(error, root=0)
+    if written is not None:
+        raise ValueError(f"the outputs cannot be written into {out}: {written}; nothing was "
+                         f"written") from failed
     if failed is not None:
         raise failed
     if not everyone:

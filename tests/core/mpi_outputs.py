@@ -5,6 +5,7 @@ process fail inside a staged folder. Prints one JSON line (process 0).
     mpirun -n 2 python tests/core/mpi_outputs.py OUT_PARENT
 """
 
+import errno
 import json
 import os
 import sys
@@ -73,10 +74,19 @@ def main(parent):
     except RuntimeError as e:
         raised = str(e)
     raised = comm.gather(raised, root=0)
+    # process 0 cannot write (a full disk): every process raises the same one-line ValueError
+    full = None
+    try:
+        with staged_folder(os.path.join(parent, "full"), comm):
+            if comm.rank == 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    except ValueError as e:
+        full = str(e)
+    full = comm.gather(full, root=0)
     if comm.rank == 0:
         mine = h5_values(folder)
         result = {"processes": comm.size, "files": sorted(os.listdir(folder)),
-                  "left": sorted(os.listdir(parent)), "raised": raised,
+                  "left": sorted(os.listdir(parent)), "raised": raised, "full": full,
                   "converged": bool(sol.converged)}
         for name, (px, pv) in mine.items():
             qx, qv = theirs[name]

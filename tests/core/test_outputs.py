@@ -216,6 +216,10 @@ def test_parallel_write(tmp_path, procs):
     assert r["left"] == ["run"]                       # no 'failed', no staging folder
     assert r["raised"][-1] == "planted failure"
     assert all("failed on another process" in m for m in r["raised"][:-1])
+    # a write that fails on one process (ENOSPC on process 0): one message, the same on all
+    # (it was that process's OSError traceback and the others' "failed on another process")
+    assert len(set(r["full"])) == 1 and "No space left on device" in r["full"][0]
+    assert "cannot be written" in r["full"][0]
     for name in ("u1", "u2", "lambda", "eta"):
         assert r[name]["points"], name
         assert r[name]["max_diff"] <= 1e-15 * r[name]["size"], (name, r[name])

@@ -17,6 +17,7 @@ from mpi4py import MPI
 from membranes.app import report
 from membranes.app.report import CURVE_COLUMNS, METHOD_NAMES, PEERS, TABLE_COLUMNS, write_report
 from membranes.model import scenes
+from tests.blocked import blocking_folder, with_folder_first
 
 pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="reads the files serially")
 
@@ -249,17 +250,7 @@ def test_a_report_without_pyvista(tmp_path, monkeypatch):
     is written without the two pyvista pictures, says why in report.md and on the progress
     lines, and leaves no half-drawn picture or data file (docs/outputs.md); it used to end in
     a traceback after every run, nothing written."""
-    block = tmp_path / "block"
-    block.mkdir()
-    (block / "sitecustomize.py").write_text(
-        "import sys\n"
-        "class Block:\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        "        if name.split('.')[0] == 'pyvista':\n"
-        "            raise ImportError('no pyvista here')\n"
-        "sys.meta_path.insert(0, Block())\n")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(
-        [str(block)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    monkeypatch.setenv("PYTHONPATH", with_folder_first(blocking_folder(tmp_path, "pyvista")))
     out, said = tmp_path / "square", []
     write_report(scenes.square(h=0.5, levels=1), str(out), said.append)
     names = set(os.listdir(out))
@@ -279,17 +270,8 @@ def test_a_report_without_matplotlib(tmp_path, monkeypatch):
     report is refused before any run, one line naming it and exit 2 from the command,
     ValueError from write_report, nothing written. It used to run every method and then end in
     a ModuleNotFoundError traceback."""
-    block = tmp_path / "block"
-    block.mkdir()
-    (block / "sitecustomize.py").write_text(
-        "import sys\n"
-        "class Block:\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        "        if name.split('.')[0] == 'matplotlib':\n"
-        "            raise ImportError('no matplotlib here')\n"
-        "sys.meta_path.insert(0, Block())\n")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-        [str(block)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    env = dict(os.environ,
+               PYTHONPATH=with_folder_first(blocking_folder(tmp_path, "matplotlib")))
     out = tmp_path / "disk"
     proc = subprocess.run([sys.executable, "-m", "membranes.app.cli", "report", "--h", "0.5",
                            "--levels", "1", "--out", str(out)], env=env, capture_output=True,
