@@ -161,21 +161,22 @@ def test_unwritable_target_is_refused(run):
 
 
 def test_failure_while_writing_leaves_nothing(run, tmp_path, monkeypatch):
-    """The XDMF pair is written, then the CSV fails: neither the new folder nor the staging
-    folder remain; an existing folder keeps its content."""
+    """The XDMF pair is written, then the CSV fails: one line naming the folder and the
+    reason (ValueError, exit 2 from the CLI), neither the new folder nor the staging folder
+    remain; an existing folder keeps its content."""
     sol, _ = run
 
     def broken(*args, **kwargs):
         raise OSError("disk full (planted)")
 
     monkeypatch.setattr(outputs, "write_rows", broken)
-    with pytest.raises(OSError, match="planted"):
+    with pytest.raises(ValueError, match="cannot be written into .*new: disk full .planted."):
         write_outputs(sol, str(tmp_path / "new"))
     assert list(tmp_path.iterdir()) == []
     old = tmp_path / "old"
     old.mkdir()
     (old / "summary.json").write_text("previous\n")
-    with pytest.raises(OSError, match="planted"):
+    with pytest.raises(ValueError, match="planted"):
         write_outputs(sol, str(old))
     assert [p.name for p in tmp_path.iterdir()] == ["old"]
     assert [p.name for p in old.iterdir()] == ["summary.json"]
