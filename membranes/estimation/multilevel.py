@@ -82,7 +82,7 @@ import forms.equilibration as equilibration_forms
 from forms.membrane import membrane_linear
 
 from ..fem.discretisation import boundary_dofs, ghosted_vector
-from ..fem.meshes import owned_cells, triangle_areas
+from ..fem.meshes import cell_vertices, owned_cells, triangle_areas
 from .congruence import dof_transformation, piola_reference_block
 from .lifting import mass_inverse
 from .patches import PatchSystems, colour_vertices
@@ -360,8 +360,7 @@ class MultilevelFlux:
         ncJ = owned_cells(mesh)
         self.dgJ = self.Q.dofmap.list.array.reshape(-1, 3)[:ncJ].ravel()
         # |K| of the owned cells of T_J (the defect's norm, `_check`)
-        self.areaJ = triangle_areas(
-            self.Q.tabulate_dof_coordinates()[:, :2][self.dgJ.reshape(-1, 3)])
+        self.areaJ = triangle_areas(cell_vertices(mesh))
         self.rhs_form = fem.form(membrane_linear(self.r, ufl.TestFunction(disc.V)))
         self.rhs = ghosted_vector(disc.V)          # (not dolfinx's: `ghosted_vector`)
         self._coarse_setup(spaces[0])
