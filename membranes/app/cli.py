@@ -182,7 +182,7 @@ def _solve(args):
     quiet_jit_logging()
     from mpi4py import MPI
 
-    from ..model import scenes
+    from ..model import checks, scenes
     from .driver import solve
     from .outputs import write_outputs
     world = MPI.COMM_WORLD
@@ -195,6 +195,9 @@ def _solve(args):
     say(f"mesh and {args.levels} uniform refinement(s) made in {time.perf_counter() - t:.2f} "
         f"s: the finest mesh has {fine.index_map(0).size_global:,} vertices and "
         f"{fine.index_map(2).size_global:,} cells on {world.size} process(es)")
+    if args.out is not None:           # (before the run: the disk may be full already)
+        checks.check_output_room(args.out, checks.output_bytes(
+            fine.index_map(0).size_global, fine.index_map(2).size_global), world)
     sol = solve(problem, newton=args.newton, cfun=args.cfun, solver=args.solver,
                 system=args.system, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,

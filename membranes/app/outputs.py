@@ -25,7 +25,10 @@ summary are the same on every process).
 (same parent, hence the same — shared — filesystem for every process, and a rename instead
 of a copy) and is moved into place by process 0 only when every process has finished its
 part without error; the temporary folder is removed in any case. A failure on any process
-raises on every process.
+raises on every process. A filesystem with less room than the outputs need
+(checks.output_bytes) is refused before anything is written: a collective HDF5 write that
+runs out of room fails on the process that writes and can leave the others waiting inside
+HDF5.
 """
 
 import contextlib
@@ -39,7 +42,7 @@ import tempfile
 import numpy as np
 from mpi4py import MPI
 
-from ..model.checks import check_output_folder
+from ..model.checks import check_output_folder, check_output_room, output_bytes
 from .solution import ESTIMATOR_COLUMNS
 
 HISTORY_COLUMNS = ("level", "newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
@@ -111,24 +114,32 @@ def write_solution(path, mesh, functions, eta_K=None):
     functions = list(functions)
     if eta_K is not None:
         functions.append(eta_function(mesh, eta_K))
-    with XDMFFile(mesh.comm, path, "w") as xdmf:
-        xdmf.write_mesh(mesh)
-        for f in functions:
-            xdmf.write_function(f)
+    try:
+        with XDMFFile(mesh.comm, path, "w") as xdmf:
+            xdmf.write_mesh(mesh)
+            for f in functions:
+                xdmf.write_function(f)
+    except RuntimeError as e:
+        # (dolfinx reports a failed HDF5 write, a full disk among others, as RuntimeError:
+        # an OSError, so that `staged_folder` makes it the same one line everywhere)
+        raise OSError(f"the HDF5 write failed ({e})") from e
 
 
 # ## Staging
 
 @contextlib.contextmanager
-def staged_folder(out, comm=MPI.COMM_SELF):
+def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0):
     """Yield (on every process of `comm`) the path of a fresh temporary folder beside `out`;
     when the block ends without an error on any process, process 0 moves every file in it
     into `out` (created if missing). The temporary folder goes in any case. ValueError (one
-    line, nothing left behind) if `out` cannot be written (checks.check_output_folder), and on
+    line, nothing left behind) if `out` cannot be written (checks.check_output_folder) or its
+    filesystem has fewer than `nbytes` bytes free (checks.check_output_room), and on
     every process if a process's block fails to write (an OSError: a full disk, a quota):
     the same one line everywhere, not a traceback per process; otherwise a process whose
     block succeeded while another's failed raises RuntimeError."""
     check_output_folder(out, comm)
+    if nbytes:
+        check_output_room(out, nbytes, comm)
     out = os.path.abspath(os.fspath(out))
     tmp, error = None, None
     if comm.rank == 0:
@@ -180,8 +191,10 @@ def write_outputs(solution, out_dir):
     `out_dir` (created if missing); collective on the solution's communicator. Returns the
     absolute path of `out_dir`."""
     comm = solution.comm
+    topology = solution.disc.mesh.topology
+    nbytes = output_bytes(topology.index_map(0).size_global, topology.index_map(2).size_global)
     summary = solution.summary()                  # collective (MPI reductions)
-    with staged_folder(out_dir, comm) as tmp:
+    with staged_folder(out_dir, comm, nbytes) as tmp:
         write_solution(os.path.join(tmp, "solution.xdmf"), solution.disc.mesh,
                        solution.functions, solution.eta_K)
         if comm.rank == 0:

@@ -9,7 +9,9 @@ Three kinds of request fail late or never if nobody looks at them first:
   bytes per vertex of its method, and refuses when that exceeds the memory available to each
   process. ``max_vertices`` (``--max-vertices N``) replaces the memory limit by a vertex count.
 * **an output folder that cannot be written** (``--out /proc/x``): `check_output_folder`
-  creates it, writes and removes a probe file, and removes what it created again.
+  creates it, writes and removes a probe file, and removes what it created again;
+  `check_output_room` refuses a filesystem without room for the outputs (HDF5 would fail
+  halfway, with a page of diagnostics per process).
 * **PETSc options that do nothing**: `membranes.model.petsc_options`.
 
 Every check raises ValueError with a one-line message; the command line turns it into exit
@@ -442,6 +444,44 @@ def check_output_folder(path, comm=None):
             _probe_folder(os.path.abspath(os.fspath(path)))
         except ValueError as e:
             error = str(e)
+    if comm is not None and comm.size > 1:
+        error = comm.bcast(error, root=0)
+    if error is not None:
+        raise ValueError(error)
+
+
+# The bytes of a run's outputs (membranes.app.outputs): solution.h5 holds the topology (3
+# int64 per cell), the geometry (2 float64 per vertex), u1, u2, λ (1 float64 per vertex each)
+# and η (1 per cell), 8 (3 T + 5 V) bytes in all (a disk of 1 761 vertices and 3 392 cells:
+# 178 984 bytes of data in a 190 640-byte file); OUTPUT_EXTRA covers HDF5's own metadata, the
+# XDMF, summary.json and history.csv (a few kB each).
+OUTPUT_EXTRA = 1 << 20
+
+
+def output_bytes(vertices, cells):
+    """An upper estimate of the bytes a run on a mesh of `vertices` and `cells` (global
+    counts) writes into its output folder."""
+    return 8 * (3 * int(cells) + 5 * int(vertices)) + OUTPUT_EXTRA
+
+
+def check_output_room(path, nbytes, comm=None):
+    """ValueError (one line) if the filesystem of the output folder `path` (of its nearest
+    existing ancestor) has fewer than `nbytes` bytes free for this user. With `comm`,
+    process 0 looks and every process gets its answer."""
+    error = None
+    if comm is None or comm.rank == 0:
+        out = os.path.abspath(os.fspath(path))
+        there = out
+        while not os.path.exists(there) and os.path.dirname(there) != there:
+            there = os.path.dirname(there)
+        try:
+            st = os.statvfs(there)
+            free = st.f_bavail * st.f_frsize
+        except OSError:                   # no statvfs here: the writers report a failure
+            free = None
+        if free is not None and free < nbytes:
+            error = (f"output folder {out} has {free / 2**20:.1f} MiB free, the outputs "
+                     f"need about {nbytes / 2**20:.1f} MiB")
     if comm is not None and comm.size > 1:
         error = comm.bcast(error, root=0)
     if error is not None:

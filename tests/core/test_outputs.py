@@ -16,7 +16,7 @@ from mpi4py import MPI
 from membranes.app import outputs
 from membranes.app.driver import solve
 from membranes.app.outputs import HISTORY_COLUMNS, staged_folder, write_outputs
-from membranes.model import scenes
+from membranes.model import checks, scenes
 from tests.core.mpi_outputs import by_coordinates, gathered, h5_values
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -181,6 +181,50 @@ def test_failure_while_writing_leaves_nothing(run, tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["old"]
     assert [p.name for p in old.iterdir()] == ["summary.json"]
     assert (old / "summary.json").read_text() == "previous\n"
+
+
+@serial_only
+def test_output_bytes_bounds_the_files(run):
+    """The room asked for (checks.output_bytes) covers the files written, and its data part
+    8 (3 T + 5 V) is in the HDF5 file: the estimate is neither short nor loose by more than
+    the fixed extra."""
+    sol, out = run
+    topology = sol.disc.mesh.topology
+    v, t = (topology.index_map(d).size_global for d in (0, 2))
+    total = sum(p.stat().st_size for p in out.iterdir())
+    assert 8 * (3 * t + 5 * v) <= (out / "solution.h5").stat().st_size
+    assert total <= checks.output_bytes(v, t) <= total + checks.OUTPUT_EXTRA
+
+
+def test_no_room_is_refused_before_writing(run, tmp_path, monkeypatch):
+    """A filesystem with less room than the outputs need: one line naming the folder and
+    both sizes, nothing written (HDF5 would fail halfway, and hang a parallel write)."""
+    sol, _ = run
+    st = os.statvfs(tmp_path)
+    free = st.f_bavail * st.f_frsize
+    checks.check_output_room(tmp_path / "a" / "b", 1)               # room enough: silent
+    with pytest.raises(ValueError, match=r"a/b has .* MiB free, the outputs need about"):
+        checks.check_output_room(tmp_path / "a" / "b", free + 2 ** 30)
+    monkeypatch.setattr(outputs, "output_bytes", lambda v, t: free + 2 ** 30)
+    with pytest.raises(ValueError, match="MiB free"):
+        write_outputs(sol, str(tmp_path / "new"))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_hdf5_write_is_one_line(run, tmp_path, monkeypatch):
+    """dolfinx reports a failed HDF5 write (a full disk) as RuntimeError: the same one-line
+    ValueError as any failed write, nothing left behind."""
+    from dolfinx.io import XDMFFile
+    sol, _ = run
+
+    def failing(self, *args, **kwargs):
+        raise RuntimeError("Failed to write HDF5 local dataset into hyperslab.")
+
+    monkeypatch.setattr(XDMFFile, "write_function", failing)
+    with pytest.raises(ValueError, match=r"cannot be written into .*new: the HDF5 write "
+                                         r"failed \(Failed to write HDF5"):
+        write_outputs(sol, str(tmp_path / "new"))
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_staged_folder_moves_only_on_success(tmp_path):
