@@ -44,7 +44,7 @@ def _watch(mesh):
 def release_garbage(problem, collect=True):
     """Free the memory of objects nothing refers to any more, collectively on the problem's
     communicator: Python's reference cycles (`gc.collect`), then the PETSc objects they and
-    others held. Called at the end of `solve` (about 0.01 s, most of it the collection) and,
+    others held. Called at the end of `solve` (a small cost, most of it the collection) and,
     without the collection, at its start: what a Solution the caller dropped since holds is
     freed by reference counting (it is in no cycle) and only its parked PETSc objects are
     left. The communicators are COMM_SELF (the sequential objects: patch blocks, index sets,

@@ -9,8 +9,8 @@ assembled as tagged chunks of cells, `estimation.cell_forms.chunks`, one chunk o
 mesh), so compiling on a mesh of a few dozen cells serves every later run on the same scene,
 at any h and any level and on any number of processes.
 
-The first compilation of the disk scene's forms takes tens of seconds (about 20 s on an
-unloaded machine), all of it inside the wall time that `solve` and the report measure. This
+The first compilation of the disk scene's forms takes tens of seconds (BENCHMARKS.md), all of
+it inside the wall time that `solve` and the report measure. This
 module runs, on a tiny mesh of each built-in scene that `membranes report` and the demos use
 (disk and square), every path that compiles a form of its own: the three Newton variants
 with both C-functions, every Krylov preset, the ν and the multilevel algebraic flux, energy
