@@ -13,8 +13,6 @@ Newton steps that will not be the last").
 
 import time
 
-from ..estimation.equilibration import FluxEquilibration
-from ..estimation.estimators import Estimators
 from ..nonlinear.newton import linear_criterion
 
 DEFAULT_GAMMA = 0.3
@@ -79,6 +77,9 @@ class LevelEstimates:
 
     def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
                  gamma_lin=DEFAULT_GAMMA, gate=GATE, setups=None):
+        # (imported here: only a run that estimates builds one)
+        from ..estimation.equilibration import FluxEquilibration
+        from ..estimation.estimators import Estimators
         t = time.perf_counter()
         equilibration = setups.equilibration(disc) if setups is not None \
             else FluxEquilibration(disc.V, disc.dx_data)

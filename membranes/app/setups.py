@@ -28,8 +28,6 @@ memory: the kept systems stay alive between solves, until `clear()`.
 
 from mpi4py import MPI
 
-from ..estimation.equilibration import FluxEquilibration, same_numbering
-
 
 class Setups:
     """The flux equilibrations (`membranes.estimation.equilibration.FluxEquilibration`) of the
@@ -50,6 +48,8 @@ class Setups:
         measures: the kept one if there is one for this mesh object whose P1 numbering is
         that of disc.V (the equilibration copies nodal values by index), else a new one,
         which is kept. Collective."""
+        # (imported here: a run that estimates nothing imports no estimator)
+        from ..estimation.equilibration import FluxEquilibration, same_numbering
         mesh = disc.mesh
         entry = self._kept.get(id(mesh))
         usable = entry is not None and entry[0] is mesh and same_numbering(entry[1].V, disc.V)
