@@ -75,3 +75,17 @@ def test_radial_exact_solution(mu1, mu2, g, rho, contact):
         point = (np.cos(t), np.sin(t))
         assert np.isclose(ex.u1(x)(point), g, rtol=1e-12)
         assert abs(ex.u2(x)(point)) <= 1e-12 * g
+
+
+@pytest.mark.parametrize("options", [{"newton": "exact", "solver": "direct"}, {}],
+                         ids=["exact", "adaptive"])
+def test_zero_loads_complementarity_at_round_off(options):
+    """Zero loads: the solution is (g, 0, 0) and λ_data = 0 (§11). Newton-FB from a zero guess
+    (contact, with w = λ = 0, at every vertex: the kink) ends with λ at round-off of either
+    sign; the violation measures it against the pressure that moves the gap by the
+    displacement scale, not against λ's own round-off (which made it 1). Tolerance: that of
+    the radial cases, a relative residual 1e-10 with room."""
+    run = solve(scenes.user(domain="square", h=0.3, levels=1), cfun="fb", initial_guess="zero",
+                **options)
+    assert run.converged, run.reason
+    assert run.complementarity_violation() <= 1e-10

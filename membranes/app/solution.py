@@ -67,7 +67,11 @@ class Solution:
 
     def complementarity_violation(self) -> float:
         """Largest violation of w = u1 - u2 ≥ 0, λ ≥ 0, λ w = 0 at interior vertices, relative
-        to the data scale (§11): w against max(u_data, |u|∞), λ against max(λ_data, |λ|∞)."""
+        to the data scale (§11): w against u_scale = max(u_data, |u|∞), λ against
+        max(λ_data, |λ|∞, λ_u), λ_u = u_scale / ((1/μ1 + 1/μ2) (C_PF h_Ω)²) the pressure
+        that moves the gap by u_scale (u_data's relation to the loads, read backwards). Without
+        λ_u, zero loads (λ_data = 0, solution (g, 0, 0)) measured λ's round-off against itself:
+        a violation of 1 where Newton from a zero guess left λ at ±1e-18."""
         d = self.disc
         u1, u2, lam = d.split(self.X)
         inner = d.interior
@@ -79,7 +83,8 @@ class Solution:
             return comm.allreduce(float(np.max(a, initial=0.0)), op=MPI.MAX)
 
         u_scale = max(u_data, gmax(np.abs(u1)), gmax(np.abs(u2)))
-        lam_scale = max(lam_data, gmax(np.abs(lam)), np.finfo(float).tiny)
+        lam_u = u_scale / ((1.0 / d.mu1 + 1.0 / d.mu2) * d.poincare ** 2)
+        lam_scale = max(lam_data, gmax(np.abs(lam)), lam_u, np.finfo(float).tiny)
         return float(max(gmax(-w) / u_scale, gmax(-lam) / lam_scale,
                          gmax(np.abs(w * lam)) / (u_scale * lam_scale)))
 
