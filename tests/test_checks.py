@@ -598,11 +598,23 @@ def test_ctrl_c_ends_the_run_cleanly(tmp_path):
                                           ("-ksp_initial_guess_nonzero 0",
                                            "-ksp_initial_guess_nonzero"),
                                           ("-pc_type mg -pc_mg_levels 2", "-pc_type mg"),
-                                          ("-gap_pc_type MG", "-gap_pc_type mg")])
+                                          ("-gap_pc_type MG", "-gap_pc_type mg"),
+                                          ("-ksp_knoll", "-ksp_knoll"),
+                                          ("-ksp_guess_type fischer", "-ksp_guess_type"),
+                                          ("-ksp_converged_maxits", "-ksp_converged_maxits"),
+                                          ("-ksp_converged_use_initial_residual_norm",
+                                           "-ksp_converged_use_initial_residual_norm"),
+                                          ("-ksp_reuse_preconditioner",
+                                           "-ksp_reuse_preconditioner"),
+                                          ("-ksp_type chebyshev", "-ksp_type chebyshev")])
 def test_options_the_method_overrides_or_that_crash_are_refused(options, name):
     """-ksp_divtol and -ksp_initial_guess_nonzero were accepted and did nothing (the method's
     tests and Newton's guess override them); -pc_type mg with 2 levels made PETSc crash with a
-    segmentation fault in its set-up (no interpolations are supplied)."""
+    segmentation fault in its set-up (no interpolations are supplied). -ksp_knoll and
+    -ksp_guess_type replaced Newton's guess (inexact Newton on the disk at h = 0.3, J = 2 ran
+    its 100 steps without converging); the default test's options and
+    -ksp_reuse_preconditioner did nothing; -ksp_type chebyshev, which diverges on the Newton
+    systems (paper preset, -pc_type jacobi), crashed PETSc in the KSP's reset."""
     from membranes.linalg.krylov import Krylov
     with pytest.raises(ValueError, match=name):
         Krylov("paper" if "gap" not in options else "amg",

@@ -64,6 +64,7 @@ at every test. The tolerances, not PETSc's rtol, decide: ``ksp_rtol``, ``ksp_ato
 """
 
 import itertools
+import math
 from dataclasses import dataclass, field
 
 from petsc4py import PETSc
@@ -105,7 +106,17 @@ RESERVED = {"ksp_rtol": "the Newton variant sets the linear tolerance",
             "ksp_max_it": "use max_it",
             "ksp_divtol": "the method's tests decide when a Krylov solve stops",
             "ksp_initial_guess_nonzero": "every Krylov solve starts from its Newton step's "
-                                         "guess (theory §8)"}
+                                         "guess (theory §8)",
+            "ksp_knoll": "every Krylov solve starts from its Newton step's guess (theory §8)",
+            "ksp_guess_type": "every Krylov solve starts from its Newton step's guess "
+                              "(theory §8)",
+            "ksp_converged_maxits": "the method's tests decide when a Krylov solve stops",
+            "ksp_converged_use_initial_residual_norm": "the method's tests decide when a "
+                                                       "Krylov solve stops",
+            "ksp_converged_use_min_initial_residual_norm": "the method's tests decide when a "
+                                                           "Krylov solve stops",
+            "ksp_reuse_preconditioner": "each Newton step's matrix is new, and so is its "
+                                        "preconditioner"}
 
 _prefixes = itertools.count()
 REASONS = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if k.isupper()}
@@ -157,6 +168,14 @@ class Krylov:
             if name.endswith("pc_type") and str(value).lower() == "mg":
                 raise ValueError(f"PETSc option -{name} mg needs interpolation operators, "
                                  "which membranes does not supply: use gamg or hypre")
+        # PETSc 3.18's Chebyshev, run under the method's test until its iterates overflow
+        # (its spectrum estimate does not fit the nonsymmetric Newton matrices: the paper
+        # preset with -pc_type jacobi on the disk), ends with DIVERGED_NANORINF and a KSP
+        # whose reset or destruction crashes (a segmentation fault, not an error)
+        if str(self.merged.get("ksp_type")).lower() == "chebyshev":
+            raise ValueError("PETSc option -ksp_type chebyshev crashes PETSc when it "
+                             "diverges, as it does on the nonsymmetric Newton systems: use a "
+                             "Krylov method such as gmres, fgmres or bcgs")
         if not self.iterative and (self.mean_gap or
                                    self.merged.get("pc_type") not in FACTORISATIONS):
             pc = "the mean/gap split" if self.mean_gap else \
@@ -222,6 +241,7 @@ class StoppingTest:
         self.guess = every == 1 if guess is None else guess
         self.y, self.r = A.createVecRight(), b.duplicate()
         self.last, self.stopped, self.true_norm = -1, False, None
+        self.decided = False        # whether this test ended the solve at the iterate y
 
     def _build(self, ksp):
         ksp.buildSolution(self.y)
@@ -234,14 +254,25 @@ class StoppingTest:
         if its <= self.last:        # the same iterate again after a GMRES restart
             return PETSc.KSP.ConvergedReason.ITERATING
         self.last = its
-        gate = ksp.getNormType() != PETSc.KSP.NormType.UNPRECONDITIONED or rnorm <= self.bound
-        if (its % self.every == 0 and (its > 0 or self.guess) or rnorm == 0) and gate \
-                and self._build(ksp) <= self.bound:
-            return PETSc.KSP.ConvergedReason.CONVERGED_ATOL
+        norm_type = ksp.getNormType()
+        gate = norm_type != PETSc.KSP.NormType.UNPRECONDITIONED or rnorm <= self.bound
+        # rnorm 0: a solved system, tested at once; but without a norm (-ksp_norm_type none)
+        # PETSc passes 0 at every iteration, and the schedule (every, guess) holds
+        solved = rnorm == 0 and norm_type != PETSc.KSP.NormType.NONE
+        if (its % self.every == 0 and (its > 0 or self.guess) or solved) and gate:
+            if self._build(ksp) <= self.bound:
+                self.decided = True
+                return PETSc.KSP.ConvergedReason.CONVERGED_ATOL
+            if not math.isfinite(self.true_norm):
+                return PETSc.KSP.ConvergedReason.DIVERGED_NANORINF
         if self.on_iterate is not None and its > 0 and its % self.nu == 0:
-            self._build(ksp)
+            # a non-finite iterate (a method whose recurrence broke down unnoticed, such as
+            # TFQMR with the right preconditioning of the amg preset) ends the solve: it is
+            # no iterate for the estimators (its flux fails its check, §5)
+            if not math.isfinite(self._build(ksp)):
+                return PETSc.KSP.ConvergedReason.DIVERGED_NANORINF
             if self.on_iterate(its, self.y, self.r):
-                self.stopped = True
+                self.stopped = self.decided = True
                 return PETSc.KSP.ConvergedReason.CONVERGED_ITS
         return PETSc.KSP.ConvergedReason.ITERATING
 
@@ -326,6 +357,11 @@ class LinearSolver:
                 return ksp.getIterationNumber(), f"PETSc error: {petsc_message(e)}", False, \
                     float("nan")
             its, reason = ksp.getIterationNumber(), ksp.getConvergedReason()
+            if test is not None and test.decided:
+                # the iterate the test judged (and the estimators saw) is the answer: some
+                # KSPs end a step past the one they build (Chebyshev), or keep right-
+                # preconditioned iterates apart from it (-ksp_type qmrcgs, fbcgs, symmlq)
+                test.y.copy(y)
             r = step.b.duplicate()
             step.A.mult(y, r)
             r.aypx(-1.0, step.b)

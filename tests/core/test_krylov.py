@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
+from membranes import solve
 from membranes.fem.discretisation import discretise
 from membranes.linalg.krylov import EXACT_TOL, Krylov, LinearSolver, StoppingTest
 from membranes.model import scenes
@@ -271,6 +272,55 @@ def test_solve_cut_off_before_its_test_counts_if_the_true_residual_meets_the_bou
     solver.destroy()
     step.destroy()
     sys_.destroy()
+
+
+@pytest.mark.parametrize("options", [{"ksp_type": "qmrcgs"},
+                                     {"ksp_type": "symmlq", "ksp_pc_side": "left",
+                                      "ksp_norm_type": "preconditioned"}])
+def test_solve_returns_the_iterate_its_test_judged(options):
+    """The adaptive variant estimates the iterate the callback sees and certifies the Vec the
+    solve returns: they must be one. They were not with a user's KSP that builds its iterate
+    apart from the one it ends at (-ksp_type qmrcgs, right-preconditioned: the callback saw
+    ‖b - A y‖ = 4.7, the solve returned an iterate at 5.7e-11, 160 times as far from it as
+    its size; symmlq: 22 % apart)."""
+    disc, sys_, lin, step = _step()
+    seen = []
+
+    def on_iterate(i, y, r):
+        seen.append(y.copy())
+        return i == 20
+
+    solver = LinearSolver(Krylov("paper", options, nu=10), disc.comm)
+    y = step.guess(contact_iterate("disk", "min"))
+    its, reason, ok, norm = solver.solve(step, y, EXACT_TOL * lin.norm_B, 1, on_iterate)
+    assert ok and its == 20 and reason == "CONVERGED_ITS" and len(seen) == 2
+    seen[-1].axpy(-1.0, y)
+    assert seen[-1].norm() == 0.0           # the same Vec, copied: no round-off either
+    for v in seen:
+        v.destroy()
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
+def test_no_norm_keeps_the_schedule_of_the_stopping_test():
+    """Without a norm (-ksp_norm_type none) PETSc hands the test rnorm = 0 at every iteration,
+    which the test took for a solved system: it judged the initial guess, which the inexact
+    variant must not (it meets the inexact bound at once), and every iteration instead of every
+    ν. Inexact Newton with -ksp_type cg -ksp_norm_type none on the disk stalled at its first
+    step ('its Krylov solve made no iteration')."""
+    run = solve(scenes.disk(h=0.3), newton="inexact", estimators=False,
+                petsc_options="-ksp_type cg -ksp_norm_type none")
+    assert run.converged, run.reason
+
+
+def test_a_non_finite_krylov_iterate_ends_the_run_not_in_a_crash():
+    """TFQMR with the amg preset's right preconditioning: its recurrence says converged while
+    its iterates blow up; the NaN iterate went to the estimators, whose flux check raised a
+    RuntimeError (a traceback, exit 1). Now the solve stops at it (DIVERGED_NANORINF) and the
+    run ends not converged, saying so."""
+    run = solve(scenes.disk(h=0.3), petsc_options="-ksp_type tfqmr")
+    assert not run.converged and "DIVERGED_NANORINF" in run.reason, run.reason
 
 
 def test_user_options_reach_our_ksp_only():
