@@ -40,11 +40,14 @@ def two_squares(path, groups, save_all=False):
     return str(path)
 
 
-def grid_msh(path, extra=(), step=1):
+def grid_msh(path, extra=(), step=1, moved=None):
     """The 4 x 4 grid of (0, 1)², two triangles per square, plus the triangles `extra` (node
-    indices from 0), hand-written in msh 2.2 ASCII with node tags 1, 1 + step, 1 + 2 step..."""
+    indices from 0), hand-written in msh 2.2 ASCII with node tags 1, 1 + step, 1 + 2 step...;
+    `moved` ({index: (x, y)}) puts nodes elsewhere."""
     xs = np.linspace(0.0, 1.0, 5)
     nodes = [(x, y) for y in xs for x in xs]
+    for k, place in (moved or {}).items():
+        nodes[k] = place
     cells = [c for j in range(4) for i in range(4)
              for a in [5 * j + i] for c in ((a, a + 1, a + 6), (a, a + 6, a + 5))]
     cells += list(extra)
@@ -56,6 +59,29 @@ def grid_msh(path, extra=(), step=1):
     lines += ["$EndElements"]
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
+    return str(path)
+
+
+def rectangles_msh(path, rectangles, points=(), tilt=0.0):
+    """The rectangles (x, y, z, dx, dy), each meshed on its own nodes (no fragment), and the
+    geometry points `points` (x, y, z) that no cell uses, all turned by the angle `tilt` about
+    the x axis, written in msh 4.1."""
+    import gmsh
+    gmsh.initialize([])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        for rectangle in rectangles:
+            gmsh.model.occ.addRectangle(*rectangle)
+        for point in points:
+            gmsh.model.occ.addPoint(*point)
+        if tilt:
+            gmsh.model.occ.rotate(gmsh.model.occ.getEntities(2), 0, 0, 0, 1, 0, 0, tilt)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.25)
+        gmsh.model.mesh.generate(2)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
     return str(path)
 
 
@@ -96,6 +122,62 @@ def test_cells_dolfinx_cannot_use(case, tmp_path, capsys):
     assert msh in err
 
 
+@pytest.mark.parametrize("case", ["moved vertex", "flap"])
+def test_folded_mesh(case, tmp_path, capsys):
+    """The centre vertex of the grid moved past its right neighbour (four triangles turn
+    over), or a triangle added on the inner side of a boundary edge: no edge has more than two
+    triangles, but the mesh folds over itself, and the run ended in a RuntimeError traceback
+    from the estimators (σ_disc violates its divergence identity). The two triangles of an edge
+    must lie on its two sides."""
+    kwargs = {"moved vertex": {"moved": {12: (0.8, 0.5)}},
+              "flap": {"extra": [(0, 1, 11)]}}[case]
+    msh = grid_msh(tmp_path / "folded.msh", **kwargs)
+    with pytest.raises(ValueError, match="folded or tangled"):
+        scenes.user(mesh=msh)
+    cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
+
+
+def test_surface_meshed_twice(tmp_path, capsys):
+    """A rectangle added twice, each meshed on its own nodes: the same triangles twice, on
+    other nodes at the same places, were taken for two separate membranes on top of each
+    other (the energy doubled, no word said). Refused as a triangle listed twice."""
+    msh = rectangles_msh(tmp_path / "twice.msh", [(0, 0, 0, 1, 1), (0, 0, 0, 1, 1)])
+    with pytest.raises(ValueError, match="twice"):
+        read_msh(msh)
+    cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
+
+
+def test_planes_and_unused_nodes_off_z_0(tmp_path):
+    """A mesh in the plane z = 1 is the same 2D mesh as in z = 0, and a geometry point at
+    z = 3 that no triangle uses is not part of the mesh: both were refused as 3D, because
+    every node of the file was held to z = 0. Triangles off one plane z = c still are."""
+    flat = read_msh(rectangles_msh(tmp_path / "flat.msh", [(0, 0, 0, 2, 1)]))
+    high = read_msh(rectangles_msh(tmp_path / "high.msh", [(0, 0, 1, 2, 1)]))
+    assert global_counts(high) == global_counts(flat)
+    for m in (flat, high):
+        assert m.geometry.x[:, 2].max(initial=0.0) == 0.0
+    coords = [np.unique(np.concatenate(m.comm.allgather(m.geometry.x[:, :2])), axis=0)
+              for m in (flat, high)]
+    assert np.array_equal(coords[0], coords[1])
+    point = read_msh(rectangles_msh(tmp_path / "point.msh", [(0, 0, 0, 2, 1)], [(1, 0.5, 3)]))
+    x = point.geometry.x[:, :2]
+    assert point.comm.allreduce(x.max(initial=0.0), op=MPI.MAX) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="is 3D"):
+        read_msh(rectangles_msh(tmp_path / "tilted.msh", [(0, 0, 0, 2, 1)], tilt=0.1))
+
+
+def test_gmsh_error_without_a_reason(tmp_path, monkeypatch):
+    """gmsh 4.8 raises Exception('') on some corrupt binary files (0xff bytes in the
+    $Elements of a msh 4.1 file): the message ended in 'cannot read mesh file …: '."""
+    import gmsh
+
+    def fail(path):
+        raise Exception("")
+    monkeypatch.setattr(gmsh, "open", fail)
+    with pytest.raises(ValueError, match=r"cannot read mesh file .*: \S"):
+        read_msh(grid_msh(tmp_path / "grid.msh"))
+
+
 @pytest.mark.parametrize("text", [
     'SystemCall "touch {marker}";',
     "Point(1) = {{0, 0, 0}}; Point(2) = {{1, 0, 0}}; Point(3) = {{0, 1, 0}};\n"
@@ -130,6 +212,25 @@ def test_api_mesh_with_h_or_domain(tmp_path):
         with pytest.raises(ValueError, match="not both"):
             scenes.user(mesh=msh, **kwargs)
     assert scenes.user(mesh=msh).mesh.topology.index_map(0).size_global == 25
+
+
+def test_api_mesh_that_is_no_path(tmp_path):
+    """scenes.user(mesh=fd) with an int: the size check took it for an open file descriptor,
+    read from it and closed it (the process lost that file), then a TypeError traceback. A
+    mesh that is no str, bytes or os.PathLike is refused before any file is touched; a bytes
+    path is a path."""
+    msh = grid_msh(tmp_path / "grid.msh")
+    fd = os.open(msh, os.O_RDONLY)
+    try:
+        for bad in (fd, 2.5, [msh]):
+            with pytest.raises(ValueError, match="mesh must be the path of a .msh file"):
+                scenes.user(mesh=bad)
+        os.fstat(fd)                                   # (OSError if it was closed)
+    finally:
+        os.close(fd)
+    problem = scenes.user(mesh=os.fsencode(msh))
+    assert problem.mesh.topology.index_map(0).size_global == 25
+    assert problem.domain == msh
 
 
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")

@@ -9,10 +9,12 @@ a clean model (every node used, node tags 1..N, each cell in one physical group)
 uses (a physical group covering part of the surfaces) crash it, and so does a surface in two
 physical groups. So the triangles of a gmsh model's 2D physical groups (of every surface if it
 has none; a generated disk or square, or an opened `.msh` file) are taken once each, on the
-nodes they use, and checked (no zero-area triangle, no triangle listed twice, no edge of three
-or more triangles), and dolfinx's `create_mesh` distributes them, without ghost cells (§12):
-plaza refinement of a ghosted mesh gave two copies of a ghost cell on some processes (a file
-of two squares on 3 processes), and the estimators met facets of three cells.
+nodes they use, and checked (no zero-area triangle, no triangle listed twice, by its nodes or
+their places, no edge of three or more triangles, no fold: the two triangles of an edge lie
+on its two sides; the nodes in one plane z = const), and dolfinx's `create_mesh` distributes
+them, without ghost cells (§12): plaza refinement of a ghosted mesh gave two copies of a
+ghost cell on some processes (a file of two squares on 3 processes), and the estimators met
+facets of three cells.
 
 Bad input raises ValueError on every process with the same one-line message (rank 0 checks,
 the message is broadcast).
@@ -122,7 +124,8 @@ def _check_msh(gmsh, path):
     try:
         gmsh.open(path)
     except Exception as e:
-        raise ValueError(f"cannot read mesh file {path!r}: {e}") from None
+        reason = str(e).strip() or "gmsh stopped without saying why"
+        raise ValueError(f"cannot read mesh file {path!r}: {reason}") from None
     dim = gmsh.model.getDimension()
     if dim == 3 or gmsh.model.mesh.getElementTypes(3).size:
         raise ValueError(f"mesh file {path!r} is 3D; a 2D triangular mesh is required")
@@ -133,12 +136,6 @@ def _check_msh(gmsh, path):
         names = [gmsh.model.mesh.getElementProperties(t)[0] for t in types]
         raise ValueError(f"mesh file {path!r} is not a linear triangular mesh "
                          f"(cells: {', '.join(names)})")
-    _, coords, _ = gmsh.model.mesh.getNodes()
-    if not np.all(np.isfinite(coords)):
-        raise ValueError(f"mesh file {path!r} has non-finite node coordinates")
-    z = np.abs(coords.reshape(-1, 3)[:, 2])
-    if z.size and z.max() > 1e-12 * max(1.0, np.abs(coords).max()):
-        raise ValueError(f"mesh file {path!r} is 3D (nodes off the plane z = 0)")
     return _model_cells(gmsh, f"mesh file {path!r}")
 
 
@@ -146,7 +143,8 @@ def _model_cells(gmsh, what):
     """(cells, x) of gmsh's current model (`what` names it in messages): its triangles in 2D
     physical groups (in every surface if it has none), each once, as rows of indices into x,
     the (n, 2) coordinates of the n nodes they use (module notes). ValueError for degenerate,
-    repeated or overlapping cells."""
+    repeated, overlapping or folded cells, and for nodes off one plane z = const (a plane
+    z = c is taken as z = 0; nodes no triangle uses are not looked at)."""
     groups = gmsh.model.getPhysicalGroups(2)
     surfaces = sorted({int(e) for _, tag in groups
                        for e in gmsh.model.getEntitiesForPhysicalGroup(2, tag)}) if groups \
@@ -163,33 +161,58 @@ def _model_cells(gmsh, what):
         raise ValueError(f"{what} has no triangles in its physical surfaces")
     node_tags, coords, _ = gmsh.model.mesh.getNodes()
     order = np.argsort(node_tags)
-    node_tags, coords = np.asarray(node_tags)[order], coords.reshape(-1, 3)[order, :2]
+    node_tags, coords = np.asarray(node_tags)[order], coords.reshape(-1, 3)[order]
     used, cells = np.unique(nodes, return_inverse=True)
     at = np.minimum(np.searchsorted(node_tags, used), len(node_tags) - 1)
     if not np.array_equal(node_tags[at], used):
         raise ValueError(f"{what} has triangles on nodes it does not list")
     x, cells = coords[at], cells.reshape(-1, 3).astype(np.int64)
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{what} has non-finite node coordinates")
+    if np.ptp(x[:, 2]) > 1e-12 * max(1.0, np.abs(x).max()):
+        raise ValueError(f"{what} is 3D (its triangles' nodes have z from "
+                         f"{x[:, 2].min():g} to {x[:, 2].max():g}, not one plane z = const)")
+    x = np.ascontiguousarray(x[:, :2])
     p = x[cells]
     longest = np.max([((p[:, i] - p[:, i - 1]) ** 2).sum(axis=1) for i in range(3)], axis=0)
     flat = np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest)
     if flat:
         raise ValueError(f"{what} has {flat} degenerate triangle(s) (zero area or "
                          f"a repeated vertex)")
-    twice = len(cells) - len(np.unique(np.sort(cells, axis=1), axis=0))
+    # the same three nodes, or three nodes at the same places (a surface meshed twice)
+    corners = np.sort(p.view([("x", float), ("y", float)])[..., 0], axis=1)
+    corners = corners.view(float).reshape(-1, 6)
+    corners = corners[np.lexsort(corners.T[::-1])]
+    twice = np.count_nonzero((corners[1:] == corners[:-1]).all(axis=1))
     if twice:
         raise ValueError(f"{what} lists {twice} triangle(s) twice (overlapping "
                          f"surfaces?)")
-    edges = np.sort(cells[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
-    _, shared = np.unique(edges, axis=0, return_counts=True)
+    # edge i of a triangle: the one opposite its vertex i, from its lower node to its higher
+    ends = np.sort(cells[:, [[1, 2], [2, 0], [0, 1]]], axis=2).reshape(-1, 2)
+    _, edge, shared = np.unique(ends[:, 0] * len(x) + ends[:, 1], return_inverse=True,
+                                return_counts=True)
     if shared.max() > 2:
         raise ValueError(f"{what} has {np.count_nonzero(shared > 2)} edge(s) of "
                          f"three or more triangles (overlapping surfaces?)")
+    # the two triangles of an edge lie on its two sides, unless the mesh folds over there
+    a, b = x[ends[:, 0]], x[ends[:, 1]]
+    d, e = b - a, p.reshape(-1, 2) - a
+    side = np.sign(d[:, 0] * e[:, 1] - d[:, 1] * e[:, 0])
+    folded = np.count_nonzero(np.abs(np.bincount(edge, weights=side)) > 1.5)
+    if folded:
+        raise ValueError(f"{what} has {folded} edge(s) whose two triangles lie on the same "
+                         f"side (a folded or tangled mesh)")
     return cells, x
 
 
 def check_msh_path(path):
-    """The readable file at `path`, or ValueError naming what is wrong (no gmsh needed)."""
-    path = os.fspath(path)
+    """The readable file at `path` (str, bytes or os.PathLike) as a str, or ValueError naming
+    what is wrong (no gmsh needed). Anything else is refused before a file is touched: an int
+    would be taken for an open file descriptor of the process, and closed after reading."""
+    try:
+        path = os.fsdecode(path)
+    except TypeError:
+        raise ValueError(f"mesh must be the path of a .msh file, got {path!r}") from None
     if not os.path.exists(path):
         raise ValueError(f"mesh file {path!r} does not exist")
     if not os.path.isfile(path):

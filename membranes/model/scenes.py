@@ -269,6 +269,8 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
     if mesh is None and domain not in ("disk", "square"):
         raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
+    if mesh is not None:
+        mesh = meshes.check_msh_path(mesh)
     h = _check_size(h, levels, domain, mesh, max_vertices, comm)
     coarse = _coarse_mesh(domain, h, mesh, comm)
     if mesh is not None and levels:     # the header's estimate was a lower bound: now exact
