@@ -5,6 +5,8 @@ the options it used."""
 
 import math
 import os
+import subprocess
+import sys
 
 import pytest
 
@@ -14,6 +16,8 @@ from membranes.fem.meshes import unit_disk, unit_square
 from membranes.model import checks, petsc_options
 
 from .conftest import scene
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 GiB = 2.0 ** 30
 
@@ -619,3 +623,48 @@ def test_options_the_method_overrides_or_that_crash_are_refused(options, name):
     with pytest.raises(ValueError, match=name):
         Krylov("paper" if "gap" not in options else "amg",
                petsc_options.parse_petsc_options(options))
+
+
+def test_converged_reason_is_read_in_the_solve(capfd):
+    """-ksp_converged_reason is read by KSPSolve only (no trial set-up reads it): it was refused
+    as unused, although the run's solvers keep their options while they live. Now accepted, and
+    PETSc prints its line for every Krylov solve."""
+    run = solve(scenes.disk(h=0.3), newton="exact", petsc_options="-ksp_converged_reason",
+                nested=False, progress=False)
+    assert run.converged, run.reason
+    printed = capfd.readouterr().out
+    assert printed.count("solve converged due to") == run.summary()["newton_iterations"]
+
+
+PARALLEL_ILU = """
+from mpi4py import MPI
+from membranes.app.driver import check_method
+said = None
+try:
+    check_method(1, solver="amg", petsc_options="-pc_type ilu", comm=MPI.COMM_WORLD)
+except ValueError as e:
+    said = str(e)
+said = MPI.COMM_WORLD.gather(said, root=0)
+print(repr(said) if MPI.COMM_WORLD.rank == 0 else "", flush=True)
+"""
+
+
+def test_a_factorisation_petsc_cannot_distribute_is_refused_up_front():
+    """-pc_type ilu (PETSc's own, sequential only) on 2 processes: the trial set-up ran on one
+    process and let it through; the run failed after meshing (exit 3, outputs written). The
+    trial now runs on the run's communicator: every process refuses it, naming the way out.
+    On one process it is a valid option."""
+    import ast
+    import shutil
+
+    from membranes.app.driver import check_method
+    check_method(1, solver="amg", petsc_options="-pc_type ilu")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(OMP_NUM_THREADS="1", PYTHONPATH=ROOT)
+    proc = subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
+                           "-n", "2", sys.executable, "-c", PARALLEL_ILU],
+                          capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr
+    said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    assert len(said) == 2 and all(m is not None and "matrix type mpiaij" in m
+                                  and "-sub_pc_type ilu" in m for m in said), said

@@ -168,7 +168,7 @@ def _check_before_meshing(args, scene, kwargs, comm):
                  max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
                  estimators=not args.no_estimators, alg_flux=args.alg_flux,
                  gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, nested=args.nested,
-                 coarse=args.coarse, coarse_tol=args.coarse_tol)
+                 coarse=args.coarse, coarse_tol=args.coarse_tol, comm=comm)
     domain = scene if scene in ("disk", "square") else kwargs.get("domain", "disk")
     checks.check_request(kwargs.get("h", DEFAULT_H), args.levels, domain, kwargs.get("mesh"),
                          args.max_vertices, comm=comm, estimators=not args.no_estimators,

@@ -231,12 +231,13 @@ def prolong(P, disc, X_coarse, n_coarse):
 def check_method(levels, newton=None, cfun="min", solver="amg", system=None,
                  petsc_options=None, nu=None, max_linear_its=None, tol=None, max_newton=100,
                  estimators=True, alg_flux=None, gamma_lin=None, gamma_alg=None, nested=None,
-                 coarse="residual", coarse_tol=None):
+                 coarse="residual", coarse_tol=None, comm=None):
     """`solve`'s method options (its keywords of the same names) checked against each other
     and against the number of refinements `levels`, with no mesh: what `solve` refuses of
     them, the command line refuses before it builds a mesh (docs/cli.md). ValueError as
     `solve`; returns (krylov, newton, max_newton, petsc_options, tol, gamma_lin, gamma_alg,
-    alg_flux, nested, coarse, coarse_tol), completed with their defaults."""
+    alg_flux, nested, coarse, coarse_tol), completed with their defaults. `comm`: the run's
+    communicator, where PETSc options are tried (collective on it; default one process)."""
     if newton is not None:
         _choice("Newton variant", newton, VARIANTS)
     cfunctions.get(cfun)
@@ -249,7 +250,7 @@ def check_method(levels, newton=None, cfun="min", solver="amg", system=None,
     krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": nu}),
                     **({} if max_linear_its is None else {"max_it": max_linear_its}))
     if petsc_options:       # refused here if PETSc would not read one of them
-        check_petsc_options_used(petsc_options, krylov.merged, krylov.inner())
+        check_petsc_options_used(petsc_options, krylov.merged, krylov.inner(), comm)
     if system is not None:
         _choice("system", system, ("full", "eliminated"))
     newton = _default_variant(newton, estimators, krylov)
@@ -343,7 +344,8 @@ def solve(problem: Problem,
         problem.levels, newton=newton, cfun=cfun, solver=solver, system=system,
         petsc_options=petsc_options, nu=nu, max_linear_its=max_linear_its, tol=tol,
         max_newton=max_newton, estimators=estimators, alg_flux=alg_flux, gamma_lin=gamma_lin,
-        gamma_alg=gamma_alg, nested=nested, coarse=coarse, coarse_tol=coarse_tol)
+        gamma_alg=gamma_alg, nested=nested, coarse=coarse, coarse_tol=coarse_tol,
+        comm=problem.mesh.comm)
     _check_memory(problem, solver, estimators, max_vertices, alg_flux)
     if nested and initial_guess is not None and not isinstance(initial_guess, str) and \
             not callable(initial_guess):

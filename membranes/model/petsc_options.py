@@ -114,23 +114,30 @@ def unused_petsc_options(options, prefix=""):
     return unused
 
 
+# options PETSc reads only inside a solve (KSPSolve's KSPConvergedReasonViewFromOptions): no
+# trial set-up sees them read, but the run's solvers keep their options in the database while
+# they live (membranes.linalg.preconditioners.put_options), so a solve reads them
+READ_IN_SOLVE = ("ksp_converged_reason",)
+
 _trials = iter(range(1 << 62))
 # the PCs whose options a trial set-up on a small identity reads (their sub-solvers' and
 # factorisations'), safely
 SET_UP_PCS = ("bjacobi", "asm", "gasm", "lu", "cholesky", "ilu", "icc")
 
 
-def _identity(n=2):
-    """The n × n identity (sequential AIJ): the operator of a trial set-up."""
+def _identity(comm, n=2):
+    """The identity with n rows on each process of `comm` (AIJ: sequential on one process,
+    MPI on several, as the run's matrices): the operator of a trial set-up."""
     from petsc4py import PETSc
-    A = PETSc.Mat().createAIJ([n, n], nnz=1, comm=PETSc.COMM_SELF)
-    for i in range(n):
+    A = PETSc.Mat().createAIJ([(n, None), (n, None)], nnz=(1, 0), comm=comm)
+    start, end = A.getOwnershipRange()
+    for i in range(start, end):
         A.setValue(i, i, 1.0)
     A.assemble()
     return A
 
 
-def unused_by_trial(options, kind="ksp", setup=False):
+def unused_by_trial(options, kind="ksp", setup=False, comm=None):
     """The names of `options` that a throw-away PETSc KSP (or PC, `kind='pc'`) configured
     with them (setFromOptions) does not read: an option a solve configured the same way
     cannot read either, when its options are read at configuration (as the current
@@ -138,13 +145,17 @@ def unused_by_trial(options, kind="ksp", setup=False):
     With `setup` the KSP is also set up on a small identity matrix, so that the options read
     then count too: those of the sub-solvers a PC creates at its set-up (the paper preset's
     block Jacobi, -sub_pc_type) and of a factorisation (MUMPS's -mat_mumps_icntl_14).
-    PETSc errors (an unknown KSP type, a bad value) pass on as ValueError."""
+    `comm` (a PETSc or mpi4py communicator; default one process): the run's, where the
+    set-up must meet the run's distributed matrix type (PETSc has no ILU of an MPI matrix).
+    Collective on it. PETSc errors (an unknown KSP type, a bad value) pass on as
+    ValueError."""
     from petsc4py import PETSc
     prefix = f"membranes_check_{next(_trials)}_"
     database = PETSc.Options()
     for name, value in options.items():
         database[prefix + name] = value
-    obj = (PETSc.KSP() if kind == "ksp" else PETSc.PC()).create(PETSc.COMM_SELF)
+    comm = PETSc.COMM_SELF if comm is None else comm
+    obj = (PETSc.KSP() if kind == "ksp" else PETSc.PC()).create(comm)
     A = None
     try:
         obj.setOptionsPrefix(prefix)
@@ -153,11 +164,15 @@ def unused_by_trial(options, kind="ksp", setup=False):
             if kind == "ksp":     # PETSc checks the KSP's norm type against its PC side here
                 obj.getNormType()  # (-ksp_type cg with the paper's right preconditioning)
             if setup and kind == "ksp":
-                A = _identity()
+                A = _identity(comm)
                 obj.setOperators(A)
                 obj.setUp()
         except PETSc.Error as e:
             message = str(e).strip().splitlines()[-1].split("] ", 1)[-1]
+            if "mpiaij" in message and "factorization" in message.lower():
+                message += (" (a matrix distributed over processes: for LU or Cholesky "
+                            "use -pc_factor_mat_solver_type mumps, for ILU -pc_type "
+                            "bjacobi -sub_pc_type ilu)")
             raise ValueError(f"PETSc options: {message}") from None
         return unused_petsc_options(options, prefix)
     finally:
@@ -168,13 +183,14 @@ def unused_by_trial(options, kind="ksp", setup=False):
             database.delValue(prefix + name)
 
 
-def check_petsc_options_used(user, ksp_options, inner=None):
+def check_petsc_options_used(user, ksp_options, inner=None, comm=None):
     """Refuse the first of the user's options `user` (names without '-') that PETSc would not
     read: those whose name starts with a prefix of `inner` (a dict: prefix → the complete
     options of an inner PC, such as the mean/gap split's 'mean_' and 'gap_') go (without it)
     to a PC configured with those options, the others to a KSP configured with `ksp_options`
     (the complete options the solve applies, defaults included). ValueError naming it, in one
-    line, with the KSP and PC types of the options it was for."""
+    line, with the KSP and PC types of the options it was for. `comm`: the run's (the trial
+    set-up's, `unused_by_trial`); collective on it."""
     inner = inner or {}
 
     def prefix_of(name):
@@ -186,10 +202,11 @@ def check_petsc_options_used(user, ksp_options, inner=None):
     # a split (a Python PC, so the trial's PC is none: -pc_factor_levels, which the split
     # would not read, counts as unused)
     trial = {**ksp_options, "pc_type": "none"} if inner else ksp_options
-    unused = unused_by_trial(trial, "ksp", setup=trial.get("pc_type") in SET_UP_PCS)
+    unused = unused_by_trial(trial, "ksp", setup=trial.get("pc_type") in SET_UP_PCS,
+                             comm=comm)
     if unused is None:
         return
-    unused = [name for name in outer if name in unused]
+    unused = [name for name in outer if name in unused and name not in READ_IN_SOLVE]
     for prefix, pc_options in inner.items():
         mine = {name[len(prefix):] for name in user if prefix_of(name) == prefix}
         if mine:
@@ -202,6 +219,4 @@ def check_petsc_options_used(user, ksp_options, inner=None):
                         if k in ("ksp_type", "pc_type"))
         whose = "the solver" if prefix is None else f"the inner preconditioner '{prefix}'"
         raise ValueError(f"PETSc option -{unused[0]} is not used by {whose} of this run "
-                         f"({what}): misspelt, not an option of this KSP/PC, or one that is "
-                         f"read during a solve only (the solvers drop their options once "
-                         f"configured)")
+                         f"({what}): misspelt, or not an option of this KSP/PC")
