@@ -38,7 +38,7 @@ import numpy as np
 from mpi4py import MPI
 
 from membranes import Setups, scenes, solve
-from membranes.app.demo import options, say
+from membranes.app.demo import figure_class, options, say
 
 out, quick = options("sweep", "a load sweep with kept set-ups", "folder for the picture")
 comm = MPI.COMM_WORLD
@@ -93,9 +93,8 @@ for t, seconds, setup, eta, eta_disc, share, bound in rows:
 
 # +
 picture = os.path.join(out, "sweep.png")
-if comm.rank == 0:
-    from matplotlib.figure import Figure
-
+Figure = figure_class()       # None without matplotlib: the demo goes on without it
+if comm.rank == 0 and Figure is not None:
     t = [r[0] for r in rows]
     fig = Figure(figsize=(7.5, 4.2), layout="constrained")
     ax = fig.add_subplot()

@@ -116,6 +116,24 @@ def test_demo_user_mesh_without_pyvista(tmp_path):
     assert summary(out / "solution")["bound_guaranteed"]
 
 
+@pytest.mark.parametrize("name, picture", [("demo_disk.py", "error_vs_time.png"),
+                                           ("demo_sweep.py", "sweep.png")])
+def test_demo_without_matplotlib(tmp_path, name, picture):
+    """matplotlib is no dependency of the package (a plain `pip install` lacks it): the demo
+    says so in one line and goes on to its results and outputs without its picture (it ended
+    in a traceback after every run, demo_disk's outputs unwritten)."""
+    out = tmp_path / "demo"
+    stdout = run_demo(name, out, pythonpath=blocking_folder(tmp_path, "matplotlib"))
+    skipped = [line for line in stdout.splitlines() if "picture skipped" in line]
+    assert len(skipped) == 1 and "no matplotlib here" in skipped[0], stdout
+    assert "pip install matplotlib numpy==" in skipped[0]
+    assert not (out / picture).exists()
+    if name == "demo_disk.py":
+        assert summary(out / "adaptive")["bound_guaranteed"]
+    else:
+        assert sum(1 for line in stdout.splitlines() if line.endswith(" True")) == 3
+
+
 @pytest.mark.parametrize("out", ["/proc/x", ""])
 def test_demo_refuses_an_unwritable_folder(out):
     """An --out the demo cannot write: one error line and exit 2, as the CLI (it was a

@@ -1,4 +1,5 @@
-"""What every literate demo of demos/ starts with: its two options and a print on rank 0."""
+"""What every literate demo of demos/ starts with: its two options, a print on rank 0 and
+matplotlib where it can be imported."""
 
 import argparse
 import os
@@ -28,6 +29,21 @@ def options(name, description, out_help):
         sys.exit(2)
     os.makedirs(args.out, exist_ok=True)
     return args.out, args.quick or os.environ.get("MEMBRANES_DEMO_QUICK") == "1"
+
+
+def figure_class():
+    """matplotlib's Figure, or None where matplotlib cannot be imported: it is no dependency
+    of the package (a plain `pip install` lacks it), so a demo then says so in one line and
+    goes on to its outputs without its picture. The advice pins numpy, as
+    `membranes.app.report.check_matplotlib` does."""
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as e:
+        import numpy as np
+        say(f"picture skipped: matplotlib cannot be imported ({e}): pip install matplotlib "
+            f"numpy=={np.__version__}")
+        return None
+    return Figure
 
 
 def say(*line):

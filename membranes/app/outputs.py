@@ -128,10 +128,13 @@ def write_solution(path, mesh, functions, eta_K=None):
 # ## Staging
 
 @contextlib.contextmanager
-def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0):
+def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=()):
     """Yield (on every process of `comm`) the path of a fresh temporary folder beside `out`;
     when the block ends without an error on any process, process 0 moves every file in it
-    into `out` (created if missing). The temporary folder goes in any case. ValueError (one
+    into `out` (created if missing), and removes from `out` the files named in `replaces`
+    that the block did not make (outputs a run may go without, such as a picture that could
+    not be drawn: an older run's copy must not stand beside the new files). Other files of
+    `out` are left alone. The temporary folder goes in any case. ValueError (one
     line, nothing left behind) if `out` cannot be written (checks.check_output_folder) or its
     filesystem has fewer than `nbytes` bytes free (checks.check_output_room), and on
     every process if a process's block fails to write (an OSError: a full disk, a quota):
@@ -167,8 +170,13 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0):
         try:
             if everyone:
                 os.makedirs(out, exist_ok=True)
-                for name in sorted(os.listdir(tmp)):
+                made = sorted(os.listdir(tmp))
+                for name in made:
                     os.replace(os.path.join(tmp, name), os.path.join(out, name))
+                for name in set(replaces) - set(made):
+                    stale = os.path.join(out, name)
+                    if os.path.isfile(stale) or os.path.islink(stale):
+                        os.remove(stale)
         except OSError as e:
             error = f"cannot move the outputs into {out}: {e.strerror or e}"
         finally:

@@ -59,6 +59,7 @@ METHODS = (("exact/amg", "exact", "amg", None), ("inexact/amg", "inexact", "amg"
            ("adaptive/paper", "adaptive", "paper", False))
 METHOD_NAMES = tuple(m[0] for m in METHODS)
 PEERS = ("nested peer", "certified nested peer", "plain peer")
+PYVISTA_PICTURES = ("error_distribution.png", "contact.png")
 MAX_NEWTON = {"exact": 100, "inexact": 400, "adaptive": 100}
 CURVE_COLUMNS = ("method", "level", "newton_it", "kind", "cumulative_linear_its",
                  "wall_time_s", "residual", "energy_error", "eta", "eta_disc", "eta_lin",
@@ -472,7 +473,8 @@ def write_report(problem, out, say=lambda line: None):
     check_matplotlib()
     comm = problem.mesh.comm
     t = time.perf_counter()
-    with staged_folder(out, comm) as tmp:
+    # the pyvista pictures may be missing: then an older report's copy goes too
+    with staged_folder(out, comm, replaces=PYVISTA_PICTURES) as tmp:
         runs = run_methods(problem, say)
         peer_rows, peer_curves = run_peers(problem, say)
         summaries = {m: runs[m].summary() for m in METHOD_NAMES}      # collective

@@ -236,6 +236,21 @@ def test_staged_folder_moves_only_on_success(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]
 
 
+def test_staged_folder_replaces_files_it_did_not_make(tmp_path):
+    """A file of `replaces` the block did not make goes from the target (an older run's copy
+    would stand beside the new files as if it were theirs); the files the block made replace
+    theirs, and every other file, or a folder of such a name, stays."""
+    out = tmp_path / "a"
+    (out / "kept").mkdir(parents=True)
+    for name in ("old.png", "new.png", "notes.txt"):
+        (out / name).write_text("old\n")
+    with staged_folder(out, replaces=("old.png", "new.png", "kept", "absent.png")) as tmp:
+        (open(os.path.join(tmp, "new.png"), "w")).write("new\n")
+    assert sorted(p.name for p in out.iterdir()) == ["kept", "new.png", "notes.txt"]
+    assert (out / "new.png").read_text() == "new\n"
+    assert (out / "notes.txt").read_text() == "old\n"
+
+
 def test_json_safe():
     value = {"a": np.float64(np.nan), "b": [np.int32(3), np.inf], "c": np.array([1.5]),
              "d": np.bool_(True)}

@@ -249,12 +249,18 @@ def test_a_report_without_pyvista(tmp_path, monkeypatch):
     """When pyvista cannot draw (here: not importable in the rendering process), the report
     is written without the two pyvista pictures, says why in report.md and on the progress
     lines, and leaves no half-drawn picture or data file (docs/outputs.md); it used to end in
-    a traceback after every run, nothing written."""
+    a traceback after every run, nothing written. Written over an older report, it leaves no
+    picture of that report beside its own CSVs (they used to stay), and the user's files
+    alone."""
     monkeypatch.setenv("PYTHONPATH", with_folder_first(blocking_folder(tmp_path, "pyvista")))
     out, said = tmp_path / "square", []
+    out.mkdir()
+    for name in ("error_distribution.png", "contact.png", "notes.txt"):
+        (out / name).write_text("an older report's\n")
     write_report(scenes.square(h=0.5, levels=1), str(out), said.append)
     names = set(os.listdir(out))
     assert "error_distribution.png" not in names and "contact.png" not in names
+    assert (out / "notes.txt").read_text() == "an older report's\n"
     assert {"error_distribution.csv", "contact.csv", "report.md", "error_vs_time.png"} <= names
     assert not any(n.endswith(".npz") for n in names)
     text = (out / "report.md").read_text()
