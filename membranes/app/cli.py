@@ -3,7 +3,8 @@
 
 Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out),
 3 the solver did not converge (the outputs are written, with converged = false and a reason),
-130 interrupted (Ctrl-C; nothing written).
+130 interrupted (Ctrl-C; nothing written), 143 terminated (SIGTERM: a batch scheduler's time
+limit, or mpirun passing Ctrl-C on; nothing written).
 Progress: one line per Newton step on stderr (``--quiet`` silences it).
 ``mpirun -n P membranes solve ...`` runs the same code on P processes: dolfinx distributes
 the mesh, PETSc the solves; rank 0 prints, every rank writes its part of the solution.
@@ -20,6 +21,9 @@ from .logs import quiet_jit_logging
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 3
 EXIT_INTERRUPTED = 130    # the shell's code for a run ended by Ctrl-C (128 + SIGINT)
+EXIT_TERMINATED = 143     # and by SIGTERM (128 + SIGTERM)
+
+
 # seconds a process that met an error waits for the others to meet it too (`_leave`)
 AGREE_SECONDS = 10.0
 
@@ -264,8 +268,11 @@ def _leave(errors, code, say):
 
 def main(argv=None):
     from mpi4py import MPI
+
+    from . import interrupts
     world = MPI.COMM_WORLD
     errors = world.Dup() if world.size > 1 else None
+    previous = interrupts.install()
     try:
         return _main(argv)
     except ValueError as e:   # BadInput and every data/mesh error of the API
@@ -279,14 +286,19 @@ def main(argv=None):
         import traceback
         _leave(errors, 1, traceback.print_exc)
         raise
-    except KeyboardInterrupt:   # Ctrl-C: one line; the staged outputs are gone already
+    except KeyboardInterrupt as e:   # Ctrl-C, SIGTERM: one line; the staged outputs are gone
+        interrupts.caught()
+        terminated = isinstance(e, interrupts.Terminated)
+        code = EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
         if world.rank == 0:
-            print("membranes: interrupted", file=sys.stderr, flush=True)
+            print("membranes: " + ("terminated" if terminated else "interrupted"),
+                  file=sys.stderr, flush=True)
         if errors is not None:  # the others may wait in a collective: no MPI_Finalize
             sys.stdout.flush()
-            os._exit(EXIT_INTERRUPTED)
-        return EXIT_INTERRUPTED
+            os._exit(code)
+        return code
     finally:
+        interrupts.restore(previous)
         if errors is not None:
             errors.Free()
 

@@ -43,6 +43,7 @@ import numpy as np
 from mpi4py import MPI
 
 from ..model.checks import check_output_folder, check_output_room, output_bytes
+from . import interrupts
 from .solution import ESTIMATOR_COLUMNS
 
 HISTORY_COLUMNS = ("level", "newton_it", "linear_it", "cumulative_linear_its", "wall_time_s",
@@ -150,16 +151,27 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=()):
             parent = os.path.dirname(out)
             os.makedirs(parent, exist_ok=True)
             tmp = tempfile.mkdtemp(prefix=".membranes-", dir=parent)
+            interrupts.staging = tmp    # (removed at once on Ctrl-C or SIGTERM)
         except OSError as e:
             error = f"output folder {out} cannot be written: {e.strerror or e}"
     tmp, error = comm.bcast((tmp, error), root=0)
     if error is not None:
         raise ValueError(error)
+    # every process removes the folder on Ctrl-C or SIGTERM (one shared filesystem): the one
+    # that meets the signal first may be any, and process 0 may then wait in an MPI call
+    # for ever, until the job is killed
+    interrupts.staging = tmp
     failed = None
     try:
         yield tmp
     except BaseException as e:          # noqa: BLE001  (every process must learn of it)
         failed = e
+        if isinstance(e, KeyboardInterrupt):
+            interrupts.caught()         # (no second raise inside the clean-up)
+            # the collectives below may wait until the job is killed: the staged files go now
+            shutil.rmtree(tmp, ignore_errors=True)
+    if comm.rank != 0:
+        interrupts.staging = None       # (process 0 may move the files in from here on)
     everyone = comm.allreduce(failed is None, op=MPI.LAND)
     written = None                      # why a process could not write, if one could not
     if not everyone:
@@ -169,6 +181,7 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=()):
     if comm.rank == 0:
         try:
             if everyone:
+                interrupts.staging = None     # (moving in: no longer removed as a whole)
                 os.makedirs(out, exist_ok=True)
                 made = sorted(os.listdir(tmp))
                 for name in made:
@@ -181,6 +194,7 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=()):
             error = f"cannot move the outputs into {out}: {e.strerror or e}"
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
+            interrupts.staging = None
     error = comm.bcast(error, root=0)
     if written is not None:
         raise ValueError(f"the outputs cannot be written into {out}: {written}; nothing was "

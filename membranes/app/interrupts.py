@@ -1,0 +1,67 @@
+"""Ending a run on Ctrl-C or SIGTERM as on any error: the staged outputs removed, one line,
+no traceback (membranes.app.cli, membranes.app.outputs.staged_folder).
+
+Python raises the exception of a signal at the next bytecode it runs, and that may be a
+weakref callback or a `__del__` run by a deallocation, whose exceptions Python prints and
+drops ("Exception ignored in …"): the run would go on. Under mpirun that is the common case
+(a process waiting in an MPI call runs such callbacks first when the call returns, and
+mpirun passes Ctrl-C on as SIGTERM, then kills the processes a moment later). So after a
+signal the exception is raised again every RETRY seconds (SIGALRM) until code that handles it
+says so (`caught`). And the folder a process is staging outputs in (`staging`) is removed by the
+handler itself, at once: mpirun kills the processes about a second after its SIGTERM, which
+may come before the exception has made its way up through MPI calls and clean-ups.
+"""
+
+import shutil
+import signal
+
+RETRY = 0.05        # seconds between raises of a pending interrupt
+
+_pending = None     # the exception class of the signal met, until `caught`
+staging = None      # the folder this process stages outputs in (outputs.staged_folder)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM: batch schedulers send it before they kill a job at its time limit, and Open
+    MPI's mpirun passes Ctrl-C on to the processes as SIGTERM. A KeyboardInterrupt, so that
+    it ends the run as Ctrl-C does."""
+
+
+def _raise_pending(signum, frame):
+    if _pending is not None:
+        raise _pending
+
+
+def _handler(exception):
+    def handler(signum, frame):
+        global _pending
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
+        _pending = exception
+        signal.signal(signal.SIGALRM, _raise_pending)
+        signal.setitimer(signal.ITIMER_REAL, RETRY, RETRY)
+        raise exception
+    return handler
+
+
+def install():
+    """Raise KeyboardInterrupt on SIGINT and `Terminated` on SIGTERM, again until `caught`.
+    Returns what `restore` needs (the handlers before). Main thread only."""
+    return {s: signal.signal(s, _handler(e)) for s, e in
+            ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated))}
+
+
+def caught():
+    """The interrupt reached code that handles it: no more raises (its clean-up must not be
+    interrupted in turn)."""
+    global _pending
+    if _pending is not None:
+        _pending = None
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+
+
+def restore(previous):
+    """Stop raising and put back the handlers `install` replaced."""
+    caught()
+    for s, handler in previous.items():
+        signal.signal(s, handler)
