@@ -574,30 +574,6 @@ def test_data_not_finite_on_part_of_the_mesh_are_refused_by_every_process(tmp_pa
     assert not out.exists()
 
 
-def test_ctrl_c_ends_the_run_cleanly(tmp_path):
-    """SIGINT (Ctrl-C) in the middle of `membranes solve`: one line 'membranes: interrupted'
-    (it was a KeyboardInterrupt traceback), exit 130, and neither the output folder nor the
-    staging folder beside it."""
-    import signal
-    import subprocess
-    import sys
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(OMP_NUM_THREADS="1")
-    out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "membranes.app.cli", "solve", "--h", "0.2",
-                             "--levels", "5", "--out", str(out)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
-    for line in proc.stderr:                  # interrupt once Newton runs on a coarse level
-        if line.startswith("level 2: Newton"):
-            proc.send_signal(signal.SIGINT)
-            break
-    rest = proc.stderr.read()
-    proc.wait(timeout=120)
-    assert proc.returncode == 130, rest
-    assert rest.strip().splitlines()[-1] == "membranes: interrupted" and "Traceback" not in rest
-    assert os.listdir(tmp_path) == []
-
-
 @pytest.mark.parametrize("options,name", [("-ksp_divtol 10", "-ksp_divtol"),
                                           ("-ksp_initial_guess_nonzero 0",
                                            "-ksp_initial_guess_nonzero"),

@@ -57,26 +57,35 @@ def test_the_handler_removes_the_staging_folder(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def _report(command, out):
-    return subprocess.Popen(command + [sys.executable, "-m", "membranes.app.cli", "report",
-                                       "--h", "0.5", "--levels", "0", "--out", str(out)],
+def interrupted(launcher, args, when, sig):
+    """Run `launcher + python -m membranes.app.cli + args`, send `sig` once a progress line
+    starts with `when`; (exit code, the rest of stderr)."""
+    proc = subprocess.Popen(launcher + [sys.executable, "-m", "membranes.app.cli"] + args,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             env=_env(), cwd=ROOT)
-
-
-def test_sigterm_ends_a_report_cleanly(tmp_path):
-    """SIGTERM (a batch scheduler's time limit) while a report runs, its outputs staged: one
-    line 'membranes: terminated', exit 143, nothing in or beside the output folder (before:
-    killed at once, the staging folder left beside it)."""
-    proc = _report([], tmp_path / "out")
-    for line in proc.stderr:                  # once the methods run (outputs staged)
-        if line.startswith("report: exact/amg"):
-            proc.send_signal(signal.SIGTERM)
+    for line in proc.stderr:
+        if line.startswith(when):
+            proc.send_signal(sig)
             break
-    rest = proc.stderr.read()
-    proc.wait(timeout=120)
-    assert proc.returncode == 143, rest
-    assert rest.strip().splitlines()[-1] == "membranes: terminated" and "Traceback" not in rest
+    rest = proc.communicate(timeout=120)[1]
+    return proc.returncode, rest
+
+
+@pytest.mark.parametrize("command, when, sig, code, said", [
+    # Ctrl-C once Newton runs on a coarse level (it was a KeyboardInterrupt traceback)
+    (["solve", "--h", "0.2", "--levels", "5"], "level 2: Newton", signal.SIGINT, 130,
+     "membranes: interrupted"),
+    # SIGTERM (a batch scheduler's time limit) while a report's outputs are staged (it was
+    # killed at once, the staging folder left beside the output folder)
+    (["report", "--h", "0.5", "--levels", "0"], "report: exact/amg", signal.SIGTERM, 143,
+     "membranes: terminated")], ids=["ctrl-c solve", "sigterm report"])
+def test_an_interrupted_run_says_so_and_leaves_nothing(tmp_path, command, when, sig, code,
+                                                        said):
+    """One line, the exit code of the signal, neither the output folder nor the staging
+    folder beside it."""
+    returncode, rest = interrupted([], command + ["--out", str(tmp_path / "out")], when, sig)
+    assert returncode == code, rest
+    assert rest.strip().splitlines()[-1] == said and "Traceback" not in rest
     assert os.listdir(tmp_path) == []
 
 
@@ -84,12 +93,9 @@ def test_ctrl_c_under_mpirun_leaves_nothing(tmp_path):
     """Ctrl-C to mpirun -n 2 during a report: mpirun sends the processes SIGTERM and kills
     them about a second later, while they wait in MPI calls or run clean-ups; the staging
     folder beside the output folder was left behind (with some of the report's files)."""
-    proc = _report([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe", "-n",
-                    "2"], tmp_path / "out")
-    for line in proc.stderr:
-        if line.startswith("report: inexact/amg"):
-            proc.send_signal(signal.SIGINT)
-            break
-    proc.communicate(timeout=120)
-    assert proc.returncode != 0
+    mpirun = [shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe", "-n", "2"]
+    returncode, _ = interrupted(mpirun, ["report", "--h", "0.5", "--levels", "0", "--out",
+                                         str(tmp_path / "out")], "report: inexact/amg",
+                                signal.SIGINT)
+    assert returncode != 0
     assert os.listdir(tmp_path) == []

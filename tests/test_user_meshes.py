@@ -21,10 +21,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def two_squares(path, groups, save_all=False):
     """(0, 2) x (0, 1) as two conforming unit squares (surfaces 1 and 2), with the 2D physical
     groups `groups` ({tag: [surfaces]}), written in msh 4.1 (all elements if `save_all`)."""
-    import gmsh
-    gmsh.initialize([])
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    def build(gmsh):
         gmsh.model.occ.addRectangle(0, 0, 0, 1, 1)
         gmsh.model.occ.addRectangle(1, 0, 0, 1, 1)
         gmsh.model.occ.fragment([(2, 1)], [(2, 2)])
@@ -32,6 +29,16 @@ def two_squares(path, groups, save_all=False):
         for tag, surfaces in groups.items():
             gmsh.model.addPhysicalGroup(2, surfaces, tag)
         gmsh.option.setNumber("Mesh.SaveAll", int(save_all))
+    return meshed(path, build)
+
+
+def meshed(path, build):
+    """Mesh what `build(gmsh)` makes at size 0.25 and write it to `path` (msh 4.1)."""
+    import gmsh
+    gmsh.initialize([])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        build(gmsh)
         gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.25)
         gmsh.model.mesh.generate(2)
         gmsh.write(str(path))
@@ -66,10 +73,7 @@ def rectangles_msh(path, rectangles, points=(), tilt=0.0):
     """The rectangles (x, y, z, dx, dy), each meshed on its own nodes (no fragment), and the
     geometry points `points` (x, y, z) that no cell uses, all turned by the angle `tilt` about
     the x axis, written in msh 4.1."""
-    import gmsh
-    gmsh.initialize([])
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    def build(gmsh):
         for rectangle in rectangles:
             gmsh.model.occ.addRectangle(*rectangle)
         for point in points:
@@ -77,12 +81,7 @@ def rectangles_msh(path, rectangles, points=(), tilt=0.0):
         if tilt:
             gmsh.model.occ.rotate(gmsh.model.occ.getEntities(2), 0, 0, 0, 1, 0, 0, tilt)
         gmsh.model.occ.synchronize()
-        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.25)
-        gmsh.model.mesh.generate(2)
-        gmsh.write(str(path))
-    finally:
-        gmsh.finalize()
-    return str(path)
+    return meshed(path, build)
 
 
 def global_counts(mesh):
