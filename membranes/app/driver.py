@@ -201,7 +201,7 @@ def _initial_guess(initial_guess, disc):
     if isinstance(initial_guess, str):
         _choice("initial guess", initial_guess, INITIAL_GUESSES)
         return disc.vector3()
-    X = initial_guess(disc) if callable(initial_guess) else initial_guess
+    X = initial_guess(disc) if _guess_function(initial_guess) else initial_guess
     # collective: a Vec whose layout is wrong on some processes only must be refused by all
     if not disc.comm.allreduce(hasattr(X, "getLocalSize") and X.getLocalSize() == 3 * disc.n,
                                op=MPI.LAND):
@@ -211,6 +211,14 @@ def _initial_guess(initial_guess, disc):
     if not disc.comm.allreduce(bool(np.all(np.isfinite(X.array_r))), op=MPI.LAND):
         raise ValueError("the initial guess has non-finite values")
     return X
+
+
+def _guess_function(initial_guess):
+    """Whether `initial_guess` is a function of the discretisation: callable, but not a UFL
+    object (a dolfinx Function is callable as x ↦ its value; called with the discretisation it
+    logged UFL warnings for ever). It is refused as no Vec instead."""
+    import ufl
+    return callable(initial_guess) and not isinstance(initial_guess, ufl.core.expr.Expr)
 
 
 def prolong(P, disc, X_coarse, n_coarse):
@@ -348,7 +356,7 @@ def solve(problem: Problem,
         comm=problem.mesh.comm)
     _check_memory(problem, solver, estimators, max_vertices, alg_flux)
     if nested and initial_guess is not None and not isinstance(initial_guess, str) and \
-            not callable(initial_guess):
+            not _guess_function(initial_guess):
         raise ValueError("with nested iteration the initial guess is that of the coarse mesh "
                          "T_0: give 'paper', 'zero' or a function of the discretisation, or "
                          "nested=False")

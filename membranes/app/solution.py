@@ -27,14 +27,16 @@ ESTIMATOR_COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc"
 @dataclass
 class Solution:
     problem: Problem
-    disc: Discretisation          # the discretisation of the computational mesh T_J
+    # the discretisation of the computational mesh T_J (repr: not it nor the history, whose
+    # arrays and records made a Solution in a notebook print some 1e5 characters)
+    disc: Discretisation = field(repr=False)
     X: PETSc.Vec                  # iterate layout [u1 | u2 | λ] (owned dofs)
     converged: bool
     reason: str
     newton_iterations: int
     linear_iterations: int
     wall_time_s: float
-    history: list[dict[str, Any]]
+    history: list[dict[str, Any]] = field(repr=False)
     options: dict[str, Any]
     energy_error: Optional[float] = None
     energy_error_kind: Optional[str] = None  # which error energy_error is (see `summary`)

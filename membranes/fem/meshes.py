@@ -44,6 +44,8 @@ def gmsh_session():
 
 def check_size(h):
     try:
+        if isinstance(h, (bool, np.bool_)):     # (True meshed at h = 1)
+            raise TypeError
         h = float(h)
     except (TypeError, ValueError):
         raise ValueError(f"mesh size h must be a number, got {h!r}") from None

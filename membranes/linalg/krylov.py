@@ -70,6 +70,7 @@ from dataclasses import dataclass, field
 from petsc4py import PETSc
 
 from ..model.checks import positive_integer
+from ..model.petsc_options import option_value
 from .preconditioners import (
     INNER_DEFAULTS,
     InnerPC,
@@ -141,7 +142,7 @@ class Krylov:
     merged: dict = field(init=False)
 
     def __post_init__(self):
-        if self.preset not in PRESETS:
+        if not isinstance(self.preset, str) or self.preset not in PRESETS:
             raise ValueError(f"unknown Krylov preset {self.preset!r} (choose from: "
                              f"{', '.join(PRESETS)})")
         for name in ("nu", "max_it"):
@@ -151,10 +152,7 @@ class Krylov:
             name = str(name).lstrip("-").lower()      # PETSc's option names ignore case
             if name in RESERVED:
                 raise ValueError(f"PETSc option -{name} is not accepted: {RESERVED[name]}")
-            if not (value is None or isinstance(value, (str, bool, int, float))):
-                raise ValueError(f"PETSc option -{name}: value {value!r} is not a string "
-                                 "or number")
-            user[name] = value
+            user[name] = option_value(name, value)
         self.merged = dict(PRESETS[self.preset]["options"])
         self.merged.update(user)
         for name, value in list(self.merged.items()):

@@ -323,13 +323,13 @@ def check_max_vertices(max_vertices):
     """`max_vertices` as a positive int (None stays None); ValueError otherwise."""
     if max_vertices is None:
         return None
-    try:
-        whole = float(max_vertices).is_integer()
+    try:                                 # (text too, as every number of the API: '1e6')
+        value = float(max_vertices)
     except (TypeError, ValueError):
-        whole = False
-    if isinstance(max_vertices, bool) or not whole or max_vertices < 1:
+        value = math.nan
+    if isinstance(max_vertices, bool) or not value.is_integer() or value < 1:
         raise ValueError(f"max_vertices must be a positive integer, got {max_vertices}")
-    return int(max_vertices)
+    return int(value)
 
 
 def describe_request(h=None, levels=0, domain="disk", mesh_file=None):

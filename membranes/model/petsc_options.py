@@ -10,7 +10,9 @@ the command line turns it into exit code 2.
 """
 
 import ctypes
+import numbers
 import shlex
+from collections.abc import Mapping
 
 # ## PETSc options
 #
@@ -24,6 +26,17 @@ def _valid_name(name):
         name.isascii()
 
 
+def option_value(name, value):
+    """The value of option -`name` as PETSc's database takes it: None, a string, a bool or
+    a real number (numpy's as Python's: np.int64(50) was refused as no number, and summary
+    .json's options are Python values)."""
+    if value is None or isinstance(value, (str, bool)):
+        return value
+    if isinstance(value, numbers.Real):
+        return value.item() if hasattr(value, "item") else value
+    raise ValueError(f"PETSc option -{name}: value {value!r} is not a string or number")
+
+
 def _is_option(token):
     return token[:1] == "-" and token[1:2].isalpha()
 
@@ -34,21 +47,22 @@ def parse_petsc_options(options):
     ("-ksp_type gmres -ksp_monitor -pc_factor_shift_amount -1e-3") or a dict (whose names
     may carry the '-'). ValueError for a token that is not -name [value]: '-pc_type=ilu',
     'pc_type' where an option is expected, a value after a value, a name with other
-    characters; for a value that is not a string, number or bool."""
+    characters; for a value that is not a string, number or bool; for options that are
+    neither a string nor a mapping (a list of tokens read as the text of the list)."""
     if options is None:
         return {}
-    if isinstance(options, dict):
+    if isinstance(options, Mapping):
         out = {}
         for name, value in options.items():
             bare = str(name)[1:] if str(name).startswith("-") else str(name)
             if not _valid_name(bare):
                 raise ValueError(f"PETSc option {name!r} is not a valid option name "
                                  f"(a letter, then letters, digits and '_')")
-            if not (value is None or isinstance(value, (str, bool, int, float))):
-                raise ValueError(f"PETSc option -{bare}: value {value!r} is not a string "
-                                 f"or number")
-            out[bare.lower()] = value
+            out[bare.lower()] = option_value(bare, value)
         return out
+    if not isinstance(options, str):
+        raise ValueError(f"PETSc options must be a string '-name value ...' or a dict, got "
+                         f"{type(options).__name__}")
     try:
         tokens = shlex.split(str(options))
     except ValueError as e:

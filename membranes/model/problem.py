@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable, Optional, Union
 
 import numpy as np
+import ufl
 from dolfinx.mesh import Mesh
 
 from .expressions import Formula
@@ -65,6 +66,22 @@ def positive_number(name: str, value: Any) -> float:
     return value
 
 
+def _check_builder(name, builder, mesh):
+    """A data builder must build a scalar UFL expression from the spatial coordinate: one
+    that does not failed in the forms' construction, inside `solve`, with a TypeError or a
+    UFL error naming neither the data nor the builder."""
+    try:
+        expr = ufl.as_ufl(builder(ufl.SpatialCoordinate(mesh)))
+    except Exception as e:
+        why = (str(e).strip().splitlines() or [""])[0]
+        raise ValueError(f"{name}: the builder {getattr(builder, '__name__', builder)!r} "
+                         f"does not build a UFL expression from the spatial coordinate x "
+                         f"({type(e).__name__}: {why})") from e
+    if expr.ufl_shape != () or expr.ufl_free_indices:
+        raise ValueError(f"{name}: the builder {getattr(builder, '__name__', builder)!r} "
+                         f"returns a value of shape {expr.ufl_shape}, not a scalar")
+
+
 def _sample_points(mesh):
     """Vertices and cell midpoints of the local mesh, shape (2, n)."""
     x = mesh.geometry.x[:, :2]
@@ -75,7 +92,8 @@ def _sample_points(mesh):
 @dataclass
 class Problem:
     name: str
-    hierarchy: Hierarchy         # the meshes T_0, …, T_J; T_J is the computational mesh
+    # the meshes T_0, …, T_J; T_J is the computational mesh (not in repr: its arrays are long)
+    hierarchy: Hierarchy = field(repr=False)
     mu1: float
     mu2: float
     g: float
@@ -105,9 +123,23 @@ class Problem:
         return float(1.0 / (np.pi * np.sqrt(1.0 / a ** 2 + 1.0 / b ** 2)))
 
     def __post_init__(self) -> None:
+        # (a field given to dataclasses.replace is checked as on construction: a hierarchy,
+        # exact solution or level set of the wrong kind failed deep inside `solve`, and a
+        # non-positive C_PF h_Ω gave a smaller η that was no bound, §7)
+        if not isinstance(getattr(self.hierarchy, "finest", None), Mesh):
+            raise ValueError(f"hierarchy must be a mesh hierarchy (membranes.fem.hierarchy."
+                             f"build_hierarchy), got {type(self.hierarchy).__name__}")
         self.mu1 = positive_number("mu1", self.mu1)
         self.mu2 = positive_number("mu2", self.mu2)
         self.g = positive_number("g", self.g)
+        if self.poincare is not None:
+            self.poincare = positive_number("poincare", self.poincare)
+        if self.exact is not None and not isinstance(self.exact, ExactSolution):
+            raise ValueError(f"exact must be an ExactSolution or None, got "
+                             f"{type(self.exact).__name__}")
+        if self.interface is not None and not callable(self.interface):
+            raise ValueError(f"interface must be a level set (a function of points (2, n)) "
+                             f"or None, got {type(self.interface).__name__}")
         points = None
         for name in ("f1", "f2"):
             data = getattr(self, name)
@@ -124,10 +156,20 @@ class Problem:
                 if p is not None:
                     raise ValueError(f"{name} = {data.shown!r} is not finite on the mesh "
                                      f"(e.g. at x = {p[0]:.6g}, y = {p[1]:.6g})")
-            elif not callable(data):
-                v = float(data)
+            elif isinstance(data, ufl.core.expr.Expr):
+                # (callable in UFL's sense, x ↦ its value at a point: taken for a builder, a
+                # dolfinx Constant logged warnings for ever, a Function of x raised TypeError)
+                raise ValueError(f"{name} is a UFL expression ({type(data).__name__}): give a "
+                                 f"number, a formula in x, y, or a builder, a function of the "
+                                 f"spatial coordinate x returning one (lambda x: ...), which "
+                                 f"is built on every mesh of the hierarchy")
+            elif callable(data):
+                _check_builder(name, data, self.mesh)
+            else:
+                v = real_number(name, data)
                 if not np.isfinite(v):
                     raise ValueError(f"{name} must be finite, got {v}")
+                setattr(self, name, v)       # (numpy's and 0-d arrays too: one float)
         self._other_data()
 
     def _other_data(self) -> None:

@@ -1,0 +1,146 @@
+"""The Python API as a notebook user drives it: fields given to `dataclasses.replace`, data
+of other Python and UFL types, options of numpy types or given as text, and the repr of what
+a cell shows. Bad input is a one-line ValueError naming the problem; valid input works."""
+
+import json
+import os
+import subprocess
+import sys
+import types
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from membranes import scenes, solve
+
+from .conftest import scene
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("hierarchy", None, "hierarchy must be a mesh hierarchy"),
+    ("exact", "junk", "exact must be an ExactSolution or None, got str"),
+    ("interface", 5, "interface must be a level set"),
+    # a C_PF h_Ω of -1 gave a smaller η, reported as a guaranteed bound (§7)
+    ("poincare", -1.0, "poincare must be positive, got -1.0"),
+    ("poincare", "x", "poincare must be a number, got 'x'"),
+    ("poincare", float("nan"), "poincare must be finite"),
+    ("f1", None, "f1 must be a number, got None"),
+    ("f1", [-1.0], r"f1 must be a number, got \[-1.0\]"),
+    ("f1", True, "f1 must be a number, got True"),
+])
+def test_replaced_fields_are_checked(field, value, message):
+    """Each failed inside `solve` (AttributeError, TypeError) or not at all (poincare,
+    f1 = True taken as 1)."""
+    disk = scene("disk", 0.5)
+    with pytest.raises(ValueError, match=message) as e:
+        replace(disk, **{"exact": None, field: value})
+    assert "\n" not in str(e.value)
+
+
+def test_numbers_of_numpy_are_data_as_floats():
+    """An np.float32 or 0-d array load is the number it holds: the description said
+    'f1 of scene user' of it."""
+    user = scenes.user(h=0.5, f1="-1")
+    for value in (np.float32(-2.5), np.array(-2.5)):
+        other = replace(user, f1=value)
+        assert type(other.f1) is float and other.f1 == -2.5
+        assert other.description == "unit disk, mu1 = 1, mu2 = 1, g = 0.05, f1 = -2.5, f2 = 0"
+
+
+def test_builders_that_build_no_scalar_are_named():
+    """A builder that fails on the spatial coordinate, or builds a vector, raised TypeError or
+    a UFL error from inside `solve`; now replace() names the load."""
+    import ufl
+    user = scenes.user(h=0.5)
+    for builder, message in ((lambda x: np.sin(x[0]), "does not build a UFL expression"),
+                             (lambda x: None, "does not build a UFL expression"),
+                             (lambda x, y: x, "does not build a UFL expression"),
+                             (lambda x: x, r"returns a value of shape \(2,\), not a scalar")):
+        with pytest.raises(ValueError, match="f2: the builder '<lambda>' " + message) as e:
+            replace(user, f2=builder)
+        assert "\n" not in str(e.value)
+    good = replace(user, f2=lambda x: 0.5 * ufl.sin(x[0]))
+    assert solve(good, newton="exact", solver="direct").converged
+
+
+UFL_OBJECTS = """
+import dolfinx, ufl
+from dataclasses import replace
+from membranes import scenes, solve
+user = scenes.user(h=0.5, f1="-1")
+said = []
+for make in (lambda: replace(user, f1=dolfinx.fem.Constant(user.mesh, -1.0)),
+             lambda: replace(user, f1=-1 + ufl.SpatialCoordinate(user.mesh)[0]),
+             lambda: solve(user, initial_guess=solve(user).u1)):
+    try:
+        make()
+        said.append(None)
+    except ValueError as e:
+        said.append(str(e))
+print(repr(said))
+"""
+
+
+def test_ufl_objects_are_no_builders():
+    """UFL objects are callable (x ↦ their value at a point), so a dolfinx Constant load or
+    a dolfinx Function as initial guess was called as a builder or a function of the
+    discretisation: UFL logged a warning per evaluation, for minutes (a solve that did not
+    end). Refused at once now; in a process of its own, so that a regression times out."""
+    import ast
+    env = dict(os.environ, PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, "-c", UFL_OBJECTS], capture_output=True,
+                          text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    constant, expression, guess = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    assert constant.startswith("f1 is a UFL expression (Constant): give a number")
+    assert expression.startswith("f1 is a UFL expression (Sum)")
+    assert "must be a PETSc Vec in the iterate layout" in guess
+
+
+def test_h_is_no_bool():
+    """h = True meshed at h = 1 (levels=True and mu1=True were refused already)."""
+    with pytest.raises(ValueError, match="mesh size h must be a number, got True"):
+        scenes.disk(h=True)
+
+
+def test_max_vertices_as_text():
+    """max_vertices='1e6' raised TypeError from the comparison with 1, though text is taken
+    for every other number of the API."""
+    assert solve(scene("disk", 0.5), newton="exact", estimators=False,
+                 max_vertices="1e6").converged
+    assert scenes.disk(h=0.5, max_vertices="1000").levels == 0
+
+
+def test_solver_of_another_type():
+    with pytest.raises(ValueError, match=r"unknown Krylov preset \['amg'\]"):
+        solve(scene("disk", 0.5), solver=["amg"])        # (TypeError: unhashable type)
+
+
+def test_petsc_options_of_other_types():
+    """A PETSc option value np.int64(40) was 'not a string or number'; a read-only mapping
+    and a list of tokens were read as the text of the object, a list refused as "value
+    '[-ksp_gmres_restart,' follows no option"."""
+    disk = scene("disk", 0.5)
+    sol = solve(disk, petsc_options={"ksp_gmres_restart": np.int64(40)})
+    assert json.dumps(sol.summary()["petsc_options"]) == '{"ksp_gmres_restart": 40}'
+    proxy = types.MappingProxyType({"-ksp_gmres_restart": 40})
+    assert solve(disk, petsc_options=proxy).options["petsc_options"] == {"ksp_gmres_restart": 40}
+    with pytest.raises(ValueError, match="PETSc options must be a string '-name value ...' "
+                                         "or a dict, got list"):
+        solve(disk, petsc_options=["-ksp_gmres_restart", "40"])
+
+
+def test_repr_shows_the_figures_not_the_arrays():
+    """repr of a Problem printed its hierarchy's arrays, that of a Solution also its
+    discretisation and history: 127001 characters for the disk at h = 0.3 with one level, the
+    output of a notebook cell ending in `sol`. Now the data and the figures only."""
+    problem = scene("disk", 0.3, levels=1)
+    sol = solve(problem)
+    text = repr(sol)
+    assert "parent_cells" not in text and "Discretisation" not in text
+    assert "'kind':" not in text                      # (a history record's key)
+    assert "name='disk'" in text and "converged=True" in text and "estimates=" in text
+    assert "hierarchy" not in repr(problem)
