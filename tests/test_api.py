@@ -144,3 +144,13 @@ def test_repr_shows_the_figures_not_the_arrays():
     assert "'kind':" not in text                      # (a history record's key)
     assert "name='disk'" in text and "converged=True" in text and "estimates=" in text
     assert "hierarchy" not in repr(problem)
+
+
+def test_comm_none_is_the_default_and_no_comm_is_refused():
+    """comm=None (a user's 'the default') failed with AttributeError inside the meshing; a
+    value that is no communicator did too."""
+    from mpi4py import MPI
+    p = scenes.disk(h=0.5, comm=None)
+    assert p.mesh.comm.size == MPI.COMM_WORLD.size
+    with pytest.raises(ValueError, match="comm must be an mpi4py communicator, got str"):
+        scenes.square(h=0.5, comm="world")

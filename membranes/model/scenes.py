@@ -49,6 +49,16 @@ def _coarse_mesh(domain, h, mesh_file, comm):
     raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
 
 
+def _communicator(comm):
+    """The scene's communicator: `comm`, MPI.COMM_WORLD for None; ValueError for anything
+    that is no mpi4py communicator (it failed later with an AttributeError)."""
+    if comm is None:
+        return MPI.COMM_WORLD
+    if not isinstance(comm, MPI.Comm):
+        raise ValueError(f"comm must be an mpi4py communicator, got {type(comm).__name__}")
+    return comm
+
+
 def _check_size(h, levels, domain, mesh_file, max_vertices, comm):
     """Refuse, before gmsh runs, a mesh and hierarchy that no run could hold in memory (or of
     more vertices than `max_vertices`): checks.check_request with the leanest method. Returns
@@ -87,6 +97,7 @@ def disk(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
          max_vertices: Optional[int] = None) -> Problem:
     """The paper's test case on the unit disk, with its exact solution (§9).
     `max_vertices`: refuse a larger mesh before meshing (every scene has it)."""
+    comm = _communicator(comm)
     levels = _check_levels(levels)
     h = _check_size(h, levels, "disk", None, max_vertices, comm)
     g = DISK_G
@@ -143,6 +154,7 @@ def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORL
     """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
     `mesh`: a dolfinx mesh of (0, 1)² to use instead of gmsh's at size h (API only: the
     anisotropic, graded and tiny meshes of §11, meshes.structured_square)."""
+    comm = _communicator(comm)
     levels = _check_levels(levels)
     if mesh is None:
         h = _check_size(h, levels, "square", None, max_vertices, comm)
@@ -199,6 +211,7 @@ def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float =
            mu2: float = 1.0, g: float = 0.05, contact: bool = True,
            comm: MPI.Comm = MPI.COMM_WORLD, max_vertices: Optional[int] = None) -> Problem:
     """Unit disk, exact radial solution with contact disk r <= rho (any mu1, mu2, g)."""
+    comm = _communicator(comm)
     levels = _check_levels(levels)
     h = _check_size(h, levels, "disk", None, max_vertices, comm)
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
@@ -259,6 +272,7 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
          max_vertices: Optional[int] = None) -> Problem:
     """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square.
     `domain` ('disk' by default) and `h` (DEFAULT_H) apply without `mesh` only."""
+    comm = _communicator(comm)
     if mesh is not None and (h is not None or domain is not None):  # (as the command line)
         raise ValueError(f"give mesh or {'h' if h is not None else 'domain'}, not both: the "
                          f"mesh file is the coarse mesh")
