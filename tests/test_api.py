@@ -154,3 +154,13 @@ def test_comm_none_is_the_default_and_no_comm_is_refused():
     assert p.mesh.comm.size == MPI.COMM_WORLD.size
     with pytest.raises(ValueError, match="comm must be an mpi4py communicator, got str"):
         scenes.square(h=0.5, comm="world")
+
+
+def test_a_typeset_minus_is_a_minus():
+    """A formula pasted from a paper carries U+2212 for its minus signs: it was refused as a
+    syntax error; it reads as '-' (and is shown as typed)."""
+    from membranes.model.expressions import Formula
+    points = np.array([[0.1, 0.5, -0.3], [0.2, -0.4, 0.7]])
+    typeset, ascii_ = Formula("\u22121 + x*(\u2212y)"), Formula("-1 + x*(-y)")
+    assert np.array_equal(typeset.numpy(points), ascii_.numpy(points))
+    assert typeset.shown == "\u22121 + x*(\u2212y)"

@@ -90,7 +90,8 @@ class Formula:
         self.name = name
         shown = self.shown
         try:
-            tree = ast.parse(self.text.strip(), mode="eval")
+            # (the minus sign of typeset text, U+2212, as a formula pasted from a paper has it)
+            tree = ast.parse(self.text.strip().replace("\u2212", "-"), mode="eval")
         except SyntaxError as e:
             raise ValueError(f"{name}: cannot parse {shown!r} ({e.msg})") from None
         except (RecursionError, MemoryError):
