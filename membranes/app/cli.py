@@ -188,7 +188,7 @@ def _solve(args):
 
     from ..model import checks, scenes
     from .driver import solve
-    from .outputs import write_outputs
+    from .outputs import room_for, write_outputs
     world = MPI.COMM_WORLD
     petsc_options = _check_before_meshing(args, scene, kwargs, world)
     say = (lambda line: None) if args.quiet or world.rank != 0 else \
@@ -200,8 +200,7 @@ def _solve(args):
         f"s: the finest mesh has {fine.index_map(0).size_global:,} vertices and "
         f"{fine.index_map(2).size_global:,} cells on {world.size} process(es)")
     if args.out is not None:           # (before the run: the disk may be full already)
-        checks.check_output_room(args.out, checks.output_bytes(
-            fine.index_map(0).size_global, fine.index_map(2).size_global), world)
+        checks.check_output_room(args.out, room_for(problem.mesh), world)
     sol = solve(problem, newton=args.newton, cfun=args.cfun, solver=args.solver,
                 system=args.system, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,

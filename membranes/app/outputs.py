@@ -208,15 +208,19 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=()):
         raise ValueError(error)
 
 
+def room_for(mesh):
+    """The bytes the outputs of a run on `mesh` need (checks.output_bytes, global counts)."""
+    topology = mesh.topology
+    return output_bytes(topology.index_map(0).size_global, topology.index_map(2).size_global)
+
+
 def write_outputs(solution, out_dir):
     """Write summary.json, history.csv and solution.xdmf (+ .h5) of `solution` into
     `out_dir` (created if missing); collective on the solution's communicator. Returns the
     absolute path of `out_dir`."""
     comm = solution.comm
-    topology = solution.disc.mesh.topology
-    nbytes = output_bytes(topology.index_map(0).size_global, topology.index_map(2).size_global)
     summary = solution.summary()                  # collective (MPI reductions)
-    with staged_folder(out_dir, comm, nbytes) as tmp:
+    with staged_folder(out_dir, comm, room_for(solution.disc.mesh)) as tmp:
         write_solution(os.path.join(tmp, "solution.xdmf"), solution.disc.mesh,
                        solution.functions, solution.eta_K)
         if comm.rank == 0:

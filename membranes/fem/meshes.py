@@ -26,6 +26,8 @@ import os
 import numpy as np
 from mpi4py import MPI
 
+from ..model.problem import real_number
+
 GMSH_TRIANGLE = 2  # gmsh element type of the 3-node triangle
 
 
@@ -43,12 +45,7 @@ def gmsh_session():
 
 
 def check_size(h):
-    try:
-        if isinstance(h, (bool, np.bool_)):     # (True meshed at h = 1)
-            raise TypeError
-        h = float(h)
-    except (TypeError, ValueError):
-        raise ValueError(f"mesh size h must be a number, got {h!r}") from None
+    h = real_number("mesh size h", h)    # (a bool is no number: True meshed at h = 1)
     if not np.isfinite(h) or h <= 0:
         raise ValueError(f"mesh size h must be a positive finite number, got {h}")
     return h

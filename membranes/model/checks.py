@@ -438,10 +438,16 @@ def check_output_folder(path, comm=None):
         # the outputs there; a name of blanks is as likely a slip)
         raise ValueError(f"the output folder is an empty or blank path ({os.fspath(path)!r}): "
                          f"name a folder")
+    _looked_at_on_rank0(lambda: _probe_folder(os.path.abspath(os.fspath(path))), comm)
+
+
+def _looked_at_on_rank0(look, comm):
+    """Run `look()` on process 0 of `comm` (everywhere without one) and raise its ValueError
+    on every process, with the same message."""
     error = None
     if comm is None or comm.rank == 0:
         try:
-            _probe_folder(os.path.abspath(os.fspath(path)))
+            look()
         except ValueError as e:
             error = str(e)
     if comm is not None and comm.size > 1:
@@ -468,24 +474,19 @@ def check_output_room(path, nbytes, comm=None):
     """ValueError (one line) if the filesystem of the output folder `path` (of its nearest
     existing ancestor) has fewer than `nbytes` bytes free for this user. With `comm`,
     process 0 looks and every process gets its answer."""
-    error = None
-    if comm is None or comm.rank == 0:
+    def look():
         out = os.path.abspath(os.fspath(path))
-        there = out
-        while not os.path.exists(there) and os.path.dirname(there) != there:
-            there = os.path.dirname(there)
+        missing = _missing_folders(out)
         try:
-            st = os.statvfs(there)
-            free = st.f_bavail * st.f_frsize
+            st = os.statvfs(os.path.dirname(missing[0]) if missing else out)
         except OSError:                   # no statvfs here: the writers report a failure
-            free = None
-        if free is not None and free < nbytes:
-            error = (f"output folder {out} has {free / 2**20:.1f} MiB free, the outputs "
-                     f"need about {nbytes / 2**20:.1f} MiB")
-    if comm is not None and comm.size > 1:
-        error = comm.bcast(error, root=0)
-    if error is not None:
-        raise ValueError(error)
+            return
+        free = st.f_bavail * st.f_frsize
+        if free < nbytes:
+            raise ValueError(f"output folder {out} has {free / 2**20:.1f} MiB free, the "
+                             f"outputs need about {nbytes / 2**20:.1f} MiB")
+
+    _looked_at_on_rank0(look, comm)
 
 
 def _probe_folder(out):
