@@ -16,10 +16,12 @@ import subprocess
 import sys
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from mpi4py import MPI
 
 from membranes import Setups, scenes, solve
+from membranes.fem.hierarchy import build_hierarchy
 
 ROUND_OFF = 1e-12
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -123,3 +125,28 @@ if __name__ == "__main__":
     result = compare()
     if MPI.COMM_WORLD.rank == 0:
         print(json.dumps(result))
+
+
+def test_a_hierarchy_of_another_domain_drops_the_scene_exact_solution_and_c_pf():
+    """The disk's exact solution and C_PF h_Ω = 1/j_{0,1} hold on the unit disk only (§7, §9).
+    On another domain the first gave the energy error of the wrong solution and the second
+    could be too small for a bound (a larger domain): a copy on such a hierarchy must give
+    both anew, and without them the bounding box's constant is used. Another hierarchy of the
+    same scene domain (or a truncation of the same one) keeps both."""
+    disk = scenes.disk(h=0.5, levels=1)
+    square = scenes.user(h=0.5, domain="square")
+    for kw, names in (({}, "exact=None, poincare=None"), ({"exact": None}, "poincare=None")):
+        with pytest.raises(ValueError, match=f"own domain only.*give {names}"):
+            replace(disk, hierarchy=square.hierarchy, **kw)
+    other = replace(disk, hierarchy=square.hierarchy, exact=None, poincare=None)
+    assert other.poincare_constant() == pytest.approx(1.0 / (np.pi * np.sqrt(2.0)), rel=1e-12)
+    assert other.description.startswith("unit square, ") and other.domain == "square"
+    assert replace(other, poincare=0.3).poincare == 0.3
+    # a hierarchy built outside the scenes names no domain: taken for another one
+    mine = build_hierarchy(disk.mesh, 0)
+    with pytest.raises(ValueError, match="own domain only"):
+        replace(disk, hierarchy=mine)
+    for same in (scenes.disk(h=0.4).hierarchy, disk.hierarchy.up_to(0)):
+        kept = replace(disk, hierarchy=same)
+        assert kept.exact is disk.exact and kept.poincare == disk.poincare
+        assert kept.description == disk.description

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import replace
 from typing import Any, Callable, Literal, Mapping, Optional, Union
 
 import numpy as np
@@ -380,7 +379,7 @@ def solve(problem: Problem,
     clock = _Clock(started)                    # energy errors run off the clock
     for j in levels:
         t_level = clock.now()
-        pj = replace(problem, hierarchy=problem.hierarchy.up_to(j)) if j < J else problem
+        pj = problem.on_level(j)
         disc = discretise(pj)
         X0 = _initial_guess(initial_guess, disc) if prev is None else \
             prolong(problem.hierarchy.prolongations[j - 1], disc, prev[0], prev[1])

@@ -63,7 +63,7 @@ act on w / s.
 """
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -139,16 +139,6 @@ class PeerResult:
         names = {v: k for k, v in vars(PETSc.SNES.ConvergedReason).items()
                  if isinstance(v, int)}
         return f"{names.get(code, 'UNKNOWN')} ({code})"
-
-
-def level_problem(problem, j):
-    """The problem on T_j: a shallow copy whose hierarchy stops at level j."""
-    from ..fem.hierarchy import Hierarchy
-    h = problem.hierarchy
-    if j == h.levels:
-        return problem
-    sub = Hierarchy(h.meshes[:j + 1], h.parent_cells[:j], h.prolongations[:j], h.projection)
-    return replace(problem, hierarchy=sub)
 
 
 def to_iterate(disc, z, w, lam, X=None):
@@ -427,7 +417,7 @@ class _Level:
         if self.disc is not None:
             return self.disc, 0.0
         t0 = time.perf_counter()
-        disc = discretise(level_problem(self.problem, self.j))
+        disc = discretise(self.problem.on_level(self.j))
         return disc, time.perf_counter() - t0
 
 

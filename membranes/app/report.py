@@ -45,7 +45,6 @@ import json
 import os
 import sys
 import time
-from dataclasses import replace
 
 import numpy as np
 from mpi4py import MPI
@@ -112,7 +111,7 @@ def replay(problem, sol):
     J = problem.levels
     records, prev, offset = [], None, 0
     for j in (range(J + 1) if o["nested"] else [J]):
-        pj = replace(problem, hierarchy=problem.hierarchy.up_to(j)) if j < J else problem
+        pj = problem.on_level(j)
         disc = discretise(pj)
         X0 = None if prev is None else \
             prolong(problem.hierarchy.prolongations[j - 1], disc, prev[0], prev[1])

@@ -34,6 +34,9 @@ class Hierarchy:
     parent_cells: list = field(default_factory=list)  # parent_cells[j-1][c]: parent of c ∈ T_j
     prolongations: list = field(default_factory=list)  # P_j, PETSc Mat P1(T_{j-1}) → P1(T_j)
     projection: object = None                         # boundary projection, or None
+    # the domain's name where a scene made T_0 ("disk", "square"), else None: two hierarchies
+    # with the same name mesh the same domain (`Problem`'s exact solution and C_PF h_Ω)
+    domain: object = None
 
     @property
     def levels(self):
@@ -48,7 +51,7 @@ class Hierarchy:
         if j == self.levels:
             return self
         return Hierarchy(self.meshes[:j + 1], self.parent_cells[:j], self.prolongations[:j],
-                         self.projection)
+                         self.projection, self.domain)
 
     def ancestors(self, j):
         """For every local cell of T_J, the index of its ancestor cell in T_j (local)."""
@@ -153,13 +156,13 @@ def refine(mesh, projection=None):
     return fine, parents, P
 
 
-def build_hierarchy(coarse, levels, projection=None):
+def build_hierarchy(coarse, levels, projection=None, domain=None):
     """T_0 = `coarse` and `levels` uniform refinements of it (§6), new boundary vertices moved
-    onto the curve by `projection` (§9)."""
+    onto the curve by `projection` (§9); `domain` names the domain T_0 meshes (scenes only)."""
     levels = int(levels)
     if levels < 0:
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
-    h = Hierarchy([coarse], projection=projection)
+    h = Hierarchy([coarse], projection=projection, domain=domain)
     for _ in range(levels):
         fine, parents, P = refine(h.meshes[-1], projection)
         h.meshes.append(fine)

@@ -12,7 +12,7 @@ checked to be finite on the mesh). Bad data raise ValueError with a one-line mes
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Callable, Optional, Union
 
 import numpy as np
@@ -177,24 +177,44 @@ class Problem:
         parameter study; README): the scene's exact solution solves the scene's data only,
         so keeping it would report the error against the wrong solution (ValueError), and
         the scene's description is rewritten from the new data (summary.json's
-        `description`, docs/outputs.md)."""
+        `description`, docs/outputs.md). A copy on a hierarchy of another domain keeps
+        neither the exact solution nor the scene's C_PF h_Ω (§7: a constant of a smaller
+        domain would make η no bound) unless they are given anew (ValueError)."""
         data = (self.mu1, self.mu2, self.g, self.f1, self.f2)
+        domain = self._domain()
         if self.described is not None:
-            old, exact = self.described
-            if all(a is b or (isinstance(a, float) and a == b) for a, b in zip(old, data)):
+            old, exact, poincare, old_domain = self.described
+            moved = not (domain is old_domain or (isinstance(domain, str) and domain == old_domain))
+            kept = [k for k, ours, theirs in (("exact", self.exact, exact),
+                                              ("poincare", self.poincare, poincare))
+                    if ours is not None and ours is theirs]
+            if moved and kept:
+                what = {"exact": "exact solution", "poincare": "C_PF h_Ω (poincare)"}
+                raise ValueError(f"scene {self.name!r}: its {' and '.join(what[k] for k in kept)}"
+                                 f" hold on its own domain only; with a hierarchy of another "
+                                 f"domain give {', '.join(k + '=None' for k in kept)} (or "
+                                 f"values for the new domain)")
+            same = all(a is b or (isinstance(a, float) and a == b) for a, b in zip(old, data))
+            if same and not moved and self.exact is exact:
                 return
-            if self.exact is not None and self.exact is exact:
+            if self.exact is not None and self.exact is exact and not same:
                 raise ValueError(f"the exact solution of scene {self.name!r} does not solve "
                                  f"other data: give exact=None with new mu1, mu2, g, f1 or f2")
             words = [f"{k} = {v:g}" for k, v in zip(("mu1", "mu2", "g"), data)]
             words += [f"{k} = {v.text if isinstance(v, Formula) else f'{v:g}'}"
                       if isinstance(v, (Formula, float, int)) else f"{k} of scene {self.name}"
                       for k, v in zip(("f1", "f2"), data[3:])]
+            if moved:
+                self.domain = domain if isinstance(domain, str) else ""
             where = {"disk": "unit disk", "square": "unit square"}.get(
                 self.domain, f"mesh {self.domain}" if self.domain else "")
             self.description = ", ".join(([where] if where else []) + words) + \
                 (", exact solution given" if self.exact is not None else "")
-        self.described = (data, self.exact)
+        self.described = (data, self.exact, self.poincare, domain)
+
+    def _domain(self):
+        """What the hierarchy meshes: the scene's domain name, else its coarse mesh T_0."""
+        return getattr(self.hierarchy, "domain", None) or self.hierarchy.meshes[0]
 
     @property
     def mesh(self) -> Mesh:
@@ -204,3 +224,10 @@ class Problem:
     @property
     def levels(self) -> int:
         return self.hierarchy.levels
+
+    def on_level(self, j: int) -> "Problem":
+        """The problem on T_j (nested iteration, §6): a shallow copy whose hierarchy stops at
+        level j (the same meshes and maps), or the problem itself on its finest level."""
+        if j == self.levels:
+            return self
+        return replace(self, hierarchy=self.hierarchy.up_to(j))

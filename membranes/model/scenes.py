@@ -126,7 +126,7 @@ def disk(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
         r = ufl.sqrt(r2(x))
         return ufl.conditional(inside(x), -6 * g, -c * (1 + 8 * r - 18 * r2(x)) / r)
 
-    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle)
+    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle, "disk")
     return Problem("disk", hierarchy, 1.0, 1.0, g, f1, f2,
                    exact=ExactSolution(u1, u2, lam),
                    interface=lambda p: p[0] ** 2 + p[1] ** 2 - 0.5,
@@ -189,7 +189,7 @@ def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORL
         return 16 * p[0] * (1 - p[0]) * p[1] * (1 - p[1]) - s0
 
     coarse = meshes.unit_square(h, comm) if mesh is None else mesh
-    hierarchy = build_hierarchy(coarse, levels)
+    hierarchy = build_hierarchy(coarse, levels, domain="square")
     return Problem("square", hierarchy, mu1, mu2, g, f1, f2,
                    exact=ExactSolution(u1, u2, lam), interface=interface,
                    description="unit square, mu1 = 1, mu2 = 2, g = 0.1, manufactured solution "
@@ -248,7 +248,7 @@ def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float =
         return -mu2 * ufl.div(ufl.grad(u2(x))) + lam(x)
 
     jump = contact and rho > 0.0
-    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle)
+    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle, "disk")
     kind = "no contact" if not contact else ("grazing contact at the origin" if rho == 0.0
                                              else f"contact disk r <= {rho}")
     return Problem("radial", hierarchy, mu1, mu2, g, f1, f2,
@@ -290,7 +290,8 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
     if mesh is not None and levels:     # the header's estimate was a lower bound: now exact
         check_request(levels=levels, mesh_file=mesh, max_vertices=max_vertices, comm=comm,
                       counts=meshes.mesh_counts(coarse))
-    hierarchy = build_hierarchy(coarse, levels, _projection(domain, mesh))
+    hierarchy = build_hierarchy(coarse, levels, _projection(domain, mesh),
+                                None if mesh is not None else domain)
     where = f"mesh {mesh}" if mesh is not None else f"unit {domain}"
     # on the unit disk its own constant, as for the disk scene (§7); else the bounding box's
     poincare = 1.0 / J01 if mesh is None and domain == "disk" else None

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from membranes.app.peer import level_problem, nested_peer, plain_peer, to_iterate
+from membranes.app.peer import nested_peer, plain_peer, to_iterate
 from membranes.estimation.energy_error import EnergyError
 from membranes.fem.discretisation import discretise
 from membranes.model import scenes
@@ -226,10 +226,10 @@ def test_plain_peer_on_a_discretisation():
         assert np.abs(x - y).max() <= 1e-12 * max(np.abs(y).max(), 1e-300) + 1e-15
 
 
-def test_level_problem_is_the_truncated_hierarchy():
+def test_on_level_is_the_truncated_hierarchy():
     problem = disk(2)
     for j in range(3):
-        p = level_problem(problem, j)
+        p = problem.on_level(j)
         assert p.mesh is problem.hierarchy.meshes[j] and p.levels == j
         assert p.mu1 == problem.mu1 and p.f1 is problem.f1
     assert problem.levels == 2
