@@ -270,3 +270,46 @@ def test_max_vertices_counts_a_file_exactly(tmp_path, capsys):
     assert checks.refined_vertices(8, 8, 2, euler=0) == 80     # a ring of 8 triangles
     assert main(["solve", "--quiet", "--mesh", msh, "--levels", "3",
                  "--max-vertices", "1089"]) == 0
+
+
+def _with_node_tag(path, tag, binary):
+    """The file at `path` with the first node tag of its first element set to `tag`."""
+    import struct
+    data = bytearray(open(path, "rb").read())
+    start = data.index(b"$Elements\n") + len(b"$Elements\n")
+    if binary:                      # MSH 4.1: 4 size_t, a block (3 int, a size_t), elements
+        at = start + 32 + 20 + 8
+        data[at:at + 8] = struct.pack("<Q", tag)
+    else:                           # the line after the section and block headers
+        lines = data[start:].split(b"\n")
+        words = lines[2].split(b" ")
+        words[1] = str(tag).encode()
+        lines[2] = b" ".join(words)
+        data[start:] = b"\n".join(lines)
+    open(path, "wb").write(data)
+    return path
+
+
+@pytest.mark.parametrize("binary", [0, 1])
+@pytest.mark.parametrize("tag", [2 ** 31 + 5, 2 ** 32 + 1])
+def test_element_node_tags_of_2_to_the_31_or_more(tag, binary, tmp_path):
+    """A corrupt byte in a MSH 4.1 file's element node tags: gmsh 4.8 crashed on tags from
+    2^31 to 2^32 - 1 (a segmentation fault inside gmsh.open, exit -11: 3 of 40 random byte
+    corruptions of a binary file), and read 2^32 + 1 as node 1 without a word. Such a file
+    is refused before gmsh opens it: exit 2, one line (a child process: the crash would end
+    this one)."""
+    def build(gmsh):
+        gmsh.model.occ.addRectangle(0, 0, 0, 1, 1)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.Binary", binary)
+    msh = _with_node_tag(meshed(tmp_path / "one.msh", build), tag, binary)
+    env = dict(os.environ, PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, "-m", "membranes.app.cli", "solve", "--mesh", msh,
+                           "--quiet", "--out", str(tmp_path / "out")],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    assert proc.stderr.strip() == f"membranes: error: mesh file {msh!r} has a tag of 2^31 " \
+        f"or more in its elements ({tag}): a corrupt file?"
+    assert not (tmp_path / "out").exists()
+    # the same file with the node tag it had is read
+    assert read_msh(_with_node_tag(msh, 1, binary)).topology.index_map(2).size_global > 0

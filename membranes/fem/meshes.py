@@ -119,7 +119,60 @@ def structured_square(nx, ny, grading=1.0, comm=MPI.COMM_WORLD):
     return m
 
 
+def _element_tags_in_range(gmsh, path):
+    """ValueError if the element section of the .msh file at `path` holds a tag of 2^31 or
+    more. gmsh 4.8 crashes on such node tags in MSH 4.x files (a segmentation fault inside
+    gmsh.open: 3 of 40 random byte corruptions of a binary file) and wraps those of 2^32 and
+    more onto other nodes; no mesh this program can hold has them. Looked at without gmsh:
+    the text of an ASCII file, the element blocks of a little-endian binary MSH 4.1 file (an
+    int dim, entity and type and a size_t count, then per element its tag and node tags).
+    What gmsh reads otherwise (MSH 2.2 binary: C ints) it checks itself."""
+    import re
+    limit = 1 << 31
+    with open(path, "rb") as f:
+        data = f.read()
+    head = re.match(rb"\s*\$MeshFormat\s+(\S+)\s+(\d)\s+(\d+)[^\n]*\n", data[:256])
+    start = max(data.find(b"$Elements\n"), data.find(b"$ELM\n"))
+    if start < 0:
+        return                                          # (gmsh says what is missing)
+    start = data.find(b"\n", start) + 1
+
+    def refuse(tag):
+        raise ValueError(f"mesh file {path!r} has a tag of 2^31 or more in its elements "
+                         f"({tag}): a corrupt file?")
+
+    if head is None or head.group(2) == b"0":           # ASCII (MSH 1.0 has no header)
+        end = data.find(b"$End", start)
+        for number in re.finditer(rb"\d{10,}", data[start:end if end > 0 else None]):
+            if int(number.group()) >= limit:
+                refuse(int(number.group()))
+        return
+    if head.group(1) != b"4.1" or head.group(3) != b"8" or \
+            data[head.end():head.end() + 4] != (1).to_bytes(4, "little"):
+        return
+
+    def read(dtype, offset, count=1):
+        return np.frombuffer(data, dtype=dtype, count=count, offset=offset)
+
+    at = start + 32                                     # (the section's 4 size_t)
+    for _ in range(int(read("<u8", start)[0]) if start + 32 <= len(data) else 0):
+        if at + 20 > len(data):
+            return                                      # (too short: gmsh refuses it)
+        kind, count = int(read("<i4", at + 8)[0]), int(read("<u8", at + 12)[0])
+        try:
+            width = 1 + int(gmsh.model.mesh.getElementProperties(kind)[3])
+        except Exception:
+            return                                      # (an unknown type: gmsh refuses it)
+        if count > (len(data) - at - 20) // (8 * width):
+            return                                      # (too short: gmsh refuses it)
+        tags = read("<u8", at + 20, width * count)
+        if tags.size and tags.max() >= limit:
+            refuse(int(tags.max()))
+        at += 20 + 8 * width * count
+
+
 def _check_msh(gmsh, path):
+    _element_tags_in_range(gmsh, path)
     try:
         gmsh.open(path)
     except Exception as e:
