@@ -8,9 +8,9 @@ picture only, which a report can afford — writes DATA.npz and runs the script.
 
 DATA.npz holds `points` (n, 3), `cells` (VTK cell array), `types`, and panels: `names` (k,),
 `kinds` ("cell"/"point"), `field_<i>` arrays, `titles`, `cmap`, `log` (True: one logarithmic
-colour scale shared by all panels, from the smallest positive to the largest value; False: one
-linear scale per panel) and optionally `contour` (point values whose zero line is drawn in red
-on every panel).
+colour scale shared by all panels, from the smallest to the largest positive value, NaN values
+drawn in the NaN colour; False: one linear scale per panel) and optionally `contour` (point
+values whose zero line is drawn in red on every panel).
 
 **Gathered mesh.** Every owned cell of every process goes to process 0 as a triangle with three
 points of its own (3 points per cell, in cell order of process 0, 1, …): no global vertex
@@ -45,8 +45,10 @@ def render(data_path, png_path):
     clim = None
     if log:
         values = np.concatenate(fields)
+        # (NaN, a panel without values such as a run's missing η_K, is left out: a colour
+        # range ending at NaN drew every panel in one colour)
         positive = values[values > 0]
-        clim = [positive.min(), values.max()] if positive.size else [1e-300, 1.0]
+        clim = [positive.min(), positive.max()] if positive.size else [1e-300, 1.0]
     line = None
     if "contour" in data:
         grid.point_data["contour"] = data["contour"]

@@ -26,18 +26,21 @@ iterates, η and counts are those of a run without it (tests/test_setups.py). Wh
 memory: the kept systems stay alive between solves, until `clear()`.
 """
 
+import numpy as np
 from mpi4py import MPI
 
 
 class Setups:
     """The flux equilibrations (`membranes.estimation.equilibration.FluxEquilibration`) of the
-    meshes solved on, kept for the next `solve(..., setups=...)` on the same mesh object.
+    meshes solved on, kept for the next `solve(..., setups=...)` on the same mesh object
+    (with its vertices where they were: a mesh moved in place is set up anew).
 
     Use one `Setups` for the solves of one communicator, every process making the same calls
     (lookups and `clear` are collective)."""
 
     def __init__(self):
-        self._kept = {}                          # id(mesh) → (mesh, FluxEquilibration)
+        # id(mesh) → (mesh, FluxEquilibration, the vertex coordinates it was set up on)
+        self._kept = {}
         self.hits = 0                            # set-ups taken again, for the caller
 
     def __len__(self):
@@ -46,13 +49,16 @@ class Setups:
     def equilibration(self, disc):
         """The flux equilibration on the mesh of `disc` (a Discretisation), bound to its data
         measures: the kept one if there is one for this mesh object whose P1 numbering is
-        that of disc.V (the equilibration copies nodal values by index), else a new one,
-        which is kept. Collective."""
+        that of disc.V (the equilibration copies nodal values by index) and whose vertices
+        have not moved since (mesh.geometry.x is writable, and the patch blocks and their
+        inverses are integrals over the cells: a kept one gave another σ_disc, and η, than
+        a fresh set-up on the moved mesh), else a new one, which is kept. Collective."""
         # (imported here: a run that estimates nothing imports no estimator)
         from ..estimation.equilibration import FluxEquilibration, same_numbering
         mesh = disc.mesh
         entry = self._kept.get(id(mesh))
-        usable = entry is not None and entry[0] is mesh and same_numbering(entry[1].V, disc.V)
+        usable = entry is not None and entry[0] is mesh and \
+            same_numbering(entry[1].V, disc.V) and np.array_equal(entry[2], mesh.geometry.x)
         if disc.comm.allreduce(bool(usable), op=MPI.LAND):
             equilibration = entry[1]
             equilibration.use_data_measures(disc.dx_data)
@@ -62,11 +68,11 @@ class Setups:
             del self._kept[id(mesh)]
             entry[1].destroy()
         equilibration = FluxEquilibration(disc.V, disc.dx_data)
-        self._kept[id(mesh)] = (mesh, equilibration)
+        self._kept[id(mesh)] = (mesh, equilibration, mesh.geometry.x.copy())
         return equilibration
 
     def clear(self):
         """Free every kept set-up (collective)."""
-        for _, equilibration in self._kept.values():
+        for _, equilibration, _ in self._kept.values():
             equilibration.destroy()
         self._kept.clear()

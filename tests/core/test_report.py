@@ -212,6 +212,41 @@ def test_runs_that_do_not_converge_are_reported(tmp_path, monkeypatch):
         assert row["bound_guaranteed"] and row["eta"] >= row["energy_error"], m
 
 
+def test_log_picture_beside_a_panel_without_values(tmp_path):
+    """error_distribution of a run that ended before its certificate has no η_K (NaN cells,
+    test above): the actual errors beside it are still drawn on their own logarithmic range.
+    Two cells, 1e-3 on the lower left and 1e-1 on the upper right half of the unit square,
+    flat-shaded: the left panel shows two colours over half of the square each, the lower
+    one the darker (viridis runs from dark to light); a colour range ending at NaN drew both
+    cells in one colour."""
+    import matplotlib.image as mpimg
+
+    from membranes.app import render
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]],
+                      dtype=float)
+    npz, png = str(tmp_path / "cells.npz"), str(tmp_path / "cells.png")
+    np.savez(npz, cells=np.array([3, 0, 1, 2, 3, 3, 4, 5]),
+             types=np.full(2, render.VTK_TRIANGLE, dtype=np.uint8), points=points,
+             names=np.array(["error_K", "eta_K"]), kinds=np.array(["cell", "cell"]),
+             titles=np.array(["", ""]), cmap=np.array("viridis"), log=np.array(True),
+             field_0=np.array([1e-3, 1e-1]), field_1=np.full(2, np.nan))
+    done = subprocess.run([sys.executable, render.__file__, npz, png], capture_output=True,
+                          text=True, timeout=render.RENDER_SECONDS)
+    assert done.returncode == 0, done.stderr[-2000:]
+    left = np.round(255 * mpimg.imread(png)[:, :700, :3]).astype(int)  # (rows, 700, 3)
+    colours, counts = np.unique(left.reshape(-1, 3), axis=0, return_counts=True)
+    cells = [c for c, n in zip(colours, counts) if n > 0.1 * left.shape[0] * 700
+             and not (c == 255).all()]                                 # not the background
+    assert len(cells) == 2
+    counts = [np.count_nonzero((left == c).all(axis=2)) for c in cells]
+    assert counts[0] == pytest.approx(counts[1], rel=0.02)             # half a square each
+    rows, cols = np.nonzero(np.any([(left == c).all(axis=2) for c in cells], axis=0))
+    r0, r1, c0, c1 = rows.min(), rows.max(), cols.min(), cols.max()     # the square
+    lower = left[r1 - (r1 - r0) // 3, c0 + (c1 - c0) // 3]              # the cells' centroids
+    upper = left[r0 + (r1 - r0) // 3, c1 - (c1 - c0) // 3]
+    assert lower.sum() < upper.sum()
+
+
 def test_markdown_names_the_parallel_paper_preconditioner(made):
     """Under mpirun the paper preset is block-Jacobi ILU(0) (docs/cli.md): report.md says so
     beside the paper's counts, and a serial report says ILU(0) alone."""
