@@ -37,7 +37,36 @@ class BadInput(ValueError):
     pass
 
 
+class _Once(argparse._StoreAction):
+    """An option that takes a value, refused when given twice (argparse would keep the last
+    value and drop the first without a word): `--h 0.3 ... --h 0.1` is a slip."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        _given_once(self, namespace)
+        super().__call__(parser, namespace, values, option_string)
+
+
+class _OnceBoolean(argparse.BooleanOptionalAction):
+    """`--nested` / `--no-nested`: one of them, once."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        _given_once(self, namespace)
+        super().__call__(parser, namespace, values, option_string)
+
+
+def _given_once(action, namespace):
+    given = namespace.__dict__.setdefault("_given", set())
+    if action.dest in given:
+        raise argparse.ArgumentError(action, "given more than once")
+    given.add(action.dest)
+
+
 class _Parser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.register("action", None, _Once)
+        self.register("action", "store", _Once)
+
     def error(self, message):
         raise BadInput(message)
 
@@ -90,19 +119,20 @@ def _parser():
                    help='PETSc options on top of the solver\'s, e.g. "-ksp_gmres_restart 50"')
     s.add_argument("--nu", type=int, metavar="N",
                    help="record (and for adaptive, estimate) the Krylov iterate every N steps "
-                        "(default 10)")
+                        "(default 10; not with a direct solve)")
     s.add_argument("--max-linear-its", type=int, metavar="N",
-                   help="Krylov iterations allowed per Newton step (default 10000)")
+                   help="Krylov iterations allowed per Newton step (default 10000; not with "
+                        "a direct solve)")
     s.add_argument("--tol", type=float,
                    help="exact, inexact: stop at ||R_lin|| / ||(F, 0)|| <= TOL (default 1e-10)")
     s.add_argument("--max-newton", type=int, default=100, metavar="N",
                    help="Newton steps allowed per level (default 100); exit 3 beyond them")
     s.add_argument("--initial-guess", choices=("paper", "zero"), default="paper",
                    help="X^0: paper (u1 = g, u2 = 0, lambda = 0; default) or zero")
-    s.add_argument("--nested", action=argparse.BooleanOptionalAction, default=None,
+    s.add_argument("--nested", action=_OnceBoolean, default=None,
                    help="nested iteration: solve on T_0, prolong the solution to T_1 as its "
                         "initial guess, ..., up to T_J (default with --levels >= 1)")
-    s.add_argument("--coarse", choices=("residual", "estimated"), default="residual",
+    s.add_argument("--coarse", choices=("residual", "estimated"),
                    help="adaptive with --nested: leave each coarse level at ||R_lin|| / "
                         "||(F, 0)|| <= --coarse-tol without estimators (residual, default) "
                         "or by the adaptive criteria with estimators on every level "
@@ -167,12 +197,15 @@ def _check_before_meshing(args, scene, kwargs, comm):
     petsc_options = parse_petsc_options(args.petsc_options)
     if args.out is not None:
         checks.check_output_folder(args.out, comm)
-    check_method(args.levels, newton=args.newton, cfun=args.cfun, solver=args.solver,
-                 system=args.system, petsc_options=petsc_options, nu=args.nu,
-                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
-                 estimators=not args.no_estimators, alg_flux=args.alg_flux,
-                 gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, nested=args.nested,
-                 coarse=args.coarse, coarse_tol=args.coarse_tol, comm=comm)
+    *_, coarse, _ = check_method(
+        args.levels, newton=args.newton, cfun=args.cfun, solver=args.solver,
+        system=args.system, petsc_options=petsc_options, nu=args.nu,
+        max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,
+        estimators=not args.no_estimators, alg_flux=args.alg_flux, gamma_lin=args.gamma_lin,
+        gamma_alg=args.gamma_alg, nested=args.nested, coarse=args.coarse or "residual",
+        coarse_tol=args.coarse_tol, comm=comm)
+    if args.coarse is not None and coarse is None:   # (the API lets its default pass)
+        raise BadInput("--coarse applies to the adaptive variant with nested iteration only")
     domain = scene if scene in ("disk", "square") else kwargs.get("domain", "disk")
     checks.check_request(kwargs.get("h", DEFAULT_H), args.levels, domain, kwargs.get("mesh"),
                          args.max_vertices, comm=comm, estimators=not args.no_estimators,
@@ -207,7 +240,7 @@ def _solve(args):
                 estimators=not args.no_estimators, progress=not args.quiet,
                 gamma_lin=args.gamma_lin, gamma_alg=args.gamma_alg, alg_flux=args.alg_flux,
                 initial_guess=args.initial_guess, nested=args.nested,
-                max_vertices=args.max_vertices, coarse=args.coarse,
+                max_vertices=args.max_vertices, coarse=args.coarse or "residual",
                 coarse_tol=args.coarse_tol)
     if args.out is not None:
         say(f"writing the outputs into {args.out}")

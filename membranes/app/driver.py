@@ -254,16 +254,28 @@ def check_method(levels, newton=None, cfun="min", solver="amg", system=None,
     petsc_options = parse_petsc_options(petsc_options)
     if max_linear_its is not None:
         max_linear_its = checks.positive_integer("max_linear_its", max_linear_its)
+        if max_linear_its > np.iinfo(PETSc.IntType).max:     # (KSP's max_it is a PetscInt)
+            raise ValueError(f"max_linear_its must be at most {np.iinfo(PETSc.IntType).max} "
+                             f"(PETSc's largest integer), got {max_linear_its}")
     krylov = Krylov(solver, petsc_options, **({} if nu is None else {"nu": nu}),
                     **({} if max_linear_its is None else {"max_it": max_linear_its}))
+    if not krylov.iterative:      # (one factorisation per step: no Krylov iterate to count)
+        _reject("iterative Krylov solvers (a direct solve has no Krylov iterations)", nu=nu,
+                max_linear_its=max_linear_its)
     if petsc_options:       # refused here if PETSc would not read one of them
         check_petsc_options_used(petsc_options, krylov.merged, krylov.inner(), comm)
     if system is not None:
         _choice("system", system, ("full", "eliminated"))
+    if krylov.mean_gap and (system or krylov.system) != "eliminated":
+        raise ValueError("the amg preset's mean/gap preconditioner works on the eliminated "
+                         "system (system='eliminated')")
     newton = _default_variant(newton, estimators, krylov)
     if newton == "adaptive" and not krylov.iterative:
         raise ValueError(f"the adaptive variant stops a Krylov solver: choose solver 'amg' "
                          f"or 'paper', not {krylov.description}")
+    if newton == "inexact" and not krylov.iterative:
+        raise ValueError(f"the inexact Newton variant needs an iterative Krylov preset "
+                         f"('amg' or 'paper'), not {krylov.description}")
     tol, gamma_lin, gamma_alg = _stopping(newton, tol, gamma_lin, gamma_alg)
     alg_flux = _algebraic_flux(levels, alg_flux, estimators, newton)
     nested = _nested(levels, nested)

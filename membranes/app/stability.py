@@ -44,8 +44,8 @@ The cases (`CASES`; h is the gmsh size of the disk meshes, DEFAULT_H by default)
   on two of them.)
 
 Exit code 0 when every run converged, EXIT_NOT_CONVERGED otherwise (the files are written in
-any case, with the reasons); bad input (h, --out, unknown case names) raises ValueError before
-any run.
+any case, with the reasons); bad input (h, also one at which a case's mesh would not fit in
+memory, `check_sizes`; --out, unknown case names) raises ValueError before any run.
 """
 
 import csv
@@ -106,6 +106,7 @@ def _radial(**kwargs):
     def build(h, levels=0):
         from ..model import scenes
         return scenes.radial(h=h, levels=levels, **kwargs)
+    build.domain = "disk"        # meshed at size h (`check_sizes`)
     return build
 
 
@@ -113,6 +114,7 @@ def _user(**kwargs):
     def build(h, levels=0):
         from ..model import scenes
         return scenes.user(h=h, levels=levels, **kwargs)
+    build.domain = "disk"        # meshed at size h (`check_sizes`)
     return build
 
 
@@ -174,6 +176,17 @@ def select(names=None):
                          f"{', '.join(CASE_NAMES)})")
     wanted = set(names) | {c.scaled_from for c in CASES if c.name in names and c.scaled_from}
     return [c for c in CASES if c.name in wanted]
+
+
+def check_sizes(cases, h, comm):
+    """Refuse, before any run, a case whose disk mesh would not fit in memory (the check its
+    scene makes when it is built, `model.checks.check_request`): a late case must not fail
+    after the earlier ones have run."""
+    from ..model.checks import check_request
+    for case in cases:
+        domain = getattr(case.build, "domain", None)
+        if domain is not None:
+            check_request(h * 2 if case.levels else h, case.levels, domain, comm=comm)
 
 
 def check_h(h):
@@ -349,6 +362,7 @@ def write_stability(out, h=DEFAULT_H, names=None, methods=METHODS, say=lambda li
     (collective; process 0 writes). Returns the rows."""
     h = check_h(h)
     cases = select(names)
+    check_sizes(cases, h, comm)
     t = time.perf_counter()
     with staged_folder(out, comm) as tmp:
         runs = {case.name: run_case(case, h, methods, say) for case in cases}

@@ -127,6 +127,18 @@ def test_command_writes_the_matrix(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["stab"]
 
 
+def test_a_size_beyond_memory_is_refused_before_any_run(tmp_path, monkeypatch):
+    """A case whose disk mesh would not fit in memory (here the nested one: T_2 of T_0 at 2h,
+    about 1e11 vertices) is refused before any case runs: the cases before it ran first, for
+    hours at a large h, before its scene refused it."""
+    def never(*args, **kwargs):
+        raise AssertionError("a case was run")
+    monkeypatch.setattr(stability, "run_case", never)
+    with pytest.raises(ValueError, match="vertices"):
+        stability.write_stability(str(tmp_path / "out"), 1e-5, ["tiny", "nested_grazing"])
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_markdown_names_the_parallel_paper_preconditioner():
     """Under mpirun the paper preset is block-Jacobi ILU(0) (docs/cli.md), and the page says so."""
     row = dict.fromkeys(stability.COLUMNS)
