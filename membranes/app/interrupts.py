@@ -14,6 +14,7 @@ may come before the exception has made its way up through MPI calls and clean-up
 
 import shutil
 import signal
+import sys
 
 RETRY = 0.05        # seconds between raises of a pending interrupt
 
@@ -28,7 +29,10 @@ class Terminated(KeyboardInterrupt):
 
 
 def _raise_pending(signum, frame):
-    if _pending is not None:
+    # (not while an interrupt is being handled, or propagates through a `finally`: it has not
+    # been dropped, and a raise there, e.g. in the handler before it calls `caught`, would
+    # end the run with a traceback; a run whose plaza refinement met SIGTERM did)
+    if _pending is not None and not isinstance(sys.exc_info()[1], KeyboardInterrupt):
         raise _pending
 
 
