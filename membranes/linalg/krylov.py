@@ -323,11 +323,14 @@ class LinearSolver:
         pc.setPythonContext(context)
         self._context = context
 
-    def solve(self, step, y, bound, every=1, on_iterate=None, split=None, guess=None):
+    def solve(self, step, y, bound, every=1, on_iterate=None, split=None, guess=None,
+              max_it=None):
         """Solve step.A y = step.b from y (changed in place) until ‖b - A y‖ ≤ bound (tested
         after multiples of `every` iterations, and at y itself where `guess`: StoppingTest)
         or `on_iterate` stops it (see StoppingTest).
-        `split`: (S_D, ab, θ) for the mean/gap PC of an eliminated step. Returns (iterations,
+        `split`: (S_D, ab, θ) for the mean/gap PC of an eliminated step; `max_it`: the
+        iterations this solve may make (default the Krylov spec's, a positive integer: a
+        Newton step that solves twice shares its limit between them). Returns (iterations,
         reason name, converged, ‖b - A y‖ at the end)."""
         ksp = self.ksp
         if not self.krylov.iterative:
@@ -348,7 +351,7 @@ class LinearSolver:
                                     guess)
                 ksp.setConvergenceTest(test)
                 ksp.setInitialGuessNonzero(True)
-                ksp.setTolerances(max_it=self.krylov.max_it)
+                ksp.setTolerances(max_it=self.krylov.max_it if max_it is None else max_it)
             try:
                 ksp.solve(step.b, y)
             except PETSc.Error as e:

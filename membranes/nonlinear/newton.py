@@ -30,10 +30,11 @@ The step is solved on the full 3N system or on the eliminated 2N one
   (or at the exact floor, if that is larger), tested at every iteration, and hands its
   iterate over with kind 'forced' (η is not shrunk here: on T_J the forced steps are the
   first ones, whose residual may rise while the contact set settles). An answer None says
-  its Newton test may hold: the solve then goes on to the exact floor from there, and the
-  iterate is estimated as 'newton'. Otherwise the answer is the iterate's estimates, and if
-  they are full and Newton's test holds, the iterate stops Newton only if the linear
-  criterion holds on them too (docs/choices.md).
+  its Newton test may hold: the solve then goes on to the exact floor from there (the two
+  solves share the step's Krylov limit), and the iterate is estimated as 'newton'.
+  Otherwise the answer is the iterate's estimates, and if they are full and Newton's test
+  holds, the iterate stops Newton only if the linear criterion holds on them too
+  (docs/choices.md).
 
 **Estimates that need a later iterate.** The ν algebraic flux of X^{k,i} is built from
 X^{k,i+ν} (§6): an `estimate` may answer the call for X^{k,i+ν} with the estimates of the
@@ -326,8 +327,14 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 if answer is None:      # its Newton test may hold: finish the solve
                     forced = False
                     bound = lin_tol * lin.norm_B
-                    more, name, solved, norm = solver.solve(step, y, bound, 1, None, split_)
-                    its += more
+                    # the step's Krylov limit (max_it) covers both solves
+                    left = spec.max_it - its
+                    if left > 0:
+                        more, name, solved, norm = solver.solve(step, y, bound, 1, None,
+                                                                split_, max_it=left)
+                        its += more
+                    else:
+                        name, solved = "DIVERGED_MAX_IT", norm <= bound
             t_solve = time.perf_counter() - t - (times["estimate"] - t_est)
             times["solve"] += t_solve
             total += its

@@ -325,6 +325,40 @@ def test_adaptive_newton_with_a_forcing_term():
     assert (True, False) in tests            # Newton's test alone would have stopped there
 
 
+def test_a_forced_step_finished_to_the_floor_keeps_the_krylov_limit():
+    """A forced step whose gate answers None (its Newton test may hold) solves twice: to the
+    forcing term, then on to the exact floor. max_it (--max-linear-its) is the limit of the
+    Newton step's Krylov iterations (docs/cli.md), so the two solves share it: with one
+    iteration less than the step needs in all, the step fails and says so, where the second
+    solve, given the whole limit again, made it converge with more than the limit."""
+    from membranes.estimation.equilibration import FluxEquilibration
+    from membranes.estimation.estimators import Estimators
+    disc = disc_of("disk", 0.1)
+    est = Estimators(disc, FluxEquilibration(disc))
+
+    def estimate(X, R, kind):
+        if kind in ("step", "forced"):      # forced: finish the solve to the floor
+            return None
+        e = est.evaluate(X, R)
+        e.pop("eta_K")
+        e["more_steps"] = True
+        return e
+
+    def run(max_it):
+        return newton(disc, variant="adaptive", krylov={"preset": "amg", "max_it": max_it},
+                      estimate=estimate, forcing=0.5)
+
+    free = run(10000)
+    assert free.converged, free.reason
+    first = next(r for r in free.history if r["kind"] == "newton")
+    assert first["k"] == 1 and first["i"] >= 3   # one forced iteration, then the floor
+    tight = run(first["i"] - 1)
+    assert not tight.converged
+    assert tight.reason.startswith("Krylov solver failed at Newton step 1: DIVERGED_MAX_IT "
+                                   f"after {first['i'] - 1} iterations"), tight.reason
+    assert tight.krylov_steps == first["i"] - 1
+
+
 def test_adaptive_newton_with_estimates_of_the_previous_iterate():
     # the ν flux's estimates of X^{k,i} come with X^{k,i+ν} (`of_previous`): Newton must
     # return the accepted earlier iterate, never X^{k,0} = X^{k-1}
