@@ -65,6 +65,14 @@ def test_fischer_burmeister_kink_element_is_in_the_clarke_jacobian():
     assert xi ** 2 + zeta ** 2 <= 1 + 1e-15 and xi == zeta == cfunctions.FB_KINK
 
 
+def test_min_kink_takes_the_row_of_the_gap():
+    # §3: at a = b the Clarke row of min is e1 - e2 (α = 1, β = 0); with the scale κ the
+    # kink is a = κ λ (b = 2 here, κ = 0.75, a = 1.5 exactly), also at a = κ λ = 0
+    a, b = np.array([1.5, 0.0]), np.array([2.0, 0.0])
+    alpha, beta, B3 = cfunctions.linearise("min", a, b, 0.75)
+    assert np.all(alpha == 1.0) and np.all(beta == 0.0) and np.all(B3 == 0.0)
+
+
 def test_unknown_c_function():
     with pytest.raises(ValueError, match="C-function"):
         cfunctions.get("max")
@@ -142,6 +150,49 @@ def test_full_and_eliminated_systems(scene, cfun):
     assert d[:2 * n].max() <= 1e-12 * u_data and d[2 * n:].max() <= 1e-10 * lam_data
     for step in steps.values():
         step.destroy()
+    sys_.destroy()
+
+
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_full_matrix_is_the_jacobian_of_the_nonlinear_residual(cfun):
+    # the rows W E and J_C of the full system (§3) against central differences of the map
+    # X ↦ (W E X, C(X1 - X2, κ X3)) that the Newton test measures (`relative_residual`, κλ
+    # at boundary vertices), at a perturbed contact iterate of the square (μ1 ≠ μ2, κ ≠ 1).
+    # The linear rows and min's pieces are linear: their differences are exact up to
+    # ε |G| / h ≈ 1e-9 |A|. FB is smooth off its kink, with second derivatives ≲ 1/ρ: the
+    # error h² / ρ² is below 1e-6 where ρ > 1e3 h; min's rows within 2 h (1 + κ) of its kink
+    # a = κλ and FB's with ρ ≤ 1e3 h are left out (a few per cent).
+    disc = disc_of("square", 0.1)
+    sys_ = NewtonSystem(disc)
+    n = disc.n
+    X = disc.vector3()
+    X.array[:] = contact_iterate("square", cfun).array_r * (1 + 0.01 * RNG.normal(size=3 * n))
+    step = sys_.full_step(sys_.linearise(X, cfun))
+    A = np.zeros((3 * n, 3 * n))
+    for i in range(3 * n):
+        cols, vals = step.A.getRow(i)
+        A[i, cols] = vals
+
+    def G(x):
+        v, r = disc.vector3(), sys_.WF2.duplicate()
+        v.array[:] = x
+        sys_.E_op.mult(v, r)
+        return np.concatenate([r.array_r, sys_.constraint(v, cfun)])
+
+    x0 = X.array_r.copy()
+    h = 1e-7 * np.abs(x0).max()
+    J = np.empty_like(A)
+    for j in range(3 * n):
+        e = np.zeros(3 * n)
+        e[j] = h
+        J[:, j] = (G(x0 + e) - G(x0 - e)) / (2 * h)
+    u1, u2, lam = disc.split(x0)
+    a, b = u1 - u2, sys_.kappa * lam
+    far = np.abs(a - b) > 2 * h * (1 + sys_.kappa) if cfun == "min" else np.hypot(a, b) > 1e3 * h
+    rows = np.concatenate([np.ones(2 * n, bool), far | ~disc.interior])
+    assert (~rows).sum() < n // 10                      # nearly every row is compared
+    assert np.abs(J - A)[rows].max() <= 1e-6 * np.abs(A).max()
+    step.destroy()
     sys_.destroy()
 
 
