@@ -69,6 +69,12 @@ TABLE_COLUMNS = ("method", "converged", "newton_iterations", "newton_per_level",
 TABLE_HEADINGS = ("method", "converged", "Newton (SNES) steps", "per level",
                   "Krylov (CG) steps", "wall time [s]", "energy error", "η", "η / error",
                   "guaranteed", "cells")
+# What several processes change besides block-Jacobi ILU(0) (report.md, stability.md)
+PARALLEL_COUNTS = (" On several processes the Krylov counts of the amg runs and of the peers "
+                   "may differ from a serial run's too (BoomerAMG's coarsening and smoothing "
+                   "depend on the partition), and with them the iterate where an adaptive run "
+                   "stops; exact and inexact Newton reach the same discrete solution, to "
+                   "their tolerance, whatever the number of processes.")
 # The paper's table (§8): elements, then Newton and GMRES steps of exact, inexact, adaptive
 PAPER = {"elements": (2048, 4064, 7840, 16832, 20928, 27328, 34592),
          "exact": ((8, 12, 15, 19, 22, 25, 28), (330, 585, 930, 1485, 1920, 2460, 2985)),
@@ -140,10 +146,14 @@ def replay(problem, sol):
 def estimator_rows(problem, sol):
     """The rows of a method's estimator figure and whether they are the run's own: the
     history of an adaptive run; for exact and inexact the run's Newton records with the
-    replay's estimators (matched record by record when the counts agree)."""
+    replay's estimators (matched record by record when the counts agree). Collective."""
+    from .garbage import release_garbage
     if sol.options["newton"] == "adaptive":
         return [dict(r) for r in sol.history], "run"
     replayed = replay(problem, sol)
+    # the replay's PETSc objects (and the peers' before it) stayed parked until the end of
+    # the process: a replay is no `solve`, which frees its own (membranes.app.garbage)
+    release_garbage(problem)
     own = sol.history
     same = len(replayed) == len(own) and all(
         (a["level"], a["newton_it"], a["cumulative_linear_its"]) ==
@@ -427,7 +437,8 @@ def markdown(problem, runs, summaries, rows, cells, sources, seconds, missing=No
              "SNES vinewtonrsls on the decoupled problem, CG + BoomerAMG inside (their steps "
              "are SNES steps, their Krylov steps CG steps); the certified nested peer adds "
              "our estimator set-up and one evaluation at its final iterate. Wall times: from "
-             "the start of the method, discretisation included; energy errors off the clock.",
+             "the start of the method, discretisation included; energy errors off the clock." +
+             (PARALLEL_COUNTS if s["processes"] > 1 else ""),
              "", "## Steps, time, error", "",
              "| " + " | ".join(TABLE_HEADINGS) + " |", "|" + "---|" * len(TABLE_HEADINGS)]
     lines += ["| " + " | ".join(_fmt(r.get(c)) for c in TABLE_COLUMNS) + " |" for r in rows]
@@ -523,6 +534,23 @@ def add_parser(sub):
     return r
 
 
+def check_memory(h, levels, domain, comm, solvers=None):
+    """Refuse, before meshing, a size at which a run of the Krylov presets `solvers` (default
+    the report's) would not fit in memory: `checks.check_request` with the heaviest of them,
+    with the ν flux's estimators, each process holding its share (what `solve` checks before
+    each run, `driver.MEMORY_METHOD`). The scenes check the leanest method only: a size
+    between the two was meshed, then refused by the first run's own check (`stability` too,
+    where such a refusal became a failed row for every direct run)."""
+    from ..model.checks import check_request, estimate_vertices, heaviest
+    from .driver import MEMORY_METHOD
+    vertices, _ = estimate_vertices(h, levels, domain)
+    solvers = dict.fromkeys(m[2] for m in METHODS) if solvers is None else solvers
+    methods = [dict(MEMORY_METHOD[solver], estimators=True, alg_flux="nu")
+               for solver in solvers]
+    check_request(h, levels, domain, comm=comm, processes=comm.size, replicated=False,
+                  **heaviest(vertices, methods))
+
+
 def main(args):
     """`membranes report`: 0, or EXIT_NOT_CONVERGED when a method did not converge (the report
     is written all the same); bad input raises ValueError before anything is written."""
@@ -532,6 +560,7 @@ def main(args):
     comm = MPI.COMM_WORLD
     check_matplotlib()
     check_output_folder(args.out, comm)
+    check_memory(args.h, args.levels, args.scene, comm)
     problem = scenes.make(args.scene, h=args.h, levels=args.levels)
     quiet = args.quiet or comm.rank != 0
     say = (lambda line: None) if quiet else \

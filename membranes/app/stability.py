@@ -60,6 +60,7 @@ import numpy as np
 from mpi4py import MPI
 
 from .outputs import json_safe, staged_folder
+from .report import PARALLEL_COUNTS
 
 METHODS = tuple((cfun, newton, solver) for cfun in ("min", "fb")
                 for newton, solver in (("exact", "direct"), ("exact", "paper"),
@@ -178,15 +179,17 @@ def select(names=None):
     return [c for c in CASES if c.name in wanted]
 
 
-def check_sizes(cases, h, comm):
-    """Refuse, before any run, a case whose disk mesh would not fit in memory (the check its
-    scene makes when it is built, `model.checks.check_request`): a late case must not fail
-    after the earlier ones have run."""
-    from ..model.checks import check_request
+def check_sizes(cases, h, comm, methods=METHODS):
+    """Refuse, before any run, a case whose disk mesh would not fit in memory for the
+    heaviest of `methods` (`report.check_memory`): a late case must not fail after the
+    earlier ones have run, and a run refused by its own check is a failed row (`run_case`),
+    not a refusal."""
+    from .report import check_memory
     for case in cases:
         domain = getattr(case.build, "domain", None)
         if domain is not None:
-            check_request(h * 2 if case.levels else h, case.levels, domain, comm=comm)
+            check_memory(h * 2 if case.levels else h, case.levels, domain, comm,
+                         dict.fromkeys(m[2] for m in methods))
 
 
 def check_h(h):
@@ -314,7 +317,8 @@ def markdown(rows, h, seconds, processes):
              "violation is relative to the data's displacement and pressure sizes; the "
              "effectivity is η/|||u - u_h||| at the final iterate where the exact solution "
              "is known; the adaptive variant stops at the discretisation error, so its "
-             "residual and complementarity are not at round-off.", "", "## Failures", ""]
+             "residual and complementarity are not at round-off." +
+             (PARALLEL_COUNTS if processes > 1 else ""), "", "## Failures", ""]
     lines += [f"* {r['case']} {r['method']}: {r['reason']}" for r in f["failures"]] or ["None."]
     lines += ["", "## Bound", ""]
     if f["below_one"]:
@@ -362,7 +366,7 @@ def write_stability(out, h=DEFAULT_H, names=None, methods=METHODS, say=lambda li
     (collective; process 0 writes). Returns the rows."""
     h = check_h(h)
     cases = select(names)
-    check_sizes(cases, h, comm)
+    check_sizes(cases, h, comm, methods)
     t = time.perf_counter()
     with staged_folder(out, comm) as tmp:
         runs = {case.name: run_case(case, h, methods, say) for case in cases}

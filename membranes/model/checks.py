@@ -205,6 +205,14 @@ def estimate_memory(vertices, linear_solver="gmres", pc_type=None, estimators=Tr
     return BASE_BYTES + grows / share
 
 
+def heaviest(vertices, methods):
+    """The one of `methods` (dicts of `estimate_memory`'s arguments) that needs the most
+    memory on a finest mesh of `vertices` vertices: what a command that runs all of them one
+    after another (`membranes report`, `membranes stability`) must check, not the leanest
+    (MUMPS's c N^p grows faster than any of the iterative solvers' slopes)."""
+    return max(methods, key=lambda method: estimate_memory(vertices, **method))
+
+
 def largest_fitting(available, **method):
     """The most vertices whose run (`estimate_memory` with `method`) fits in `available`
     bytes, to 0.1 % (0 if not even the base does): bisection, the estimate grows with N."""

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from membranes.app import stability
+from membranes.app import report, stability
 from membranes.fem import meshes
 
 pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial subset")
@@ -146,3 +146,30 @@ def test_markdown_names_the_parallel_paper_preconditioner():
                description="d", **{"class": "mesh"})
     assert "paper: GMRES + ILU(0)" in stability.markdown([row], 0.1, 1.0, 1)
     assert "paper: GMRES + block-Jacobi ILU(0)" in stability.markdown([row], 0.1, 1.0, 2)
+    # and the amg counts (BoomerAMG), which differ by a few steps too
+    assert "BoomerAMG's coarsening" not in stability.markdown([row], 0.1, 1.0, 1)
+    assert report.PARALLEL_COUNTS in stability.markdown([row], 0.1, 1.0, 2)
+
+
+def test_a_size_beyond_a_methods_memory_is_refused_before_any_run(tmp_path, monkeypatch):
+    """With memory for the iterative solvers' runs (BASE + 10 kB per vertex with the
+    estimators, model.checks) but not for MUMPS's (c N^p beside them), a selection with a
+    direct method is refused before any run, one without it is not. The check used to be
+    the scenes' (the leanest method): every case ran, and each direct run was a failed row
+    ("ValueError: ... needs ... of memory"), exit 3."""
+    from membranes.model import checks
+    def never(*args, **kwargs):
+        raise AssertionError("a case was run")
+    monkeypatch.setattr(stability, "run_case", never)
+    h = 0.01                              # about 4e4 vertices: never meshed here
+    vertices, _ = checks.estimate_vertices(h, 0, "disk")
+    iterative = checks.estimate_memory(vertices, linear_solver="gmres", pc_type="vertex_amg")
+    direct = checks.estimate_memory(vertices, linear_solver="direct")
+    assert direct > 2 * iterative
+    monkeypatch.setattr(checks, "available_memory", lambda comm=None: iterative * 1.001)
+    with pytest.raises(ValueError, match="needs .* of memory"):
+        stability.write_stability(str(tmp_path / "out"), h, ["mu_ratio_1"])
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(AssertionError, match="a case was run"):
+        stability.write_stability(str(tmp_path / "out"), h, ["mu_ratio_1"],
+                                  methods=[m for m in stability.METHODS if m[2] != "direct"])
