@@ -127,7 +127,7 @@ def _check_memory(problem, solver, estimators, max_vertices, alg_flux=None):
     more vertices than `max_vertices`, before anything is assembled (model.checks)."""
     comm = problem.mesh.comm
     max_vertices = checks.check_max_vertices(max_vertices)
-    available = None if max_vertices is not None else checks.available_memory(comm)
+    available = None if max_vertices is not None else checks.room_for_run(comm)
     checks.check_size(problem.mesh.topology.index_map(0).size_global, available, max_vertices,
                       what=f"the computational mesh of {problem.name!r}",
                       estimators=estimators, processes=comm.size, replicated=False,
