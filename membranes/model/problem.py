@@ -184,7 +184,7 @@ class Problem:
         domain = self._domain()
         if self.described is not None:
             old, exact, poincare, old_domain = self.described
-            moved = not (domain is old_domain or (isinstance(domain, str) and domain == old_domain))
+            moved = domain != old_domain        # (a name, or T_0 itself: meshes by identity)
             kept = [k for k, ours, theirs in (("exact", self.exact, exact),
                                               ("poincare", self.poincare, poincare))
                     if ours is not None and ours is theirs]
