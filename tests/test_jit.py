@@ -1,0 +1,92 @@
+"""The JIT cache lookups (membranes.fem.jit): a compiled form found once is found again
+without listing the cache directory, and a module another process puts into the cache
+meanwhile is found by the kept listing, which is made anew when the directory changes."""
+
+import importlib.machinery
+import pathlib
+import shutil
+
+import dolfinx.jit
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem, mesh
+from mpi4py import MPI
+
+import membranes.fem  # noqa: F401  (installs the lookups)
+from forms.membrane import contact_term, membrane_linear
+from membranes.fem import jit
+
+
+@pytest.fixture
+def listings(monkeypatch):
+    """Counts the listings of any directory by importlib's FileFinder (FFCx's lookups made a
+    new finder, and so one listing of the cache, per form and per function space)."""
+    count = []
+    fill = importlib.machinery.FileFinder._fill_cache
+
+    def counted(self):
+        count.append(self.path)
+        return fill(self)
+    monkeypatch.setattr(importlib.machinery.FileFinder, "_fill_cache", counted)
+    return count
+
+
+@pytest.fixture
+def lookups(monkeypatch):
+    """The (module name, whether FFCx's own lookup ran) of each cache lookup."""
+    seen = []
+    ours = jit.cached_module
+
+    def recorded(name, objects, cache_dir, timeout, *, ffcx_lookup):
+        def original(*args):
+            seen[-1] = (name, True)
+            return ffcx_lookup(*args)
+        seen.append((name, False))
+        return ours(name, objects, cache_dir, timeout, ffcx_lookup=original)
+    monkeypatch.setattr(jit, "cached_module", recorded)
+    return seen
+
+
+def _load(n, cache_dir=None):
+    """∫ v dx for the P1 hat functions v on an n × n unit square: the lumped masses, which
+    sum to 1 (a form of forms/membrane.py, compiled by the warm-up)."""
+    square = mesh.create_unit_square(MPI.COMM_SELF, n, n)
+    V = fem.FunctionSpace(square, ("Lagrange", 1))
+    params = {} if cache_dir is None else {"cache_dir": str(cache_dir)}
+    form = fem.form(membrane_linear(ufl.as_ufl(1.0), ufl.TestFunction(V)), jit_params=params)
+    return fem.assemble_vector(form).array.sum()
+
+
+def test_found_again_without_listing_the_cache(listings, lookups):
+    assert _load(3) == pytest.approx(1.0, rel=1e-14)
+    first = len(lookups)
+    assert first >= 2                                  # the space's element and the form
+    listings.clear()
+    assert _load(5) == pytest.approx(1.0, rel=1e-14)   # another mesh, the same modules
+    assert len(lookups) == 2 * first and not listings
+    assert lookups[first:] == lookups[:first]
+    assert not any(ran for _, ran in lookups[first:])
+
+
+def test_module_put_into_the_cache_meanwhile_is_found(tmp_path, lookups):
+    """Two compiled modules put into an empty cache directory one after the other, as another
+    process would (copied from the default cache): each is found by the kept finder, which
+    lists the directory again once it has changed; FFCx's own lookup never runs."""
+    V = fem.FunctionSpace(mesh.create_unit_square(MPI.COMM_SELF, 4, 4), ("Lagrange", 1))
+    v = ufl.TestFunction(V)
+    forms = [membrane_linear(ufl.as_ufl(1.0), v), contact_term(ufl.as_ufl(1.0), v)]
+    lookups.clear()
+    expected = [fem.assemble_vector(fem.form(L)).array for L in forms]
+    names = [name for name, _ in lookups]
+    assert len(set(names)) == 2
+    home = pathlib.Path(dolfinx.jit.get_parameters()["cache_dir"])
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    lookups.clear()
+    for name, L, b in zip(names, forms, expected):
+        for path in home.glob(name + ".*"):
+            shutil.copy2(path, cache / path.name)
+        got = fem.assemble_vector(fem.form(L, jit_params={"cache_dir": str(cache)})).array
+        assert np.array_equal(got, b)
+    assert lookups == [(name, False) for name in names]
