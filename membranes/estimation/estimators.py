@@ -28,9 +28,10 @@ communicator: every process returns the same numbers.
 
 **The remainder η_rem** (§6). The flux σ_α = σ_α,disc + σ_α,alg satisfies
 ∇·σ_α = Π_P1 f_α ± λh - ρ_α on every cell, with ρ_α the part of the residual it leaves out of
-balance: ρ_α = r_αh without algebraic flux, 0 for the multilevel flux (its divergence is r_αh
-exactly), r'_αh ∓ (λ'_h - λh) for the ν flux (`nu_flux`). In the residual of the energy
-argument behind the bound, ρ enters as Σ_α (ρ_α, v_α), and Poincaré–Friedrichs
+balance: ρ_α = r_αh without algebraic flux, r_αh - ∇·σ_α,alg for the multilevel flux (zero in
+exact arithmetic; its measured round-off defect, `remainder_of`), r'_αh ∓ (λ'_h - λh) for the
+ν flux (`nu_flux`). In the residual of the energy argument behind the bound, ρ enters as
+Σ_α (ρ_α, v_α), and Poincaré–Friedrichs
 (‖v_α‖ ≤ C_PF h_Ω ‖∇v_α‖, v_α ∈ H¹_0) gives
 
     |Σ_α (ρ_α, v_α)| ≤ C_PF h_Ω (Σ_α μ_α^{-1} ‖ρ_α‖²)^{1/2} |||v||| = η_rem |||v|||,

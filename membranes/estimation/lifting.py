@@ -5,8 +5,8 @@ cell K and each of its vertices a_l,
 
     (r_h, ψ_{a_l})_K = R_l / N_l,     N_l = number of cells sharing a_l (over all processes),
 
-so that (r_h, ψ_l)_Ω = Σ_{K ∋ a_l} R_l / N_l = R_l and the linear rows of §2 read
-μ1 (∇u1h, ∇ψ_l) = (f1 + λ_l - r1h, ψ_l), μ2 (∇u2h, ∇ψ_l) = (f2 - λ_l - r2h, ψ_l).
+so that (r_h, ψ_l)_Ω = Σ_{K ∋ a_l} R_l / N_l = R_l and the linear rows of §2 at any iterate
+read (§4) μ1 (∇u1h, ∇ψ_l) = (f1 + λ_l - r1h, ψ_l), μ2 (∇u2h, ∇ψ_l) = (f2 - λ_l - r2h, ψ_l).
 
 On K the P1 mass matrix is M_K = |K|/12 (I + 1 1ᵀ) (vertex order), whose inverse is
 M_K⁻¹ = (3/|K|) (4 I - 1 1ᵀ) = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]]; the DG1 coefficients of
