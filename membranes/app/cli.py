@@ -27,6 +27,9 @@ EXIT_TERMINATED = 143     # and by SIGTERM (128 + SIGTERM)
 # seconds a process that met an error waits for the others to meet it too (`_leave`)
 AGREE_SECONDS = 10.0
 
+# the Krylov presets (membranes.linalg.krylov.PRESETS, named here: that module imports PETSc,
+# which `membranes --help` does not need; tests/test_lean.py checks that the two agree)
+SOLVERS = ("paper", "direct", "amg")
 DATA_OPTIONS = ("mu1", "mu2", "g", "f1", "f2", "mesh", "domain")
 VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--tol",
                  "--petsc-options", "--gamma-lin", "--gamma-alg", "--max-vertices",
@@ -72,7 +75,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _parser():
-    from ..linalg.krylov import PRESETS
     p = _Parser(prog="membranes",
                 description="Contact of two elastic membranes: semismooth Newton on P1 "
                             "finite elements with guaranteed error bounds (FEniCSx).")
@@ -109,7 +111,7 @@ def _parser():
     s.add_argument("--cfun", choices=("min", "fb"), default="min",
                    help="C-function of the complementarity rows (theory §3): min (default) "
                         "or fb (Fischer-Burmeister)")
-    s.add_argument("--solver", choices=tuple(PRESETS), default="amg",
+    s.add_argument("--solver", choices=SOLVERS, default="amg",
                    help="amg (default): eliminated system, FGMRES + mean/gap BoomerAMG; "
                         "paper: full system, GMRES + ILU(0) (block Jacobi on several "
                         "processes); direct: MUMPS")
@@ -242,10 +244,10 @@ def _solve(args):
                 initial_guess=args.initial_guess, nested=args.nested,
                 max_vertices=args.max_vertices, coarse=args.coarse or "residual",
                 coarse_tol=args.coarse_tol)
+    summary = sol.summary()          # collective (reductions): every rank computes it
     if args.out is not None:
         say(f"writing the outputs into {args.out}")
-        write_outputs(sol, args.out)
-    summary = sol.summary()          # collective (reductions): every rank computes it
+        write_outputs(sol, args.out, summary)     # (the same summary: made once)
     if world.rank == 0:
         keys = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "solver", "system",
                 "processes", "converged", "newton_iterations", "linear_iterations",

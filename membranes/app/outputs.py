@@ -214,12 +214,14 @@ def room_for(mesh):
     return output_bytes(topology.index_map(0).size_global, topology.index_map(2).size_global)
 
 
-def write_outputs(solution, out_dir):
+def write_outputs(solution, out_dir, summary=None):
     """Write summary.json, history.csv and solution.xdmf (+ .h5) of `solution` into
     `out_dir` (created if missing); collective on the solution's communicator. Returns the
-    absolute path of `out_dir`."""
+    absolute path of `out_dir`. `summary`: `solution.summary()` if the caller has made it
+    already (it measures T_J's cells: not twice for one run)."""
     comm = solution.comm
-    summary = solution.summary()                  # collective (MPI reductions)
+    if summary is None:
+        summary = solution.summary()              # collective (MPI reductions)
     with staged_folder(out_dir, comm, room_for(solution.disc.mesh)) as tmp:
         write_solution(os.path.join(tmp, "solution.xdmf"), solution.disc.mesh,
                        solution.functions, solution.eta_K)

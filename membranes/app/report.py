@@ -49,8 +49,6 @@ import time
 import numpy as np
 from mpi4py import MPI
 
-from .outputs import staged_folder, write_columns, write_rows
-
 # (label, Newton variant, Krylov preset, nested)
 METHODS = (("exact/amg", "exact", "amg", None), ("inexact/amg", "inexact", "amg", None),
            ("adaptive/amg", "adaptive", "amg", None),
@@ -347,6 +345,7 @@ def error_distribution(sol, path):
     """|||u - u_h|||_K beside η_K (cells) and the CSV behind them (process 0); returns the
     gathered (error_K, eta_K) on process 0 and why the picture is missing (None: drawn)."""
     from ..estimation.energy_error import EnergyError
+    from .outputs import write_columns
     from .render import gather_cells, gather_points
     V, comm = sol.disc.V, sol.comm
     actual = EnergyError(sol.disc).per_cell(sol.X)
@@ -369,6 +368,7 @@ def contact_zone(sol, path):
     why the picture is missing (None: drawn)."""
     from dolfinx import fem
 
+    from .outputs import write_columns
     from .render import _gather
     disc = sol.disc
     V, n = disc.V, disc.n
@@ -480,6 +480,7 @@ def markdown(problem, runs, summaries, rows, cells, sources, seconds, missing=No
 def write_report(problem, out, say=lambda line: None):
     """Run every method and peer on `problem` and write the report into `out` (collective;
     process 0 writes). Returns (runs {label: Solution}, table rows)."""
+    from .outputs import staged_folder, write_rows
     check_matplotlib()
     comm = problem.mesh.comm
     t = time.perf_counter()

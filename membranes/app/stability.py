@@ -59,7 +59,6 @@ from typing import Callable
 import numpy as np
 from mpi4py import MPI
 
-from .outputs import json_safe, staged_folder
 from .report import PARALLEL_COUNTS
 
 METHODS = tuple((cfun, newton, solver) for cfun in ("min", "fb")
@@ -364,6 +363,7 @@ def write_stability(out, h=DEFAULT_H, names=None, methods=METHODS, say=lambda li
                     comm=MPI.COMM_WORLD):
     """Run the selected cases and write stability.csv and stability.md into `out`
     (collective; process 0 writes). Returns the rows."""
+    from .outputs import json_safe, staged_folder
     h = check_h(h)
     cases = select(names)
     check_sizes(cases, h, comm, methods)
