@@ -75,12 +75,15 @@ def test_progress_error_and_sub_communicators_on_three_processes():
     for o in outs[1:]:
         assert o["raised"] == ("RuntimeError: the progress callable failed on process 0: "
                                "OSError: the log is full")
+    # the same Newton steps end on the same active set, whose linear system MUMPS solves on
+    # any partition to round-off (ε times a condition ≲ 1e3): η and the energy error, smooth
+    # functions of that iterate, agree to 1e-10 (measured ≤ 2e-14)
     for o in outs:
-        n, eta, err = o["again"]
-        assert n == serial[0] and abs(eta - serial[1]) <= 1e-6 * serial[1]
-        n, eta, err = o["split"]
-        assert n == serial[0] and abs(eta - serial[1]) <= 1e-6 * serial[1]
-        assert abs(err - serial[2]) <= 1e-8 * serial[2]
+        for run in ("again", "split"):
+            n, eta, err = o[run]
+            assert n == serial[0], (o["rank"], run, n)
+            assert abs(eta - serial[1]) <= 1e-10 * serial[1], (o["rank"], run, eta)
+            assert abs(err - serial[2]) <= 1e-10 * serial[2], (o["rank"], run, err)
     # process 2 alone: the serial run, to the round-off of MUMPS's solves (two processes'
     # factorisations may differ in their last bits: 1 ulp of η seen)
     n, eta, err = outs[2]["split"]

@@ -17,17 +17,49 @@ from .conftest import write_msh
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+def _boundary_edges(m):
+    """The end points (edges, 2, 2) of the owned facets on ∂Ω."""
+    from dolfinx import mesh as dm
+    tdim = m.topology.dim
+    m.topology.create_connectivity(tdim - 1, tdim)
+    m.topology.create_connectivity(tdim - 1, 0)
+    facets = dm.exterior_facet_indices(m.topology)
+    facets = facets[facets < m.topology.index_map(tdim - 1).size_local]
+    f2v = m.topology.connectivity(tdim - 1, 0)
+    c2v = m.topology.connectivity(tdim, 0).array.reshape(-1, 3)
+    node = np.empty(c2v.max(initial=-1) + 1, dtype=np.int64)      # vertex -> geometry node
+    node[c2v.ravel()] = m.geometry.dofmap.array.reshape(-1, 3).ravel()
+    ends = np.array([f2v.links(f) for f in facets], dtype=np.int64).reshape(-1, 2)
+    return m.geometry.x[node[ends], :2]
+
+
 def test_disk_and_square_sizes():
+    """The cells tile the square exactly, and the disk's inscribed polygon: every boundary
+    vertex on the unit circle, and the polygon's area plus the circular segments cut off by
+    its boundary edges, Σ (θ_e - sin θ_e)/2 with θ_e = 2 arcsin(|e|/2), is π. Both to the
+    round-off of summing ~1e3 cell areas (ε each: 1e-13)."""
+    comm = MPI.COMM_WORLD
     for make, area in ((unit_disk, np.pi), (unit_square, 1.0)):
         m = make(0.1)
         assert m.geometry.dim == 2
         assert 0.05 < mesh_size(m) <= 0.16
         x = m.geometry.x[:, :2]
-        c = m.geometry.dofmap.array.reshape(-1, 3)
+        c = m.geometry.dofmap.array.reshape(-1, 3)[:m.topology.index_map(2).size_local]
         e1, e2 = x[c[:, 1]] - x[c[:, 0]], x[c[:, 2]] - x[c[:, 0]]
-        polygon = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
-        # the inscribed polygon misses O(h²) of the disk's area; the square is exact
-        assert abs(polygon - area) <= 0.02 * area
+        polygon = comm.allreduce(0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum())
+        edges = _boundary_edges(m)
+        if make is unit_square:
+            assert abs(polygon - area) <= 1e-13
+            side = np.minimum(np.abs(edges), np.abs(edges - 1.0)).min(axis=2)
+            assert comm.allreduce(side.max(initial=0.0), op=MPI.MAX) <= 1e-15   # ends on ∂Ω
+            continue
+        r = np.hypot(edges[..., 0], edges[..., 1])
+        assert comm.allreduce(np.abs(r - 1.0).max(initial=0.0), op=MPI.MAX) <= 1e-15
+        theta = 2 * np.arcsin(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1) / 2)
+        segments = comm.allreduce(0.5 * (theta - np.sin(theta)).sum())
+        assert abs(polygon + segments - area) <= 1e-13
+        # the inscribed polygon misses O(h²) of the disk: Σ θ³/12 ≤ 2π θ_max²/12
+        assert 0.0 < area - polygon <= np.pi / 6 * comm.allreduce(theta.max(), op=MPI.MAX) ** 2
 
 
 def test_hierarchy_parent_maps():

@@ -520,6 +520,7 @@ def test_the_same_solution_on_several_processes(tmp_path, procs, scene, runs, ex
     parallel, lines = _mpirun(procs, tmp_path / "out.npz", scene, 0.1, runs, extra)
     u_data, lam_data = disc_of(scene, 0.1).data_scales()
     assert np.abs(parallel["xy"] - serial["xy"]).max() <= 1e-12     # the same vertices
+    assert [line["run"] for line in lines] == runs                  # (zip stops at the shorter)
     for spec, line in zip(runs, lines):
         assert line["run"] == spec and line["converged"], line
         assert line["processes"] == procs

@@ -260,7 +260,7 @@ def test_json_safe():
 # ## Several processes
 
 @serial_only
-@pytest.mark.parametrize("procs", [2])
+@pytest.mark.parametrize("procs", [2, 3])
 def test_parallel_write(tmp_path, procs):
     """Every process writes its part of the one HDF5 file: read back serially, the values
     at every vertex and cell are those of the owning process; a failure on one process
