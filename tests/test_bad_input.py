@@ -79,6 +79,9 @@ CLI_CASES = {
     # run stopped after one step with λ = 0 and η = 0 at g = 1e-161 (probe C)
     "g underflows": ["--g", "1e-200"],
     "data underflow": ["--f1", "-1e-160", "--g", "1e-161"],
+    # ... or whose forces (mu u) underflow in the estimators' squares: eta = 0 (probe stiff2)
+    "estimators underflow": ["--f1", "-1e-170", "--mu1", "1e-40", "--mu2", "1e-40",
+                             "--g", "1e-130"],
     # formulas that raised RecursionError, OverflowError or a C compile error (probe B)
     "expr too deep": ["--f1", "+".join(["x"] * 1500)],
     "expr unary too deep": ["--f1", "-" * 1500 + "x"],

@@ -116,6 +116,40 @@ def test_moduli_scaling_incomplete_factorisations(cfun, newton, solver, petsc_op
         _assert_same_run(ref, run, lambda u1, u2, lam: (u1, u2, lam / c),
                          lambda name: c if name in QUADRATIC else np.sqrt(c), np.sqrt(c))
 
+
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_moduli_scaling_direct(cfun):
+    """μ1 = μ2 = 1e-16 (and 1e16) on the disk with MUMPS: u unchanged, λ, η², the energy
+    error² scaled by c. MUMPS's default scaling (ICNTL(8) = 77) is not invariant under the
+    1/μ of the λ column: at c = 1e-16 exact Newton ended at a relative residual of ~1e-12
+    with η_alg at ~0.9 η (krylov notes)."""
+    problem = _scaled(scenes.disk(h=0.1), moduli=True)
+    options = {"cfun": cfun, "newton": "exact", "solver": "direct"}
+    ref = solve(problem, **options)
+    for c in (1e-16, 1e16):
+        run = solve(_scaled(problem, c, moduli=True), **options)
+        _assert_same_run(ref, run, lambda u1, u2, lam: (u1, u2, lam / c),
+                         lambda name: c if name in QUADRATIC else np.sqrt(c), np.sqrt(c))
+
+
+def test_moduli_and_data_scaling_until_the_forces_underflow():
+    """Moduli by 1e-20 and data by 1e-100 on the radial scene, adaptive: forces μ u of
+    1e-120, and the run of c = 1 scaled (u by 1e-100, λ by 1e-120, η and the energy error by
+    1e-110, η_C and η_lin2 by 1e-220). Moduli by 1e-40 and data by 1e-130: forces of 1e-170,
+    whose squares in the estimators underflow (η_F read 0 and η fell to 0.13 times the
+    energy error, in a run said converged with a guaranteed bound): ValueError."""
+    problem = scenes.radial(h=0.1, rho=0.5)
+    options = {"cfun": "min", "newton": "adaptive", "solver": "amg"}
+    ref = solve(problem, **options)
+    cm, cd = 1e-20, 1e-100
+    run = solve(_scaled(_scaled(problem, cm, moduli=True), cd), **options)
+    _assert_same_run(ref, run, lambda u1, u2, lam: (u1 / cd, u2 / cd, lam / (cm * cd)),
+                     lambda name: cm * cd ** 2 if name in QUADRATIC else np.sqrt(cm) * cd,
+                     np.sqrt(cm) * cd)
+    with pytest.raises(ValueError, match="the estimators underflow double precision"):
+        solve(_scaled(_scaled(problem, 1e-40, moduli=True), 1e-130), **options)
+
+
 def test_mirror():
     """The square scene (μ1 = 1 ≠ μ2 = 2) with the membranes' roles swapped, exact Newton
     on the eliminated system: (g - u2, g - u1, λ), the same η parts and energy error, the

@@ -23,7 +23,15 @@
   anew at every step, with ICNTL(14) = 100 (100 % more working memory than its analysis
   estimates): the zero λ-diagonal of a min contact vertex makes MUMPS delay pivots, and with
   its default 20 % the factorisation stopped with INFOG(1) = -9 (workspace too small) from the
-  second Newton step on, on the disk from h = 0.1 down (one process and two).
+  second Newton step on, on the disk from h = 0.1 down (one process and two). MUMPS's own
+  scaling is off (ICNTL(8) = 0): its default, an iterative row and column equilibration, is
+  not invariant under the 1/μ of the λ column, and with μ1 = μ2 = 1e-16 on the square
+  (16 × 16, the data scaled alike, §11) exact Newton ended at a relative residual of 1e-12
+  instead of 5e-16, with η_alg at 0.94 η and η at 75 times the error instead of 1.08 (786279
+  times at 1e-20; one process and two). Unscaled, the run is that of μ = 1 scaled, on one
+  process and on several (MUMPS's column scalings, 3 and 4, act as 0 on a distributed
+  matrix); the price is round-off: on the disk (h = 0.05, J = 1, 2) η_alg is 2e-11 to 3e-10
+  of η instead of 6e-12 to 6e-11.
 * ``amg`` (the default): FGMRES on the eliminated 2N system, preconditioned by the mean/gap
   split of §10 with one BoomerAMG V-cycle on the mean and one on the gap (`preconditioners.
   MeanGapPC`; for Newton-min and Fischer–Burmeister alike). Iterations per Newton step do not
@@ -94,7 +102,7 @@ PRESETS = {
     "direct": {"system": "full",
                "options": {"ksp_type": "preonly", "pc_type": "lu",
                            "pc_factor_mat_solver_type": "mumps",
-                           "mat_mumps_icntl_14": 100}},
+                           "mat_mumps_icntl_14": 100, "mat_mumps_icntl_8": 0}},
     "amg": {"system": "eliminated",
             "options": {"ksp_type": "fgmres", "ksp_norm_type": "unpreconditioned"}},
 }
