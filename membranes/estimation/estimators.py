@@ -63,6 +63,7 @@ from forms.estimators import (
 )
 
 from ..fem.quadrature import over
+from ..model.checks import UNDERFLOW_SCALE
 from .cell_forms import CellForm, chunks, global_sums
 from .equilibration import nodal_function
 
@@ -74,13 +75,11 @@ REM1, REM2 = range(6, 8)                      # with the remainder, no algebraic
 U1, U2, LPOS, LNEG, E1, E2, DLAM = range(7)
 # The forms square forces, not displacements: μ_α ∇u_αh + σ_α, σ_α,alg, the lifted residuals,
 # λ and f_α, all of size μ_α u for a displacement u (§11: scaling μ1, μ2, f1, f2 by c scales
-# them by c and leaves u alone). Below this force scale their squares at round-off are no
-# longer normal doubles, as for the loads' check of membranes.nonlinear.system (whose
-# UNDERFLOW_SCALE this is), and the squares the bound rests on follow: with μ1 = μ2 = 1e-40
-# and u ≈ 1e-130 (forces ≈ 1e-170) η_F squared to 0 and η fell to 0.13 times the energy
-# error, with μ = 1e-50 and u ≈ 1e-135 η and the error read 0, and every run said converged
-# with a guaranteed bound. The overflow of those squares is `_combine`'s check.
-FORCE_UNDERFLOW = float(np.sqrt(np.finfo(float).tiny) / np.finfo(float).eps)    # ≈ 6.7e-139
+# them by c and leaves u alone). Forces below UNDERFLOW_SCALE (model.checks) are refused, as
+# the data's displacements are by membranes.nonlinear.system: with μ1 = μ2 = 1e-40 and
+# u ≈ 1e-130 (forces ≈ 1e-170) η_F squared to 0 and η fell to 0.13 times the energy error,
+# with μ = 1e-50 and u ≈ 1e-135 η and the error read 0, and every run said converged with a
+# guaranteed bound. The overflow of those squares is `_combine`'s check.
 
 
 def owned(X):
@@ -148,10 +147,10 @@ class Estimators:
         self.n = disc.n
         self.mu = (float(disc.mu1), float(disc.mu2))
         u_data = disc.data_scales()[0]                       # (collective)
-        if min(self.mu) * u_data < FORCE_UNDERFLOW:
+        if min(self.mu) * u_data < UNDERFLOW_SCALE:
             raise ValueError(f"the estimators underflow double precision: forces of size "
                              f"min(mu1, mu2) u = {min(self.mu) * u_data:g} < "
-                             f"{FORCE_UNDERFLOW:.1e} (mu1 = {self.mu[0]:g}, mu2 = "
+                             f"{UNDERFLOW_SCALE:.1e} (mu1 = {self.mu[0]:g}, mu2 = "
                              f"{self.mu[1]:g}, displacements u = {u_data:g}); rescale the "
                              f"data: the solution scales with f / mu and g (theory §11)")
         self.cpf = float(disc.poincare)

@@ -22,7 +22,17 @@ from the rest of the package, so that any driver can call them before it meshes.
 import math
 import os
 import shutil
+import sys
 import tempfile
+
+# ## Underflow of squares at round-off
+#
+# The stopping tests and the estimators are roots of sums of squares. Below this size x the
+# square of a round-off error on it, (ε x)², is no longer a normal double, and such squares
+# read 0: the data's check (membranes.nonlinear.system, ‖W (F, 0)‖) and the estimators'
+# (membranes.estimation.estimators, the forces μ u) refuse scales below it (theory §11: the
+# problem is positively homogeneous, the data can be rescaled).
+UNDERFLOW_SCALE = math.sqrt(sys.float_info.min) / sys.float_info.epsilon     # ≈ 6.7e-139
 
 # ## Vertex counts of a requested mesh and hierarchy
 #

@@ -74,17 +74,17 @@ from dataclasses import dataclass
 import numpy as np
 from petsc4py import PETSc
 
+from ..model.checks import UNDERFLOW_SCALE
 from . import cfunctions
 
 # Every test of §8 compares a norm with a tolerance times ‖W (F, 0)‖, and the norms are roots
-# of sums of squares (PETSc's VecNorm too). Below this size of ‖W (F, 0)‖ the square of a
-# residual at round-off, (ε ‖W (F, 0)‖)², is no longer a normal double: the residuals read
-# 0, and the tests pass on noise. With data scaled by 1e-160 (g = 1e-161 on the square) the
-# adaptive variant stopped after one step with λ = 0 and η = 0; exact Newton reported a
-# relative residual of 0 from 1e-150 on and stopped early from 1e-154 (theory §11: the
-# problem is positively homogeneous, the data can be rescaled). The symmetric limit,
+# of sums of squares (PETSc's VecNorm too). Below UNDERFLOW_SCALE (model.checks) of ‖W (F, 0)‖
+# the square of a residual at round-off, (ε ‖W (F, 0)‖)², is no longer a normal double: the
+# residuals read 0, and the tests pass on noise. With data scaled by 1e-160 (g = 1e-161 on the
+# square) the adaptive variant stopped after one step with λ = 0 and η = 0; exact Newton
+# reported a relative residual of 0 from 1e-150 on and stopped early from 1e-154 (theory §11:
+# the problem is positively homogeneous, the data can be rescaled). The symmetric limit,
 # ‖W (F, 0)‖² overflowing, is the overflow check of NewtonSystem.
-UNDERFLOW_SCALE = float(np.sqrt(np.finfo(float).tiny) / np.finfo(float).eps)    # ≈ 6.7e-139
 
 
 def _ints(a):
