@@ -92,14 +92,14 @@ def _kind(code):
     return (code >> 2) & 3
 
 
-def basis_changes(W, rt=None):
+def basis_changes(W, rt=None, dg=None):
     """(signs, blocks): signs[p, info, i, t] = ±1, the canonical dof t of facet i against
     dolfinx's dof t of its facet π(i), for the vertex order p = ORDERS.index(π) and permutation
     info of a cell; blocks[p] the block of G on the interior RT dofs (rows dolfinx's, columns
-    canonical). Raises if the elements' transformations are not of that form. `rt`: W's RT
-    basix element if at hand (each W.sub builds a dofmap)."""
+    canonical). Raises if the elements' transformations are not of that form. `rt`, `dg`: W's
+    RT and DG basix elements if at hand (each W.sub builds a dofmap)."""
     rt = rt if rt is not None else W.sub(0).element.basix_element
-    dg = W.sub(1).element.basix_element
+    dg = dg if dg is not None else W.sub(1).element.basix_element
     facet = [list(d) for d in rt.entity_dofs[1]]
     inner = list(rt.entity_dofs[2][0])
     corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
@@ -126,17 +126,18 @@ def basis_changes(W, rt=None):
     return signs, blocks
 
 
-def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
+def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None):
     """The code of every local W dof (owned and ghost); the interior blocks; the number of
     facet dofs on which the two cells of the facet disagree (0: both see the same vertex
     order); and the positions of the entities along DIRECTION and across it, which order the
     dofs of a patch: of every local facet (its midpoint, as seen by the last of its cells,
     (facets, 2)) and of every local cell (its centroid, (cells, 2)). The dofs of an entity
-    share its position; its global index breaks ties."""
+    share its position; its global index breaks ties. `rt`, `dg`: W's RT and DG basix
+    elements if at hand."""
     cmap = mesh.topology.index_map(2)
     nall = cmap.size_local + cmap.num_ghosts
-    rt = W.sub(0).element.basix_element
-    signs, blocks = basis_changes(W, rt)
+    rt = rt if rt is not None else W.sub(0).element.basix_element
+    signs, blocks = basis_changes(W, rt, dg)
     mesh.topology.create_entity_permutations()
     info = np.asarray(mesh.topology.get_cell_permutation_info())[:nall]
     if info.max(initial=0) >= 8:
@@ -166,7 +167,7 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     fmap = mesh.topology.index_map(1)
     facet_point = np.zeros((fmap.size_local + fmap.num_ghosts, 2))
     code = np.zeros(nlocal, dtype=np.int16)
-    cells = np.arange(nall)
+    cell_first = np.arange(nall)[:, None] * rt_dofs.shape[1]     # (flat positions in rt_dofs)
     facet_cols = np.array(rt.entity_dofs[1])
     inner_cols = np.array(rt.entity_dofs[2][0])
     # the codes of canonical facet i's dofs per (vertex order, permutation info)
@@ -185,7 +186,7 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs):
     facet_dofs, facet_codes = [], []
     for i in range(3):
         f = order[:, i]                                   # dolfinx facet of canonical facet i
-        dof = rt_dofs[cells[:, None], facet_cols[f]]
+        dof = np.ascontiguousarray(rt_dofs).take(cell_first + facet_cols[f])
         code[dof] = facet_code[:, i][which]
         facet_dofs.append(dof)
         facet_codes.append(code[dof])
@@ -476,17 +477,15 @@ class Blocks:
         rows, cols = range(n)[outputs], range(n)[inputs]
         flux_of_divergence = rows.stop <= rt <= cols.start
         out = np.empty((len(order), len(rows), len(cols)))
+        part = _InversePart(n, outputs, inputs)
         for first in range(0, len(order), 1024):        # dense blocks a few at a time
             chunk = order[first:first + 1024]
-            dense = self.dense(chunk)
-            for k, block in enumerate(dense):
+            for k, block in enumerate(self.dense(chunk)):
                 corner = _saddle_corner(block, rt) if flux_of_divergence else None
                 if corner is not None:
                     out[first + k] = corner[outputs, cols.start - rt:cols.stop - rt]
                 else:
-                    block[...] = _lu_inverse(block)
-            if not flux_of_divergence:
-                out[first:first + len(chunk)] = dense[:, outputs, inputs]
+                    out[first + k] = part(block)
         return out
 
     def release(self):
@@ -496,7 +495,9 @@ class Blocks:
 # ## Inverses of the patch blocks
 #
 # LAPACK one block at a time: numpy's batched solves call threaded BLAS, far slower for these
-# sizes. A full inverse by LU. When only the flux of divergence data is wanted (§6), the block
+# sizes. A full inverse by LU; a part of it by one LU and solves for the rows (or columns)
+# wanted, the fewer: only the RT rows when only the flux is wanted (§5), fewer operations than
+# the whole inverse. When only the flux of divergence data is wanted (§6), the block
 # of the inverse from the DG rows to the RT unknowns: with the RT dofs first, a block is
 # [[M, Bᵀ], [B, 0]], M the RT mass matrix (SPD), B the divergence (full row rank: the pinned
 # dof removes the constants); with Y = M⁻¹Bᵀ and the Schur complement S = B Y (SPD), that block
@@ -521,6 +522,29 @@ def _saddle_corner(block, rt):
         return None
     Z, _ = lapack.dpotrs(cs, np.ascontiguousarray(Y.T))               # S⁻¹ Yᵀ
     return Z.T
+
+
+class _InversePart:
+    """The block (outputs, inputs) (slices) of the inverses of n × n blocks, by LAPACK's LU:
+    the whole inverse, or solves for the rows (Aᵀ X = E_rows) or the columns (A Y = E_cols)
+    wanted, the fewer. A call raises np.linalg.LinAlgError for a singular block."""
+
+    def __init__(self, n, outputs, inputs):
+        from scipy.linalg import lapack
+        rows, cols = range(n)[outputs], range(n)[inputs]
+        self.outputs, self.inputs, self.gesv = outputs, inputs, lapack.dgesv
+        self.full = len(rows) == n and len(cols) == n
+        self.by_rows = len(rows) <= len(cols)
+        self.unit = np.asfortranarray(np.eye(n)[:, rows if self.by_rows else cols])
+
+    def __call__(self, block):
+        if self.full:
+            return _lu_inverse(block)
+        _, _, x, info = self.gesv(block.T if self.by_rows else block, self.unit,
+                                  overwrite_a=True)
+        if info != 0:
+            raise np.linalg.LinAlgError("singular patch block")
+        return x.T[:, self.inputs] if self.by_rows else x[self.outputs, :]
 
 
 def _lu_inverse(block):

@@ -1,6 +1,6 @@
 """The set-up side of the patch engine (`patches.PatchSystems`, §5, §12): the local topology,
 the owned entities in canonical order (`_canonical_order`), each group's kept dofs at their
-patches' homes (`_home_dofs`), the cells whose patch blocks are needed, and the matrix A
+patches' homes (`_home_dofs`), the cells whose patch blocks are needed, and the patch blocks
 assembled on those cells only.
 
 The dofs of one entity (a facet's RT dofs, a cell's interior RT dofs, a cell's DG dofs) are kept
@@ -9,15 +9,17 @@ moves *runs* (one per entity, about 2.3 times fewer than the dofs) and expands t
 at the homes.
 
 A kept dof of a patch is supported on that patch's cells only, so the principal submatrix of A
-on a patch's kept dofs is the same whether A is assembled over the whole mesh or over any set
-of cells containing the patch's cells: `assemble_on` assembles A (forms.equilibration
-.patch_system, rows and columns scaled by the ±1 of G) on the cells of the patches whose
-blocks are taken.
+(forms.equilibration.patch_system) on a patch's kept dofs is the same whether A is assembled
+over the whole mesh or over any set of cells containing the patch's cells, and whatever is done
+with the other dofs: `assemble_rows` assembles A on the cells of one group's patches whose blocks
+are taken, into a matrix that has rows and columns for those patches' kept dofs only, numbered
+at their homes patch after patch (`_block_rows`): its local rows are the blocks themselves.
 """
 
 import numpy as np
 import ufl
 from mpi4py import MPI
+from petsc4py import PETSc
 
 import forms.equilibration as equilibration_forms
 
@@ -30,23 +32,24 @@ from .exchange import (
     stable_order,
 )
 
-CHUNK = 1 << 18          # rows of patch blocks taken from A at a time (bounds the set-up memory)
+CHUNK = 1 << 18          # rows of patch blocks made canonical at a time (bounds the set-up memory)
 
 
 class HomeSetup:
     """The set-up methods of `patches.PatchSystems` (a mixin)."""
 
-    def _chunks(self, offsets):
-        """Ranges of patches (first, last) of about CHUNK rows, as many on every process
-        (MatCreateSubMatrices is collective): the blocks are taken a chunk at a time."""
+    @staticmethod
+    def _chunks(offsets):
+        """Ranges of patches (first, last) of about CHUNK rows each."""
         npatch = len(offsets) - 1
-        count = self.comm.allreduce(max(1, -(-int(offsets[-1]) // CHUNK)), op=MPI.MAX)
+        count = max(1, -(-int(offsets[-1]) // CHUNK))
         bounds = np.searchsorted(offsets, np.linspace(0, offsets[-1], count + 1)[1:-1])
         bounds = np.concatenate([[0], np.minimum(bounds, npatch), [npatch]])
         return list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
 
-    def _topology(self, mesh, W):
-        """Cell → facet and cell → dof tables (all local cells), facet cell counts (global)."""
+    def _topology(self, mesh, W, rt, dg):
+        """Cell → facet and cell → dof tables (all local cells), facets with one or two cells
+        (global); `rt`, `dg`: W.sub(0), W.sub(1)."""
         tdim = mesh.topology.dim
         mesh.topology.create_connectivity(tdim, tdim - 1)
         mesh.topology.create_connectivity(tdim - 1, tdim)
@@ -59,26 +62,23 @@ class HomeSetup:
         fmap = mesh.topology.index_map(tdim - 1)
         self.nfacets = fmap.size_local + fmap.num_ghosts
         self.facet_shared = Shared(fmap, self.comm)
-        # the (at most two) owned cells of each local facet, least first (-1: none), from
-        # the facet → cell table (its cells, owned or ghost); and the number of cells of each
-        # facet over the whole mesh (owned cells only, each counted by its owner)
+        # the (at most two) owned cells of each local facet (two arrays, -1: none), from the
+        # facet → cell table (its cells, owned or ghost); and whether a facet has two cells or
+        # one over the whole mesh (owned cells only, each counted by its owner)
         f2c = mesh.topology.connectivity(tdim - 1, tdim)
         first, ncell = f2c.offsets[:-1], np.diff(f2c.offsets)
         if np.any((ncell < 1) | (ncell > 2)):
             raise RuntimeError("a facet without cells or with more than two")
-        none = np.iinfo(np.int64).max
         a = f2c.array[first].astype(np.int64)
-        b = np.where(ncell == 2, f2c.array[np.minimum(first + 1, f2c.array.size - 1)], none)
-        a[a >= self.ncells] = none
-        b[b >= self.ncells] = none
-        self.facet_owned_cells = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
-        self.facet_owned_cells[self.facet_owned_cells == none] = -1
+        b = np.where(ncell == 2, f2c.array[np.minimum(first + 1, f2c.array.size - 1)], -1)
+        self.facet_owned_cells = [np.where(c < self.ncells, c, -1).astype(np.int64) for c in (a, b)]
         count = np.bincount(self.c2f[:self.ncells].ravel(), minlength=self.nfacets)
-        self.facet_cells = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
+        count = self.facet_shared.forward(self.facet_shared.reverse(count, np.add))
+        self.facet_two, self.facet_one = count == 2, count == 1
 
-        rt = W.sub(0).element.basix_element.entity_dofs
         # (by the dofs per cell: a process may hold no cell at all)
-        rt_map, dg_map = W.sub(0).dofmap, W.sub(1).dofmap
+        rt_map, dg_map = rt.dofmap, dg.dofmap
+        rt = rt.element.basix_element.entity_dofs
         self.rt_dofs = rt_map.list.array.reshape(nall, rt_map.dof_layout.num_dofs)
         self.dg_dofs = dg_map.list.array.reshape(nall, dg_map.dof_layout.num_dofs)
         # the RT dofs of each local facet, and the interior RT and DG dofs of each local cell
@@ -100,18 +100,21 @@ class HomeSetup:
         self.nowned = imap.size_local
         self.nlocal = imap.size_local + imap.num_ghosts
         self.rstart = imap.local_range[0]
+        self.dof_starts = np.array(self.comm.allgather(int(self.rstart)), dtype=np.int64)
+        self.dof_shared = Shared(imap, self.comm)
 
     def _canonical_order(self, facet_point, cell_point):
-        """The owned entities in canonical order, as *runs* of dofs: a facet's RT dofs, a
-        cell's interior RT dofs, a cell's DG dofs, each by index. The canonical order of the
-        dofs in a patch is by kind, position along the direction, entity and index
+        """The entities as *runs* of dofs: a facet's RT dofs, a cell's interior RT dofs, a
+        cell's DG dofs, each by index; and the owned entities in canonical order. The canonical
+        order of the dofs in a patch is by kind, position along the direction, entity and index
         (`congruence`), and an entity's dofs share kind and position (`facet_point`,
-        `cell_point`: of the local facets and cells), so the entities of each kind are sorted
-        (by position and global index) and their dofs follow them. Kept: per run its dofs
-        (local indices, padded with -1) and codes, length, position and entity (global index
-        and kind); the run of each local facet's dofs and of each local cell's interior RT and
-        DG dofs (the number of runs where they are not owned). A patch keeps whole entities,
-        so `_home_dofs` selects and sorts runs, not dofs.
+        `cell_point`: of the local facets and cells), so the owned entities of each kind are
+        sorted (by position and global index) and their dofs follow them. Kept: per run its
+        dofs (local indices, padded with -1) and codes, length, position and entity (global
+        index and kind), the runs of a kind from its first on in the entities' local order
+        (local facets, owned cells: the mesh's order, in which a patch's entities lie close);
+        per kind its owned entities in canonical order and its first run. A patch keeps whole
+        entities, so `_home_dofs` selects and sorts runs, not dofs.
 
         The rows of dofs and codes are padded (dofs -1, codes -1: real codes are ≥ 0) to a
         power of two entries, 16 or 8 bytes for 3 dofs, which numpy's np.take gathers as
@@ -126,15 +129,18 @@ class HomeSetup:
         entities = [(fglobal, facet_point), (cglobal, cell_point), (cglobal, cell_point)]
         sorted_rows, done = [], {}                 # done: the cells' order, for both tables
         for table, (glob, point) in zip(tables, entities):
-            # the columns by index in the entity (often already so: then the table itself);
-            # the owned rows by position and global index
-            index = self.code[table] & 3
-            if np.array_equal(index, np.broadcast_to(np.arange(table.shape[1]), index.shape)):
-                by_index = table
-            else:
-                by_index = np.full_like(table, -1)
-                np.put_along_axis(by_index, index.astype(np.int64), table, axis=1)
+            # the columns (dofs and their codes) by index in the entity (often already so: then
+            # the table itself); the owned rows by position and global index
+            codes = self.code[table]
+            index = codes & 3
+            if not np.array_equal(index, np.broadcast_to(np.arange(table.shape[1]), index.shape)):
+                index = index.astype(np.int64)
+                by_index, ordered = np.full_like(table, -1), np.full_like(codes, -1)
+                np.put_along_axis(by_index, index, table, axis=1)
+                np.put_along_axis(ordered, index, codes, axis=1)
+                table, codes = by_index, ordered
             del index
+            by_index = table
             if np.any(by_index < 0):
                 raise RuntimeError("an entity's dofs are not indexed 0, 1, ...")
             owned = by_index < n                      # all and any by columns (a few)
@@ -148,9 +154,10 @@ class HomeSetup:
             seen = done.get(id(glob))
             if seen is None or not np.array_equal(seen[0], rows):
                 seen = done[id(glob)] = (rows, rows[np.lexsort((glob[rows], point[rows, 0]))])
-            sorted_rows.append((by_index, seen[1]))
+            sorted_rows.append((by_index, codes, seen[1]))
         # the runs of the kinds FACET, INNER, DG one after the other
-        total = sum(rows.size for _, rows in sorted_rows)
+        size = [self.nfacets, self.ncells, self.ncells]          # runs of each kind
+        total = sum(size)
         width = max(table.shape[1] for table in tables)
         padded = 1 << (width - 1).bit_length()
         self.run_dofs = np.full((total, padded), -1, dtype=np.int32)
@@ -158,26 +165,28 @@ class HomeSetup:
         self.run_length = np.zeros(total, dtype=np.int64)
         self.run_point = np.zeros((total, 2))
         self.run_entity = np.zeros(total, dtype=np.int64)
-        where, first = [], 0
-        for kind, ((by_index, rows), (glob, point)) in enumerate(zip(sorted_rows, entities)):
-            last, k = first + rows.size, by_index.shape[1]
-            run = np.full(by_index.shape[0], total, dtype=np.int64)     # not owned: no run
-            run[rows] = np.arange(first, last)
-            where.append(run)
-            self.run_dofs[first:last, :k] = by_index.take(rows, axis=0)
-            self.run_code[first:last, :k] = self.code[self.run_dofs[first:last, :k]]
+        self.kinds, first = [], 0
+        for kind, ((by_index, codes, rows), (glob, point), m) in enumerate(
+                zip(sorted_rows, entities, size)):
+            last, k = first + m, by_index.shape[1]
+            if kind and (rows.size != self.ncells or rows.max(initial=-1) >= self.ncells):
+                raise RuntimeError("a cell's own dofs are not owned by the cell's owner")
+            self.kinds.append((rows, first))
+            self.run_dofs[first:last, :k] = by_index[:m]
+            self.run_code[first:last, :k] = codes[:m]
             self.run_length[first:last] = k
-            self.run_point[first:last] = point.take(rows, axis=0)
-            self.run_entity[first:last] = 4 * glob[rows] + kind
+            self.run_point[first:last] = point[:m]
+            self.run_entity[first:last] = 4 * glob[:m] + kind
             first = last
-        self.facet_run, self.cell_run = where[0], np.stack(where[1:], axis=1)
         del self.facet_dofs, self.cell_dofs
 
     def _home_dofs(self, pid, inner):
-        """The kept W dofs of the group's patches at home on this process (global indices), in
-        canonical order patch by patch (RT facet dofs, interior RT dofs, DG dofs), the patches'
-        offsets, the dofs' codes, the patches' numbers of RT dofs, their keys and their ids. A
-        collective call: every process hands over its owned kept dofs."""
+        """The kept W dofs of the group's patches at home on this process (global indices, as
+        PETSc's integers), in canonical order patch by patch (RT facet dofs, interior RT dofs,
+        DG dofs), the patches' offsets, the dofs' codes, the patches' numbers of RT dofs, their
+        keys and their ids; and the group's owned cells patch by patch, their number per patch
+        and the patches' ids (for `_marked_cells`). A collective call: every process hands over
+        its owned kept dofs."""
         comm = self.comm
         # per facet, over its (at most two) cells: the largest and smallest of 2 (patch id + 1)
         # + (the patch is not interior) (0 = no patch; the flag is the patch's, so the two
@@ -185,51 +194,67 @@ class HomeSetup:
         # the least int64 in both columns (the least int64 is its own negative).
         tag = np.empty(pid.size + 1, dtype=np.int64)
         np.add(pid, 1, out=tag[:-1])
-        tag[:-1] *= 2
-        tag[:-1] += ~inner
-        tag[:-1][pid < 0] = 0
+        tag[:-1] <<= 1
+        tag[:-1] |= ~inner & (pid >= 0)
         tag[-1] = np.iinfo(np.int64).min
-        first = tag.take(self.facet_owned_cells[:, 0])
-        second = tag.take(self.facet_owned_cells[:, 1])
+        first, second = (tag.take(cells) for cells in self.facet_owned_cells)
         info = np.empty((first.size, 2), dtype=np.int64)
         np.maximum(first, second, out=info[:, 0])
         np.maximum(np.negative(first, out=first), np.negative(second, out=second),
                    out=info[:, 1])
         del tag, first, second
         self.facet_shared.forward(self.facet_shared.reverse(info, np.maximum))
-        hi, lo = info[:, 0], -info[:, 1]
-        inside = (self.facet_cells == 2) & (hi == lo) & (hi > 0)
-        on_boundary = (self.facet_cells == 1) & ((hi & 1) == 1)
-        facet_patch = np.where(inside | on_boundary, (hi >> 1) - 1, -1)
+        # kept: both cells in one patch, or the one cell of a facet on ∂Ω in a patch that is
+        # not interior
+        hi = info[:, 0]
+        keep = hi == np.negative(info[:, 1], out=info[:, 1])
+        keep &= hi > 0
+        keep &= self.facet_two | (self.facet_one & (hi & 1).astype(bool))
+        hi >>= 1
+        facet_patch = np.where(keep, hi, 0) - 1
+        del info, hi, keep
 
-        # the patch of every owned run the group keeps (-1: not kept; the last entry takes the
-        # runs that are not owned); the kept runs in canonical order, patch by patch
-        # (as int32 when the patch ids fit: half the memory traffic of the sort)
+        # the runs the group keeps, patch by patch: per kind its owned entities in canonical
+        # order whose patch keeps them, stably by patch (as int32 when the patch ids fit: half
+        # the memory traffic of the sort), then per patch its kinds one after the other (FACET,
+        # INNER, DG: the canonical order); the two kinds of the cells share one sort
         top = max(int(pid.max(initial=-1)), int(facet_patch.max(initial=-1)))
-        run_patch = np.full(self.run_length.size + 1, -1,
-                            dtype=np.int32 if top < np.iinfo(np.int32).max else np.int64)
-        run_patch[self.facet_run] = facet_patch
-        cells = np.flatnonzero(pid >= 0)
-        run_patch[self.cell_run[cells]] = pid[cells, None]
-        runs = np.flatnonzero(run_patch[:-1] >= 0)
-        kp = run_patch[runs]
-        del run_patch
-        by_patch = stable_order(kp)
-        runs, kp = runs[by_patch], kp[by_patch]
-        del by_patch
-        new = run_starts(kp)
-        seen = kp[new].astype(np.int64)                             # unique, sorted
-        count = np.diff(np.append(new, runs.size))                  # runs per patch
+        small = top < np.iinfo(np.int32).max
+        picked, done = [], {}
+        for (rows, base), patch_of in zip(self.kinds, (facet_patch, pid, pid)):
+            key = (id(rows), id(patch_of))
+            if key not in done:
+                p = patch_of[rows]
+                at = np.flatnonzero(p >= 0)
+                entity, p = rows[at], (p[at].astype(np.int32) if small else p[at])
+                order = stable_order(p)
+                entity, p = entity[order], p[order]
+                new = run_starts(p)
+                done[key] = (entity, p, new, np.diff(np.append(new, p.size)))
+            picked.append((base,) + done[key])
+        seen = np.unique(np.concatenate([p[new] for _, _, p, new, _ in picked])).astype(np.int64)
+        where = [np.searchsorted(seen, p[new]) for _, _, p, new, _ in picked]
+        count = np.zeros(seen.size, dtype=np.int64)                 # runs per patch
+        for at, (_, _, _, _, n) in zip(where, picked):
+            count[at] += n
+        before = np.cumsum(count) - count                      # runs before each kind's
+        runs = np.empty(int(count.sum()), dtype=np.int64)
+        for at, (base, entity, p, new, n) in zip(where, picked):
+            runs[np.repeat(before[at] - new, n) + np.arange(p.size)] = entity + base
+            before[at] += n
+        del before, where
 
         # home of each patch: the owner of its cell of least global index, found with the
         # patch's interior flag in one distributed reduction over the patches seen here
-        # (and its shortest edge)
-        by_cell = cells[stable_order(pid[cells])]
-        new = run_starts(pid[by_cell])
-        keys = pid[by_cell[new]]
+        # (and its shortest edge); its owned cells, patch by patch, are kept for
+        # `_marked_cells`
+        by_cell, p, new, n = done[(id(self.kinds[1][0]), id(pid))]
+        keys = p[new].astype(np.int64)
+        owned = (by_cell.astype(np.int32), n, keys)
         values = ((self.cell_global[by_cell] * comm.size + comm.rank) << 1) | ~inner[by_cell]
         values = np.minimum.reduceat(values, new) if new.size else values[:0]
         h = np.minimum.reduceat(self.cell_h[by_cell], new) if new.size else np.zeros(0)
+        del done, picked, by_cell, p, new, n
         extra = seen[keys[np.minimum(np.searchsorted(keys, seen), keys.size - 1)] != seen] \
             if keys.size else seen                      # patches with no owned cell here
         if extra.size:
@@ -257,7 +282,7 @@ class HomeSetup:
         gpatch = move(np.repeat(seen, count)[order])
         # (np.take of padded rows: numpy's fast gather of small rows; -1 past a run's dofs)
         length, local = self.run_length[runs], self.run_dofs.take(runs, axis=0)
-        glength, gdofs = move(length), move(local + np.int64(self.rstart))
+        glength, gdofs = move(length), move(local + PETSc.IntType(self.rstart))
         gcode = move(self.run_code.take(runs, axis=0)
                      | np.repeat(interior, count)[order][:, None])
         gpoint = move(self.run_point.take(runs, axis=0))
@@ -300,7 +325,9 @@ class HomeSetup:
         size[pinned] -= 1
         np.cumsum(size, out=before[1:])
         start = before[np.append(new, received)]
-        dofs, code = gdofs[kept], gcode[kept]
+        kept = np.flatnonzero(kept)                          # (np.take: faster than a mask)
+        dofs, code = gdofs.take(kept), gcode.take(kept)
+        del kept
         h = gh[new]
         # the keys hash the first dof of each entity: every run but the pinned ones
         # (the keyed runs before an offset: the runs before it but the pinned ones, which
@@ -313,49 +340,70 @@ class HomeSetup:
         key = patch_keys(runs_before, gcode[:, 0][keyed], gpoint.take(keyed, axis=0), h,
                          np.diff(start))
 
-        return dofs, start, code, nsigma, key, gpatch[new]
+        return dofs, start, code, nsigma, key, gpatch[new], owned
 
-    def _marked_cells(self, patches, chosen):
-        """The owned cells (local indices) of the patches `chosen[c]` of each group c (global
-        patch ids, each listed by its home only; the patches' cells may live on other
-        processes). Collective: one reduction over (patch, group) keys."""
-        ngroups = len(patches)
-        keys, values, found = [], [], []
-        for c, pid in enumerate(patches):
-            cells = np.flatnonzero(pid >= 0)
-            by_patch = cells[stable_order(pid[cells])]            # the cells patch by patch
-            new = run_starts(pid[by_patch])
-            ids = pid[by_patch[new]]
-            found.append((by_patch, np.diff(np.append(new, by_patch.size))))
+    def _marked_cells(self, owned, chosen):
+        """Per group c, the owned cells (local indices, increasing) of its patches `chosen[c]`
+        (global patch ids, each listed by its home only; the patches' cells may live on other
+        processes), from `owned[c]`: the group's owned cells patch by patch, their number per
+        patch and the patches' ids (`_home_dofs`). Collective: one reduction over (patch,
+        group) keys."""
+        ngroups = len(owned)
+        keys, values = [], []
+        for c, (_, _, ids) in enumerate(owned):
             keys += [ids * ngroups + c, np.asarray(chosen[c], dtype=np.int64) * ngroups + c]
             values += [np.zeros(ids.size, dtype=np.int8), np.ones(len(chosen[c]), np.int8)]
         flag = reduce_by_key(self.comm, np.concatenate(keys), np.concatenate(values),
                              np.maximum)
-        mark = np.zeros(self.ncells, dtype=bool)
-        at = 0
-        for c, (by_patch, count) in enumerate(found):
-            mark[by_patch] |= np.repeat(flag[at:at + count.size] > 0, count)
-            at += count.size + len(chosen[c])
-        return np.flatnonzero(mark).astype(np.int32)
+        marked, at = [], 0
+        for c, (by_patch, count, ids) in enumerate(owned):
+            mark = np.zeros(self.ncells, dtype=bool)
+            mark[by_patch] = np.repeat(flag[at:at + ids.size] > 0, count)
+            marked.append(np.flatnonzero(mark).astype(np.int32))
+            at += ids.size + len(chosen[c])
+        return marked
+
+    def _block_rows(self, dofs):
+        """The rows of `assemble_rows` for the kept dofs `dofs` (global W indices) of the
+        patches of one group whose blocks are taken at home here, patch after patch: numbered
+        in that order, after those of the lower ranks. Returns the first row here and the row of
+        every local W dof (owned and ghost; -1: none), which the homes send to the dofs'
+        owners and these to their ghosts. Collective."""
+        comm = self.comm
+        first = comm.exscan(dofs.size, op=MPI.SUM) or 0                # (None on rank 0)
+        owner = np.searchsorted(self.dof_starts, dofs, side="right") - 1
+        order = stable_order(owner) if comm.size > 1 else slice(None)
+        send = np.bincount(owner, minlength=comm.size).astype(np.int64)
+        recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
+        at = alltoallv(comm, dofs[order], send, recv) - self.rstart
+        rows = np.full(self.nlocal, -1, dtype=PETSc.IntType)
+        rows[at] = alltoallv(comm, np.arange(first, first + dofs.size)[order], send, recv)
+        return first, self.dof_shared.forward(rows)
 
 
-
-def assemble_on(W, cells, signs):
+def assemble_rows(W, cells, rows, room):
     """A = forms.equilibration.patch_system assembled by dolfinx on the owned `cells` (local
-    indices) only (its sparsity pattern covers those cells), rows and columns multiplied by
-    `signs` (owned W dofs). Collective."""
+    indices) only, into a PETSc matrix whose row and column of local W dof i is rows[i] (-1:
+    the dof is left out), with len(room) local rows, local row k with room for room[k] entries,
+    all in the diagonal block (a patch's rows are at its home). No matrix over the whole of W
+    is made (dolfinx's sparsity pattern keeps a list per row of W). Collective."""
     from dolfinx import fem
     from dolfinx.fem.petsc import assemble_matrix
     from dolfinx.mesh import meshtags
-    mesh = W.mesh
+    mesh, comm = W.mesh, W.mesh.comm
+    size = len(room)
+    total = comm.allreduce(size, op=MPI.SUM)
+    # (petsc4py mishandles empty arrays of row lengths: no rows here, no lengths)
+    nnz = (np.asarray(room, dtype=PETSc.IntType), np.zeros(size, dtype=PETSc.IntType)) \
+        if size else (0, 0)
+    A = PETSc.Mat().createAIJ(((size, total), (size, total)), nnz=nnz, comm=comm)
+    lgmap = PETSc.LGMap().create(rows, comm=comm)
+    A.setLGMap(lgmap, lgmap)
+    lgmap.destroy()
     cells = np.asarray(cells, dtype=np.int32)
     tags = meshtags(mesh, mesh.topology.dim, cells, np.ones(cells.size, dtype=np.int32))
     dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
     (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
-    A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q, dx)))
+    assemble_matrix(A, fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q, dx)))
     A.assemble()
-    s = A.createVecLeft()
-    s.array[:] = signs
-    A.diagonalScale(s, s)
-    s.destroy()
     return A

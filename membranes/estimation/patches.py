@@ -16,18 +16,18 @@ group is supported on the cells of one patch (a facet dof is kept only if both i
 that patch, or its one cell if the facet lies on ∂Ω), so the entry of the matrix A of the form
 above, assembled by dolfinx over the whole mesh (forms.equilibration.patch_system), between two
 kept dofs is the sum of the cell blocks of that patch only: each patch's matrix is a principal
-submatrix A_p of A, and equally of A assembled on any set of cells containing the patch's
-(`homes.assemble_on`: only the cells of the patches whose blocks are taken are assembled, so
-no matrix over the whole mesh is ever made). Each patch is solved on one process, its *home*.
-Per group, numpy indexing moves the right-hand sides of the dofs owned by a home's process to
-it and the solutions back, and a VecScatter moves those of the others (none on one process);
-PETSc's MatCreateSubMatrices brings the rows of the blocks that are needed to the homes (as
-for overlapping Schwarz subdomains).
+submatrix A_p of A, and equally of A assembled on any set of cells containing the patch's,
+with rows and columns for the kept dofs only (`homes.assemble_rows`: per group, only the cells
+of the patches whose blocks are taken are assembled, into rows numbered at those patches'
+homes, so no matrix over the whole mesh is ever made and each home owns its blocks' rows).
+Each patch is solved on one process, its *home*. Per group, numpy indexing moves the
+right-hand sides of the dofs owned by a home's process to it and the solutions back, and a
+VecScatter moves those of the others (none on one process).
 
 **Shared dense inverses.** The blocks are taken in the canonical basis of `congruence`, where
 the blocks of translated patches are equal to round-off. Patches with equal translation
 invariant keys (`congruence.patch_keys`) form one class; only the block of the first patch of
-a new key is taken, from A assembled on the cells of those patches of all groups (their homes
+a new key is taken, from A assembled on the cells of those patches of its group (their homes
 mark them for the owners of their cells, `_marked_cells`). A patch whose size differs from its
 key's class (a key collision) gets a class and block of its own. Each class keeps one dense
 inverse (LAPACK). The home vector holds the patches class by class, so that a call solves all
@@ -58,9 +58,11 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from .congruence import (
+    FACET,
     NEGATIVE,
     BasisChange,
     Blocks,
+    _kind,
     canonical_block,
     canonical_dofs,
 )
@@ -73,7 +75,7 @@ from .exchange import (
     run_starts,
     stable_order,
 )
-from .homes import HomeSetup, assemble_on
+from .homes import HomeSetup, assemble_rows
 
 SOLVE_CHUNK = 1 << 20     # home entries per product in `solve_home`
 RUN = 256                 # home entries of a run the routes copy as one slice (`_own_route`)
@@ -126,31 +128,30 @@ class PatchSystems(HomeSetup):
         # dofs (a space made anew: W.sub(0).collapse() is slower and gives its map as a
         # Python list)
         from dolfinx import fem
-        rt = W.sub(0)
+        rt, dg = W.sub(0), W.sub(1)            # (each W.sub builds a dofmap: made once)
         self.rt_space = fem.FunctionSpace(mesh, W.ufl_element().sub_elements()[0])
         imap = self.rt_space.dofmap.index_map
         self.rt_map = np.empty(imap.size_local + imap.num_ghosts, dtype=np.int32)     # local W dofs
         self.rt_map[self.rt_space.dofmap.list.array] = rt.dofmap.list.array
-        del rt
         self.ngroups = len(patches)
-        self._topology(mesh, W)
+        self._topology(mesh, W, rt, dg)
         self.code, self.blocks, self.disagree, facet_point, cell_point = canonical_dofs(
-            mesh, W, self.c2f, self.rt_dofs, self.dg_dofs)
+            mesh, W, self.c2f, self.rt_dofs, self.dg_dofs, rt.element.basix_element,
+            dg.element.basix_element)
+        del rt, dg
         self._canonical_order(facet_point, cell_point)
         del facet_point, cell_point
-        n = self.nowned
 
         # per group its patches at home, and the patches whose blocks are needed: the first
         # of each new key (all patches without sharing), and any patch whose size differs from
         # its key's class (a hash collision: it gets a class of its own); their class numbers
         # are given now (in the order `_extract` makes them)
-        self.signs = np.where(self.code[:n] & NEGATIVE, -1.0, 1.0)     # the ±1 of G
         classes, self.known = Blocks(), (np.zeros(0, dtype=np.uint64), np.zeros(0, np.int64))
         sizes = np.zeros((0, 2), dtype=np.int64)          # per class: its dofs and RT dofs
         self.collisions = 0
         pending, count = [], 0
         for pid, inner in zip(patches, interior):
-            dofs, offsets, code, nsigma, key, ids = self._home_dofs(
+            dofs, offsets, code, nsigma, key, ids, owned = self._home_dofs(
                 np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
             npatch = len(offsets) - 1
             size = np.stack([np.diff(offsets), nsigma], axis=1)
@@ -170,25 +171,23 @@ class PatchSystems(HomeSetup):
                 new = np.arange(npatch)
                 cls = count + new
             count += new.size
-            pending.append([dofs, offsets, code, nsigma, ids, new, cls])
-        patches = [np.asarray(p, dtype=np.int64) for p in patches]
-        # A on the cells of those patches only; their blocks, made canonical
-        A = assemble_on(W, self._marked_cells(patches, [p[4][p[5]] for p in pending]),
-                        self.signs)
-        for dofs, offsets, code, nsigma, _, new, cls in pending:
-            if not np.array_equal(self._extract(A, dofs, offsets, code, nsigma, new, classes),
+            pending.append([dofs, offsets, code, nsigma, ids, new, cls, owned])
+        # per group A on the cells of those patches only; their blocks, made canonical
+        marked = self._marked_cells([p.pop() for p in pending], [p[4][p[5]] for p in pending])
+        for (dofs, offsets, code, nsigma, _, new, cls), cells in zip(pending, marked):
+            if not np.array_equal(self._extract(cells, dofs, offsets, code, nsigma, new, classes),
                                   cls[new]):
                 raise RuntimeError("the classes were not made in the expected order")
-        A.destroy()
+        del marked
         groups = [(p[0].astype(PETSc.IntType, copy=False), p[1],
                    p[2].astype(np.int16, copy=False), p[6]) for p in pending]
         del pending
         self._layout(groups, classes)
         # only the home layout, the scatters and the inverses are kept
-        for name in ("code", "c2f", "facet_shared", "facet_owned_cells",
-                     "facet_cells", "cell_global", "cell_h", "rt_dofs", "dg_dofs", "run_length",
-                     "run_dofs", "run_code", "run_point", "run_entity", "facet_run", "cell_run",
-                     "known", "signs"):
+        for name in ("code", "c2f", "facet_shared", "facet_owned_cells", "facet_two",
+                     "facet_one", "cell_global", "cell_h", "rt_dofs", "dg_dofs", "run_length",
+                     "run_dofs", "run_code", "run_point", "run_entity", "kinds", "known",
+                     "dof_starts", "dof_shared"):
             delattr(self, name)
 
     def _lookup(self, key):
@@ -202,26 +201,35 @@ class PatchSystems(HomeSetup):
         order = np.argsort(keys, kind="stable")
         self.known = keys[order], np.concatenate([self.known[1], cls])[order]
 
-    def _extract(self, A, dofs, offsets, code, nsigma, which, classes):
-        """New classes for the blocks of the patches `which` of a group, taken from A (rows
-        and columns at the patches' kept dofs, a chunk at a time: collective) and made
-        canonical."""
+    def _extract(self, cells, dofs, offsets, code, nsigma, which, classes):
+        """New classes for the blocks of the patches `which` of a group, assembled on the
+        group's marked owned `cells` with rows at the patches' kept dofs (collective), their rows
+        and columns multiplied by the ±1 of G and made canonical a chunk at a time."""
         which = np.asarray(which, dtype=np.int64)
         n = offsets[which + 1] - offsets[which]
         sub = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
         rows = np.repeat(offsets[which] - sub[:-1], n) + np.arange(sub[-1])
+        code = code[rows]
+        # room per row: the dofs of the cells holding its dof (two cells for a facet's), at most
+        # its patch's
+        width = self.W.dofmap.dof_layout.num_dofs
+        room = np.where(_kind(code) == FACET, 2 * width, width)
+        first, lg = self._block_rows(dofs[rows])
+        A = assemble_rows(self.W, cells, lg, np.minimum(room, np.repeat(n, n)))
+        del lg, room
+        ia, ja, a = A.getValuesCSR()
+        A.destroy()
+        ia, ja = ia.astype(np.int64), ja.astype(np.int64) - first
+        sign = np.where(code & NEGATIVE, -1.0, 1.0)
+        a *= np.repeat(sign, np.diff(ia))
+        a *= sign[ja]
         out = np.zeros(which.size, dtype=np.int64)
-        for first, last in self._chunks(sub):
-            r = rows[sub[first]:sub[last]]
-            iset = PETSc.IS().createGeneral(dofs[r].astype(PETSc.IntType), comm=PETSc.COMM_SELF)
-            block = A.createSubMatrices(iset)[0]
-            iset.destroy()
-            ia, ja, a = block.getValuesCSR()
-            block.destroy()
-            ia, ja = ia.astype(np.int64), ja.astype(np.int64)
-            a = canonical_block(ia, ja, a, code[r], self.blocks)
-            out[first:last] = classes.add(ia, ja, a, sub[first:last + 1] - sub[first],
-                                          nsigma[which[first:last]])
+        for lo, hi in self._chunks(sub):
+            r0, r1 = sub[lo], sub[hi]
+            e0, e1 = ia[r0], ia[r1]
+            block = (ia[r0:r1 + 1] - e0, ja[e0:e1] - r0)
+            values = canonical_block(*block, a[e0:e1], code[r0:r1], self.blocks)
+            out[lo:hi] = classes.add(*block, values, sub[lo:hi + 1] - r0, nsigma[which[lo:hi]])
         return out
 
     def _layout(self, groups, classes):
@@ -251,17 +259,25 @@ class PatchSystems(HomeSetup):
         for dofs, offsets, gcode, _ in groups:
             k = np.diff(offsets)
             # the group's patches by home position: their entries in home order (a cheaper
-            # scatter set-up) and those entries' places at home (increasing)
+            # scatter set-up), those entries' places at home (increasing) and the entries where
+            # these stop counting up by one: the first of a patch that does not follow the one
+            # before at home, and among the owned ones the first after another process's
             at = start[first:first + k.size]
             first += k.size
             by_start = np.argsort(at)
-            by_home = ranges(offsets[:-1][by_start], k[by_start])
-            at = ranges(at[by_start], k[by_start])
+            at, k = at[by_start], k[by_start]
+            by_home = ranges(offsets[:-1][by_start], k)
+            new = np.zeros(by_home.size, dtype=bool)
+            jump = np.concatenate([[True], at[1:] != at[:-1] + k[:-1]]) if k.size else k > 0
+            new[(np.cumsum(k) - k)[jump]] = True
+            at = ranges(at, k)
             code[at] = gcode[by_home]
             src = dofs[by_home]
             mine = (src >= lo) & (src < hi)
-            self.local.append(self._own_route((src[mine] - lo).astype(np.int32), at[mine],
-                                              index))
+            new[1:] |= mine[1:] > mine[:-1]
+            self.local.append(self._own_route((src[mine] - lo).astype(np.int32, copy=False),
+                                              at[mine], np.flatnonzero(new[mine]), index))
+            del new
             src = PETSc.IS().createGeneral(src[~mine], comm=PETSc.COMM_SELF)
             dst = PETSc.IS().createGeneral(at[~mine].astype(PETSc.IntType),
                                            comm=PETSc.COMM_SELF)
@@ -310,14 +326,12 @@ class PatchSystems(HomeSetup):
         classes.release()
 
     @staticmethod
-    def _own_route(rows, at, index):
+    def _own_route(rows, at, new, index):
         """The route of a group's entries owned by the home's process: owned W rows `rows`
-        to home positions `at` (increasing). The positions come in runs (a class's patches of
-        one group are consecutive at home): runs of at least RUN entries are kept as (home
-        start, entry offset, length) and copied as slices, the other entries by their
-        positions."""
-        new = np.flatnonzero(np.diff(at) != 1) + 1       # where at stops counting up by one
-        new = np.concatenate([[0], new]) if at.size else new
+        to home positions `at` (increasing), which count up by one from each entry `new` on
+        to the next. The positions come in runs (a class's patches of one group are
+        consecutive at home): runs of at least RUN entries are kept as (home start, entry
+        offset, length) and copied as slices, the other entries by their positions."""
         length = np.diff(np.append(new, at.size))
         long = length >= RUN
         runs = list(zip(at[new[long]].tolist(), new[long].tolist(), length[long].tolist()))

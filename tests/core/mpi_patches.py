@@ -71,23 +71,24 @@ def straddling(comm, groups):
     return comm.allreduce(total, op=MPI.SUM)
 
 
-def _full_matrix(W, signs):
-    """The signed A over the whole mesh (every owned cell), as the engine assembled it before
-    (the reference of the partial assembly and of the action)."""
-    from membranes.estimation.homes import assemble_on
-    mesh = W.mesh
-    return assemble_on(W, np.arange(mesh.topology.index_map(mesh.topology.dim).size_local),
-                       signs)
+def _full_matrix(W):
+    """A over the whole mesh by dolfinx's own assembly (the reference of the partial one)."""
+    import ufl
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_matrix
 
-
-def _random_signs(W, seed):
-    n = W.dofmap.index_map.size_local
-    return np.where(np.random.default_rng(seed).random(n) < 0.5, -1.0, 1.0)
+    import forms.equilibration as equilibration_forms
+    (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
+    A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q,
+                                                                  ufl.dx(domain=W.mesh))))
+    A.assemble()
+    return A
 
 
 def _marked(mesh):
     """Owned cells of every third patch of the first group (bool per owned cell), and the
-    owned W dofs all of whose cells are marked (bool per owned dof), for the space W."""
+    owned W dofs all of whose cells are marked and those of some marked cell (bool per owned
+    dof), for the space W."""
     from dolfinx import fem
     from dolfinx.la import ScatterMode
 
@@ -95,44 +96,68 @@ def _marked(mesh):
     W = mixed_space(mesh)
     pid = vertex_groups(mesh)[0][0]
     marked = (pid >= 0) & (pid % 3 == 0)
-    # dofs of unmarked owned cells, summed over the processes: 0 = inside
-    count = fem.Function(W)
+    # dofs of unmarked and of marked owned cells, summed over the processes: 0 = none
     dofs = W.dofmap.list.array.reshape(-1, W.dofmap.dof_layout.num_dofs)[:marked.size]
-    np.add.at(count.x.array, dofs[~marked].ravel(), 1.0)
-    count.x.scatter_reverse(ScatterMode.add)
-    return W, marked, count.x.array[:W.dofmap.index_map.size_local] == 0
+    n = W.dofmap.index_map.size_local
+    counts = []
+    for cells in (~marked, marked):
+        count = fem.Function(W)
+        np.add.at(count.x.array, dofs[cells].ravel(), 1.0)
+        count.x.scatter_reverse(ScatterMode.add)
+        counts.append(count.x.array[:n])
+    return W, marked, (counts[0] == 0) & (counts[1] > 0), counts[1] > 0
 
 
-def partial_assembly_error(mesh, seed=2):
-    """(largest difference on the dofs inside the marked cells, largest difference anywhere,
-    largest entry, number of inside dofs) between A assembled on the cells of every third
-    patch of the first group (`homes.assemble_on`) and A over the whole mesh, over all
-    processes. A dof is inside if all its cells are marked: there the principal submatrices
-    must agree; elsewhere they differ."""
+def _global_csr(comm, A, row_of, col_of, size):
+    """The PETSc matrix A on all processes as one scipy matrix (size × size), its local rows'
+    and columns' indices mapped by `row_of` and `col_of`."""
     import scipy.sparse as sp
+    ia, ja, a = A.getValuesCSR()
+    lo = A.getOwnershipRange()[0]
+    rows = lo + np.repeat(np.arange(ia.size - 1), np.diff(ia))
+    parts = comm.allgather((row_of[rows], col_of[ja], a))
+    i, j, v = (np.concatenate(x) for x in zip(*parts))
+    return sp.csr_matrix((v, (i, j)), shape=(size, size))
 
-    from membranes.estimation.homes import assemble_on
+
+def partial_assembly_error(mesh):
+    """(largest difference on the dofs inside the marked cells, largest difference anywhere,
+    largest entry, number of inside dofs) between A assembled by `homes.assemble_rows` on the
+    cells of every third patch of the first group, with rows and columns for the dofs of
+    those cells only, and A over the whole mesh on the same rows and columns, over all
+    processes. A dof is inside if all its cells are marked: there the principal submatrices
+    must agree; on the other dofs of marked cells they differ."""
+    from petsc4py import PETSc
+
+    from membranes.estimation.homes import assemble_rows
     comm = mesh.comm
-    W, marked, owned_inside = _marked(mesh)
-    signs = _random_signs(W, seed + comm.rank)
-    full, part = _full_matrix(W, signs), assemble_on(W, np.flatnonzero(marked), signs)
+    W, marked, owned_inside, owned_touched = _marked(mesh)
     imap = W.dofmap.index_map
-    n, start = imap.size_local, imap.local_range[0]
+    n, start, N = imap.size_local, imap.local_range[0], imap.size_global
+    glob = np.asarray(imap.local_to_global(np.arange(n + imap.num_ghosts, dtype=np.int32)),
+                      dtype=np.int64)
     inside = np.concatenate(comm.allgather(np.flatnonzero(owned_inside) + start))
-    mask = np.zeros(imap.size_global, dtype=bool)
-    mask[inside] = True
-    diffs = []
-    for M in (full, part):
-        ia, ja, a = M.getValuesCSR()
-        diffs.append(sp.csr_matrix((a, ja, ia), shape=(n, imap.size_global)))
-    d = (diffs[0] - diffs[1]).tocsr()
-    d_inside = d[np.flatnonzero(owned_inside)][:, mask]
-    local = [abs(d_inside).max() if d_inside.nnz else 0.0, abs(d).max() if d.nnz else 0.0,
-             abs(diffs[0]).max() if diffs[0].nnz else 0.0]
+    touched = np.sort(np.concatenate(comm.allgather(np.flatnonzero(owned_touched) + start)))
+    # the rows: the touched dofs in global order, all on process 0 (so that every row's
+    # columns lie in its diagonal block)
+    at = np.minimum(np.searchsorted(touched, glob), touched.size - 1)
+    rows = np.where(touched[at] == glob, at, -1).astype(PETSc.IntType)
+    width = W.dofmap.dof_layout.num_dofs
+    room = np.full(touched.size if comm.rank == 0 else 0, 2 * width, dtype=PETSc.IntType)
+    part = assemble_rows(W, np.flatnonzero(marked), rows, room)
+    full = _full_matrix(W)
+    whole = np.arange(N)
+    M = [_global_csr(comm, full, whole, whole, N), _global_csr(comm, part, touched, touched, N)]
     full.destroy()
     part.destroy()
-    out = [comm.allreduce(float(v), op=MPI.MAX) for v in local]
-    return (*out, int(inside.size))
+    d = (M[0] - M[1]).tocsr()
+    ins, tou = np.zeros(N, dtype=bool), np.zeros(N, dtype=bool)
+    ins[inside], tou[touched] = True, True
+    d_inside = d[np.flatnonzero(ins)][:, ins]
+    d_touched = d[np.flatnonzero(tou)][:, tou]
+    return (abs(d_inside).max() if d_inside.nnz else 0.0,
+            abs(d_touched).max() if d_touched.nnz else 0.0,
+            abs(M[0]).max(), int(inside.size))
 
 
 def main():

@@ -17,8 +17,9 @@
   the share of distinct inverses falls with J (measured 0.45, 0.23 at J = 2, 3 from h = 0.3),
   on a structured square all interior patches are translates (13 classes at any size), and on
   2 and 3 processes the same holds with patches straddling processes (mpi_patches.py).
-* No matrix over the whole mesh: A assembled on some patches' cells equals the full A on the
-  dofs inside those cells (measured: exactly) and differs outside them; on 1, 2 and 3
+* No matrix over the whole mesh: A assembled on some patches' cells, with rows and columns
+  for their dofs only (`homes.assemble_rows`), equals the full A on the dofs inside those
+  cells (measured: exactly) and differs on the other dofs of the cells; on 1, 2 and 3
   processes.
 """
 
@@ -376,13 +377,14 @@ def test_colouring_and_boundary_helpers_used_by_the_groups():
 # ## No matrix over the whole mesh
 
 def test_partial_assembly_keeps_the_inside_blocks():
-    """A assembled on some patches' cells (`homes.assemble_on`) equals A over the whole mesh on
-    the dofs all of whose cells are marked (those are the kept dofs of the marked patches),
-    and differs elsewhere (the assembly is partial)."""
+    """A assembled on some patches' cells into rows for their dofs only
+    (`homes.assemble_rows`) equals A over the whole mesh on the dofs all of whose cells are
+    marked (those are the kept dofs of the marked patches), and differs on the others (the
+    assembly is partial)."""
     inside, outside, entry, ninside = partial_assembly_error(refined_disk(MPI.COMM_WORLD, 0.3, 1))
     assert ninside > 100
     assert inside <= 1e-14 * entry
-    assert outside > 0.1 * entry
+    assert outside > 0.01 * entry
 
 
 # ## On several processes
@@ -404,4 +406,4 @@ def test_parallel_sharing(nproc):
     assert int(fields["collisions"]) == 0
     assert int(fields["ninside"]) > 100
     assert float(fields["inside"]) <= 1e-14 * float(fields["entry"])
-    assert float(fields["outside"]) > 0.1 * float(fields["entry"])
+    assert float(fields["outside"]) > 0.01 * float(fields["entry"])
