@@ -37,15 +37,15 @@ def assemble(form, mesh, into):
     ghosts). Collective."""
     from dolfinx import fem
 
-    from .cell_forms import chunks
+    from .cell_forms import chunks, compiled
     if isinstance(into, PETSc.Vec):
         with into.localForm() as local:
             assemble(form, mesh, local.array)
         into.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         return into
     into[:] = 0.0
-    for part in chunks(form, mesh):
-        fem.assemble_vector(into, fem.form(part))
+    for part in compiled(chunks(form, mesh), mesh):
+        fem.assemble_vector(into, part)
     return into
 
 

@@ -42,6 +42,7 @@ from petsc4py import PETSc
 import forms.equilibration as equilibration_forms
 
 from ..fem.discretisation import boundary_dofs, ghosted_vector
+from .cell_forms import compiled
 from .divergence import assemble, check, largest
 from .patches import PatchSystems, colour_vertices
 
@@ -126,7 +127,7 @@ def assemble_loads(eq, fs, measures):
     colour c it is -(φ_j f, q_m)_K, φ_j the hat function of K's vertex of colour c. So one
     assembly gives it for every colour and every load: the test function is vector DG1 with
     three components q_{3i+s} per load f_i, and component 3i + s is tested against φ_s, the hat
-    of K's local vertex s (a DG1 Function, `FluxEquilibration.slots`): the result holds the
+    of K's local vertex s (DG1 Functions, `FluxEquilibration.slots`): the result holds the
     3 × 3 block -(φ_s f_i, q_m)_K of every cell, and colour c takes column s = (local index of
     its vertex) on each cell touching it. The data are integrated once per cell instead of once
     per colour and load, with the same measures and integrand (the compatibility above holds
@@ -144,9 +145,13 @@ def assemble_loads(eq, fs, measures):
     blocks = fem.assemble_vector(form)
     blocks.scatter_reverse(la.ScatterMode.add)
     blocks = blocks.array                         # entry 3k z + 3i + s: dof z, load i, slot s
-    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:wdofs.shape[0]].astype(np.int64)
-    # Σ_s -(φ_s f_i, q_m)_K = -(f_i, q_m)_K: per cell, DG1 dof m and load i
-    moments = -blocks.reshape(-1, k, 3).sum(axis=2).take(zdofs, axis=0)      # (cells, 3, k)
+    nc = wdofs.shape[0]
+    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:nc].astype(np.int64)
+    # Σ_s -(φ_s f_i, q_m)_K = -(f_i, q_m)_K: per cell, DG1 dof m and load i (no copy by the
+    # cells where Z's dofs follow them)
+    moments = -blocks.reshape(-1, k, 3).sum(axis=2)
+    follow = np.array_equal(zdofs, np.arange(3 * nc).reshape(-1, 3))
+    moments = moments[:3 * nc].reshape(nc, 3, k) if follow else moments.take(zdofs, axis=0)
     values = [[] for _ in fs]
     for touching, s in eq.touching():
         entry = 3 * k * zdofs[touching] + s[:, None]
@@ -200,15 +205,16 @@ class FluxEquilibration:
         # and Λ_c vanish); the same compiled kernel, the cell tags are data
         from dolfinx import mesh as dmesh
         owned = np.arange(nc, dtype=np.int32)
-        self.rhs_forms = []
+        parts = []
         for touching, _ in self.touching():
             marker = np.zeros(nc, dtype=np.int32)
             marker[touching] = 1
             tags = dmesh.meshtags(mesh, mesh.topology.dim, owned, marker)
             dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)(1)
-            self.rhs_forms.append(fem.form(equilibration_forms.patch_rhs(
+            parts.append(equilibration_forms.patch_rhs(
                 self.nodal[PSI], self.nodal[LAMC], self.sign, self.mu, self.nodal[U], self.r,
-                tau, q, dx)))
+                tau, q, dx))
+        self.rhs_forms = compiled(parts, mesh)             # (one JIT lookup for the colours)
         self._b = None
         self._loads = {}
         self.defect = None           # the relative divergence defect of the last σ made
@@ -232,17 +238,16 @@ class FluxEquilibration:
         return self._touching
 
     def slots(self):
-        """(hats, wdofs) for `assemble_loads`: hats[s] the DG1 Function (a component of a vector
-        DG1 Function) equal on every cell to the hat function of its local vertex s; wdofs the
-        (owned cells, 3) W dofs of the cells' DG1 dofs (W's DG1 part: the same element, so the
-        same local order)."""
+        """(hats, wdofs) for `assemble_loads`: hats[s] the DG1 Function (of the space of r)
+        equal on every cell to the hat function of its local vertex s; wdofs the (owned cells,
+        3) W dofs of the cells' DG1 dofs (W's DG1 part: the same element, so the same local
+        order)."""
         from dolfinx import fem
-        Z = fem.VectorFunctionSpace(self.mesh, ("DG", 1), dim=3)
-        blocks = Z.dofmap.list.array.reshape(-1, 3)
-        hats = fem.Function(Z)
-        values = hats.x.array.reshape(-1, 3)
-        for s in range(3):
-            values[blocks[:, s], s] = 1.0
+        Q = self.r.function_space
+        cells = Q.dofmap.list.array.reshape(-1, 3)
+        hats = [fem.Function(Q) for _ in range(3)]
+        for s, hat in enumerate(hats):
+            hat.x.array[cells[:, s]] = 1.0
         return hats, self._cell_dg_dofs()
 
     def _cell_dg_dofs(self):

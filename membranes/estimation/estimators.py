@@ -64,7 +64,7 @@ from forms.estimators import (
 
 from ..fem.quadrature import over
 from ..model.checks import UNDERFLOW_SCALE
-from .cell_forms import CellForm, chunks, global_sums
+from .cell_forms import CellForm, chunks, compiled, global_sums
 from .equilibration import nodal_function
 
 # Components of the per-cell vector of one evaluation (the vector-DG0 test function's index)
@@ -158,7 +158,8 @@ class Estimators:
         mu = [fem.Constant(mesh, PETSc.ScalarType(m)) for m in self.mu]
         self._mu = mu
         V = disc.V
-        self.lifting = Lifting(V)                                       # R_α ↦ r_αh (§4)
+        self.lifting = Lifting(V, None if equilibration is None           # R_α ↦ r_αh (§4)
+                               else equilibration.r.function_space)     # (its DG1 space)
         self.DG1 = self.lifting.Q
         self.RT = (equilibration.rt_space if equilibration is not None
                    else fem.FunctionSpace(mesh, ("RT", 2)))
@@ -351,16 +352,15 @@ class Estimators:
         """`recovered`'s forms, compiled at its first use: the loads (μ_α ∇u_αh, ψ_a) of both
         membranes into one P1⁴ Function G = (G_1, G_2), and the per-cell norms (η_rec's two,
         then η_lin's three)."""
-        from dolfinx import fem
         mesh = self.disc.mesh
         G = nodal_function(self.disc.V, 4)
         dp = ufl.dx(domain=mesh, metadata=P1_RULE)      # exact: G_α ∈ P1², ∇u_αh constant
         v = ufl.TestFunction(G.function_space)
         u1, u2 = self.nodal[U1], self.nodal[U2]
         mu1, mu2 = self._mu
-        load = [fem.form(part) for part in chunks(
-            recovery_load(mu1, u1, ufl.as_vector([v[0], v[1]]), dp)
-            + recovery_load(mu2, u2, ufl.as_vector([v[2], v[3]]), dp), mesh)]
+        load = compiled(chunks(recovery_load(mu1, u1, ufl.as_vector([v[0], v[1]]), dp)
+                               + recovery_load(mu2, u2, ufl.as_vector([v[2], v[3]]), dp),
+                               mesh), mesh)
         G1, G2 = ufl.as_vector([G[0], G[1]]), ufl.as_vector([G[2], G[3]])
         cells = CellForm(mesh, 5, lambda w: flux_squared(mu1, u1, -G1, w[0], dp)
                          + flux_squared(mu2, u2, -G2, w[1], dp)

@@ -36,13 +36,14 @@ def mass_inverse(area, b):
 
 
 class Lifting:
-    """R ↦ r_h for the P1 space V (set up once per mesh: cell areas, N_l)."""
+    """R ↦ r_h for the P1 space V (set up once per mesh: cell areas, N_l), into the DG1 space
+    Q (made if None; a caller that has one on the mesh passes it: each space costs a dofmap)."""
 
-    def __init__(self, V):
+    def __init__(self, V, Q=None):
         from dolfinx import fem, la
         mesh = V.mesh
         self.V = V
-        self.Q = fem.FunctionSpace(mesh, ("DG", 1))
+        self.Q = Q if Q is not None else fem.FunctionSpace(mesh, ("DG", 1))
         self.ncells = nc = mesh.topology.index_map(mesh.topology.dim).size_local
         self.n = V.dofmap.index_map.size_local
         # (views of the dofmaps, which they keep alive)

@@ -472,3 +472,30 @@ def test_one_kernel_for_every_chunk_count(setup):
     assert one[0].signature() != form.signature()
     assert sum(fem.assemble_scalar(fem.form(ufl.replace(f, {v: 1.0}))) for f in several) \
         == pytest.approx(fem.assemble_scalar(fem.form(ufl.replace(form, {v: 1.0}))), rel=1e-13)
+
+
+def test_compiled_chunks_equal_forms(setup):
+    """`cell_forms.compiled` (one JIT lookup for all the chunks of a form) makes the forms
+    that `dolfinx.fem.form` makes chunk by chunk: the same vector to the last bit, for a form
+    with coefficients and constants (the coefficients' order comes from the first chunk)."""
+    import ufl
+    from dolfinx import fem
+
+    from membranes.estimation.cell_forms import chunks, compiled
+    disc = setup[0]
+    V = fem.VectorFunctionSpace(disc.mesh, ("DG", 0), dim=2)
+    w = ufl.TestFunction(V)
+    a, b = fem.Function(disc.V), fem.Function(fem.FunctionSpace(disc.mesh, ("RT", 2)))
+    a.x.array[:] = np.sin(np.arange(a.x.array.size))
+    b.x.array[:] = np.cos(np.arange(b.x.array.size))
+    c = fem.Constant(disc.mesh, 3.0)
+    form = (c * a * a * w[0] + ufl.div(b) * a * w[1]) * ufl.dx(domain=disc.mesh)
+    nc = disc.mesh.topology.index_map(2).size_local
+    parts = chunks(form, disc.mesh, size=max(1, nc // 4))
+    assert len(parts) >= 4
+    by_chunk, together = (np.zeros(V.dofmap.index_map.size_local * 2) for _ in range(2))
+    for part in parts:
+        fem.assemble_vector(by_chunk, fem.form(part))
+    for part in compiled(parts, disc.mesh):
+        fem.assemble_vector(together, part)
+    assert np.array_equal(by_chunk, together) and np.abs(together).max() > 0
