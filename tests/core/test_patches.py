@@ -272,13 +272,20 @@ def test_unshared_engine_gives_the_same_flux():
         assert data.functionals(diff)[0] <= (ROUND_OFF ** 2) * a[0]
 
 
-def test_reduced_operators():
+@pytest.mark.parametrize("declined", [False, True])
+def test_reduced_operators(monkeypatch, declined):
     """rhs="divergence" (data only on DG rows) and solution="flux" (only σ): the RT part of the
     solutions equals the full solve's to round-off (the Schur complement path of §6's blocks
-    against LU), and γ is returned as zero."""
+    against LU), and γ is returned as zero. `declined`: every block declined by the Schur
+    complement path (as an ill-conditioned one is) takes the LU path instead, with the same
+    result (its operator was once left unset)."""
     from petsc4py import PETSc
 
+    from membranes.estimation import congruence
+
     from .mpi_patches import vertex_groups
+    if declined:
+        monkeypatch.setattr(congruence, "_saddle_corner", lambda block, rt: None)
     mesh = refined_disk(MPI.COMM_WORLD, 0.4, 1)
     patches, interior = vertex_groups(mesh)
     W = mixed_space(mesh)
