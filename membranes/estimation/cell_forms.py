@@ -10,11 +10,11 @@ before it assembles: an array (cells, coefficient dofs per cell) written one coe
 time, then read by the kernel. Over many cells that array outgrows the processor's caches,
 and each pass over it goes to memory: the estimators' evaluation form packs 43 doubles a cell,
 2.8 MB for 2¹³ cells, which a cache of a few MB holds, but 45 MB for 2¹⁷ (BENCHMARKS.md has
-the measured difference). So a form over the whole mesh is assembled CHUNK_CELLS owned cells at a time
-(`chunks`): the same integrand restricted to tagged cells, one compiled kernel. `compiled`
-makes the dolfinx forms of all the chunks from one JIT lookup (a lookup hashes the UFL form,
-which costs more than assembling a small chunk). The chunks also bound the transient memory
-of the packing.
+the measured difference). So a form over the whole mesh is assembled CHUNK_CELLS owned cells
+at a time (`chunks`): the same integrand restricted to tagged cells, one compiled kernel.
+`compiled` makes the dolfinx forms of all the chunks from one JIT lookup (a lookup hashes the
+UFL form, which costs more than assembling a small chunk). The chunks also bound the transient
+memory of the packing.
 """
 
 import numpy as np
