@@ -104,6 +104,20 @@ def test_cli_bad_values(case, tmp_path, capsys):
         assert "underflow double precision" in err
 
 
+def test_estimators_underflow_is_refused_before_the_coarse_levels(tmp_path, capsys):
+    """Forces whose squares underflow the estimators (μ u ≈ 1e-170) are refused on T_0 of a
+    nested run, before its first Newton step, not after the coarse levels' solves when the
+    certificate is set up on T_J: no Newton line precedes the error."""
+    from membranes.app.cli import main
+    out = tmp_path / "out"
+    args = CLI_CASES["estimators underflow"]
+    assert main(["solve", "--h", "0.3", "--levels", "2", "--out", str(out)] + args) == 2
+    err = capsys.readouterr().err
+    assert "estimators underflow double precision" in err.strip().splitlines()[-1]
+    assert "Newton" not in err and "setting up" not in err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("command", [["report", "--h", "0.3", "--h", "0.2"],
                                      ["stability", "--cases", "tiny", "--cases", "grazing"]])
 def test_cli_option_given_twice(command, tmp_path, capsys):

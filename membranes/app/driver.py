@@ -404,6 +404,10 @@ def solve(problem: Problem,
             variant, level_tol, forcing = "inexact", coarse_tol, COARSE_FORCING
         estimate = None
         tag = f"level {j}: " if nested else ""
+        if alg_flux is not None and prev is None:
+            # data the certificate would refuse on T_J, refused before the coarse levels' solves
+            from ..estimation.estimators import check_force_scale
+            check_force_scale(disc)
         if alg_flux is not None and (variant == "adaptive" or last):
             # the set-up is a long silent phase on a fine mesh (the patch systems of §5)
             if say:

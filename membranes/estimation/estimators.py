@@ -82,6 +82,21 @@ U1, U2, LPOS, LNEG, E1, E2, DLAM = range(7)
 # guaranteed bound. The overflow of those squares is `_combine`'s check.
 
 
+def check_force_scale(disc):
+    """Refuse data whose forces μ_α u underflow the estimators' squares (module notes, §11):
+    ValueError when min(μ1, μ2) u_data < UNDERFLOW_SCALE, u_data the data's displacement scale
+    (`Discretisation.data_scales`, nearly the same on every mesh of a hierarchy, so a nested
+    run checks its coarsest level before any Newton step). Collective."""
+    mu = (float(disc.mu1), float(disc.mu2))
+    u_data = disc.data_scales()[0]
+    if min(mu) * u_data < UNDERFLOW_SCALE:
+        raise ValueError(f"the estimators underflow double precision: forces of size "
+                         f"min(mu1, mu2) u = {min(mu) * u_data:g} < {UNDERFLOW_SCALE:.1e} "
+                         f"(mu1 = {mu[0]:g}, mu2 = {mu[1]:g}, displacements u = "
+                         f"{u_data:g}); rescale the data: the solution scales with f / mu "
+                         f"and g (theory §11)")
+
+
 def owned(X):
     """The owned entries of an iterate-layout PETSc Vec (read-only), or the array itself."""
     return X.array_r if hasattr(X, "array_r") else np.asarray(X)
@@ -146,13 +161,7 @@ class Estimators:
         self.disc, self.equilibration, self.comm = disc, equilibration, disc.comm
         self.n = disc.n
         self.mu = (float(disc.mu1), float(disc.mu2))
-        u_data = disc.data_scales()[0]                       # (collective)
-        if min(self.mu) * u_data < UNDERFLOW_SCALE:
-            raise ValueError(f"the estimators underflow double precision: forces of size "
-                             f"min(mu1, mu2) u = {min(self.mu) * u_data:g} < "
-                             f"{UNDERFLOW_SCALE:.1e} (mu1 = {self.mu[0]:g}, mu2 = "
-                             f"{self.mu[1]:g}, displacements u = {u_data:g}); rescale the "
-                             f"data: the solution scales with f / mu and g (theory §11)")
+        check_force_scale(disc)
         self.cpf = float(disc.poincare)
         self.c_lambda = self.cpf * np.sqrt(1.0 / self.mu[0] + 1.0 / self.mu[1])   # C_λ, §7
         mu = [fem.Constant(mesh, PETSc.ScalarType(m)) for m in self.mu]
