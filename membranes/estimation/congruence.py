@@ -126,14 +126,14 @@ def basis_changes(W, rt=None, dg=None):
     return signs, blocks
 
 
-def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None):
+def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None, xy=None):
     """The code of every local W dof (owned and ghost); the interior blocks; the number of
     facet dofs on which the two cells of the facet disagree (0: both see the same vertex
     order); and the positions of the entities along DIRECTION and across it, which order the
     dofs of a patch: of every local facet (its midpoint, as seen by the last of its cells,
     (facets, 2)) and of every local cell (its centroid, (cells, 2)). The dofs of an entity
     share its position; its global index breaks ties. `rt`, `dg`: W's RT and DG basix
-    elements if at hand."""
+    elements, `xy` the (cells, 3, 2) coordinates of the local cells' nodes, if at hand."""
     cmap = mesh.topology.index_map(2)
     nall = cmap.size_local + cmap.num_ghosts
     rt = rt if rt is not None else W.sub(0).element.basix_element
@@ -142,9 +142,12 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None):
     info = np.asarray(mesh.topology.get_cell_permutation_info())[:nall]
     if info.max(initial=0) >= 8:
         raise RuntimeError("unexpected cell permutation info (not a triangle mesh?)")
-    nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:nall]
-    xy = mesh.geometry.x[:, :2][nodes]                                      # (cells, 3, 2)
-    along = xy @ DIRECTION                                                  # (cells, 3)
+    if xy is None:
+        xy = mesh.geometry.x[:, :2][mesh.geometry.dofmap.array.reshape(-1, 3)[:nall]]
+    # (one product over all nodes: numpy's matmul of a stack of (3, 2) matrices makes one BLAS
+    # call per cell; the same values)
+    along, across = (np.reshape(xy.reshape(-1, 2) @ d, (nall, 3))
+                     for d in (DIRECTION, np.array([-DIRECTION[1], DIRECTION[0]])))
     mesh.topology.create_connectivity(2, 0)
     c2v = mesh.topology.connectivity(2, 0).array.reshape(-1, 3)[:nall]
     vglobal = np.asarray(mesh.topology.index_map(0).local_to_global(c2v.ravel()),
@@ -157,17 +160,17 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None):
              for i, j in ((0, 1), (0, 2), (1, 2))]                   # vertex i before j
     ranks = 3 * (2 - ahead[0].astype(np.int8) - ahead[1]) + ahead[0] + 1 - ahead[2]
     p = _BY_RANKS[ranks]
-    order = np.array(ORDERS, dtype=np.int64)[p]
-    del ahead, ranks
+    del ahead, ranks, vglobal
+    # order[k]: dolfinx's local vertex π(k) of every cell (canonical vertex k, and canonical
+    # facet k opposite it); flat[k]: its entry in a (cells, 3) table
+    order = np.array(ORDERS, dtype=np.int64).T[:, p]
+    flat = order + np.arange(0, 3 * nall, 3)
     total = along.sum(axis=1)
-    midpoint = 0.5 * (total[:, None] - along)                 # facet i is opposite vertex i
-    across = xy @ np.array([-DIRECTION[1], DIRECTION[0]])
     side = across.sum(axis=1)
     nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
     fmap = mesh.topology.index_map(1)
     facet_point = np.zeros((fmap.size_local + fmap.num_ghosts, 2))
     code = np.zeros(nlocal, dtype=np.int16)
-    cell_first = np.arange(nall)[:, None] * rt_dofs.shape[1]     # (flat positions in rt_dofs)
     facet_cols = np.array(rt.entity_dofs[1])
     inner_cols = np.array(rt.entity_dofs[2][0])
     # the codes of canonical facet i's dofs per (vertex order, permutation info)
@@ -176,23 +179,23 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None):
                                                                                facet_cols.shape[1])
     which = 8 * p + info
     # each write covers all local cells at once: the facets (one write, canonical facet 0 of
-    # every cell, then 1, then 2), or the dofs (cells, dofs of the entity); of a facet's two
-    # cells the later writes last
-    point = np.empty((3, nall, 2))
-    point[:, :, 0] = np.take_along_axis(midpoint, order, axis=1).T
-    point[:, :, 1] = 0.5 * (side - np.take_along_axis(across, order, axis=1).T)
-    facet_point[np.take_along_axis(c2f[:nall], order, axis=1).T] = point
-    del point
+    # every cell, then 1, then 2: facet i is opposite vertex i), or the dofs (cells, dofs of
+    # the entity); of a facet's two cells the later writes last
+    facets = np.ascontiguousarray(c2f[:nall]).take(flat)
+    facet_point[facets, 0] = 0.5 * (total - along.take(flat))
+    facet_point[facets, 1] = 0.5 * (side - across.take(flat))
+    del facets
+    cell_first = np.arange(nall)[:, None] * rt_dofs.shape[1]     # (flat positions in rt_dofs)
     facet_dofs, facet_codes = [], []
     for i in range(3):
-        f = order[:, i]                                   # dolfinx facet of canonical facet i
+        f = order[i]                                      # dolfinx facet of canonical facet i
         dof = np.ascontiguousarray(rt_dofs).take(cell_first + facet_cols[f])
         code[dof] = facet_code[:, i][which]
         facet_dofs.append(dof)
         facet_codes.append(code[dof])
     disagree = sum(int(np.count_nonzero(code[d] != k)) for d, k in zip(facet_dofs, facet_codes))
     code[rt_dofs[:, inner_cols]] = (INNER << 2) | np.arange(inner_cols.size) | (p[:, None] << BLOCK)
-    code[np.take_along_axis(dg_dofs, order, axis=1)] = (DG << 2) | np.arange(3)  # vertex k's
+    code[np.ascontiguousarray(dg_dofs).take(flat)] = ((DG << 2) | np.arange(3))[:, None]
     return code, blocks, disagree, facet_point, np.stack([total / 3.0, side / 3.0], axis=1)
 
 

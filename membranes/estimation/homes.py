@@ -86,9 +86,10 @@ class HomeSetup:
         for i, cols in enumerate(rt[tdim - 1]):
             self.facet_dofs[self.c2f[:, i]] = self.rt_dofs[:, cols]
         self.cell_dofs = np.hstack([self.rt_dofs[:, rt[tdim][0]], self.dg_dofs])
-        # the shortest edge of each owned cell (the unit of the patch keys' positions)
-        nodes = mesh.geometry.dofmap.array.reshape(-1, 3)[:self.ncells]
-        x, y = mesh.geometry.x[:, 0].take(nodes), mesh.geometry.x[:, 1].take(nodes)
+        # the coordinates of the local cells' nodes (cells, 3, 2), for `canonical_dofs` too,
+        # and the shortest edge of each owned cell (the unit of the patch keys' positions)
+        self.cell_xy = mesh.geometry.x[:, :2][mesh.geometry.dofmap.array.reshape(-1, 3)[:nall]]
+        x, y = self.cell_xy[:self.ncells, :, 0], self.cell_xy[:self.ncells, :, 1]
         for i, j in ((0, 2), (1, 0), (2, 1)):                 # the edges x_i - x_j
             dx, dy = x[:, i] - x[:, j], y[:, i] - y[:, j]
             dx *= dx

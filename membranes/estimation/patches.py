@@ -137,8 +137,8 @@ class PatchSystems(HomeSetup):
         self._topology(mesh, W, rt, dg)
         self.code, self.blocks, self.disagree, facet_point, cell_point = canonical_dofs(
             mesh, W, self.c2f, self.rt_dofs, self.dg_dofs, rt.element.basix_element,
-            dg.element.basix_element)
-        del rt, dg
+            dg.element.basix_element, self.cell_xy)
+        del rt, dg, self.cell_xy
         self._canonical_order(facet_point, cell_point)
         del facet_point, cell_point
 
@@ -241,8 +241,14 @@ class PatchSystems(HomeSetup):
         group = np.concatenate([np.full(len(g[1]) - 1, c) for c, g in enumerate(groups)])
         nclasses = classes.count()
         count = np.bincount(cls, minlength=nclasses)
-        rt = np.array([classes.shape(k)[2] for k in range(nclasses)], dtype=np.int64)
-        order = np.lexsort((np.arange(cls.size), group, cls, count[cls], rt[cls], n))
+        shape = np.array([classes.shape(k) for k in range(nclasses)], dtype=np.int64)
+        shape = shape.reshape(-1, 3)                      # per class (n, L, n_σ)
+        # (the classes ranked by (n, n_σ, count, class), then the patches by rank and group: a
+        # patch's n is its class's)
+        rank = np.empty(nclasses, dtype=np.int64)
+        rank[np.lexsort((np.arange(nclasses), count, shape[:, 2], shape[:, 0]))] = \
+            np.arange(nclasses)
+        order = stable_order(rank[cls] * max(len(groups), 1) + group)
         start = np.zeros(cls.size, dtype=np.int64)
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
@@ -294,8 +300,6 @@ class PatchSystems(HomeSetup):
         # solution entries wanted (RT dofs first, DG dofs last in a patch); one product per
         # (shape, count) for all the patches of its classes
         self.solves = []
-        shape = np.array([classes.shape(k) for k in range(nclasses)], dtype=np.int64)
-        shape = shape.reshape(-1, 3)
         ok = True
         try:
             # each class's first patch: its patches are consecutive in home order
