@@ -148,8 +148,10 @@ def assemble_loads(eq, fs, measures):
     nc = wdofs.shape[0]
     zdofs = Z.dofmap.list.array.reshape(-1, 3)[:nc].astype(np.int64)
     # Σ_s -(φ_s f_i, q_m)_K = -(f_i, q_m)_K: per cell, DG1 dof m and load i (no copy by the
-    # cells where Z's dofs follow them)
-    moments = -blocks.reshape(-1, k, 3).sum(axis=2)
+    # cells where Z's dofs follow them); slot by slot (numpy reduces an axis of three slowly)
+    slots = blocks.reshape(-1, k, 3)
+    moments = -(slots[:, :, 0] + slots[:, :, 1] + slots[:, :, 2])
+    del slots
     follow = np.array_equal(zdofs, np.arange(3 * nc).reshape(-1, 3))
     moments = moments[:3 * nc].reshape(nc, 3, k) if follow else moments.take(zdofs, axis=0)
     values = [[] for _ in fs]
@@ -375,8 +377,12 @@ class FluxEquilibration:
     @staticmethod
     def _add_data(into, dofs, f, c):
         """into[dofs] += the data part of colour c's right-hand sides (the `Load` f), dofs
-        the DG1 dofs (cells touching c, 3) of the space `into` belongs to."""
-        into[dofs] += f.values[c]
+        the DG1 dofs (cells touching c, 3) of the space `into` (a numpy array) belongs to. By
+        PETSc's VecSetValues on a sequential Vec over `into`: one pass, where numpy's
+        into[dofs] += … gathers, adds and scatters."""
+        vec = PETSc.Vec().createWithArray(into, comm=PETSc.COMM_SELF)
+        vec.setValues(dofs, f.values[c], addv=PETSc.InsertMode.ADD_VALUES)
+        vec.destroy()
 
     def release(self):
         """Free the work vectors of `sigma` (the home vector and the W vector b; made again at

@@ -20,8 +20,9 @@ submatrix A_p of A, and equally of A assembled on any set of cells containing th
 with rows and columns for the kept dofs only (`homes.assemble_rows`: per group, only the cells
 of the patches whose blocks are taken are assembled, into rows numbered at those patches'
 homes, so no matrix over the whole mesh is ever made and each home owns its blocks' rows).
-Each patch is solved on one process, its *home*. Per group, numpy indexing moves the
-right-hand sides of the dofs owned by a home's process to it and the solutions back, and a
+Each patch is solved on one process, its *home*. Per group, index lists move the
+right-hand sides of the dofs owned by a home's process to it and the solutions back
+(VecGetValues / VecSetValues on a sequential Vec over the process's own entries), and a
 VecScatter moves those of the others (none on one process).
 
 **Shared dense inverses.** The blocks are taken in the canonical basis of `congruence`, where
@@ -254,8 +255,8 @@ class PatchSystems(HomeSetup):
         self.home_size = int(n.sum())
         code = np.zeros(self.home_size, dtype=np.int16)
         # per group the routes from the owners to the home positions: the entries owned here
-        # by numpy indexing (PETSc 3.18's VecScatter keeps two buffers of their size after its
-        # first use), the others by a VecScatter (empty on one process)
+        # by index lists (`gather`, `scatter`; PETSc 3.18's VecScatter keeps two buffers of
+        # their size after its first use), the others by a VecScatter (empty on one process)
         template = PETSc.Vec().createMPI((self.nowned, PETSc.DECIDE), comm=comm)
         hv = PETSc.Vec().createWithArray(self.home_vector(), comm=PETSc.COMM_SELF)
         self.local, self.scatters, self.group_sizes = [], [], []
@@ -350,12 +351,15 @@ class PatchSystems(HomeSetup):
         return PETSc.Vec().createWithArray(array, comm=PETSc.COMM_SELF)
 
     def gather(self, c, b, home):
-        """home ← the entries of the W vector b at group c's kept dofs (dolfinx's basis)."""
+        """home ← the entries of the W vector b at group c's kept dofs (dolfinx's basis): the
+        runs straight into their home slices, the other entries by their positions (PETSc's
+        VecGetValues on a sequential Vec over b's owned entries)."""
         rows, runs, k, at = self.local[c]
-        values = b.array_r.take(rows)
+        owned = self._vec(b.array_r)
         for h0, k0, n in runs:
-            home[h0:h0 + n] = values[k0:k0 + n]
-        home[at] = values[k]
+            owned.getValues(rows[k0:k0 + n], home[h0:h0 + n])
+        home[at] = owned.getValues(rows[k])
+        owned.destroy()
         hv = self._vec(home)
         self.scatters[c].scatter(b, hv, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
         hv.destroy()
@@ -382,22 +386,24 @@ class PatchSystems(HomeSetup):
                 k1 = min(K, k0 + step)
                 rows = rhs[h0 + k0 * m * n:h0 + k1 * m * n].reshape(k1 - k0, m, n)
                 x = np.matmul(rows[:, :, inputs], operator_t[k0:k1])
-                rows[:] = 0.0
                 rows[:, :, outputs] = x
+                rows[:, :, outputs.stop:] = 0.0          # (outputs: the first dofs)
         return self.change.apply(rhs, transpose=False)
 
     def scatter(self, c, x, out, add=False):
         """The solutions of group c (home vector x) into the W vector `out` (owned entries):
-        added, or written with zeros at the dofs the group does not keep."""
+        added, or written with zeros at the dofs the group does not keep. The entries owned
+        here are added by PETSc's VecSetValues on a sequential Vec over `out`'s owned entries
+        (one pass; numpy's owned[rows] += … gathers, adds and scatters), the runs straight
+        from their home slices."""
         if not add:
             out.set(0.0)
         rows, runs, k, at = self.local[c]
-        values = np.empty(rows.size)
+        owned = self._vec(out.array)
         for h0, k0, n in runs:
-            values[k0:k0 + n] = x[h0:h0 + n]
-        values[k] = x[at]
-        owned = out.array                # (a group keeps each dof once: no repeated rows)
-        owned[rows] += values
+            owned.setValues(rows[k0:k0 + n], x[h0:h0 + n], addv=PETSc.InsertMode.ADD_VALUES)
+        owned.setValues(rows[k], x[at], addv=PETSc.InsertMode.ADD_VALUES)
+        owned.destroy()
         xv = self._vec(x)
         self.scatters[c].scatter(xv, out, PETSc.InsertMode.ADD if add else
                                  PETSc.InsertMode.INSERT, PETSc.ScatterMode.REVERSE)
