@@ -44,7 +44,7 @@ import forms.equilibration as equilibration_forms
 from ..fem.discretisation import boundary_dofs, ghosted_vector
 from .cell_forms import compiled
 from .divergence import assemble, check, largest
-from .patches import PatchSystems, colour_vertices
+from .patches import PatchSystems, colour_vertices, local_vec
 
 PSI, LAMC, U = range(3)      # components of FluxEquilibration.nodal
 
@@ -380,7 +380,7 @@ class FluxEquilibration:
         the DG1 dofs (cells touching c, 3) of the space `into` (a numpy array) belongs to. By
         PETSc's VecSetValues on a sequential Vec over `into`: one pass, where numpy's
         into[dofs] += … gathers, adds and scatters."""
-        vec = PETSc.Vec().createWithArray(into, comm=PETSc.COMM_SELF)
+        vec = local_vec(into)
         vec.setValues(dofs, f.values[c], addv=PETSc.InsertMode.ADD_VALUES)
         vec.destroy()
 

@@ -95,6 +95,12 @@ def mixed_space(mesh):
 
 # ## The coloured patch systems
 
+def local_vec(array):
+    """A sequential PETSc Vec over the numpy array `array` (no copy): PETSc's indexed gets, sets
+    and adds (VecGetValues, VecSetValues) and scatters on a process's own entries."""
+    return PETSc.Vec().createWithArray(array, comm=PETSc.COMM_SELF)
+
+
 class PatchSystems(HomeSetup):
     """The patch problems of one mesh in groups, set up once (see the module docstring).
 
@@ -258,7 +264,7 @@ class PatchSystems(HomeSetup):
         # by index lists (`gather`, `scatter`; PETSc 3.18's VecScatter keeps two buffers of
         # their size after its first use), the others by a VecScatter (empty on one process)
         template = PETSc.Vec().createMPI((self.nowned, PETSc.DECIDE), comm=comm)
-        hv = PETSc.Vec().createWithArray(self.home_vector(), comm=PETSc.COMM_SELF)
+        hv = local_vec(self.home_vector())
         self.local, self.scatters, self.group_sizes = [], [], []
         index = np.int32 if self.home_size < np.iinfo(np.int32).max else np.int64
         lo, hi = self.rstart, self.rstart + self.nowned
@@ -347,20 +353,17 @@ class PatchSystems(HomeSetup):
         """A zero home vector (numpy): the kept dofs of the patches at home, all groups."""
         return np.zeros(self.home_size)
 
-    def _vec(self, array):
-        return PETSc.Vec().createWithArray(array, comm=PETSc.COMM_SELF)
-
     def gather(self, c, b, home):
         """home ← the entries of the W vector b at group c's kept dofs (dolfinx's basis): the
         runs straight into their home slices, the other entries by their positions (PETSc's
         VecGetValues on a sequential Vec over b's owned entries)."""
         rows, runs, k, at = self.local[c]
-        owned = self._vec(b.array_r)
+        owned = local_vec(b.array_r)
         for h0, k0, n in runs:
             owned.getValues(rows[k0:k0 + n], home[h0:h0 + n])
         home[at] = owned.getValues(rows[k])
         owned.destroy()
-        hv = self._vec(home)
+        hv = local_vec(home)
         self.scatters[c].scatter(b, hv, PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
         hv.destroy()
         return home
@@ -399,12 +402,12 @@ class PatchSystems(HomeSetup):
         if not add:
             out.set(0.0)
         rows, runs, k, at = self.local[c]
-        owned = self._vec(out.array)
+        owned = local_vec(out.array)
         for h0, k0, n in runs:
             owned.setValues(rows[k0:k0 + n], x[h0:h0 + n], addv=PETSc.InsertMode.ADD_VALUES)
         owned.setValues(rows[k], x[at], addv=PETSc.InsertMode.ADD_VALUES)
         owned.destroy()
-        xv = self._vec(x)
+        xv = local_vec(x)
         self.scatters[c].scatter(xv, out, PETSc.InsertMode.ADD if add else
                                  PETSc.InsertMode.INSERT, PETSc.ScatterMode.REVERSE)
         xv.destroy()
