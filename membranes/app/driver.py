@@ -405,9 +405,7 @@ def solve(problem: Problem,
         estimate = None
         tag = f"level {j}: " if nested else ""
         if alg_flux is not None and prev is None:
-            # data the certificate would refuse on T_J, refused before the coarse levels' solves
-            from ..estimation.estimators import check_force_scale
-            check_force_scale(disc)
+            checks.check_force_scale(disc)     # (the certificate's refusal, before any solve)
         if alg_flux is not None and (variant == "adaptive" or last):
             # the set-up is a long silent phase on a fine mesh (the patch systems of §5)
             if say:

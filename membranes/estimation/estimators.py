@@ -63,7 +63,7 @@ from forms.estimators import (
 )
 
 from ..fem.quadrature import over
-from ..model.checks import UNDERFLOW_SCALE
+from ..model.checks import check_force_scale
 from .cell_forms import CellForm, chunks, compiled, global_sums
 from .equilibration import nodal_function
 
@@ -75,26 +75,11 @@ REM1, REM2 = range(6, 8)                      # with the remainder, no algebraic
 U1, U2, LPOS, LNEG, E1, E2, DLAM = range(7)
 # The forms square forces, not displacements: μ_α ∇u_αh + σ_α, σ_α,alg, the lifted residuals,
 # λ and f_α, all of size μ_α u for a displacement u (§11: scaling μ1, μ2, f1, f2 by c scales
-# them by c and leaves u alone). Forces below UNDERFLOW_SCALE (model.checks) are refused, as
-# the data's displacements are by membranes.nonlinear.system: with μ1 = μ2 = 1e-40 and
-# u ≈ 1e-130 (forces ≈ 1e-170) η_F squared to 0 and η fell to 0.13 times the energy error,
-# with μ = 1e-50 and u ≈ 1e-135 η and the error read 0, and every run said converged with a
-# guaranteed bound. The overflow of those squares is `_combine`'s check.
-
-
-def check_force_scale(disc):
-    """Refuse data whose forces μ_α u underflow the estimators' squares (module notes, §11):
-    ValueError when min(μ1, μ2) u_data < UNDERFLOW_SCALE, u_data the data's displacement scale
-    (`Discretisation.data_scales`, nearly the same on every mesh of a hierarchy, so a nested
-    run checks its coarsest level before any Newton step). Collective."""
-    mu = (float(disc.mu1), float(disc.mu2))
-    u_data = disc.data_scales()[0]
-    if min(mu) * u_data < UNDERFLOW_SCALE:
-        raise ValueError(f"the estimators underflow double precision: forces of size "
-                         f"min(mu1, mu2) u = {min(mu) * u_data:g} < {UNDERFLOW_SCALE:.1e} "
-                         f"(mu1 = {mu[0]:g}, mu2 = {mu[1]:g}, displacements u = "
-                         f"{u_data:g}); rescale the data: the solution scales with f / mu "
-                         f"and g (theory §11)")
+# them by c and leaves u alone). Forces below model.checks.UNDERFLOW_SCALE are refused
+# (`check_force_scale`), as the data's displacements are by membranes.nonlinear.system: with
+# μ1 = μ2 = 1e-40 and u ≈ 1e-130 (forces ≈ 1e-170) η_F squared to 0 and η fell to 0.13 times
+# the energy error, with μ = 1e-50 and u ≈ 1e-135 η and the error read 0, and every run said
+# converged with a guaranteed bound. The overflow of those squares is `_combine`'s check.
 
 
 def owned(X):

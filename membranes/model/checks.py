@@ -34,6 +34,23 @@ import tempfile
 # problem is positively homogeneous, the data can be rescaled).
 UNDERFLOW_SCALE = math.sqrt(sys.float_info.min) / sys.float_info.epsilon     # ≈ 6.7e-139
 
+
+def check_force_scale(disc):
+    """Refuse data whose forces μ_α u underflow the estimators' squares (notes above and in
+    membranes.estimation.estimators, §11): ValueError when min(μ1, μ2) u_data <
+    UNDERFLOW_SCALE, u_data the data's displacement scale of the Discretisation `disc`
+    (`data_scales`, nearly the same on every mesh of a hierarchy, so a certified nested run
+    checks its coarsest level before any Newton step, and `Estimators` its own). Collective."""
+    mu = (float(disc.mu1), float(disc.mu2))
+    u_data = disc.data_scales()[0]
+    if min(mu) * u_data < UNDERFLOW_SCALE:
+        raise ValueError(f"the estimators underflow double precision: forces of size "
+                         f"min(mu1, mu2) u = {min(mu) * u_data:g} < {UNDERFLOW_SCALE:.1e} "
+                         f"(mu1 = {mu[0]:g}, mu2 = {mu[1]:g}, displacements u = "
+                         f"{u_data:g}); rescale the data: the solution scales with f / mu "
+                         f"and g (theory §11)")
+
+
 # ## Vertex counts of a requested mesh and hierarchy
 #
 # gmsh meshes a domain of area A and boundary length L with target size h into
