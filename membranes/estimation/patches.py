@@ -186,16 +186,21 @@ class PatchSystems(HomeSetup):
                                   cls[new]):
                 raise RuntimeError("the classes were not made in the expected order")
         del marked
-        groups = [(p[0].astype(PETSc.IntType, copy=False), p[1],
-                   p[2].astype(np.int16, copy=False), p[6]) for p in pending]
-        del pending
-        self._layout(groups, classes)
-        # only the home layout, the scatters and the inverses are kept
+        # only the home layout, the scatters and the inverses are kept: the set-up's tables
+        # go before the layout is made, and each group's dofs are narrowed one group at a
+        # time (the set-up's peak memory is in `_layout`)
         for name in ("code", "c2f", "facet_shared", "facet_owned_cells", "facet_two",
                      "facet_one", "cell_global", "cell_h", "rt_dofs", "dg_dofs", "run_length",
                      "run_dofs", "run_code", "run_point", "run_entity", "kinds", "known",
                      "dof_starts", "dof_shared"):
             delattr(self, name)
+        groups = []
+        while pending:
+            p = pending.pop(0)
+            groups.append((p[0].astype(PETSc.IntType, copy=False), p[1],
+                           p[2].astype(np.int16, copy=False), p[6]))
+        del p
+        self._layout(groups, classes)
 
     def _lookup(self, key):
         """The classes of the keys (-1: not seen yet on this process)."""
