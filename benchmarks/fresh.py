@@ -12,10 +12,11 @@ method on it and prints, on process 0, one JSON line:
   (`driver._final_residual`, §4, §7);
 * ``plain``: the plain peer, `plain_peer(problem)` (§10).
 
-The line holds the vertex count, the mesh time (the hierarchy, outside every method's
-clock), the method's own wall time (the largest over the processes: `Solution.wall_time_s`
-for ours; for a peer its solver and discretisation time, plus the certificate's for
-``certified``), Newton (SNES) and Krylov steps, the final energy error against the exact
+The line holds the vertex count, the mesh time (the hierarchy's meshes, outside every
+method's clock; its prolongations are made inside the nested methods, which read them), the
+method's own wall time (the largest over the processes: `Solution.wall_time_s` for ours;
+for a peer its solver and discretisation time, plus the certificate's for ``certified``),
+Newton (SNES) and Krylov steps, the final energy error against the exact
 solution, η where certified, and the peak resident memory of every process
 (`resource.getrusage`, at the end of the method: the peers' energy errors, computed
 afterwards, are not in it; ours computes its own inside `solve`, off its clock).

@@ -117,6 +117,56 @@ def test_prolongation_interpolates_p1():
             v.destroy()
 
 
+def linear(x):
+    return 0.3 + 2.0 * x[0] - 0.7 * x[1]
+
+
+def test_prolongations_are_made_at_first_use():
+    """The hierarchy makes P_j only when they are read (a run on T_J alone never does), shares
+    them with its `up_to` views, and where a projection moved the boundary vertices computes
+    them from plaza's positions: the prolonged interpolant of a linear function is its value
+    at the coarse vertices and edge midpoints, also at the moved vertices. (The projection
+    here moves them by a third of the radius: far enough that their moved positions would
+    round to other barycentric coordinates; the circle's moves them by about h²/8.)"""
+    from dolfinx import fem
+    h = build_hierarchy(unit_disk(0.5), 2, projection=lambda p: 1.3 * p)
+    assert h.made == []
+    P1 = h.up_to(1).prolongations[0]
+    assert len(h.made) == 1 and h.prolongations[0] is P1 and len(h.made) == 2
+    for j in (1, 2):
+        Vc, Vf = (fem.FunctionSpace(h.meshes[i], ("Lagrange", 1)) for i in (j - 1, j))
+        uc = fem.Function(Vc)
+        uc.interpolate(linear)
+        xc = h.prolongations[j - 1].createVecRight()
+        xc.array[:] = uc.x.array[:Vc.dofmap.index_map.size_local]
+        out = h.prolongations[j - 1].createVecLeft()
+        h.prolongations[j - 1].mult(xc, out)
+        # the fine vertices at plaza's positions (the moved ones put back)
+        nodes, before = h.unmoved[j - 1]
+        assert len(nodes) > 0
+        x = h.meshes[j].geometry.x[:, :2].copy()
+        x[nodes] = before
+        gdofs = h.meshes[j].geometry.dofmap.array.reshape(-1, 3)
+        vdofs = Vf.dofmap.list.array.reshape(-1, 3)
+        at = np.empty(Vf.dofmap.index_map.size_local + Vf.dofmap.index_map.num_ghosts, int)
+        at[vdofs.ravel()] = gdofs.ravel()
+        n = Vf.dofmap.index_map.size_local
+        assert np.abs(out.array - linear(x[at[:n]].T)).max() <= 1e-14
+        for v in (out, xc):
+            v.destroy()
+
+
+def test_a_run_on_the_finest_mesh_makes_no_prolongation():
+    """Lean runs: `nested=False` solves T_J alone and leaves the hierarchy's prolongations
+    unmade; the nested default makes them."""
+    from membranes import scenes, solve
+    alone, nested = scenes.disk(h=0.4, levels=1), scenes.disk(h=0.4, levels=1)
+    assert solve(alone, nested=False, estimators=False).converged
+    assert alone.hierarchy.made == []
+    assert solve(nested, estimators=False).converged
+    assert len(nested.hierarchy.made) == 1
+
+
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
 def test_processes_without_cells(tmp_path):
     """One triangle on 3 processes: dolfinx gives it to one of them, and plaza refinement

@@ -12,8 +12,9 @@ inside their parents; nothing below relies on geometric nesting:
 
 * the prolongation P_j : P1(T_{j-1}) → P1(T_j) is *combinatorial*: the value at a fine vertex
   is the coarse value at the same vertex or the mean of the two ends of the coarse edge it
-  halves (computed before the vertex is moved). It reproduces constants, so the prolonged hat
-  functions of T_{j-1} still form a partition of unity on T_j;
+  halves (computed from the positions plaza gave, kept for the moved vertices). It reproduces
+  constants, so the prolonged hat functions of T_{j-1} still form a partition of unity on T_j;
+  it is made at its first use (`Hierarchy.prolongations`);
 * the multilevel algebraic flux groups the cells of the finest mesh by their ancestors
   (`ancestors`), which is a statement about cells, not about geometry.
 
@@ -32,11 +33,15 @@ from .meshes import on_boundary
 class Hierarchy:
     meshes: list                                      # [T_0, …, T_J]
     parent_cells: list = field(default_factory=list)  # parent_cells[j-1][c]: parent of c ∈ T_j
-    prolongations: list = field(default_factory=list)  # P_j, PETSc Mat P1(T_{j-1}) → P1(T_j)
     projection: object = None                         # boundary projection, or None
     # the domain's name where a scene made T_0 ("disk", "square"), else None: two hierarchies
     # with the same name mesh the same domain (`Problem`'s exact solution and C_PF h_Ω)
     domain: object = None
+    # unmoved[j-1]: the geometry nodes of T_j the projection moved and their positions
+    # before (plaza's edge midpoints), or None: what `prolongation` reads instead
+    unmoved: list = field(default_factory=list)
+    # the P_j made so far, shared with the hierarchies of `up_to`
+    made: list = field(default_factory=list, repr=False)
 
     @property
     def levels(self):
@@ -46,12 +51,23 @@ class Hierarchy:
     def finest(self):
         return self.meshes[-1]
 
+    @property
+    def prolongations(self):
+        """[P_1, …, P_J], P_j the PETSc Mat P1(T_{j-1}) → P1(T_j) (`prolongation`), made at
+        the first use: only nested iteration and the multilevel flux read them, so a run on
+        T_J alone never makes them. Collective at that use (every process reaches it on the
+        same code path)."""
+        for j in range(len(self.made) + 1, self.levels + 1):
+            self.made.append(prolongation(self.meshes[j - 1], self.meshes[j],
+                                          self.parent_cells[j - 1], self.unmoved[j - 1]))
+        return self.made[:self.levels]
+
     def up_to(self, j):
-        """The hierarchy T_0, …, T_j (shares the meshes and maps)."""
+        """The hierarchy T_0, …, T_j (shares the meshes, maps and prolongations)."""
         if j == self.levels:
             return self
-        return Hierarchy(self.meshes[:j + 1], self.parent_cells[:j], self.prolongations[:j],
-                         self.projection, self.domain)
+        return Hierarchy(self.meshes[:j + 1], self.parent_cells[:j], self.projection,
+                         self.domain, self.unmoved[:j], self.made)
 
     def ancestors(self, j):
         """For every local cell of T_J, the index of its ancestor cell in T_j (local)."""
@@ -91,13 +107,14 @@ def _cell_dofs(V):
     return V.dofmap.list.array.reshape(-1, 3)
 
 
-def prolongation(coarse, fine, parents):
+def prolongation(coarse, fine, parents, unmoved=None):
     """P1 prolongation P : P1(coarse) → P1(fine) as a distributed PETSc matrix (rows: fine
     dofs, columns: coarse dofs), from the barycentric coordinates of each fine vertex in the
     parent of a cell holding it. Plaza's vertices are coarse vertices or edge midpoints, so the
-    coordinates are 0, 1/2 or 1 and are rounded to those values (they are exact before boundary
-    vertices move, which is when this is called); every cell holding a vertex gives the same
-    row, so one cell per vertex is read. A row has one entry (1) or two (1/2, 1/2)."""
+    coordinates are 0, 1/2 or 1 and are rounded to those values (they are exact at the
+    positions plaza gave: `unmoved` = (nodes, positions) restores those of the boundary
+    vertices a projection moved); every cell holding a vertex gives the same row, so one cell
+    per vertex is read. A row has one entry (1) or two (1/2, 1/2)."""
     from petsc4py import PETSc
     Vc, Vf = _p1(coarse), _p1(fine)
     ncf = fine.topology.index_map(2).size_local
@@ -112,6 +129,9 @@ def prolongation(coarse, fine, parents):
     # its barycentric coordinates in the parent (geometry nodes and P1 dofs are both
     # vertex-based but numbered apart: the cell-local order k is shared)
     xc, xf = coarse.geometry.x[:, :2], fine.geometry.x[:, :2]
+    if unmoved is not None:
+        xf = xf.copy()
+        xf[unmoved[0]] = unmoved[1]
     gc = coarse.geometry.dofmap.array.reshape(-1, 3)
     gf = fine.geometry.dofmap.array.reshape(-1, 3)
     corners = xc[gc[parents[cell]]]                               # (n, 3, 2)
@@ -146,14 +166,16 @@ def boundary_vertices(mesh):
 
 
 def refine(mesh, projection=None):
-    """One uniform refinement: (fine mesh, parent cells, P1 prolongation); new boundary
-    vertices are moved by `projection` (points (m, 2) ↦ points (m, 2)) when it is given."""
+    """One uniform refinement: (fine mesh, parent cells, unmoved); new boundary vertices are
+    moved by `projection` (points (m, 2) ↦ points (m, 2)) when it is given, and `unmoved` is
+    (their geometry nodes, their positions before), else None (`prolongation`)."""
     fine, parents = _refine(mesh)
-    P = prolongation(mesh, fine, parents)
+    unmoved = None
     if projection is not None:
         nodes = boundary_vertices(fine)
-        fine.geometry.x[nodes, :2] = projection(fine.geometry.x[nodes, :2])
-    return fine, parents, P
+        unmoved = (nodes, fine.geometry.x[nodes, :2].copy())
+        fine.geometry.x[nodes, :2] = projection(unmoved[1])
+    return fine, parents, unmoved
 
 
 def build_hierarchy(coarse, levels, projection=None, domain=None):
@@ -164,10 +186,10 @@ def build_hierarchy(coarse, levels, projection=None, domain=None):
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
     h = Hierarchy([coarse], projection=projection, domain=domain)
     for _ in range(levels):
-        fine, parents, P = refine(h.meshes[-1], projection)
+        fine, parents, unmoved = refine(h.meshes[-1], projection)
         h.meshes.append(fine)
         h.parent_cells.append(parents)
-        h.prolongations.append(P)
+        h.unmoved.append(unmoved)
     return h
 
 
