@@ -156,6 +156,18 @@ def test_prolongations_are_made_at_first_use():
             v.destroy()
 
 
+@pytest.mark.parametrize("name", ["disk", "square", "radial", "user"])
+def test_every_scene_reports_its_refinements(name):
+    """A scene's `progress` gets one line per refinement, with the refined mesh's size."""
+    from membranes import scenes
+    lines = []
+    problem = scenes.make(name, h=0.5, levels=2, progress=lines.append)
+    sizes = [m.topology.index_map(0).size_global for m in problem.hierarchy.meshes[1:]]
+    assert [line.split(" vertices in ")[0] for line in lines] == \
+        [f"refinement {j} of 2: {n:,}" for j, n in enumerate(sizes, 1)]
+    assert all(line.endswith(" s") for line in lines)
+
+
 def test_a_run_on_the_finest_mesh_makes_no_prolongation():
     """Lean runs: `nested=False` solves T_J alone and leaves the hierarchy's prolongations
     unmade; the nested default makes them."""

@@ -284,18 +284,20 @@ def test_progress_says_where_the_estimators_are_set_up():
 
 
 def test_command_line_progress_brackets_the_silent_phases(tmp_path, capsys):
-    """`membranes solve` also says how long meshing and refinement took (long on a fine
-    hierarchy, before any Newton step) and the finest mesh's size, and when it writes the
-    outputs. (Nothing is said before meshing: bad data are refused there in one line.)"""
+    """`membranes solve` also says how long each refinement and the whole meshing took (long
+    on a fine hierarchy, before any Newton step) and the finest mesh's size, and when it
+    writes the outputs. (Nothing is said before meshing: bad data are refused there in one
+    line.)"""
     from membranes.app.cli import main
     out = tmp_path / "out"
     assert main(["solve", "--h", "0.3", "--levels", "1", "--out", str(out)]) == 0
     captured = capsys.readouterr()
     lines = captured.err.splitlines()
     n = json.loads(captured.out)["n_vertices"]
-    assert lines[0].startswith("mesh and 1 uniform refinement(s) made in ")
-    assert f"the finest mesh has {n:,} vertices" in lines[0]
-    assert lines[1].startswith("level 0: Newton")
+    assert lines[0].startswith(f"refinement 1 of 1: {n:,} vertices in ")
+    assert lines[1].startswith("mesh and 1 uniform refinement(s) made in ")
+    assert f"the finest mesh has {n:,} vertices" in lines[1]
+    assert lines[2].startswith("level 0: Newton")
     assert lines[-1] == f"writing the outputs into {out}" and (out / "summary.json").exists()
 
 

@@ -229,7 +229,8 @@ def _solve(args):
     say = (lambda line: None) if args.quiet or world.rank != 0 else \
         (lambda line: print(line, file=sys.stderr, flush=True))
     t = time.perf_counter()
-    problem = scenes.make(scene, comm=world, max_vertices=args.max_vertices, **kwargs)
+    problem = scenes.make(scene, comm=world, max_vertices=args.max_vertices, progress=say,
+                          **kwargs)
     fine = problem.hierarchy.meshes[-1].topology
     say(f"mesh and {args.levels} uniform refinement(s) made in {time.perf_counter() - t:.2f} "
         f"s: the finest mesh has {fine.index_map(0).size_global:,} vertices and "

@@ -178,18 +178,25 @@ def refine(mesh, projection=None):
     return fine, parents, unmoved
 
 
-def build_hierarchy(coarse, levels, projection=None, domain=None):
+def build_hierarchy(coarse, levels, projection=None, domain=None, progress=None):
     """T_0 = `coarse` and `levels` uniform refinements of it (§6), new boundary vertices moved
-    onto the curve by `projection` (§9); `domain` names the domain T_0 meshes (scenes only)."""
+    onto the curve by `projection` (§9); `domain` names the domain T_0 meshes (scenes only).
+    `progress`: a callable given one line per refinement (a long silent phase on fine meshes:
+    dolfinx's mesh creation costs more than linear time, BENCHMARKS.md)."""
+    import time
     levels = int(levels)
     if levels < 0:
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
     h = Hierarchy([coarse], projection=projection, domain=domain)
-    for _ in range(levels):
+    for j in range(1, levels + 1):
+        t = time.perf_counter()
         fine, parents, unmoved = refine(h.meshes[-1], projection)
         h.meshes.append(fine)
         h.parent_cells.append(parents)
         h.unmoved.append(unmoved)
+        if progress is not None:
+            progress(f"refinement {j} of {levels}: {fine.topology.index_map(0).size_global:,} "
+                     f"vertices in {time.perf_counter() - t:.2f} s")
     return h
 
 

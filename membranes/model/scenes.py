@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
-from typing import Any, Optional, Union
+from typing import Any, Callable, Optional, Union
 
 import dolfinx.mesh
 import numpy as np
@@ -31,6 +31,9 @@ from .expressions import Formula
 from .problem import ExactSolution, Problem, positive_number, real_number
 
 DEFAULT_H = 0.05
+# every scene's `progress`: None, or a callable given one line per refinement of T_0
+# (`build_hierarchy`; called on every process: the caller prints on one)
+Progress = Optional[Callable[[str], Any]]
 
 
 def _projection(domain, mesh_file):
@@ -94,9 +97,10 @@ J01 = 2.404825557695773   # first zero of the Bessel function J_0
 
 
 def disk(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
-         max_vertices: Optional[int] = None) -> Problem:
+         max_vertices: Optional[int] = None, progress: Progress = None) -> Problem:
     """The paper's test case on the unit disk, with its exact solution (§9).
-    `max_vertices`: refuse a larger mesh before meshing (every scene has it)."""
+    `max_vertices`: refuse a larger mesh before meshing; `progress`: a callable given one line
+    per refinement (every scene has both)."""
     comm = _communicator(comm)
     levels = _check_levels(levels)
     h = _check_size(h, levels, "disk", None, max_vertices, comm)
@@ -126,7 +130,8 @@ def disk(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
         r = ufl.sqrt(r2(x))
         return ufl.conditional(inside(x), -6 * g, -c * (1 + 8 * r - 18 * r2(x)) / r)
 
-    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle, "disk")
+    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle, "disk",
+                                progress)
     return Problem("disk", hierarchy, 1.0, 1.0, g, f1, f2,
                    exact=ExactSolution(u1, u2, lam),
                    interface=lambda p: p[0] ** 2 + p[1] ** 2 - 0.5,
@@ -150,7 +155,7 @@ SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
 
 def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
            mesh: Optional[dolfinx.mesh.Mesh] = None,
-           max_vertices: Optional[int] = None) -> Problem:
+           max_vertices: Optional[int] = None, progress: Progress = None) -> Problem:
     """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
     `mesh`: a dolfinx mesh of (0, 1)² to use instead of gmsh's at size h (API only: the
     anisotropic, graded and tiny meshes of §11, meshes.structured_square)."""
@@ -189,7 +194,7 @@ def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORL
         return 16 * p[0] * (1 - p[0]) * p[1] * (1 - p[1]) - s0
 
     coarse = meshes.unit_square(h, comm) if mesh is None else mesh
-    hierarchy = build_hierarchy(coarse, levels, domain="square")
+    hierarchy = build_hierarchy(coarse, levels, domain="square", progress=progress)
     return Problem("square", hierarchy, mu1, mu2, g, f1, f2,
                    exact=ExactSolution(u1, u2, lam), interface=interface,
                    description="unit square, mu1 = 1, mu2 = 2, g = 0.1, manufactured solution "
@@ -209,7 +214,8 @@ def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORL
 
 def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float = 1.0,
            mu2: float = 1.0, g: float = 0.05, contact: bool = True,
-           comm: MPI.Comm = MPI.COMM_WORLD, max_vertices: Optional[int] = None) -> Problem:
+           comm: MPI.Comm = MPI.COMM_WORLD, max_vertices: Optional[int] = None,
+           progress: Progress = None) -> Problem:
     """Unit disk, exact radial solution with contact disk r <= rho (any mu1, mu2, g)."""
     comm = _communicator(comm)
     levels = _check_levels(levels)
@@ -248,7 +254,8 @@ def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float =
         return -mu2 * ufl.div(ufl.grad(u2(x))) + lam(x)
 
     jump = contact and rho > 0.0
-    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle, "disk")
+    hierarchy = build_hierarchy(meshes.unit_disk(h, comm), levels, onto_unit_circle, "disk",
+                                progress)
     kind = "no contact" if not contact else ("grazing contact at the origin" if rho == 0.0
                                              else f"contact disk r <= {rho}")
     return Problem("radial", hierarchy, mu1, mu2, g, f1, f2,
@@ -269,7 +276,7 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
          f2: Union[str, float] = "0", mesh: Union[None, str, os.PathLike] = None,
          domain: Optional[str] = None,
          h: Optional[float] = None, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
-         max_vertices: Optional[int] = None) -> Problem:
+         max_vertices: Optional[int] = None, progress: Progress = None) -> Problem:
     """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square.
     `domain` ('disk' by default) and `h` (DEFAULT_H) apply without `mesh` only."""
     comm = _communicator(comm)
@@ -291,7 +298,7 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
         check_request(levels=levels, mesh_file=mesh, max_vertices=max_vertices, comm=comm,
                       counts=meshes.mesh_counts(coarse))
     hierarchy = build_hierarchy(coarse, levels, _projection(domain, mesh),
-                                None if mesh is not None else domain)
+                                None if mesh is not None else domain, progress)
     where = f"mesh {mesh}" if mesh is not None else f"unit {domain}"
     # on the unit disk its own constant, as for the disk scene (§7); else the bounding box's
     poincare = 1.0 / J01 if mesh is None and domain == "disk" else None
