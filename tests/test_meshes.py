@@ -132,7 +132,11 @@ def test_prolongations_are_made_at_first_use():
     h = build_hierarchy(unit_disk(0.5), 2, projection=lambda p: 1.3 * p)
     assert h.made == []
     P1 = h.up_to(1).prolongations[0]
-    assert len(h.made) == 1 and h.prolongations[0] is P1 and len(h.made) == 2
+    assert len(h.made) == 1 and h.prolongation(1) is P1 and len(h.made) == 1
+    assert h.prolongations[0] is P1 and len(h.made) == 2
+    for j in (0, 3):
+        with pytest.raises(ValueError, match=f"no prolongation P_{j} in a hierarchy of 2"):
+            h.prolongation(j)
     for j in (1, 2):
         Vc, Vf = (fem.FunctionSpace(h.meshes[i], ("Lagrange", 1)) for i in (j - 1, j))
         uc = fem.Function(Vc)

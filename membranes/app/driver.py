@@ -394,7 +394,7 @@ def solve(problem: Problem,
         pj = problem.on_level(j)
         disc = discretise(pj)
         X0 = _initial_guess(initial_guess, disc) if prev is None else \
-            prolong(problem.hierarchy.prolongations[j - 1], disc, prev[0], prev[1])
+            prolong(problem.hierarchy.prolongation(j), disc, prev[0], prev[1])
         last = j == J
         # the adaptive variant's coarse levels without estimators (`_coarse_levels`)
         variant, level_tol, forcing = newton, tol, None

@@ -364,8 +364,8 @@ def _run(label, problems, progress, monitor, **settings):
         if prev is None:                                   # from zero (g on ∂Ω)
             z.set(0.0)
             w.set(0.0)
-        else:                                              # P1 prolongation (§10)
-            P, (zc, wc) = prev
+        else:                      # P1 prolongation (§10; made at its first use, timed)
+            P, (zc, wc) = make.prolongation, prev
             P.mult(zc, z)
             P.mult(wc, w)
             zc.destroy()
@@ -392,7 +392,7 @@ def _run(label, problems, progress, monitor, **settings):
                      f"{its} SNES steps ({lin} CG), z: {z_its} CG, active {rec.active}, "
                      f"reason {reason}, {wall:.3f} s (+ {setup:.3f} s discretisation)")
         if j + 1 < len(problems):
-            prev = (problems[j + 1].prolongation, (z, w))
+            prev = (z, w)
             lam.destroy()
     t0, c0 = time.perf_counter(), time.process_time()
     X = to_iterate(disc, z, w, lam)
@@ -410,7 +410,7 @@ class _Level:
 
     @property
     def prolongation(self):
-        return self.problem.hierarchy.prolongations[self.j - 1]
+        return self.problem.hierarchy.prolongation(self.j)
 
     def __call__(self):
         from ..fem.discretisation import discretise

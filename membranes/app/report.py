@@ -118,7 +118,7 @@ def replay(problem, sol):
         pj = problem.on_level(j)
         disc = discretise(pj)
         X0 = None if prev is None else \
-            prolong(problem.hierarchy.prolongations[j - 1], disc, prev[0], prev[1])
+            prolong(problem.hierarchy.prolongation(j), disc, prev[0], prev[1])
         certificate = LevelEstimates(disc, "nu", gate=None)     # every iterate in full
 
         def estimate(X, R, kind, disc=disc, certificate=certificate):

@@ -230,7 +230,7 @@ class _Level:
         nc, ncc = len(parents), owned_cells(hierarchy.meshes[j - 1])
         _check(comm, nc == owned_cells(self.mesh) and parents.max(initial=-1) < ncc,
                "the parent of an owned cell is not an owned cell")
-        P = hierarchy.prolongations[j - 1]
+        P = hierarchy.prolongation(j)
         self.beta = child_positions(Vc, Vf, P, parents)
 
         # moments: E_j (prolongation, so E_jᵀ restricts moments from T_j to T_{j-1}) and
@@ -284,8 +284,8 @@ class _Level:
             v = P.createVecRight()
             v.array[:] = colour[:n] == c
             for k in range(j, hierarchy.levels + 1):
-                w = hierarchy.prolongations[k - 1].createVecLeft()
-                hierarchy.prolongations[k - 1].mult(v, w)
+                w = hierarchy.prolongation(k).createVecLeft()
+                hierarchy.prolongation(k).mult(v, w)
                 v.destroy()
                 v = w
             self.psi.append(v)

@@ -14,7 +14,7 @@ inside their parents; nothing below relies on geometric nesting:
   is the coarse value at the same vertex or the mean of the two ends of the coarse edge it
   halves (computed from the positions plaza gave, kept for the moved vertices). It reproduces
   constants, so the prolonged hat functions of T_{j-1} still form a partition of unity on T_j;
-  it is made at its first use (`Hierarchy.prolongations`);
+  it is made at its first use (`Hierarchy.prolongation`);
 * the multilevel algebraic flux groups the cells of the finest mesh by their ancestors
   (`ancestors`), which is a statement about cells, not about geometry.
 
@@ -51,16 +51,22 @@ class Hierarchy:
     def finest(self):
         return self.meshes[-1]
 
+    def prolongation(self, j):
+        """P_j, the PETSc Mat P1(T_{j-1}) → P1(T_j) (`prolongation`), made at its first use
+        (with those before it): only nested iteration and the multilevel flux read them, so a
+        run on T_J alone never makes them. Collective at that use (every process reaches it
+        on the same code path)."""
+        if not 1 <= j <= self.levels:
+            raise ValueError(f"no prolongation P_{j} in a hierarchy of {self.levels} levels")
+        for k in range(len(self.made) + 1, j + 1):
+            self.made.append(prolongation(self.meshes[k - 1], self.meshes[k],
+                                          self.parent_cells[k - 1], self.unmoved[k - 1]))
+        return self.made[j - 1]
+
     @property
     def prolongations(self):
-        """[P_1, …, P_J], P_j the PETSc Mat P1(T_{j-1}) → P1(T_j) (`prolongation`), made at
-        the first use: only nested iteration and the multilevel flux read them, so a run on
-        T_J alone never makes them. Collective at that use (every process reaches it on the
-        same code path)."""
-        for j in range(len(self.made) + 1, self.levels + 1):
-            self.made.append(prolongation(self.meshes[j - 1], self.meshes[j],
-                                          self.parent_cells[j - 1], self.unmoved[j - 1]))
-        return self.made[:self.levels]
+        """[P_1, …, P_J] (`prolongation`: each made at its first use)."""
+        return [self.prolongation(j) for j in range(1, self.levels + 1)]
 
     def up_to(self, j):
         """The hierarchy T_0, …, T_j (shares the meshes, maps and prolongations)."""
