@@ -172,6 +172,16 @@ def test_every_scene_reports_its_refinements(name):
     assert all(line.endswith(" s") for line in lines)
 
 
+def test_refinement_progress_on_stderr_or_refused(capsys):
+    """progress=True prints the lines on stderr, as `solve`'s; anything else that is not a
+    callable is refused before any refinement."""
+    from membranes import scenes
+    scenes.disk(h=0.5, levels=1, progress=True)
+    assert capsys.readouterr().err.startswith("refinement 1 of 1: ")
+    with pytest.raises(ValueError, match="progress must be True, False, None or a callable"):
+        build_hierarchy(unit_disk(0.5), 1, progress="yes")
+
+
 def test_a_run_on_the_finest_mesh_makes_no_prolongation():
     """Lean runs: `nested=False` solves T_J alone and leaves the hierarchy's prolongations
     unmade; the nested default makes them."""

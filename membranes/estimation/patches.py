@@ -194,12 +194,13 @@ class PatchSystems(HomeSetup):
                      "run_dofs", "run_code", "run_point", "run_entity", "kinds", "known",
                      "dof_starts", "dof_shared"):
             delattr(self, name)
+        def narrowed(p):
+            return (p[0].astype(PETSc.IntType, copy=False), p[1],
+                    p[2].astype(np.int16, copy=False), p[6])
+
         groups = []
         while pending:
-            p = pending.pop(0)
-            groups.append((p[0].astype(PETSc.IntType, copy=False), p[1],
-                           p[2].astype(np.int16, copy=False), p[6]))
-        del p
+            groups.append(narrowed(pending.pop(0)))
         self._layout(groups, classes)
 
     def _lookup(self, key):

@@ -187,12 +187,22 @@ def refine(mesh, projection=None):
 def build_hierarchy(coarse, levels, projection=None, domain=None, progress=None):
     """T_0 = `coarse` and `levels` uniform refinements of it (§6), new boundary vertices moved
     onto the curve by `projection` (§9); `domain` names the domain T_0 meshes (scenes only).
-    `progress`: a callable given one line per refinement (a long silent phase on fine meshes:
-    dolfinx's mesh creation costs more than linear time, BENCHMARKS.md)."""
+    `progress`: a callable given one line per refinement on every process, or True for those
+    lines on stderr (process 0), as `solve`'s (a long silent phase on fine meshes: dolfinx's
+    mesh creation costs more than linear time, BENCHMARKS.md)."""
+    import sys
     import time
     levels = int(levels)
     if levels < 0:
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
+    if progress is True:
+        progress = (lambda line: print(line, file=sys.stderr, flush=True)) \
+            if coarse.comm.rank == 0 else (lambda line: None)
+    elif progress is False:
+        progress = None
+    elif progress is not None and not callable(progress):
+        raise ValueError(f"progress must be True, False, None or a callable taking a line, "
+                         f"got {progress!r}")
     h = Hierarchy([coarse], projection=projection, domain=domain)
     for j in range(1, levels + 1):
         t = time.perf_counter()

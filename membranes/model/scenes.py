@@ -31,9 +31,9 @@ from .expressions import Formula
 from .problem import ExactSolution, Problem, positive_number, real_number
 
 DEFAULT_H = 0.05
-# every scene's `progress`: None, or a callable given one line per refinement of T_0
-# (`build_hierarchy`; called on every process: the caller prints on one)
-Progress = Optional[Callable[[str], Any]]
+# every scene's `progress`: None, a callable given one line per refinement of T_0 on every
+# process, or True for those lines on stderr (`build_hierarchy`)
+Progress = Union[None, bool, Callable[[str], Any]]
 
 
 def _projection(domain, mesh_file):
