@@ -1,7 +1,7 @@
 """The API in a long-lived process and on communicators (membranes.app.driver.solve).
 
 * A progress callable runs on process 0 only: an exception it raises must stop the run on
-  every process (`driver._reporter`), not leave the others waiting for process 0 in the
+  every process (`model.progress.reporter`), not leave the others waiting for process 0 in the
   run's next collective call for ever (they did: a hang under mpirun), and the processes
   must be able to solve again with the same answer.
 * Scenes on sub-communicators (`comm=`): under mpirun -n 3, processes 0-1 solve one problem

@@ -26,7 +26,6 @@ the final iterate's after its certificate), so that error and η can be drawn ag
 
 from __future__ import annotations
 
-import sys
 import time
 from typing import Any, Callable, Literal, Mapping, Optional, Union
 
@@ -39,6 +38,7 @@ from ..linalg.krylov import Krylov
 from ..model import checks
 from ..model.petsc_options import check_petsc_options_used, parse_petsc_options
 from ..model.problem import Problem, real_number
+from ..model.progress import reporter
 from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS
 from ..nonlinear.newton import newton as run_newton
@@ -340,9 +340,9 @@ def solve(problem: Problem,
     iterate (default), at all recorded 'iterates', or 'none'; progress: True for one stderr
     line per Newton step and two around each estimator set-up (rank 0), or a callable taking
     the line (called on rank 0; an exception it raises stops the run on every process,
-    `_reporter`); max_vertices: refuse a computational mesh of more vertices (default: refuse
-    one whose run needs more memory than the processes have, model.checks); coarse: how the
-    adaptive variant of a nested run leaves the coarse levels T_0 … T_{J-1}
+    `model.progress.reporter`); max_vertices: refuse a computational mesh of more vertices
+    (default: refuse one whose run needs more memory than the processes have, model.checks);
+    coarse: how the adaptive variant of a nested run leaves the coarse levels T_0 … T_{J-1}
     (`_coarse_levels`): 'residual' (default: inexact Newton to ‖R_lin‖/‖(F, 0)‖ ≤
     coarse_tol, 1e-6, no estimators) or 'estimated' (Algorithm 1 with the estimators on
     every level); setups: a `membranes.Setups` that keeps the flux
@@ -372,7 +372,7 @@ def solve(problem: Problem,
                          "T_0: give 'paper', 'zero' or a function of the discretisation, or "
                          "nested=False")
     comm = problem.mesh.comm
-    say = _reporter(progress, comm)
+    say = reporter(progress, comm)
     options = {"newton": newton, "cfun": cfun, "solver": solver,
                "system": system or krylov.system, "petsc_options": dict(petsc_options or {}),
                "nu": krylov.nu, "gamma_lin": gamma_lin, "gamma_alg": gamma_alg,
@@ -503,40 +503,6 @@ def solve(problem: Problem,
     del estimate, result, recorder, error
     release_garbage(problem)            # this solve's, outside its clock
     return sol
-
-
-def _reporter(progress, comm):
-    """The run's progress lines: None without `progress`, else a function that every process
-    calls with each line, at the same points of the run (the lines are made of global
-    figures), and that hands the line on process 0 to `progress` (a callable) or to stderr.
-    An exception raised there is raised at once on every process: as itself on process 0,
-    on the others as a RuntimeError naming it (a KeyboardInterrupt as one), since they would
-    otherwise wait for process 0 in the run's next collective call for ever (one broadcast
-    per line)."""
-    if not progress:
-        return None
-    write = progress if callable(progress) else \
-        (lambda line: print(line, file=sys.stderr, flush=True))
-    if comm.size == 1:
-        return write
-
-    def say(line):
-        error = None
-        if comm.rank == 0:
-            try:
-                write(line)
-            except BaseException as e:
-                error = e
-        failed = comm.bcast(None if error is None else (type(error).__name__, str(error)),
-                            root=0)
-        if error is not None:
-            raise error
-        if failed is not None:
-            if failed[0] == "KeyboardInterrupt":
-                raise KeyboardInterrupt
-            raise RuntimeError(f"the progress callable failed on process 0: {failed[0]}: "
-                               f"{failed[1]}")
-    return say
 
 
 def _coarse_levels(coarse, coarse_tol, newton, nested):

@@ -22,10 +22,12 @@ Without a projection (polygons, gmsh files) the hierarchy is geometrically neste
 usual interpolation.
 """
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..model.progress import reporter
 from .meshes import on_boundary
 
 
@@ -187,22 +189,16 @@ def refine(mesh, projection=None):
 def build_hierarchy(coarse, levels, projection=None, domain=None, progress=None):
     """T_0 = `coarse` and `levels` uniform refinements of it (§6), new boundary vertices moved
     onto the curve by `projection` (§9); `domain` names the domain T_0 meshes (scenes only).
-    `progress`: a callable given one line per refinement on every process, or True for those
-    lines on stderr (process 0), as `solve`'s (a long silent phase on fine meshes: dolfinx's
-    mesh creation costs more than linear time, BENCHMARKS.md)."""
-    import sys
-    import time
+    `progress`: one line per refinement, as `solve`'s (`model.progress.reporter`: True for
+    stderr, or a callable; process 0 writes), since refining is a long silent phase on fine
+    meshes (dolfinx's mesh creation costs more than linear time, BENCHMARKS.md)."""
     levels = int(levels)
     if levels < 0:
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
-    if progress is True:
-        progress = (lambda line: print(line, file=sys.stderr, flush=True)) \
-            if coarse.comm.rank == 0 else (lambda line: None)
-    elif progress is False:
-        progress = None
-    elif progress is not None and not callable(progress):
+    if not (progress is None or isinstance(progress, bool) or callable(progress)):
         raise ValueError(f"progress must be True, False, None or a callable taking a line, "
                          f"got {progress!r}")
+    say = reporter(progress, coarse.comm)
     h = Hierarchy([coarse], projection=projection, domain=domain)
     for j in range(1, levels + 1):
         t = time.perf_counter()
@@ -210,8 +206,8 @@ def build_hierarchy(coarse, levels, projection=None, domain=None, progress=None)
         h.meshes.append(fine)
         h.parent_cells.append(parents)
         h.unmoved.append(unmoved)
-        if progress is not None:
-            progress(f"refinement {j} of {levels}: {fine.topology.index_map(0).size_global:,} "
+        if say is not None:
+            say(f"refinement {j} of {levels}: {fine.topology.index_map(0).size_global:,} "
                      f"vertices in {time.perf_counter() - t:.2f} s")
     return h
 

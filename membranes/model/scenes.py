@@ -31,8 +31,8 @@ from .expressions import Formula
 from .problem import ExactSolution, Problem, positive_number, real_number
 
 DEFAULT_H = 0.05
-# every scene's `progress`: None, a callable given one line per refinement of T_0 on every
-# process, or True for those lines on stderr (`build_hierarchy`)
+# every scene's `progress`: one line per refinement of T_0 (`build_hierarchy`), as `solve`'s:
+# None or False, True for stderr, or a callable (model.progress)
 Progress = Union[None, bool, Callable[[str], Any]]
 
 

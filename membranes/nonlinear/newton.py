@@ -154,7 +154,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
     `membranes.linalg.krylov.Krylov` fields (preset, options, nu, max_it) or a Krylov;
     estimate: see the module notes; progress: True (print on rank 0) or a callable taking one
     line per Newton step (called on every process, with the same lines: the caller chooses
-    which process writes them, `membranes.app.driver._reporter`); forcing (inexact: every
+    which process writes them, `membranes.model.progress.reporter`); forcing (inexact: every
     step; adaptive: the steps not expected to be the last): the Krylov solve of a step stops
     instead at ‖R_alg‖ ≤ forcing ‖R_alg(X^{k,0})‖, tested at every iteration (the module
     notes). Returns a `NewtonResult`."""
