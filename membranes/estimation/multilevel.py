@@ -284,8 +284,9 @@ class _Level:
             v = P.createVecRight()
             v.array[:] = colour[:n] == c
             for k in range(j, hierarchy.levels + 1):
-                w = hierarchy.prolongation(k).createVecLeft()
-                hierarchy.prolongation(k).mult(v, w)
+                Pk = hierarchy.prolongation(k)
+                w = Pk.createVecLeft()
+                Pk.mult(v, w)
                 v.destroy()
                 v = w
             self.psi.append(v)

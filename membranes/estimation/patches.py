@@ -194,6 +194,7 @@ class PatchSystems(HomeSetup):
                      "run_dofs", "run_code", "run_point", "run_entity", "kinds", "known",
                      "dof_starts", "dof_shared"):
             delattr(self, name)
+
         def narrowed(p):
             return (p[0].astype(PETSc.IntType, copy=False), p[1],
                     p[2].astype(np.int16, copy=False), p[6])
