@@ -86,6 +86,9 @@ from .system import NewtonSystem, initial_guess
 
 VARIANTS = ("exact", "inexact", "adaptive")
 FORCING_SHRINK = 0.1    # the forcing term's factor after a forced step that did not help
+# Newton stops as diverged at an iterate whose ‖R_lin‖/‖(F, 0)‖ exceeds DIVERGENCE times the
+# larger of X⁰'s and 1, the zero iterate's (module notes)
+DIVERGENCE = 1e8
 SYSTEMS = ("full", "eliminated")
 
 
@@ -206,6 +209,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
 
     est0 = estimated(X, None, "initial") if estimate is not None and not adaptive else None
     last = record("initial", 0, 0, 0, X, None, est0)
+    divergent = DIVERGENCE * max(last["residual"], 1.0)
     total, k, reason, converged = 0, 0, None, False
     forced = False          # whether the last step's solve stopped at the forcing term
 
@@ -248,6 +252,11 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 reason = (f"Newton stalled at step {k}: its Krylov solve made no iteration "
                           f"(the iterate solves the step's system to the floor), so further "
                           f"steps repeat it ({description})")
+                break
+            if last["residual"] > divergent:
+                reason = (f"diverged at Newton step {k}: relative residual "
+                          f"{last['residual']:.3e} > {DIVERGENCE:.0e} max(that of X^0, 1) "
+                          f"= {divergent:.3e}")
                 break
             if k >= max_newton:
                 reason = f"no convergence in {max_newton} Newton steps ({description})"

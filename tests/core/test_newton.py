@@ -469,6 +469,30 @@ def test_a_failed_krylov_solve_is_reported():
     assert res.newton_steps == 1 and len(res.history) == 1       # X⁰ only
 
 
+def test_a_diverging_newton_stops_and_a_rising_one_does_not():
+    """The divergence test (newton's module notes) on the stability matrix's anisotropic mesh:
+    inexact Newton-min with the paper's GMRES + ILU(0) diverges there (2.7e72 times its start
+    after 100 steps without the test) and stops at the first iterate above DIVERGENCE
+    max(X⁰'s residual, 1); exact Newton-min with the amg preset converges after rising more
+    than 100 times above its start, which the test must let through."""
+    from membranes.app.stability import select
+    from membranes.nonlinear.newton import DIVERGENCE
+    disc = discretise(select(["anisotropic"])[0].build(0.1))
+    for variant, krylov in (("inexact", "paper"), ("exact", "amg")):
+        res = newton(disc, variant=variant, krylov=krylov)
+        start = res.history[0]["residual"]
+        residuals = [r["residual"] for r in res.history if r["kind"] == "newton"]
+        limit = DIVERGENCE * max(start, 1.0)
+        if variant == "inexact":
+            assert not res.converged
+            assert res.reason.startswith(f"diverged at Newton step {res.newton_steps}: ")
+            assert residuals[-1] > limit and max(residuals[:-1]) <= limit
+            assert res.newton_steps < 50
+        else:
+            assert res.converged, res.reason
+            assert 100 * start < max(residuals) <= limit
+
+
 def test_progress_prints_one_line_per_newton_step():
     lines = []
     res = newton(disc_of("disk", 0.1), krylov="amg", progress=lines.append)
