@@ -75,6 +75,8 @@ import itertools
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from ..model.checks import positive_integer
@@ -84,6 +86,7 @@ from .preconditioners import (
     InnerPC,
     MeanGapPC,
     configure,
+    gap_operator,
     inner_defaults,
     petsc_message,
     put_options,
@@ -299,7 +302,7 @@ def _mumps_info(pc):
 class LinearSolver:
     """One KSP for a Newton run: configured once from the Krylov spec (under its own prefix),
     handed each step's matrix; for the mean/gap split it keeps the mean's AMG (S_D does not
-    change on a mesh) and builds the gap's per step."""
+    change on a mesh) and the gap's of the last step, made anew where G or p change."""
 
     def __init__(self, krylov, comm):
         self.krylov = as_krylov(krylov)
@@ -312,6 +315,7 @@ class LinearSolver:
         put_options(self.prefix, options)
         self.ksp = PETSc.KSP().create(comm)
         self.mean = None
+        self._gap = None         # (G, p, K, its InnerPC) of the last eliminated solve
         self._context = None
         try:
             configure(self.ksp, self.prefix)
@@ -325,11 +329,33 @@ class LinearSolver:
         if self.mean is None:
             self.mean = InnerPC(S_D, self.prefix + "mean_")
         context = MeanGapPC(S_D, ab, theta, step.lam_out, step.c, step.d, self.mean,
-                            self.prefix)
+                            lambda G, p: self._gap_pc(S_D, G, p))
         pc = self.ksp.getPC()
         pc.setType(PETSc.PC.Type.PYTHON)
         pc.setPythonContext(context)
         self._context = context
+
+    def _gap_pc(self, S_D, G, p):
+        """The gap's InnerPC on (S_D + diag p)[G, G]: the last solve's where G and p are the
+        same on every process (the same operator, so its AMG set-up is reused: the two
+        solves of a forced Newton step, and Newton-min's steps once its contact set has
+        settled, p = 0), else made anew. Kept until the next solve that needs another, or
+        `release`."""
+        kept = self._gap
+        same = (kept is not None and np.array_equal(kept[0], G)
+                and np.array_equal(kept[1], p))
+        if kept is not None and self.comm.allreduce(same, op=MPI.LAND):
+            return kept[3]
+        self._drop_gap()
+        K = gap_operator(S_D, G, p)
+        self._gap = (G.copy(), p.copy(), K, InnerPC(K, self.prefix + "gap_"))
+        return self._gap[3]
+
+    def _drop_gap(self):
+        if self._gap is not None:
+            self._gap[3].destroy()
+            self._gap[2].destroy()
+            self._gap = None
 
     def solve(self, step, y, bound, every=1, on_iterate=None, split=None, guess=None,
               max_it=None):
@@ -400,14 +426,16 @@ class LinearSolver:
             ksp.reset()
 
     def release(self):
-        """Free the mean's PC (made again at the next eliminated solve)."""
+        """Free the mean's and the kept gap's PCs (made again at the next eliminated
+        solve)."""
         if self.mean is not None:
             self.mean.destroy()
             self.mean = None
+        self._drop_gap()
 
     def destroy(self):
-        """Free the KSP and the mean's PC, and take the solver's options out of PETSc's
-        database."""
+        """Free the KSP and the mean's and gap's PCs, and take the solver's options out of
+        PETSc's database."""
         self.ksp.destroy()
         self.release()
         take_options(self.prefix, self.options)

@@ -31,9 +31,12 @@ solves the preconditioner is the exact inverse of the eliminated matrix (one Kry
 iteration); the tests check that. The same split serves Newton-min and Fischer–Burmeister.
 
 The mean's operator S_D does not depend on the iterate: its AMG is set up once per mesh
-(`InnerPC`, kept by the Krylov solver); the gap's, (S_D + diag p)[G, G] (a MatCreateSubMatrix
-of the owned G rows on every process), once per Newton step. Everything else is vertex-local
-numpy on the owned entries and one parallel product with S_D where contact vertices have d = 0.
+(`InnerPC`, kept by the Krylov solver); the gap's, (S_D + diag p)[G, G] (`gap_operator`, a
+MatCreateSubMatrix of the owned G rows on every process), once per Newton step whose G or p
+differ from the last step's (the Krylov solver keeps it: a step solved twice, and the steps
+of Newton-min once its contact set has settled, where p = 0 and G repeats, reuse it).
+Everything else is vertex-local numpy on the owned entries and one parallel product with S_D
+where contact vertices have d = 0.
 
 **Inner options.** Defaults `INNER_DEFAULTS`: BoomerAMG with one forward hybrid Gauss–Seidel
 sweep down and one backward sweep up (a symmetric V-cycle at half the cost of PETSc's default
@@ -115,15 +118,35 @@ class InnerPC:
             obj.destroy()
 
 
+def gap_operator(S_D, G, p):
+    """K = (S_D + diag p)[G, G], the gap's operator of the module notes: a MatCreateSubMatrix
+    of the owned rows G (local indices) on every process, with the reaction p (on G) added to
+    its diagonal where any process has a nonzero one."""
+    comm = S_D.getComm()
+    r0 = S_D.getOwnershipRange()[0]
+    iset = PETSc.IS().createGeneral(np.asarray(r0 + G, dtype=PETSc.IntType), comm=comm)
+    K = S_D.createSubMatrix(iset, iset)
+    iset.destroy()
+    from mpi4py import MPI
+    if comm.tompi4py().allreduce(bool(np.any(p != 0.0)), op=MPI.LOR):
+        reaction = K.createVecLeft()
+        reaction.array[:] = p
+        K.setDiagonal(reaction, addv=PETSc.InsertMode.ADD_VALUES)
+        reaction.destroy()
+    return K
+
+
 class MeanGapPC:
     """The preconditioner of the module notes as a petsc4py Python PC context.
 
     S_D: the stiffness matrix with identity boundary rows (PETSc Mat, n × n per process);
     ab = a + b = D (1/μ1 + 1/μ2) (owned, 0 at the boundary); theta = μ2/(μ1 + μ2);
     lam_out, c, d: the step's elimination (membranes.nonlinear.system.EliminatedStep);
-    mean: the mesh's InnerPC on S_D; prefix: the solver's (the gap's PC reads prefix + 'gap_')."""
+    mean: the mesh's InnerPC on S_D; gap: a callable (G, p) → the InnerPC on the gap's
+    operator (S_D + diag p)[G, G] (`gap_operator`), whose owner frees it (the Krylov solver,
+    which keeps it for a later step with the same G and p: membranes.linalg.krylov)."""
 
-    def __init__(self, S_D, ab, theta, lam_out, c, d, mean, prefix):
+    def __init__(self, S_D, ab, theta, lam_out, c, d, mean, gap):
         self.S, self.theta, self.mean = S_D, float(theta), mean
         n = len(lam_out)
         self.n = n
@@ -135,21 +158,8 @@ class MeanGapPC:
         comm = S_D.getComm().tompi4py()
         from mpi4py import MPI
         self.any_hard = comm.allreduce(bool(self.hard.any()), op=MPI.LOR)
-        gap = self.free | self.soft                 # G: where δ is unknown
-        self.G = np.flatnonzero(gap)
-        r0 = S_D.getOwnershipRange()[0]
-        iset = PETSc.IS().createGeneral(np.asarray(r0 + self.G, dtype=PETSc.IntType),
-                                        comm=S_D.getComm())
-        K = S_D.createSubMatrix(iset, iset)
-        iset.destroy()
-        p = np.where(self.free, ab * c, ab / self.d)[self.G]
-        if comm.allreduce(bool(np.any(p != 0.0)), op=MPI.LOR):
-            reaction = K.createVecLeft()
-            reaction.array[:] = p
-            K.setDiagonal(reaction, addv=PETSc.InsertMode.ADD_VALUES)
-            reaction.destroy()
-        self.K = K
-        self.gap = InnerPC(K, prefix + "gap_")
+        self.G = np.flatnonzero(self.free | self.soft)       # G: where δ is unknown
+        self.gap = gap(self.G, np.where(self.free, ab * c, ab / self.d)[self.G])
         self.delta, self.S_delta = S_D.createVecs()
 
     def apply(self, pc, x, y):
@@ -173,5 +183,5 @@ class MeanGapPC:
             out[n:][h] = (diff[h] - self.S_delta.array_r[h]) / self.ab[h]
 
     def destroy(self, pc=None):
-        for obj in (self.gap, self.K, self.delta, self.S_delta):
+        for obj in (self.delta, self.S_delta):
             obj.destroy()

@@ -247,6 +247,44 @@ def test_mean_gap_split_is_the_exact_inverse(scene, cfun):
     sys_.destroy()
 
 
+@pytest.mark.parametrize("cfun", ["min", "fb"])
+def test_the_gap_amg_is_kept_for_the_same_operator(cfun):
+    """The Krylov solver keeps the gap's AMG of its last solve and reuses it where G and p
+    come again (a forced step solved twice, a settled contact set): the same iterations and
+    iterate as an AMG set up anew (BoomerAMG's set-up is deterministic). Another step's G or p
+    (FB: p changes with the iterate) gets its own; `release` frees it."""
+    disc = disc_of("disk", 0.1)
+    sys_ = NewtonSystem(disc)
+    X = contact_iterate("disk", cfun)
+    split = (sys_.S_D, sys_.D * (1 / sys_.mu[0] + 1 / sys_.mu[1]), sys_.theta)
+    steps = [sys_.eliminated_step(sys_.linearise(X, cfun))]
+    X2 = X.copy()
+    X2.array[2 * sys_.n:] += 0.5 * abs(X2.array_r[2 * sys_.n:]).max()   # another λ: another G
+    steps.append(sys_.eliminated_step(sys_.linearise(X2, cfun)))
+    kept = LinearSolver("amg", disc.comm)
+
+    def run(solver, step):
+        y = step.guess(X)
+        out = solver.solve(step, y, EXACT_TOL * sys_.linearise(X, cfun).norm_B, split=split)
+        return out[:3], y
+
+    first, y1 = run(kept, steps[0])
+    G0, p0, _, gap = kept._gap
+    second, y2 = run(kept, steps[0])                     # the same step again: kept
+    assert kept._gap[3] is gap and second == first
+    y2.axpy(-1.0, y1)
+    assert y2.norm() == 0.0
+    run(kept, steps[1])                                  # another operator: made anew
+    G1, p1, _, other = kept._gap
+    assert not (np.array_equal(G0, G1) and np.array_equal(p0, p1)) and other is not gap
+    kept.release()
+    assert kept._gap is None and kept.mean is None
+    kept.destroy()
+    for step in steps:
+        step.destroy()
+    sys_.destroy()
+
+
 # ## Stopping tests and options (§8)
 
 def _step(cfun="min", system="full"):
