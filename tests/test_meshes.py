@@ -174,12 +174,16 @@ def test_every_scene_reports_its_refinements(name):
 
 def test_refinement_progress_on_stderr_or_refused(capsys):
     """progress=True prints the lines on stderr, as `solve`'s; anything else that is not a
-    callable is refused before any refinement."""
-    from membranes import scenes
-    scenes.disk(h=0.5, levels=1, progress=True)
+    callable is refused before any refinement, and by `solve` before any solve (one check,
+    `model.progress.reporter`)."""
+    from membranes import scenes, solve
+    problem = scenes.disk(h=0.5, levels=1, progress=True)
     assert capsys.readouterr().err.startswith("refinement 1 of 1: ")
     with pytest.raises(ValueError, match="progress must be True, False, None or a callable"):
         build_hierarchy(unit_disk(0.5), 1, progress="yes")
+    with pytest.raises(ValueError, match="progress must be True, False, None or a callable"):
+        solve(problem, progress="yes")
+    assert capsys.readouterr().err == ""
 
 
 def test_a_run_on_the_finest_mesh_makes_no_prolongation():

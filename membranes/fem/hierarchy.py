@@ -195,9 +195,6 @@ def build_hierarchy(coarse, levels, projection=None, domain=None, progress=None)
     levels = int(levels)
     if levels < 0:
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
-    if not (progress is None or isinstance(progress, bool) or callable(progress)):
-        raise ValueError(f"progress must be True, False, None or a callable taking a line, "
-                         f"got {progress!r}")
     say = reporter(progress, coarse.comm)
     h = Hierarchy([coarse], projection=projection, domain=domain)
     for j in range(1, levels + 1):

@@ -13,7 +13,10 @@ def reporter(progress, comm):
     An exception raised there is raised at once on every process: as itself on process 0,
     on the others as a RuntimeError naming it (a KeyboardInterrupt as one), since they would
     otherwise wait for process 0 in the run's next collective call for ever (one broadcast
-    per line)."""
+    per line). Anything else than those values is refused (ValueError)."""
+    if not (progress is None or isinstance(progress, bool) or callable(progress)):
+        raise ValueError(f"progress must be True, False, None or a callable taking a line, "
+                         f"got {progress!r}")
     if not progress:
         return None
     write = progress if callable(progress) else \
