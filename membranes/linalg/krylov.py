@@ -348,7 +348,7 @@ class LinearSolver:
             return kept[3]
         self._drop_gap()
         K = gap_operator(S_D, G, p)
-        self._gap = (G.copy(), p.copy(), K, InnerPC(K, self.prefix + "gap_"))
+        self._gap = (G, p, K, InnerPC(K, self.prefix + "gap_"))
         return self._gap[3]
 
     def _drop_gap(self):
