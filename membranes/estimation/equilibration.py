@@ -323,8 +323,7 @@ class FluxEquilibration:
         systems = self.systems
         if self._home is None:                    # kept until `release`
             self._home = systems.home_vector()
-        home = self._home
-        home.fill(0.0)
+        home = self._home                         # (all colours' gathers overwrite it whole)
         # the scale of the divergence check (`divergence`): the largest right-hand side entry,
         # and μ max|u|, the round-off unit of the moments (μ ∇u·∇ψ, q), which cancel in the sum
         # (large where u is far from 0: u = g = 1e3 on the boundary)

@@ -363,7 +363,9 @@ class PatchSystems(HomeSetup):
     def gather(self, c, b, home):
         """home ← the entries of the W vector b at group c's kept dofs (dolfinx's basis): the
         runs straight into their home slices, the other entries by their positions (PETSc's
-        VecGetValues on a sequential Vec over b's owned entries)."""
+        VecGetValues on a sequential Vec over b's owned entries). The groups' patches make up
+        the home vector, so the gathers of all groups write every entry of it: a home vector
+        used before needs no zeroing first."""
         rows, runs, k, at = self.local[c]
         owned = local_vec(b.array_r)
         for h0, k0, n in runs:

@@ -4,8 +4,9 @@
 processes, solves the vertex patches of §5 for a random right-hand side with the engine
 sharing inverses between congruent patches and without, and prints on rank 0 one `OK` line:
 the largest difference of the two solutions (over all colours and processes) against the
-largest entry, the global numbers of patches, classes and key collisions, and the number of
-patches whose cells lie on several processes.
+largest entry, the global numbers of patches, classes and key collisions, the number of
+patches whose cells lie on several processes, and the home entries that the gathers of all
+colours leave unwritten (`uncovered`).
 """
 
 import numpy as np
@@ -54,6 +55,23 @@ def random_solutions(mesh, seed=0):
     comm = mesh.comm
     return (engines[0], engines[1], comm.allreduce(scale, op=MPI.MAX),
             comm.allreduce(diff, op=MPI.MAX))
+
+
+def uncovered(systems, ngroups):
+    """(entries, home size) over all processes: the home entries that the gathers of all
+    groups leave as they were (NaN before; a W vector b of ones gathered), and the entries in
+    all. σ_disc reuses its home vector without zeroing it (equilibration), which is right only
+    where this is 0."""
+    W = systems.W
+    b = PETSc.Vec().createMPI((W.dofmap.index_map.size_local, PETSc.DECIDE), comm=systems.comm)
+    b.set(1.0)
+    home = np.full(systems.home_size, np.nan)
+    for c in range(ngroups):
+        systems.gather(c, b, home)
+    b.destroy()
+    comm = systems.comm
+    return (comm.allreduce(int(np.isnan(home).sum()), op=MPI.SUM),
+            comm.allreduce(int(home.size), op=MPI.SUM))
 
 
 def straddling(comm, groups):
@@ -165,13 +183,16 @@ def main():
     mesh = refined_disk(comm, 0.3, 2)
     shared, _, scale, diff = random_solutions(mesh)
     stats = shared.stats()
-    count = straddling(mesh.comm, vertex_groups(mesh)[0])
+    groups = vertex_groups(mesh)[0]
+    count = straddling(mesh.comm, groups)
+    left, home = uncovered(shared, len(groups))
     inside, outside, entry, ninside = partial_assembly_error(mesh)
     if comm.rank == 0:
         print(f"OK P={comm.size} patches={stats['patches']} classes={stats['classes']} "
               f"straddling={count} scale={scale:.6e} diff={diff:.3e} "
               f"collisions={stats['collisions']} inside={inside:.3e} "
-              f"outside={outside:.3e} entry={entry:.6e} ninside={ninside}", flush=True)
+              f"outside={outside:.3e} entry={entry:.6e} ninside={ninside} "
+              f"uncovered={left} home={home}", flush=True)
 
 
 if __name__ == "__main__":

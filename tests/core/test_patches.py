@@ -341,6 +341,20 @@ def test_routes_by_slices_and_by_positions_agree(monkeypatch):
     assert all(np.array_equal(a, a_0) for a, a_0 in zip(x, x_0))
 
 
+def test_the_gathers_of_all_groups_write_the_whole_home_vector():
+    """σ_disc reuses its home vector from one membrane to the next without zeroing it
+    (equilibration): right because the groups' patches make up the home vector, so the
+    gathers of all groups write every entry (here a NaN-filled home keeps no NaN)."""
+    from .mpi_patches import uncovered, vertex_groups
+    mesh = refined_disk(MPI.COMM_WORLD, 0.4, 2)
+    patches, interior = vertex_groups(mesh)
+    systems = PatchSystems(mesh, patches, interior, mixed_space(mesh))
+    left, home = uncovered(systems, len(patches))
+    assert left == 0 and home == systems.home_size > 0
+    # one group alone leaves the others' entries: the count sees unwritten entries
+    assert uncovered(systems, 1)[0] > 0
+
+
 def test_stable_order_is_a_stable_argsort():
     from membranes.estimation.patches import stable_order
     rng = np.random.default_rng(6)
@@ -414,3 +428,4 @@ def test_parallel_sharing(nproc):
     assert int(fields["ninside"]) > 100
     assert float(fields["inside"]) <= 1e-14 * float(fields["entry"])
     assert float(fields["outside"]) > 0.01 * float(fields["entry"])
+    assert int(fields["uncovered"]) == 0 and int(fields["home"]) > 0
