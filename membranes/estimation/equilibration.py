@@ -217,20 +217,29 @@ class FluxEquilibration:
                 self.nodal[PSI], self.nodal[LAMC], self.sign, self.mu, self.nodal[U], self.r,
                 tau, q, dx))
         self.rhs_forms = compiled(parts, mesh)             # (one JIT lookup for the colours)
-        self._b = None
+        self._b = self._x = None
         self._loads = {}
         self.defect = None           # the relative divergence defect of the last σ made
 
     @property
     def b(self):
-        """One W vector for the colours' right-hand sides and, once they are gathered, for
-        the sum of their solutions: made at the first `sigma` (not alive under the Newton
-        steps before the first full estimate)."""
+        """One W vector for the colours' right-hand sides, one colour at a time: made at the
+        first `sigma` (not alive under the Newton steps before the first full estimate)."""
         if self._b is None:
             # (not dolfinx's create_vector: one left unreleased, by an exception between
             # `sigma` and `release`, would never be freed; `ghosted_vector`)
             self._b = ghosted_vector(self.rhs_forms[0].function_spaces[0])
         return self._b
+
+    @property
+    def x(self):
+        """The W vector (owned entries) where the colours' solutions add up: made at the first
+        `sigma`, like b."""
+        if self._x is None:
+            W = self.systems.W
+            self._x = PETSc.Vec().createMPI((W.dofmap.index_map.size_local, PETSc.DECIDE),
+                                            comm=self.comm)
+        return self._x
 
     def touching(self):
         """`colour_cells` of the owned cells: per colour c the cells touching c and the local
@@ -323,7 +332,9 @@ class FluxEquilibration:
         systems = self.systems
         if self._home is None:                    # kept until `release`
             self._home = systems.home_vector()
-        home = self._home                         # (all colours' gathers overwrite it whole)
+        home = self._home                         # (each colour's gather overwrites its part)
+        x = self.x
+        x.set(0.0)
         # the scale of the divergence check (`divergence`): the largest right-hand side entry,
         # and μ max|u|, the round-off unit of the moments (μ ∇u·∇ψ, q), which cancel in the sum
         # (large where u is far from 0: u = g = 1e3 on the boundary)
@@ -336,15 +347,12 @@ class FluxEquilibration:
             self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
             self._add_data(self.b.array, self.dg_dofs(c), f, c)
             scale = max(scale, largest(self.b))
+            # the colour's patches solved in the home vector of one colour; their solutions
+            # add up in x, whose RT part is σ_α,disc
             systems.gather(c, self.b, home)
-        x = systems.solve_home(home)
-        # the colours' solutions add up (in b, free again); their RT parts are σ_α,disc
-        with self.b.localForm() as local:
-            local.set(0.0)
-        for c in range(self.ncolours):
-            systems.scatter(c, x, self.b, add=True)
+            systems.scatter(c, systems.solve_home(c, home), x, add=True)
         sigma.x.array[:] = 0.0
-        systems.add_flux(self.b, sigma)
+        systems.add_flux(x, sigma)
         sigma.x.scatter_forward()
         self.defect = self._check(sigma, f, scale)
         return sigma
@@ -384,14 +392,15 @@ class FluxEquilibration:
         vec.destroy()
 
     def release(self):
-        """Free the work vectors of `sigma` (the home vector and the W vector b; made again at
-        the next call): a caller that computes σ for both membranes at once releases them
-        after the pair, so that they are not alive under what follows (the estimators' cell
-        integrals)."""
+        """Free the work vectors of `sigma` (the home vector and the W vectors b and x; made
+        again at the next call): a caller that computes σ for both membranes at once releases
+        them after the pair, so that they are not alive under what follows (the estimators'
+        cell integrals)."""
         self._home = None
-        if self._b is not None:
-            self._b.destroy()
-            self._b = None
+        for v in (self._b, self._x):
+            if v is not None:
+                v.destroy()
+        self._b = self._x = None
 
     def destroy(self):
         """Free the factorisations and PETSc vectors (the object is unusable afterwards)."""

@@ -296,15 +296,13 @@ class _Level:
         """σ_j = Σ_a σ_j^a on T_j for the DG1 moments `data` ((3 n_j, colours): column c
         the moments -(e_j^a, q) of the colour's patches)."""
         b, x = self.b, self.x
-        home = self.systems.home_vector()
+        home = self.systems.home_vector()                 # one colour at a time
+        x.array[:] = 0.0
         for c in range(self.ncolours):
             b.array[:] = 0.0
             b.array[self.dg] = data[:, c]
             self.systems.gather(c, b, home)
-        solution = self.systems.solve_home(home)
-        x.array[:] = 0.0
-        for c in range(self.ncolours):
-            self.systems.scatter(c, solution, x, add=True)
+            self.systems.scatter(c, self.systems.solve_home(c, home), x, add=True)
         self.sigma.x.array[:] = 0.0
         self.systems.add_flux(x, self.sigma)
 

@@ -31,11 +31,12 @@ invariant keys (`congruence.patch_keys`) form one class; only the block of the f
 a new key is taken, from A assembled on the cells of those patches of its group (their homes
 mark them for the owners of their cells, `_marked_cells`). A patch whose size differs from its
 key's class (a key collision) gets a class and block of its own. Each class keeps one dense
-inverse (LAPACK). The home vector holds the patches class by class, so that a call solves all
-patches of a class by one matrix product. Where nothing is congruent (an unstructured mesh)
-every patch has its own block and inverse. A patch solved with its class's inverse has its
-own divergence rows (`congruence`); the users of the engine check the divergence identity of
-every flux they make (`divergence`).
+inverse (LAPACK). A group's home vector holds its patches class by class, so that a call
+solves all the group's patches of a class by one matrix product; the groups are solved one
+after the other, so that the home vector needs room for one group only. Where nothing is
+congruent (an unstructured mesh) every patch has its own block and inverse. A patch solved
+with its class's inverse has its own divergence rows (`congruence`); the users of the engine
+check the divergence identity of every flux they make (`divergence`).
 
 **Zero mean on interior patches.** Instead of a Lagrange multiplier, one DG dof k of the patch
 (its first in the canonical order) is removed, both as unknown (γ_k = 0) and as equation (the
@@ -79,6 +80,7 @@ from .exchange import (
 from .homes import HomeSetup, assemble_rows
 
 SOLVE_CHUNK = 1 << 20     # home entries per product in `solve_home`
+OPERATOR_CHUNK = 1 << 18  # entries of the inverses taken by index per product (`solve_home`)
 RUN = 256                 # home entries of a run the routes copy as one slice (`_own_route`)
 
 __all__ = ["PatchSystems", "Shared", "alltoallv", "colour_vertices", "mixed_space", "stable_order",
@@ -115,12 +117,13 @@ class PatchSystems(HomeSetup):
     only the block of its inverse between those dofs.
 
     Each patch is solved on one process, its *home*: the owner of its cell of least global
-    index. The kept dofs of all patches at home on a process form its *home vector* (numpy),
-    class by class. A call goes: `home = home_vector()`; `gather(c, b, home)` for each group c
-    (b a PETSc Vec on W with final owned entries, the right-hand side of group c's patches);
-    `x = solve_home(home)`; then `scatter(c, x, out, add)` puts group c's solutions into a W
-    Vec (zero elsewhere unless `add`), and `add_flux(out, sigma)` adds its RT part to an RT_1
-    Function. `solve(c, b, out)` does all this for one group.
+    index. The kept dofs of one group's patches at home on a process form its *home vector*
+    (numpy), class by class; one buffer (`home_vector`, the size of the largest group) serves
+    every group in turn. A call goes, for each group c: `gather(c, b, home)` (b a PETSc Vec on
+    W with final owned entries, the right-hand side of group c's patches); `x =
+    solve_home(c, home)`; then `scatter(c, x, out, add)` puts group c's solutions into a W Vec
+    (zero elsewhere unless `add`, which sums the groups), and `add_flux(out, sigma)` adds its
+    RT part to an RT_1 Function. `solve(c, b, out)` does the first three for one group.
     """
 
     def __init__(self, mesh, patches, interior, W=None, share=True, rhs="full",
@@ -247,25 +250,36 @@ class PatchSystems(HomeSetup):
         return out
 
     def _layout(self, groups, classes):
-        """Home order (size, class multiplicity, class, group, patch), the routes to it, the
-        canonical change of basis in home order, and the inverses of the classes."""
+        """Home order (group, size, class multiplicity in the group, class, patch), the routes
+        to it, the canonical change of basis in home order, and the inverses of the classes.
+        Each group's patches are one slice of the home order, so that a group is gathered,
+        solved and scattered in a buffer of its own size (`home_vector`)."""
         comm = self.comm
+        ngroups = len(groups)
         n = np.concatenate([np.diff(g[1]) for g in groups])
         cls = np.concatenate([g[3] for g in groups])
         group = np.concatenate([np.full(len(g[1]) - 1, c) for c, g in enumerate(groups)])
         nclasses = classes.count()
-        count = np.bincount(cls, minlength=nclasses)
+        # per group and class its patches here, as a table (groups, classes)
+        count = np.bincount(group * nclasses + cls,
+                            minlength=ngroups * nclasses).reshape(ngroups, nclasses)
         shape = np.array([classes.shape(k) for k in range(nclasses)], dtype=np.int64)
         shape = shape.reshape(-1, 3)                      # per class (n, L, n_σ)
-        # (the classes ranked by (n, n_σ, count, class), then the patches by rank and group: a
-        # patch's n is its class's)
-        rank = np.empty(nclasses, dtype=np.int64)
-        rank[np.lexsort((np.arange(nclasses), count, shape[:, 2], shape[:, 0]))] = \
-            np.arange(nclasses)
-        order = stable_order(rank[cls] * max(len(groups), 1) + group)
+        # (per group the classes ranked by (n, n_σ, count in the group, class), then the
+        # patches by group and rank: a patch's n is its class's)
+        g, k = np.nonzero(count)
+        ranked = np.lexsort((k, count[g, k], shape[k, 2], shape[k, 0], g))
+        rank = np.zeros((ngroups, nclasses), dtype=np.int64)
+        rank[g[ranked], k[ranked]] = np.arange(ranked.size)
+        order = stable_order(rank[group, cls])
+        del rank
         start = np.zeros(cls.size, dtype=np.int64)
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
+        # each group's slice of the home order [first, last), and its patches' places there
+        sizes = np.bincount(group, weights=n, minlength=ngroups).astype(np.int64)
+        self.group_starts = np.concatenate([[0], np.cumsum(sizes)])
+        self.buffer_size = int(sizes.max(initial=0))
         code = np.zeros(self.home_size, dtype=np.int16)
         # per group the routes from the owners to the home positions: the entries owned here
         # by index lists (`gather`, `scatter`; PETSc 3.18's VecScatter keeps two buffers of
@@ -273,15 +287,16 @@ class PatchSystems(HomeSetup):
         template = PETSc.Vec().createMPI((self.nowned, PETSc.DECIDE), comm=comm)
         hv = local_vec(self.home_vector())
         self.local, self.scatters, self.group_sizes = [], [], []
-        index = np.int32 if self.home_size < np.iinfo(np.int32).max else np.int64
+        index = np.int32 if self.buffer_size < np.iinfo(np.int32).max else np.int64
         lo, hi = self.rstart, self.rstart + self.nowned
         first = 0
-        for dofs, offsets, gcode, _ in groups:
+        for c, (dofs, offsets, gcode, _) in enumerate(groups):
             k = np.diff(offsets)
             # the group's patches by home position: their entries in home order (a cheaper
-            # scatter set-up), those entries' places at home (increasing) and the entries where
-            # these stop counting up by one: the first of a patch that does not follow the one
-            # before at home, and among the owned ones the first after another process's
+            # scatter set-up), those entries' places at home (increasing; the routes count
+            # from the group's first) and the entries where these stop counting up by one:
+            # the first of a patch that does not follow the one before at home, and among the
+            # owned ones the first after another process's
             at = start[first:first + k.size]
             first += k.size
             by_start = np.argsort(at)
@@ -292,6 +307,7 @@ class PatchSystems(HomeSetup):
             new[(np.cumsum(k) - k)[jump]] = True
             at = ranges(at, k)
             code[at] = gcode[by_home]
+            at -= self.group_starts[c]
             src = dofs[by_home]
             mine = (src >= lo) & (src < hi)
             new[1:] |= mine[1:] > mine[:-1]
@@ -307,38 +323,52 @@ class PatchSystems(HomeSetup):
             self.group_sizes.append(comm.allreduce(int(offsets[-1]), op=MPI.SUM))
         template.destroy()
         hv.destroy()
-        self.change = BasisChange(code, np.append(start[order], self.home_size), self.blocks)
+        # the patches of group c are order[bounds[c]:bounds[c + 1]]
+        bounds = np.concatenate([[0], np.cumsum(np.bincount(group, minlength=ngroups))])
+        self.changes = []
+        for c in range(ngroups):
+            g0, g1 = self.group_starts[c], self.group_starts[c + 1]
+            at = start[order[bounds[c]:bounds[c + 1]]] - g0
+            self.changes.append(BasisChange(code[g0:g1], np.append(at, g1 - g0), self.blocks))
         del code
 
         # per class the block of its inverse from the right-hand side entries used to the
-        # solution entries wanted (RT dofs first, DG dofs last in a patch); one product per
-        # (shape, count) for all the patches of its classes
-        self.solves = []
+        # solution entries wanted (RT dofs first, DG dofs last in a patch), made once per
+        # shape (n, n_σ) for all its classes; per group one product per (shape, count in
+        # the group) for all the group's patches of those classes, which take their classes'
+        # blocks by index (`solve_home`)
+        self.operators, self.solves = {}, [[] for _ in range(ngroups)]
         ok = True
         try:
-            # each class's first patch: its patches are consecutive in home order
-            first = np.full(nclasses, np.iinfo(np.int64).max)
-            new = run_starts(cls[order])
-            first[cls[order[new]]] = start[order[new]]
-            used = np.flatnonzero(count > 0)              # (n, n_σ, count, class) by rows
-            ranked = np.stack([shape[used, 0], shape[used, 2], count[used], used], axis=1)
-            ranked = ranked[np.lexsort(ranked.T[::-1])]
-            for size, rt in np.unique(ranked[:, :2], axis=0).tolist():
-                these = ranked[(ranked[:, 0] == size) & (ranked[:, 1] == rt)]
+            used = np.flatnonzero(count.sum(axis=0) > 0)
+            row = np.full(nclasses, -1, dtype=np.int64)        # a class's block in its shape's
+            for size, rt in np.unique(shape[used][:, [0, 2]], axis=0).tolist():
+                these = used[(shape[used, 0] == size) & (shape[used, 2] == rt)]
                 inputs = slice(rt if self.rhs == "divergence" else 0, size)
                 outputs = slice(0, rt if self.solution == "flux" else size)
-                operators = classes.operators(these[:, 3], inputs, outputs)
-                at = 0
-                for m in np.unique(these[:, 2]):
-                    K = int(np.count_nonzero(these[:, 2] == m))
-                    self.solves.append((int(first[these[at, 3]]), K, int(m), size, inputs,
-                                        outputs, operators[at:at + K].transpose(0, 2, 1)))
-                    at += K
+                row[these] = np.arange(these.size)
+                self.operators[size, rt] = (inputs, outputs,
+                                            classes.operators(these, inputs, outputs))
+            # the group's classes in home order (each class's first patch: its patches in the
+            # group are consecutive there), cut where the shape or the count changes
+            new = run_starts(group[order] * nclasses + cls[order])
+            first, gk = start[order[new]], cls[order[new]]
+            gg = group[order[new]]
+            m = count[gg, gk]
+            cut = np.flatnonzero(np.diff(np.stack([gg, shape[gk, 0], shape[gk, 2], m]),
+                                         axis=1).any(axis=0)) + 1
+            for a, b in zip(np.concatenate([[0], cut]).tolist(),
+                            np.concatenate([cut, [gk.size]]).tolist()):
+                c, size, rt = int(gg[a]), int(shape[gk[a], 0]), int(shape[gk[a], 2])
+                self.solves[c].append((int(first[a] - self.group_starts[c]), b - a, int(m[a]),
+                                       size, (size, rt), row[gk[a:b]]))
         except np.linalg.LinAlgError:
             ok = False
         if not comm.allreduce(ok, op=MPI.LAND):
             raise RuntimeError("a patch problem is singular")
-        if ok and sum(s[1] * s[2] * s[3] for s in self.solves) != self.home_size:
+        if ok and any(sum(s[1] * s[2] * s[3] for s in self.solves[c])
+                      != self.group_starts[c + 1] - self.group_starts[c]
+                      for c in range(ngroups)):
             raise RuntimeError("the products do not cover the home vector")
         self.nclasses, self.npatches = nclasses, cls.size
         classes.release()
@@ -357,15 +387,16 @@ class PatchSystems(HomeSetup):
         return rows, runs, single.astype(index), at[single].astype(index)
 
     def home_vector(self):
-        """A zero home vector (numpy): the kept dofs of the patches at home, all groups."""
-        return np.zeros(self.home_size)
+        """A zero home vector (numpy) for one group at a time: room for the kept dofs of the
+        patches at home of the largest group."""
+        return np.zeros(self.buffer_size)
 
     def gather(self, c, b, home):
         """home ← the entries of the W vector b at group c's kept dofs (dolfinx's basis): the
         runs straight into their home slices, the other entries by their positions (PETSc's
-        VecGetValues on a sequential Vec over b's owned entries). The groups' patches make up
-        the home vector, so the gathers of all groups write every entry of it: a home vector
-        used before needs no zeroing first."""
+        VecGetValues on a sequential Vec over b's owned entries). The group's patches make up
+        the first `group_starts[c + 1] - group_starts[c]` entries of the home vector, which
+        the gather writes whole: a home vector used before needs no zeroing first."""
         rows, runs, k, at = self.local[c]
         owned = local_vec(b.array_r)
         for h0, k0, n in runs:
@@ -377,30 +408,31 @@ class PatchSystems(HomeSetup):
         hv.destroy()
         return home
 
-    def canonical(self, home):
-        """Gᵀ home in place: gathered right-hand sides in the canonical basis. With
+    def canonical(self, c, home):
+        """Gᵀ home in place: group c's gathered right-hand sides in the canonical basis. With
         rhs="divergence" the right-hand sides vanish on the RT dofs, where alone G differs from
         the identity: nothing to do."""
         if self.rhs == "divergence":
             return home
-        return self.change.apply(home, transpose=True)
+        return self.changes[c].apply(home, transpose=True)
 
-    def solve_home(self, home):
-        """The solutions of all patches for the gathered right-hand sides `home`, as a home
-        vector in dolfinx's basis: `home` itself, overwritten."""
-        rhs = self.canonical(home)
-        # K classes of m patches of n dofs each, one inverse per class; in place, about
-        # SOLVE_CHUNK entries at a time: the inputs are copied out before their slice is
-        # overwritten (one home vector less at the peak of an evaluation)
-        for h0, K, m, n, inputs, outputs, operator_t in self.solves:
-            step = max(1, SOLVE_CHUNK // (m * n))
+    def solve_home(self, c, home):
+        """The solutions of group c's patches for its gathered right-hand sides `home`, as a
+        home vector in dolfinx's basis: `home` itself, overwritten."""
+        rhs = self.canonical(c, home)
+        # K classes of m patches of n dofs each, one inverse per class (its shape's `row`);
+        # in place, about SOLVE_CHUNK entries and OPERATOR_CHUNK inverse entries at a time:
+        # the inputs are copied out before their slice is overwritten
+        for h0, K, m, n, kind, row in self.solves[c]:
+            inputs, outputs, operator = self.operators[kind]      # (classes, out, in)
+            step = max(1, min(SOLVE_CHUNK // (m * n), OPERATOR_CHUNK // operator[0].size))
             for k0 in range(0, K, step):
                 k1 = min(K, k0 + step)
                 rows = rhs[h0 + k0 * m * n:h0 + k1 * m * n].reshape(k1 - k0, m, n)
-                x = np.matmul(rows[:, :, inputs], operator_t[k0:k1])
+                x = np.matmul(rows[:, :, inputs], operator[row[k0:k1]].transpose(0, 2, 1))
                 rows[:, :, outputs] = x
                 rows[:, :, outputs.stop:] = 0.0          # (outputs: the first dofs)
-        return self.change.apply(rhs, transpose=False)
+        return self.changes[c].apply(rhs, transpose=False)
 
     def scatter(self, c, x, out, add=False):
         """The solutions of group c (home vector x) into the W vector `out` (owned entries):
@@ -428,7 +460,7 @@ class PatchSystems(HomeSetup):
         if out is None:
             out = b.duplicate()
         home = self.gather(c, b, self.home_vector())
-        return self.scatter(c, self.solve_home(home), out)
+        return self.scatter(c, self.solve_home(c, home), out)
 
     def add_flux(self, x, sigma):
         """sigma.x (owned part) += the RT part of the W vector x (owned part)."""
@@ -444,7 +476,7 @@ class PatchSystems(HomeSetup):
         processes), patches whose key's class had another size (a key collision: they have
         their own block), inverse memory in bytes, and facet dofs whose two cells disagree on
         the canonical basis (0)."""
-        memory = sum(s[6].nbytes for s in self.solves)
+        memory = sum(ops[2].nbytes for ops in self.operators.values())
         local = np.array([self.npatches, self.nclasses, self.collisions, memory, self.disagree])
         total = self.comm.allreduce(local, op=MPI.SUM)
         return dict(zip(("patches", "classes", "collisions", "inverse_bytes", "disagree"),
@@ -453,4 +485,4 @@ class PatchSystems(HomeSetup):
     def destroy(self):
         for s in self.scatters:
             s.destroy()
-        self.local, self.scatters, self.solves = [], [], []
+        self.local, self.scatters, self.solves, self.operators = [], [], [], {}

@@ -57,21 +57,27 @@ def random_solutions(mesh, seed=0):
             comm.allreduce(diff, op=MPI.MAX))
 
 
-def uncovered(systems, ngroups):
-    """(entries, home size) over all processes: the home entries that the gathers of all
-    groups leave as they were (NaN before; a W vector b of ones gathered), and the entries in
-    all. σ_disc reuses its home vector without zeroing it (equilibration), which is right only
-    where this is 0."""
+def uncovered(systems, ngroups, every=True):
+    """(entries, home size) over all processes and groups: the entries of a group's part of
+    the home vector (its first `group_starts[c + 1] - group_starts[c]`) that its gather leaves
+    as they were (NaN before; a W vector b of ones gathered), and those entries in all.
+    σ_disc reuses its home vector from one colour to the next without zeroing it
+    (equilibration), which is right only where this is 0. `every=False`: the gather of group
+    0 into each group's part (it leaves entries where the other groups are larger)."""
     W = systems.W
     b = PETSc.Vec().createMPI((W.dofmap.index_map.size_local, PETSc.DECIDE), comm=systems.comm)
     b.set(1.0)
-    home = np.full(systems.home_size, np.nan)
+    left = total = 0
+    home = systems.home_vector()
     for c in range(ngroups):
-        systems.gather(c, b, home)
+        home[:] = np.nan
+        systems.gather(c if every else 0, b, home)
+        size = systems.group_starts[c + 1] - systems.group_starts[c]
+        left += int(np.isnan(home[:size]).sum())
+        total += int(size)
     b.destroy()
     comm = systems.comm
-    return (comm.allreduce(int(np.isnan(home).sum()), op=MPI.SUM),
-            comm.allreduce(int(home.size), op=MPI.SUM))
+    return comm.allreduce(left, op=MPI.SUM), comm.allreduce(total, op=MPI.SUM)
 
 
 def straddling(comm, groups):

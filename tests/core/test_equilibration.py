@@ -50,14 +50,22 @@ def test_divergence_on_every_cell(data, fluxes, alpha):
 
 
 def test_patch_solves_by_chunks(data, fluxes, monkeypatch):
-    """`solve_home` in place, a few entries at a time (SOLVE_CHUNK), gives the same σ to the
-    last bit as whole products: the same products of the same rows."""
+    """`solve_home` in place, a few entries (SOLVE_CHUNK) or inverses (OPERATOR_CHUNK) at a
+    time, gives the same σ to the last bit as whole products: the same products of the same
+    rows."""
     from membranes.estimation import patches
     eq, sigmas = fluxes
-    monkeypatch.setattr(patches, "SOLVE_CHUNK", 50)
-    assert any(K > max(1, 50 // (m * n)) for _, K, m, n, *_ in eq.systems.solves)
-    again = eq.sigma(1, data.u, data.lam, data.r[1], data.f, MU)
-    assert np.array_equal(again.x.array, sigmas[1].x.array)
+    runs = [run for group in eq.systems.solves for run in group]
+    for name in ("SOLVE_CHUNK", "OPERATOR_CHUNK"):
+        with monkeypatch.context() as m:
+            m.setattr(patches, name, 50)
+            # (the products' step, as `solve_home` takes it: some runs are cut)
+            assert any(K > max(1, min(patches.SOLVE_CHUNK // (m_ * n),
+                                      patches.OPERATOR_CHUNK
+                                      // eq.systems.operators[kind][2][0].size))
+                       for _, K, m_, n, kind, _ in runs)
+            again = eq.sigma(1, data.u, data.lam, data.r[1], data.f, MU)
+            assert np.array_equal(again.x.array, sigmas[1].x.array)
 
 
 def test_colouring_is_proper(data, fluxes):
