@@ -357,7 +357,7 @@ class PatchSystems(HomeSetup):
             m = count[gg, gk]
             cut = np.flatnonzero(np.diff(np.stack([gg, shape[gk, 0], shape[gk, 2], m]),
                                          axis=1).any(axis=0)) + 1
-            for a, b in zip(np.concatenate([[0], cut]).tolist(),
+            for a, b in zip(np.concatenate([[0], cut]).tolist() if gk.size else [],
                             np.concatenate([cut, [gk.size]]).tolist()):
                 c, size, rt = int(gg[a]), int(shape[gk[a], 0]), int(shape[gk[a], 2])
                 self.solves[c].append((int(first[a] - self.group_starts[c]), b - a, int(m[a]),
