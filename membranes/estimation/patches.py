@@ -260,19 +260,20 @@ class PatchSystems(HomeSetup):
         cls = np.concatenate([g[3] for g in groups])
         group = np.concatenate([np.full(len(g[1]) - 1, c) for c, g in enumerate(groups)])
         nclasses = classes.count()
-        # per group and class its patches here, as a table (groups, classes)
-        count = np.bincount(group * nclasses + cls,
-                            minlength=ngroups * nclasses).reshape(ngroups, nclasses)
         shape = np.array([classes.shape(k) for k in range(nclasses)], dtype=np.int64)
         shape = shape.reshape(-1, 3)                      # per class (n, L, n_σ)
+        # the (group, class) pairs here, each with its patches' count and each patch's pair
+        # (no table over all groups and classes: without sharing a class is a patch)
+        pairs, pair, count = np.unique(group * nclasses + cls, return_inverse=True,
+                                       return_counts=True)
+        pair_group, pair_class = pairs // max(nclasses, 1), pairs % max(nclasses, 1)
         # (per group the classes ranked by (n, n_σ, count in the group, class), then the
         # patches by group and rank: a patch's n is its class's)
-        g, k = np.nonzero(count)
-        ranked = np.lexsort((k, count[g, k], shape[k, 2], shape[k, 0], g))
-        rank = np.zeros((ngroups, nclasses), dtype=np.int64)
-        rank[g[ranked], k[ranked]] = np.arange(ranked.size)
-        order = stable_order(rank[group, cls])
-        del rank
+        rank = np.empty(pairs.size, dtype=np.int64)
+        rank[np.lexsort((pair_class, count, shape[pair_class, 2], shape[pair_class, 0],
+                         pair_group))] = np.arange(pairs.size)
+        order = stable_order(rank[pair])
+        del rank, pair
         start = np.zeros(cls.size, dtype=np.int64)
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
@@ -340,7 +341,7 @@ class PatchSystems(HomeSetup):
         self.operators, self.solves = {}, [[] for _ in range(ngroups)]
         ok = True
         try:
-            used = np.flatnonzero(count.sum(axis=0) > 0)
+            used = np.unique(pair_class)
             row = np.full(nclasses, -1, dtype=np.int64)        # a class's block in its shape's
             for size, rt in np.unique(shape[used][:, [0, 2]], axis=0).tolist():
                 these = used[(shape[used, 0] == size) & (shape[used, 2] == rt)]
@@ -354,7 +355,7 @@ class PatchSystems(HomeSetup):
             new = run_starts(group[order] * nclasses + cls[order])
             first, gk = start[order[new]], cls[order[new]]
             gg = group[order[new]]
-            m = count[gg, gk]
+            m = count[np.searchsorted(pairs, gg * nclasses + gk)]
             cut = np.flatnonzero(np.diff(np.stack([gg, shape[gk, 0], shape[gk, 2], m]),
                                          axis=1).any(axis=0)) + 1
             for a, b in zip(np.concatenate([[0], cut]).tolist() if gk.size else [],
