@@ -273,7 +273,7 @@ class PatchSystems(HomeSetup):
         rank[np.lexsort((pair_class, count, shape[pair_class, 2], shape[pair_class, 0],
                          pair_group))] = np.arange(pairs.size)
         order = stable_order(rank[pair])
-        del rank, pair
+        del rank
         start = np.zeros(cls.size, dtype=np.int64)
         start[order] = np.cumsum(n[order]) - n[order]
         self.home_size = int(n.sum())
@@ -352,10 +352,9 @@ class PatchSystems(HomeSetup):
                                             classes.operators(these, inputs, outputs))
             # the group's classes in home order (each class's first patch: its patches in the
             # group are consecutive there), cut where the shape or the count changes
-            new = run_starts(group[order] * nclasses + cls[order])
-            first, gk = start[order[new]], cls[order[new]]
-            gg = group[order[new]]
-            m = count[np.searchsorted(pairs, gg * nclasses + gk)]
+            new = run_starts(pair[order])
+            first, gk, gg = start[order[new]], cls[order[new]], group[order[new]]
+            m = count[pair[order[new]]]
             cut = np.flatnonzero(np.diff(np.stack([gg, shape[gk, 0], shape[gk, 2], m]),
                                          axis=1).any(axis=0)) + 1
             for a, b in zip(np.concatenate([[0], cut]).tolist() if gk.size else [],
