@@ -60,16 +60,19 @@ inexact variants estimate X⁰ and every Newton iterate when given one, for the 
 Vecs are the loop's own: a callback that keeps one copies it.
 
 No line search: a Newton step is the plain semismooth step of §3 (for Newton-min with exact
-solves, the primal–dual active set method); the only safeguard is the inexact variant's
-shrinking forcing term above. A step whose Krylov solve
+solves, the primal–dual active set method); the only safeguards are the inexact variant's
+shrinking forcing term above and the divergence stop below. A step whose Krylov solve
 makes no iteration (its initial guess X^{k,0} meets the bound, which is never below the exact
 floor; X^{k,0} is X^{k-1}, on the eliminated system with its eliminated unknowns made
 consistent) leaves the iterate where it was, and the next step would repeat it: if the
 Newton test fails there, the run stops, not converged, and says so. The adaptive variant
 asks for such an iterate's estimates with kind 'stalled' (in full, whatever a gate would
-guess: its test decides whether the run stops). A Krylov solve that fails
-(PETSc error, iteration limit, breakdown) ends the run with converged = False and says why;
-nothing is hidden.
+guess: its test decides whether the run stops). A run whose iterates run away stops too, not
+converged, at the first Newton iterate whose ‖R_lin‖/‖(F, 0)‖ exceeds `DIVERGENCE` (1e8)
+times the larger of X⁰'s and 1, the zero iterate's (SNES's divergence tolerance, with room
+for converging runs that rise while the contact set settles: docs/choices.md, "When Newton
+has diverged"). A Krylov solve that fails (PETSc error, iteration limit, breakdown) ends the
+run with converged = False and says why; nothing is hidden.
 """
 
 import time
