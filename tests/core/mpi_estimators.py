@@ -12,7 +12,6 @@ rank holds the same numbers: the estimators with the given fluxes, and with the 
 equilibration and the ν flux.
 """
 
-import json
 import sys
 
 import numpy as np
@@ -170,12 +169,8 @@ def main(N):
             if key == "eta_K":
                 v = float(np.sqrt(comm.allreduce(float((v ** 2).sum()), op=MPI.SUM)))
             out[f"{name}.{key}"] = v
-    every = comm.gather(out, root=0)
-    if comm.rank == 0:
-        if any(o != out for o in every):
-            print("ranks disagree", file=sys.stderr)
-            sys.exit(1)
-        print(json.dumps(out))
+    from mpi_common import print_agreed  # run as a script from tests/core
+    print_agreed(comm, out)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,6 @@ one JSON line {"nested": {...}, "plain": {...}} with the checks, the invariants 
 counts, after checking that every rank holds the same numbers.
 """
 
-import json
 import sys
 
 import numpy as np
@@ -97,12 +96,8 @@ def main(levels, rtol):
         out[r.label] = {**discrete_checks(r), **invariants(r, EnergyError(r.disc)),
                         "snes": [lv.snes_iterations for lv in r.levels],
                         "converged": r.converged}
-    every = comm.gather(out, root=0)
-    if comm.rank == 0:
-        if any(o != out for o in every):
-            print("ranks disagree", file=sys.stderr)
-            sys.exit(1)
-        print(json.dumps(out))
+    from mpi_common import print_agreed  # run as a script from tests/core
+    print_agreed(comm, out)
 
 
 if __name__ == "__main__":
