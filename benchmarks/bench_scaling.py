@@ -130,6 +130,13 @@ def phases(sizes, procs, methods, stats):
                       + f" | {r['method_s']:.2f} |")
 
 
+def by_repeat(pairs, spec):
+    """' (repeat by repeat: …)' for more than one ratio of `paired`, else ''."""
+    if len(pairs) < 2:
+        return ""
+    return " (repeat by repeat: " + ", ".join(f"{x:{spec}}" for x in pairs) + ")"
+
+
 def paired(runs, a, b, key):
     """Ratios a/b of `key` repeat by repeat (the two runs of a repeat are close in time)."""
     by = {}
@@ -151,10 +158,8 @@ def ratios(sizes, procs, methods, stats, runs):
                 peer = stats.get((s, p, m))
                 if peer is None:
                     continue
-                pairs = paired([r for r in runs if r["size"] == s],
-                               ("ours", p), (m, p), "method_s")
-                each = (" (repeat by repeat: " + ", ".join(f"{x:.3f}" for x in pairs) + ")"
-                        if len(pairs) > 1 else "")
+                each = by_repeat(paired([r for r in runs if r["size"] == s],
+                                        ("ours", p), (m, p), "method_s"), ".3f")
                 print(f"{head} ours / {LABELS[m]}: method time "
                       f"{ours['method_s'] / peer['method_s']:.3f}{each}, process time "
                       f"{ours['process_s'] / peer['process_s']:.3f}; energy error "
@@ -165,8 +170,11 @@ def ratios(sizes, procs, methods, stats, runs):
             par = stats.get((s, p, "ours"))
             if p == 1 or serial is None or par is None:
                 continue
+            # (repeat by repeat too: on a shared machine one median hides the spread)
+            each = by_repeat(paired([r for r in runs if r["size"] == s],
+                                    ("ours", 1), ("ours", p), "method_s"), ".2f")
             print(f"size {s}: speed-up of ours on {p} processes: method time "
-                  f"{serial['method_s'] / par['method_s']:.2f}, process time "
+                  f"{serial['method_s'] / par['method_s']:.2f}{each}, process time "
                   f"{serial['process_s'] / par['process_s']:.2f}; largest peak per process "
                   f"{par['peak_gib'] / serial['peak_gib']:.3f} of the serial one")
 
