@@ -22,9 +22,11 @@ where certified, Newton (SNES) steps. The methods alternate run by run (and the 
 reversed every other repeat), so that the machine's drift is shared among them; `--repeat N`
 runs every (P, method) N times and the figures are the medians. Printed: a table, then the
 ratios ours / nested peer (process and method time), ours / certified nested peer, energy
-error ours / peer, peak memory ours / peer, the speed-up of ours on P processes, and where
-the method time goes: the coarse levels, the solve on T_J, the estimator set-up and the
-estimates (`fresh.phases_of_ours`, `fresh.phases_of_peer`).
+error ours / peer, peak memory ours / peer, the certificate's own cost against the peers
+(the certified peer's set-up and evaluation: the floor of a certified run's ratios), the
+speed-up of ours on P processes (each also repeat by repeat), and where the method time
+goes: the coarse levels, the solve on T_J, the estimator set-up and the estimates
+(`fresh.phases_of_ours`, `fresh.phases_of_peer`).
 Nothing is asserted: the figures depend on the machine and on what else runs on it.
 
 Before each launch the run's memory is estimated (fresh.MemoryGuard) and the run is skipped
@@ -146,6 +148,23 @@ def paired(runs, a, b, key):
     return [rep[a][key] / rep[b][key] for rep in by.values() if a in rep and b in rep]
 
 
+def certificate_floor(stats, s, p):
+    """What the certificate alone costs, against the peers' method times: the certified
+    peer's estimator set-up and evaluation (the median phases), which a certified run of ours
+    pays as well (the same set-up, at least one evaluation). A ratio ours / peer below the
+    certificate's own ratio cannot be reached by making Newton faster; None without both
+    peers' runs."""
+    nested, certified = stats.get((s, p, "nested")), stats.get((s, p, "certified"))
+    phases = (certified or {}).get("phases") or {}
+    if nested is None or phases.get("set-up") is None or phases.get("estimates") is None:
+        return None
+    cert = phases["set-up"] + phases["estimates"]
+    return (f"the certificate alone (set-up {phases['set-up']:.2f} s + one evaluation "
+            f"{phases['estimates']:.2f} s) is {cert / nested['method_s']:.3f} of the nested "
+            f"peer's method time and {cert / certified['method_s']:.3f} of the certified "
+            f"peer's: the floor of a certified run's ratios (up to the machine's spread)")
+
+
 def ratios(sizes, procs, methods, stats, runs):
     print()
     for s in sizes:
@@ -165,6 +184,9 @@ def ratios(sizes, procs, methods, stats, runs):
                       f"{ours['process_s'] / peer['process_s']:.3f}; energy error "
                       f"{ours['energy_error'] / peer['energy_error']:.4f}; peak "
                       f"{ours['peak_gib'] / peer['peak_gib']:.3f}")
+            floor = certificate_floor(stats, s, p)
+            if floor is not None:
+                print(f"{head} " + floor)
         serial = stats.get((s, 1, "ours"))
         for p in procs:
             par = stats.get((s, p, "ours"))
