@@ -16,7 +16,8 @@ many problems on one hierarchy (other loads, moduli, g, Newton variants or solve
 the flux equilibration of each mesh that gets estimators is set up by the first solve on it
 and taken again by the next ones. Only the data parts are made anew: the loads -(ψ_a f_α, q)
 of §5, integrated with the new problem's data measures (the quadrature that assembled its
-F_α, so that the interior patches stay compatible), and the estimators' own forms.
+F_α, so that the interior patches stay compatible; made at the solve's first full evaluation,
+as in a fresh run), and the estimators' own forms.
 
 With alg_flux='multilevel' the algebraic flux's own set-up on the hierarchy (§6) is still
 made at every solve; only the equilibration of T_J is kept.

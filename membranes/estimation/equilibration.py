@@ -136,27 +136,34 @@ def assemble_loads(eq, fs, measures):
 
     from membranes.fem.quadrature import over
     k = len(fs)
-    hats, wdofs = eq.slots()
+    hats = eq.slots()
     Z = fem.VectorFunctionSpace(eq.mesh, ("DG", 1), dim=3 * k)
     q = ufl.TestFunction(Z)
     form = fem.form(over(measures, lambda dx: sum(
         equilibration_forms.patch_load(hats[s], f, q[3 * i + s], dx)
         for i, f in enumerate(fs) for s in range(3))))
-    blocks = fem.assemble_vector(form)
-    blocks.scatter_reverse(la.ScatterMode.add)
-    blocks = blocks.array                         # entry 3k z + 3i + s: dof z, load i, slot s
-    nc = wdofs.shape[0]
-    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:nc].astype(np.int64)
+    vector = fem.assemble_vector(form)
+    # (the form and the hats, 9 doubles a cell, go before the blocks are read: the first full
+    # evaluation makes the loads, and what is alive here adds to its peak)
+    del form
+    hats.clear()
+    vector.scatter_reverse(la.ScatterMode.add)
+    blocks = vector.array                         # entry 3k z + 3i + s: dof z, load i, slot s
+    nc = eq.cells.shape[0]
+    zdofs = Z.dofmap.list.array.reshape(-1, 3)[:nc]
     # Σ_s -(φ_s f_i, q_m)_K = -(f_i, q_m)_K: per cell, DG1 dof m and load i (no copy by the
-    # cells where Z's dofs follow them); slot by slot (numpy reduces an axis of three slowly)
+    # cells where Z's dofs follow them); slot by slot (numpy reduces an axis of three slowly),
+    # into one array
     slots = blocks.reshape(-1, k, 3)
-    moments = -(slots[:, :, 0] + slots[:, :, 1] + slots[:, :, 2])
+    moments = np.add(slots[:, :, 0], slots[:, :, 1])
+    moments += slots[:, :, 2]
+    np.negative(moments, out=moments)
     del slots
     follow = np.array_equal(zdofs, np.arange(3 * nc).reshape(-1, 3))
     moments = moments[:3 * nc].reshape(nc, 3, k) if follow else moments.take(zdofs, axis=0)
     values = [[] for _ in fs]
     for touching, s in eq.touching():
-        entry = 3 * k * zdofs[touching] + s[:, None]
+        entry = 3 * k * zdofs[touching].astype(np.int64) + s[:, None]
         for i in range(k):
             values[i].append(blocks[entry + 3 * i])
     return [Load(f, v) for f, v in zip(fs, values)], moments
@@ -249,17 +256,15 @@ class FluxEquilibration:
         return self._touching
 
     def slots(self):
-        """(hats, wdofs) for `assemble_loads`: hats[s] the DG1 Function (of the space of r)
-        equal on every cell to the hat function of its local vertex s; wdofs the (owned cells,
-        3) W dofs of the cells' DG1 dofs (W's DG1 part: the same element, so the same local
-        order)."""
+        """The hats for `assemble_loads`: hats[s] the DG1 Function (of the space of r) equal on
+        every cell to the hat function of its local vertex s."""
         from dolfinx import fem
         Q = self.r.function_space
         cells = Q.dofmap.list.array.reshape(-1, 3)
         hats = [fem.Function(Q) for _ in range(3)]
         for s, hat in enumerate(hats):
             hat.x.array[cells[:, s]] = 1.0
-        return hats, self._cell_dg_dofs()
+        return hats
 
     def _cell_dg_dofs(self):
         """The (owned cells, 3) W dofs of the cells' DG1 dofs, checked to be owned."""

@@ -135,9 +135,15 @@ class Estimators:
     `equilibration`: the σ_α,disc of §5, a `membranes.estimation.equilibration.
     FluxEquilibration` (`sigma(alpha, u, lam, r, f, mu, out)`, its RT_1 space `rt_space`);
     it is asked only by `sigma_disc` (and so by `evaluate` and `nu_flux`). Without it,
-    `assemble` takes σ_disc from the caller."""
+    `assemble` takes σ_disc from the caller.
 
-    def __init__(self, disc, equilibration=None):
+    `eager_data`: make the data parts (σ_disc's loads, η_osc; `_data_parts`) in the set-up
+    instead of at the first full evaluation: for a caller that evaluates at once (the
+    certificate of a given iterate), where the memory the set-up freed then holds their
+    transients. By default a run whose Newton steps come before its first full evaluation
+    does not carry them through those steps."""
+
+    def __init__(self, disc, equilibration=None, eager_data=False):
         from dolfinx import fem
         from petsc4py import PETSc
 
@@ -157,11 +163,8 @@ class Estimators:
         self.DG1 = self.lifting.Q
         self.RT = (equilibration.rt_space if equilibration is not None
                    else fem.FunctionSpace(mesh, ("RT", 2)))
-        moments = None                  # η_osc's DG1 loads, from the equilibration's if alike
-        if equilibration is not None:                                   # data parts, once
-            self.loads, moments = equilibration.loads((disc.f1, disc.f2), moments=True)
-            if equilibration.measures is not disc.dx_data:              # other integrals
-                moments = None
+        # σ_disc's loads and η_osc, made at the first full evaluation (`_data_parts`)
+        self._loads = self._osc_t = self._osc_sum = None
         # coefficients the evaluations write into. The nodal fields u1h, u2h, λ^pos, λ^neg,
         # s_h - u_h and δλ = λ'_h - λh (ν flux) are the components of ONE vector-P1 Function:
         # dolfinx packs a form's coefficients cell by cell, and the values of a vertex then lie
@@ -171,9 +174,8 @@ class Estimators:
         # the forms' coefficients σ_α,disc, σ_α,alg and r_αh (lifted R_α), made at first use
         self._sigma = self._sigma_alg = self._rho = None
         self._build_forms()
-        self._osc_t = self._oscillation(moments)                        # (2, cells)
-        del moments
-        self._osc_sum = (self._osc_t ** 2).sum()                        # η_osc², local
+        if eager_data:
+            self._data_parts()
         self._recent = []                                               # σ_disc's last two
         self._u_sigma = [fem.Function(V) for _ in range(3)]             # σ_disc's iterate
         self._layouts = {}                                              # `_alike`'s verdicts
@@ -268,9 +270,37 @@ class Estimators:
     cells_disc_rem = property(lambda self: self._cell_form("disc_rem"),
                               doc="`cells_disc` and η_rem's terms in one CellForm")
 
+    def _data_parts(self):
+        """Make, at its first call, what only a full evaluation reads of the data: the loads
+        -(ψ_a f_α, q) of σ_disc's patch problems (§5, `FluxEquilibration.loads`) and η_osc
+        (§7), from one assembly where the equilibration integrates with the discretisation's
+        data measures. Iterate-independent, so made once per mesh, but not in the set-up: a
+        run's Krylov solves before its first full evaluation (the η_rec / η_lin gates read
+        neither) then do not carry them, and where one of those solves is the run's peak the
+        peak is lower by their size (docs/performance.md). Collective (every evaluation is)."""
+        if self._osc_t is not None:
+            return
+        disc, eq = self.disc, self.equilibration
+        moments = None                  # η_osc's DG1 loads, from the equilibration's if alike
+        if eq is not None:
+            self._loads, moments = eq.loads((disc.f1, disc.f2), moments=True)
+            if eq.measures is not disc.dx_data:                         # other integrals
+                moments = None
+        self._osc_t = self._oscillation(moments)                        # (2, cells)
+        del moments
+        self._osc_sum = (self._osc_t ** 2).sum()                        # η_osc², local
+
+    @property
+    def loads(self):
+        """[Load of f_1, Load of f_2]: σ_disc's data parts (`_data_parts`; collective at the
+        first use)."""
+        self._data_parts()
+        return self._loads
+
     @property
     def osc(self):
-        """η_osc,K,α for every owned cell, (cells, 2) (a view)."""
+        """η_osc,K,α for every owned cell, (cells, 2) (a view; collective at the first use)."""
+        self._data_parts()
         return self._osc_t.T
 
     def _oscillation(self, moments=None):
@@ -542,7 +572,7 @@ class Estimators:
         column (views of q: no copy of it at the peak of an evaluation); the global sums in
         one reduction."""
         qt = q.T                                                        # (k, cells)
-        o1, o2 = self._osc_t
+        o1, o2 = self.osc.T
         disc_K = [np.sqrt(np.maximum(qt[i], 0.0)) for i in (DISC1, DISC2)]   # η_disc,K,α
         flux_K = (disc_K if list(flux) == [DISC1, DISC2]
                   else [np.sqrt(np.maximum(qt[i], 0.0)) for i in flux])      # η_F,K,α

@@ -409,6 +409,32 @@ def test_evaluate_with_the_equilibration(equilibrated):
     assert got["eta_alg"] > eta_rem > 0
 
 
+def test_the_data_parts_wait_for_the_first_full_evaluation():
+    """σ_disc's loads and η_osc are made at the first full evaluation, not in the set-up nor by
+    the η_rec / η_lin gates (a run's Newton steps before that evaluation do not carry them),
+    unless `eager_data` asks for them in the set-up. Either way they are the same arrays, so
+    the evaluations agree to the last bit (the same operations on the same data)."""
+    from membranes.estimation.equilibration import FluxEquilibration
+    disc = scene(MPI.COMM_WORLD, 6)[0]
+    X, R = iterate(disc, 0.0), residual(disc, iterate(disc, 0.0))
+    lazy = Estimators(disc, FluxEquilibration(disc))
+    lazy.recovered(X, linearisation=True)
+    lazy.linearisation(X)
+    assert lazy._loads is None and lazy._osc_t is None
+    got = lazy.evaluate(X, R)
+    assert lazy._loads is not None and lazy._osc_t is not None
+    eager = Estimators(disc, FluxEquilibration(disc), eager_data=True)
+    assert eager._loads is not None and eager._osc_t is not None
+    for a, b in zip(lazy.loads, eager.loads):
+        assert all(np.array_equal(x, y) for x, y in zip(a.values, b.values))
+    assert np.array_equal(lazy.osc, eager.osc)
+    again = eager.evaluate(X, R)
+    assert again.keys() == got.keys()
+    assert all(np.array_equal(again[k], got[k]) for k in got), \
+        [k for k in got if not np.array_equal(again[k], got[k])]
+    assert got["eta_osc"] > 0                        # (the scene's loads are not in P1)
+
+
 def test_the_first_sigma_disc_in_the_forms_coefficients_is_never_stale():
     """The first σ_disc on a mesh is solved into the forms' own σ Functions (no second copy);
     an evaluation at another iterate copies that iterate's σ_disc over them, and the first,
