@@ -130,18 +130,13 @@ def constraint_parts(u1, u2, lam):
 
 class Estimators:
     """The estimators of §7 on one mesh: set up once (spaces, Functions, compiled forms, the
-    oscillation, the residual lifting), evaluated at any iterate by `evaluate(X, R)`.
+    residual lifting), evaluated at any iterate by `evaluate(X, R)`.
 
     `equilibration`: the σ_α,disc of §5, a `membranes.estimation.equilibration.
     FluxEquilibration` (`sigma(alpha, u, lam, r, f, mu, out)`, its RT_1 space `rt_space`);
     it is asked only by `sigma_disc` (and so by `evaluate` and `nu_flux`). Without it,
-    `assemble` takes σ_disc from the caller.
-
-    `eager_data`: make the data parts (σ_disc's loads, η_osc; `_data_parts`) in the set-up
-    instead of at the first full evaluation: for a caller that evaluates at once (the
-    certificate of a given iterate), where the memory the set-up freed then holds their
-    transients. By default a run whose Newton steps come before its first full evaluation
-    does not carry them through those steps."""
+    `assemble` takes σ_disc from the caller. `eager_data`: make the data parts (`_data_parts`)
+    in the set-up, for a caller that evaluates at once (the certificate of a given iterate)."""
 
     def __init__(self, disc, equilibration=None, eager_data=False):
         from dolfinx import fem
@@ -271,29 +266,29 @@ class Estimators:
                               doc="`cells_disc` and η_rem's terms in one CellForm")
 
     def _data_parts(self):
-        """Make, at its first call, what only a full evaluation reads of the data: the loads
-        -(ψ_a f_α, q) of σ_disc's patch problems (§5, `FluxEquilibration.loads`) and η_osc
-        (§7), from one assembly where the equilibration integrates with the discretisation's
-        data measures. Iterate-independent, so made once per mesh, but not in the set-up: a
-        run's Krylov solves before its first full evaluation (the η_rec / η_lin gates read
-        neither) then do not carry them, and where one of those solves is the run's peak the
-        peak is lower by their size (docs/performance.md). Collective (every evaluation is)."""
+        """Make, at its first call, what only a full evaluation reads of the data: σ_disc's
+        loads -(ψ_a f_α, q) (§5, `FluxEquilibration.loads`) and η_osc,K,α (§7), whose DG1
+        projections take the same assembly's moments where the measures agree. Once per mesh,
+        but not in the set-up: the Krylov solves before the first full evaluation (the gates
+        read neither) then do not carry them (docs/performance.md). Collective."""
         if self._osc_t is not None:
             return
-        disc, eq = self.disc, self.equilibration
-        moments = None                  # η_osc's DG1 loads, from the equilibration's if alike
+        disc, eq, moments = self.disc, self.equilibration, None
         if eq is not None:
             self._loads, moments = eq.loads((disc.f1, disc.f2), moments=True)
-            if eq.measures is not disc.dx_data:                         # other integrals
-                moments = None
-        self._osc_t = self._oscillation(moments)                        # (2, cells)
+            moments = moments if eq.measures is disc.dx_data else None  # (other integrals)
+        pf = dg1_projections(disc, (disc.f1, disc.f2), self.lifting, moments)   # (not kept)
         del moments
+        mu1, mu2 = self._mu
+        osc = CellForm(disc.mesh, 2, lambda w: over(disc.dx_data, lambda dx: (
+            oscillation_squared(mu1, disc.f1, pf[0], w[0], dx)
+            + oscillation_squared(mu2, disc.f2, pf[1], w[1], dx))))
+        self._osc_t = np.sqrt(np.maximum(np.ascontiguousarray(osc.cells().T), 0.0))  # (2, K)
         self._osc_sum = (self._osc_t ** 2).sum()                        # η_osc², local
 
     @property
     def loads(self):
-        """[Load of f_1, Load of f_2]: σ_disc's data parts (`_data_parts`; collective at the
-        first use)."""
+        """[Load of f_1, Load of f_2] (`_data_parts`; collective at the first use)."""
         self._data_parts()
         return self._loads
 
@@ -302,18 +297,6 @@ class Estimators:
         """η_osc,K,α for every owned cell, (cells, 2) (a view; collective at the first use)."""
         self._data_parts()
         return self._osc_t.T
-
-    def _oscillation(self, moments=None):
-        """η_osc,K,α for every owned cell, as (2, cells): iterate-independent, once per mesh.
-        `moments`: the loads (f_α, q)_K of the DG1 projections, if at hand (`dg1_projections`).
-        The projections are not kept."""
-        disc = self.disc
-        pf = dg1_projections(disc, (disc.f1, disc.f2), self.lifting, moments)
-        mu1, mu2 = self._mu
-        osc = CellForm(disc.mesh, 2, lambda w: over(disc.dx_data, lambda dx: (
-            oscillation_squared(mu1, disc.f1, pf[0], w[0], dx)
-            + oscillation_squared(mu2, disc.f2, pf[1], w[1], dx))))
-        return np.sqrt(np.maximum(np.ascontiguousarray(osc.cells().T), 0.0))
 
     # ## Iterate data
 
