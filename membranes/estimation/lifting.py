@@ -56,7 +56,6 @@ class Lifting:
         count.x.scatter_reverse(la.ScatterMode.add)
         count.x.scatter_forward()
         self.count = count.x.array.copy()
-        self.count_cells = self.count[self.cells]                                  # (nc, 3)
         self._R = fem.Function(V)
 
     def __call__(self, R, out=None):
@@ -67,8 +66,11 @@ class Lifting:
         self._R.x.array[:self.n] = R[:self.n]
         self._R.x.scatter_forward()
         r = out if out is not None else fem.Function(self.Q)
-        # r_K = M_K⁻¹ (R_l / N_l)_{l ∈ K}
-        values = self._R.x.array[self.cells] / self.count_cells                   # (nc, 3)
+        # r_K = M_K⁻¹ (R_l / N_l)_{l ∈ K}: R_l / N_l once per vertex (owned and ghost; a
+        # vertex of no local cell, N_l = 0, is never read), then gathered by the cells
+        scaled = self._R.x.array
+        np.divide(scaled, self.count, out=scaled, where=self.count > 0)
+        values = scaled[self.cells]                                                 # (nc, 3)
         r.x.array[self.dg] = mass_inverse(self.area, values)
         r.x.scatter_forward()
         return r
