@@ -155,12 +155,12 @@ def certificate_floor(stats, s, p):
     certificate's own ratio cannot be reached by making Newton faster; None without both
     peers' runs."""
     nested, certified = stats.get((s, p, "nested")), stats.get((s, p, "certified"))
-    phases = (certified or {}).get("phases") or {}
-    if nested is None or phases.get("set-up") is None or phases.get("estimates") is None:
+    split = (certified or {}).get("phases") or {}
+    if nested is None or split.get("set-up") is None or split.get("estimates") is None:
         return None
-    cert = phases["set-up"] + phases["estimates"]
-    return (f"the certificate alone (set-up {phases['set-up']:.2f} s + one evaluation "
-            f"{phases['estimates']:.2f} s) is {cert / nested['method_s']:.3f} of the nested "
+    cert = split["set-up"] + split["estimates"]
+    return (f"the certificate alone (set-up {split['set-up']:.2f} s + one evaluation "
+            f"{split['estimates']:.2f} s) is {cert / nested['method_s']:.3f} of the nested "
             f"peer's method time and {cert / certified['method_s']:.3f} of the certified "
             f"peer's: the floor of a certified run's ratios (up to the machine's spread)")
 
@@ -168,6 +168,7 @@ def certificate_floor(stats, s, p):
 def ratios(sizes, procs, methods, stats, runs):
     print()
     for s in sizes:
+        sized = [r for r in runs if r["size"] == s]
         for p in procs:
             ours = stats.get((s, p, "ours"))
             if ours is None:
@@ -177,8 +178,7 @@ def ratios(sizes, procs, methods, stats, runs):
                 peer = stats.get((s, p, m))
                 if peer is None:
                     continue
-                each = by_repeat(paired([r for r in runs if r["size"] == s],
-                                        ("ours", p), (m, p), "method_s"), ".3f")
+                each = by_repeat(paired(sized, ("ours", p), (m, p), "method_s"), ".3f")
                 print(f"{head} ours / {LABELS[m]}: method time "
                       f"{ours['method_s'] / peer['method_s']:.3f}{each}, process time "
                       f"{ours['process_s'] / peer['process_s']:.3f}; energy error "
@@ -193,8 +193,7 @@ def ratios(sizes, procs, methods, stats, runs):
             if p == 1 or serial is None or par is None:
                 continue
             # (repeat by repeat too: on a shared machine one median hides the spread)
-            each = by_repeat(paired([r for r in runs if r["size"] == s],
-                                    ("ours", 1), ("ours", p), "method_s"), ".2f")
+            each = by_repeat(paired(sized, ("ours", 1), ("ours", p), "method_s"), ".2f")
             print(f"size {s}: speed-up of ours on {p} processes: method time "
                   f"{serial['method_s'] / par['method_s']:.2f}{each}, process time "
                   f"{serial['process_s'] / par['process_s']:.2f}; largest peak per process "
