@@ -7,10 +7,9 @@ method on it and prints, on process 0, one JSON line:
 * ``ours``: `solve(problem)` with the API's defaults (adaptive Newton, the 'amg' preset,
   nested iteration, the ν algebraic flux, the final certificate; §3, §6-§8);
 * ``nested``: the nested SNES VI peer, `nested_peer(problem)` (§10);
-* ``certified``: the nested peer, then our estimators at its final iterate: the set-up of
-  `LevelEstimates(disc, 'nu', eager_data=True)` (the data parts in the set-up, which pays
-  for a certificate that evaluates at once) and one evaluation with R the residual of its
-  linear rows (`driver._final_residual`, §4, §7);
+* ``certified``: the nested peer, then our estimators at its final iterate
+  (`membranes.app.peer.certify`, the report's certified peer too): their set-up and one
+  evaluation with R the residual of its linear rows (§4, §7);
 * ``plain``: the plain peer, `plain_peer(problem)` (§10).
 
 The line holds the vertex count, the mesh time (the hierarchy's meshes, outside every
@@ -102,10 +101,8 @@ def child(method, arg):
     from mpi4py import MPI
 
     from membranes import scenes, solve
-    from membranes.app.driver import _final_residual
     from membranes.app.logs import quiet_jit_logging
-    from membranes.app.peer import nested_peer, plain_peer
-    from membranes.app.schedule import LevelEstimates
+    from membranes.app.peer import certify, nested_peer, plain_peer
     from membranes.estimation.energy_error import EnergyError
     quiet_jit_logging()
     comm = MPI.COMM_WORLD
@@ -131,14 +128,10 @@ def child(method, arg):
         eta = cert_s = None
         phases = phases_of_peer(result)
         if method == "certified":
-            t = time.perf_counter()
-            disc = result.disc
-            certificate = LevelEstimates(disc, "nu", eager_data=True)   # it evaluates at once
-            eta = certificate(result.X, _final_residual(disc, result.X, "min"))["eta"]
-            cert_s = time.perf_counter() - t
+            est, setup_s, cert_s = certify(result)
+            eta = est["eta"]
             method_s += cert_s
-            phases.update({"set-up": certificate.setup_time,
-                           "estimates": cert_s - certificate.setup_time})
+            phases.update({"set-up": setup_s, "estimates": cert_s - setup_s})
         peak = _peak_gib()
         out.update(converged=bool(result.converged), method_s=method_s,
                    newton=result.snes_iterations,

@@ -42,6 +42,7 @@ from ..model.progress import reporter
 from ..nonlinear import cfunctions
 from ..nonlinear.newton import VARIANTS
 from ..nonlinear.newton import newton as run_newton
+from ..nonlinear.system import final_residual
 from ..nonlinear.system import initial_guess as newton_guess
 from .garbage import release_garbage
 from .logs import quiet_jit_logging
@@ -446,7 +447,7 @@ def solve(problem: Problem,
                                      not (final.get("estimates") or {}).get("bound")):
             # exact, inexact: the certificate; adaptive: an X that Newton left before a full
             # estimate of it (X⁰ or a gated iterate, at the Newton limit or a failed solve)
-            final["estimates"] = estimate(result.X, _final_residual(disc, result.X, cfun))
+            final["estimates"] = estimate(result.X, final_residual(disc, result.X, cfun))
             if final is result.history[-1]:   # (else the records' clock would go back)
                 final["wall_time_s"] = clock.now()        # the certificate is part of X^k
         stops = last or not (result.converged or result.stalled)   # (the `break` below)
@@ -540,21 +541,6 @@ def _record_of_X(history):
     """The record of the returned iterate X: the last that is not a Krylov iterate (a solve
     that failed leaves the Krylov records of the step it did not finish after it)."""
     return next(rec for rec in reversed(history) if rec["kind"] != "krylov")
-
-
-def _final_residual(disc, X, cfun):
-    """The algebraic residual R = B - A X of the final iterate, for its certificate (§4): its
-    membrane blocks are those of the nonlinear residual, F - E X, whatever the
-    linearisation (the third block, unused by the estimators, is set to zero). Newton does
-    not keep it, so it is formed here once."""
-    from ..nonlinear.system import NewtonSystem
-    sys_ = NewtonSystem(disc)
-    try:
-        R, _ = sys_.nonlinear_residual(X, cfun)
-    finally:
-        sys_.destroy()
-    R.array[2 * disc.n:] = 0.0
-    return R
 
 
 def _error_kind(problem):

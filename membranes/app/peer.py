@@ -449,3 +449,20 @@ def plain_peer(problem, rtol=1e-8, ksp="cg", pc="hypre", options=None, max_it=PL
         level = _Level(problem, problem.hierarchy.levels)
     return _run("plain", [level], progress, monitor, rtol=rtol, ksp=ksp, pc=pc,
                 options=options, max_it=max_it)
+
+
+def certify(result):
+    """The certified peer's certificate (§10): our estimators set up on the peer's finest mesh
+    and evaluated once at its final iterate X, with R the residual of X's linear rows
+    (`final_residual`, §4): what a user who wants a guaranteed bound for the peer's answer
+    runs after it. The data parts are made in the set-up (`eager_data`: the evaluation
+    follows at once). Returns (estimates, set-up seconds, seconds in all)."""
+    from ..estimation.equilibration import FluxEquilibration
+    from ..estimation.estimators import Estimators
+    from ..nonlinear.system import final_residual
+    t = time.perf_counter()
+    disc = result.disc
+    est = Estimators(disc, FluxEquilibration(disc.V, disc.dx_data), eager_data=True)
+    setup = time.perf_counter() - t
+    out = est.evaluate(result.X, final_residual(disc, result.X, "min"))
+    return out, setup, time.perf_counter() - t

@@ -107,7 +107,8 @@ def replay(problem, sol):
     from ..fem.discretisation import discretise
     from ..linalg.krylov import Krylov
     from ..nonlinear.newton import newton
-    from .driver import _final_residual, prolong
+    from ..nonlinear.system import final_residual
+    from .driver import prolong
     from .schedule import LevelEstimates
     from .solution import ESTIMATOR_COLUMNS
     o = sol.options
@@ -123,7 +124,7 @@ def replay(problem, sol):
 
         def estimate(X, R, kind, disc=disc, certificate=certificate):
             # Newton hands X⁰ without a residual; X⁰ need not satisfy the linear rows (§4)
-            return certificate(X, _final_residual(disc, X, o["cfun"]) if R is None else R,
+            return certificate(X, final_residual(disc, X, o["cfun"]) if R is None else R,
                                kind)
 
         result = newton(disc, X0, cfun=o["cfun"], variant=o["newton"], system=o["system"],
@@ -188,23 +189,10 @@ class PeerCurve:
                  "energy_error": err} for lv, its, s, err in self.points]
 
 
-def certify(result):
-    """Our estimator set-up and one evaluation at the peer's final iterate, with its residual
-    of the linear rows (§4): (estimates, seconds)."""
-    from ..estimation.equilibration import FluxEquilibration
-    from ..estimation.estimators import Estimators
-    from .driver import _final_residual
-    t = time.perf_counter()
-    disc = result.disc
-    est = Estimators(disc, FluxEquilibration(disc.V, disc.dx_data), eager_data=True)
-    out = est.evaluate(result.X, _final_residual(disc, result.X, "min"))
-    return out, time.perf_counter() - t
-
-
 def run_peers(problem, say):
     """The nested peer (with its certificate) and the plain peer: (rows, curve records)."""
     from ..estimation.energy_error import EnergyError
-    from .peer import nested_peer, plain_peer
+    from .peer import certify, nested_peer, plain_peer
     rows, curves = [], []
     for label, run in (("nested peer", nested_peer), ("plain peer", plain_peer)):
         monitor = PeerCurve()
@@ -223,7 +211,7 @@ def run_peers(problem, say):
         say(f"report: {label}: {result.snes_iterations} SNES steps, {result.ksp_iterations} "
             f"CG steps, {wall:.2f} s, converged = {result.converged}")
         if label == "nested peer":
-            est, seconds = certify(result)
+            est, _, seconds = certify(result)
             rows.append(dict(row, method="certified nested peer", wall_time_s=wall + seconds,
                              eta=est["eta"], effectivity=est["eta"] / error,
                              bound_guaranteed=True, eta_rem=est["eta_rem"],

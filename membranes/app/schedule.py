@@ -73,19 +73,18 @@ class LevelEstimates:
     `setups` (a membranes.app.setups.Setups): take the flux equilibration of the mesh from it,
     set up by an earlier solve on the same mesh, instead of setting one up; `setup_time` then
     counts only the estimators' own forms. (The data parts, σ_disc's loads and η_osc, are made
-    at the first full evaluation either way, or with `eager_data` in the set-up, for a caller
-    that evaluates at once: `membranes.estimation.estimators.Estimators`.)
+    at the first full evaluation either way: `membranes.estimation.estimators.Estimators`.)
     """
 
     def __init__(self, disc, alg_flux, hierarchy=None, gamma_alg=DEFAULT_GAMMA,
-                 gamma_lin=DEFAULT_GAMMA, gate=GATE, setups=None, eager_data=False):
+                 gamma_lin=DEFAULT_GAMMA, gate=GATE, setups=None):
         # (imported here: only a run that estimates builds one)
         from ..estimation.equilibration import FluxEquilibration
         from ..estimation.estimators import Estimators
         t = time.perf_counter()
         equilibration = setups.equilibration(disc) if setups is not None \
             else FluxEquilibration(disc.V, disc.dx_data)
-        self.est = Estimators(disc, equilibration, eager_data)
+        self.est = Estimators(disc, equilibration)
         self.multilevel = None
         if alg_flux == "multilevel":
             from ..estimation.multilevel import MultilevelFlux  # only a run that uses it

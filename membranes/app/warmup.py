@@ -43,8 +43,7 @@ def warm_scene(name, comm=MPI.COMM_SELF):
     """Run every compiling path once on a tiny mesh of scene `name`; returns the seconds."""
     from ..model import scenes
     from .driver import solve
-    from .peer import nested_peer, plain_peer
-    from .report import certify
+    from .peer import certify, nested_peer, plain_peer
     t = time.perf_counter()
     h, levels = TINY[name]
     problem = scenes.make(name, h=h, levels=levels, comm=comm)

@@ -122,6 +122,19 @@ def initial_guess(disc, X0=None):
     return X
 
 
+def final_residual(disc, X, cfun):
+    """The algebraic residual R = B - A X of an iterate X that ends a solve, for its
+    certificate (§4, §7): its membrane blocks are those of the nonlinear residual, F - E X,
+    whatever the linearisation (the third block, unused by the estimators, is set to zero).
+    Newton does not keep it, and a peer's iterate has none, so it is formed here once."""
+    sys_ = NewtonSystem(disc)
+    try:
+        R, _ = sys_.nonlinear_residual(X, cfun)
+    finally:
+        sys_.destroy()
+    R.array[2 * disc.n:] = 0.0
+    return R
+
 def _converted(blocks, comm):
     """The MatNest of `blocks` converted to one AIJ matrix (the iterate layout)."""
     nest = PETSc.Mat().createNest(blocks, comm=comm)
