@@ -282,7 +282,11 @@ def test_parallel_write(tmp_path, procs):
     assert "cannot be written" in r["full"][0]
     for name in ("u1", "u2", "lambda", "eta"):
         assert r[name]["points"], name
-        assert r[name]["max_diff"] <= 1e-15 * r[name]["size"], (name, r[name])
+        # (XDMF writes a P1 function's values at the nodes as dolfinx's compute_point_values
+        # evaluates them: its three basis functions there, to round-off, summed; a few units
+        # in the last place of the largest value, 5 of them seen; 16 ε allows for that)
+        eps = np.finfo(float).eps
+        assert r[name]["max_diff"] <= 16 * eps * r[name]["size"], (name, r[name])
 
 
 def test_by_coordinates_sorts_points():
