@@ -53,10 +53,30 @@ print(json.dumps({"vertices": int(problem.mesh.topology.index_map(0).size_global
 """
 
 
+def then_dependencies(tree):
+    """Install into `tree`/.deps (pip --target, without their own dependencies) the Python
+    packages that the commit's pyproject.toml requires and this interpreter cannot import
+    (6b2f081: threadpoolctl; its numba is Debian's python3-numba), so that its run does not
+    depend on what an earlier venv happened to hold."""
+    import importlib.util
+    import re
+
+    import tomllib
+    with open(os.path.join(tree, "pyproject.toml"), "rb") as f:
+        wanted = tomllib.load(f).get("project", {}).get("dependencies", [])
+    missing = [spec for spec in wanted
+               if importlib.util.find_spec(re.split(r"[<>=!~ ;\[]", spec)[0]) is None]
+    if missing:
+        deps = os.path.join(tree, ".deps")
+        print(f"then: installing {', '.join(missing)} into {deps}", flush=True)
+        subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
+                        "--target", deps] + missing, check=True)
+
+
 def run_then(tree, arg, timeout):
     j, h0 = fresh.size(arg)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env["PYTHONPATH"] = tree
+    env["PYTHONPATH"] = tree + os.pathsep + os.path.join(tree, ".deps")
     return fresh.run_json([sys.executable, "-c", THEN, str(j), str(h0)], env, timeout,
                           cwd=tree)
 
@@ -86,6 +106,7 @@ def main(argv=None):
     subprocess.run(["git", "worktree", "add", "--detach", tree, args.commit], cwd=fresh.ROOT,
                    check=True, capture_output=True)
     try:
+        then_dependencies(tree)
         print(f"then: {args.commit} (worktree {tree}); now: this tree; BLAS threads: "
               f"{fresh.blas_threads(args.blas_threads)}", flush=True)
         if not args.no_warmup:
