@@ -358,14 +358,16 @@ class LinearSolver:
             self._gap = None
 
     def solve(self, step, y, bound, every=1, on_iterate=None, split=None, guess=None,
-              max_it=None):
+              max_it=None, keep=False):
         """Solve step.A y = step.b from y (changed in place) until ‖b - A y‖ ≤ bound (tested
         after multiples of `every` iterations, and at y itself where `guess`: StoppingTest)
         or `on_iterate` stops it (see StoppingTest).
         `split`: (S_D, ab, θ) for the mean/gap PC of an eliminated step; `max_it`: the
         iterations this solve may make (default the Krylov spec's, a positive integer: a
-        Newton step that solves twice shares its limit between them). Returns (iterations,
-        reason name, converged, ‖b - A y‖ at the end)."""
+        Newton step that solves twice shares its limit between them); `keep`: leave the
+        Krylov basis allocated for the next solve (a solve stopped at a forcing term, which
+        no full estimate follows, membranes.nonlinear.newton; `release` frees it). Returns
+        (iterations, reason name, converged, ‖b - A y‖ at the end)."""
         ksp = self.ksp
         if not self.krylov.iterative:
             # a factorisation is analysed anew each step: MUMPS's pivot order of the step
@@ -422,12 +424,17 @@ class LinearSolver:
                 self._context = None
             # the Krylov basis and the PC's data are the step's: freed now, so that they are
             # not alive under the estimates that follow the solve (the next step's matrix
-            # needs a new set-up anyway; the mean's AMG, kept in `mean`, is not the KSP's)
-            ksp.reset()
+            # needs a new set-up anyway; the mean's AMG, kept in `mean`, is not the KSP's),
+            # unless `keep`: then only the η_rec / η_lin gate or nothing follows, and the next
+            # solve of the same size reuses the basis (PETSc allocates FGMRES's ten
+            # directions at a time, and zeroes them)
+            if not keep:
+                ksp.reset()
 
     def release(self):
-        """Free the mean's and the kept gap's PCs (made again at the next eliminated
-        solve)."""
+        """Free the Krylov basis a solve kept (`solve`'s `keep`) and the mean's and the kept
+        gap's PCs (made again at the next solve)."""
+        self.ksp.reset()
         if self.mean is not None:
             self.mean.destroy()
             self.mean = None
@@ -436,8 +443,8 @@ class LinearSolver:
     def destroy(self):
         """Free the KSP and the mean's and gap's PCs, and take the solver's options out of
         PETSc's database."""
-        self.ksp.destroy()
         self.release()
+        self.ksp.destroy()
         take_options(self.prefix, self.options)
 
 

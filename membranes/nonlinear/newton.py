@@ -328,7 +328,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             # equality where B = (F, 0)): tested at i ≥ ν only, also where ν = 1
             its, name, solved, norm = solver.solve(
                 step, y, bound, every, on_iterate if adaptive else None, split_,
-                guess=False if variant == "inexact" and not forced else None)
+                guess=False if variant == "inexact" and not forced else None, keep=forced)
             if its == 0:        # X^{k,0} met the bound, so the floor: nothing was cut short
                 forced = False
             answer = None               # the estimates of a forced adaptive step's iterate
