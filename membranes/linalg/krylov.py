@@ -358,16 +358,15 @@ class LinearSolver:
             self._gap = None
 
     def solve(self, step, y, bound, every=1, on_iterate=None, split=None, guess=None,
-              max_it=None, keep=False):
+              max_it=None, residual=None):
         """Solve step.A y = step.b from y (changed in place) until ‖b - A y‖ ≤ bound (tested
         after multiples of `every` iterations, and at y itself where `guess`: StoppingTest)
         or `on_iterate` stops it (see StoppingTest).
         `split`: (S_D, ab, θ) for the mean/gap PC of an eliminated step; `max_it`: the
         iterations this solve may make (default the Krylov spec's, a positive integer: a
-        Newton step that solves twice shares its limit between them); `keep`: leave the
-        Krylov basis allocated for the next solve (a solve stopped at a forcing term, which
-        no full estimate follows, membranes.nonlinear.newton; `release` frees it). Returns
-        (iterations, reason name, converged, ‖b - A y‖ at the end)."""
+        Newton step that solves twice shares its limit between them); `residual`: a Vec that
+        receives b - A y at the end. Returns (iterations, reason name,
+        converged, ‖b - A y‖ at the end)."""
         ksp = self.ksp
         if not self.krylov.iterative:
             # a factorisation is analysed anew each step: MUMPS's pivot order of the step
@@ -397,13 +396,19 @@ class LinearSolver:
             if test is not None and test.decided:
                 # the iterate the test judged (and the estimators saw) is the answer: some
                 # KSPs end a step past the one they build (Chebyshev), or keep right-
-                # preconditioned iterates apart from it (-ksp_type qmrcgs, fbcgs, symmlq)
+                # preconditioned iterates apart from it (-ksp_type qmrcgs, fbcgs, symmlq);
+                # its residual norm is the test's (b - A y of that iterate, just made)
                 test.y.copy(y)
-            r = step.b.duplicate()
-            step.A.mult(y, r)
-            r.aypx(-1.0, step.b)
-            norm = r.norm()
-            r.destroy()
+                norm = test.true_norm
+                if residual is not None:
+                    test.r.copy(residual)
+            else:
+                r = step.b.duplicate() if residual is None else residual
+                step.A.mult(y, r)
+                r.aypx(-1.0, step.b)
+                norm = r.norm()
+                if residual is None:
+                    r.destroy()
             name = REASONS.get(reason, str(reason))
             if not iterative and reason < 0:
                 name += _mumps_info(ksp.getPC())
@@ -424,17 +429,12 @@ class LinearSolver:
                 self._context = None
             # the Krylov basis and the PC's data are the step's: freed now, so that they are
             # not alive under the estimates that follow the solve (the next step's matrix
-            # needs a new set-up anyway; the mean's AMG, kept in `mean`, is not the KSP's),
-            # unless `keep`: then only the η_rec / η_lin gate or nothing follows, and the next
-            # solve of the same size reuses the basis (PETSc allocates FGMRES's ten
-            # directions at a time, and zeroes them)
-            if not keep:
-                ksp.reset()
+            # needs a new set-up anyway; the mean's AMG, kept in `mean`, is not the KSP's)
+            ksp.reset()
 
     def release(self):
-        """Free the Krylov basis a solve kept (`solve`'s `keep`) and the mean's and the kept
-        gap's PCs (made again at the next solve)."""
-        self.ksp.reset()
+        """Free the mean's and the kept gap's PCs (made again at the next eliminated
+        solve)."""
         if self.mean is not None:
             self.mean.destroy()
             self.mean = None
@@ -443,8 +443,8 @@ class LinearSolver:
     def destroy(self):
         """Free the KSP and the mean's and gap's PCs, and take the solver's options out of
         PETSc's database."""
-        self.release()
         self.ksp.destroy()
+        self.release()
         take_options(self.prefix, self.options)
 
 

@@ -326,15 +326,16 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
             split_ = split if step.system == "eliminated" else None
             # inexact: X^{k,0} = X^{k-1} meets its test ‖R_alg‖ ≤ ‖R_lin(X^{k-1})‖ at once (an
             # equality where B = (F, 0)): tested at i ≥ ν only, also where ν = 1
+            rw = step.b.duplicate()         # b - A y at the end of the solve
             its, name, solved, norm = solver.solve(
                 step, y, bound, every, on_iterate if adaptive else None, split_,
-                guess=False if variant == "inexact" and not forced else None, keep=forced)
+                guess=False if variant == "inexact" and not forced else None, residual=rw)
             if its == 0:        # X^{k,0} met the bound, so the floor: nothing was cut short
                 forced = False
             answer = None               # the estimates of a forced adaptive step's iterate
             if forced and adaptive and solved and not accepted:
                 step.expand(y, X_try)
-                step.residual(y, R)
+                step.residual(y, R, rw=rw)
                 answer = estimated(X_try, R, "forced")
                 if answer is None:      # its Newton test may hold: finish the solve
                     forced = False
@@ -343,7 +344,8 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                     left = spec.max_it - its
                     if left > 0:
                         more, name, solved, norm = solver.solve(step, y, bound, 1, None,
-                                                                split_, max_it=left)
+                                                                split_, max_it=left,
+                                                                residual=rw)
                         its += more
                     else:
                         name, solved = "DIVERGED_MAX_IT", norm <= bound
@@ -356,11 +358,12 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                           f"(asked {bound / lin.norm_B:.1e})")
                 step.destroy()
                 y.destroy()
+                rw.destroy()
                 break
             stalled = its == 0
             if answer is None:          # else X_try and R are those of y already
                 step.expand(y, X_try)
-                step.residual(y, R)
+                step.residual(y, R, rw=rw)
             if accepted and accepted[0][1] is not None:     # an earlier iterate accepted
                 accepted[0][1].copy(X_try)
                 accepted[0][2].copy(R)
@@ -371,6 +374,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                 Re.destroy()
             step.destroy()
             y.destroy()
+            rw.destroy()
             if not comm.allreduce(bool(np.all(np.isfinite(X_try.array_r))), op=MPI.LAND):
                 reason = f"non-finite iterate at Newton step {k}"
                 break
