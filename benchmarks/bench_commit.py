@@ -12,10 +12,13 @@ worktree and, per size `J[:H0]` of the disk scene (§9), runs in fresh processes
   petsc_options={"pc_type": "vertex_amg"}, alg_flux="nu")`);
 * ``now``: this tree's `solve(problem)` with its defaults (fresh.py's ``ours``).
 
-Both certify their final iterate. Method time is each `solve`'s own wall time; process time
-the whole process, measured here; the energy error is computed after the method, outside both
-clocks. A small unreported run of each (J = 3) comes first: it compiles that commit's numba
-kernels into its cache and this tree's forms.
+The commit's run imports from its worktree, with the pip packages its pyproject.toml names
+and this interpreter lacks installed into the worktree (6b2f081: threadpoolctl; its numba is
+Debian's python3-numba, which must be installed). Both certify their final iterate. Method
+time is each `solve`'s own wall time; process time the whole process, measured here; the
+energy error is computed after the method, outside both clocks. A small unreported run of
+each (J = 3) comes first: it compiles that commit's numba kernels into its cache and this
+tree's forms.
 
 Printed: a table with one row per run (vertices, Newton and Krylov steps, method and process
 time, peak memory, energy error), then per pair the ratios now / then of method and process
