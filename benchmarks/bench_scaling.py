@@ -64,7 +64,7 @@ def summarise(runs):
     if not ok:
         return None
     out = {k: median(ok, k) for k in ("process_s", "method_s", "mesh_s", "energy_error",
-                                      "eta", "newton", "linear")}
+                                      "eta", "newton", "linear", "system_s", "page_faults")}
     # the estimators' share of the method time: ours, set-up and evaluations; the
     # certified peer, its certificate
     shares = [sum(r["estimator_s"]) if r.get("estimator_s") else r.get("certificate_s")
@@ -116,11 +116,12 @@ def phases(sizes, procs, methods, stats):
     """Where the method time goes (medians, rank 0's clock; `fresh.phases_of_ours`,
     `phases_of_peer`): the coarse levels, the Newton (SNES) steps on T_J, the estimators'
     set-up and the estimates (ours: the gates and full evaluations of T_J's iterates; the
-    certified peer: one evaluation), the rest (T_J's discretisation)."""
+    certified peer: one evaluation), the rest (T_J's discretisation); and the kernel's share
+    of the method time, its system CPU seconds and minor page faults (`fresh.child`)."""
     print()
     print("| size | P | method | " + " | ".join(f"{label} s" for _, label in PHASES)
-          + " | method s |")
-    print("|---|---|---|" + "---|" * (len(PHASES) + 1))
+          + " | method s | of which system s | page faults |")
+    print("|---|---|---|" + "---|" * (len(PHASES) + 3))
     for s in sizes:
         for p in procs:
             for m in methods:
@@ -129,7 +130,8 @@ def phases(sizes, procs, methods, stats):
                     continue
                 cells = [fmt(r["phases"].get(k), ".2f") for k, _ in PHASES]
                 print(f"| {s} | {p} | {LABELS[m]} | " + " | ".join(cells)
-                      + f" | {r['method_s']:.2f} |")
+                      + f" | {r['method_s']:.2f} | {fmt(r.get('system_s'), '.2f')} | "
+                      f"{fmt(r.get('page_faults'), ',.0f')} |")
 
 
 def by_repeat(pairs, spec):

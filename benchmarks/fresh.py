@@ -19,7 +19,10 @@ for a peer its solver and discretisation time, plus the certificate's for ``cert
 Newton (SNES) and Krylov steps, the final energy error against the exact
 solution, η where certified, and the peak resident memory of every process
 (`resource.getrusage`, at the end of the method: the peers' energy errors, computed
-afterwards, are not in it; ours computes its own inside `solve`, off its clock).
+afterwards, are not in it; ours computes its own inside `solve`, off its clock), and the
+kernel's share of the method: its system CPU seconds (the largest over the processes) and
+minor page faults (summed), which on a machine that hands out new pages slowly are a
+visible part of the method time and grow with the peak (BENCHMARKS.md, "page faults").
 
 The parent side (`launch`, `sizes`, `memory_guard`) starts such a child, times the whole
 process around it, and refuses to start one whose estimated memory exceeds what the machine
@@ -112,8 +115,10 @@ def child(method, arg):
     mesh_s = time.perf_counter() - t0
     out = {"method": method, "size": arg, "processes": comm.size,
            "vertices": int(problem.mesh.topology.index_map(0).size_global), "mesh_s": mesh_s}
+    before = resource.getrusage(resource.RUSAGE_SELF)
     if method == "ours":
         sol = solve(problem)
+        after = resource.getrusage(resource.RUSAGE_SELF)
         peak = _peak_gib()
         est = sol.estimates or {}
         out.update(converged=bool(sol.converged), method_s=sol.wall_time_s,
@@ -132,6 +137,7 @@ def child(method, arg):
             eta = est["eta"]
             method_s += cert_s
             phases.update({"set-up": setup_s, "estimates": cert_s - setup_s})
+        after = resource.getrusage(resource.RUSAGE_SELF)
         peak = _peak_gib()
         out.update(converged=bool(result.converged), method_s=method_s,
                    newton=result.snes_iterations,
@@ -141,8 +147,12 @@ def child(method, arg):
                    certificate_s=cert_s, phases=phases)
     else:
         raise ValueError(f"unknown method {method!r} (choose from: {', '.join(METHODS)})")
-    # every process's clock and peak: the slowest clock is the method's time
+    # every process's clock and peak: the slowest clock is the method's time; the kernel's
+    # share of the method (system CPU seconds, the largest over the processes, and minor page
+    # faults summed over them: mostly new pages as the heap grows to its peak)
     out["method_s"] = comm.allreduce(out["method_s"], op=MPI.MAX)
+    out["system_s"] = comm.allreduce(after.ru_stime - before.ru_stime, op=MPI.MAX)
+    out["page_faults"] = comm.allreduce(after.ru_minflt - before.ru_minflt, op=MPI.SUM)
     peaks = comm.gather(peak, root=0)
     if comm.rank == 0:
         out["peaks_gib"] = peaks
