@@ -365,8 +365,8 @@ class LinearSolver:
         `split`: (S_D, ab, θ) for the mean/gap PC of an eliminated step; `max_it`: the
         iterations this solve may make (default the Krylov spec's, a positive integer: a
         Newton step that solves twice shares its limit between them); `residual`: a Vec that
-        receives b - A y at the end. Returns (iterations, reason name,
-        converged, ‖b - A y‖ at the end)."""
+        receives b - A y at the end (not where PETSc raised: the solve then failed). Returns
+        (iterations, reason name, converged, ‖b - A y‖ at the end)."""
         ksp = self.ksp
         if not self.krylov.iterative:
             # a factorisation is analysed anew each step: MUMPS's pivot order of the step

@@ -135,6 +135,7 @@ def final_residual(disc, X, cfun):
     R.array[2 * disc.n:] = 0.0
     return R
 
+
 def _converted(blocks, comm):
     """The MatNest of `blocks` converted to one AIJ matrix (the iterate layout)."""
     nest = PETSc.Mat().createNest(blocks, comm=comm)
