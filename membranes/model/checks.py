@@ -337,8 +337,7 @@ def room_for_run(comm):
     plus what the process holds now (the least over `comm`). The estimate a run is checked
     against is its whole peak, interpreter, dolfinx and mesh hierarchy included, and what
     the process already holds of it is no longer in MemAvailable: without it a run that
-    fitted at the scene's check was refused once its mesh was built (a report at 2.4e6
-    vertices: 22.23 GiB needed, 22.5 GiB free before meshing, 20.8 after). Collective."""
+    fitted at the scene's check would be refused once its mesh was built. Collective."""
     available = available_memory(comm)
     if available is None:
         return None
