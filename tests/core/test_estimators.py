@@ -433,13 +433,9 @@ def test_the_data_parts_wait_for_the_first_full_evaluation():
     assert np.array_equal(lazy.osc, eager.osc)
     again = eager.evaluate(X, R)
     assert again.keys() == got.keys()
-    eps = np.finfo(float).eps
-
-    def close(a, b):
-        a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-        return np.all(np.abs(a - b) <= 8 * eps * np.abs(b).max(initial=0.0))
-    assert all(close(again[k], got[k]) for k in got), \
-        [k for k in got if not close(again[k], got[k])]
+    tol = 8 * np.finfo(float).eps
+    assert all(close(again[k], got[k], tol) for k in got), \
+        [k for k in got if not close(again[k], got[k], tol)]
     assert got["eta_osc"] > 0                        # (the scene's loads are not in P1)
 
 
