@@ -12,8 +12,13 @@ Poisson problem (CG + BoomerAMG). The second is the complementarity problem
     Φ(w) = κ S w - b  ⊥  w ≥ 0,        λ = D⁻¹ Φ(w) on the active set, 0 elsewhere,
 
 which PETSc's reduced-space active-set Newton (`vinewtonrsls`) solves with the bounds
-0 ≤ w < ∞, its reduced linear systems by CG + BoomerAMG. This is the peer to beat (§10): an
-independent solver of the same discrete problem, run as a competent PETSc user would run it.
+0 ≤ w < ∞, its reduced linear systems by CG + BoomerAMG. Both BoomerAMGs take `AMG_OPTIONS`:
+the smoothing sweeps of ours' inner preconditioners (membranes.linalg.preconditioners.SWEEPS)
+and aggressive coarsening (HMIS with one aggressive level, extended+i interpolation of at most
+4 entries a row), a cheaper set-up and V-cycle for more CG steps. With them the nested peer
+is faster than with PETSc's defaults (BENCHMARKS.md): they are what a competent user tuning
+BoomerAMG for these P1 Laplacians would choose. This is the peer to beat (§10): an independent
+solver of the same discrete problem, run as a competent PETSc user would run it.
 
 * **nested** (`nested_peer`): over the levels T_0, …, T_J of the problem's hierarchy, each
   level solved from the P1 prolongation of the last level's (z, w). PETSc's own
@@ -28,9 +33,9 @@ independent solver of the same discrete problem, run as a competent PETSc user w
 
 The nested and the plain peer stop SNES at PETSc's default relative tolerance 1e-8 (of the
 VI-reduced residual norm, relative to its value at the level's initial guess) and leave every
-other PETSc default (backtracking line search, KSP rtol 1e-5 of the reduced systems, stol
-1e-8) unless `options` changes it; the z solve's KSP stops at rtol relative to its
-preconditioned right side.
+other PETSc default but BoomerAMG's (backtracking line search, KSP rtol 1e-5 of the reduced
+systems, stol 1e-8) unless `options` changes it; the z solve's KSP stops at rtol relative to
+its preconditioned right side.
 
 **Stopping** (`_converged`). PETSc's convergence test for VI solvers, unlike its Newton's,
 ignores stol: a level whose initial guess is already the discrete solution (zero loads: the
@@ -71,6 +76,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# The peer's BoomerAMG options (module notes), below a user's `options`; with ours' SWEEPS
+AMG_OPTIONS = {"pc_hypre_boomeramg_coarsen_type": "HMIS", "pc_hypre_boomeramg_agg_nl": "1",
+               "pc_hypre_boomeramg_interp_type": "ext+i", "pc_hypre_boomeramg_P_max": "4"}
 # PETSc's threshold of SNESVIGetActiveSetIS: x_a ≤ lower_a + 1e-8 counts as at the bound.
 PETSC_VI_ACTIVE_TOL = 1e-8
 # The plain peer's SNES step limit. From zero, the active set moves by a few layers of
@@ -164,7 +172,8 @@ class DecoupledSolver:
     ksp, pc: the Krylov method and preconditioner of both the z solve and SNES's reduced
     systems ('hypre' means BoomerAMG). rtol: the z solve's KSP tolerance and SNES's.
     options: further PETSc options (without '-') for the SNES and its KSP, e.g.
-    {"snes_stol": 0, "ksp_rtol": 1e-10}; they are set under a private prefix and removed."""
+    {"snes_stol": 0, "ksp_rtol": 1e-10}, on top of BoomerAMG's `AMG_OPTIONS` (the z solve takes
+    those alone); they are set under a private prefix and removed."""
 
     _count = 0
 
@@ -203,11 +212,19 @@ class DecoupledSolver:
         z.array[self.bl] = disc.mu1 * disc.g
         rhs = self.rhs_z.copy()
         A.zeroRowsColumns(self.bg, 1.0, z, rhs)
-        ksp = self._ksp(PETSc.KSP().create(disc.comm))
-        ksp.setOperators(A)
-        ksp.setTolerances(rtol=self.rtol)
-        ksp.setInitialGuessNonzero(True)
-        ksp.solve(rhs, z)
+        from ..linalg.preconditioners import put_options, take_options
+        ksp = PETSc.KSP().create(disc.comm)
+        prefix, options = self._prefix(), self._amg()
+        ksp.setOptionsPrefix(prefix)
+        put_options(prefix, options)
+        try:
+            self._ksp(ksp).setFromOptions()
+            ksp.setOperators(A)
+            ksp.setTolerances(rtol=self.rtol)
+            ksp.setInitialGuessNonzero(True)
+            ksp.solve(rhs, z)
+        finally:
+            take_options(prefix, options)
         its, reason = ksp.getIterationNumber(), ksp.getConvergedReason()
         ksp.destroy()
         rhs.destroy()
@@ -240,8 +257,7 @@ class DecoupledSolver:
                 fa[bl] = kappa * (x.array_r[bl] - g)       # boundary rows κ (w - g)
 
         snes = PETSc.SNES().create(disc.comm)
-        prefix = f"membranes_peer{DecoupledSolver._count}_"
-        DecoupledSolver._count += 1
+        prefix = self._prefix()
         snes.setOptionsPrefix(prefix)
         snes.setType("vinewtonrsls")
         f = S.createVecLeft()
@@ -256,15 +272,14 @@ class DecoupledSolver:
         self._ksp(snes.getKSP())
         if monitor is not None:
             snes.setMonitor(lambda s, its, fnorm: monitor(its, _scaled(s.getSolution(), scale)))
-        opts = PETSc.Options()
-        for k, v in self.options.items():
-            opts[prefix + k] = v
+        from ..linalg.preconditioners import put_options, take_options
+        options = {**self._amg(), **self.options}            # the user's on top
+        put_options(prefix, options)
         try:
             snes.setFromOptions()
             snes.solve(None, w)
         finally:
-            for k in self.options:
-                del opts[prefix + k]
+            take_options(prefix, options)
         its, lin = snes.getIterationNumber(), snes.getLinearSolveIterations()
         reason = snes.getConvergedReason()
         snes.setConvergenceTest("default")              # (drops the Python callable)
@@ -301,6 +316,19 @@ class DecoupledSolver:
         A = self.disc.S.copy()
         A.zeroRowsColumns(self.bg, 1.0)
         return A
+
+    @staticmethod
+    def _prefix():
+        """A PETSc options prefix of its own for each solver object."""
+        prefix = f"membranes_peer{DecoupledSolver._count}_"
+        DecoupledSolver._count += 1
+        return prefix
+
+    def _amg(self):
+        """BoomerAMG's options where the PC is 'hypre' (ours' SWEEPS and `AMG_OPTIONS`), else
+        none."""
+        from ..linalg.preconditioners import SWEEPS
+        return {**SWEEPS, **AMG_OPTIONS} if self.pc_type == "hypre" else {}
 
     def _ksp(self, ksp):
         ksp.setType(self.ksp_type)

@@ -39,18 +39,19 @@ Everything else is vertex-local numpy on the owned entries and one parallel prod
 where contact vertices have d = 0.
 
 **Inner options.** Defaults `INNER_DEFAULTS`: BoomerAMG with one forward hybrid Gauss–Seidel
-sweep down and one backward sweep up (a symmetric V-cycle at half the cost of PETSc's default
-symmetric sweeps both ways). They are set under the solver's prefix + 'mean_' and + 'gap_':
-a user's option ``mean_pc_type lu`` or ``gap_pc_hypre_boomeramg_strong_threshold 0.5`` reaches
-them.
+sweep down and one backward sweep up (`SWEEPS`: a symmetric V-cycle at half the cost of
+PETSc's default symmetric sweeps both ways). They are set under the solver's prefix + 'mean_'
+and + 'gap_': a user's option ``mean_pc_type lu`` or ``gap_pc_hypre_boomeramg_strong_threshold
+0.5`` reaches them.
 """
 
 import numpy as np
 from petsc4py import PETSc
 
-INNER_DEFAULTS = {"pc_type": "hypre", "pc_hypre_type": "boomeramg",
-                  "pc_hypre_boomeramg_relax_type_down": "SOR/Jacobi",
-                  "pc_hypre_boomeramg_relax_type_up": "backward-SOR/Jacobi"}
+# BoomerAMG's smoothing: one forward hybrid Gauss–Seidel sweep down, one backward sweep up
+SWEEPS = {"pc_hypre_boomeramg_relax_type_down": "SOR/Jacobi",
+          "pc_hypre_boomeramg_relax_type_up": "backward-SOR/Jacobi"}
+INNER_DEFAULTS = {"pc_type": "hypre", "pc_hypre_type": "boomeramg", **SWEEPS}
 
 
 def petsc_message(error):

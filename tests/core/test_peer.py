@@ -245,6 +245,39 @@ def test_options_reach_snes_and_are_removed():
     assert not any("membranes_peer" in k for k in PETSc.Options().getAll())
 
 
+# PETSc's own BoomerAMG defaults, given as a user's options
+PETSC_AMG = {"pc_hypre_boomeramg_coarsen_type": "Falgout", "pc_hypre_boomeramg_agg_nl": "0",
+             "pc_hypre_boomeramg_interp_type": "classical", "pc_hypre_boomeramg_P_max": "0",
+             "pc_hypre_boomeramg_relax_type_down": "symmetric-SOR/Jacobi",
+             "pc_hypre_boomeramg_relax_type_up": "symmetric-SOR/Jacobi"}
+
+
+@serial_only
+def test_boomeramg_takes_the_peer_options_and_a_users_on_top(monkeypatch):
+    """Both BoomerAMGs of the peer (the z solve's, SNES's reduced systems') take AMG_OPTIONS
+    with ours' SWEEPS, whose aggressive coarsening makes a weaker V-cycle: more CG steps than
+    with PETSc's defaults, for the same discrete solution (SNES and the z solve at rtol 1e-8).
+    A user's options go on top, in SNES only: given PETSc's defaults, SNES's CG takes their
+    steps and the z solve keeps the peer's."""
+    from membranes.app import peer
+    from membranes.linalg import preconditioners
+    problem = disk(3)
+    tuned = nested_peer(problem)
+    users = nested_peer(problem, options=PETSC_AMG)
+    monkeypatch.setattr(peer, "AMG_OPTIONS", {})
+    monkeypatch.setattr(preconditioners, "SWEEPS", {})
+    default = nested_peer(problem)
+    assert tuned.converged and users.converged and default.converged
+    cg = [[lv.ksp_iterations for lv in run.levels] for run in (tuned, users, default)]
+    z = [[lv.z_iterations for lv in run.levels] for run in (tuned, users, default)]
+    assert sum(cg[0]) > sum(cg[2]) and cg[1] == cg[2], cg
+    assert z[0] == z[1] and sum(z[0]) > sum(z[2]), z
+    scale = max(np.abs(a).max() for a in default.disc.split(default.X))
+    for run in (tuned, users):
+        for a, b in zip(run.disc.split(run.X), default.disc.split(default.X)):
+            assert np.abs(a - b).max() <= 1e-6 * scale
+
+
 def test_a_level_that_starts_at_the_solution_stops():
     """Zero loads: level 0 solves w = g exactly and its prolongation is the solution of level
     1, whose initial residual is round-off that rtol cannot reduce. PETSc's VI test ignores
