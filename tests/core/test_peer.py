@@ -272,6 +272,8 @@ def test_boomeramg_takes_the_peer_options_and_a_users_on_top(monkeypatch):
     z = [[lv.z_iterations for lv in run.levels] for run in (tuned, users, default)]
     assert sum(cg[0]) > sum(cg[2]) and cg[1] == cg[2], cg
     assert z[0] == z[1] and sum(z[0]) > sum(z[2]), z
+    # the solutions differ by what the solvers' rtol 1e-8 leaves (measured 9.4e-9 of the
+    # largest |u| on u1, u2, 3e-10 on λ); asserted at 1e-6, a margin for S's conditioning
     scale = max(np.abs(a).max() for a in default.disc.split(default.X))
     for run in (tuned, users):
         for a, b in zip(run.disc.split(run.X), default.disc.split(default.X)):
