@@ -65,6 +65,17 @@ def test_wheel_holds_every_file_the_code_needs(wheel):
     assert "membranes = membranes.app.cli:main" in entry_points
 
 
+def test_wheel_version_is_the_package_version(wheel):
+    """pyproject.toml reads the version from membranes.__version__ (written once): the
+    wheel's metadata and `membranes --version` say the same."""
+    import membranes
+    with zipfile.ZipFile(wheel) as z:
+        info = next(n for n in z.namelist() if n.endswith(".dist-info/METADATA"))
+        metadata = z.read(info).decode()
+    assert f"\nVersion: {membranes.__version__}\n" in metadata
+    assert os.path.basename(wheel).startswith(f"membranes-{membranes.__version__}-")
+
+
 def test_numpy_requirement_keeps_numpy_2_out(wheel):
     """An unbounded `numpy` let `pip install '.[dev]'` (matplotlib, contourpy) replace the
     system's numpy 1.24 by numpy 2, and then petsc4py fails to import."""

@@ -51,12 +51,12 @@ def test_default_run_imports_only_its_flux():
 
 
 def test_help_imports_neither_dolfinx_nor_petsc():
-    """`membranes --help` (and any refusal by the argument parser) reads no mesh and solves
-    nothing: no dolfinx, UFL or PETSc (they were half a second and half the memory of
+    """`membranes --help`, `--version` (and any refusal by the argument parser) read no mesh
+    and solve nothing: no dolfinx, UFL or PETSc (they were half a second and half the memory of
     `--help`), and not the `solve` driver behind `import membranes`."""
     modules = imported(
         "from membranes.app import cli\n"
-        "for argv in (['--help'], ['solve', '--help'], ['report', '--help'],\n"
+        "for argv in (['--help'], ['--version'], ['solve', '--help'], ['report', '--help'],\n"
         "             ['stability', '--help']):\n"
         "    try:\n"
         "        cli.main(argv)\n"

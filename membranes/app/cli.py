@@ -64,6 +64,23 @@ def _given_once(action, namespace):
     given.add(action.dest)
 
 
+class _Version(argparse.Action):
+    """`membranes --version`: membranes's version, then the software's (membranes.app.versions),
+    printed once; exit code 0."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from mpi4py import MPI
+
+        from .versions import one_line, software
+        versions = software()
+        if MPI.COMM_WORLD.rank == 0:
+            print(f"membranes {versions.pop('membranes')}\n{one_line(versions)}", flush=True)
+        parser.exit()
+
+
 class _Parser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -78,6 +95,8 @@ def _parser():
     p = _Parser(prog="membranes",
                 description="Contact of two elastic membranes: semismooth Newton on P1 "
                             "finite elements with guaranteed error bounds (FEniCSx).")
+    p.add_argument("--version", action=_Version, help="the versions of membranes and of the "
+                   "software it runs on (dolfinx, PETSc, MPI, ...), then exit")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     s = sub.add_parser("solve", help="solve a scene and write summary, history and solution")
     s.add_argument("--scene", choices=("disk", "square", "user"),

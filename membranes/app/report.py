@@ -49,6 +49,8 @@ import time
 import numpy as np
 from mpi4py import MPI
 
+from .versions import one_line
+
 # (label, Newton variant, Krylov preset, nested)
 METHODS = (("exact/amg", "exact", "amg", None), ("inexact/amg", "inexact", "amg", None),
            ("adaptive/amg", "adaptive", "amg", None),
@@ -427,6 +429,7 @@ def markdown(problem, runs, summaries, rows, cells, sources, seconds, missing=No
              "our estimator set-up and one evaluation at its final iterate. Wall times: from "
              "the start of the method, discretisation included; energy errors off the clock." +
              (PARALLEL_COUNTS if s["processes"] > 1 else ""),
+             "", f"Software: {one_line(s['software'])}.",
              "", "## Steps, time, error", "",
              "| " + " | ".join(TABLE_HEADINGS) + " |", "|" + "---|" * len(TABLE_HEADINGS)]
     lines += ["| " + " | ".join(_fmt(r.get(c)) for c in TABLE_COLUMNS) + " |" for r in rows]

@@ -18,6 +18,7 @@ from petsc4py import PETSc
 from ..fem.discretisation import Discretisation
 from ..fem.meshes import mesh_size
 from ..model.problem import Problem
+from .versions import software
 
 # the estimators of an iterate as they go into records and summary.json (§7)
 ESTIMATOR_COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C",
@@ -122,4 +123,5 @@ class Solution:
         out["bound_guaranteed"] = est.get("bound")
         out["effectivity"] = eta / err if eta is not None and err else None
         out["estimator_setup_s"], out["estimator_time_s"] = self.estimator_times
+        out["software"] = software()
         return out

@@ -60,6 +60,7 @@ import numpy as np
 from mpi4py import MPI
 
 from .report import PARALLEL_COUNTS
+from .versions import one_line, software
 
 METHODS = tuple((cfun, newton, solver) for cfun in ("min", "fb")
                 for newton, solver in (("exact", "direct"), ("exact", "paper"),
@@ -317,7 +318,8 @@ def markdown(rows, h, seconds, processes):
              "effectivity is η/|||u - u_h||| at the final iterate where the exact solution "
              "is known; the adaptive variant stops at the discretisation error, so its "
              "residual and complementarity are not at round-off." +
-             (PARALLEL_COUNTS if processes > 1 else ""), "", "## Failures", ""]
+             (PARALLEL_COUNTS if processes > 1 else ""), "",
+             f"Software: {one_line(software())}.", "", "## Failures", ""]
     lines += [f"* {r['case']} {r['method']}: {r['reason']}" for r in f["failures"]] or ["None."]
     lines += ["", "## Bound", ""]
     if f["below_one"]:

@@ -36,7 +36,7 @@ SUMMARY_KEYS = {"scene", "description", "n_vertices", "n_cells", "h", "h_coarse"
                 "complementarity_violation", "energy_error", "energy_error_kind", "eta",
                 "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc", "eta_C", "eta_lin1",
                 "eta_lin2", "eta_lin3", "eta_rem", "bound_guaranteed", "effectivity",
-                "estimator_setup_s", "estimator_time_s"}
+                "estimator_setup_s", "estimator_time_s", "software"}
 
 
 @pytest.fixture(scope="module")
@@ -70,6 +70,38 @@ def test_summary_keys_and_values(run):
     assert summary["eta"] >= summary["energy_error"] > 0
     assert summary["effectivity"] == pytest.approx(summary["eta"] / summary["energy_error"],
                                                    rel=1e-15)
+
+
+def test_summary_names_the_software_that_ran(run):
+    """summary.json's `software`: the versions the libraries of this process report of
+    themselves (metadata for the packages; PETSc and MPI asked at run time)."""
+    import dolfinx
+    import ufl
+    from petsc4py import PETSc
+
+    import membranes
+    software = json.loads((run[1] / "summary.json").read_text())["software"]
+    assert software["membranes"] == membranes.__version__
+    assert software["dolfinx"] == dolfinx.__version__ and software["ufl"] == ufl.__version__
+    assert software["numpy"] == np.__version__
+    assert software["PETSc"] == "%d.%d.%d" % PETSc.Sys.getVersion()
+    assert software["MPI"] and MPI.Get_library_version().startswith(software["MPI"])
+
+
+@serial_only
+def test_version_option_prints_the_same(capsys):
+    """`membranes --version`: exit 0, membranes's version, then the software's in one line."""
+    from importlib import metadata
+
+    import membranes
+    from membranes.app import cli
+    with pytest.raises(SystemExit) as done:
+        cli.main(["--version"])
+    assert done.value.code == 0
+    first, second = capsys.readouterr().out.splitlines()
+    assert first == f"membranes {membranes.__version__}"
+    assert second.startswith("python ")
+    assert f", dolfinx {metadata.version('fenics-dolfinx')}, " in second
 
 
 def _history(out):

@@ -86,6 +86,13 @@ def test_table_has_every_method_and_the_peers(made):
         for key in ("newton_iterations", "linear_iterations"):
             assert cells[TABLE_COLUMNS.index(key)] == rows[method][key]
     assert "## The paper's table" in text and "replay (same counts as the run)" in text
+    # the software that made the numbers, as summary.json names it
+    import dolfinx
+
+    import membranes
+    software = next(li for li in text.splitlines() if li.startswith("Software: "))
+    assert software.startswith(f"Software: membranes {membranes.__version__}, python ")
+    assert f", dolfinx {dolfinx.__version__}, " in software and ", PETSc 3." in software
 
 
 def test_peers_solve_the_same_discrete_problem(made):

@@ -119,6 +119,8 @@ def test_command_writes_the_matrix(tmp_path):
     assert all(r["converged"] == "True" for r in rows)
     text = (out / "stability.md").read_text()
     assert f"{len(rows)} of {len(rows)} runs converged" in text
+    import membranes
+    assert f"\nSoftware: membranes {membranes.__version__}, python " in text
     assert sorted(p.name for p in out.iterdir()) == ["stability.csv", "stability.md"]
     for bad in (["--cases", "nonsense"], ["--h", "-1"]):
         args = parser.parse_args(["stability", "--quiet", "--out", str(tmp_path / "no")] + bad)
