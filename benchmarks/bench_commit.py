@@ -112,6 +112,7 @@ def main(argv=None):
         then_dependencies(tree)
         print(f"then: {args.commit} (worktree {tree}); now: this tree; BLAS threads: "
               f"{fresh.blas_threads(args.blas_threads)}", flush=True)
+        print(f"Software (now): {fresh.software()}", flush=True)
         if not args.no_warmup:
             run_then(tree, "3", args.timeout)
             fresh.launch("ours", "3", threads=args.blas_threads)

@@ -39,6 +39,7 @@ TARGET = 0.4          # largest per-process peak at P = 4 over the serial peak
 def main(args):
     guard = fresh.MemoryGuard(args.margin)
     print(f"BLAS threads: {fresh.blas_threads(args.blas_threads)}", flush=True)
+    print(f"Software: {fresh.software()}", flush=True)
     if not args.no_warmup:
         # the JIT cache warm
         r = fresh.launch("ours", "1", 1, args.timeout, args.blas_threads)

@@ -207,6 +207,7 @@ def main(args):
                if m != "plain" or not args.no_plain]
     guard = fresh.MemoryGuard(args.margin)
     print(f"BLAS threads: {fresh.blas_threads(args.blas_threads)}", flush=True)
+    print(f"Software: {fresh.software()}", flush=True)
     if not args.no_warmup:
         # forms JIT-compiled into the disk cache before anything is measured, as for any run
         # after the first

@@ -89,6 +89,7 @@ def main(argv=None):
         parser.error("every μ2 must be positive")
     print(f"# bench_sweep: μ2 = {' '.join(f'{v:g}' for v in args.mu2)}; BLAS threads: "
           f"{fresh.blas_threads(args.blas_threads)}")
+    print(f"# software: {fresh.software()}")
     if not args.no_warmup:
         run("kept", "2", [1.0], 1, args.timeout, args.blas_threads)
     for processes in args.procs:

@@ -173,6 +173,16 @@ def blas_threads(threads=None):
             "the BLAS library's default (one per core, per process)") + " (environment)"
 
 
+def software():
+    """The software the children run on, in one line (membranes.app.versions: the packages'
+    installed versions, read without importing them), for the head of a benchmark's output."""
+    if ROOT not in sys.path:
+        sys.path.insert(0, ROOT)
+    from membranes.app.versions import one_line
+    from membranes.app.versions import software as versions
+    return one_line(versions(libraries=False))
+
+
 def run_json(command, env, timeout=None, cwd=ROOT):
     """Run `command` (a child that prints its record as a JSON line) and return that record
     with `process_s`, the wall time of the whole process measured here, or {"failed":
