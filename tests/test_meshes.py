@@ -220,6 +220,45 @@ def test_processes_without_cells(tmp_path):
     assert (out / "solution.xdmf").exists()
 
 
+PARTITIONS = """
+import json, os
+from mpi4py import MPI
+from membranes.fem.meshes import unit_disk
+comm, parts = MPI.COMM_WORLD, []
+for _ in range(3):
+    m = unit_disk(0.05, comm)
+    n = m.topology.index_map(2).size_local
+    centres = m.geometry.x[:, :2][m.geometry.dofmap.array.reshape(-1, 3)[:n]].mean(axis=1)
+    parts.append([n, centres.sum(axis=0).round(9).tolist()])
+parts = comm.gather(parts)
+if comm.rank == 0:
+    print(json.dumps({"parts": parts, "left": "SCOTCH_PTHREAD_NUMBER" in os.environ}))
+"""
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
+def test_partitions_are_the_same_in_every_run():
+    """The disk on 4 processes, made three times in a run and in two runs: every process gets
+    the same cells each time (their number and the sum of their centres). With PT-Scotch's
+    threads (SCOTCH_PTHREAD_NUMBER=4 set by hand) the parts differed between the three
+    meshes of one run, and so did Newton's steps and η between runs (fem.meshes notes)."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("OMPI_", "PMIX_")) and k != "SCOTCH_PTHREAD_NUMBER"}
+    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
+    runs = []
+    for _ in range(2):
+        proc = subprocess.run(["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "4",
+                               sys.executable, "-c", PARTITIONS], cwd=ROOT, env=env,
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    for run in runs:
+        assert not run["left"]                     # the environment is restored
+        for rank in run["parts"]:
+            assert rank[0][0] > 0 and rank[1:] == [rank[0], rank[0]]
+    assert runs[0]["parts"] == runs[1]["parts"]
+
+
 def test_poincare_constant_of_each_domain():
     """C_PF h_Ω of §7: 1/j_{0,1} on the unit disk, whichever scene meshes it (the user scene
     took the bounding box's 1/(π √(1/4 + 1/4)) = 0.450 there, 8 % above the disk's 0.416);

@@ -16,6 +16,15 @@ them, without ghost cells (§12): plaza refinement of a ghosted mesh gave two co
 ghost cell on some processes (a file of two squares on 3 processes), and the estimators met
 facets of three cells.
 
+**Reproducible partitions.** dolfinx partitions with PT-Scotch, which splits a graph with
+several threads by default; its partitions then differ from run to run (on 3 and 4 processes
+the parts themselves, on 2 which process gets which half). The matrices' orderings, and with
+them BoomerAMG's hierarchies, block-Jacobi ILU(0) and the Krylov iterates, followed: the
+same run on 2 processes took 24 or 25 Newton steps, and its η differed in the fourth digit.
+`create_mesh` is therefore called with Scotch's documented SCOTCH_PTHREAD_NUMBER = 1 (unless
+the user set it), under which the partition of a mesh on P processes is the same in every
+run. The hierarchy is refined without redistribution, so it inherits T_0's partition.
+
 Bad input raises ValueError on every process with the same one-line message (rank 0 checks,
 the message is broadcast).
 """
@@ -70,8 +79,24 @@ def _on_rank0(comm, build):
             raise ValueError(error)
         cells, x = arrays if comm.rank == 0 else \
             (np.empty((0, 3), dtype=np.int64), np.empty((0, 2)))
-    return create_mesh(comm, cells, x, gmshio.ufl_mesh(GMSH_TRIANGLE, 2),
-                       ghost_mode=GhostMode.none)
+    with one_scotch_thread():
+        return create_mesh(comm, cells, x, gmshio.ufl_mesh(GMSH_TRIANGLE, 2),
+                           ghost_mode=GhostMode.none)
+
+
+@contextlib.contextmanager
+def one_scotch_thread():
+    """SCOTCH_PTHREAD_NUMBER = 1 while dolfinx partitions (module notes: reproducible
+    partitions), unless the user has set it; the environment is restored afterwards."""
+    name = "SCOTCH_PTHREAD_NUMBER"
+    if name in os.environ:
+        yield
+        return
+    os.environ[name] = "1"
+    try:
+        yield
+    finally:
+        os.environ.pop(name, None)
 
 
 def _shape(shape, h):
