@@ -270,45 +270,87 @@ class HomeSetup:
         home = (first >> 1) % comm.size
         interior = np.where(first & 1, np.int16(0), np.int16(INTERIOR))
 
-        # send every kept run to its patch's home (in order), which keeps the patches whole;
-        # column by column (no copies on one process)
-        order = stable_order(np.repeat(home, count)) if comm.size > 1 else slice(None)
-        send = np.bincount(home, weights=count, minlength=comm.size).astype(np.int64)
-        recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
-        runs = runs[order]
-
-        def move(column):
-            return alltoallv(comm, column, send, recv)
-
-        gpatch = move(np.repeat(seen, count)[order])
-        # (np.take of padded rows: numpy's fast gather of small rows; -1 past a run's dofs)
-        length, local = self.run_length[runs], self.run_dofs.take(runs, axis=0)
-        glength, gdofs = move(length), move(local + PETSc.IntType(self.rstart))
-        gcode = move(self.run_code.take(runs, axis=0)
-                     | np.repeat(interior, count)[order][:, None])
-        gpoint = move(self.run_point.take(runs, axis=0))
-        gh = move(np.repeat(h, count)[order])
-        del h, first, at, interior
-        received = gpatch.size
-        perm = None                  # received → canonical order, patch by patch (None: same)
+        # every kept run goes to its patch's home, which keeps the patches whole. A patch at
+        # home here with all its runs here keeps them where they are, in `runs`' order (by
+        # patch, canonical within each); only the other runs travel, column by column. Those
+        # of a *mixed* patch (runs on several processes: the others tell its home first) are
+        # merged at its home in canonical order, after the patches that stay.
+        away = home != comm.rank
+        mixed = np.zeros(seen.size, dtype=bool)
         if comm.size > 1:
-            entity = move(self.run_entity[runs])
-            # the runs come as one block per source, each by patch: a stable merge sort
-            # (numpy's timsort finds the blocks) orders them by patch in about one pass
-            perm = np.argsort(gpatch, kind="stable")
-            # a patch with runs from several processes: merge them in canonical order
-            source = np.repeat(np.arange(comm.size), recv)[perm]
-            new = run_starts(gpatch[perm])
-            mixed = (np.minimum.reduceat(source, new) != np.maximum.reduceat(source, new)
-                     if new.size else np.zeros(0, dtype=bool))
-            redo = np.flatnonzero(np.repeat(mixed, np.diff(np.append(new, received))))
-            if redo.size:
-                r = perm[redo]
-                perm[redo] = r[np.lexsort((entity[r], gpoint[r, 0], _kind(gcode[r, 0]),
-                                           gpatch[r]))]
-            gpatch, glength, gh = gpatch[perm], glength[perm], gh[perm]
-            gdofs, gcode = gdofs.take(perm, axis=0), gcode.take(perm, axis=0)
-            gpoint = gpoint.take(perm, axis=0)
+            to = home[away]
+            by_home = stable_order(to)
+            told_counts = np.bincount(to, minlength=comm.size).astype(np.int64)
+            told = alltoallv(comm, seen[away][by_home], told_counts,
+                             np.asarray(comm.alltoall(told_counts.tolist()), dtype=np.int64))
+            place = np.minimum(np.searchsorted(seen, told), max(seen.size - 1, 0))
+            if told.size and not np.array_equal(seen[place], told):
+                raise RuntimeError("a patch's home holds none of its runs")
+            mixed[place] = True
+            del to, by_home, told, place
+        run_patch, run_interior = np.repeat(seen, count), np.repeat(interior, count)
+        run_h = np.repeat(h, count)
+        del h, first, at, interior
+        if comm.size == 1:
+            keep, tail = slice(None), None
+        else:
+            where = np.repeat(np.where(away, 2, mixed).astype(np.int8), count)
+            keep = np.flatnonzero(where == 0)
+            sent = np.flatnonzero(where == 2)
+            sent = sent[stable_order(np.repeat(home, count)[sent])]       # by home
+            tail = (np.flatnonzero(where == 1), sent)
+            del where
+            send = np.bincount(home[away], weights=count[away],
+                               minlength=comm.size).astype(np.int64)
+            recv = np.asarray(comm.alltoall(send.tolist()), dtype=np.int64)
+
+        # the columns: per run its patch, length, dofs (global), codes (with the patch's
+        # interior flag), position and the patch's shortest edge; (table, indexed by the runs'
+        # entities or by their positions in `runs`, what is added or or-ed in)
+        columns = [(run_patch, False, None), (self.run_length, True, None),
+                   (self.run_dofs, True, "dofs"), (self.run_code, True, "code"),
+                   (self.run_point, True, None), (run_h, False, None)]
+
+        def take(table, positions, by_run, finish):
+            # (np.take of padded rows: numpy's fast gather of small rows; -1 past a run's dofs)
+            values = table.take(runs[positions] if by_run else positions, axis=0)
+            return finished(values, positions, finish)
+
+        def finished(values, positions, finish):
+            if finish == "dofs":
+                values += PETSc.IntType(self.rstart)
+            elif finish == "code":
+                values |= run_interior[positions][:, None]
+            return values
+
+        if tail is None:                  # one process: every run stays, in `runs`' order
+            columns = [take(table, slice(None), True, finish) if by_run else table
+                       for table, by_run, finish in columns]
+        else:
+            # the mixed patches' runs (own, then received) by patch, then in canonical order
+            # (kind, position, entity), as `runs` orders a patch's runs; after those that stay
+            own, sent = tail
+
+            def mixed_part(table, by_run, finish=None):
+                return np.concatenate([take(table, own, by_run, finish),
+                                       alltoallv(comm, take(table, sent, by_run, finish),
+                                                 send, recv)])
+
+            parts = [mixed_part(*c) for c in columns]
+            entity = mixed_part(self.run_entity, True)
+            merge = np.lexsort((entity, parts[4][:, 0], _kind(parts[3][:, 0]), parts[0]))
+            del entity
+            stay = runs[keep]
+            for k, ((table, by_run, finish), part) in enumerate(zip(columns, parts)):
+                out = np.empty((keep.size + part.shape[0],) + table.shape[1:], table.dtype)
+                np.take(table, stay if by_run else keep, axis=0, out=out[:keep.size])
+                finished(out[:keep.size], keep, finish)
+                out[keep.size:] = part[merge]
+                columns[k] = out
+            del parts, stay
+        gpatch, glength, gdofs, gcode, gpoint, gh = columns
+        columns = run_patch = run_interior = run_h = None      # (freed)
+        received = gpatch.size
         # patch offsets; interior patches lose their first DG dof, the first of their first
         # DG run (the DG runs come last in a patch, so the runs before are its RT dofs)
         new = run_starts(gpatch)
