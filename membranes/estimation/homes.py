@@ -372,16 +372,9 @@ class HomeSetup:
         dofs, code = gdofs.take(kept), gcode.take(kept)
         del kept
         h = gh[new]
-        # the keys hash the first dof of each entity: every run but the pinned ones
-        # (the keyed runs before an offset: the runs before it but the pinned ones, which
-        # are in increasing order)
-        offsets = np.append(new, received)
-        runs_before = offsets - np.searchsorted(pinned, offsets)
-        keyed = np.ones(received, dtype=bool)
-        keyed[pinned] = False
-        keyed = np.flatnonzero(keyed)
-        key = patch_keys(runs_before, gcode[:, 0][keyed], gpoint.take(keyed, axis=0), h,
-                         np.diff(start))
+        # the keys hash the first dof of each run, one per entity of the patch (a pinned
+        # run's too: translated patches pin the same run), and the patch's kept dofs
+        key = patch_keys(np.append(new, received), gcode[:, 0], gpoint, h, np.diff(start))
 
         return dofs, start, code, nsigma, key, gpatch[new], owned
 
