@@ -8,6 +8,7 @@ metadata, so `membranes --version` imports none of them (lean runs); PETSc's and
 library versions are asked of the libraries, and only where a run has loaded them already.
 """
 
+import functools
 import platform
 import sys
 from importlib import metadata
@@ -21,6 +22,7 @@ PACKAGES = (("fenics-dolfinx", "dolfinx"), ("fenics-basix", "basix"), ("fenics-u
             ("numpy", "numpy"))
 
 
+@functools.lru_cache(maxsize=None)     # (an installed version does not change in a run)
 def _installed(distribution):
     try:
         return metadata.version(distribution)
