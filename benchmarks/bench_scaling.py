@@ -23,7 +23,8 @@ reversed every other repeat), so that the machine's drift is shared among them; 
 runs every (P, method) N times and the figures are the medians. Printed: a table, then the
 ratios ours / nested peer (process and method time), ours / certified nested peer, energy
 error ours / peer, peak memory ours / peer, the certificate's own cost against the peers
-(the certified peer's set-up and evaluation: the floor of a certified run's ratios), the
+(the certified peer's set-up and evaluation, and its peak against the nested peer's: the
+floors of a certified run's ratios), the
 speed-up of ours on P processes (each also repeat by repeat), and where the method time
 goes: the coarse levels, the solve on T_J, the estimator set-up and the estimates
 (`fresh.phases_of_ours`, `fresh.phases_of_peer`).
@@ -154,8 +155,10 @@ def certificate_floor(stats, s, p):
     """What the certificate alone costs, against the peers' method times: the certified
     peer's estimator set-up and evaluation (the median phases), which a certified run of ours
     pays as well (the same set-up, at least one evaluation). A ratio ours / peer below the
-    certificate's own ratio cannot be reached by making Newton faster; None without both
-    peers' runs."""
+    certificate's own ratio cannot be reached by making Newton faster. Likewise the memory:
+    the certified peer's peak is the mesh, the discretisation and the certificate's footprint
+    (its SNES objects are freed before the set-up), which a certified run of ours holds as
+    well. None without both peers' runs."""
     nested, certified = stats.get((s, p, "nested")), stats.get((s, p, "certified"))
     split = (certified or {}).get("phases") or {}
     if nested is None or split.get("set-up") is None or split.get("estimates") is None:
@@ -164,7 +167,9 @@ def certificate_floor(stats, s, p):
     return (f"the certificate alone (set-up {split['set-up']:.2f} s + one evaluation "
             f"{split['estimates']:.2f} s) is {cert / nested['method_s']:.3f} of the nested "
             f"peer's method time and {cert / certified['method_s']:.3f} of the certified "
-            f"peer's: the floor of a certified run's ratios (up to the machine's spread)")
+            f"peer's, and the certified peer's peak {certified['peak_gib']:.3f} GiB is "
+            f"{certified['peak_gib'] / nested['peak_gib']:.3f} of the nested peer's: the "
+            f"floors of a certified run's ratios (up to the machine's spread)")
 
 
 def ratios(sizes, procs, methods, stats, runs):
