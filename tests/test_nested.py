@@ -110,6 +110,43 @@ def test_gate_with_recovered_estimate_below_eta_disc(monkeypatch):
     assert plain.newton_iterations > full.newton_iterations + 5
 
 
+def test_gates_reuse_eta_rec_for_clear_skips(monkeypatch):
+    """schedule.LevelEstimates._recovered: on one mesh from the paper's X⁰ (the disk, J = 3,
+    nested=False: ten Newton steps, each gated before the only full estimate), a gate whose
+    η_lin, forecast and then computed alone, lies above STALE · REC_MARGIN · the gate of the
+    last η_rec skips its iterate against that η_rec instead of making η_rec anew. Against the
+    run that makes η_rec at every gate (STALE None): the same decisions, hence the same
+    iterates, counts and η, with fewer η_rec assemblies."""
+    from membranes.app import schedule
+    from membranes.estimation.estimators import Estimators
+    calls = []
+    recovered = Estimators.recovered
+
+    def counted(self, X, linearisation=False):
+        calls.append(1)
+        return recovered(self, X, linearisation)
+
+    monkeypatch.setattr(Estimators, "recovered", counted)
+    problem = scene("disk", 0.2, levels=3)
+    default = schedule.STALE
+    assert default is not None
+    runs = {}
+    for stale in (default, None):
+        monkeypatch.setattr(schedule, "STALE", stale)
+        calls.clear()
+        runs[stale] = (solve(problem, nested=False), len(calls))
+    (reusing, n_reusing), (fresh, n_fresh) = runs[default], runs[None]
+    assert reusing.newton_iterations == fresh.newton_iterations >= 5
+    assert reusing.linear_iterations == fresh.linear_iterations
+    assert n_fresh == fresh.newton_iterations        # a gate at every Newton iterate
+    assert n_reusing < n_fresh // 2
+    gated = [[r for r in run.history if r["kind"] == "newton"] for run in (reusing, fresh)]
+    for a, b in zip(*gated):
+        assert a["residual"] == b["residual"] and a["bound"] == b["bound"]
+    assert reusing.final_record["bound"]
+    assert reusing.estimates["eta"] == pytest.approx(fresh.estimates["eta"], rel=1e-12)
+
+
 def _with_and_without_forcing(monkeypatch, J):
     """The disk (h0 = 0.2, J levels) solved with the defaults and with ADAPTIVE_FORCING None,
     and the Newton records of T_J of each."""

@@ -24,6 +24,11 @@ GATE = 1.0
 # with η_lin within REC_MARGIN of the gate is estimated unless the last step's rate takes η_lin
 # below the gate at the next step (`LevelEstimates._skip`)
 REC_MARGIN = 2.0
+# η_rec is made anew at a gate unless η_lin, forecast from the last two Newton iterates and
+# then computed alone, lies above STALE · REC_MARGIN · the gate of the last η_rec on the mesh:
+# the iterate is then skipped against that η_rec (`LevelEstimates._recovered`); None: η_rec
+# at every gate
+STALE = 4.0
 
 
 class LevelEstimates:
@@ -91,7 +96,9 @@ class LevelEstimates:
             self.multilevel = MultilevelFlux(disc, hierarchy)
         self.gamma_alg, self.gamma_lin, self.gate = gamma_alg, gamma_lin, gate
         self.eta_disc = None           # η_disc of the last full estimate on this mesh
+        self.eta_rec = None            # η_rec of the last gate that made one on this mesh
         self.eta_lin = None            # η_lin of the last Newton iterate on this mesh
+        self.before = None             # η_lin of the Newton iterate before that one
         self.pending = None            # ('nu') the iterate handed over last: (X, R) copies
         self.setup_time = time.perf_counter() - t
         self.time = 0.0
@@ -113,6 +120,28 @@ class LevelEstimates:
         """η_lin of the next Newton iterate, taken on at the last step's rate η_lin / `previous`
         (rate 1 without a previous η_lin on the mesh)."""
         return eta_lin * (eta_lin / previous) if previous else eta_lin
+
+    def _recovered(self, X):
+        """(η_rec, the η_lin parts at X) for a gate before the first full estimate on the mesh.
+        η_rec, like η_disc, barely moves between Newton iterates near the discrete solution
+        (on T_J of a nested run it moved by 0.15 % over four iterates; from a far initial
+        guess on one mesh it moves by up to 80×, docs/choices.md). Where the last two η_lin
+        forecast this iterate's far above STALE · REC_MARGIN · the gate of the last η_rec, η_lin
+        is computed alone (one small assembly instead of two); if it is indeed above, the
+        iterate is skipped against that η_rec: only an η_rec STALE times larger would make its
+        test worth a full estimate. Else η_rec is made anew with η_lin, as at the first gate."""
+        if STALE is not None and self.eta_rec is not None and self.eta_lin is not None:
+            clear = STALE * REC_MARGIN * self.gamma_lin * self.gate * self.eta_rec
+            if self._forecast(self.eta_lin, self.before) > clear:
+                lin = self.est.linearisation(X)
+                if lin["eta_lin"] > clear:
+                    return self.eta_rec, lin
+        self.eta_rec, lin = self.est.recovered(X, linearisation=True)
+        return self.eta_rec, lin
+
+    def _newton_lin(self, eta_lin):
+        """Record η_lin of a Newton iterate (the last two forecast the next, `_recovered`)."""
+        self.before, self.eta_lin = self.eta_lin, eta_lin
 
     @classmethod
     def _more_steps(cls, eta_lin, target, previous):
@@ -157,20 +186,20 @@ class LevelEstimates:
             if kind in ("newton", "forced") and self.gate is not None:
                 if self.eta_disc is not None:
                     lin, reference = self.est.linearisation(X), self.eta_disc
-                else:                            # η_rec and η_lin in one assembly
-                    reference, lin = self.est.recovered(X, linearisation=True)
+                else:                            # η_rec stands in (`_recovered`)
+                    reference, lin = self._recovered(X)
                 target = self.gamma_lin * self.gate * reference
                 if self._skip(lin["eta_lin"], target, previous):
-                    self.eta_lin = lin["eta_lin"]
+                    self._newton_lin(lin["eta_lin"])
                     lin["partial"] = True
                     lin["more_steps"] = self._more_steps(lin["eta_lin"], target, previous)
                     return lin
                 if kind == "forced":             # its test may hold: finish the solve
                     return None
-                self.eta_lin = lin["eta_lin"]
+                self._newton_lin(lin["eta_lin"])
             out = self._evaluate(X, R)
             if kind in ("newton", "stalled"):
-                self.eta_lin = out["eta_lin"]
+                self._newton_lin(out["eta_lin"])
                 out["more_steps"] = self._more_steps(out["eta_lin"],
                                                      self.gamma_lin * out["eta_disc"], previous)
             if kind == "krylov" and self.multilevel is None:
