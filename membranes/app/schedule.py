@@ -46,27 +46,28 @@ class LevelEstimates:
       `of_previous` (Newton accepts that iterate if the criterion holds on it). σ_disc of
       each iterate is solved once (Estimators keeps the last two).
 
-    **Where the Newton test needs σ_disc.** At the end of a Newton step (kind 'newton') the
-    test is η_lin ≤ γ_lin η_disc. η_lin needs no flux (`Estimators.linearisation`, one small
+    **Where the Newton test needs σ_disc.** At the end of a Newton step (kind 'newton') the test
+    is η_lin ≤ γ_lin η_disc. η_lin needs no flux (`Estimators.linearisation`, one small
     assembly); η_disc does. Between Newton steps on one mesh η_disc barely moves (the
     discretisation error of iterates near the discrete solution), while η_lin falls
-    superlinearly. So once a full estimate on the mesh has given η_disc, an iterate with
-    η_lin > γ_lin · GATE · that η_disc (GATE = 1) is returned with η_lin only, marked
-    `partial` and without a bound: its Newton test would hold only if η_disc grew in one
-    step, and Newton goes on. Before the first full estimate on the mesh, the gradient
-    recovery estimate η_rec (`Estimators.recovered`, two small assemblies) stands in for
-    η_disc: both estimate the same discretisation error, but η_rec is no bound and η_disc
-    may exceed it (by 3× on a mesh of aspect ratio 100). So within REC_MARGIN (2) of the
-    gate an iterate is estimated in full, unless the rate of the last Newton step takes η_lin
-    below the gate at the next step (`_skip`). This is a schedule of the estimates, like ν
-    for Krylov (§8): a wrong guess costs about one more Newton step, never the bound; the
-    iterate Newton stops at is always estimated in full and certified. GATE = 1 because a
-    full estimate whose test fails is wasted, and on T_J it costs more than the Newton step
-    that a skipped, passing test costs: estimating an iterate pays only if its test is
-    likely to hold (docs/choices.md). `gate=None` estimates every Newton iterate in full, and
-    so does kind 'stalled' (an iterate that its Newton step left unchanged: η_lin no longer
-    falls, and η_rec may be far below η_disc where the mesh does not resolve the data, so the
-    gate would skip it at every repetition).
+    superlinearly. So once a full estimate on the mesh has given η_disc, an iterate with η_lin >
+    γ_lin · GATE · that η_disc (GATE = 1) is returned with η_lin only, marked `partial` and
+    without a bound: its Newton test would hold only if η_disc grew in one step, and Newton goes
+    on. Before the first full estimate on the mesh, the gradient recovery estimate η_rec
+    (`Estimators.recovered`, two small assemblies) stands in for η_disc: both estimate the same
+    discretisation error, but η_rec is no bound and η_disc may exceed it (by 3× on a mesh of
+    aspect ratio 100). So within REC_MARGIN (2) of the gate an iterate is estimated in full,
+    unless the rate of the last Newton step takes η_lin below the gate at the next step
+    (`_skip`). An iterate clearly above the gate is skipped against the last η_rec on the mesh,
+    with η_lin alone (`_recovered`, STALE). This is a schedule of the estimates, like ν for
+    Krylov (§8): a wrong guess costs about one more Newton step, never the bound; the iterate
+    Newton stops at is always estimated in full and certified. GATE = 1 because a full estimate
+    whose test fails is wasted, and on T_J it costs more than the Newton step that a skipped,
+    passing test costs: estimating an iterate pays only if its test is likely to hold
+    (docs/choices.md). `gate=None` estimates every Newton iterate in full, and so does kind
+    'stalled' (an iterate that its Newton step left unchanged: η_lin no longer falls, and η_rec
+    may be far below η_disc where the mesh does not resolve the data, so the gate would skip it
+    at every repetition).
 
     Each answer to kind 'newton' whose test fails says whether the next step is expected not
     to be the last either (`more_steps`, `_more_steps`): Newton then stops that step's Krylov
@@ -123,11 +124,10 @@ class LevelEstimates:
 
     def _recovered(self, X):
         """(η_rec, the η_lin parts at X) for a gate before the first full estimate on the mesh.
-        η_rec, like η_disc, barely moves between Newton iterates near the discrete solution
-        (on T_J of a nested run it moved by 0.15 % over four iterates; from a far initial
-        guess on one mesh it moves by up to 80×, docs/choices.md). Where the last two η_lin
-        forecast this iterate's far above STALE · REC_MARGIN · the gate of the last η_rec, η_lin
-        is computed alone (one small assembly instead of two); if it is indeed above, the
+        η_rec, like η_disc, barely moves between Newton iterates near the discrete solution,
+        but it does between those of a far initial guess (docs/choices.md). Where the last two
+        η_lin forecast this iterate's above STALE · REC_MARGIN · the gate of the last η_rec,
+        η_lin is computed alone (one small assembly instead of two); if it is indeed above, the
         iterate is skipped against that η_rec: only an η_rec STALE times larger would make its
         test worth a full estimate. Else η_rec is made anew with η_lin, as at the first gate."""
         if STALE is not None and self.eta_rec is not None and self.eta_lin is not None:
