@@ -129,8 +129,9 @@ class LevelEstimates:
         η_lin forecast this iterate's above STALE · REC_MARGIN · the gate of the last η_rec,
         η_lin is computed alone (one small assembly instead of two); if it is indeed above, the
         iterate is skipped against that η_rec: only an η_rec STALE times larger would make its
-        test worth a full estimate. Else η_rec is made anew with η_lin, as at the first gate."""
-        if STALE is not None and self.eta_rec is not None and self.eta_lin is not None:
+        test worth a full estimate. Else η_rec is made anew with η_lin, as at the first gate
+        (and after an η_rec of 0, against which every η_lin would be clearly above)."""
+        if STALE is not None and self.eta_rec and self.eta_lin is not None:
             clear = STALE * REC_MARGIN * self.gamma_lin * self.gate * self.eta_rec
             if self._forecast(self.eta_lin, self.before) > clear:
                 lin = self.est.linearisation(X)
