@@ -88,6 +88,9 @@ from .lifting import mass_inverse
 from .patches import PatchSystems, colour_vertices
 
 ROUND_OFF = 1e-8      # tolerance on the barycentric coordinates 0, 1/2, 1 of plaza's vertices
+# entries of the RT transfer's blocks below this times the largest are round-off of exact
+# zeros (the others are at least 1e-2 of it; `rt_prolongation`)
+EXACT_ZERO = 1e-12
 
 
 def _p1(mesh):
@@ -195,6 +198,9 @@ def rt_prolongation(Rc, Rf, parents, beta):
         blocks[k] = (dof_transformation(element, info_f[i], inverse_transpose=True)
                      @ piola_reference_block(element, ref[i])
                      @ dof_transformation(element, info_c[parents[i]]).T)
+    # the entries that vanish exactly (a fine dof on a coarse facet sees that facet's dofs
+    # only) come out of the products as round-off: made zero and left out of the matrix
+    blocks[np.abs(blocks) <= EXACT_ZERO * np.abs(blocks).max(initial=0.0)] = 0.0
     # each owned fine dof takes its row from the first owned cell that has it
     imf, imc = Rf.dofmap.index_map, Rc.dofmap.index_map
     fdofs = Rf.dofmap.list.array.reshape(-1, n)[:nc].ravel()
@@ -205,12 +211,12 @@ def rt_prolongation(Rc, Rf, parents, beta):
            "an owned RT dof of the fine mesh lies on no owned cell")
     cell, local = np.divmod(owned[at], n)
     values = blocks[inverse.ravel()[cell], local]                       # (rows, n)
-    cols = np.asarray(imc.local_to_global(cdofs[cell].ravel().astype(np.int32)),
-                      dtype=np.int64)
-    indptr = np.arange(0, n * row.size + 1, n, dtype=PETSc.IntType)
+    keep = values != 0.0
+    cols = np.asarray(imc.local_to_global(cdofs[cell][keep].astype(np.int32)), dtype=np.int64)
+    indptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))]).astype(PETSc.IntType)
     M = PETSc.Mat().createAIJ(((imf.size_local, imf.size_global),
                                (imc.size_local, imc.size_global)),
-                              csr=(indptr, cols.astype(PETSc.IntType), values.ravel()),
+                              csr=(indptr, cols.astype(PETSc.IntType), values[keep]),
                               comm=fine.comm)
     M.assemble()
     return M
