@@ -491,8 +491,10 @@ class Blocks:
                     out[first + k] = part(block)
         return out
 
-    def release(self):
-        self.__init__()
+    def drop(self):
+        """Frees the blocks kept so far; their classes keep their numbers and shapes, and
+        new classes are numbered on."""
+        self.shapes = {}
 
 
 # ## Inverses of the patch blocks

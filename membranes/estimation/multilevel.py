@@ -66,11 +66,13 @@ matrices.
 **Cost.** Level j's patches have about 3 × dim(RT_1 × DG1)(T_j) unknowns in patches of ~24
 cells, so all levels together about 4 × dim(T_J) (σ_disc: 3 ×); the coarse system has the size
 of P1(T_0). On a uniformly refined hierarchy most coarse patches of level j ≥ 2 are translates
-and share their block. Per call: one coarse back-solve, one assembly of the data matrix on T_J,
-one matrix-vector product per colour and level, the patches of each level in one pass (a
-matrix product per class of congruent patches), J - 1 RT transfers. (Solving every level's
-coarse patches on T_J itself, grouped by ancestry, would be just as exact but costs about
-3 × dim(T_J) unknowns *per level*, in patches of up to 6 · 4^J cells.)
+and share their block, and the levels share one store of classes: a scaled copy of an earlier
+level's patch reuses that class's inverse (`classes`). Per call: one coarse back-solve, one
+assembly of the data matrix on T_J, one matrix-vector product per colour and level, the patches
+of each level in one pass (a matrix product per class of congruent patches), J - 1 RT
+transfers. (Solving every level's coarse patches on T_J itself, grouped by ancestry, would be
+just as exact but costs about 3 × dim(T_J) unknowns *per level*, in patches of up to 6 · 4^J
+cells.)
 """
 
 import numpy as np
@@ -83,6 +85,7 @@ from forms.membrane import membrane_linear
 
 from ..fem.discretisation import boundary_dofs, ghosted_vector
 from ..fem.meshes import cell_vertices, owned_cells, triangle_areas
+from .classes import ClassStore
 from .congruence import dof_transformation, piola_reference_block
 from .lifting import mass_inverse
 from .patches import PatchSystems, colour_vertices
@@ -227,7 +230,7 @@ def rt_prolongation(Rc, Rf, parents, beta):
 class _Level:
     """Level j ≥ 1: the patches of the vertices of T_{j-1} meshed by T_j."""
 
-    def __init__(self, j, hierarchy, Vc, Vf):
+    def __init__(self, j, hierarchy, Vc, Vf, store):
         from dolfinx import fem
         self.j = j
         self.mesh = hierarchy.meshes[j]
@@ -266,9 +269,10 @@ class _Level:
             patches.append(np.where(has, gdofs[vertex], -1))
             interior.append(has & ~on_boundary[vertex])
         self.patches, self.interior = patches, interior
-        # the data are DG moments and only σ is wanted
+        # the data are DG moments and only σ is wanted; the classes of the levels before,
+        # scaled copies of this level's, are kept in `store` with their inverses
         self.systems = PatchSystems(self.mesh, patches, interior, rhs="divergence",
-                                    solution="flux")
+                                    solution="flux", store=store)
         self.rt_space = self.systems.rt_space
         W = self.systems.W
         self.dg = W.sub(1).dofmap.list.array.reshape(-1, 3)[:nc].ravel()
@@ -342,7 +346,8 @@ class MultilevelFlux:
         self.comm = disc.comm
         J = hierarchy.levels
         spaces = [_p1(m) for m in hierarchy.meshes[:-1]] + [disc.V]
-        self.levels = [_Level(j, hierarchy, spaces[j - 1], spaces[j])
+        store = ClassStore("divergence", "flux")       # one for all levels (`classes`)
+        self.levels = [_Level(j, hierarchy, spaces[j - 1], spaces[j], store)
                        for j in range(1, J + 1)]
         # restrictions of moments from T_J to T_j: C_J = I, C_{j-1} = E_jᵀ C_j
         C = None

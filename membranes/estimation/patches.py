@@ -59,11 +59,11 @@ import ufl
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from .classes import ClassStore
 from .congruence import (
     FACET,
     NEGATIVE,
     BasisChange,
-    Blocks,
     _kind,
     canonical_block,
     canonical_dofs,
@@ -127,10 +127,14 @@ class PatchSystems(HomeSetup):
     """
 
     def __init__(self, mesh, patches, interior, W=None, share=True, rhs="full",
-                 solution="full"):
+                 solution="full", store=None):
         if rhs not in ("full", "divergence") or solution not in ("full", "flux"):
             raise ValueError(f"rhs must be 'full' or 'divergence', solution 'full' or 'flux'; "
                              f"got {rhs!r}, {solution!r}")
+        if store is not None and (not share or (store.rhs, store.solution) != (rhs, solution)):
+            raise ValueError("a shared ClassStore needs share=True and the store's rhs and "
+                             "solution")
+        self.store = store if store is not None else ClassStore(rhs, solution)
         self.rhs, self.solution = rhs, solution
         self.mesh, self.comm = mesh, mesh.comm
         self.W = W = W if W is not None else mixed_space(mesh)
@@ -156,26 +160,25 @@ class PatchSystems(HomeSetup):
         # of each new key (all patches without sharing), and any patch whose size differs from
         # its key's class (a hash collision: it gets a class of its own); their class numbers
         # are given now (in the order `_extract` makes them)
-        classes, self.known = Blocks(), (np.zeros(0, dtype=np.uint64), np.zeros(0, np.int64))
-        sizes = np.zeros((0, 2), dtype=np.int64)          # per class: its dofs and RT dofs
+        store = self.store
         self.collisions = 0
-        pending, count = [], 0
+        pending, count = [], store.count()
         for pid, inner in zip(patches, interior):
             dofs, offsets, code, nsigma, key, ids, owned = self._home_dofs(
                 np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
             npatch = len(offsets) - 1
             size = np.stack([np.diff(offsets), nsigma], axis=1)
             if share:
-                cls = self._lookup(key)
+                cls = store.lookup(key)
                 new = np.flatnonzero(cls < 0)
                 new = new[np.unique(key[new], return_index=True)[1]]     # one per new key
-                self._remember(key[new], count + np.arange(new.size))
-                sizes = np.concatenate([sizes, size[new]])
-                cls = self._lookup(key)
-                other = np.flatnonzero(np.any(sizes[cls] != size, axis=1))
+                store.remember(key[new], count + np.arange(new.size))
+                store.sizes = np.concatenate([store.sizes, size[new]])
+                cls = store.lookup(key)
+                other = np.flatnonzero(np.any(store.sizes[cls] != size, axis=1))
                 self.collisions += other.size
                 cls[other] = count + new.size + np.arange(other.size)
-                sizes = np.concatenate([sizes, size[other]])
+                store.sizes = np.concatenate([store.sizes, size[other]])
                 new = np.concatenate([new, other])
             else:
                 new = np.arange(npatch)
@@ -185,7 +188,7 @@ class PatchSystems(HomeSetup):
         # per group A on the cells of those patches only; their blocks, made canonical
         marked = self._marked_cells([p.pop() for p in pending], [p[4][p[5]] for p in pending])
         for (dofs, offsets, code, nsigma, _, new, cls), cells in zip(pending, marked):
-            if not np.array_equal(self._extract(cells, dofs, offsets, code, nsigma, new, classes),
+            if not np.array_equal(self._extract(cells, dofs, offsets, code, nsigma, new, store),
                                   cls[new]):
                 raise RuntimeError("the classes were not made in the expected order")
         del marked
@@ -194,7 +197,7 @@ class PatchSystems(HomeSetup):
         # time (the set-up's peak memory is in `_layout`)
         for name in ("code", "c2f", "facet_shared", "facet_owned_cells", "facet_two",
                      "facet_one", "cell_global", "cell_h", "rt_dofs", "dg_dofs", "run_length",
-                     "run_dofs", "run_code", "run_point", "run_entity", "kinds", "known",
+                     "run_dofs", "run_code", "run_point", "run_entity", "kinds",
                      "dof_starts", "dof_shared"):
             delattr(self, name)
 
@@ -205,20 +208,9 @@ class PatchSystems(HomeSetup):
         groups = []
         while pending:
             groups.append(narrowed(pending.pop(0)))
-        self._layout(groups, classes)
+        self._layout(groups, store)
 
-    def _lookup(self, key):
-        """The classes of the keys (-1: not seen yet on this process)."""
-        keys, cls = self.known
-        at = np.minimum(np.searchsorted(keys, key), max(keys.size - 1, 0))
-        return np.where(keys[at] == key, cls[at], -1) if keys.size else np.full(key.size, -1)
-
-    def _remember(self, key, cls):
-        keys = np.concatenate([self.known[0], key])
-        order = np.argsort(keys, kind="stable")
-        self.known = keys[order], np.concatenate([self.known[1], cls])[order]
-
-    def _extract(self, cells, dofs, offsets, code, nsigma, which, classes):
+    def _extract(self, cells, dofs, offsets, code, nsigma, which, store):
         """New classes for the blocks of the patches `which` of a group, assembled on the
         group's marked owned `cells` with rows at the patches' kept dofs (collective), their rows
         and columns multiplied by the ±1 of G and made canonical a chunk at a time."""
@@ -246,10 +238,10 @@ class PatchSystems(HomeSetup):
             e0, e1 = ia[r0], ia[r1]
             block = (ia[r0:r1 + 1] - e0, ja[e0:e1] - r0)
             values = canonical_block(*block, a[e0:e1], code[r0:r1], self.blocks)
-            out[lo:hi] = classes.add(*block, values, sub[lo:hi + 1] - r0, nsigma[which[lo:hi]])
+            out[lo:hi] = store.add(*block, values, sub[lo:hi + 1] - r0, nsigma[which[lo:hi]])
         return out
 
-    def _layout(self, groups, classes):
+    def _layout(self, groups, store):
         """Home order (group, size, class multiplicity in the group, class, patch), the routes
         to it, the canonical change of basis in home order, and the inverses of the classes.
         Each group's patches are one slice of the home order, so that a group is gathered,
@@ -259,8 +251,8 @@ class PatchSystems(HomeSetup):
         n = np.concatenate([np.diff(g[1]) for g in groups])
         cls = np.concatenate([g[3] for g in groups])
         group = np.concatenate([np.full(len(g[1]) - 1, c) for c, g in enumerate(groups)])
-        nclasses = classes.count()
-        shape = np.array([classes.shape(k) for k in range(nclasses)], dtype=np.int64)
+        nclasses = store.count()
+        shape = np.array([store.shape(k) for k in range(nclasses)], dtype=np.int64)
         shape = shape.reshape(-1, 3)                      # per class (n, L, n_σ)
         # the (group, class) pairs here, each with its patches' count and each patch's pair
         # (no table over all groups and classes: without sharing a class is a patch)
@@ -335,21 +327,14 @@ class PatchSystems(HomeSetup):
 
         # per class the block of its inverse from the right-hand side entries used to the
         # solution entries wanted (RT dofs first, DG dofs last in a patch), made once per
-        # shape (n, n_σ) for all its classes; per group one product per (shape, count in
-        # the group) for all the group's patches of those classes, which take their classes'
-        # blocks by index (`solve_home`)
-        self.operators, self.solves = {}, [[] for _ in range(ngroups)]
+        # shape (n, n_σ) for all its classes that have none yet (`ClassStore.invert`); per
+        # group one product per (shape, count in the group) for all the group's patches of
+        # those classes, which take their classes' blocks by index (`solve_home`)
+        self.operators, self.solves = store.operators, [[] for _ in range(ngroups)]
+        used = np.unique(pair_class)
         ok = True
         try:
-            used = np.unique(pair_class)
-            row = np.full(nclasses, -1, dtype=np.int64)        # a class's block in its shape's
-            for size, rt in np.unique(shape[used][:, [0, 2]], axis=0).tolist():
-                these = used[(shape[used, 0] == size) & (shape[used, 2] == rt)]
-                inputs = slice(rt if self.rhs == "divergence" else 0, size)
-                outputs = slice(0, rt if self.solution == "flux" else size)
-                row[these] = np.arange(these.size)
-                self.operators[size, rt] = (inputs, outputs,
-                                            classes.operators(these, inputs, outputs))
+            row = store.invert(used)              # a class's block in its shape's
             # the group's classes in home order (each class's first patch: its patches in the
             # group are consecutive there), cut where the shape or the count changes
             new = run_starts(pair[order])
@@ -370,8 +355,7 @@ class PatchSystems(HomeSetup):
                       != self.group_starts[c + 1] - self.group_starts[c]
                       for c in range(ngroups)):
             raise RuntimeError("the products do not cover the home vector")
-        self.nclasses, self.npatches = nclasses, cls.size
-        classes.release()
+        self.nclasses, self.npatches = used.size, cls.size
 
     @staticmethod
     def _own_route(rows, at, new, index):
@@ -486,3 +470,4 @@ class PatchSystems(HomeSetup):
         for s in self.scatters:
             s.destroy()
         self.local, self.scatters, self.solves, self.operators = [], [], [], {}
+        self.store = None

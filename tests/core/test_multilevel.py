@@ -87,6 +87,39 @@ def test_a_block_not_its_own_is_refused(monkeypatch):
         careless.sigma(random_residual(disc, 0))
 
 
+@pytest.mark.parametrize("name", ["disk", "square"])
+def test_levels_share_their_classes(name, monkeypatch):
+    """The levels' coarse patches share one ClassStore (`classes`): a patch that is a scaled
+    copy of an earlier level's takes that class's inverse, so fewer classes are inverted than
+    the levels use, and σ_alg equals that of levels with stores of their own to round-off."""
+    from dolfinx import fem
+
+    from membranes.estimation import multilevel
+    from membranes.estimation.classes import ClassStore
+    problem, disc, flux = flux_of(name, 3)
+    r = random_residual(disc, 5)
+    shared = flux.sigma(r)
+
+    def inverted(levels):
+        stores = {id(level.systems.store): level.systems.store for level in levels}
+        return sum(ops[2].shape[0] for s in stores.values() for ops in s.operators.values())
+    used = [level.systems.nclasses for level in flux.levels]
+    level = multilevel._Level.__init__
+    monkeypatch.setattr(multilevel._Level, "__init__",
+                        lambda self, j, h, Vc, Vf, store: level(
+                            self, j, h, Vc, Vf, ClassStore("divergence", "flux")))
+    alone = MultilevelFlux(disc, problem.hierarchy)
+    assert [level.systems.nclasses for level in alone.levels] == used
+    assert inverted(alone.levels) == sum(used)
+    assert inverted(flux.levels) < sum(used), (inverted(flux.levels), used)
+    own = alone.sigma(r)
+
+    def norm(v):
+        return np.sqrt(fem.assemble_scalar(fem.form(ufl.inner(v, v) * ufl.dx)))
+    assert norm(shared - own) <= TOL * norm(own)
+    alone.destroy()
+
+
 def test_output_space_and_linearity():
     """`out` in another RT_1 space holds the same field; σ_alg is linear in r_h."""
     from dolfinx import fem
