@@ -191,13 +191,21 @@ def rt_prolongation(Rc, Rf, parents, beta):
     info_f = np.asarray(fine.topology.get_cell_permutation_info())
     nc = len(parents)
     ref = beta[:, :, 1:]                                             # (c, 3, 2)
-    position = (np.round(2.0 * ref).astype(np.int64).reshape(nc, 6)
-                * 3 ** np.arange(6)).sum(axis=1)
-    keys = np.stack([position, info_f[:nc].astype(np.int64),
-                     info_c[parents].astype(np.int64)], axis=1)
-    unique, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    blocks = np.empty((len(unique), n, n))
-    for k, i in enumerate(first):                                   # a cell of each kind
+    # a cell's kind: its six doubled reference coordinates (0, 1 or 2) and the two
+    # permutation infos (3 bits each on a triangle), one integer below 3⁶ · 2⁶; the kinds
+    # present, and a cell of each, by a table over all kinds (a sort of the cells costs more)
+    if max(info_f.max(initial=0), info_c.max(initial=0)) >= 8:
+        raise RuntimeError("unexpected cell permutation info (not a triangle mesh?)")
+    kind = ((np.round(2.0 * ref).astype(np.int64).reshape(nc, 6) * 3 ** np.arange(6)).sum(axis=1)
+            * 64 + info_f[:nc].astype(np.int64) * 8 + info_c[parents])
+    cell_of = np.full(3 ** 6 * 64, nc, dtype=np.int64)
+    cell_of[kind] = np.arange(nc)
+    present = np.flatnonzero(cell_of < nc)
+    number = np.zeros(cell_of.size, dtype=np.int64)
+    number[present] = np.arange(present.size)
+    inverse = number[kind]
+    blocks = np.empty((present.size, n, n))
+    for k, i in enumerate(cell_of[present].tolist()):                # a cell of each kind
         blocks[k] = (dof_transformation(element, info_f[i], inverse_transpose=True)
                      @ piola_reference_block(element, ref[i])
                      @ dof_transformation(element, info_c[parents[i]]).T)
@@ -213,7 +221,7 @@ def rt_prolongation(Rc, Rf, parents, beta):
     _check(fine.comm, row.size == imf.size_local,
            "an owned RT dof of the fine mesh lies on no owned cell")
     cell, local = np.divmod(owned[at], n)
-    values = blocks[inverse.ravel()[cell], local]                       # (rows, n)
+    values = blocks[inverse[cell], local]                       # (rows, n)
     keep = values != 0.0
     cols = np.asarray(imc.local_to_global(cdofs[cell][keep].astype(np.int32)), dtype=np.int64)
     indptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))]).astype(PETSc.IntType)
