@@ -58,6 +58,7 @@ def flux_divergence(sigma, r, q, dx=ufl.dx):
 
 def multilevel_data(psi, r, rho, q, dx=ufl.dx):
     """(r ψ - ∇ρ_0·∇ψ, q): the divergence data of the coarse patch problems of §6 before
-    projection, for ψ a P1 trial function (the prolonged hat functions ψ_{j-1,a}), r the lifted
-    residual r_αh, ρ_0 the prolonged coarse solution and q a DG1 test function."""
+    projection, for ψ a trial function (the prolonged hat functions ψ_{j-1,a}; the product
+    takes ψ in DG1, the hats of the cells' ancestors, broken), r the lifted residual r_αh,
+    ρ_0 the prolonged coarse solution and q a DG1 test function."""
     return (r * psi - ufl.inner(ufl.grad(rho), ufl.grad(psi))) * q * dx

@@ -44,6 +44,16 @@ prolongations, a partition of unity on T_J).
    Σ_j (Q_j - Q_{j-1}) Σ_a x_a = Σ_j (Q_j - Q_{j-1}) r = Q_J r = r (Σ_a ψ_{j-1,a} = 1,
    Σ_a ∇ψ_{j-1,a} = 0): exact, with or without moved vertices.
 
+**The data by corners.** Everything in step 2 acts within one cell K' of T_{j-1} (the moments
+on its descendants, Π̃_j, Π̃_{j-1}), and there ψ_{j-1,a} is the hat function λ_m of one of
+K''s vertices m, or zero. So the data of all patches of a level come from three fields: for
+m = 0, 1, 2 the moments of r λ_m - ∇ρ_0·∇λ_m, λ_m the broken function that is, on every cell
+of T_J, vertex m's hat function of its ancestor in T_{j-1}. Its values at a cell's vertices
+are those of the parent's hats times β (`child_positions`) composed down the ancestors, so the
+moments are B (the data form with a broken DG1 ψ, cellwise) applied to T_J's β once, then
+mixed down the levels by the ancestors' β, 3 × 3 per cell of T_J. A patch of colour c takes,
+on each cell, the field of its parent's vertex of colour c.
+
 **Round-off, accounted for.** The patches are solved with dense inverses of their classes'
 blocks, and the residual of such a solve grows with the block's condition: the defect
 d = ∇·σ_alg - r ∈ DG1(T_J) is at round-off, but on strongly graded meshes it grows like
@@ -68,11 +78,11 @@ cells, so all levels together about 4 × dim(T_J) (σ_disc: 3 ×); the coarse sy
 of P1(T_0). On a uniformly refined hierarchy most coarse patches of level j ≥ 2 are translates
 and share their block, and the levels share one store of classes: a scaled copy of an earlier
 level's patch reuses that class's inverse (`classes`). Per call: one coarse back-solve, one
-assembly of the data matrix on T_J, one matrix-vector product per colour and level, the patches
-of each level in one pass (a matrix product per class of congruent patches), J - 1 RT
-transfers. (Solving every level's coarse patches on T_J itself, grouped by ancestry, would be
-just as exact but costs about 3 × dim(T_J) unknowns *per level*, in patches of up to 6 · 4^J
-cells.)
+assembly of the data matrix on T_J, three matrix-vector products on T_J and one 3 × 3 product
+per cell of T_J and level (the data by corners), the patches of each level in one pass (a
+matrix product per class of congruent patches), J - 1 RT transfers. (Solving every level's
+coarse patches on T_J itself, grouped by ancestry, would be just as exact but costs about
+3 × dim(T_J) unknowns *per level*, in patches of up to 6 · 4^J cells.)
 """
 
 import numpy as np
@@ -270,10 +280,15 @@ class _Level:
                            dtype=np.int64)
         corners = cells_c[parents]                                        # (c, 3)
         patches, interior = [], []
+        # cells[c][m]: the cells whose parent has its vertex m of colour c
+        self.cells = []
         for c in range(self.ncolours):
             hit = colour[corners] == c                                    # ≤ 1 per cell
-            vertex = corners[np.arange(nc), np.argmax(hit, axis=1)]
+            at = np.argmax(hit, axis=1)
+            vertex = corners[np.arange(nc), at]
             has = hit.any(axis=1)
+            self.cells.append([np.flatnonzero(has & (at == m)).astype(np.int32)
+                               for m in range(3)])
             patches.append(np.where(has, gdofs[vertex], -1))
             interior.append(has & ~on_boundary[vertex])
         self.patches, self.interior = patches, interior
@@ -295,30 +310,22 @@ class _Level:
             self.sigma.x.array[:rmap.size_local], size=(rmap.size_local, rmap.size_global),
             comm=comm)
 
-        # the prolonged colour sums Σ_{a of colour c} ψ_{j-1,a} on T_J
-        n = imap.size_local
-        self.psi = []
-        for c in range(self.ncolours):
-            v = P.createVecRight()
-            v.array[:] = colour[:n] == c
-            for k in range(j, hierarchy.levels + 1):
-                Pk = hierarchy.prolongation(k)
-                w = Pk.createVecLeft()
-                Pk.mult(v, w)
-                v.destroy()
-                v = w
-            self.psi.append(v)
         self.transfer = None            # RT_1(T_{j-1}) → RT_1(T_j), for j ≥ 2
 
     def solve(self, data):
-        """σ_j = Σ_a σ_j^a on T_j for the DG1 moments `data` ((3 n_j, colours): column c
-        the moments -(e_j^a, q) of the colour's patches)."""
+        """σ_j = Σ_a σ_j^a on T_j for the DG1 moments of the corners `data` ((3 n_j, 3):
+        column m the moments -(e, q) for ψ the hat function of vertex m of each cell's
+        parent). On a cell, the data of colour c's patch are those of the parent's vertex of
+        colour c (none if it has none)."""
         b, x = self.b, self.x
         home = self.systems.home_vector()                 # one colour at a time
         x.array[:] = 0.0
+        by_cell = data.reshape(-1, 3, 3)
+        dg = self.dg.reshape(-1, 3)
         for c in range(self.ncolours):
             b.array[:] = 0.0
-            b.array[self.dg] = data[:, c]
+            for m, cells in enumerate(self.cells[c]):
+                b.array[dg[cells]] = by_cell[cells, :, m]
             self.systems.gather(c, b, home)
             self.systems.scatter(c, self.systems.solve_home(c, home), x, add=True)
         self.sigma.x.array[:] = 0.0
@@ -326,7 +333,7 @@ class _Level:
 
     def destroy(self):
         self.systems.destroy()
-        for v in [self.b, self.x, self.sigma_vec] + self.psi:
+        for v in (self.b, self.x, self.sigma_vec):
             v.destroy()
         if self.transfer is not None:
             self.transfer.destroy()
@@ -371,10 +378,11 @@ class MultilevelFlux:
         mesh = disc.mesh
         self.Q = fem.FunctionSpace(mesh, ("DG", 1))
         self.r, self.rho = fem.Function(self.Q), fem.Function(disc.V)
-        psi, q = ufl.TrialFunction(disc.V), ufl.TestFunction(self.Q)
+        # ψ broken (DG1): B acts on each cell's vertex values of ψ (module notes)
+        psi, q = ufl.TrialFunction(self.Q), ufl.TestFunction(self.Q)
         self.data_form = fem.form(equilibration_forms.multilevel_data(psi, self.r, self.rho, q))
         self.B = create_matrix(self.data_form)
-        self.y = self.B.createVecLeft()
+        self.psi, self.y = self.B.createVecs()
         ncJ = owned_cells(mesh)
         self.dgJ = self.Q.dofmap.list.array.reshape(-1, 3)[:ncJ].ravel()
         # |K| of the owned cells of T_J (the defect's norm, `_check`)
@@ -454,18 +462,37 @@ class MultilevelFlux:
         self.B.zeroEntries()
         assemble_matrix(self.B, self.data_form)
         self.B.assemble()
-        previous, scale = None, 0.0       # scale: the largest data entry (`divergence`)
-        for level in self.levels:
-            # the moments of x_c = Σ_{a of colour c} x_a against DG1(T_J), then T_j, T_{j-1}
-            Y = np.empty((self.dgJ.size, level.ncolours))
-            for c, psi in enumerate(level.psi):
-                self.B.mult(psi, self.y)
-                Y[:, c] = self.y.array_r[self.dgJ]
-            moments = Y if level.C is None else level.C @ Y
+        # per level j = J..1 the moments against DG1(T_J) of x for ψ the hat function of
+        # vertex m of each cell's ancestor in T_{j-1}: Y (cells of T_J, 3 moments, 3 m); on
+        # T_J's parents by B, then down the ancestors by their β (ψ's values at a cell's
+        # vertices in the ancestor's are those in the parent's times β); then moved to T_j
+        # and T_{j-1} (-Π̃_j x + T Π̃_{j-1} x), as the data of the corners m of the cells
+        ncJ = self.areaJ.size
+        Y, ancestor, corners = None, np.arange(ncJ), [None] * len(self.levels)
+        scale = 0.0                       # the largest data entry (`divergence`)
+        for i in reversed(range(len(self.levels))):
+            level = self.levels[i]
+            beta = level.beta[ancestor]                     # in the ancestors' parents
+            if Y is None:
+                Y = np.empty((ncJ, 3, 3))
+                self.psi.set(0.0)
+                for m in range(3):
+                    self.psi.array[self.dgJ] = beta[:, :, m].ravel()
+                    self.B.mult(self.psi, self.y)
+                    Y[:, :, m] = self.y.array_r[self.dgJ].reshape(ncJ, 3)
+            else:
+                Y = np.matmul(Y, beta)
+            ancestor = level.parents[ancestor]
+            moments = Y.reshape(3 * ncJ, 3)
+            if level.C is not None:
+                moments = level.C @ moments
             data = -moments
-            if previous is not None:
+            if i > 0:
                 data += level.G @ (level.ET @ moments)
             scale = max(scale, float(np.abs(data).max(initial=0.0)))
+            corners[i] = data
+        previous = None
+        for level, data in zip(self.levels, corners):
             level.solve(data)
             if previous is not None:
                 s = level.sigma_vec
@@ -511,6 +538,6 @@ class MultilevelFlux:
         for level in self.levels:
             level.destroy()
         for obj in (self.coarse_ksp, self.K0, self.b0, self.rho0, self.rhoJ, self.P, self.B,
-                    self.y, self.rhs):
+                    self.psi, self.y, self.rhs):
             obj.destroy()
         self.levels = []
