@@ -47,12 +47,15 @@ prolongations, a partition of unity on T_J).
 **The data by corners.** Everything in step 2 acts within one cell K' of T_{j-1} (the moments
 on its descendants, Π̃_j, Π̃_{j-1}), and there ψ_{j-1,a} is the hat function λ_m of one of
 K''s vertices m, or zero. So the data of all patches of a level come from three fields: for
-m = 0, 1, 2 the moments of r λ_m - ∇ρ_0·∇λ_m, λ_m the broken function that is, on every cell
-of T_J, vertex m's hat function of its ancestor in T_{j-1}. Its values at a cell's vertices
-are those of the parent's hats times β (`child_positions`) composed down the ancestors, so the
-moments are B (the data form with a broken DG1 ψ, cellwise) applied to T_J's β once, then
-mixed down the levels by the ancestors' β, 3 × 3 per cell of T_J. A patch of colour c takes,
-on each cell, the field of its parent's vertex of colour c.
+m = 0, 1, 2 the moments on T_j of r λ_m - ∇ρ_0·∇λ_m, λ_m the broken function that is, on every
+cell, the hat of vertex m of its ancestor in T_{j-1}; a patch of colour c takes, on each cell,
+the field of its parent's vertex of colour c. On T_J these moments are B (the data form with a
+broken DG1 ψ, cellwise) applied to β (`child_positions`: the parent's hats at a cell's
+vertices). Level j - 1's follow from level j's: a hat of a cell's ancestor in T_{j-2} is, on
+each cell K' of T_{j-1}, the combination of K''s own parent hats given by β of K', the same on
+all of K''s descendants; so restricting level j's moments to T_{j-1} (E_jᵀ, which level j's
+T Π̃_{j-1} needs anyway) and mixing them by β of the cells of T_{j-1}, 3 × 3 per cell, gives
+them. Per level the work is that of its own mesh.
 
 **Round-off, accounted for.** The patches are solved with dense inverses of their classes'
 blocks, and the residual of such a solve grows with the block's condition: the defect
@@ -79,7 +82,7 @@ of P1(T_0). On a uniformly refined hierarchy most coarse patches of level j ≥ 
 and share their block, and the levels share one store of classes: a scaled copy of an earlier
 level's patch reuses that class's inverse (`classes`). Per call: one coarse back-solve, one
 assembly of the data matrix on T_J, three matrix-vector products on T_J and one 3 × 3 product
-per cell of T_J and level (the data by corners), the patches of each level in one pass (a
+per cell of each level (the data by corners), the patches of each level in one pass (a
 matrix product per class of congruent patches), J - 1 RT transfers. (Solving every level's
 coarse patches on T_J itself, grouped by ancestry, would be just as exact but costs about
 3 × dim(T_J) unknowns *per level*, in patches of up to 6 · 4^J cells.)
@@ -263,14 +266,13 @@ class _Level:
         # moments: E_j (prolongation, so E_jᵀ restricts moments from T_j to T_{j-1}) and
         # G_j = M̂_j E_j M_{j-1}⁻¹, which maps the moments of x on T_{j-1} to those of
         # T Π̃_{j-1} x on T_j (M̂_j: DG1 masses of the unmoved quarters, |K'|/48 (I + 1 1ᵀ))
-        self.E = dg_prolongation(self.beta, parents, ncc)
-        self.ET = self.E.T.tocsr()
+        E = dg_prolongation(self.beta, parents, ncc)
+        self.ET = E.T.tocsr()
         cells_c = Vc.dofmap.list.array.reshape(-1, 3)[:ncc]
         area_c = triangle_areas(Vc.tabulate_dof_coordinates()[:, :2][cells_c])
         minv = mass_inverse(area_c, np.broadcast_to(np.eye(3), (ncc, 3, 3)))     # M_{j-1}⁻¹
         mhat = (area_c[parents] / 48.0)[:, None, None] * (np.eye(3) + 1.0)
-        self.G = _block_diagonal(mhat) @ self.E @ _block_diagonal(minv)
-        self.C = None                   # restriction of moments from T_J (set by the owner)
+        self.G = _block_diagonal(mhat) @ E @ _block_diagonal(minv)
 
         # the patches: colour the vertices of T_{j-1}; group c holds the patches of colour c
         imap = Vc.dofmap.index_map
@@ -364,11 +366,6 @@ class MultilevelFlux:
         store = ClassStore("divergence", "flux")       # one for all levels (`classes`)
         self.levels = [_Level(j, hierarchy, spaces[j - 1], spaces[j], store)
                        for j in range(1, J + 1)]
-        # restrictions of moments from T_J to T_j: C_J = I, C_{j-1} = E_jᵀ C_j
-        C = None
-        for level in reversed(self.levels):
-            level.C = C
-            C = level.ET if C is None else (level.ET @ C).tocsr()
         for coarse, fine in zip(self.levels[:-1], self.levels[1:]):
             fine.transfer = rt_prolongation(coarse.rt_space, fine.rt_space, fine.parents,
                                             fine.beta)
@@ -462,33 +459,30 @@ class MultilevelFlux:
         self.B.zeroEntries()
         assemble_matrix(self.B, self.data_form)
         self.B.assemble()
-        # per level j = J..1 the moments against DG1(T_J) of x for ψ the hat function of
-        # vertex m of each cell's ancestor in T_{j-1}: Y (cells of T_J, 3 moments, 3 m); on
-        # T_J's parents by B, then down the ancestors by their β (ψ's values at a cell's
-        # vertices in the ancestor's are those in the parent's times β); then moved to T_j
-        # and T_{j-1} (-Π̃_j x + T Π̃_{j-1} x), as the data of the corners m of the cells
+        # per level j = J..1 the moments against DG1(T_j) of x for ψ the hat function of
+        # vertex m of each cell's parent in T_{j-1} (module notes): on T_J by B on T_J's β;
+        # then down the levels, restricted to T_{j-1} by E_jᵀ and mixed by the β of T_{j-1}'s
+        # cells in their parents (3 × 3 per cell). The data of the corners m:
+        # -Π̃_j x + T Π̃_{j-1} x (Π̃_0 := 0)
         ncJ = self.areaJ.size
-        Y, ancestor, corners = None, np.arange(ncJ), [None] * len(self.levels)
+        moments = np.empty((ncJ, 3, 3))
+        beta = self.levels[-1].beta
+        self.psi.set(0.0)
+        for m in range(3):
+            self.psi.array[self.dgJ] = beta[:, :, m].ravel()
+            self.B.mult(self.psi, self.y)
+            moments[:, :, m] = self.y.array_r[self.dgJ].reshape(ncJ, 3)
+        moments = moments.reshape(3 * ncJ, 3)
+        corners = [None] * len(self.levels)
         scale = 0.0                       # the largest data entry (`divergence`)
         for i in reversed(range(len(self.levels))):
             level = self.levels[i]
-            beta = level.beta[ancestor]                     # in the ancestors' parents
-            if Y is None:
-                Y = np.empty((ncJ, 3, 3))
-                self.psi.set(0.0)
-                for m in range(3):
-                    self.psi.array[self.dgJ] = beta[:, :, m].ravel()
-                    self.B.mult(self.psi, self.y)
-                    Y[:, :, m] = self.y.array_r[self.dgJ].reshape(ncJ, 3)
-            else:
-                Y = np.matmul(Y, beta)
-            ancestor = level.parents[ancestor]
-            moments = Y.reshape(3 * ncJ, 3)
-            if level.C is not None:
-                moments = level.C @ moments
             data = -moments
             if i > 0:
-                data += level.G @ (level.ET @ moments)
+                coarse = level.ET @ moments                  # on T_{j-1}
+                data += level.G @ coarse
+                beta = self.levels[i - 1].beta
+                moments = np.matmul(coarse.reshape(-1, 3, 3), beta).reshape(-1, 3)
             scale = max(scale, float(np.abs(data).max(initial=0.0)))
             corners[i] = data
         previous = None
