@@ -29,6 +29,8 @@ CASES = {
     "commit unknown": (["bench_commit.py", "--commit", "zzzz"],
                        "'zzzz' is not a commit of this repository"),
     "commit no repeat": (["bench_commit.py", "--repeat", "0"], "--repeat must be at least 1"),
+    "flux without levels": (["bench_flux.py", "--sizes", "0"], "needs J >= 1 in every size"),
+    "flux unknown scene": (["bench_flux.py", "--scenes", "cube"], "invalid choice: 'cube'"),
 }
 
 
