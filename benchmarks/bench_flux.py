@@ -17,8 +17,6 @@ asserted.
 """
 
 import argparse
-import os
-import sys
 
 import fresh
 
@@ -51,15 +49,7 @@ if comm.rank == 0:
 
 def run(scene, flux, arg, processes, timeout, threads):
     j, h0 = fresh.size(arg)
-    command = [sys.executable, "-c", CHILD, scene, flux, str(j), str(h0)]
-    if processes > 1:
-        command = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n",
-                   str(processes)] + command
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env["PYTHONPATH"] = fresh.ROOT + os.pathsep + env.get("PYTHONPATH", "")
-    if threads is not None:
-        env.update({k: str(threads) for k in fresh.BLAS_THREADS})
-    return fresh.run_json(command, env, timeout)
+    return fresh.run_code(CHILD, [scene, flux, j, h0], processes, timeout, threads)
 
 
 def row(scene, arg, processes, flux, r):

@@ -15,8 +15,6 @@ in each way (the kept way holds the set-up between solves).
 """
 
 import argparse
-import os
-import sys
 
 import fresh
 
@@ -47,15 +45,7 @@ if comm.rank == 0:
 
 def run(way, arg, values, processes, timeout, threads):
     j, h0 = fresh.size(arg)
-    command = [sys.executable, "-c", CHILD, way, str(j), str(h0)] + [str(v) for v in values]
-    if processes > 1:
-        command = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n",
-                   str(processes)] + command
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env["PYTHONPATH"] = fresh.ROOT + os.pathsep + env.get("PYTHONPATH", "")
-    if threads is not None:
-        env.update({k: str(threads) for k in fresh.BLAS_THREADS})
-    return fresh.run_json(command, env, timeout)
+    return fresh.run_code(CHILD, [way, j, h0] + list(values), processes, timeout, threads)
 
 
 def report(arg, processes, values, fresh_run, kept_run):

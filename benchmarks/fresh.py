@@ -203,6 +203,22 @@ def run_json(command, env, timeout=None, cwd=ROOT):
     return record
 
 
+def run_code(code, args, processes=1, timeout=None, threads=None):
+    """Run the Python source `code` with the command-line arguments `args` in a fresh process
+    (`mpirun --oversubscribe -n P` for P > 1), this repository first on its path, and return
+    its JSON record as `run_json` does. `threads`: the BLAS threads of each process (None:
+    the environment's)."""
+    command = [sys.executable, "-c", code] + [str(a) for a in args]
+    if processes > 1:
+        command = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n",
+                   str(processes)] + command
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    if threads is not None:
+        env.update({k: str(threads) for k in BLAS_THREADS})
+    return run_json(command, env, timeout)
+
+
 def launch(method, arg, processes=1, timeout=None, threads=None):
     """Run the child in a fresh process (`mpirun --oversubscribe -n P` for P > 1) and return
     its JSON record with `process_s`, the wall time of the whole process measured here, or
