@@ -12,10 +12,10 @@ get equal keys; and their blocks in the canonical basis are equal too. The contr
 map of x ↦ s x sends a reference function φ̂ to φ(x) = s⁻¹ φ̂(x/s), so the mass entries
 ∫ φ_i·φ_j dx = ∫ φ̂_i·φ̂_j dx̂ and the divergence entries ∫ q ∇·φ dx = ∫ q̂ ∇̂·φ̂ dx̂ do not depend
 on s. The multilevel flux's coarse patches on T_1 … T_J therefore share one store: a patch on
-level j whose key an earlier level has seen uses that class's inverse (on the disk about a third
-of the classes, on the square two thirds, come from an earlier level), and only new classes are
-assembled and inverted. As within one mesh, the divergence rows of a patch solved with its
-class's inverse are its own, and every flux made is checked (`divergence`).
+level j whose key an earlier level has seen uses that class's inverse, and only new classes
+are assembled and inverted (BENCHMARKS.md counts them on the disk and the square). As within
+one mesh, the divergence rows of a patch solved with its class's inverse are its own, and
+every flux made is checked (`divergence`).
 """
 
 import numpy as np
