@@ -25,8 +25,8 @@ from .congruence import Blocks
 
 class ClassStore:
     """Keys, classes and inverse parts for patch problems with right-hand sides `rhs` and
-    solutions `solution` (see `PatchSystems`): `lookup` and `remember` keys, `add` blocks
-    (new classes), `invert` classes."""
+    solutions `solution` (see `PatchSystems`): `assign` classes to patches by their keys, `add`
+    the new classes' blocks, `invert` classes."""
 
     def __init__(self, rhs="full", solution="full"):
         self.rhs, self.solution = rhs, solution
@@ -38,12 +38,37 @@ class ClassStore:
         self.operators = {}     # (n, n_σ) → (inputs, outputs, inverse parts (classes, out, in))
 
     def count(self):
-        """The number of classes."""
+        """The number of classes whose blocks were added."""
         return self.blocks.count()
 
     def shape(self, k):
         """(n, L, n_σ) of class k."""
         return self.blocks.shape(k)
+
+    def assign(self, key, size, share=True):
+        """Classes for patches with keys `key` and sizes `size` ((patches, 2): dofs, RT dofs):
+        a new class for the first patch of each new key, and for any patch whose size differs
+        from its key's class (a key collision: a class of its own); without `share`, one per
+        patch. New classes are numbered on after all classes assigned so far; their blocks
+        must then be added (`add`) in the order of `new`. Returns (classes of the patches,
+        new: the patches whose blocks the new classes need, the number of collisions)."""
+        count = self.sizes.shape[0]
+        other = np.zeros(0, dtype=np.int64)
+        if share:
+            cls = self.lookup(key)
+            new = np.flatnonzero(cls < 0)
+            new = new[np.unique(key[new], return_index=True)[1]]         # one per new key
+            self.remember(key[new], count + np.arange(new.size))
+            sizes = np.concatenate([self.sizes, size[new]])
+            cls = self.lookup(key)
+            other = np.flatnonzero(np.any(sizes[cls] != size, axis=1))
+            cls[other] = count + new.size + np.arange(other.size)
+            new = np.concatenate([new, other])
+        else:
+            new = np.arange(key.size)
+            cls = count + new
+        self.sizes = np.concatenate([self.sizes, size[new]])
+        return cls, new, other.size
 
     def lookup(self, key):
         """The classes of the keys (-1: not seen yet)."""

@@ -156,34 +156,17 @@ class PatchSystems(HomeSetup):
         self._canonical_order(facet_point, cell_point)
         del facet_point, cell_point
 
-        # per group its patches at home, and the patches whose blocks are needed: the first
-        # of each new key (all patches without sharing), and any patch whose size differs from
-        # its key's class (a hash collision: it gets a class of its own); their class numbers
-        # are given now (in the order `_extract` makes them)
+        # per group its patches at home, their classes, and the patches whose blocks are
+        # needed (`ClassStore.assign`, in the order `_extract` makes them)
         store = self.store
         self.collisions = 0
-        pending, count = [], store.count()
+        pending = []
         for pid, inner in zip(patches, interior):
             dofs, offsets, code, nsigma, key, ids, owned = self._home_dofs(
                 np.asarray(pid, dtype=np.int64), np.asarray(inner, dtype=bool))
-            npatch = len(offsets) - 1
-            size = np.stack([np.diff(offsets), nsigma], axis=1)
-            if share:
-                cls = store.lookup(key)
-                new = np.flatnonzero(cls < 0)
-                new = new[np.unique(key[new], return_index=True)[1]]     # one per new key
-                store.remember(key[new], count + np.arange(new.size))
-                store.sizes = np.concatenate([store.sizes, size[new]])
-                cls = store.lookup(key)
-                other = np.flatnonzero(np.any(store.sizes[cls] != size, axis=1))
-                self.collisions += other.size
-                cls[other] = count + new.size + np.arange(other.size)
-                store.sizes = np.concatenate([store.sizes, size[other]])
-                new = np.concatenate([new, other])
-            else:
-                new = np.arange(npatch)
-                cls = count + new
-            count += new.size
+            cls, new, collisions = store.assign(
+                key, np.stack([np.diff(offsets), nsigma], axis=1), share)
+            self.collisions += collisions
             pending.append([dofs, offsets, code, nsigma, ids, new, cls, owned])
         # per group A on the cells of those patches only; their blocks, made canonical
         marked = self._marked_cells([p.pop() for p in pending], [p[4][p[5]] for p in pending])
