@@ -253,16 +253,34 @@ def test_output_folder_probe_leaves_nothing(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["kept"]
 
 
-@pytest.mark.parametrize("where", ["proc", "under a file", "a file"])
+def test_output_folder_with_a_folder_named_as_an_output(tmp_path):
+    """A folder of an output's name in the target: refused before the run, with its name
+    (the outputs could not move in at the end); a file of that name is an older output."""
+    out = tmp_path / "out"
+    (out / "summary.json").mkdir(parents=True)
+    (out / "history.csv").write_text("old\n")
+    checks.check_output_folder(str(out), names=("history.csv",))
+    with pytest.raises(ValueError, match="out holds a folder named summary.json, the name of "
+                                         "an output file"):
+        checks.check_output_folder(str(out), names=("history.csv", "summary.json"))
+    assert sorted(os.listdir(out)) == ["history.csv", "summary.json"]
+
+
+@pytest.mark.parametrize("where", ["proc", "under a file", "a file", "a dangling link"])
 def test_output_folder_that_cannot_be_written(where, tmp_path):
     a_file = tmp_path / "file"
     a_file.write_text("x")
+    if where == "a dangling link":
+        (tmp_path / "link").symlink_to(tmp_path / "nothing")
     path = {"proc": "/proc/membranes-x", "under a file": str(a_file / "out"),
-            "a file": str(a_file)}[where]
+            "a file": str(a_file), "a dangling link": str(tmp_path / "link")}[where]
     with pytest.raises(ValueError, match="output folder") as e:
         checks.check_output_folder(path)
     assert "\n" not in str(e.value)
-    assert sorted(os.listdir(tmp_path)) == ["file"] and not os.path.exists("/proc/membranes-x")
+    if where == "a dangling link":
+        assert "is a link to nothing" in str(e.value)
+    assert sorted(os.listdir(tmp_path)) == ["file"] + (["link"] if "link" in where else []) \
+        and not os.path.exists("/proc/membranes-x")
 
 
 def test_write_outputs_refuses_an_unwritable_folder():

@@ -217,7 +217,8 @@ def _check_before_meshing(args, scene, kwargs, comm):
     from .driver import MEMORY_METHOD, check_method
     petsc_options = parse_petsc_options(args.petsc_options)
     if args.out is not None:
-        checks.check_output_folder(args.out, comm)
+        from .outputs import FILES
+        checks.check_output_folder(args.out, comm, names=FILES)
     *_, coarse, _ = check_method(
         args.levels, newton=args.newton, cfun=args.cfun, solver=args.solver,
         system=args.system, petsc_options=petsc_options, nu=args.nu,

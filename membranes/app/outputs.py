@@ -21,10 +21,13 @@ vertices into the one XDMF/HDF5 pair through dolfinx's `XDMFFile` on the mesh's
 communicator (collective HDF5 I/O). Process 0 writes the JSON and CSV (the history and
 summary are the same on every process).
 
-**Nothing half-written.** Everything goes into a fresh temporary folder beside the target
-(same parent, hence the same — shared — filesystem for every process, and a rename instead
-of a copy) and is moved into place by process 0 only when every process has finished its
-part without error; the temporary folder is removed in any case. A failure on any process
+**Nothing half-written.** Everything goes into a fresh temporary folder inside the target,
+or beside it where the run creates the target (`checks.staging_parent`: the same — shared —
+filesystem for every process, and a rename instead of a copy), and is moved into place by
+process 0 only when every process has finished its part without error; the temporary folder
+is removed in any case. The move is all or nothing: an output name taken by a folder is
+refused before anything moves, and if a rename fails midway the files moved so far go back
+and the older files they replaced are restored. A failure on any process
 raises on every process. A filesystem with less room than the outputs need
 (checks.output_bytes) is refused before anything is written: a collective HDF5 write that
 runs out of room fails on the process that writes and can leave the others waiting inside
@@ -33,6 +36,7 @@ HDF5.
 
 import contextlib
 import csv
+import errno
 import json
 import math
 import os
@@ -42,7 +46,12 @@ import tempfile
 import numpy as np
 from mpi4py import MPI
 
-from ..model.checks import check_output_folder, check_output_room, output_bytes
+from ..model.checks import (
+    check_output_folder,
+    check_output_room,
+    output_bytes,
+    staging_parent,
+)
 from . import interrupts
 from .solution import ESTIMATOR_COLUMNS
 
@@ -129,26 +138,28 @@ def write_solution(path, mesh, functions, eta_K=None):
 # ## Staging
 
 @contextlib.contextmanager
-def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=()):
-    """Yield (on every process of `comm`) the path of a fresh temporary folder beside `out`;
-    when the block ends without an error on any process, process 0 moves every file in it
-    into `out` (created if missing), and removes from `out` the files named in `replaces`
-    that the block did not make (outputs a run may go without, such as a picture that could
-    not be drawn: an older run's copy must not stand beside the new files). Other files of
-    `out` are left alone. The temporary folder goes in any case. ValueError (one
-    line, nothing left behind) if `out` cannot be written (checks.check_output_folder) or its
-    filesystem has fewer than `nbytes` bytes free (checks.check_output_room), and on
-    every process if a process's block fails to write (an OSError: a full disk, a quota):
-    the same one line everywhere, not a traceback per process; otherwise a process whose
-    block succeeded while another's failed raises RuntimeError."""
-    check_output_folder(out, comm)
+def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=(), names=()):
+    """Yield (on every process of `comm`) the path of a fresh temporary folder in `out`
+    (beside it if missing: `checks.staging_parent`); when the block ends without an error on
+    any process, process 0 moves every file in it into `out` (created if missing), and
+    removes from `out` the files named in `replaces` that the block did not make (outputs a
+    run may go without, such as a picture that could not be drawn: an older run's copy must
+    not stand beside the new files), all or nothing (`_move_in`). Other files of `out` are
+    left alone. The temporary folder goes in any case. ValueError (one line, nothing left
+    behind) if `out` cannot be written or holds a folder of one of the output `names`
+    (checks.check_output_folder), its filesystem has fewer than `nbytes` bytes free
+    (checks.check_output_room) or the move fails, and on every process if a process's block
+    fails to write (an OSError: a full disk, a quota): the same one line everywhere, not a
+    traceback per process; otherwise a process whose block succeeded while another's failed
+    raises RuntimeError."""
+    check_output_folder(out, comm, names)
     if nbytes:
         check_output_room(out, nbytes, comm)
     out = os.path.abspath(os.fspath(out))
     tmp, error = None, None
     if comm.rank == 0:
         try:
-            parent = os.path.dirname(out)
+            parent = staging_parent(out)
             os.makedirs(parent, exist_ok=True)
             tmp = tempfile.mkdtemp(prefix=".membranes-", dir=parent)
             interrupts.staging = tmp    # (removed at once on Ctrl-C or SIGTERM)
@@ -177,23 +188,22 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=()):
     if not everyone:
         mine = f"{failed.strerror or failed}" if isinstance(failed, OSError) else None
         written = next((r for r in comm.allgather(mine) if r is not None), None)
-    error = None
+    error, stranded = None, False
     if comm.rank == 0:
         try:
             if everyone:
                 interrupts.staging = None     # (moving in: no longer removed as a whole)
                 os.makedirs(out, exist_ok=True)
-                made = sorted(os.listdir(tmp))
-                for name in made:
-                    os.replace(os.path.join(tmp, name), os.path.join(out, name))
-                for name in set(replaces) - set(made):
-                    stale = os.path.join(out, name)
-                    if os.path.isfile(stale) or os.path.islink(stale):
-                        os.remove(stale)
+                _move_in(tmp, out, replaces)
         except OSError as e:
-            error = f"cannot move the outputs into {out}: {e.strerror or e}"
+            where = f"{e.filename}: " if e.filename else ""
+            stranded = getattr(e, "stranded", False)
+            error = f"cannot move the outputs into {out}: {where}{e.strerror or e}; " + (
+                f"older files that could not be put back are in {tmp}/old" if stranded
+                else "nothing was changed")
         finally:
-            shutil.rmtree(tmp, ignore_errors=True)
+            if not stranded:
+                shutil.rmtree(tmp, ignore_errors=True)
             interrupts.staging = None
     error = comm.bcast(error, root=0)
     if written is not None:
@@ -206,6 +216,50 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=()):
                            "written")
     if error is not None:
         raise ValueError(error)
+
+
+def _move_in(tmp, out, replaces):
+    """Move every file of the staging folder `tmp` into `out`, and the files (not folders) of
+    `out` named in `replaces` that `tmp` lacks out of it, all or nothing (`staged_folder`):
+    an output name that `out` holds as a folder raises before anything moves; the files of
+    `out` that get replaced or removed are first renamed into `tmp`/old, so that a rename
+    that fails midway puts back what had moved, and they go with `tmp` once all have
+    moved."""
+    made = sorted(os.listdir(tmp))
+    for name in made:
+        target = os.path.join(out, name)
+        if os.path.isdir(target) and not os.path.islink(target):
+            raise IsADirectoryError(errno.EISDIR, "a folder has the name of an output", target)
+    stale = [name for name in set(replaces) - set(made)        # (a folder of such a name stays)
+             if os.path.isfile(os.path.join(out, name))
+             or os.path.islink(os.path.join(out, name))]
+    old = os.path.join(tmp, "old")
+    os.mkdir(old)
+    kept, moved = [], []                 # (old file of out, its copy in tmp/old), names
+    try:
+        for name in sorted(made + stale):
+            target = os.path.join(out, name)
+            if os.path.lexists(target):
+                os.replace(target, os.path.join(old, name))
+                kept.append((target, os.path.join(old, name)))
+            if name in made:
+                os.replace(os.path.join(tmp, name), target)
+                moved.append(name)
+    except OSError as e:
+        # undone as far as the filesystem lets: an older file that cannot go back stays in
+        # tmp/old, which is then kept and named (`staged_folder`)
+        for name in moved:
+            _try_replace(os.path.join(out, name), os.path.join(tmp, name))
+        e.stranded = not all([_try_replace(copy, target) for target, copy in kept])
+        raise
+
+
+def _try_replace(source, target):
+    try:
+        os.replace(source, target)
+        return True
+    except OSError:
+        return False
 
 
 def room_for(mesh):
@@ -222,7 +276,7 @@ def write_outputs(solution, out_dir, summary=None):
     comm = solution.comm
     if summary is None:
         summary = solution.summary()              # collective (MPI reductions)
-    with staged_folder(out_dir, comm, room_for(solution.disc.mesh)) as tmp:
+    with staged_folder(out_dir, comm, room_for(solution.disc.mesh), names=FILES) as tmp:
         write_solution(os.path.join(tmp, "solution.xdmf"), solution.disc.mesh,
                        solution.functions, solution.eta_K)
         if comm.rank == 0:

@@ -16,7 +16,7 @@ One process group, one problem, every method measured in the same run, one after
 Every run records the energy error at each recorded iterate (`errors='iterates'`, off the
 clock); the peers' SNES monitor does the same for each SNES iterate, outside their clock.
 
-Written into DIR (staged beside it, moved in at the end: `outputs.staged_folder`):
+Written into DIR (staged in it, moved in at the end: `outputs.staged_folder`):
 
 * `table.csv`: per method converged, Newton (SNES) steps, Krylov (CG) steps, wall time, final
   energy error, η, effectivity;

@@ -489,18 +489,19 @@ def check_request(h=None, levels=0, domain="disk", mesh_file=None, max_vertices=
 
 # ## The output folder
 
-def check_output_folder(path, comm=None):
+def check_output_folder(path, comm=None, names=()):
     """Make sure the run can write its output folder `path` before it starts: the folder
     (and its missing parents) can be created, a file written, moved in from a staging folder
-    beside it (as membranes' writers do) and removed. Whatever this created is removed again.
-    ValueError with one line otherwise. With `comm`, process 0 looks (it writes the outputs)
-    and every process gets its answer."""
+    (`staging_parent`, as membranes' writers do) and removed. Whatever this created is
+    removed again; and none of the output file `names` is taken by a folder in it (the
+    outputs could not move in at the end). ValueError with one line otherwise. With `comm`,
+    process 0 looks (it writes the outputs) and every process gets its answer."""
     if not os.fspath(path).strip():
         # (os.path.abspath('') is the working folder: an unset shell variable would spill
         # the outputs there; a name of blanks is as likely a slip)
         raise ValueError(f"the output folder is an empty or blank path ({os.fspath(path)!r}): "
                          f"name a folder")
-    _looked_at_on_rank0(lambda: _probe_folder(os.path.abspath(os.fspath(path))), comm)
+    _looked_at_on_rank0(lambda: _probe_folder(os.path.abspath(os.fspath(path)), names), comm)
 
 
 def _looked_at_on_rank0(look, comm):
@@ -551,11 +552,25 @@ def check_output_room(path, nbytes, comm=None):
     _looked_at_on_rank0(look, comm)
 
 
-def _probe_folder(out):
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise ValueError(f"output folder {out} exists and is not a folder")
+def staging_parent(out):
+    """Where the outputs of the folder `out` are staged (membranes.app.outputs.staged_folder):
+    inside `out` where it exists, so that a folder the user can write is enough (its parent
+    may be read-only, as for a home folder); beside it, in its parent, where the run creates
+    it. Either way on the filesystem of `out`, so that the outputs move in by renaming."""
+    return out if os.path.isdir(out) else os.path.dirname(out)
+
+
+def _probe_folder(out, names=()):
+    if os.path.lexists(out) and not os.path.isdir(out):
+        what = "a link to nothing" if os.path.islink(out) else "not a folder"
+        raise ValueError(f"output folder {out} exists and is {what}")
+    for name in names:
+        taken = os.path.join(out, name)
+        if os.path.isdir(taken) and not os.path.islink(taken):
+            raise ValueError(f"output folder {out} holds a folder named {name}, the name of an "
+                             f"output file: move it away or choose another folder")
     created = []                     # the folders made here, the outermost first
-    parent = os.path.dirname(out)
+    parent = staging_parent(out)
     stage = None
     try:
         for folder in _missing_folders(out):

@@ -266,11 +266,70 @@ def test_failed_hdf5_write_is_one_line(run, tmp_path, monkeypatch):
 
 def test_staged_folder_moves_only_on_success(tmp_path):
     with staged_folder(tmp_path / "a") as tmp:
-        assert os.path.dirname(tmp) == str(tmp_path)            # beside the target
+        assert os.path.dirname(tmp) == str(tmp_path)            # beside a missing target
         (open(os.path.join(tmp, "x.txt"), "w")).write("x\n")
         assert not (tmp_path / "a").exists()
     assert (tmp_path / "a" / "x.txt").read_text() == "x\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]
+    # an existing target holds the staging folder: writing it must not need its parent
+    with staged_folder(tmp_path / "a") as tmp:
+        assert os.path.dirname(tmp) == str(tmp_path / "a")
+        (open(os.path.join(tmp, "y.txt"), "w")).write("y\n")
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["x.txt", "y.txt"]
+
+
+def _previous_run(out):
+    """A folder `out` with an older run's files: the names of the outputs, and a note."""
+    out.mkdir()
+    for name in ("a.txt", "b.txt", "notes.txt"):
+        (out / name).write_text(f"old {name}\n")
+
+
+def _unchanged(out):
+    return {p.name: p.read_text() for p in out.iterdir()} == {
+        name: f"old {name}\n" for name in ("a.txt", "b.txt", "notes.txt")}
+
+
+def test_move_refuses_a_folder_named_as_an_output(tmp_path):
+    """An output name taken by a folder in the target: one line naming it, before anything
+    moves (the older files stay as they were, no new file stands among them)."""
+    out = tmp_path / "run"
+    _previous_run(out)
+    (out / "c.txt").mkdir()
+    with pytest.raises(ValueError, match=r"into .*run: .*run/c.txt: a folder has the name of "
+                                         r"an output; nothing was changed"):
+        with staged_folder(out) as tmp:
+            for name in ("a.txt", "b.txt", "c.txt"):
+                (open(os.path.join(tmp, name), "w")).write("new\n")
+    (out / "c.txt").rmdir()
+    assert _unchanged(out)
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]         # no staging folder left
+
+
+def test_a_move_failing_midway_is_undone(tmp_path, monkeypatch):
+    """A rename that fails after others have moved (planted at the second output): the
+    outputs moved so far go back, the older files they replaced and the stale file of
+    `replaces` are restored, and the staging folder goes."""
+    out = tmp_path / "run"
+    _previous_run(out)
+    real, calls = os.replace, []
+
+    def replace(src, dst):
+        calls.append(dst)
+        if os.fspath(dst) == str(out / "b.txt") and os.path.basename(src) == "b.txt" \
+                and os.path.basename(os.path.dirname(src)) != "old":     # (not its restore)
+            raise OSError(28, "No space left on device (planted)", str(dst))
+        real(src, dst)
+
+    monkeypatch.setattr(outputs.os, "replace", replace)
+    with pytest.raises(ValueError, match=r"b.txt: No space left on device .planted.; nothing "
+                                         r"was changed"):
+        with staged_folder(out, replaces=("notes.txt",)) as tmp:
+            for name in ("a.txt", "b.txt"):
+                (open(os.path.join(tmp, name), "w")).write("new\n")
+    assert str(out / "a.txt") in map(os.fspath, calls)                # a.txt had moved in
+    assert _unchanged(out)
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
 
 
 def test_staged_folder_replaces_files_it_did_not_make(tmp_path):
