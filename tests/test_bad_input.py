@@ -119,14 +119,29 @@ def test_estimators_underflow_is_refused_before_the_coarse_levels(tmp_path, caps
 
 
 @pytest.mark.parametrize("command", [["report", "--h", "0.3", "--h", "0.2"],
-                                     ["stability", "--cases", "tiny", "--cases", "grazing"]])
+                                     ["stability", "--cases", "tiny", "--cases", "grazing"],
+                                     ["solve", "--no-estimators", "--no-estimators"]])
 def test_cli_option_given_twice(command, tmp_path, capsys):
-    """`report` and `stability` refuse an option given twice too (no run, nothing written)."""
+    """`report` and `stability` refuse an option given twice too, and every command a flag
+    given twice (no run, nothing written)."""
     from membranes.app.cli import main
     out = tmp_path / "out"
     assert main(command + ["--quiet", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"membranes: error: argument {command[1]}: given more than once"
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", [["solve", "--lev", "1"], ["solve", "--no-est"],
+                                     ["report", "--lev", "1"]])
+def test_cli_abbreviated_option_is_unknown(command, tmp_path, capsys):
+    """An abbreviation is an unknown option (argparse would take `--lev` for --levels, and a
+    later `--levels` would then be 'given more than once')."""
+    from membranes.app.cli import main
+    out = tmp_path / "out"
+    assert main(command + ["--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("membranes: error: unrecognized arguments: " + command[1])
     assert not out.exists()
 
 

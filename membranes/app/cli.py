@@ -49,6 +49,14 @@ class _Once(argparse._StoreAction):
         super().__call__(parser, namespace, values, option_string)
 
 
+class _OnceTrue(argparse._StoreTrueAction):
+    """A flag (`--quiet`), refused when given twice like the options with values."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        _given_once(self, namespace)
+        super().__call__(parser, namespace, values, option_string)
+
+
 class _OnceBoolean(argparse.BooleanOptionalAction):
     """`--nested` / `--no-nested`: one of them, once."""
 
@@ -82,13 +90,23 @@ class _Version(argparse.Action):
 
 
 class _Parser(argparse.ArgumentParser):
+    """argparse with every option taken once, no abbreviations (`--lev 2` is an unknown
+    option, not --levels), errors as BadInput and help printed by process 0 only."""
+
     def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
         self.register("action", None, _Once)
         self.register("action", "store", _Once)
+        self.register("action", "store_true", _OnceTrue)
 
     def error(self, message):
         raise BadInput(message)
+
+    def _print_message(self, message, file=None):
+        from mpi4py import MPI
+        if MPI.COMM_WORLD.rank == 0:
+            super()._print_message(message, file)
 
 
 def _parser():
@@ -282,10 +300,13 @@ def _solve(args):
 
 
 def _scenes():
+    from mpi4py import MPI
+
     from ..model.scenes import NEEDS, SCENES
-    for name, fn in SCENES.items():
-        print(f"{name:8s} {fn.__doc__.strip().splitlines()[0]}")
-        print(f"{'':8s} needs: {NEEDS[name]}")
+    if MPI.COMM_WORLD.rank == 0:                  # (under mpirun: printed once)
+        for name, fn in SCENES.items():
+            print(f"{name:8s} {fn.__doc__.strip().splitlines()[0]}")
+            print(f"{'':8s} needs: {NEEDS[name]}")
     return 0
 
 

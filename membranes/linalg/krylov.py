@@ -112,7 +112,11 @@ PRESETS = {
 # incomplete factorisations: their zero-pivot threshold is set to 0 (module notes)
 INCOMPLETE = ("ilu", "icc")
 # a KSP of type preonly applies its PC once: the linear solve is exact only by a factorisation
-FACTORISATIONS = ("lu", "cholesky")
+FACTORISATIONS = ("lu",)
+# factorisations of a symmetric matrix's upper triangle: none of the matrices solved here is
+# symmetric (the Newton systems; S_D and the gap's operator of the mean/gap split keep their
+# boundary columns beside the identity rows of the boundary vertices)
+SYMMETRIC_ONLY = {"cholesky": "lu", "icc": "ilu"}
 RESERVED = {"ksp_rtol": "the Newton variant sets the linear tolerance",
             "ksp_atol": "the Newton variant sets the linear tolerance",
             "ksp_max_it": "use max_it",
@@ -177,6 +181,13 @@ class Krylov:
             if name.endswith("pc_type") and str(value).lower() == "mg":
                 raise ValueError(f"PETSc option -{name} mg needs interpolation operators, "
                                  "which membranes does not supply: use gamg or hypre")
+            # Cholesky and ICC read the upper triangle only: on a nonsymmetric matrix they
+            # factorise another matrix (Newton then fails, or a direct solve is wrong)
+            if name.endswith("pc_type") and str(value).lower() in SYMMETRIC_ONLY:
+                value = str(value).lower()
+                raise ValueError(f"PETSc option -{name} {value} factorises a symmetric "
+                                 f"matrix, and the matrices solved here are not symmetric: "
+                                 f"use {SYMMETRIC_ONLY[value]}")
         # PETSc 3.18's Chebyshev, run under the method's test until its iterates overflow
         # (its spectrum estimate does not fit the nonsymmetric Newton matrices: the paper
         # preset with -pc_type jacobi on the disk), ends with DIVERGED_NANORINF and a KSP
