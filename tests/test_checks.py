@@ -314,6 +314,9 @@ def test_parse_petsc_options():
     ({"pc type": "ilu"}, "not a valid option name"),
     ({"pc_type=ilu": None}, "not a valid option name"),
     ({"ksp_gmres_restart": [30]}, "not a string or number"),
+    ("-ksp_gmres_restart 50 -KSP_GMRES_RESTART 40", "-ksp_gmres_restart is given more than "
+                                                    "once"),
+    ({"-pc_type": "ilu", "PC_TYPE": "lu"}, "-pc_type is given more than once"),
 ])
 def test_malformed_petsc_options(bad, message):
     with pytest.raises(ValueError, match=message) as e:

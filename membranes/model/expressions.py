@@ -7,7 +7,8 @@ on the mesh). Allowed: numbers, ``x``, ``y``, ``pi``, ``+ - * / **``, and the fu
 ``sin cos exp tanh sqrt abs min max``. Anything else is a :class:`ValueError` naming the problem,
 and so is a formula nested deeper than MAX_DEPTH (Python's parser and the recursive builds
 would fail with RecursionError or MemoryError), one of more than MAX_PARTS parts (below), or a
-part without x, y that is not finite (``2**10**10``, ``1e400``). Parts without x, y are
+part without x, y that is not finite (``2**10**10``, ``1e400``), or a number that is not
+(``tanh(1e400)``: a typo, not 1). Parts without x, y are
 evaluated once in double precision (numpy's arithmetic, as on the mesh), so that the UFL build
 and the numpy check agree: Python's float arithmetic raises where numpy's gives inf
 (``1/exp(1000)`` is 0 to both).
@@ -139,6 +140,10 @@ class Formula:
             if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
                 raise ValueError(f"{self.name}: {node.value!r} is not a number in "
                                  f"{self.shown!r}")
+            if not np.isfinite(_number(node.value)):   # (inside a finite part: tanh(1e400))
+                part = ast.get_source_segment(self.text.strip(), node) or ast.unparse(node)
+                raise ValueError(f"{self.name}: the number {part[:_SHOWN]!r} is not finite in "
+                                 f"double precision, in {self.shown!r}")
         elif isinstance(node, ast.Name):
             if node.id not in _VARIABLES and node.id not in _CONSTANTS:
                 raise ValueError(f"{self.name}: unknown name {node.id!r} in {self.shown!r} "

@@ -47,7 +47,8 @@ def parse_petsc_options(options):
     ("-ksp_type gmres -ksp_monitor -pc_factor_shift_amount -1e-3") or a dict (whose names
     may carry the '-'). ValueError for a token that is not -name [value]: '-pc_type=ilu',
     'pc_type' where an option is expected, a value after a value, a name with other
-    characters; for a value that is not a string, number or bool; for options that are
+    characters, a name given twice (in any case); for a value that is not a string, number or
+    bool; for options that are
     neither a string nor a mapping (a list of tokens read as the text of the list)."""
     if options is None:
         return {}
@@ -58,6 +59,8 @@ def parse_petsc_options(options):
             if not _valid_name(bare):
                 raise ValueError(f"PETSc option {name!r} is not a valid option name "
                                  f"(a letter, then letters, digits and '_')")
+            if bare.lower() in out:                       # (-KSP_TYPE and -ksp_type)
+                raise ValueError(f"PETSc options: -{bare.lower()} is given more than once")
             out[bare.lower()] = option_value(bare, value)
         return out
     if not isinstance(options, str):
@@ -75,6 +78,8 @@ def parse_petsc_options(options):
                 fix = f" (write '-{name.replace('=', ' ', 1)}')" if "=" in name else ""
                 raise ValueError(f"PETSc options: {token!r} is not -name [value]{fix}")
             name = name.lower()
+            if name in out:        # (PETSc would keep the last and drop the first unsaid)
+                raise ValueError(f"PETSc options: -{name} is given more than once")
             out[name] = None
         elif "=" in token:
             raise ValueError(f"PETSc options: {token!r} is not -name [value] "
