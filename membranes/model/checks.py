@@ -414,8 +414,10 @@ def check_size(vertices, available=None, max_vertices=None, what="the run", hint
     if limit is not None:
         if vertices > limit:
             extra = f"; {hint(limit)}" if hint is not None else ""
-            raise ValueError(f"{what} has {_about(vertices, _count)} vertices, more than "
-                             f"the limit --max-vertices {limit} (max_vertices){extra}")
+            # (in full: near the limit, two digits would show the two numbers alike)
+            raise ValueError(f"{what} has {_about(vertices, lambda n: str(round(n)))} "
+                             f"vertices, more than the limit --max-vertices {limit} "
+                             f"(max_vertices){extra}")
         return need
     if available is None or need <= available:
         return need

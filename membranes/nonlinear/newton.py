@@ -239,7 +239,7 @@ def newton(disc, X0=None, cfun="min", variant="exact", system=None, krylov="amg"
                                              f"max(eta_disc, eta_lin) after a forced solve")
             return ok, description
         ok = rec["residual"] <= tol
-        return ok, f"relative residual {rec['residual']:.3e} {'<=' if ok else '>'} {tol:.1e}"
+        return ok, f"relative residual {rec['residual']:.3e} {'<=' if ok else '>'} {tol:.3g}"
 
     stalled = False         # whether the last step's Krylov solve made no iteration
     forcing_now = forcing   # the forcing term, shrunk where a forced step did not help
