@@ -154,6 +154,50 @@ def test_comm_none_is_the_default_and_no_comm_is_refused():
     assert p.mesh.comm.size == MPI.COMM_WORLD.size
     with pytest.raises(ValueError, match="comm must be an mpi4py communicator, got str"):
         scenes.square(h=0.5, comm="world")
+    # COMM_NULL raised mpi4py's own error; an empty handle is the same
+    for null in (MPI.COMM_NULL, MPI.Intercomm()):
+        with pytest.raises(ValueError, match="comm is MPI.COMM_NULL"):
+            scenes.disk(h=0.5, comm=null)
+
+
+INTERCOMM = """
+from mpi4py import MPI
+from membranes import scenes
+w = MPI.COMM_WORLD
+local = w.Split(w.rank % 2, w.rank)
+inter = local.Create_intercomm(0, w, 1 - w.rank % 2, tag=7)
+try:
+    scenes.disk(h=0.3, comm=inter)
+    said = None
+except ValueError as e:
+    said = str(e)
+said = w.gather(said, root=0)
+if w.rank == 0:
+    print(said)
+"""
+
+
+def test_an_intercommunicator_is_refused():
+    """An intercommunicator passes isinstance(comm, MPI.Comm): on 2 processes the meshing
+    waited for ever, on 3 one process crashed (SIGSEGV). Refused on every process."""
+    import ast
+    import shutil
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(OMP_NUM_THREADS="1", PYTHONPATH=ROOT)
+    proc = subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
+                           "-n", "2", sys.executable, "-c", INTERCOMM],
+                          capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr
+    said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    assert len(said) == 2 and all(m is not None and "intercommunicator" in m for m in said)
+
+
+def test_a_square_mesh_that_is_no_mesh_is_refused():
+    """scenes.square(mesh='unit_square.msh') raised AttributeError on mesh.geometry."""
+    for bad in ("unit_square.msh", 3):
+        with pytest.raises(ValueError, match="mesh must be a dolfinx Mesh of the unit square, "
+                                             f"got {type(bad).__name__}"):
+            scenes.square(mesh=bad)
 
 
 def test_a_typeset_minus_is_a_minus():

@@ -54,11 +54,19 @@ def _coarse_mesh(domain, h, mesh_file, comm):
 
 def _communicator(comm):
     """The scene's communicator: `comm`, MPI.COMM_WORLD for None; ValueError for anything
-    that is no mpi4py communicator (it failed later with an AttributeError)."""
+    that is no mpi4py communicator (it failed later with an AttributeError), for
+    MPI.COMM_NULL (an mpi4py error) and for an intercommunicator (its two groups would wait
+    for each other in the meshing, or crash)."""
     if comm is None:
         return MPI.COMM_WORLD
     if not isinstance(comm, MPI.Comm):
         raise ValueError(f"comm must be an mpi4py communicator, got {type(comm).__name__}")
+    if comm == MPI.COMM_NULL:
+        raise ValueError("comm is MPI.COMM_NULL, a communicator of no process: give that of "
+                         "the processes that solve together")
+    if comm.Is_inter():
+        raise ValueError("comm is an intercommunicator: give an intracommunicator of the "
+                         "processes that solve together (MPI.COMM_WORLD or a Split of it)")
     return comm
 
 
@@ -164,6 +172,9 @@ def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORL
     if mesh is None:
         h = _check_size(h, levels, "square", None, max_vertices, comm)
     else:
+        if not isinstance(mesh, dolfinx.mesh.Mesh):
+            raise ValueError(f"mesh must be a dolfinx Mesh of the unit square, got "
+                             f"{type(mesh).__name__} (a mesh file goes to scenes.user(mesh=...))")
         x = mesh.geometry.x[:, :2]
         lo = mesh.comm.allreduce(x.min(initial=np.inf), op=MPI.MIN)
         hi = mesh.comm.allreduce(x.max(initial=-np.inf), op=MPI.MAX)
