@@ -1,6 +1,10 @@
 """Shared fixtures: solves are cached per session so several tests can check one run."""
 
 import functools
+import os
+import shutil
+import subprocess
+import sys
 
 from membranes import scenes, solve
 from membranes.app.logs import quiet_jit_logging
@@ -78,3 +82,17 @@ def cli_bad_input(args, out, capsys):
     assert err.startswith("membranes: error: ") and "\n" not in err
     assert not out.exists()
     return err
+
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def mpirun(args, processes=2, timeout=120):
+    """`mpirun -n processes python args…` (oversubscribed, as root too) from a test run
+    serially: the environment without this process's own MPI variables, one BLAS thread,
+    the repository on the path. Returns the CompletedProcess (text output captured)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(OMP_NUM_THREADS="1", PYTHONPATH=ROOT)
+    return subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
+                           "-n", str(processes), sys.executable] + list(args),
+                          capture_output=True, text=True, timeout=timeout, env=env)

@@ -13,7 +13,7 @@ from membranes.fem.hierarchy import build_hierarchy
 from membranes.fem.meshes import read_msh, unit_disk
 from membranes.model.expressions import Formula
 
-from .conftest import cli_bad_input, scene, write_msh
+from .conftest import cli_bad_input, mpirun, scene, write_msh
 
 
 @pytest.fixture(scope="module")
@@ -298,12 +298,8 @@ def test_bad_initial_guess_on_some_processes_only():
     accepted on the others, which summed the processes' verdicts instead of requiring all).
     Every process raises the same ValueError."""
     import ast
-    import shutil
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(OMP_NUM_THREADS="1")
-    proc = subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
-                           "-n", "3", sys.executable, "-c", GUESS_ON_SOME_PROCESSES],
-                          capture_output=True, text=True, timeout=120, env=env)
+
+    proc = mpirun(["-c", GUESS_ON_SOME_PROCESSES], processes=3)
     assert proc.returncode == 0, proc.stderr
     said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
     layout, nan = zip(*said)

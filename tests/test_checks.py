@@ -5,8 +5,6 @@ the options it used."""
 
 import math
 import os
-import subprocess
-import sys
 
 import pytest
 
@@ -15,9 +13,7 @@ from membranes.fem.hierarchy import build_hierarchy
 from membranes.fem.meshes import unit_disk, unit_square
 from membranes.model import checks, petsc_options
 
-from .conftest import scene
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from .conftest import mpirun, scene
 
 GiB = 2.0 ** 30
 
@@ -504,15 +500,10 @@ def test_two_processes_share_the_node_and_refuse_together(tmp_path):
     """`mpirun -n 2 membranes solve --levels 12`: both processes refuse (exit 2), process 0
     says it once, with the memory of the node shared between the two."""
     import re
-    import shutil
-    import subprocess
-    import sys
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+
     out = tmp_path / "out"
-    proc = subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
-                           "-n", "2", sys.executable, "-m", "membranes.app.cli", "solve", "--quiet",
-                           "--levels", "12", "--out", str(out)],
-                          capture_output=True, text=True, timeout=120, env=env)
+    proc = mpirun(["-m", "membranes.app.cli", "solve", "--quiet", "--levels", "12", "--out",
+                   str(out)])
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.splitlines() if line.startswith("membranes:")]
     assert len(lines) == 1 and "Traceback" not in proc.stderr
@@ -543,20 +534,13 @@ def test_an_error_of_one_process_ends_the_run(tmp_path):
     that failed waited in MPI_Finalize, the other in the collective. The processes that met
     an error now wait cli.AGREE_SECONDS for the others to meet it too, then the one that
     failed says why and ends itself; mpirun ends the rest. Exit 2, one error line."""
-    import shutil
-    import subprocess
-    import sys
     import time
 
     from membranes.app.cli import AGREE_SECONDS
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(OMP_NUM_THREADS="1")
+
     out = tmp_path / "out"
     t = time.monotonic()
-    proc = subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
-                           "-n", "2", sys.executable, "-c", LOCAL_ERROR, "solve", "--quiet",
-                           "--h", "0.3", "--out", str(out)],
-                          capture_output=True, text=True, timeout=120, env=env)
+    proc = mpirun(["-c", LOCAL_ERROR, "solve", "--quiet", "--h", "0.3", "--out", str(out)])
     assert proc.returncode == 2, proc.stderr
     lines = [line for line in proc.stderr.splitlines() if line.startswith("membranes:")]
     assert lines == ["membranes: error: only process 1 meets this"], proc.stderr
@@ -589,18 +573,11 @@ def test_data_not_finite_on_part_of_the_mesh_are_refused_by_every_process(tmp_pa
     process that met it, after AGREE_SECONDS). The check is collective: every process raises
     the same ValueError at once, and the command line says it once, without the wait."""
     import ast
-    import shutil
-    import subprocess
-    import sys
     import time
 
     from membranes.app.cli import AGREE_SECONDS
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(OMP_NUM_THREADS="1")
-    mpirun = [shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe", "-n", "3",
-              sys.executable]
-    proc = subprocess.run(mpirun + ["-c", PART_OF_THE_MESH], capture_output=True, text=True,
-                          timeout=120, env=env)
+
+    proc = mpirun(["-c", PART_OF_THE_MESH], processes=3)
     assert proc.returncode == 0, proc.stderr
     ranks = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
     assert not all(near for near, _ in ranks)          # the case this test is about
@@ -609,9 +586,8 @@ def test_data_not_finite_on_part_of_the_mesh_are_refused_by_every_process(tmp_pa
     assert said.pop().startswith("f1 = '1/x' is not finite on the mesh (e.g. at x = 0, ")
     out = tmp_path / "out"
     t = time.monotonic()
-    proc = subprocess.run(mpirun + ["-m", "membranes.app.cli", "solve", "--quiet", "--domain",
-                                    "square", "--h", "0.3", "--f1", "1/x", "--out", str(out)],
-                          capture_output=True, text=True, timeout=120, env=env)
+    proc = mpirun(["-m", "membranes.app.cli", "solve", "--quiet", "--domain", "square", "--h",
+                   "0.3", "--f1", "1/x", "--out", str(out)], processes=3)
     assert proc.returncode == 2, proc.stderr
     lines = [line for line in proc.stderr.splitlines() if line.startswith("membranes:")]
     assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
@@ -695,15 +671,11 @@ def test_a_factorisation_petsc_cannot_distribute_is_refused_up_front():
     trial now runs on the run's communicator: every process refuses it, naming the way out.
     On one process it is a valid option."""
     import ast
-    import shutil
 
     from membranes.app.driver import check_method
+
     check_method(1, solver="amg", petsc_options="-pc_type ilu")
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(OMP_NUM_THREADS="1", PYTHONPATH=ROOT)
-    proc = subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
-                           "-n", "2", sys.executable, "-c", PARALLEL_ILU],
-                          capture_output=True, text=True, timeout=120, env=env)
+    proc = mpirun(["-c", PARALLEL_ILU])
     assert proc.returncode == 0, proc.stderr
     said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
     assert len(said) == 2 and all(m is not None and "matrix type mpiaij" in m
