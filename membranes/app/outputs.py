@@ -49,6 +49,7 @@ from mpi4py import MPI
 from ..model.checks import (
     check_output_folder,
     check_output_room,
+    folder_named_as_output,
     output_bytes,
     staging_parent,
 )
@@ -199,8 +200,8 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=(), names=()):
             where = f"{e.filename}: " if e.filename else ""
             stranded = getattr(e, "stranded", False)
             error = f"cannot move the outputs into {out}: {where}{e.strerror or e}; " + (
-                f"older files that could not be put back are in {tmp}/old" if stranded
-                else "nothing was changed")
+                f"it could not be undone in full: the older files are in {tmp}/old" if
+                stranded else "nothing was changed")
         finally:
             if not stranded:
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -226,10 +227,10 @@ def _move_in(tmp, out, replaces):
     that fails midway puts back what had moved, and they go with `tmp` once all have
     moved."""
     made = sorted(os.listdir(tmp))
-    for name in made:
-        target = os.path.join(out, name)
-        if os.path.isdir(target) and not os.path.islink(target):
-            raise IsADirectoryError(errno.EISDIR, "a folder has the name of an output", target)
+    taken = folder_named_as_output(out, made)
+    if taken is not None:
+        raise IsADirectoryError(errno.EISDIR, "a folder has the name of an output",
+                                os.path.join(out, taken))
     stale = [name for name in set(replaces) - set(made)        # (a folder of such a name stays)
              if os.path.isfile(os.path.join(out, name))
              or os.path.islink(os.path.join(out, name))]
@@ -246,11 +247,12 @@ def _move_in(tmp, out, replaces):
                 os.replace(os.path.join(tmp, name), target)
                 moved.append(name)
     except OSError as e:
-        # undone as far as the filesystem lets: an older file that cannot go back stays in
-        # tmp/old, which is then kept and named (`staged_folder`)
-        for name in moved:
-            _try_replace(os.path.join(out, name), os.path.join(tmp, name))
-        e.stranded = not all([_try_replace(copy, target) for target, copy in kept])
+        # undone as far as the filesystem lets; if it does not, tmp (the older files in
+        # tmp/old) is kept and named (`staged_folder`)
+        back = [_try_replace(os.path.join(out, name), os.path.join(tmp, name))
+                for name in moved]
+        back += [_try_replace(copy, target) for target, copy in kept]
+        e.stranded = not all(back)
         raise
 
 

@@ -562,15 +562,21 @@ def staging_parent(out):
     return out if os.path.isdir(out) else os.path.dirname(out)
 
 
+def folder_named_as_output(out, names):
+    """The first of the output file `names` that the folder `out` holds as a folder (not a
+    link), or None: the outputs could not be moved in under that name."""
+    return next((name for name in names if os.path.isdir(os.path.join(out, name))
+                 and not os.path.islink(os.path.join(out, name))), None)
+
+
 def _probe_folder(out, names=()):
     if os.path.lexists(out) and not os.path.isdir(out):
         what = "a link to nothing" if os.path.islink(out) else "not a folder"
         raise ValueError(f"output folder {out} exists and is {what}")
-    for name in names:
-        taken = os.path.join(out, name)
-        if os.path.isdir(taken) and not os.path.islink(taken):
-            raise ValueError(f"output folder {out} holds a folder named {name}, the name of an "
-                             f"output file: move it away or choose another folder")
+    taken = folder_named_as_output(out, names)
+    if taken is not None:
+        raise ValueError(f"output folder {out} holds a folder named {taken}, the name of an "
+                         f"output file: move it away or choose another folder")
     created = []                     # the folders made here, the outermost first
     parent = staging_parent(out)
     stage = None

@@ -332,6 +332,31 @@ def test_a_move_failing_midway_is_undone(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
 
 
+def test_a_move_that_cannot_be_undone_keeps_the_older_files(tmp_path, monkeypatch):
+    """Where the filesystem refuses the undo too (every rename onto run/b.txt fails), the
+    older b.txt is not deleted with the staging folder: the folder stays, and the message
+    says where the older files are."""
+    import re
+    out = tmp_path / "run"
+    _previous_run(out)
+    real = os.replace
+
+    def replace(src, dst):
+        if os.fspath(dst) == str(out / "b.txt"):
+            raise OSError(5, "Input/output error (planted)", str(dst))
+        real(src, dst)
+
+    monkeypatch.setattr(outputs.os, "replace", replace)
+    with pytest.raises(ValueError, match="could not be undone in full: the older files are "
+                                         "in ") as e:
+        with staged_folder(out) as tmp:
+            for name in ("a.txt", "b.txt"):
+                (open(os.path.join(tmp, name), "w")).write("new\n")
+    kept = re.search(r"are in (\S+)$", str(e.value))[1]
+    assert open(os.path.join(kept, "b.txt")).read() == "old b.txt\n"
+    assert (out / "a.txt").read_text() == "old a.txt\n"          # the rest was undone
+
+
 def test_staged_folder_replaces_files_it_did_not_make(tmp_path):
     """A file of `replaces` the block did not make goes from the target (an older run's copy
     would stand beside the new files as if it were theirs); the files the block made replace
