@@ -114,7 +114,7 @@ def _parser():
                 description="Contact of two elastic membranes: semismooth Newton on P1 "
                             "finite elements with guaranteed error bounds (FEniCSx).")
     p.add_argument("--version", action=_Version, help="the versions of membranes and of the "
-                   "software it runs on (dolfinx, PETSc, MPI, ...), then exit")
+                   "software it runs on (dolfinx, petsc4py, MPI, ...), then exit")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     s = sub.add_parser("solve", help="solve a scene and write summary, history and solution")
     s.add_argument("--scene", choices=("disk", "square", "user"),

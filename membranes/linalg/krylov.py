@@ -119,7 +119,7 @@ FACTORISATIONS = ("lu",)
 SYMMETRIC_ONLY = {"cholesky": "lu", "icc": "ilu"}
 RESERVED = {"ksp_rtol": "the Newton variant sets the linear tolerance",
             "ksp_atol": "the Newton variant sets the linear tolerance",
-            "ksp_max_it": "use max_it",
+            "ksp_max_it": "use --max-linear-its (max_linear_its in the API)",
             "ksp_divtol": "the method's tests decide when a Krylov solve stops",
             "ksp_initial_guess_nonzero": "every Krylov solve starts from its Newton step's "
                                          "guess (theory §8)",
