@@ -11,7 +11,7 @@ import pytest
 from membranes import scenes, solve
 from membranes.fem.hierarchy import build_hierarchy
 from membranes.fem.meshes import unit_disk, unit_square
-from membranes.model import checks, petsc_options
+from membranes.model import checks, folders, petsc_options
 
 from .conftest import mpirun, scene
 
@@ -239,12 +239,12 @@ def test_solve_checks_the_mesh_before_assembly(monkeypatch):
 
 def test_output_folder_probe_leaves_nothing(tmp_path):
     deep = tmp_path / "a" / "b" / "out"
-    checks.check_output_folder(str(deep))
+    folders.check_output_folder(str(deep))
     assert not (tmp_path / "a").exists()
     kept = tmp_path / "kept"
     kept.mkdir()
     (kept / "old.txt").write_text("x")
-    checks.check_output_folder(str(kept))
+    folders.check_output_folder(str(kept))
     assert sorted(os.listdir(kept)) == ["old.txt"]
     assert sorted(os.listdir(tmp_path)) == ["kept"]
 
@@ -255,10 +255,10 @@ def test_output_folder_with_a_folder_named_as_an_output(tmp_path):
     out = tmp_path / "out"
     (out / "summary.json").mkdir(parents=True)
     (out / "history.csv").write_text("old\n")
-    checks.check_output_folder(str(out), names=("history.csv",))
+    folders.check_output_folder(str(out), names=("history.csv",))
     with pytest.raises(ValueError, match="out holds a folder named summary.json, the name of "
                                          "an output file"):
-        checks.check_output_folder(str(out), names=("history.csv", "summary.json"))
+        folders.check_output_folder(str(out), names=("history.csv", "summary.json"))
     assert sorted(os.listdir(out)) == ["history.csv", "summary.json"]
 
 
@@ -271,7 +271,7 @@ def test_output_folder_that_cannot_be_written(where, tmp_path):
     path = {"proc": "/proc/membranes-x", "under a file": str(a_file / "out"),
             "a file": str(a_file), "a dangling link": str(tmp_path / "link")}[where]
     with pytest.raises(ValueError, match="output folder") as e:
-        checks.check_output_folder(path)
+        folders.check_output_folder(path)
     assert "\n" not in str(e.value)
     if where == "a dangling link":
         assert "is a link to nothing" in str(e.value)

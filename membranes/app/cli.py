@@ -229,14 +229,14 @@ def _check_before_meshing(args, scene, kwargs, comm):
     --tol with adaptive Newton, a γ or --nu out of range, …: `driver.check_method`), and a
     mesh whose run needs more memory than the processes have (or more vertices than
     --max-vertices). Returns the parsed PETSc options."""
-    from ..model import checks
+    from ..model import checks, folders
     from ..model.petsc_options import parse_petsc_options
     from ..model.scenes import DEFAULT_H
     from .driver import MEMORY_METHOD, check_method
     petsc_options = parse_petsc_options(args.petsc_options)
     if args.out is not None:
         from .outputs import FILES
-        checks.check_output_folder(args.out, comm, names=FILES)
+        folders.check_output_folder(args.out, comm, names=FILES)
     *_, coarse, _ = check_method(
         args.levels, newton=args.newton, cfun=args.cfun, solver=args.solver,
         system=args.system, petsc_options=petsc_options, nu=args.nu,
@@ -259,7 +259,7 @@ def _solve(args):
     quiet_jit_logging()
     from mpi4py import MPI
 
-    from ..model import checks, scenes
+    from ..model import folders, scenes
     from .driver import solve
     from .outputs import room_for, write_outputs
     world = MPI.COMM_WORLD
@@ -274,7 +274,7 @@ def _solve(args):
         f"s: the finest mesh has {fine.index_map(0).size_global:,} vertices and "
         f"{fine.index_map(2).size_global:,} cells on {world.size} process(es)")
     if args.out is not None:           # (before the run: the disk may be full already)
-        checks.check_output_room(args.out, room_for(problem.mesh), world)
+        folders.check_output_room(args.out, room_for(problem.mesh), world)
     sol = solve(problem, newton=args.newton, cfun=args.cfun, solver=args.solver,
                 system=args.system, petsc_options=petsc_options, nu=args.nu,
                 max_linear_its=args.max_linear_its, tol=args.tol, max_newton=args.max_newton,

@@ -20,7 +20,7 @@ def options(name, description, out_help):
     parser.add_argument("--quick", action="store_true", help="a coarse mesh (seconds)")
     parser.add_argument("--out", default=os.path.join("out", "demos", name), help=out_help)
     args = parser.parse_args()
-    from ..model.checks import check_output_folder
+    from ..model.folders import check_output_folder
     try:            # an unwritable or empty --out: one line and exit 2, as the CLI
         check_output_folder(args.out, MPI.COMM_WORLD)
     except ValueError as e:

@@ -22,14 +22,14 @@ communicator (collective HDF5 I/O). Process 0 writes the JSON and CSV (the histo
 summary are the same on every process).
 
 **Nothing half-written.** Everything goes into a fresh temporary folder inside the target,
-or beside it where the run creates the target (`checks.staging_parent`: the same — shared —
+or beside it where the run creates the target (`folders.staging_parent`: the same — shared —
 filesystem for every process, and a rename instead of a copy), and is moved into place by
 process 0 only when every process has finished its part without error; the temporary folder
 is removed in any case. The move is all or nothing: an output name taken by a folder is
 refused before anything moves, and if a rename fails midway the files moved so far go back
 and the older files they replaced are restored. A failure on any process
 raises on every process. A filesystem with less room than the outputs need
-(checks.output_bytes) is refused before anything is written: a collective HDF5 write that
+(folders.output_bytes) is refused before anything is written: a collective HDF5 write that
 runs out of room fails on the process that writes and can leave the others waiting inside
 HDF5.
 """
@@ -46,7 +46,7 @@ import tempfile
 import numpy as np
 from mpi4py import MPI
 
-from ..model.checks import (
+from ..model.folders import (
     check_output_folder,
     check_output_room,
     folder_named_as_output,
@@ -141,15 +141,15 @@ def write_solution(path, mesh, functions, eta_K=None):
 @contextlib.contextmanager
 def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=(), names=()):
     """Yield (on every process of `comm`) the path of a fresh temporary folder in `out`
-    (beside it if missing: `checks.staging_parent`); when the block ends without an error on
+    (beside it if missing: `folders.staging_parent`); when the block ends without an error on
     any process, process 0 moves every file in it into `out` (created if missing), and
     removes from `out` the files named in `replaces` that the block did not make (outputs a
     run may go without, such as a picture that could not be drawn: an older run's copy must
     not stand beside the new files), all or nothing (`_move_in`). Other files of `out` are
     left alone. The temporary folder goes in any case. ValueError (one line, nothing left
     behind) if `out` cannot be written or holds a folder of one of the output `names`
-    (checks.check_output_folder), its filesystem has fewer than `nbytes` bytes free
-    (checks.check_output_room) or the move fails, and on every process if a process's block
+    (folders.check_output_folder), its filesystem has fewer than `nbytes` bytes free
+    (folders.check_output_room) or the move fails, and on every process if a process's block
     fails to write (an OSError: a full disk, a quota): the same one line everywhere, not a
     traceback per process; otherwise a process whose block succeeded while another's failed
     raises RuntimeError."""
@@ -265,7 +265,7 @@ def _try_replace(source, target):
 
 
 def room_for(mesh):
-    """The bytes the outputs of a run on `mesh` need (checks.output_bytes, global counts)."""
+    """The bytes the outputs of a run on `mesh` need (folders.output_bytes, global counts)."""
     topology = mesh.topology
     return output_bytes(topology.index_map(0).size_global, topology.index_map(2).size_global)
 

@@ -547,7 +547,7 @@ def main(args):
     """`membranes report`: 0, or EXIT_NOT_CONVERGED when a method did not converge (the report
     is written all the same); bad input raises ValueError before anything is written."""
     from ..model import scenes
-    from ..model.checks import check_output_folder
+    from ..model.folders import check_output_folder
     from .cli import EXIT_NOT_CONVERGED
     comm = MPI.COMM_WORLD
     check_matplotlib()

@@ -16,7 +16,7 @@ from mpi4py import MPI
 from membranes.app import outputs
 from membranes.app.driver import solve
 from membranes.app.outputs import HISTORY_COLUMNS, staged_folder, write_outputs
-from membranes.model import checks, scenes
+from membranes.model import folders, scenes
 from tests.core.mpi_outputs import by_coordinates, gathered, h5_values
 
 # XDMF writes a P1 function's values at the nodes as dolfinx's compute_point_values evaluates
@@ -222,7 +222,7 @@ def test_failure_while_writing_leaves_nothing(run, tmp_path, monkeypatch):
 
 @serial_only
 def test_output_bytes_bounds_the_files(run):
-    """The room asked for (checks.output_bytes) covers the files written, and its data part
+    """The room asked for (folders.output_bytes) covers the files written, and its data part
     8 (3 T + 5 V) is in the HDF5 file: the estimate is neither short nor loose by more than
     the fixed extra."""
     sol, out = run
@@ -230,7 +230,7 @@ def test_output_bytes_bounds_the_files(run):
     v, t = (topology.index_map(d).size_global for d in (0, 2))
     total = sum(p.stat().st_size for p in out.iterdir())
     assert 8 * (3 * t + 5 * v) <= (out / "solution.h5").stat().st_size
-    assert total <= checks.output_bytes(v, t) <= total + checks.OUTPUT_EXTRA
+    assert total <= folders.output_bytes(v, t) <= total + folders.OUTPUT_EXTRA
 
 
 def test_no_room_is_refused_before_writing(run, tmp_path, monkeypatch):
@@ -239,9 +239,9 @@ def test_no_room_is_refused_before_writing(run, tmp_path, monkeypatch):
     sol, _ = run
     st = os.statvfs(tmp_path)
     free = st.f_bavail * st.f_frsize
-    checks.check_output_room(tmp_path / "a" / "b", 1)               # room enough: silent
+    folders.check_output_room(tmp_path / "a" / "b", 1)               # room enough: silent
     with pytest.raises(ValueError, match=r"a/b has .* MiB free, the outputs need about"):
-        checks.check_output_room(tmp_path / "a" / "b", free + 2 ** 30)
+        folders.check_output_room(tmp_path / "a" / "b", free + 2 ** 30)
     monkeypatch.setattr(outputs, "output_bytes", lambda v, t: free + 2 ** 30)
     with pytest.raises(ValueError, match="MiB free"):
         write_outputs(sol, str(tmp_path / "new"))
