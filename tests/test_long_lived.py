@@ -16,17 +16,13 @@ not the same from run to run), and its Newton count once differed from the seria
 
 import json
 import os
-import subprocess
-import sys
 
 import pytest
 from mpi4py import MPI
 
 from membranes import scenes, solve
 
-HERE = os.path.dirname(os.path.abspath(__file__))
 EXACT = {"newton": "exact", "solver": "direct"}
-ROOT = os.path.dirname(HERE)
 
 
 def figures(sol):
@@ -63,11 +59,8 @@ def main():
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
 def test_progress_error_and_sub_communicators_on_three_processes():
     serial = figures(solve(scenes.disk(h=0.3, levels=2), **EXACT))
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "3", sys.executable,
-           os.path.abspath(__file__)]
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    from .conftest import mpirun  # (not at the top: this file runs as a script too)
+    proc = mpirun([os.path.abspath(__file__)], processes=3)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     outs = json.loads(proc.stdout.strip().splitlines()[-1])
     assert [o["rank"] for o in outs] == [0, 1, 2]

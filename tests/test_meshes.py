@@ -1,9 +1,6 @@
 """Meshes and the refinement hierarchy (§6, §9)."""
 
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -12,9 +9,7 @@ from mpi4py import MPI
 from membranes.fem.hierarchy import build_hierarchy
 from membranes.fem.meshes import mesh_size, read_msh, unit_disk, unit_square
 
-from .conftest import write_msh
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from .conftest import mpirun, write_msh
 
 
 def _boundary_edges(m):
@@ -207,12 +202,8 @@ def test_processes_without_cells(tmp_path):
     msh = str(write_msh(tmp_path / "one.msh", "one"))
     serial = solve(scenes.user(mesh=msh, levels=1, f1="-1"))
     out = tmp_path / "out"
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
-    proc = subprocess.run(["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "3",
-                           sys.executable, "-m", "membranes.app.cli", "solve", "--mesh", msh,
-                           "--levels", "1", "--f1", "-1", "--quiet", "--out", str(out)],
-                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    proc = mpirun(["-m", "membranes.app.cli", "solve", "--mesh", msh, "--levels", "1", "--f1",
+                   "-1", "--quiet", "--out", out], processes=3)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     line = json.loads(proc.stdout.strip().splitlines()[-1])
     assert line["processes"] == 3 and line["n_cells"] == 4
@@ -242,14 +233,9 @@ def test_partitions_are_the_same_in_every_run():
     the same cells each time (their number and the sum of their centres). With PT-Scotch's
     threads (SCOTCH_PTHREAD_NUMBER=4 set by hand) the parts differed between the three
     meshes of one run, and so did Newton's steps and η between runs (fem.meshes notes)."""
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("OMPI_", "PMIX_")) and k != "SCOTCH_PTHREAD_NUMBER"}
-    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
     runs = []
     for _ in range(2):
-        proc = subprocess.run(["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "4",
-                               sys.executable, "-c", PARTITIONS], cwd=ROOT, env=env,
-                              capture_output=True, text=True, timeout=120)
+        proc = mpirun(["-c", PARTITIONS], processes=4, unset=("SCOTCH_PTHREAD_NUMBER",))
         assert proc.returncode == 0, proc.stdout + proc.stderr
         runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
     for run in runs:

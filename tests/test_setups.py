@@ -12,8 +12,6 @@ tolerance. Run as a script under mpirun, `compare()` checks the same on P proces
 
 import json
 import os
-import subprocess
-import sys
 from dataclasses import replace
 
 import numpy as np
@@ -24,8 +22,6 @@ from membranes import Setups, scenes, solve
 from membranes.fem.hierarchy import build_hierarchy
 
 ROUND_OFF = 1e-12
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
 
 
 def rel(a, b):
@@ -133,11 +129,8 @@ def test_setups_must_be_a_store():
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
 @pytest.mark.parametrize("processes", [2, 3])
 def test_kept_setup_on_several_processes(processes):
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(processes),
-           sys.executable, os.path.abspath(__file__)]
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    from .conftest import mpirun  # (not at the top: this file runs as a script too)
+    proc = mpirun([os.path.abspath(__file__)], processes=processes, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     check(json.loads(proc.stdout.strip().splitlines()[-1]))
 

@@ -13,7 +13,7 @@ from mpi4py import MPI
 from membranes import scenes, solve
 from membranes.fem.meshes import read_msh
 
-from .conftest import cli_bad_input
+from .conftest import cli_bad_input, mpirun
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -243,13 +243,9 @@ def test_refined_file_mesh_on_three_processes(tmp_path):
     6e-15), with the same Newton steps."""
     msh = two_squares(tmp_path / "two.msh", {7: [1], 8: [2]})
     serial = solve(scenes.user(mesh=msh, levels=1, f1="-1"), newton="exact", solver="direct")
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
-    proc = subprocess.run(["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", "3",
-                           sys.executable, "-m", "membranes.app.cli", "solve", "--mesh", msh,
-                           "--levels", "1", "--f1", "-1", "--newton", "exact", "--solver",
-                           "direct", "--quiet"],
-                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=240)
+    proc = mpirun(["-m", "membranes.app.cli", "solve", "--mesh", msh, "--levels", "1", "--f1",
+                   "-1", "--newton", "exact", "--solver", "direct", "--quiet"], processes=3,
+                  timeout=240)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     line = json.loads(proc.stdout.strip().splitlines()[-1])
     assert line["processes"] == 3 and line["newton_iterations"] == serial.newton_iterations

@@ -11,8 +11,6 @@ identities of §5 hold to round-off:
 """
 
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -21,11 +19,11 @@ from mpi4py import MPI
 
 import forms.equilibration as equilibration_forms
 from membranes.estimation.patches import PatchSystems, colour_vertices
+from tests.conftest import mpirun
 
 from .mpi_equilibration import MU, Compatible, disk, equilibrate, square
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(os.path.dirname(HERE))
 ROUND_OFF = 1e-11      # relative: patch matrices of condition ~1e3 at these sizes, times 1e-16
 
 
@@ -333,10 +331,8 @@ def test_sigma_api_errors(data, fluxes):
 # ## On several processes
 
 def run_mpi(n, *extra):
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(n), *extra,
-           sys.executable, os.path.join(HERE, "mpi_equilibration.py"), "equilibration"]
-    env = dict(os.environ, PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
-    out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    out = mpirun([os.path.join(HERE, "mpi_equilibration.py"), "equilibration"], processes=n,
+                 timeout=300, extra=extra)
     assert out.returncode == 0, out.stdout + out.stderr
     return [line for line in out.stdout.splitlines() if line.startswith("OK")]
 

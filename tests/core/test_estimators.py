@@ -8,8 +8,6 @@ exact up to round-off: tolerance 1e-11 relative to the largest value of each qua
 
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -18,6 +16,7 @@ from mpi4py import MPI
 from membranes.estimation import estimators as est_module
 from membranes.estimation.energy_error import EnergyError
 from membranes.estimation.estimators import Estimators
+from tests.conftest import mpirun
 from tests.core.mpi_estimators import MU1, MU2, NP, iterate, residual, scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -330,14 +329,9 @@ def test_same_estimators_on_several_processes(procs):
     """The global values on 2 and 3 processes equal the serial ones to 1e-12 relative (every
     rank returns the same numbers: the script checks it)."""
     runs = {}
-    # this process initialised MPI as a singleton: its OMPI_/PMIX_ variables would confuse the
-    # new mpirun
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
     for p in (1, procs):
-        cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(p), sys.executable,
-               os.path.join(ROOT, "tests", "core", "mpi_estimators.py"), "16"]
-        done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True,
-                              timeout=120)
+        done = mpirun([os.path.join(ROOT, "tests", "core", "mpi_estimators.py"), 16],
+                      processes=p)
         assert done.returncode == 0, done.stderr[-2000:]
         runs[p] = json.loads(done.stdout.strip().splitlines()[-1])
     serial, parallel = runs[1], runs[procs]

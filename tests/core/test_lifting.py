@@ -7,8 +7,6 @@ compared with R_l / N_l where N_l (cells at vertex l) is assembled independently
 """
 
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -16,11 +14,11 @@ import ufl
 from mpi4py import MPI
 
 from membranes.estimation.lifting import Lifting, lift
+from tests.conftest import mpirun
 
 from .mpi_equilibration import assembled, boundary, disk, square
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(os.path.dirname(HERE))
 
 
 @pytest.fixture(scope="module", params=["square", "disk"])
@@ -90,10 +88,8 @@ def test_linear_and_reused(space):
 def test_lifting_on_processes(nproc):
     """On P processes: (r_h, ψ_l) = R_l to 1e-13 relative and ‖r_h‖² equal to the serial one
     (the counts N_l add cells from several processes at vertices they share)."""
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(nproc),
-           sys.executable, os.path.join(HERE, "mpi_equilibration.py"), "lifting"]
-    env = dict(os.environ, PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
-    out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    out = mpirun([os.path.join(HERE, "mpi_equilibration.py"), "lifting"], processes=nproc,
+                 timeout=300)
     assert out.returncode == 0, out.stdout + out.stderr
     lines = [line for line in out.stdout.splitlines() if line.startswith("OK lifting")]
     assert len(lines) == 4 and all(f"P={nproc}" in line for line in lines), lines

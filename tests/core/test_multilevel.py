@@ -21,8 +21,6 @@
 
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -32,6 +30,7 @@ from petsc4py import PETSc
 
 from membranes.estimation.lifting import Lifting
 from membranes.estimation.multilevel import MultilevelFlux, child_positions, rt_prolongation
+from tests.conftest import mpirun
 from tests.core.mpi_multilevel import divergence_defect, scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -302,12 +301,8 @@ def test_refuses_what_it_cannot_do():
 
 
 def _run(processes, *args):
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(processes),
-           sys.executable, os.path.join(ROOT, "tests", "core", "mpi_multilevel.py"),
-           *map(str, args)]
-    # the singleton MPI of this process must not leak into the new mpirun
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    done = mpirun([os.path.join(ROOT, "tests", "core", "mpi_multilevel.py"), *args],
+                  processes=processes, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
 

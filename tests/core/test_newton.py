@@ -12,8 +12,6 @@ measured differences are ~1e-11.
 
 import json
 import os
-import subprocess
-import sys
 from functools import lru_cache
 
 import numpy as np
@@ -27,6 +25,7 @@ from membranes.fem.discretisation import discretise
 from membranes.model import scenes
 from membranes.nonlinear.newton import newton
 from membranes.nonlinear.system import NewtonSystem
+from tests.conftest import mpirun
 from tests.core.mpi_newton import run as mpi_run
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -524,11 +523,8 @@ def test_newton_steps_on_the_disk_hierarchy(capsys):
 # ## (b) the same iterate on 1, 2 and 3 processes
 
 def _mpirun(procs, out, scene, h, runs, extra=()):
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", *extra, "-n", str(procs),
-           sys.executable, os.path.join(ROOT, "tests", "core", "mpi_newton.py"), str(out),
-           scene, str(h), *runs]
-    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    done = mpirun([os.path.join(ROOT, "tests", "core", "mpi_newton.py"), out, scene, h, *runs],
+                  processes=procs, timeout=300, extra=extra)
     assert done.returncode == 0, done.stderr[-3000:]
     lines = [json.loads(s) for s in done.stdout.splitlines() if s.startswith("{")]
     return np.load(out), lines

@@ -5,8 +5,6 @@ written by every process of a parallel run; nothing left behind when a write fai
 import csv
 import json
 import os
-import subprocess
-import sys
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -17,6 +15,7 @@ from membranes.app import outputs
 from membranes.app.driver import solve
 from membranes.app.outputs import HISTORY_COLUMNS, staged_folder, write_outputs
 from membranes.model import folders, scenes
+from tests.conftest import mpirun
 from tests.core.mpi_outputs import by_coordinates, gathered, h5_values
 
 # XDMF writes a P1 function's values at the nodes as dolfinx's compute_point_values evaluates
@@ -386,10 +385,8 @@ def test_parallel_write(tmp_path, procs):
     """Every process writes its part of the one HDF5 file: read back serially, the values
     at every vertex and cell are those of the owning process; a failure on one process
     raises on all and leaves nothing."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(procs), sys.executable,
-           os.path.join(ROOT, "tests", "core", "mpi_outputs.py"), str(tmp_path)]
-    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    done = mpirun([os.path.join(ROOT, "tests", "core", "mpi_outputs.py"), tmp_path],
+                  processes=procs, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     r = json.loads(done.stdout.strip().splitlines()[-1])
     assert r["processes"] == r["summary_processes"] == procs and r["converged"]

@@ -24,8 +24,6 @@
 """
 
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -43,11 +41,11 @@ from membranes.estimation.congruence import (
 from membranes.estimation.equilibration import FluxEquilibration, vertex_patches
 from membranes.estimation.patches import PatchSystems, colour_vertices, mixed_space
 from membranes.fem.discretisation import boundary_dofs
+from tests.conftest import mpirun
 
 from .mpi_patches import partial_assembly_error, random_solutions, refined_disk
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(os.path.dirname(HERE))
 ROUND_OFF = 1e-12      # condition ~1e3 of the patch matrices times the blocks' ~1e-15
 
 
@@ -415,11 +413,7 @@ def test_partial_assembly_keeps_the_inside_blocks():
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
 @pytest.mark.parametrize("nproc", [2, 3])
 def test_parallel_sharing(nproc):
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(nproc),
-           sys.executable, os.path.join(HERE, "mpi_patches.py")]
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
-    out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    out = mpirun([os.path.join(HERE, "mpi_patches.py")], processes=nproc, timeout=300)
     assert out.returncode == 0, out.stdout + out.stderr
     fields = dict(item.split("=") for item in out.stdout.split("OK")[-1].split())
     assert int(fields["P"]) == nproc

@@ -7,8 +7,6 @@ of the nested iteration.
 import functools
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -18,6 +16,7 @@ from membranes.app.peer import nested_peer, plain_peer, to_iterate
 from membranes.estimation.energy_error import EnergyError
 from membranes.fem.discretisation import discretise
 from membranes.model import scenes
+from tests.conftest import mpirun
 from tests.core.mpi_peer import MOMENTS, discrete_checks
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -143,12 +142,8 @@ def test_energy_error_decreases_like_h():
 
 @functools.lru_cache(maxsize=None)
 def mpi_run(procs, levels=3, rtol=1e-12):
-    # this process initialised MPI as a singleton: its OMPI_/PMIX_ variables would confuse the
-    # new mpirun
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
-    cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-n", str(procs), sys.executable,
-           os.path.join(ROOT, "tests", "core", "mpi_peer.py"), str(levels), repr(rtol)]
-    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=180)
+    done = mpirun([os.path.join(ROOT, "tests", "core", "mpi_peer.py"), levels, repr(rtol)],
+                  processes=procs, timeout=180)
     assert done.returncode == 0, done.stderr[-2000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
 
