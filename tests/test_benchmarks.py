@@ -31,6 +31,9 @@ CASES = {
     "commit no repeat": (["bench_commit.py", "--repeat", "0"], "--repeat must be at least 1"),
     "flux without levels": (["bench_flux.py", "--sizes", "0"], "needs J >= 1 in every size"),
     "flux unknown scene": (["bench_flux.py", "--scenes", "cube"], "invalid choice: 'cube'"),
+    "quadrature gap zero h": (["quadrature_gap.py", "--h", "0"], "--h must be positive"),
+    "quadrature gap negative level": (["quadrature_gap.py", "--levels", "-1"],
+                                      "the levels and --depth non-negative"),
 }
 
 
@@ -45,3 +48,29 @@ def test_bad_benchmark_arguments(case):
     last = proc.stderr.strip().splitlines()[-1]
     assert ": error: " in last and expected in last, proc.stderr
     assert proc.stdout == ""
+
+
+def test_quadrature_gap_integrates_the_disk_data():
+    """The independent quadrature of benchmarks/quadrature_gap.py against an exact value: over
+    the cells of T_1 (h0 = 0.2), ∫ f1 = -10 g |{r² ≤ 1/2}| - 8 g (|Ω_h| - |{r² ≤ 1/2}|), the
+    inner disk (area π/2) lying inside the polygon Ω_h. What the chords miss of the circle,
+    length L = √2 π, cut into pieces of size s = h/2^8 (h ≈ 0.1 here), is about L s²/(12 R)
+    ≈ 8e-8 of area, times the jump 2 g: rtol 1e-7 of the total (about 1.2) leaves room."""
+    import importlib.util
+    import math
+
+    import numpy as np
+
+    from membranes import scenes
+    spec = importlib.util.spec_from_file_location("quadrature_gap",
+                                                  os.path.join(BENCH, "quadrature_gap.py"))
+    gap = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gap)
+    mesh = scenes.disk(h=0.2, levels=1).hierarchy.finest
+    nc = mesh.topology.index_map(2).size_local
+    tris = mesh.geometry.x[:, :2][mesh.geometry.dofmap.array.reshape(-1, 3)[:nc]]
+    area = 0.5 * np.abs(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])).sum()
+    total = gap.accurate_integrals(tris, 1, 8, gap.gauss()).sum()
+    inner = math.pi / 2
+    exact = -10 * gap.G * inner - 8 * gap.G * (area - inner)
+    assert abs(total - exact) <= 1e-7 * abs(exact)
