@@ -32,7 +32,7 @@ its Dirichlet values (`relative_residual`). DESIGN §8 leaves open whether (F, 0
 with them the test is invariant under scaling the data, but where g dwarfs the loads (far
 beyond §11's g ≤ 1e3 for loads of order 1) the Dirichlet rows dominate ‖W F‖ and the exact
 and inexact tests can hold before the interior is solved (the adaptive test, on the
-estimators, is unaffected; BENCHMARKS.md, robustness, fourth round).
+estimators, is unaffected; BENCHMARKS.md, "Robustness: what the probes found").
 
 **The full 3N system** (`full_step`): A = [W E; J_C], one distributed AIJ matrix made once per
 mesh from a MatNest of the blocks (S_D, the diagonal D blocks, three diagonal J_C blocks) by
