@@ -56,11 +56,11 @@ def gauss(degree=10):
 
 def integrate(tris, alpha, inside, rule):
     """Σ over the triangles (n, 3, 2) of ∫ f_α (side `inside`), per triangle."""
+    from membranes.fem.meshes import triangle_areas
     points, weights = rule
     a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
     x = a[:, None] + points[None, :, :1] * (b - a)[:, None] + points[None, :, 1:] * (c - a)[:, None]
-    area = 0.5 * np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
-    return 2 * area * (data(x, alpha, inside) @ weights)
+    return 2 * triangle_areas(tris) * (data(x, alpha, inside) @ weights)
 
 
 def distance_to_origin(tris):
@@ -175,6 +175,7 @@ def level_gap(j, h0, depth):
 
     from membranes import scenes, solve
     from membranes.fem.discretisation import discretise
+    from membranes.fem.meshes import cell_vertices, triangle_areas
     from membranes.fem.quadrature import cut_cells, over
     problem = scenes.disk(h=h0, levels=j).on_level(j)
     disc = discretise(problem)
@@ -183,8 +184,8 @@ def level_gap(j, h0, depth):
     W = fem.FunctionSpace(mesh, ("DG", 0))
     w = ufl.TestFunction(W)
     cell_of = W.dofmap.list.array[:nc]
-    tris = mesh.geometry.x[:, :2][mesh.geometry.dofmap.array.reshape(-1, 3)[:nc]]
-    area = 0.5 * np.abs(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]))
+    tris = cell_vertices(mesh)
+    area = triangle_areas(tris)
     cut = cut_cells(mesh, problem.interface)
     smooth = np.setdiff1d(np.arange(nc), cut)
     rule = gauss()
