@@ -16,7 +16,7 @@ For the disk scene at each level J both are printed beside η of a default `solv
 same hierarchy (nested iteration up to T_J) and its effectivity, and their ratios to η.
 
 Independent of the product's rule: Q_K(f_α) is the product's (one assembly of f_α w dx over its
-data measures, w ∈ DG0); ∫_K f_α is computed here from the formulas of DESIGN.md §9 coded in
+data measures, w ∈ DG0); ∫_K f_α is computed here from the formulas of §9 (docs/theory.md) coded in
 numpy, by splitting each cut cell into four `--depth` times where the circle crosses it
 (a sub-triangle lies wholly inside the disk when its three corners do, wholly outside when its
 nearest point is farther than 1/√2 from the centre) and cutting the last ones along the chord

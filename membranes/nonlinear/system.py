@@ -28,7 +28,7 @@ R = W⁻¹ (W B - W A X). For μ1 = μ2 = 1 both scalings are the identity (the 
 
 The nonlinear residual of §8 is R_lin(X) = (F - E X, -C(X1 - X2, κ X3)) (with -κ λ_l in the
 boundary rows of the third block), and its size relative to the data ‖W R_lin‖/‖W F‖, F with
-its Dirichlet values (`relative_residual`). DESIGN §8 leaves open whether (F, 0) holds them;
+its Dirichlet values (`relative_residual`). §8 leaves open whether (F, 0) holds them;
 with them the test is invariant under scaling the data, but where g dwarfs the loads (far
 beyond §11's g ≤ 1e3 for loads of order 1) the Dirichlet rows dominate ‖W F‖ and the exact
 and inexact tests can hold before the interior is solved (the adaptive test, on the
