@@ -11,7 +11,7 @@
   process and ILU(0) inside it, i.e. the paper's ILU(0) on each process's diagonal block of the
   matrix (its own u1, u2 and λ rows); on one process it *is* the paper's ILU(0). The iteration
   counts grow with P as the blocks decouple. ILU's zero-pivot threshold is 0 (only an exactly
-  zero pivot is a breakdown; so for every ``ilu`` or ``icc`` of the user's, unless the user
+  zero pivot is a breakdown; so for every ``ilu`` of the user's, unless the user
   sets ``pc_factor_zeropivot``): PETSc's default declares a pivot zero below the absolute
   100 ε ≈ 2.2e-14, but every entry of the λ column (D/μ_α, κ ∂C/∂b), and so every λ pivot
   (about κ h²), carries the unit 1/μ. Scaling μ1, μ2, f1, f2 by c scales that column by 1/c
@@ -110,7 +110,7 @@ PRESETS = {
             "options": {"ksp_type": "fgmres", "ksp_norm_type": "unpreconditioned"}},
 }
 # incomplete factorisations: their zero-pivot threshold is set to 0 (module notes)
-INCOMPLETE = ("ilu", "icc")
+INCOMPLETE = ("ilu",)           # (ICC is refused: SYMMETRIC_ONLY)
 # a KSP of type preonly applies its PC once: the linear solve is exact only by a factorisation
 FACTORISATIONS = ("lu",)
 # factorisations of a symmetric matrix's upper triangle: none of the matrices solved here is
