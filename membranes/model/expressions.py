@@ -8,10 +8,9 @@ on the mesh). Allowed: numbers, ``x``, ``y``, ``pi``, ``+ - * / **``, and the fu
 and so is a formula nested deeper than MAX_DEPTH (Python's parser and the recursive builds
 would fail with RecursionError or MemoryError), one of more than MAX_PARTS parts (below), or a
 part without x, y that is not finite (``2**10**10``, ``1e400``), or a number that is not
-(``tanh(1e400)``: a typo, not 1). Parts without x, y are
-evaluated once in double precision (numpy's arithmetic, as on the mesh), so that the UFL build
-and the numpy check agree: Python's float arithmetic raises where numpy's gives inf
-(``1/exp(1000)`` is 0 to both).
+(``tanh(1e400)``: a typo, not 1). Parts without x, y are evaluated once in double precision
+(numpy's arithmetic, as on the mesh), so that the UFL build and the numpy check agree:
+Python's float arithmetic raises where numpy's gives inf (``1/exp(1000)`` is 0 to both).
 
 Size. The formula is written into the C code of every form that integrates the data (the loads,
 the patch loads and the oscillation, §2, §5, §7), and a new formula compiles them on first use.

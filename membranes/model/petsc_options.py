@@ -48,8 +48,8 @@ def parse_petsc_options(options):
     may carry the '-'). ValueError for a token that is not -name [value]: '-pc_type=ilu',
     'pc_type' where an option is expected, a value after a value, a name with other
     characters, a name given twice (in any case); for a value that is not a string, number or
-    bool; for options that are
-    neither a string nor a mapping (a list of tokens read as the text of the list)."""
+    bool; for options that are neither a string nor a mapping (a list of tokens read as the
+    text of the list)."""
     if options is None:
         return {}
     if isinstance(options, Mapping):
