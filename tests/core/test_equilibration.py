@@ -274,6 +274,27 @@ def test_a_block_not_its_own_is_refused(monkeypatch):
         equilibrate(data)
 
 
+def test_the_check_lies_between_round_off_and_small_defects(monkeypatch):
+    """The check's tolerance (divergence.TOLERANCE) sits between round-off and the smallest
+    defect a wrong flux makes: loads off by 1e-4 either way (a defect of one sign) and right-
+    hand sides off by 1e-6 (a relative defect of about 1e-7) are refused, the true flux has a
+    defect at round-off; and a defect's size counts both signs."""
+    from membranes.estimation import divergence
+    assert divergence.largest(np.array([0.5, -2.0])) == 2.0
+    assert divergence.check(0.0, 0.0, MPI.COMM_WORLD, "zero data") == 0.0
+    data = Compatible(square(MPI.COMM_WORLD, 6))
+    eq, _ = equilibrate(data)
+    assert 0.0 <= eq.defect <= 1e-12
+    for name, factor in (("patch_load", 1 + 1e-4), ("patch_load", 1 - 1e-4),
+                         ("patch_rhs", 1 + 1e-6)):
+        form = getattr(equilibration_forms, name)
+        monkeypatch.setattr(equilibration_forms, name,
+                            lambda *a, _f=form, _c=factor, **k: _c * _f(*a, **k))
+        with pytest.raises(RuntimeError, match="divergence identity"):
+            equilibrate(data)
+        monkeypatch.undo()
+
+
 # ## The forms are those of forms/equilibration.py
 
 def test_forms_drive_the_result(monkeypatch):

@@ -11,6 +11,7 @@ import os
 
 import numpy as np
 import pytest
+import ufl
 from mpi4py import MPI
 
 from membranes.estimation import estimators as est_module
@@ -189,6 +190,33 @@ def test_global_values_and_bound(setup):
     plain = est.assemble(X, sigma)
     assert np.isclose(plain["eta_F"], np.sqrt((D ** 2).sum()), rtol=TOL, atol=0)
     assert plain["eta_alg"] == 0.0 and plain["eta_rem"] == 0.0
+
+
+def test_the_shortcuts_against_numpy_quadrature(setup):
+    """The two ways to a part of η without a full evaluation give the independent values:
+    `linearisation` (η_lin and its parts, the gates' signal) and `remainder_of` (η_rem from
+    the global ‖ρ_α‖², as the multilevel flux hands them over). The scene has μ1 ≠ μ2 and
+    λ^pos, λ^neg ≠ 0, so a wrong weight or a swapped sum shows."""
+    from dolfinx import fem
+    disc, X, sigma, alg, r, dlam, ref = setup
+    assert MU1 != MU2
+    est = Estimators(disc)
+    c_lambda = 1 / (np.pi * np.sqrt(2)) * np.sqrt(1 / MU1 + 1 / MU2)
+    lin1 = np.sqrt(ref["lin1"].sum())
+    lin2 = 2 * c_lambda * np.sqrt(ref["lp"].sum()) * lin1
+    lin3 = c_lambda * np.sqrt(ref["ln"].sum())
+    got = est.linearisation(X)
+    expect = {"eta_lin1": lin1, "eta_lin2": lin2, "eta_lin3": lin3,
+              "eta_lin": lin1 + lin3 + np.sqrt(lin2)}
+    for key, value in expect.items():
+        assert value > 0 and np.isclose(got[key], value, rtol=TOL, atol=0), key
+    # ‖r_α‖² by dolfinx's exact quadrature of the DG1 squares (degree 2)
+    dx = ufl.dx(metadata={"quadrature_degree": 2})
+    squares = [disc.comm.allreduce(float(fem.assemble_scalar(fem.form(ra ** 2 * dx))),
+                                   op=MPI.SUM) for ra in r]
+    by_hand = 1 / (np.pi * np.sqrt(2)) * np.sqrt(squares[0] / MU1 + squares[1] / MU2)
+    assert np.isclose(est.remainder_of(squares), by_hand, rtol=TOL, atol=0)
+    assert np.isclose(est.remainder_of(squares), est.remainder(r), rtol=TOL, atol=0)
 
 
 def test_energy_error_against_numpy_quadrature(setup):
