@@ -237,6 +237,70 @@ def test_inexact_newton_with_a_forcing_term():
     assert any(r["i"] % 10 for r in forced.history if r["kind"] == "newton")
 
 
+def forcing_bounds(monkeypatch):
+    """Every Krylov solve's (bound, ‖b - A y‖ at its start, ‖B‖) in a list, recorded by a
+    LinearSolver that `newton` uses in place of its own."""
+    from membranes.nonlinear import newton as newton_module
+    seen = []
+
+    class Recording(newton_module.LinearSolver):
+        def solve(self, step, y, bound, *args, **kwargs):
+            r = step.b.duplicate()
+            step.A.mult(y, r)
+            r.aypx(-1.0, step.b)
+            seen.append((bound, r.norm(), step.norm_B))
+            r.destroy()
+            return super().solve(step, y, bound, *args, **kwargs)
+
+    monkeypatch.setattr(newton_module, "LinearSolver", Recording)
+    return seen
+
+
+def test_the_forcing_term_shrinks_after_a_step_that_did_not_help(monkeypatch):
+    """Inexact Newton with forcing η (the coarse levels' solver): step k's Krylov solve stops
+    at η_k ‖R_alg(X^{k,0})‖ with η_1 = η and η_{k+1} = η_k / 10 after a step whose
+    ‖R_lin‖ / ‖(F, 0)‖ did not fall, else η_k (never below the exact floor 2e-12 ‖B‖;
+    newton's notes). The schedule is rebuilt from the history's residuals; the bounds agree
+    to round-off (one product of the same numbers), a wrong schedule is off by 10×."""
+    from membranes.linalg.krylov import EXACT_TOL
+    seen = forcing_bounds(monkeypatch)
+    result = newton(disc_of("disk", 0.1), variant="inexact", krylov="amg", forcing=0.1)
+    assert result.converged, result.reason
+    residuals = [r["residual"] for r in result.history if r["kind"] in ("initial", "newton")]
+    steps = len(residuals) - 1
+    assert len(seen) == steps
+    rises = [b >= a for a, b in zip(residuals[:-1], residuals[1:])]
+    assert any(rises) and not all(rises)          # the schedule tells the two rules apart
+    eta = 0.1
+    for k, (bound, r0, norm_B) in enumerate(seen):
+        assert np.isclose(bound, max(eta * r0, EXACT_TOL * norm_B), rtol=1e-12, atol=0), k
+        if rises[k]:
+            eta /= 10
+
+
+def test_the_first_krylov_solve_of_each_level_is_forced_as_documented(monkeypatch):
+    """A default nested solve (adaptive, amg, coarse='residual'): the first Krylov solve of
+    each coarse level stops at 0.1 of its initial residual, the first of T_J at 0.01 (README,
+    docs/choices.md), none at the exact floor."""
+    from membranes import solve
+    seen = forcing_bounds(monkeypatch)
+    from membranes.app import driver
+    levels = []                 # where each level's solves begin in `seen`
+    original = driver.run_newton
+
+    def counting(*args, **kwargs):
+        levels.append(len(seen))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(driver, "run_newton", counting)
+    solve(scenes.disk(h=0.2, levels=2))
+    assert len(levels) == 3
+    firsts = [seen[i] for i in levels]
+    for (bound, r0, norm_B), expect in zip(firsts, (0.1, 0.1, 0.01)):
+        assert bound > 1e-6 * norm_B
+        assert np.isclose(bound / r0, expect, rtol=1e-12, atol=0)
+
+
 def test_adaptive_newton_stops_where_the_estimators_say():
     from membranes.estimation.equilibration import FluxEquilibration
     from membranes.estimation.estimators import Estimators
