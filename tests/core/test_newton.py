@@ -388,6 +388,20 @@ def test_adaptive_newton_with_a_forcing_term():
     assert (True, False) in tests            # Newton's test alone would have stopped there
 
 
+def test_the_stopping_criteria_are_those_of_section_8():
+    """§8's two tests on literal estimates, on both sides of each boundary: Newton's
+    η_lin ≤ γ_lin η_disc, Krylov's η_alg ≤ γ_alg max(η_disc, η_lin) (the tests above take
+    them as given)."""
+    from membranes.nonlinear.newton import linear_criterion, newton_criterion
+    assert newton_criterion({"eta_lin": 0.29, "eta_disc": 1.0}, 0.3)
+    assert not newton_criterion({"eta_lin": 0.31, "eta_disc": 1.0}, 0.3)
+    assert not newton_criterion({"eta_lin": 0.5, "eta_disc": 1.0}, 0.3)
+    assert linear_criterion({"eta_alg": 0.29, "eta_disc": 1.0, "eta_lin": 0.1}, 0.3)
+    assert linear_criterion({"eta_alg": 0.59, "eta_disc": 0.1, "eta_lin": 2.0}, 0.3)
+    assert not linear_criterion({"eta_alg": 0.61, "eta_disc": 0.1, "eta_lin": 2.0}, 0.3)
+    assert not linear_criterion({"eta_alg": 0.31, "eta_disc": 1.0, "eta_lin": 0.1}, 0.3)
+
+
 def test_a_forced_step_finished_to_the_floor_keeps_the_krylov_limit():
     """A forced step whose gate answers None (its Newton test may hold) solves twice: to the
     forcing term, then on to the exact floor. max_it (--max-linear-its) is the limit of the
