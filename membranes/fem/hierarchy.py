@@ -15,8 +15,8 @@ inside their parents; nothing below relies on geometric nesting:
   halves (computed from the positions plaza gave, kept for the moved vertices). It reproduces
   constants, so the prolonged hat functions of T_{j-1} still form a partition of unity on T_j;
   it is made at its first use (`Hierarchy.prolongation`);
-* the multilevel algebraic flux groups the cells of the finest mesh by their ancestors
-  (`ancestors`), which is a statement about cells, not about geometry.
+* the multilevel algebraic flux groups the cells of each mesh by their parents
+  (`parent_cells`), which is a statement about cells, not about geometry.
 
 Without a projection (polygons, gmsh files) the hierarchy is geometrically nested and P_j is the
 usual interpolation.
@@ -76,13 +76,6 @@ class Hierarchy:
             return self
         return Hierarchy(self.meshes[:j + 1], self.parent_cells[:j], self.projection,
                          self.domain, self.unmoved[:j], self.made)
-
-    def ancestors(self, j):
-        """For every local cell of T_J, the index of its ancestor cell in T_j (local)."""
-        anc = np.arange(self.finest.topology.index_map(2).size_local, dtype=np.int32)
-        for level in range(self.levels, j, -1):
-            anc = self.parent_cells[level - 1][anc]
-        return anc
 
 
 def _refine(mesh):
