@@ -150,7 +150,10 @@ def _csr(blocks):
 
 def test_keys_of_translates_agree():
     """Keys are equal for a translated patch (positions shifted by far more than the grid,
-    with round-off), and differ for another shape, another code or a moved entity."""
+    with round-off), and differ for another shape, another code or a moved entity: moved
+    along DIRECTION, across it, or mirrored in a line along it (the positions are (along,
+    across) pairs: the mirror image changes the second coordinate only). 1e-3 h is ~7e7
+    grid units, far from any rounding boundary."""
     rng = np.random.default_rng(4)
     code = np.array([0, 1, 0, 1, (INNER << 2), (INNER << 2) | 1, 8, 9, 10])
     point = rng.random((9, 2))
@@ -162,6 +165,10 @@ def test_keys_of_translates_agree():
     moved = point.copy()
     moved[2, 0] += 1e-3 * h[0]            # an entity's first dof (the others follow it)
     assert engine.patch_keys(offsets, code, moved, h) != key
+    across = point.copy()
+    across[2, 1] += 1e-3 * h[0]
+    assert engine.patch_keys(offsets, code, across, h) != key
+    assert engine.patch_keys(offsets, code, point * [1.0, -1.0], h) != key
     other = code.copy()
     other[6] ^= engine.INTERIOR
     assert engine.patch_keys(offsets, other, point, h) != key

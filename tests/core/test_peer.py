@@ -308,3 +308,92 @@ def test_the_peer_is_scale_invariant():
             steps.setdefault(result.label, []).append(
                 [lv.snes_iterations for lv in result.levels])
     assert all(a == b for a, b in steps.values()), steps
+
+
+class _Snes:
+    """What peer._converged asks of a SNES: PETSc's default tolerances (rtol 1e-8, atol 1e-50,
+    stol 1e-8, 50 steps) and no limit on function evaluations."""
+
+    def getTolerances(self):
+        return 1e-8, 1e-50, 1e-8, 50
+
+    def getMaxFunctionEvaluations(self):
+        return -1
+
+    def getFunctionEvaluations(self):
+        return 3
+
+
+def test_a_stagnating_step_stops_only_at_a_small_residual():
+    """peer._converged's stol test (§10, Stopping) on literal norms: a step that no longer
+    moves w (ynorm = 1e-12 xnorm < stol xnorm) stops SNES only where the residual is at most
+    rtol times the run's largest initial residual (the reference, 1 here, set by level 0).
+    Level 0 stagnating at 1e-3 of it keeps iterating: stopping there would report a poor
+    iterate as CONVERGED_SNORM_RELATIVE. Level 1 starts near its solution (1e-6, so its own
+    rtol test needs 1e-14): stagnating at 1e-9 ≤ rtol · reference stops it, a moving step
+    at 1e-9 and a stagnating one at 1e-7 do not. Decisions on given numbers, no tolerance."""
+    from petsc4py import PETSc
+
+    from membranes.app.peer import _converged
+    R = PETSc.SNES.ConvergedReason
+    snes, reference = _Snes(), [0.0]
+    level0, level1 = [0.0], [0.0]
+    assert _converged(snes, 0, (1.0, 0.0, 1.0), reference, level0) == R.CONVERGED_ITERATING
+    assert reference == [1.0]
+    assert _converged(snes, 1, (1.0, 1e-12, 1e-3), reference, level0) == R.CONVERGED_ITERATING
+    assert _converged(snes, 0, (1.0, 0.0, 1e-6), reference, level1) == R.CONVERGED_ITERATING
+    assert reference == [1.0]
+    assert (_converged(snes, 1, (1.0, 1e-12, 1e-9), reference, level1)
+            == R.CONVERGED_SNORM_RELATIVE)
+    assert _converged(snes, 1, (1.0, 1e-3, 1e-9), reference, level1) == R.CONVERGED_ITERATING
+    assert _converged(snes, 1, (1.0, 1e-12, 1e-7), reference, level1) == R.CONVERGED_ITERATING
+
+
+@serial_only
+def test_gap_scale_on_data_dominated_by_the_loads():
+    """The decoupled solver's scale s = max(g, (C_PF h_Ω)² max_a b_a⁺ / (κ D_a)) over the
+    interior vertices (§10 Units, §11), against numpy on the user scene g = 1e-8,
+    f1 = -10x, f2 = 10y - 3 on the unit square, where the loads, not g, give w its size
+    (s = 0.081): the interior vertices by their coordinates, C_PF h_Ω = 1/(π√2) of the unit
+    square, b = (μ2 F1 - μ1 F2)/(μ1 + μ2). The same floating-point operations in another
+    order: equal to 1e-12 relative."""
+    from membranes.app.peer import DecoupledSolver
+    problem = scenes.user(g=1e-8, f1="-10*x", f2="10*y-3", domain="square", h=0.1)
+    disc = discretise(problem)
+    x = disc.V.tabulate_dof_coordinates()[:disc.n, :2]
+    inner = ((x > 1e-9) & (x < 1.0 - 1e-9)).all(axis=1)
+    mu1, mu2 = problem.mu1, problem.mu2
+    F1, F2, D = disc.F1.array_r, disc.F2.array_r, disc.D.array_r
+    b = (mu2 * F1 - mu1 * F2) / (mu1 + mu2)
+    kappa = mu1 * mu2 / (mu1 + mu2)
+    data = (np.maximum(b, 0.0) / D)[inner].max() / (2.0 * np.pi ** 2) / kappa
+    assert data > 1e6 * problem.g
+    s = DecoupledSolver(disc).scale
+    assert abs(s - max(problem.g, data)) <= 1e-12 * data
+
+
+@pytest.mark.parametrize("run", [nested_peer, plain_peer])
+def test_monitored_multipliers_are_nonnegative(run):
+    """Every iterate the monitor sees (from which the benchmarks draw the peer's η against
+    time) carries λ = Φ(w)/D on PETSc's active set (w ≤ 1e-8 s and Φ ≥ 0) and 0 elsewhere:
+    λ ≥ 0 exactly (either 0 or a quotient of nonnegatives), and λ = 0 wherever w > 1e-8 s.
+    w is read back as u1 - u2, which the layout of §2 rounds by a few ε max |u| (max |u| = s
+    = g here): a margin of 1e-14 s, far below 1e-8 s (measured: w = 0 exactly where λ ≠ 0).
+    Without Φ ≥ 0 in the active set, λ dips to -1.5 (nested) and -26 (plain) at
+    intermediate iterates on the disk, J = 2."""
+    from membranes.app.peer import DecoupledSolver
+    scales, seen = {}, []
+
+    def monitor(level, its, seconds, disc, X):
+        if level not in scales:
+            scales[level] = DecoupledSolver(disc).scale
+        u1, u2, lam = disc.split(X)
+        w = (u1 - u2)[lam != 0.0]
+        seen.append((level, its, lam.min(), w.max(initial=0.0) / scales[level]))
+
+    result = run(disk(2), monitor=monitor)    # (asserted after the run, not in the callback)
+    assert result.converged, result.reason
+    assert len(seen) == sum(lv.snes_iterations + 1 for lv in result.levels)
+    assert all(lam_min >= 0.0 for _, _, lam_min, _ in seen), seen
+    assert all(w_max <= 1e-8 + 1e-14 for _, _, _, w_max in seen), seen
+    assert result.levels[-1].active > 0
