@@ -1,0 +1,191 @@
+"""Which iterates the adaptive method estimates, and how: `membranes.app.schedule.LevelEstimates`,
+the `estimate(X, R, kind)` callback of Algorithm 1 (docs/theory.md §8, the adaptive variant and
+its two stopping tests; §6, "Flux of ν extra iterations" and "No algebraic flux";
+docs/choices.md, "The estimate schedule" and "Which Newton iterates get the flux
+equilibration").
+
+The unit tests give the schedule a stub for its estimators, with literal estimates, so no mesh
+is made: each asserts the schedule's decisions on those numbers — which iterates get a full
+estimate, which pairs go to the ν flux, which iterate each answer describes, how often η_rec
+is made. Decisions on given numbers are compared exactly; each docstring states the margin by
+which its numbers sit on their side of the test. The last test checks one of these decisions on
+a real run (disk, J = 2).
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+from petsc4py import PETSc
+
+from membranes import scenes, solve
+from membranes.app.schedule import LevelEstimates
+from membranes.estimation import estimators
+
+GAMMA = 0.3          # γ_lin = γ_alg (§8's defaults), passed explicitly below
+
+
+def iterate(k):
+    """An iterate (or its residual) standing for X^k: a one-entry Vec holding k. The schedule
+    copies the ones it keeps and destroys them later, as it does the real iterates; a destroyed
+    Vec handed to the estimators would fail to be read."""
+    return PETSc.Vec().createWithArray(np.array([float(k)]), comm=PETSc.COMM_SELF)
+
+
+def number(X, R):
+    """k of the pair (X^k, R^k): both must be X^k's."""
+    k, r = X.getArray(readonly=True)[0], R.getArray(readonly=True)[0]
+    assert k == r, (k, r)
+    return int(k)
+
+
+class StubEstimators:
+    """Stands in for `membranes.estimation.estimators.Estimators`: X^k's own estimate (its
+    whole residual bounded by η_rem, 'No algebraic flux') is `own[k]`, η_rec is `eta_rec`,
+    and an estimate with the ν flux is `with_flux`. Each answer names the iterate it was made
+    at (`iterate`) and its flux (`sigma_alg`, the pair of the ν flux); each call is recorded
+    in `calls`."""
+
+    def __init__(self, own, eta_rec=None, with_flux=None):
+        self.own, self.eta_rec, self.with_flux = own, eta_rec, with_flux
+        self.calls = {"evaluate": [], "nu_flux": [], "linearisation": [], "recovered": []}
+
+    def linearisation(self, X):
+        k = int(X.getArray(readonly=True)[0])
+        self.calls["linearisation"].append(k)
+        return {"eta_lin": self.own[k]["eta_lin"]}
+
+    def recovered(self, X, linearisation=False):
+        assert linearisation                    # the gate needs η_lin with it
+        k = int(X.getArray(readonly=True)[0])
+        self.calls["recovered"].append(k)
+        return self.eta_rec, {"eta_lin": self.own[k]["eta_lin"]}
+
+    def nu_flux(self, X, R, X_later, R_later):
+        pair = (number(X, R), number(X_later, R_later))
+        self.calls["nu_flux"].append(pair)
+        return ("sigma_alg", pair), ("eta_rem", pair)
+
+    def evaluate(self, X, R=None, sigma_alg=None, eta_rem=None):
+        k = number(X, R)
+        pair = None if sigma_alg is None else sigma_alg[1]
+        assert eta_rem is None if pair is None else eta_rem == ("eta_rem", pair)
+        self.calls["evaluate"].append((k, pair))
+        out = dict(self.own[k] if pair is None else self.with_flux)
+        out.update(iterate=k, sigma_alg=pair)
+        return out
+
+
+def level_estimates(monkeypatch, stub):
+    """A LevelEstimates for alg_flux 'nu' made by its own __init__, with the stub as its
+    estimators (a Setups-like stand-in hands over the flux equilibration, which the stub does
+    not use); γ_lin = γ_alg = 0.3 and the gate GATE = 1 given explicitly, since the numbers
+    of the tests are chosen around them."""
+    monkeypatch.setattr(estimators, "Estimators", lambda disc, equilibration: stub)
+    setups = SimpleNamespace(equilibration=lambda disc: None)
+    return LevelEstimates(None, "nu", gamma_alg=GAMMA, gamma_lin=GAMMA, gate=1.0,
+                          setups=setups)
+
+
+def call(schedule, k, kind):
+    X, R = iterate(k), iterate(k)
+    try:
+        return schedule(X, R, kind)
+    finally:
+        X.destroy()
+        R.destroy()
+
+
+def test_after_a_full_estimate_the_gate_reads_its_eta_disc_not_eta_rec(monkeypatch):
+    """Newton's test η_lin ≤ γ_lin η_disc (§8) is evaluated in full where the gate expects it
+    to hold: before the first full estimate on the mesh against η_rec (no bound: η_disc may
+    exceed it), after it against that estimate's η_disc. Here η_rec = 0.06 < η_disc = 0.1.
+    X^1 (η_lin 0.035: within REC_MARGIN = 2 of γ_lin η_rec = 0.018, 0.035 ≤ 0.036, with no
+    earlier rate to forecast from) is estimated in full, after one η_rec; its test fails
+    (0.035 > 0.3 · 0.1 = 0.03), and the next step may be the last (`more_steps` False: 0.035
+    ≤ REC_MARGIN · 0.03 = 0.06). X^2 (η_lin 0.025) passes the gate against η_disc (0.025 ≤
+    0.03, a 17 % margin) with η_lin alone, and is estimated in full: a bound. Mutant S5 (η_disc
+    of a full estimate not recorded) made η_rec again at X^2 and gated it against 0.018 (the
+    last step's rate forecasting 0.0179 at the next): answered `partial`, without a bound,
+    it costs one more Newton step."""
+    own = {1: {"eta_disc": 0.1, "eta_lin": 0.035, "eta_alg": 0.0},
+           2: {"eta_disc": 0.1, "eta_lin": 0.025, "eta_alg": 0.0}}
+    stub = StubEstimators(own, eta_rec=0.06)
+    schedule = level_estimates(monkeypatch, stub)
+    first = call(schedule, 1, "newton")
+    assert "partial" not in first and first["bound"] and first["iterate"] == 1
+    assert first["more_steps"] is False
+    second = call(schedule, 2, "newton")
+    assert "partial" not in second and second["bound"] and second["iterate"] == 2
+    assert stub.calls["recovered"] == [1]
+    assert stub.calls["linearisation"] == [2]
+    assert stub.calls["evaluate"] == [(1, None), (2, None)]
+    assert stub.calls["nu_flux"] == []
+    assert schedule.count == 2
+
+
+def test_a_krylov_iterate_meeting_the_criterion_alone_is_its_own_answer(monkeypatch):
+    """With alg_flux 'nu' a Krylov iterate is estimated first without algebraic flux (§6, "No
+    algebraic flux"). X^{k,1}'s own estimate meets η_alg ≤ γ_alg max(η_disc, η_lin) (0.01 ≤
+    0.3 · 0.1 = 0.03, a factor 3): it is the answer, not marked `of_previous`, and no ν flux
+    is solved. X^{k,1} is then the iterate handed over before X^{k,2}, whose own estimate
+    fails (0.05 > 0.03): the ν flux pairs (X^{k,1}, X^{k,2}) and the answer is X^{k,1}'s.
+    Mutant S6 (the criterion's test negated) answered X^{k,1} with the ν-flux estimate of
+    X^{k,0}, and doubled the Krylov steps of the paper preset's runs (70 → 140 on the disk,
+    J = 2)."""
+    own = {1: {"eta_disc": 0.1, "eta_lin": 0.05, "eta_alg": 0.01},
+           2: {"eta_disc": 0.1, "eta_lin": 0.05, "eta_alg": 0.05}}
+    with_flux = {"eta_disc": 0.1, "eta_lin": 0.05, "eta_alg": 0.02}
+    stub = StubEstimators(own, with_flux=with_flux)
+    schedule = level_estimates(monkeypatch, stub)
+    assert call(schedule, 0, "step") is None
+    first = call(schedule, 1, "krylov")
+    assert first["iterate"] == 1 and first["sigma_alg"] is None and first["bound"]
+    assert "of_previous" not in first
+    assert stub.calls["nu_flux"] == []
+    second = call(schedule, 2, "krylov")
+    assert second.get("of_previous") and second["iterate"] == 1 and second["sigma_alg"] == (1, 2)
+    assert stub.calls["nu_flux"] == [(1, 2)]
+    assert stub.calls["evaluate"] == [(1, None), (2, None), (1, (1, 2))]
+
+
+def test_each_nu_flux_pairs_an_iterate_with_the_one_handed_over_before_it(monkeypatch):
+    """Two Krylov iterates of one Newton step whose own estimates fail the linear criterion
+    (η_alg 0.05 > 0.3 · 0.1 = 0.03, by 67 %; their ν-flux estimates fail too, 0.04): each
+    answer is the estimate of the iterate handed over before, with the ν flux σ_disc(X^{k,i})
+    − σ_disc(X^{k,i−ν}) (§6): the pairs are (X^{k,0}, X^{k,1}) and (X^{k,1}, X^{k,2}), and
+    the answers describe X^{k,0} and X^{k,1}. A new Newton step (kind 'step') starts the
+    pairs again from its X^{k+1,0}. Mutant S7 (the later iterate not kept after a ν flux)
+    paired (X^{k,0}, X^{k,2}) and handed X^{k,0}'s estimate back as that of X^{k,1}: Newton
+    could have accepted X^{k,1} with the bound of another iterate."""
+    fails = {"eta_disc": 0.1, "eta_lin": 0.05, "eta_alg": 0.05}
+    stub = StubEstimators(dict.fromkeys(range(5), fails),
+                          with_flux={"eta_disc": 0.1, "eta_lin": 0.05, "eta_alg": 0.04})
+    schedule = level_estimates(monkeypatch, stub)
+    answers = []
+    for k, kind in ((0, "step"), (1, "krylov"), (2, "krylov"), (3, "step"), (4, "krylov")):
+        out = call(schedule, k, kind)
+        if kind == "step":
+            assert out is None
+        else:
+            assert out.get("of_previous") and out["bound"]
+            answers.append((out["iterate"], out["sigma_alg"]))
+    assert stub.calls["nu_flux"] == [(0, 1), (1, 2), (3, 4)]
+    assert answers == [(0, (0, 1)), (1, (1, 2)), (3, (3, 4))]
+    assert stub.calls["evaluate"] == [(1, None), (0, (0, 1)), (2, None), (1, (1, 2)),
+                                      (4, None), (3, (3, 4))]
+
+
+def test_nu_flux_costs_no_krylov_steps_where_the_remainder_alone_suffices():
+    """On the disk at J = 2 from X⁰ (nested=False), paper preset, adaptive: at every Newton
+    step the Krylov iterate at i = ν meets the linear criterion with its own estimate (η_rem,
+    no flux; the tightest step has η_alg at 42 % of γ_alg max(η_disc, η_lin)). So 'nu'
+    accepts the iterates that 'multilevel' does, whose σ_alg leaves no remainder, and makes
+    the same number of GMRES steps (integers: exact). Mutant S6 (see above) made 140 against
+    70. The equality rests on that margin: a change that moves η_rem past the criterion at
+    some step would add ν steps to 'nu' legitimately."""
+    problem = scenes.disk(h=0.2, levels=2)
+    runs = [solve(problem, solver="paper", nested=False, alg_flux=flux)
+            for flux in ("nu", "multilevel")]
+    assert all(run.converged for run in runs), [run.reason for run in runs]
+    nu, multilevel = (run.linear_iterations for run in runs)
+    assert nu == multilevel
