@@ -610,3 +610,40 @@ def test_user_scene_refuses_a_mesh_with_h_or_domain(tmp_path):
         with pytest.raises(ValueError, match="give mesh or"):
             scenes.user(mesh=msh, **extra)
     assert scenes.user(mesh=msh).domain == msh
+
+
+def test_scene_range_errors_name_the_parameter(monkeypatch):
+    """levels = -1 and ρ = 1 are refused by the scenes' own checks, with the message that names
+    them, before any meshing (gmsh is replaced by a function that fails the test): the later
+    checks (build_hierarchy's, a division by 1 - ρ² = 0 in the radial data's builders) refuse
+    them too, but after gmsh has run, and for ρ with a message naming a builder, not ρ."""
+    from membranes.fem import meshes
+
+    def no_meshing(*args, **kwargs):
+        raise AssertionError("meshed before the parameters were checked")
+    monkeypatch.setattr(meshes, "_on_rank0", no_meshing)
+    with pytest.raises(ValueError, match="levels must be a non-negative integer, got -1"):
+        scenes.disk(h=0.5, levels=-1)
+    with pytest.raises(ValueError, match="levels must be a non-negative integer, got -1"):
+        scenes.user(h=0.5, levels=-1)
+    with pytest.raises(ValueError, match=r"rho must lie in \[0, 1\), got 1.0"):
+        scenes.radial(h=0.5, rho=1.0)
+
+
+def test_a_load_not_finite_at_a_cell_midpoint_only_is_refused():
+    """Formula data are checked at the vertices *and* the cell midpoints of the mesh
+    (problem._sample_points): a load finite at every vertex but infinite at one cell's
+    midpoint, 1/((x - a)² + (y - b)²) with (a, b) that midpoint written to all 17 digits (so
+    that the parsed numbers are the same doubles and x - a, y - b are exactly 0 there: 1/0 =
+    inf), is refused with a message naming the formula and that point, not taken into the
+    solve."""
+    base = scene("square", 0.3)
+    mesh = base.mesh
+    x = mesh.geometry.x[:, :2]
+    cells = mesh.geometry.dofmap.array.reshape(-1, 3)
+    a, b = x[cells].mean(axis=1)[0]
+    formula = f"1/((x - {a!r})**2 + (y - {b!r})**2)"
+    vertices = (x[:, 0] - a) ** 2 + (x[:, 1] - b) ** 2
+    assert vertices.min() > 0                        # finite at every vertex
+    with pytest.raises(ValueError, match=f"f1 = .* is not finite on the mesh .*x = {a:.6g}"):
+        Problem("p", base.hierarchy, 1.0, 1.0, 0.1, formula, 0.0)

@@ -164,6 +164,42 @@ def test_max_vertices_raises_or_lowers_the_limit():
             checks.check_max_vertices(bad)
 
 
+def test_a_run_of_exactly_max_vertices_is_accepted():
+    """--max-vertices N is the most vertices a run may have (docs: "refuse ... more vertices
+    than `max_vertices`"): a run of N vertices passes, one of N + 1 is refused, whatever the
+    memory; and from a mesh's exact counts (V_0, T_0, χ) the refinement recursion gives the
+    count compared (V_1 = V_0 + V_0 + T_0 - χ: 10 + 10 + 12 - 1 = 31)."""
+    assert checks.check_size(1000, available=1.0, max_vertices=1000) > 0
+    with pytest.raises(ValueError, match="about 1001 vertices, more than the limit"):
+        checks.check_size(1001, available=1.0, max_vertices=1000)
+    assert checks.check_request(levels=1, mesh_file="unused", max_vertices=31,
+                                counts=(10, 12, 1)) == 31
+    with pytest.raises(ValueError, match="more than the limit --max-vertices 30"):
+        checks.check_request(levels=1, mesh_file="unused", max_vertices=30, counts=(10, 12, 1))
+
+
+def test_force_scale_check_is_where_round_off_squares_underflow():
+    """UNDERFLOW_SCALE is the size x below which the square of a round-off error on x,
+    (ε x)², is no longer a normal double (module notes, theory §11): (ε S)² is normal, (ε S/2)²
+    is not. check_force_scale refuses forces min(μ1, μ2) u below it (μ u = 1e-145: round-off
+    squares of the estimators' forces are subnormal there) and accepts them above (1e-130).
+    (The exact threshold is a power of two apart from S's rounding: factors 2 on either side.)"""
+    import sys
+    from types import SimpleNamespace
+    eps, tiny = sys.float_info.epsilon, sys.float_info.min
+    scale = checks.UNDERFLOW_SCALE
+    assert (eps * 2 * scale) ** 2 >= tiny and (eps * scale / 2) ** 2 < tiny
+
+    def disc(u, mu=(1.0, 1.0)):
+        return SimpleNamespace(mu1=mu[0], mu2=mu[1], data_scales=lambda: (u, 1.0))
+    with pytest.raises(ValueError, match="the estimators underflow double precision"):
+        checks.check_force_scale(disc(1e-145))
+    with pytest.raises(ValueError, match="the estimators underflow double precision"):
+        checks.check_force_scale(disc(1e-120, (1e-25, 1.0)))     # the smaller modulus counts
+    checks.check_force_scale(disc(1e-130))
+    checks.check_force_scale(disc(1e-130, (1.0, 1e3)))
+
+
 def test_available_memory_is_memavailable_per_process(monkeypatch):
     total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     monkeypatch.delenv("OMPI_COMM_WORLD_LOCAL_SIZE", raising=False)

@@ -255,3 +255,96 @@ def test_poincare_constant_of_each_domain():
         assert scene.poincare_constant() == pytest.approx(1.0 / J01, rel=1e-15), scene.name
     for scene in (scenes.square(h=0.5), scenes.user(h=0.5, domain="square")):
         assert scene.poincare_constant() == pytest.approx(1 / (np.pi * np.sqrt(2)), rel=1e-12)
+
+
+def test_disk_poincare_constant_is_that_of_the_bessel_zero():
+    """C_PF h_Ω of the unit disk (§7) is 1/sqrt(λ_1) = 1/j_{0,1}, j_{0,1} the first positive
+    zero of J_0, computed here by mpmath (independently of the constant in scenes.py): a larger
+    J01 gives a smaller C_PF and an η that is no guaranteed bound, a smaller one a needlessly
+    large η. Tolerance: the double nearest j_{0,1} (rel 1e-15); and every C_PF the scenes give
+    for the unit disk is that value."""
+    import mpmath
+
+    from membranes.model import scenes
+    j01 = float(mpmath.besseljzero(0, 1))
+    assert abs(float(mpmath.besselj(0, j01))) <= 1e-15
+    assert scenes.J01 == pytest.approx(j01, rel=1e-15)
+    for scene in (scenes.disk(h=0.5), scenes.radial(h=0.5), scenes.user(h=0.5)):
+        assert scene.poincare_constant() == pytest.approx(1.0 / j01, rel=1e-15), scene.name
+
+
+def test_sizes_and_shapes_of_a_structured_mesh():
+    """mesh_size, cell_diameters, triangle_areas and aspect_ratios against the closed forms of
+    dolfinx's structured square (n × n squares of side 1/n, each cut into two right triangles
+    along a diagonal): h_K is the diagonal √2/n (the *longest* edge, §7's h_K, not a leg 1/n),
+    |K| = 1/(2 n²), and h_K²/(2|K|) = 2; the square's corners give h = √2/n too. Tolerance:
+    round-off of a few operations on coordinates of size 1. And the bad sizes are refused
+    before gmsh runs (h = 0 asked gmsh for cells of size 0), a grading p < 1 as documented."""
+    from membranes.fem.meshes import (
+        aspect_ratios,
+        cell_diameters,
+        cell_vertices,
+        check_size,
+        structured_square,
+        triangle_areas,
+    )
+    n = 4
+    mesh = structured_square(n, n)
+    assert np.allclose(cell_diameters(mesh), np.sqrt(2.0) / n, rtol=1e-14)
+    assert mesh_size(mesh) == pytest.approx(np.sqrt(2.0) / n, rel=1e-14)
+    assert np.allclose(triangle_areas(cell_vertices(mesh)), 0.5 / n ** 2, rtol=1e-14)
+    assert np.allclose(aspect_ratios(mesh), 2.0, rtol=1e-13)
+    for bad in (0.0, -0.0, -1.0, float("inf"), float("nan")):   # no gmsh run at h = 0
+        with pytest.raises(ValueError, match="mesh size h must be a positive finite number"):
+            check_size(bad)
+    with pytest.raises(ValueError, match="grading must be a finite number >= 1"):
+        structured_square(2, 2, grading=0.5)          # (p < 1: cells grow towards (0, 0))
+
+
+SIZES = """
+import json
+from mpi4py import MPI
+from membranes.fem.meshes import mesh_counts, mesh_size, unit_disk, vertex_count
+m = unit_disk(0.3, MPI.COMM_WORLD)
+local = m.topology.index_map(2).size_local
+out = [mesh_size(m), vertex_count(m), list(mesh_counts(m)), local]
+out = MPI.COMM_WORLD.gather(out)
+if MPI.COMM_WORLD.rank == 0:
+    print(json.dumps(out))
+"""
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
+def test_sizes_and_counts_are_global_on_several_processes(tmp_path):
+    """mesh_size (h = max_K h_K over *all* processes, what summary.json reports), vertex_count
+    and mesh_counts (V, T, χ) of the disk on 3 processes are the serial mesh's on every
+    process: exactly, as the partition only distributes the same cells (dolfinx keeps the
+    coordinates)."""
+    from membranes.fem.meshes import mesh_counts, vertex_count
+    serial = unit_disk(0.3)
+    want = [mesh_size(serial), vertex_count(serial), list(mesh_counts(serial))]
+    script = tmp_path / "sizes.py"
+    script.write_text(SIZES)
+    proc = mpirun([script], processes=3)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    ranks = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert len(ranks) == 3 and all(r[3] > 0 for r in ranks)
+    assert sum(r[3] for r in ranks) == want[2][1]
+    for r in ranks:
+        assert r[:3] == want
+
+
+def test_poincare_constant_of_a_rectangle_is_its_own():
+    """Without a scene's constant, C_PF h_Ω is 1/sqrt(λ_1) of the mesh's bounding box a × b,
+    λ_1 = π² (1/a² + 1/b²) (§7; Ω inside the box, λ_1 falls as the domain grows, so the bound
+    is guaranteed): on 2 × 1 and 1 × 3 rectangles, whose two sides differ (on the unit square
+    a and b cannot be told apart). Tolerance: round-off of the coordinates' scaling."""
+    from membranes import Problem
+    from membranes.fem.meshes import structured_square
+    for a, b in ((2.0, 1.0), (1.0, 3.0)):
+        mesh = structured_square(3, 2)
+        mesh.geometry.x[:, 0] *= a
+        mesh.geometry.x[:, 1] *= b
+        problem = Problem("box", build_hierarchy(mesh, 0), 1.0, 1.0, 0.1, 0.0, 0.0)
+        want = 1.0 / (np.pi * np.sqrt(1.0 / a ** 2 + 1.0 / b ** 2))
+        assert problem.poincare_constant() == pytest.approx(want, rel=1e-14), (a, b)
