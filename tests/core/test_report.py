@@ -389,3 +389,105 @@ def test_replays_leave_no_petsc_objects():
         assert source == "replay (same counts as the run)"
         live.append(live_petsc_objects())
     assert live[0] and live[1] == live[0] and live[2] == live[0], live
+
+
+def _markdown_cells(text, method):
+    """{heading: cell} of `method`'s line in report.md's table of steps, time and error."""
+    lines = text.splitlines()
+    head = next(li for li in lines if li.startswith("| method | converged |"))
+    row = next(li for li in lines if li.startswith(f"| {method} |"))
+    return dict(zip([c.strip() for c in head.strip("|").split("|")],
+                    [c.strip() for c in row.strip("|").split("|")]))
+
+
+def test_table_headings_name_their_cells_and_per_level_counts(made):
+    """report.md: each heading stands over its own number (η, η / error, the counts), and
+    the certified peer's effectivity is η / error (§7: ≥ 1 for a bound), recomputed here
+    from its η and error (one division: exact); `per level` is each level's Newton steps,
+    counted independently from the run's history (Newton rows per level), and the parts
+    add up to the total. A swapped heading, error / η, or Krylov steps per level passed the
+    tests that read table.csv only."""
+    _, out, runs, table = made
+    text = (out / "report.md").read_text()
+    csv_rows = {r["method"]: r for r in _rows(out / "table.csv")}
+    cert = table["certified nested peer"]
+    assert cert["effectivity"] == cert["eta"] / cert["energy_error"] >= 1.0
+    assert float(csv_rows["certified nested peer"]["effectivity"]) == cert["effectivity"]
+    for method in ("certified nested peer", "exact/paper", "adaptive/amg"):
+        r = table[method]
+        cells = _markdown_cells(text, method)
+        assert cells["η"] == f"{r['eta']:.4g}", method
+        assert cells["η / error"] == f"{r['eta'] / r['energy_error']:.4g}", method
+        assert cells["energy error"] == f"{r['energy_error']:.4g}", method
+        assert cells["Newton (SNES) steps"] == str(r["newton_iterations"]), method
+        assert cells["Krylov (CG) steps"] == str(r["linear_iterations"]), method
+    for method, sol in runs.items():
+        levels = sorted({r["level"] for r in sol.history})
+        counts = [sum(1 for r in sol.history if r["level"] == j and r["kind"] == "newton")
+                  for j in levels]
+        assert csv_rows[method]["newton_per_level"] == "+".join(map(str, counts)), method
+    for peer in PEERS:
+        parts = csv_rows[peer]["newton_per_level"].split("+")
+        assert sum(map(int, parts)) == int(csv_rows[peer]["newton_iterations"]), peer
+
+
+def test_cell_sums_in_the_text_are_those_of_the_csv(made):
+    """The error-distribution paragraph of report.md names the largest cell values and the
+    root sums of squares of |||u - u_h|||_K and η_K: recomputed here from
+    error_distribution.csv (Python's float repr reads back exactly; the same sums in the
+    same order, and 4 digits printed)."""
+    _, out, _, _ = made
+    text = (out / "report.md").read_text()
+    cells = _rows(out / "error_distribution.csv")
+    a, e = _column(cells, "error_K"), _column(cells, "eta_K")
+    assert f"Largest cell values {a.max():.3e} (actual), {e.max():.3e} (estimated)" in text
+    assert f"root sums of squares {np.sqrt((a ** 2).sum()):.4e} and " \
+           f"{np.sqrt((e ** 2).sum()):.4e}." in text
+
+
+def test_paper_comparison_puts_each_count_beside_the_papers():
+    """The paper's table: our paper-preset runs (not the amg ones) beside the paper's column
+    nearest in elements, Newton beside Newton and GMRES beside GMRES. Made-up counts (the
+    amg runs' differ) and 4000 cells: the column of 4064 elements (PAPER); exact."""
+    from types import SimpleNamespace as NS
+    runs = {}
+    for n, v in enumerate(("exact", "inexact", "adaptive"), start=1):
+        runs[f"{v}/paper"] = NS(newton_iterations=n, linear_iterations=10 * n)
+        runs[f"{v}/amg"] = NS(newton_iterations=100 + n, linear_iterations=1000 + n)
+    cells, theirs, lines = report.paper_comparison(runs, {"exact/paper": {"n_cells": 4000}})
+    assert (cells, theirs) == (4000, 4064)
+    assert lines[2:] == ["| exact | 1 | 12 | 10 | 585 |", "| inexact | 2 | 27 | 20 | 270 |",
+                         "| adaptive | 3 | 11 | 30 | 120 |"]
+
+
+def test_peer_curve_times_count_the_discretisation_of_each_level():
+    """A peer's curve: an iterate's time is the discretisation and solver time of the levels
+    before it, its own level's discretisation and its level's solver seconds so far (the
+    scope of the table's wall time). Made-up seconds (binary fractions: exact sums)."""
+    from types import SimpleNamespace as NS
+    curve = report.PeerCurve()
+    curve.points = [(0, 0, 0.0, 3.0), (0, 1, 0.5, 2.0), (1, 0, 0.0, 1.5), (1, 2, 0.25, 1.0)]
+    result = NS(levels=[NS(setup_time_s=1.0, wall_time_s=2.0),
+                        NS(setup_time_s=4.0, wall_time_s=8.0)])
+    records = curve.records("nested peer", result)
+    assert [r["wall_time_s"] for r in records] == [1.0, 1.5, 7.0, 7.25]
+    assert [r["kind"] for r in records] == ["initial", "snes", "initial", "snes"]
+    assert [r["energy_error"] for r in records] == [3.0, 2.0, 1.5, 1.0]
+    assert [r["level"] for r in curve.records("plain peer", result, first_level=3)] == \
+        [3, 3, 4, 4]
+
+
+@pytest.mark.parametrize("method", [m for m in METHOD_NAMES if not m.startswith("adaptive")])
+def test_replayed_rows_carry_every_estimator(made, method):
+    """Exact and inexact runs estimate their final iterate only; their figure takes η and
+    its parts η_disc, η_lin, η_alg from the replay at every Newton iterate (only η taken left
+    the parts of the earlier rows empty). The last row is the run's certificate: the same
+    iterate, the same parts to 1e-9 (test_estimator_curves)."""
+    _, out, runs, _ = made
+    rows = _rows(out / f"estimators_{report._slug(method)}.csv")
+    assert len(rows) == runs[method].newton_iterations + (2 if method.endswith("amg") else 1)
+    for r in rows:
+        assert all(r[k] != "" for k in ("eta", "eta_disc", "eta_lin", "eta_alg")), r
+    est = runs[method].estimates
+    for k in ("eta_disc", "eta_lin"):
+        assert float(rows[-1][k]) == pytest.approx(est[k], rel=1e-9), k

@@ -175,3 +175,69 @@ def test_a_size_beyond_a_methods_memory_is_refused_before_any_run(tmp_path, monk
     with pytest.raises(AssertionError, match="a case was run"):
         stability.write_stability(str(tmp_path / "out"), h, ["mu_ratio_1"],
                                   methods=[m for m in stability.METHODS if m[2] != "direct"])
+
+
+def test_same_counts_needs_both_counts_equal():
+    """same_counts: Newton and Krylov steps both equal to those of the unscaled run. The
+    scaled run of a real matrix with one count changed by one step (integers: exact)."""
+    from dataclasses import replace
+    _, runs = matrix(("scaled_1e-08", "grazing"))
+    case = next(c for c in stability.select(["scaled_1e-08"]) if c.name == "scaled_1e-08")
+    m = stability.method_name(*METHODS[1])
+    sol, ref = runs["scaled_1e-08"][m], runs["mu_ratio_1"][m]
+    for newton, linear, same in ((0, 0, True), (0, 1, False), (1, 0, False)):
+        changed = replace(sol, newton_iterations=sol.newton_iterations + newton,
+                          linear_iterations=sol.linear_iterations + linear)
+        row = stability.table([case], {case.name: {m: changed}, "mu_ratio_1": {m: ref}})[0]
+        assert row["same_counts"] is same, (newton, linear)
+
+
+def test_a_non_finite_value_makes_a_failed_row():
+    """A run whose history holds a NaN is not converged in the matrix, whatever the driver
+    said (stability.finite), with that reason; the same run unchanged is converged."""
+    from dataclasses import replace
+    _, runs = matrix(("tiny", "far_guess"))
+    case = stability.select(["tiny"])[0]
+    m = stability.method_name(*METHODS[0])
+    sol = runs["tiny"][m]
+    history = [dict(r) for r in sol.history]
+    history[-1]["residual"] = float("nan")
+    bad = replace(sol, history=history)
+    good_row, bad_row = (stability.table([case], {"tiny": {m: s}})[0] for s in (sol, bad))
+    assert good_row["converged"] is True
+    assert bad_row["converged"] is False
+    assert bad_row["reason"] == "non-finite value in the output"
+
+
+def test_cases_run_from_their_own_guess_and_mesh():
+    """run_case hands a case's initial guess to every method (far_guess: a function of the
+    discretisation, recorded as 'given'; the default for the others), and a nested case
+    solves on the hierarchy of T_0 at size 2h: the same cell count as the case built here at
+    2h with its levels (gmsh is deterministic: exact). h = 0.15, one direct method: at
+    H = 0.3 gmsh makes the same coarsest disk at h and 2h (117 cells), which hid a run at h;
+    at 0.15 and 0.3 T_2 has 5440 and 1872 cells."""
+    _, runs = matrix(("tiny", "far_guess"))
+    assert all(sol.options["initial_guess"] == "given" for sol in runs["far_guess"].values())
+    assert all(sol.options["initial_guess"] is None for sol in runs["tiny"].values())
+    case = stability.select(["nested_near_total"])[0]
+    h = 0.15
+    expected = case.build(2 * h, case.levels).mesh.topology.index_map(2).size_global
+    assert expected != case.build(h, 0).mesh.topology.index_map(2).size_global * 16
+    sol = stability.run_case(case, h, [("min", "exact", "direct")])["min/exact/direct"]
+    assert sol.converged
+    assert sol.disc.mesh.topology.index_map(2).size_global == expected
+    assert len(sol.per_level) == case.levels + 1
+
+
+def test_bound_and_effectivity_lines_of_the_markdown():
+    """stability.md's bound section lists every run with η < error, failed ones included
+    (the bound holds at any iterate, §7), and gives per case the smallest and then the
+    largest effectivity of the converged runs. Made-up rows; exact."""
+    rows = [{"case": "a", "class": "c", "method": f"m{k}", "converged": ok,
+             "effectivity": eff, "reason": "r", "description": "d"}
+            for k, (ok, eff) in enumerate(((False, 0.5), (True, 2.5), (True, 1.5)))]
+    f = stability.findings(rows)
+    assert [r["method"] for r in f["below_one"]] == ["m0"]
+    text = stability.markdown(rows, 0.1, 1.0, 1)
+    assert "η < error in: a m0 (0.500)" in text
+    assert "over the converged runs): a 1.5 – 2.5." in text
