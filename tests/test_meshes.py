@@ -248,29 +248,19 @@ def test_partitions_are_the_same_in_every_run():
 def test_poincare_constant_of_each_domain():
     """C_PF h_Ω of §7: 1/j_{0,1} on the unit disk, whichever scene meshes it (the user scene
     took the bounding box's 1/(π √(1/4 + 1/4)) = 0.450 there, 8 % above the disk's 0.416);
-    1/(π √2) on the unit square."""
-    from membranes.model import scenes
-    from membranes.model.scenes import J01
-    for scene in (scenes.disk(h=0.5), scenes.radial(h=0.5), scenes.user(h=0.5)):
-        assert scene.poincare_constant() == pytest.approx(1.0 / J01, rel=1e-15), scene.name
-    for scene in (scenes.square(h=0.5), scenes.user(h=0.5, domain="square")):
-        assert scene.poincare_constant() == pytest.approx(1 / (np.pi * np.sqrt(2)), rel=1e-12)
-
-
-def test_disk_poincare_constant_is_that_of_the_bessel_zero():
-    """C_PF h_Ω of the unit disk (§7) is 1/sqrt(λ_1) = 1/j_{0,1}, j_{0,1} the first positive
-    zero of J_0, computed here by mpmath (independently of the constant in scenes.py): a larger
-    J01 gives a smaller C_PF and an η that is no guaranteed bound, a smaller one a needlessly
-    large η. Tolerance: the double nearest j_{0,1} (rel 1e-15); and every C_PF the scenes give
-    for the unit disk is that value."""
+    1/(π √2) on the unit square. j_{0,1}, the first positive zero of J_0, comes from mpmath,
+    independently of the constant in scenes.py: a larger one gives a smaller C_PF and an η
+    that is no guaranteed bound, a smaller one a needlessly large η. Tolerance: the double
+    nearest j_{0,1} (rel 1e-15)."""
     import mpmath
 
     from membranes.model import scenes
     j01 = float(mpmath.besseljzero(0, 1))
     assert abs(float(mpmath.besselj(0, j01))) <= 1e-15
-    assert scenes.J01 == pytest.approx(j01, rel=1e-15)
     for scene in (scenes.disk(h=0.5), scenes.radial(h=0.5), scenes.user(h=0.5)):
         assert scene.poincare_constant() == pytest.approx(1.0 / j01, rel=1e-15), scene.name
+    for scene in (scenes.square(h=0.5), scenes.user(h=0.5, domain="square")):
+        assert scene.poincare_constant() == pytest.approx(1 / (np.pi * np.sqrt(2)), rel=1e-12)
 
 
 def test_sizes_and_shapes_of_a_structured_mesh():
