@@ -44,8 +44,8 @@ def _looked_at_on_rank0(look, comm):
 
 # The bytes of a run's outputs (membranes.app.outputs): solution.h5 holds the topology (3
 # int64 per cell), the geometry (2 float64 per vertex), u1, u2, λ (1 float64 per vertex each)
-# and η (1 per cell), 8 (3 T + 5 V) bytes in all (a disk of 1 761 vertices and 3 392 cells:
-# 178 984 bytes of data in a 190 640-byte file); OUTPUT_EXTRA covers HDF5's own metadata, the
+# and η (1 float64 per cell), 8 (4 T + 5 V) bytes in all (a disk of 1 761 vertices and 3 392
+# cells: 178 984 bytes of data in a 190 640-byte file); OUTPUT_EXTRA covers HDF5's own metadata, the
 # XDMF, summary.json and history.csv (a few kB each).
 OUTPUT_EXTRA = 1 << 20
 
@@ -53,7 +53,7 @@ OUTPUT_EXTRA = 1 << 20
 def output_bytes(vertices, cells):
     """An upper estimate of the bytes a run on a mesh of `vertices` and `cells` (global
     counts) writes into its output folder."""
-    return 8 * (3 * int(cells) + 5 * int(vertices)) + OUTPUT_EXTRA
+    return 8 * (4 * int(cells) + 5 * int(vertices)) + OUTPUT_EXTRA
 
 
 def check_output_room(path, nbytes, comm=None):
