@@ -556,6 +556,101 @@ def test_formula_too_large_to_compile_is_refused():
         scenes.user(h=0.3, f2=_series(1000))                          # 22998 parts
 
 
+def test_formula_builds_the_same_data_in_ufl_as_in_numpy():
+    """The UFL build of a formula is what the solver assembles; the numpy build is what the
+    finiteness check sees. Each function of the language (and the arithmetic, pi, min and
+    max of three arguments) is evaluated by dolfinx at three points of every cell of a mesh
+    and compared with numpy's own functions at the same physical points, written out here
+    independently of `Formula`. A builder of one side that computes another function (UFL's
+    cos as sin, max as min) changed the data the user defined while the check saw the right
+    ones. Tolerance: the generated C and numpy's libm may differ in the last bits (values are
+    O(1), so 1e-12 is some 10^4 ulps and far below any wrong function)."""
+    import ufl
+    from dolfinx import fem
+    from dolfinx.mesh import create_unit_square
+    from mpi4py import MPI
+    cases = [
+        ("sin(pi*x) + y", lambda x, y: np.sin(np.pi * x) + y),
+        ("cos(3*x + y)", lambda x, y: np.cos(3 * x + y)),
+        ("exp(-x)*sqrt(y)", lambda x, y: np.exp(-x) * np.sqrt(y)),
+        ("tanh(4*(x - y))", lambda x, y: np.tanh(4 * (x - y))),
+        ("abs(x - 0.5)", lambda x, y: np.abs(x - 0.5)),
+        ("min(x, 2*y, 0.7)", lambda x, y: np.minimum(np.minimum(x, 2 * y), 0.7)),
+        ("max(x, 2*y, 0.7)", lambda x, y: np.maximum(np.maximum(x, 2 * y), 0.7)),
+        ("x**2/(1 + y) - -y", lambda x, y: x ** 2 / (1 + y) + y),
+    ]
+    mesh = create_unit_square(MPI.COMM_SELF, 4, 4)
+    xs = ufl.SpatialCoordinate(mesh)
+    ref = np.array([[1 / 3, 1 / 3], [0.2, 0.6], [0.6, 0.2]])
+    cells = np.arange(mesh.topology.index_map(2).size_local, dtype=np.int32)
+    data = ufl.as_vector([Formula(text, "f1").ufl(xs) for text, _ in cases])
+    values = fem.Expression(data, ref).eval(cells).reshape(len(cells), len(ref), len(cases))
+    points = fem.Expression(xs, ref).eval(cells).reshape(len(cells), len(ref), 2)
+    x, y = points[..., 0], points[..., 1]
+    assert len(np.unique(np.round(x, 12))) > 5 and len(np.unique(np.round(y, 12))) > 5
+    for i, (text, exact) in enumerate(cases):
+        assert np.allclose(values[..., i], exact(x, y), rtol=1e-12, atol=1e-14), text
+
+
+def test_formula_limits_are_inclusive():
+    """MAX_DEPTH and MAX_PARTS are the largest formulas accepted ("at most"), and one level or
+    one part more is refused. Depth of '-'*k + 'x' in Python's syntax tree: the Expression,
+    k UnaryOps, the Name x and its Load context, k + 3 levels. Parts of a sum of n names
+    (balanced, so shallow): n Names, n Loads, n - 1 BinOps and n - 1 Adds, 4n - 2; one name
+    turned into '-x' adds a UnaryOp and its USub (20000 parts at n = 5000); one term a number
+    instead of a name has no Load (4n - 3 parts: 20001 at n = 5001)."""
+    from membranes.model import expressions
+    assert expressions.MAX_DEPTH == 500 and expressions.MAX_PARTS == 20000
+    one = np.array([[1.0], [0.0]])
+    assert Formula("-" * 497 + "x", "f1").numpy(one)[0] == -1.0          # depth 500
+    with pytest.raises(ValueError, match="nested too deeply"):
+        Formula("-" * 498 + "x", "f1")                                    # depth 501
+    largest = Formula(_balanced(["-x"] + ["x"] * 4999), "f1")            # 20000 parts
+    assert largest.numpy(one)[0] == 4998.0
+    with pytest.raises(ValueError, match=r"f1: .* has 20001 parts .* more than 20000"):
+        Formula(_balanced(["1"] + ["x"] * 5000), "f1")
+
+
+@pytest.mark.parametrize("text,message", [
+    ("True + x", "True is not a number"),
+    ("x*False", "False is not a number"),
+    ("min(x)", r"min\(\) takes at least 2 argument"),
+    ("max(y)", r"max\(\) takes at least 2 argument"),
+    ("sin(x, y=1)", r"sin\(\) takes 1 argument"),
+    ("min(x, y, key=abs)", r"min\(\) takes at least 2 argument"),
+])
+def test_formula_refuses_what_is_not_in_the_language(text, message):
+    """Booleans are no numbers (True would be read as 1), min and max of one argument have no
+    meaning in the language (numpy's minimum of one array raised TypeError later, on the
+    mesh), and keyword arguments are not part of it (sin(x, y=1) was sin(x), the y=1 dropped
+    unsaid). Each is refused when parsed, naming the problem."""
+    with pytest.raises(ValueError, match=message) as e:
+        Formula(text, "f1")
+    assert str(e.value).startswith("f1: ") and "\n" not in str(e.value)
+
+
+def test_formula_refuses_a_part_not_finite_under_a_sign():
+    """A part without x, y that is not finite is refused wherever it stands, also under a
+    unary minus or plus around a part with x, y: -min(2**10**10, x) is finite on the mesh to
+    numpy (min(inf, x) = x), so only this check keeps the inf out of the C code of the forms
+    (as the CLI case 'expr constant too large' does for min(2**10**10, x))."""
+    for bad in ("-min(2**10**10, x)", "+(x * 2**10**10)", "1 - -(1/0 + y)"):
+        with pytest.raises(ValueError, match="is not finite in double precision") as e:
+            Formula(bad, "f1")
+        assert str(e.value).startswith("f1: ")
+
+
+def test_formula_numpy_gives_one_value_per_point():
+    """`Formula.numpy` returns an array of length n for n points, also for a formula without
+    x, y (a constant broadcast) and for one in y only: the caller indexes it by point."""
+    points = np.array([[0.0, 0.5, 1.0, -2.0], [0.1, 0.2, 0.3, 0.4]])
+    for text, expected in [("-1.5", [-1.5] * 4), ("2*pi", [2 * np.pi] * 4),
+                           ("y - 1", [-0.9, -0.8, -0.7, -0.6])]:
+        values = Formula(text, "f1").numpy(points)
+        assert values.shape == (4,), text
+        assert np.array_equal(values, np.array(expected)), text
+
+
 def test_formula_change_changes_the_solution_and_folding_does_not():
     base = solve(scenes.user(h=0.5, f1="-1"), newton="exact", solver="direct")
     same = solve(scenes.user(h=0.5, f1="-1 + 1/exp(1000) + 0*x"), newton="exact",

@@ -298,6 +298,25 @@ def test_output_folder_with_a_folder_named_as_an_output(tmp_path):
     assert sorted(os.listdir(out)) == ["history.csv", "summary.json"]
 
 
+def test_output_folder_accepts_a_link_named_as_an_output(tmp_path):
+    """A symbolic link of an output's name, even one to a folder, is no obstacle: the outputs
+    are moved in by renaming, which replaces the link itself (not the folder it points to).
+    Only a real folder of that name is refused (test above); refusing the link refused a
+    folder the run can write."""
+    out = tmp_path / "out"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    out.mkdir()
+    (out / "summary.json").symlink_to(elsewhere, target_is_directory=True)
+    assert folders.folder_named_as_output(str(out), ("history.csv", "summary.json")) is None
+    folders.check_output_folder(str(out), names=("history.csv", "summary.json"))
+    assert sorted(os.listdir(out)) == ["summary.json"] and os.listdir(elsewhere) == []
+    os.replace(tmp_path / "elsewhere", tmp_path / "kept")         # (the link now dangles)
+    (tmp_path / "new.json").write_text("{}")
+    os.replace(tmp_path / "new.json", out / "summary.json")         # as the writers move in
+    assert (out / "summary.json").read_text() == "{}" and (tmp_path / "kept").is_dir()
+
+
 @pytest.mark.parametrize("where", ["proc", "under a file", "a file", "a dangling link"])
 def test_output_folder_that_cannot_be_written(where, tmp_path):
     a_file = tmp_path / "file"
@@ -467,6 +486,32 @@ def test_option_names_ignore_case():
     with pytest.raises(ValueError, match="-ksp_atol is not accepted"):
         Krylov("paper", {"KSP_ATOL": 1.0})
     assert Krylov("amg", {"MEAN_PC_TYPE": "lu"}).inner()["mean_"]["pc_type"] == "lu"
+
+
+@pytest.mark.parametrize("options", [{"_ksp_type": "gmres"}, {"-1ksp_rtol": "1e-3"},
+                                     {"pc_typé": "ilu"}, "-pc_typé ilu",
+                                     "-ksp_rtol 1e-3 -ksp_ŧype cg"])
+def test_option_names_are_a_letter_then_ascii_letters_digits_and_underscores(options):
+    """An option name starts with a letter and has only ASCII letters, digits and '_' (PETSc's
+    names): a leading '_' or digit, or a non-ASCII letter (which str.isalnum accepts), is
+    refused when the options are parsed, naming the option, and not passed on to PETSc."""
+    with pytest.raises(ValueError, match="not a valid option name|is not -name") as e:
+        petsc_options.parse_petsc_options(options)
+    assert "\n" not in str(e.value)
+
+
+def test_trial_set_up_refuses_a_norm_type_the_krylov_solver_lacks():
+    """The up-front check (`unused_by_trial`, before any mesh or solve) asks PETSc for the
+    KSP's norm type, where PETSc compares it with the KSP type and the PC side: CG
+    preconditioned on the right, or with a norm type CG lacks, is refused there in one line
+    as ValueError, not left to the configuration of the run's solver."""
+    for options in ({"ksp_type": "cg", "ksp_pc_side": "right", "pc_type": "jacobi"},
+                    {"ksp_type": "gmres", "ksp_norm_type": "natural", "pc_type": "jacobi"}):
+        with pytest.raises(ValueError, match="PETSc options: .*does not support") as e:
+            petsc_options.unused_by_trial(options)
+        assert "\n" not in str(e.value)
+    assert petsc_options.unused_by_trial({"ksp_type": "cg", "ksp_pc_side": "left",
+                                          "pc_type": "jacobi"}) == []
 
 
 @pytest.mark.parametrize("solver,options", [("paper", "-ksp_type cg"),
