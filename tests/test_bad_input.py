@@ -1,6 +1,7 @@
 """Bad input: one-line error and exit code 2 from the CLI, ValueError from the API, and nothing
 written to the output folder."""
 
+import json
 import os
 import subprocess
 import sys
@@ -165,6 +166,109 @@ def test_cli_process_exit_code_and_clean_stderr(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
     assert not out.exists()
+
+
+
+def test_a_run_that_does_not_converge_exits_3_with_its_outputs(tmp_path, capsys):
+    """docs/cli.md: a run that does not converge exits with 3, says so in one stderr line
+    after its JSON line, and writes its outputs all the same, with converged = false and the
+    reason (only bad input and interrupts leave --out empty)."""
+    from membranes.app.cli import EXIT_NOT_CONVERGED, main
+    out = tmp_path / "out"
+    code = main(["solve", "--quiet", "--h", "0.3", "--max-newton", "1", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == EXIT_NOT_CONVERGED == 3
+    line = json.loads(captured.out)
+    with open(out / "summary.json") as f:
+        summary = json.load(f)
+    assert line["converged"] is False and summary["converged"] is False
+    assert captured.err == f"membranes: not converged: {summary['reason']}\n"
+    assert sorted(p.name for p in out.iterdir()) == ["history.csv", "solution.h5",
+                                                     "solution.xdmf", "summary.json"]
+
+
+def test_an_error_of_several_lines_is_said_in_one(monkeypatch, capsys):
+    """Exit 2 comes with one stderr line: an error whose text has line breaks and runs of
+    spaces (PETSc's and gmsh's messages have them) is joined into one line, the words kept."""
+    from membranes.app import cli, driver
+
+    def failing_solve(problem, **kwargs):
+        raise ValueError("first line\n   second  line\n")
+
+    monkeypatch.setattr(driver, "solve", failing_solve)
+    assert cli.main(["solve", "--quiet", "--h", "0.4"]) == cli.EXIT_BAD_INPUT
+    assert capsys.readouterr().err == "membranes: error: first line second line\n"
+
+
+# (argv after `solve`; the scene and its arguments `scenes.make` gets; the arguments `solve`
+# gets besides the problem) for one run of each kind, every option given a value other than
+# its default
+OPTIONS_TO_SOLVE = {
+    "exact": (["--h", "0.4", "--levels", "1", "--no-nested", "--newton", "inexact", "--cfun",
+               "fb", "--solver", "paper", "--system", "eliminated", "--petsc-options",
+               "-ksp_gmres_restart 50", "--nu", "5", "--max-linear-its", "500", "--tol", "1e-9",
+               "--max-newton", "7", "--initial-guess", "zero", "--max-vertices", "100000",
+               "--quiet"],
+              ("disk", {"levels": 1, "h": 0.4, "max_vertices": 100000}),
+              dict(newton="inexact", cfun="fb", solver="paper", system="eliminated",
+                   petsc_options={"ksp_gmres_restart": "50"}, nu=5, max_linear_its=500,
+                   tol=1e-9, max_newton=7, estimators=True, progress=False, gamma_lin=None,
+                   gamma_alg=None, alg_flux=None, initial_guess="zero", nested=False,
+                   max_vertices=100000, coarse="residual", coarse_tol=None)),
+    "adaptive estimated": (
+        ["--f1", "-1", "--f2", "-x*y", "--domain", "square", "--h", "0.4", "--levels", "1",
+         "--gamma-lin", "0.2", "--gamma-alg", "0.1", "--alg-flux", "multilevel", "--coarse",
+         "estimated", "--quiet"],
+        ("user", {"levels": 1, "h": 0.4, "f1": "-1", "f2": "-x*y", "domain": "square",
+                  "max_vertices": None}),
+        dict(newton=None, cfun="min", solver="amg", system=None, petsc_options={}, nu=None,
+             max_linear_its=None, tol=None, max_newton=100, estimators=True, progress=False,
+             gamma_lin=0.2, gamma_alg=0.1, alg_flux="multilevel", initial_guess="paper",
+             nested=None, max_vertices=None, coarse="estimated", coarse_tol=None)),
+    "adaptive residual": (
+        ["--scene", "square", "--h", "0.4", "--levels", "1", "--nested", "--coarse",
+         "residual", "--coarse-tol", "1e-5", "--newton", "adaptive"],
+        ("square", {"levels": 1, "h": 0.4, "max_vertices": None}),
+        dict(newton="adaptive", cfun="min", solver="amg", system=None, petsc_options={},
+             nu=None, max_linear_its=None, tol=None, max_newton=100, estimators=True,
+             progress=True, gamma_lin=None, gamma_alg=None, alg_flux=None,
+             initial_guess="paper", nested=True, max_vertices=None, coarse="residual",
+             coarse_tol=1e-5)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(OPTIONS_TO_SOLVE))
+def test_each_option_reaches_its_argument_of_solve(case, monkeypatch, capsys):
+    """`membranes solve` hands each option to the argument of `scenes.make` or `solve` of its
+    name, with its value: the tests of bad input see only the options `check_method` refuses,
+    so an option dropped or handed to another argument on its way to `solve` went unseen.
+    `solve` is replaced by one that records its arguments and stops the run; with --quiet
+    nothing but the stop's error line is printed (no mesh line either)."""
+    from membranes.app import cli, driver
+    from membranes.model import scenes
+    argv, made, expected = OPTIONS_TO_SOLVE[case]
+    calls, make = {}, scenes.make
+
+    def recording_make(name, **kwargs):
+        calls["make"] = (name, {k: v for k, v in kwargs.items()
+                                if k not in ("comm", "progress")})
+        return make(name, **kwargs)
+
+    def recording_solve(problem, **kwargs):
+        calls["solve"] = kwargs
+        raise ValueError("stopped by the test")
+
+    monkeypatch.setattr(scenes, "make", recording_make)
+    monkeypatch.setattr(driver, "solve", recording_solve)
+    assert cli.main(["solve"] + argv) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert calls.get("make") == made, err
+    assert calls["solve"] == expected
+    if "--quiet" in argv:
+        assert err == "membranes: error: stopped by the test\n"
+    else:
+        assert err.splitlines()[-1] == "membranes: error: stopped by the test"
+        assert err.splitlines()[-2].startswith("mesh and 1 uniform refinement(s) made in ")
 
 
 # ## The same classes through the API: ValueError

@@ -123,3 +123,20 @@ def test_ctrl_c_under_mpirun_leaves_nothing(tmp_path):
                                 signal.SIGINT)
     assert returncode != 0
     assert os.listdir(tmp_path) == []
+
+
+def test_main_puts_back_the_signal_handlers_it_replaced():
+    """`cli.main` raises KeyboardInterrupt and Terminated from SIGINT and SIGTERM while it
+    runs and then puts back the handlers it found: a program or notebook that calls it keeps
+    its own (here: SIGTERM's default, which ends the process, not an exception)."""
+    import signal
+
+    from membranes.app import cli
+    mine = lambda signum, frame: None  # noqa: E731
+    before = signal.signal(signal.SIGINT, mine), signal.getsignal(signal.SIGTERM)
+    try:
+        assert cli.main(["scenes"]) == 0
+        assert signal.getsignal(signal.SIGINT) is mine
+        assert signal.getsignal(signal.SIGTERM) is before[1]
+    finally:
+        signal.signal(signal.SIGINT, before[0])

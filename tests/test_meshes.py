@@ -181,6 +181,17 @@ def test_refinement_progress_on_stderr_or_refused(capsys):
     assert capsys.readouterr().err == ""
 
 
+@pytest.mark.parametrize("quiet", [False, None])
+def test_no_progress_prints_nothing(quiet, capsys):
+    """progress=False (what `--quiet` gives) and None print no line, neither while a
+    hierarchy is refined nor while `solve` runs: only True prints on stderr."""
+    from membranes import scenes, solve
+    problem = scenes.disk(h=0.5, levels=1, progress=quiet)
+    assert solve(problem, newton="exact", estimators=False, progress=quiet).converged
+    captured = capsys.readouterr()
+    assert (captured.out, captured.err) == ("", "")
+
+
 def test_a_run_on_the_finest_mesh_makes_no_prolongation():
     """Lean runs: `nested=False` solves T_J alone and leaves the hierarchy's prolongations
     unmade; the nested default makes them."""
