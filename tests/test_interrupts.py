@@ -140,3 +140,26 @@ def test_main_puts_back_the_signal_handlers_it_replaced():
         assert signal.getsignal(signal.SIGTERM) is before[1]
     finally:
         signal.signal(signal.SIGINT, before[0])
+
+
+def test_restore_puts_back_the_alarm_handler_a_signal_set():
+    """A signal met makes `interrupts` raise again on SIGALRM until `caught`; `restore` then
+    puts back SIGALRM's handler as well, so a program whose run was interrupted and handled
+    keeps its own alarm."""
+    import signal
+
+    from membranes.app import interrupts
+    mine = lambda signum, frame: None  # noqa: E731
+    before = signal.signal(signal.SIGALRM, mine)
+    try:
+        previous = interrupts.install()
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                signal.raise_signal(signal.SIGINT)
+            assert signal.getsignal(signal.SIGALRM) is not mine
+        finally:
+            interrupts.restore(previous)
+        assert signal.getsignal(signal.SIGALRM) is mine
+        assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)
+    finally:
+        signal.signal(signal.SIGALRM, before)

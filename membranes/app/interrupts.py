@@ -50,9 +50,12 @@ def _handler(exception):
 
 def install():
     """Raise KeyboardInterrupt on SIGINT and `Terminated` on SIGTERM, again until `caught`.
-    Returns what `restore` needs (the handlers before). Main thread only."""
-    return {s: signal.signal(s, _handler(e)) for s, e in
-            ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated))}
+    Returns what `restore` needs (the handlers before, SIGALRM's too: a signal met sets it).
+    Main thread only."""
+    previous = {signal.SIGALRM: signal.getsignal(signal.SIGALRM)}
+    previous.update({s: signal.signal(s, _handler(e)) for s, e in
+                     ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated))})
+    return previous
 
 
 def caught():
@@ -68,4 +71,5 @@ def restore(previous):
     """Stop raising and put back the handlers `install` replaced."""
     caught()
     for s, handler in previous.items():
-        signal.signal(s, handler)
+        if handler is not None:         # (None: a handler not set from Python, left as is)
+            signal.signal(s, handler)
