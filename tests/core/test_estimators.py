@@ -118,6 +118,17 @@ def close(a, b, tol=TOL):
     return np.abs(a - b).max(initial=0.0) <= tol * scale
 
 
+CPF = 1 / (np.pi * np.sqrt(2))                  # C_PF h_Ω of the unit square (§7)
+C_LAMBDA = CPF * np.sqrt(1 / MU1 + 1 / MU2)
+
+
+def linearisation_reference(ref):
+    """η_lin1, η_lin2, η_lin3 of §7 from the independent per-cell values."""
+    lin1 = np.sqrt(ref["lin1"].sum())
+    return (lin1, 2 * C_LAMBDA * np.sqrt(ref["lp"].sum()) * lin1,
+            C_LAMBDA * np.sqrt(ref["ln"].sum()))
+
+
 def per_cell(est, X, sigma, alg):
     """The per-cell integrals the estimators assemble, by name."""
     est.assemble(X, sigma, alg)
@@ -158,18 +169,14 @@ def test_global_values_and_bound(setup):
     the remainder of §6 against its own quadrature."""
     disc, X, sigma, alg, r, dlam, ref = setup
     est = Estimators(disc)
-    cpf = 1 / (np.pi * np.sqrt(2))
-    c_lambda = cpf * np.sqrt(1 / MU1 + 1 / MU2)
     eta_rem = est.remainder(r, dlam)
-    assert np.isclose(eta_rem, cpf * np.sqrt(ref["rem"].sum()), rtol=TOL, atol=0)
+    assert np.isclose(eta_rem, CPF * np.sqrt(ref["rem"].sum()), rtol=TOL, atol=0)
     got = est.assemble(X, sigma, alg, eta_rem)
     osc = np.sqrt(np.stack([ref["osc1"], ref["osc2"]], 1))
     F = np.sqrt(np.stack([ref["F1"], ref["F2"]], 1))
     D = np.sqrt(np.stack([ref["disc1"], ref["disc2"]], 1))
     eta_1 = np.sqrt(((F + osc) ** 2).sum())
-    lin1 = np.sqrt(ref["lin1"].sum())
-    lin2 = 2 * c_lambda * np.sqrt(ref["lp"].sum()) * lin1
-    lin3 = c_lambda * np.sqrt(ref["ln"].sum())
+    lin1, lin2, lin3 = linearisation_reference(ref)
     sum_C = ref["C"].sum()
     expect = {
         "eta": np.sqrt((eta_1 + eta_rem + lin1 + lin3) ** 2 + lin2 + max(0, sum_C)),
@@ -181,7 +188,7 @@ def test_global_values_and_bound(setup):
         "eta_rem": eta_rem, "eta_1": eta_1}
     for key, value in expect.items():
         assert np.isclose(got[key], value, rtol=TOL, atol=0), key
-    eta_K = np.sqrt(((F + osc) ** 2).sum(1) + ref["lin1"] + c_lambda ** 2 * ref["ln"]
+    eta_K = np.sqrt(((F + osc) ** 2).sum(1) + ref["lin1"] + C_LAMBDA ** 2 * ref["ln"]
                     + np.abs(ref["C"]))
     assert close(got["eta_K"], eta_K)
     # the components bound η (Corollary 5.6 of the paper, §7)
@@ -201,10 +208,7 @@ def test_the_shortcuts_against_numpy_quadrature(setup):
     disc, X, sigma, alg, r, dlam, ref = setup
     assert MU1 != MU2
     est = Estimators(disc)
-    c_lambda = 1 / (np.pi * np.sqrt(2)) * np.sqrt(1 / MU1 + 1 / MU2)
-    lin1 = np.sqrt(ref["lin1"].sum())
-    lin2 = 2 * c_lambda * np.sqrt(ref["lp"].sum()) * lin1
-    lin3 = c_lambda * np.sqrt(ref["ln"].sum())
+    lin1, lin2, lin3 = linearisation_reference(ref)
     got = est.linearisation(X)
     expect = {"eta_lin1": lin1, "eta_lin2": lin2, "eta_lin3": lin3,
               "eta_lin": lin1 + lin3 + np.sqrt(lin2)}
@@ -214,7 +218,7 @@ def test_the_shortcuts_against_numpy_quadrature(setup):
     dx = ufl.dx(metadata={"quadrature_degree": 2})
     squares = [disc.comm.allreduce(float(fem.assemble_scalar(fem.form(ra ** 2 * dx))),
                                    op=MPI.SUM) for ra in r]
-    by_hand = 1 / (np.pi * np.sqrt(2)) * np.sqrt(squares[0] / MU1 + squares[1] / MU2)
+    by_hand = CPF * np.sqrt(squares[0] / MU1 + squares[1] / MU2)
     assert np.isclose(est.remainder_of(squares), by_hand, rtol=TOL, atol=0)
     assert np.isclose(est.remainder_of(squares), est.remainder(r), rtol=TOL, atol=0)
 
@@ -343,8 +347,7 @@ def test_a_changed_form_changes_the_result(setup, monkeypatch, name):
     rem = est.remainder(r, dlam)
     moved = [k for k, v in got.items() if not close(v, ref[k], 1e-8)]
     if name == "weighted_norm_squared":
-        cpf = 1 / (np.pi * np.sqrt(2))
-        moved += [] if np.isclose(rem, cpf * np.sqrt(ref["rem"].sum()), rtol=1e-8) else ["rem"]
+        moved += [] if np.isclose(rem, CPF * np.sqrt(ref["rem"].sum()), rtol=1e-8) else ["rem"]
     if name == "recovery_load":
         n = disc.n
         expected = recovered_reference(disc, (X[:n], X[n:2 * n]))
@@ -403,8 +406,7 @@ def test_nu_flux_divergence_and_remainder(equilibrated):
         assert np.sqrt(defect.max() / size.max()) < 1e-11, np.sqrt(defect.max() / size.max())
     dlam = X2[2 * n:] - X[2 * n:]
     assert np.isclose(eta_rem, est.remainder(r2, dlam), rtol=1e-14, atol=0)
-    cpf = 1 / (np.pi * np.sqrt(2))
-    by_hand = cpf * np.sqrt(disc.comm.allreduce(sum(
+    by_hand = CPF * np.sqrt(disc.comm.allreduce(sum(
         float(fem.assemble_scalar(fem.form(rho ** 2 / mu * dx)))
         for rho, mu in ((r2[0] - (lam2 - lam), MU1), (r2[1] + (lam2 - lam), MU2))), op=MPI.SUM))
     assert np.isclose(eta_rem, by_hand, rtol=1e-12, atol=0)
