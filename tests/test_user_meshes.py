@@ -57,7 +57,12 @@ def grid_msh(path, extra=(), step=1, moved=None):
         nodes[k] = place
     cells = [c for j in range(4) for i in range(4)
              for a in [5 * j + i] for c in ((a, a + 1, a + 6), (a, a + 6, a + 5))]
-    cells += list(extra)
+    return msh22(path, nodes, cells + list(extra), step)
+
+
+def msh22(path, nodes, cells, step=1):
+    """The triangles `cells` (node indices from 0) on the points `nodes`, hand-written in msh
+    2.2 ASCII with node tags 1, 1 + step, 1 + 2 step..."""
     lines = ["$MeshFormat", "2.2 0 8", "$EndMeshFormat", "$Nodes", str(len(nodes))]
     lines += [f"{step * i + 1} {x!r} {y!r} 0" for i, (x, y) in enumerate(nodes)]
     lines += ["$EndNodes", "$Elements", str(len(cells))]
@@ -144,6 +149,50 @@ def test_surface_meshed_twice(tmp_path, capsys):
     with pytest.raises(ValueError, match="twice"):
         read_msh(msh)
     cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
+
+
+@pytest.mark.parametrize("second", [(1, 0, 0, 1, 1), (1, 0.1, 0, 1, 0.7)])
+def test_surfaces_not_joined(second, tmp_path, capsys):
+    """Two rectangles side by side, each meshed on its own nodes (no fragment): along x = 1
+    the nodes are there twice, at the same places (equal rectangles) or interleaved (the
+    second shorter), and the mesh is cut there. The run solved two membranes held at g
+    along the cut, and certified that other problem, without a word. Refused, naming the
+    boundary nodes that lie on another boundary edge; joined by fragment, it is read."""
+    msh = rectangles_msh(tmp_path / "apart.msh", [(0, 0, 0, 1, 1), second])
+    with pytest.raises(ValueError, match="boundary node.* on a boundary edge they do not end"):
+        read_msh(msh)
+    cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
+    assert global_counts(read_msh(two_squares(tmp_path / "joined.msh", {1: [1, 2]})))[1] > 0
+
+
+def test_hanging_node(tmp_path, capsys):
+    """(0, 2) x (0, 1): the left square in two triangles, the right one in three around the
+    node (1, 0.5), which lies inside the left square's edge from (1, 0) to (1, 1): a hanging
+    node, so that edge was a boundary (held at g) and the mesh cut along it. Refused."""
+    nodes = [(0, 0), (1, 0), (1, 1), (0, 1), (2, 0), (2, 1), (1, 0.5)]
+    cells = [(0, 1, 2), (0, 2, 3), (1, 4, 6), (4, 5, 6), (5, 2, 6)]
+    msh = msh22(tmp_path / "hanging.msh", nodes, cells)
+    with pytest.raises(ValueError, match="1 boundary node"):
+        read_msh(msh)
+    cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
+    nodes[6] = (1.5, 0.5)                       # the same cells, conforming: no hanging node
+    read_msh(msh22(tmp_path / "conforming.msh", nodes, cells + [(1, 6, 2)]))
+
+
+def test_boundary_nodes_against_edges_at_graded_corners():
+    """The tolerance of the hanging-node test is relative to the shorter of the two edges it
+    compares: at a corner where an edge of length 1 meets edges down to 1e-12 (a graded
+    boundary), the small edges' nodes lie within 1e-8 of the long edge's length from it, and
+    are no hanging nodes. A node 1e-7 of its own edges off a straight boundary is none
+    either; one 1e-9 off it is."""
+    from membranes.fem.meshes import _nodes_on_other_boundary_edges as touching
+    steps = 10.0 ** -np.arange(1, 13)
+    x = np.vstack([[(1, 0), (0, 0)], np.c_[np.zeros(12), steps[::-1]]])
+    ring = np.arange(len(x))
+    assert touching(x, np.c_[ring, np.roll(ring, -1)]) == 0
+    for off, found in ((1e-7, 0), (1e-9, 1)):
+        x = np.array([(0, 0), (1, 0), (0.5, off * 0.5), (0.5, -1)])
+        assert touching(x, np.array([[0, 1], [0, 2], [2, 1], [1, 3], [3, 0]])) == found
 
 
 def test_planes_and_unused_nodes_off_z_0(tmp_path):

@@ -11,7 +11,8 @@ physical groups. So the triangles of a gmsh model's 2D physical groups (of every
 has none; a generated disk or square, or an opened `.msh` file) are taken once each, on the
 nodes they use, and checked (no zero-area triangle, no triangle listed twice, by its nodes or
 their places, no edge of three or more triangles, no fold: the two triangles of an edge lie
-on its two sides; the nodes in one plane z = const), and dolfinx's `create_mesh` distributes
+on its two sides; no boundary node on another boundary edge: no hanging node, no surfaces
+left unjoined; the nodes in one plane z = const), and dolfinx's `create_mesh` distributes
 them, without ghost cells (§12): plaza refinement of a ghosted mesh gave two copies of a
 ghost cell on some processes (a file of two squares on 3 processes), and the estimators met
 facets of three cells.
@@ -269,8 +270,8 @@ def _model_cells(gmsh, what):
                          f"surfaces?)")
     # edge i of a triangle: the one opposite its vertex i, from its lower node to its higher
     ends = np.sort(cells[:, [[1, 2], [2, 0], [0, 1]]], axis=2).reshape(-1, 2)
-    _, edge, shared = np.unique(ends[:, 0] * len(x) + ends[:, 1], return_inverse=True,
-                                return_counts=True)
+    _, first, edge, shared = np.unique(ends[:, 0] * len(x) + ends[:, 1], return_index=True,
+                                       return_inverse=True, return_counts=True)
     if shared.max() > 2:
         raise ValueError(f"{what} has {np.count_nonzero(shared > 2)} edge(s) of "
                          f"three or more triangles (overlapping surfaces?)")
@@ -282,7 +283,63 @@ def _model_cells(gmsh, what):
     if folded:
         raise ValueError(f"{what} has {folded} edge(s) whose two triangles lie on the same "
                          f"side (a folded or tangled mesh)")
+    touching = _nodes_on_other_boundary_edges(x, ends[first[shared == 1]])
+    if touching:
+        raise ValueError(f"{what} has {touching} boundary node(s) on a boundary edge they do "
+                         f"not end (a hanging node, or surfaces meshed on nodes of their own "
+                         f"and not joined: join them with gmsh's fragment)")
     return cells, x
+
+
+def _nodes_on_other_boundary_edges(x, edges):
+    """How many end nodes of the boundary edges `edges` ((m, 2) node indices into x) lie on a
+    boundary edge that does not end at them: within 1e-8 of the shorter of that edge and the
+    node's own shortest boundary edge (plus round-off of the coordinates), its ends
+    included. A conforming mesh of a domain has none; a
+    hanging node (a vertex inside a neighbour's edge) has one, and so do two surfaces
+    meshed on their own nodes along a common curve (its nodes twice, at the same places, or
+    interleaved): the mesh is then cut there, ∂Ω runs through the domain and the Dirichlet
+    data are imposed along the cut, a different problem that the bound would certify.
+    Buckets of side 2^l hold the edges of length in (2^(l-1), 2^l], each in the up to 3 x 3
+    buckets its box (widened by the tolerance) meets; every node is compared with the
+    edges of its bucket at each length."""
+    a, b = x[edges[:, 0]], x[edges[:, 1]]
+    length = np.hypot(*(b - a).T)
+    round_off = 8 * np.finfo(float).eps * np.abs(x).max()
+    tol = 1e-8 * length + round_off
+    own = np.full(len(x), np.inf)                 # a node's shortest boundary edge
+    np.minimum.at(own, edges.ravel(), np.repeat(length, 2))
+    touching = np.zeros(len(x), dtype=bool)
+    levels = np.ceil(np.log2(length))
+    for level in np.unique(levels):
+        side = 2.0 ** level
+        kept = np.flatnonzero(levels == level)
+        lo = np.floor((np.minimum(a[kept], b[kept]) - tol[kept, None]) / side)
+        hi = np.floor((np.maximum(a[kept], b[kept]) + tol[kept, None]) / side)
+        spans = [(di, dj) for di in range(3) for dj in range(3)]
+        which = np.concatenate([kept[(lo[:, 0] + di <= hi[:, 0]) & (lo[:, 1] + dj <= hi[:, 1])]
+                                for di, dj in spans])
+        cell = np.concatenate([lo[(lo[:, 0] + di <= hi[:, 0]) & (lo[:, 1] + dj <= hi[:, 1])]
+                               + (di, dj) for di, dj in spans])
+        box = np.vstack([lo.min(axis=0), hi.max(axis=0) + 1]) * side
+        nodes = np.flatnonzero((own < np.inf) & np.all((x >= box[0]) & (x < box[1]), axis=1))
+        home = np.floor(x[nodes] / side)
+        _, ids = np.unique(np.concatenate([cell, home]), axis=0, return_inverse=True)
+        ids = ids.ravel()
+        order = np.argsort(ids[:len(cell)], kind="stable")
+        bucket, which = ids[:len(cell)][order], which[order]
+        node_bucket = ids[len(cell):]
+        start = np.searchsorted(bucket, node_bucket, side="left")
+        count = np.searchsorted(bucket, node_bucket, side="right") - start
+        node = np.repeat(nodes, count)
+        edge = which[np.repeat(start - np.cumsum(count) + count, count) + np.arange(count.sum())]
+        d = b[edge] - a[edge]
+        t = np.clip(((x[node] - a[edge]) * d).sum(axis=1) / (d * d).sum(axis=1), 0.0, 1.0)
+        near = np.hypot(*(a[edge] + t[:, None] * d - x[node]).T) \
+            <= 1e-8 * np.minimum(length[edge], own[node]) + round_off
+        near &= (edges[edge, 0] != node) & (edges[edge, 1] != node)
+        touching[node[near]] = True
+    return int(np.count_nonzero(touching))
 
 
 def check_msh_path(path):
