@@ -151,15 +151,18 @@ def test_surface_meshed_twice(tmp_path, capsys):
     cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
 
 
-@pytest.mark.parametrize("second", [(1, 0, 0, 1, 1), (1, 0.1, 0, 1, 0.7)])
+@pytest.mark.parametrize("second", [(1, 0, 0, 1, 1), (1, 0.1, 0, 1, 0.7), (0.6, 0.3, 0, 1, 1),
+                                    (0.3, 0.35, 0, 0.3, 0.3)])
 def test_surfaces_not_joined(second, tmp_path, capsys):
-    """Two rectangles side by side, each meshed on its own nodes (no fragment): along x = 1
-    the nodes are there twice, at the same places (equal rectangles) or interleaved (the
-    second shorter), and the mesh is cut there. The run solved two membranes held at g
-    along the cut, and certified that other problem, without a word. Refused, naming the
-    boundary nodes that lie on another boundary edge; joined by fragment, it is read."""
+    """A unit square and a second rectangle, each meshed on its own nodes (no fragment):
+    side by side, the nodes along x = 1 are there twice, at the same places (equal
+    rectangles) or interleaved (the second shorter), and the mesh is cut there; overlapping
+    or inside the square, two membranes lie on top of each other. The run solved that other
+    problem, held at g along the cut or the inner rim, and certified it without a word.
+    Refused, naming the boundary nodes in or on a triangle they are not a vertex of; the
+    two squares joined by fragment are read."""
     msh = rectangles_msh(tmp_path / "apart.msh", [(0, 0, 0, 1, 1), second])
-    with pytest.raises(ValueError, match="boundary node.* on a boundary edge they do not end"):
+    with pytest.raises(ValueError, match="boundary node.* in or on a triangle they are not"):
         read_msh(msh)
     cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
     assert global_counts(read_msh(two_squares(tmp_path / "joined.msh", {1: [1, 2]})))[1] > 0
@@ -179,20 +182,30 @@ def test_hanging_node(tmp_path, capsys):
     read_msh(msh22(tmp_path / "conforming.msh", nodes, cells + [(1, 6, 2)]))
 
 
-def test_boundary_nodes_against_edges_at_graded_corners():
-    """The tolerance of the hanging-node test is relative to the shorter of the two edges it
-    compares: at a corner where an edge of length 1 meets edges down to 1e-12 (a graded
-    boundary), the small edges' nodes lie within 1e-8 of the long edge's length from it, and
-    are no hanging nodes. A node 1e-7 of its own edges off a straight boundary is none
-    either; one 1e-9 off it is."""
-    from membranes.fem.meshes import _nodes_on_other_boundary_edges as touching
-    steps = 10.0 ** -np.arange(1, 13)
-    x = np.vstack([[(1, 0), (0, 0)], np.c_[np.zeros(12), steps[::-1]]])
-    ring = np.arange(len(x))
-    assert touching(x, np.c_[ring, np.roll(ring, -1)]) == 0
-    for off, found in ((1e-7, 0), (1e-9, 1)):
-        x = np.array([(0, 0), (1, 0), (0.5, off * 0.5), (0.5, -1)])
-        assert touching(x, np.array([[0, 1], [0, 2], [2, 1], [1, 3], [3, 0]])) == found
+@pytest.mark.parametrize("offset, found", [(1e-7, 0), (1e-9, 1), (-1e-3, 1), (-1e-9, 1)])
+def test_a_node_near_a_triangle_not_its_own(offset, found):
+    """The triangle (0, 0), (1, 0), (0.5, -1) below, and above it two triangles on the node
+    m = (0.5, δ), δ = `offset` × |m|'s shortest edge (about 0.5): m lies off the triangle by
+    δ (inside it for δ < 0, the meshes overlapping). It counts as a hanging node within 1e-8
+    of its shortest edge, and inside."""
+    from membranes.fem.meshes import _boundary_nodes_in_other_cells as touching
+    x = np.array([(0, 0), (1, 0), (0.5, 0), (0.5, -1), (0.5, 1)], dtype=float)
+    x[2, 1] = 0.5 * offset
+    cells = np.array([(0, 3, 1), (0, 2, 4), (2, 1, 4)])
+    assert touching(x, cells, np.arange(5)) == found
+    assert touching(x, cells[:, ::-1], np.arange(5)) == found      # either orientation
+
+
+def test_graded_corner_has_no_hanging_node():
+    """A fan of triangles from (1, 0) onto the nodes (0, 10^-k), k = 0 … 12, and (0, 0): at
+    the corner, edges of length about 1 meet edges down to 1e-12. The small edges' nodes lie
+    within 1e-8 of the long edges' length of the large triangles, but far from them measured
+    by their own edges: no hanging node."""
+    from membranes.fem.meshes import _boundary_nodes_in_other_cells as touching
+    heights = np.r_[10.0 ** -np.arange(13), 0.0]
+    x = np.vstack([[(1, 0)], np.c_[np.zeros(14), heights]])
+    cells = np.array([(0, k + 1, k + 2) for k in range(13)])
+    assert touching(x, cells, np.arange(len(x))) == 0
 
 
 def test_planes_and_unused_nodes_off_z_0(tmp_path):

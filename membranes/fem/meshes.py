@@ -11,8 +11,8 @@ physical groups. So the triangles of a gmsh model's 2D physical groups (of every
 has none; a generated disk or square, or an opened `.msh` file) are taken once each, on the
 nodes they use, and checked (no zero-area triangle, no triangle listed twice, by its nodes or
 their places, no edge of three or more triangles, no fold: the two triangles of an edge lie
-on its two sides; no boundary node on another boundary edge: no hanging node, no surfaces
-left unjoined; the nodes in one plane z = const), and dolfinx's `create_mesh` distributes
+on its two sides; no boundary node in or on a triangle it is not a vertex of: no hanging
+node, no surfaces overlapping or left unjoined; the nodes in one plane z = const), and dolfinx's `create_mesh` distributes
 them, without ghost cells (§12): plaza refinement of a ghosted mesh gave two copies of a
 ghost cell on some processes (a file of two squares on 3 processes), and the estimators met
 facets of three cells.
@@ -113,7 +113,7 @@ def _shape(shape, h):
         gmsh.option.setNumber("Mesh.CharacteristicLengthMin", 0.0)
         gmsh.option.setNumber("Mesh.CharacteristicLengthMax", h)
         gmsh.model.mesh.generate(2)
-        return _model_cells(gmsh, f"the generated unit {shape}")
+        return _model_cells(gmsh, f"the generated unit {shape}", conforming=True)
     return build
 
 
@@ -220,12 +220,14 @@ def _check_msh(gmsh, path):
     return _model_cells(gmsh, f"mesh file {path!r}")
 
 
-def _model_cells(gmsh, what):
+def _model_cells(gmsh, what, conforming=False):
     """(cells, x) of gmsh's current model (`what` names it in messages): its triangles in 2D
     physical groups (in every surface if it has none), each once, as rows of indices into x,
     the (n, 2) coordinates of the n nodes they use (module notes). ValueError for degenerate,
-    repeated, overlapping or folded cells, and for nodes off one plane z = const (a plane
-    z = c is taken as z = 0; nodes no triangle uses are not looked at)."""
+    repeated, overlapping or folded cells, for boundary nodes in or on other triangles (not
+    looked for where the model is `conforming`: one surface meshed by gmsh), and for nodes
+    off one plane z = const (a plane z = c is taken as z = 0; nodes no triangle uses are not
+    looked at)."""
     groups = gmsh.model.getPhysicalGroups(2)
     surfaces = sorted({int(e) for _, tag in groups
                        for e in gmsh.model.getEntitiesForPhysicalGroup(2, tag)}) if groups \
@@ -283,63 +285,57 @@ def _model_cells(gmsh, what):
     if folded:
         raise ValueError(f"{what} has {folded} edge(s) whose two triangles lie on the same "
                          f"side (a folded or tangled mesh)")
-    touching = _nodes_on_other_boundary_edges(x, ends[first[shared == 1]])
+    touching = 0 if conforming else \
+        _boundary_nodes_in_other_cells(x, cells, np.unique(ends[first[shared == 1]]))
     if touching:
-        raise ValueError(f"{what} has {touching} boundary node(s) on a boundary edge they do "
-                         f"not end (a hanging node, or surfaces meshed on nodes of their own "
-                         f"and not joined: join them with gmsh's fragment)")
+        raise ValueError(f"{what} has {touching} boundary node(s) in or on a triangle they are "
+                         f"not a vertex of (a hanging node, or surfaces meshed on nodes of "
+                         f"their own, overlapping or not joined: join them with gmsh's "
+                         f"fragment)")
     return cells, x
 
 
-def _nodes_on_other_boundary_edges(x, edges):
-    """How many end nodes of the boundary edges `edges` ((m, 2) node indices into x) lie on a
-    boundary edge that does not end at them: within 1e-8 of the shorter of that edge and the
-    node's own shortest boundary edge (plus round-off of the coordinates), its ends
-    included. A conforming mesh of a domain has none; a
-    hanging node (a vertex inside a neighbour's edge) has one, and so do two surfaces
-    meshed on their own nodes along a common curve (its nodes twice, at the same places, or
-    interleaved): the mesh is then cut there, ∂Ω runs through the domain and the Dirichlet
-    data are imposed along the cut, a different problem that the bound would certify.
-    Buckets of side 2^l hold the edges of length in (2^(l-1), 2^l], each in the up to 3 x 3
-    buckets its box (widened by the tolerance) meets; every node is compared with the
-    edges of its bucket at each length."""
-    a, b = x[edges[:, 0]], x[edges[:, 1]]
-    length = np.hypot(*(b - a).T)
+def _boundary_nodes_in_other_cells(x, cells, nodes):
+    """How many of the boundary nodes `nodes` (indices into x) lie in or on a triangle of
+    `cells` that they are not a vertex of: within 1e-8 of their distance to the next
+    boundary node (plus round-off of the coordinates) of it. A conforming mesh of a domain has none. A hanging
+    node (a vertex inside a neighbour's edge) is one, and so are the nodes of two surfaces
+    meshed on their own nodes, along a common curve (its nodes twice, at the same places,
+    or interleaved) or overlapping: the mesh is then cut there, or two membranes lie on
+    top of each other, and the Dirichlet data are imposed on the cut or on the inner rim,
+    a different problem that the bound would certify. The candidates are the boundary
+    nodes within each triangle's circle about its centroid through its farthest vertex
+    (scipy's k-d tree of the boundary nodes), each then measured against its triangle."""
+    from scipy.spatial import cKDTree
+    p = x[cells]
+    centre = p.mean(axis=1)
+    radius = np.sqrt(((p - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
     round_off = 8 * np.finfo(float).eps * np.abs(x).max()
-    tol = 1e-8 * length + round_off
-    own = np.full(len(x), np.inf)                 # a node's shortest boundary edge
-    np.minimum.at(own, edges.ravel(), np.repeat(length, 2))
-    touching = np.zeros(len(x), dtype=bool)
-    levels = np.ceil(np.log2(length))
-    for level in np.unique(levels):
-        side = 2.0 ** level
-        kept = np.flatnonzero(levels == level)
-        lo = np.floor((np.minimum(a[kept], b[kept]) - tol[kept, None]) / side)
-        hi = np.floor((np.maximum(a[kept], b[kept]) + tol[kept, None]) / side)
-        spans = [(di, dj) for di in range(3) for dj in range(3)]
-        which = np.concatenate([kept[(lo[:, 0] + di <= hi[:, 0]) & (lo[:, 1] + dj <= hi[:, 1])]
-                                for di, dj in spans])
-        cell = np.concatenate([lo[(lo[:, 0] + di <= hi[:, 0]) & (lo[:, 1] + dj <= hi[:, 1])]
-                               + (di, dj) for di, dj in spans])
-        box = np.vstack([lo.min(axis=0), hi.max(axis=0) + 1]) * side
-        nodes = np.flatnonzero((own < np.inf) & np.all((x >= box[0]) & (x < box[1]), axis=1))
-        home = np.floor(x[nodes] / side)
-        _, ids = np.unique(np.concatenate([cell, home]), axis=0, return_inverse=True)
-        ids = ids.ravel()
-        order = np.argsort(ids[:len(cell)], kind="stable")
-        bucket, which = ids[:len(cell)][order], which[order]
-        node_bucket = ids[len(cell):]
-        start = np.searchsorted(bucket, node_bucket, side="left")
-        count = np.searchsorted(bucket, node_bucket, side="right") - start
-        node = np.repeat(nodes, count)
-        edge = which[np.repeat(start - np.cumsum(count) + count, count) + np.arange(count.sum())]
-        d = b[edge] - a[edge]
-        t = np.clip(((x[node] - a[edge]) * d).sum(axis=1) / (d * d).sum(axis=1), 0.0, 1.0)
-        near = np.hypot(*(a[edge] + t[:, None] * d - x[node]).T) \
-            <= 1e-8 * np.minimum(length[edge], own[node]) + round_off
-        near &= (edges[edge, 0] != node) & (edges[edge, 1] != node)
-        touching[node[near]] = True
-    return int(np.count_nonzero(touching))
+    reach = radius * (1 + 1e-8) + round_off
+    tree = cKDTree(x[nodes])
+    own = np.zeros(len(x))            # a boundary node's distance to the next boundary node
+    own[nodes] = tree.query(x[nodes], k=2)[0][:, 1] if len(nodes) > 1 else 0.0
+    boundary = np.zeros(len(x), dtype=bool)
+    boundary[nodes] = True
+    found = tree.query_ball_point(centre, reach, return_length=True)
+    more = np.flatnonzero(found > boundary[cells].sum(axis=1))   # not only its own vertices
+    pairs = tree.query_ball_point(centre[more], reach[more])
+    count = np.array([len(near) for near in pairs], dtype=np.int64)
+    cell = np.repeat(more, count)
+    node = nodes[np.concatenate([np.asarray(near, dtype=np.int64) for near in pairs])] \
+        if len(pairs) else np.empty(0, dtype=np.int64)
+    other = np.all(cells[cell] != node[:, None], axis=1)
+    cell, node = cell[other], node[other]
+    # the distance of the node from the triangle: 0 inside, else from its nearest side
+    a, b, q = p[cell], np.roll(p[cell], -1, axis=1), x[node][:, None, :]
+    d = b - a
+    cross = d[..., 0] * (q - a)[..., 1] - d[..., 1] * (q - a)[..., 0]
+    turn = np.sign(d[:, 0, 0] * d[:, 2, 1] - d[:, 0, 1] * d[:, 2, 0])  # orientation
+    inside = np.all(cross * -turn[:, None] >= 0, axis=1)
+    t = np.clip(((q - a) * d).sum(axis=2) / (d * d).sum(axis=2), 0.0, 1.0)
+    side = np.sqrt(((a + t[..., None] * d - q) ** 2).sum(axis=2)).min(axis=1)
+    near = inside | (side <= 1e-8 * own[node] + round_off)
+    return len(np.unique(node[near]))
 
 
 def check_msh_path(path):
