@@ -12,10 +12,10 @@ has none; a generated disk or square, or an opened `.msh` file) are taken once e
 nodes they use, and checked (no zero-area triangle, no triangle listed twice, by its nodes or
 their places, no edge of three or more triangles, no fold: the two triangles of an edge lie
 on its two sides; no boundary node in or on a triangle it is not a vertex of: no hanging
-node, no surfaces overlapping or left unjoined; the nodes in one plane z = const), and dolfinx's `create_mesh` distributes
-them, without ghost cells (§12): plaza refinement of a ghosted mesh gave two copies of a
-ghost cell on some processes (a file of two squares on 3 processes), and the estimators met
-facets of three cells.
+node, no surfaces overlapping or left unjoined; the nodes in one plane z = const), and
+dolfinx's `create_mesh` distributes them, without ghost cells (§12): plaza refinement of a
+ghosted mesh gave two copies of a ghost cell on some processes (a file of two squares on 3
+processes), and the estimators met facets of three cells.
 
 **Reproducible partitions.** dolfinx partitions with PT-Scotch, which splits a graph with
 several threads by default; its partitions then differ from run to run (on 3 and 4 processes
@@ -298,14 +298,15 @@ def _model_cells(gmsh, what, conforming=False):
 def _boundary_nodes_in_other_cells(x, cells, nodes):
     """How many of the boundary nodes `nodes` (indices into x) lie in or on a triangle of
     `cells` that they are not a vertex of: within 1e-8 of their distance to the next
-    boundary node (plus round-off of the coordinates) of it. A conforming mesh of a domain has none. A hanging
-    node (a vertex inside a neighbour's edge) is one, and so are the nodes of two surfaces
-    meshed on their own nodes, along a common curve (its nodes twice, at the same places,
-    or interleaved) or overlapping: the mesh is then cut there, or two membranes lie on
-    top of each other, and the Dirichlet data are imposed on the cut or on the inner rim,
-    a different problem that the bound would certify. The candidates are the boundary
-    nodes within each triangle's circle about its centroid through its farthest vertex
-    (scipy's k-d tree of the boundary nodes), each then measured against its triangle."""
+    boundary node (plus round-off of the coordinates) of it. A conforming mesh of a domain
+    has none. A hanging node (a vertex inside a neighbour's edge) is one, and so are the
+    nodes of two surfaces meshed on their own nodes, along a common curve (its nodes
+    twice, at the same places, or interleaved) or overlapping: the mesh is then cut there,
+    or two membranes lie on top of each other, and the Dirichlet data are imposed on the
+    cut or on the inner rim, a different problem that the bound would certify. The
+    candidates are the boundary nodes within each triangle's circle about its centroid
+    through its farthest vertex (scipy's k-d tree of the boundary nodes), each then
+    measured against its triangle."""
     from scipy.spatial import cKDTree
     p = x[cells]
     centre = p.mean(axis=1)
