@@ -162,7 +162,7 @@ def test_surfaces_not_joined(second, tmp_path, capsys):
     Refused, naming the boundary nodes in or on a triangle they are not a vertex of; the
     two squares joined by fragment are read."""
     msh = rectangles_msh(tmp_path / "apart.msh", [(0, 0, 0, 1, 1), second])
-    with pytest.raises(ValueError, match="boundary node.* in or on a triangle they are not"):
+    with pytest.raises(ValueError, match="not conforming: .* boundary node"):
         read_msh(msh)
     cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
     assert global_counts(read_msh(two_squares(tmp_path / "joined.msh", {1: [1, 2]})))[1] > 0
@@ -192,8 +192,41 @@ def test_a_node_near_a_triangle_not_its_own(offset, found):
     x = np.array([(0, 0), (1, 0), (0.5, 0), (0.5, -1), (0.5, 1)], dtype=float)
     x[2, 1] = 0.5 * offset
     cells = np.array([(0, 3, 1), (0, 2, 4), (2, 1, 4)])
-    assert touching(x, cells, np.arange(5)) == found
-    assert touching(x, cells[:, ::-1], np.arange(5)) == found      # either orientation
+    edges = np.array([(0, 3), (3, 1), (1, 0), (0, 2), (4, 0), (2, 1), (1, 4)])
+    assert touching(x, cells, edges) == found
+    assert touching(x, cells[:, ::-1], edges) == found      # either orientation
+
+
+def test_a_crack_narrower_than_its_edges():
+    """The unit square's two triangles, the second on its own copies of the diagonal's ends
+    moved 1e-12 off it: a crack. Each of the four ends lies 1.4e-12 off the other triangle,
+    within 1e-8 of its boundary edges (about 1), though its twin is nearer still."""
+    from membranes.fem.meshes import _boundary_nodes_in_other_cells as touching
+    shift = np.array([-1e-12, 1e-12])
+    x = np.array([(0, 0), (1, 0), (1, 1), (0, 1), (0, 0) + shift, (1, 1) + shift])
+    cells = np.array([(0, 1, 2), (4, 5, 3)])
+    edges = np.array([(0, 1), (1, 2), (2, 0), (4, 5), (5, 3), (3, 4)])
+    assert touching(x, cells, edges) == 4
+
+
+@pytest.mark.parametrize("tip, found", [(False, 0), (True, 0), ("moved", 0), ("apart", 6)])
+def test_a_crack_is_no_hanging_node(tip, found):
+    """The unit square in four triangles about its centre c, the last on its own copy of the
+    corner (0, 0) (and of c if `tip`): a crack from the corner to c (and on to the corner
+    (0, 1)), its faces joined through the mesh at c (at (0, 1)), as gmsh's Crack plugin
+    makes them: no hanging node, also with the copy 1.4e-12 off its twin ("moved", within
+    1e-8 of the edges: the same place). The last triangle on copies of all its nodes,
+    moved by (-1, 1)·1e-12, is a part of the mesh joined to none: refused, its three nodes
+    and the three they lie 1.4e-12 off."""
+    from membranes.fem.meshes import _boundary_nodes_in_other_cells as touching
+    x = np.array([(0, 0), (1, 0), (1, 1), (0, 1), (0.5, 0.5), (0, 0), (0.5, 0.5), (0, 1)])
+    last = {False: (3, 5, 4), True: (3, 5, 6), "moved": (3, 5, 4), "apart": (7, 5, 6)}[tip]
+    if tip in ("moved", "apart"):
+        x[5:] += (-1e-12, 1e-12)
+    cells = np.array([(0, 1, 4), (1, 2, 4), (2, 3, 4), last])
+    sides = np.sort(cells[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    unique, count = np.unique(sides, axis=0, return_counts=True)
+    assert touching(x, cells, unique[count == 1]) == found
 
 
 def test_graded_corner_has_no_hanging_node():
@@ -205,7 +238,8 @@ def test_graded_corner_has_no_hanging_node():
     heights = np.r_[10.0 ** -np.arange(13), 0.0]
     x = np.vstack([[(1, 0)], np.c_[np.zeros(14), heights]])
     cells = np.array([(0, k + 1, k + 2) for k in range(13)])
-    assert touching(x, cells, np.arange(len(x))) == 0
+    ring = np.arange(len(x))
+    assert touching(x, cells, np.c_[ring, np.roll(ring, -1)]) == 0
 
 
 def test_planes_and_unused_nodes_off_z_0(tmp_path):

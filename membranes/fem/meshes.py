@@ -286,36 +286,40 @@ def _model_cells(gmsh, what, conforming=False):
         raise ValueError(f"{what} has {folded} edge(s) whose two triangles lie on the same "
                          f"side (a folded or tangled mesh)")
     touching = 0 if conforming else \
-        _boundary_nodes_in_other_cells(x, cells, np.unique(ends[first[shared == 1]]))
+        _boundary_nodes_in_other_cells(x, cells, ends[first[shared == 1]])
     if touching:
-        raise ValueError(f"{what} has {touching} boundary node(s) in or on a triangle they are "
-                         f"not a vertex of (a hanging node, or surfaces meshed on nodes of "
-                         f"their own, overlapping or not joined: join them with gmsh's "
-                         f"fragment)")
+        raise ValueError(f"{what} is not conforming: {touching} boundary node(s) in or on a "
+                         f"triangle they are not a vertex of, or at a node of a part of the "
+                         f"mesh they are not joined to (a hanging node, or surfaces meshed "
+                         f"on nodes of their own, overlapping or not joined: join them with "
+                         f"gmsh's fragment)")
     return cells, x
 
 
-def _boundary_nodes_in_other_cells(x, cells, nodes):
-    """How many of the boundary nodes `nodes` (indices into x) lie in or on a triangle of
-    `cells` that they are not a vertex of: within 1e-8 of their distance to the next
-    boundary node (plus round-off of the coordinates) of it. A conforming mesh of a domain
-    has none. A hanging node (a vertex inside a neighbour's edge) is one, and so are the
-    nodes of two surfaces meshed on their own nodes, along a common curve (its nodes
-    twice, at the same places, or interleaved) or overlapping: the mesh is then cut there,
-    or two membranes lie on top of each other, and the Dirichlet data are imposed on the
-    cut or on the inner rim, a different problem that the bound would certify. The
-    candidates are the boundary nodes within each triangle's circle about its centroid
-    through its farthest vertex (scipy's k-d tree of the boundary nodes), each then
-    measured against its triangle."""
+def _boundary_nodes_in_other_cells(x, cells, edges):
+    """How many ends of the boundary edges `edges` ((m, 2) indices into x) lie in or on a
+    triangle of `cells` that they are not a vertex of: within 1e-8 of their shortest
+    boundary edge (plus round-off of the coordinates) of it. A conforming mesh of a domain
+    has none, but for the two faces of a crack: nodes at the place of another, in one
+    connected mesh, are taken for one (gmsh's Crack plugin duplicates the nodes of a slit).
+    A hanging node (a vertex inside a neighbour's edge) counts, and so do the nodes of two
+    surfaces meshed on their own nodes, along a common curve (its nodes twice, at the same
+    places, in parts of the mesh not joined to each other, or interleaved) or overlapping:
+    the mesh is then cut there, or two membranes lie on top of each other, and the
+    Dirichlet data are imposed on the cut or on the inner rim, a different problem that
+    the bound would certify. The candidates are the boundary nodes within each triangle's
+    circle about its centroid through its farthest vertex (scipy's k-d tree of the
+    boundary nodes), each then measured against its triangle."""
     from scipy.spatial import cKDTree
     p = x[cells]
     centre = p.mean(axis=1)
     radius = np.sqrt(((p - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
     round_off = 8 * np.finfo(float).eps * np.abs(x).max()
     reach = radius * (1 + 1e-8) + round_off
+    nodes = np.unique(edges)
     tree = cKDTree(x[nodes])
-    own = np.zeros(len(x))            # a boundary node's distance to the next boundary node
-    own[nodes] = tree.query(x[nodes], k=2)[0][:, 1] if len(nodes) > 1 else 0.0
+    own = np.full(len(x), np.inf)                 # a boundary node's shortest boundary edge
+    np.minimum.at(own, edges.ravel(), np.repeat(np.hypot(*(x[edges[:, 1]] - x[edges[:, 0]]).T), 2))
     boundary = np.zeros(len(x), dtype=bool)
     boundary[nodes] = True
     found = tree.query_ball_point(centre, reach, return_length=True)
@@ -335,7 +339,20 @@ def _boundary_nodes_in_other_cells(x, cells, nodes):
     inside = np.all(cross * -turn[:, None] >= 0, axis=1)
     t = np.clip(((q - a) * d).sum(axis=2) / (d * d).sum(axis=2), 0.0, 1.0)
     side = np.sqrt(((a + t[..., None] * d - q) ** 2).sum(axis=2)).min(axis=1)
-    near = inside | (side <= 1e-8 * own[node] + round_off)
+    tol = 1e-8 * own[node] + round_off
+    near = inside | (side <= tol)
+    # at the place of one of the triangle's vertices: a crack's two faces (gmsh's Crack
+    # plugin) if the two nodes are joined through the mesh, two parts not joined if not
+    corner = np.sqrt(((p[cell] - q) ** 2).sum(axis=2))
+    twin = corner.min(axis=1) <= tol
+    if np.any(near & twin):
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+        links = coo_matrix((np.ones(2 * len(cells)),
+                            (cells[:, :2].ravel(), cells[:, 1:].ravel())), shape=(len(x),) * 2)
+        part = connected_components(links, directed=False)[1]
+        joined = part[node] == part[cells[cell, corner.argmin(axis=1)]]
+        near &= ~(twin & joined)
     return len(np.unique(node[near]))
 
 
