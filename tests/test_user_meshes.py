@@ -408,3 +408,31 @@ def test_element_node_tags_of_2_to_the_31_or_more(tag, binary, tmp_path):
     assert not (tmp_path / "out").exists()
     # the same file with the node tag it had is read
     assert read_msh(_with_node_tag(msh, 1, binary)).topology.index_map(2).size_global > 0
+
+
+def test_pinch_vertex_on_two_processes(tmp_path):
+    """Two 4 x 4 grids of squares, (0, 1)² and (1, 2)², touching at the one node (1, 1): a
+    pinch, where the cells of each square meet the other's at that vertex alone. dolfinx
+    0.5.2 finds the vertices processes share through facets, so on 2 processes the pinch
+    may become two vertices (README, "On several processes"); it lies on ∂Ω, u = g there,
+    and the solution does not change: exact Newton with MUMPS gives the serial η to
+    round-off (asserted 1e-10, measured 2.5e-13 at J = 3), with the same Newton steps."""
+    xs = np.linspace(0.0, 1.0, 5)
+    nodes = [(x, y) for y in xs for x in xs]
+    nodes += [(1 + x, 1 + y) for y in xs for x in xs][1:]
+    second = [24] + list(range(25, 49))                 # its corner (1, 1) is node 24
+    cells = [c for j in range(4) for i in range(4) for a in [5 * j + i]
+             for c in ((a, a + 1, a + 6), (a, a + 6, a + 5))]
+    cells += [tuple(second[k] for k in c) for c in cells]
+    msh = msh22(tmp_path / "pinch.msh", nodes, cells)
+    args = ["--mesh", msh, "--levels", "2", "--f1", "-1", "--f2", "0.3", "--newton", "exact",
+            "--solver", "direct"]
+    serial = solve(scenes.user(mesh=msh, levels=2, f1="-1", f2="0.3"), newton="exact",
+                   solver="direct")
+    proc = mpirun(["-m", "membranes.app.cli", "solve", *args, "--quiet"], processes=2,
+                  timeout=240)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    line = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert line["n_vertices"] - serial.per_level[-1]["n_vertices"] in (0, 1)
+    assert line["newton_iterations"] == serial.newton_iterations
+    assert line["eta"] == pytest.approx(serial.estimates["eta"], rel=1e-10)
