@@ -11,8 +11,8 @@ physical groups. So the triangles of a gmsh model's 2D physical groups (of every
 has none; a generated disk or square, or an opened `.msh` file) are taken once each, on the
 nodes they use, and checked (no zero-area triangle, no triangle listed twice, by its nodes or
 their places, no edge of three or more triangles, no fold: the two triangles of an edge lie
-on its two sides; no boundary node in or on a triangle it is not a vertex of: no hanging
-node, no surfaces overlapping or left unjoined; the nodes in one plane z = const), and
+on its two sides; conforming (`conformity`): no hanging node, no surfaces overlapping or
+left unjoined; the nodes in one plane z = const), and
 dolfinx's `create_mesh` distributes them, without ghost cells (§12): plaza refinement of a
 ghosted mesh gave two copies of a ghost cell on some processes (a file of two squares on 3
 processes), and the estimators met facets of three cells.
@@ -37,6 +37,7 @@ import numpy as np
 from mpi4py import MPI
 
 from ..model.problem import real_number
+from .conformity import nonconforming_nodes
 
 GMSH_TRIANGLE = 2  # gmsh element type of the 3-node triangle
 
@@ -224,8 +225,8 @@ def _model_cells(gmsh, what, conforming=False):
     """(cells, x) of gmsh's current model (`what` names it in messages): its triangles in 2D
     physical groups (in every surface if it has none), each once, as rows of indices into x,
     the (n, 2) coordinates of the n nodes they use (module notes). ValueError for degenerate,
-    repeated, overlapping or folded cells, for boundary nodes in or on other triangles (not
-    looked for where the model is `conforming`: one surface meshed by gmsh), and for nodes
+    repeated, overlapping or folded cells, for a mesh that is not conforming (`conformity`;
+    not looked for where the model is `conforming`: one surface meshed by gmsh), and for nodes
     off one plane z = const (a plane z = c is taken as z = 0; nodes no triangle uses are not
     looked at)."""
     groups = gmsh.model.getPhysicalGroups(2)
@@ -285,75 +286,14 @@ def _model_cells(gmsh, what, conforming=False):
     if folded:
         raise ValueError(f"{what} has {folded} edge(s) whose two triangles lie on the same "
                          f"side (a folded or tangled mesh)")
-    touching = 0 if conforming else \
-        _boundary_nodes_in_other_cells(x, cells, ends[first[shared == 1]])
+    touching = 0 if conforming else nonconforming_nodes(x, cells, ends[first[shared == 1]])
     if touching:
-        raise ValueError(f"{what} is not conforming: {touching} boundary node(s) in or on a "
-                         f"triangle they are not a vertex of, or at a node of a part of the "
-                         f"mesh they are not joined to (a hanging node, or surfaces meshed "
-                         f"on nodes of their own, overlapping or not joined: join them with "
+        raise ValueError(f"{what} is not conforming: {touching} boundary node(s) on another "
+                         f"boundary edge or node, on crossing edges, inside another part or "
+                         f"in overlapping triangles (a hanging node, or surfaces meshed on "
+                         f"nodes of their own, overlapping or not joined: join them with "
                          f"gmsh's fragment)")
     return cells, x
-
-
-def _boundary_nodes_in_other_cells(x, cells, edges):
-    """How many ends of the boundary edges `edges` ((m, 2) indices into x) lie in or on a
-    triangle of `cells` that they are not a vertex of: within 1e-8 of their shortest
-    boundary edge (plus round-off of the coordinates) of it. A conforming mesh of a domain
-    has none, but for the two faces of a crack: nodes at the place of another, in one
-    connected mesh, are taken for one (gmsh's Crack plugin duplicates the nodes of a slit).
-    A hanging node (a vertex inside a neighbour's edge) counts, and so do the nodes of two
-    surfaces meshed on their own nodes, along a common curve (its nodes twice, at the same
-    places, in parts of the mesh not joined to each other, or interleaved) or overlapping:
-    the mesh is then cut there, or two membranes lie on top of each other, and the
-    Dirichlet data are imposed on the cut or on the inner rim, a different problem that
-    the bound would certify. The candidates are the boundary nodes within each triangle's
-    circle about its centroid through its farthest vertex (scipy's k-d tree of the
-    boundary nodes), each then measured against its triangle."""
-    from scipy.spatial import cKDTree
-    p = x[cells]
-    centre = p.mean(axis=1)
-    radius = np.sqrt(((p - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
-    round_off = 8 * np.finfo(float).eps * np.abs(x).max()
-    reach = radius * (1 + 1e-8) + round_off
-    nodes = np.unique(edges)
-    tree = cKDTree(x[nodes])
-    own = np.full(len(x), np.inf)                 # a boundary node's shortest boundary edge
-    np.minimum.at(own, edges.ravel(), np.repeat(np.hypot(*(x[edges[:, 1]] - x[edges[:, 0]]).T), 2))
-    boundary = np.zeros(len(x), dtype=bool)
-    boundary[nodes] = True
-    found = tree.query_ball_point(centre, reach, return_length=True)
-    more = np.flatnonzero(found > boundary[cells].sum(axis=1))   # not only its own vertices
-    pairs = tree.query_ball_point(centre[more], reach[more])
-    count = np.array([len(near) for near in pairs], dtype=np.int64)
-    cell = np.repeat(more, count)
-    node = nodes[np.concatenate([np.asarray(near, dtype=np.int64) for near in pairs])] \
-        if len(pairs) else np.empty(0, dtype=np.int64)
-    other = np.all(cells[cell] != node[:, None], axis=1)
-    cell, node = cell[other], node[other]
-    # the distance of the node from the triangle: 0 inside, else from its nearest side
-    a, b, q = p[cell], np.roll(p[cell], -1, axis=1), x[node][:, None, :]
-    d = b - a
-    cross = d[..., 0] * (q - a)[..., 1] - d[..., 1] * (q - a)[..., 0]
-    turn = np.sign(d[:, 0, 0] * d[:, 2, 1] - d[:, 0, 1] * d[:, 2, 0])  # orientation
-    inside = np.all(cross * -turn[:, None] >= 0, axis=1)
-    t = np.clip(((q - a) * d).sum(axis=2) / (d * d).sum(axis=2), 0.0, 1.0)
-    side = np.sqrt(((a + t[..., None] * d - q) ** 2).sum(axis=2)).min(axis=1)
-    tol = 1e-8 * own[node] + round_off
-    near = inside | (side <= tol)
-    # at the place of one of the triangle's vertices: a crack's two faces (gmsh's Crack
-    # plugin) if the two nodes are joined through the mesh, two parts not joined if not
-    corner = np.sqrt(((p[cell] - q) ** 2).sum(axis=2))
-    twin = corner.min(axis=1) <= tol
-    if np.any(near & twin):
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-        links = coo_matrix((np.ones(2 * len(cells)),
-                            (cells[:, :2].ravel(), cells[:, 1:].ravel())), shape=(len(x),) * 2)
-        part = connected_components(links, directed=False)[1]
-        joined = part[node] == part[cells[cell, corner.argmin(axis=1)]]
-        near &= ~(twin & joined)
-    return len(np.unique(node[near]))
 
 
 def check_msh_path(path):

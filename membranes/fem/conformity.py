@@ -1,0 +1,162 @@
+"""Is a file's mesh a conforming mesh of one domain? (§9, §12: P1 on a triangulation of Ω)
+
+`meshes` checks single cells and edges first: no zero-area triangle, none listed twice, no
+edge of three triangles, no fold (the two triangles of an edge on one side of it). Triangles
+that pass can still be no triangulation of a domain, and dolfinx reads them silently. Each
+of these comes from a mistake a user makes in gmsh, and each makes another problem, which
+the bound would then certify:
+
+- a hanging node, a vertex inside a neighbour's edge: that edge is a boundary, held at g;
+- two surfaces meshed on their own nodes (no `fragment`) along a common curve, its nodes
+  twice at the same places or interleaved: the mesh is cut along the curve, held at g;
+- two such surfaces overlapping, crossing, or one inside the other: two membranes lie on
+  top of each other.
+
+All show on the boundary, so all four checks below look at the boundary edges (m of them)
+and their end nodes, never at every triangle: their cost is that of the m edges and one
+pass over the cells, whatever the cells' shapes. With L the shorter of the two edges
+compared (a node's own: its shortest boundary edge), a node is *on* an edge within
+1e-8 L (plus the coordinates' round-off).
+
+1. A boundary node on a boundary edge it does not end. At one of the edge's ends, it is a
+   node at the place of another: the two faces of a crack (gmsh's Crack plugin duplicates a
+   slit's nodes) if the two lie in one connected mesh, two parts not joined if not.
+2. Two boundary edges that cross.
+3. A connected part of the mesh inside another (ray casting through the other's boundary).
+4. At a boundary node, two of its triangles' angles overlapping (a tangle that shares its
+   nodes).
+
+A mesh that wraps twice around a domain without a boundary crossing is not found.
+"""
+
+import itertools
+
+import numpy as np
+
+TOL = 1e-8      # relative to the shorter edge compared: a node on an edge, an angle
+
+
+def nonconforming_nodes(x, cells, edges):
+    """How many boundary nodes (the ends of `edges`, the (m, 2) boundary edges, indices
+    into the (n, 2) coordinates x; `cells` the (T, 3) triangles) show that the mesh is no
+    conforming mesh of one domain (module notes, checks 1-4): 0 for a conforming mesh, the
+    faces of cracks included."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    a, b = x[edges[:, 0]], x[edges[:, 1]]
+    length = np.hypot(*(b - a).T)
+    own = np.full(len(x), np.inf)                 # a boundary node's shortest boundary edge
+    np.minimum.at(own, edges.ravel(), np.repeat(length, 2))
+    round_off = 8 * np.finfo(float).eps * np.abs(x).max()
+    links = coo_matrix((np.ones(2 * len(cells)), (cells[:, :2].ravel(), cells[:, 1:].ravel())),
+                       shape=(len(x),) * 2)
+    parts, part = connected_components(links, directed=False)
+    bad = np.zeros(len(x), dtype=bool)
+    bad[_on_edges(x, edges, length, own, round_off, part)] = True
+    bad[_crossing(x, edges, length, own, round_off)] = True
+    if parts > 1:
+        bad[_inside_other_parts(x, edges, part, parts)] = True
+    bad[_overlapping_angles(x, cells, own < np.inf)] = True
+    return int(np.count_nonzero(bad))
+
+
+def _pairs(tree, centres, radii, alone=0):
+    """(i, j): the tree's points j within radii[i] of centres[i], for the centres with more
+    than `alone` of them (a k-d tree of scipy's)."""
+    count = tree.query_ball_point(centres, radii, return_length=True)
+    more = np.flatnonzero(count > alone)
+    near = tree.query_ball_point(centres[more], radii[more])
+    i = np.repeat(more, count[more])
+    return i, np.fromiter(itertools.chain.from_iterable(near), dtype=np.int64, count=len(i))
+
+
+def _on_edges(x, edges, length, own, round_off, part):
+    """Check 1: boundary nodes on a boundary edge they do not end, but for a crack's faces.
+    A node on a segment lies within half its length of its midpoint."""
+    from scipy.spatial import cKDTree
+    nodes = np.unique(edges)
+    a, b = x[edges[:, 0]], x[edges[:, 1]]
+    edge, node = _pairs(cKDTree(x[nodes]), (a + b) / 2,
+                        length * (0.5 + TOL) + round_off, alone=2)
+    node = nodes[node]
+    keep = (edges[edge, 0] != node) & (edges[edge, 1] != node)
+    edge, node = edge[keep], node[keep]
+    d, q = b[edge] - a[edge], x[node] - a[edge]
+    t = np.clip((q * d).sum(axis=1) / (d * d).sum(axis=1), 0.0, 1.0)
+    tol = TOL * np.minimum(own[node], length[edge]) + round_off
+    on = np.hypot(*(t[:, None] * d - q).T) <= tol
+    end = edges[edge, (t > 0.5).astype(int)]
+    twin = np.hypot(*(x[end] - x[node]).T) <= tol
+    return node[on & ~(twin & (part[node] == part[end]))]
+
+
+def _crossing(x, edges, length, own, round_off):
+    """Check 2: the ends of boundary edges that cross. Where two edges cross, the shorter
+    one's midpoint lies within the longer one's length of the longer one's midpoint. An end
+    on the other edge's line (a common end, or one that check 1 finds) is no crossing."""
+    from scipy.spatial import cKDTree
+    a, b = x[edges[:, 0]], x[edges[:, 1]]
+    mid = (a + b) / 2
+    e, f = _pairs(cKDTree(mid), mid, length * (1 + TOL) + round_off, alone=1)
+    keep = (length[f] < length[e]) | ((length[f] == length[e]) & (f > e))
+    e, f = e[keep], f[keep]
+
+    def sides(e, f):
+        """Which side of edge e each end of edge f lies on: +1, -1, or 0 if on its line."""
+        d = (b[e] - a[e]) / length[e][:, None]
+        out = []
+        for end in (a[f], b[f]):
+            dist = d[:, 0] * (end - a[e])[:, 1] - d[:, 1] * (end - a[e])[:, 0]
+            tol = TOL * np.minimum(length[e], length[f]) + round_off
+            out.append(np.where(np.abs(dist) <= tol, 0, np.sign(dist)))
+        return out[0] * out[1] < 0
+
+    cross = sides(e, f) & sides(f, e)
+    return np.unique(edges[np.r_[e[cross], f[cross]]])
+
+
+def _inside_other_parts(x, edges, part, parts):
+    """Check 3: for every connected part, one boundary node of it that lies inside another
+    part: a ray from it in +x crosses that part's boundary edges an odd number of times.
+    (A part inside another's hole crosses it an even number of times: it is read.)"""
+    rep = np.full(parts, -1)
+    rep[part[edges[:, 0]]] = edges[:, 0]
+    rep = rep[rep >= 0]
+    a, b = x[edges[:, 0]], x[edges[:, 1]]
+    owner = part[edges[:, 0]]
+    found = []
+    for node in rep:
+        px, py = x[node]
+        straddle = (a[:, 1] > py) != (b[:, 1] > py)
+        hit = np.flatnonzero(straddle & (owner != part[node]))
+        at = a[hit, 0] + (py - a[hit, 1]) * (b[hit, 0] - a[hit, 0]) / (b[hit, 1] - a[hit, 1])
+        if np.any(np.bincount(owner[hit[at > px]], minlength=parts) % 2):
+            found.append(node)
+    return np.array(found, dtype=np.int64)
+
+
+def _overlapping_angles(x, cells, boundary):
+    """Check 4: boundary nodes where two of their triangles' angles overlap: each
+    triangle's angle at a node is the arc from one edge's direction to the other's; at a
+    node, sorted by their start, each must end before the next starts (within TOL radians,
+    the angle seen from the shorter edge that 1e-8 of it subtends), around the full turn."""
+    at = np.argwhere(boundary[cells])                    # (cell, corner) at a boundary node
+    cell, corner = at[:, 0], at[:, 1]
+    p = x[cells[cell]]
+    here = p[np.arange(len(cell)), corner]
+    u = p[np.arange(len(cell)), (corner + 1) % 3] - here
+    v = p[np.arange(len(cell)), (corner + 2) % 3] - here
+    turn = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+    ccw = turn[:, None] > 0
+    u, v = np.where(ccw, u, v), np.where(ccw, v, u)        # from u to v anticlockwise
+    start = np.arctan2(u[:, 1], u[:, 0]) % (2 * np.pi)
+    span = np.arctan2(np.abs(turn), (u * v).sum(axis=1))
+    node = cells[cell, corner]
+    order = np.lexsort((start, node))
+    node, start, span = node[order], start[order], span[order]
+    first = np.r_[True, node[1:] != node[:-1]]
+    last = np.r_[node[1:] != node[:-1], True]
+    # the next angle's start at the node; for its last angle, the first's a full turn on
+    after = np.r_[start[1:], 0.0]
+    after[last] = start[first] + 2 * np.pi
+    return np.unique(node[start + span > after + TOL])
