@@ -505,3 +505,18 @@ def test_pinch_vertex_on_two_processes(tmp_path):
     assert line["n_vertices"] - serial.per_level[-1]["n_vertices"] in (0, 1)
     assert line["newton_iterations"] == serial.newton_iterations
     assert line["eta"] == pytest.approx(serial.estimates["eta"], rel=1e-10)
+
+
+def test_an_edge_from_just_outside_a_part_into_it():
+    """The rectangle (-1, 1) x (-1, 0) and a separate triangle with two corners 1e-9 above
+    its top edge, joined by an edge of 0.01, and the third, (0.5, -0.5), deep inside it:
+    two membranes overlap. The corners are no hanging nodes (1e-9 is beyond 1e-8 of their
+    shortest edge), but two of the triangle's edges cross the rectangle's top. With the
+    crossing test's tolerance taken from the longer edges (1e-8 of about 0.7) the corners
+    were on the top's line, nothing crossed, and the overlap was read: its five ends."""
+    from membranes.fem.conformity import nonconforming_nodes as touching
+    x = np.array([(-1, -1), (1, -1), (1, 0), (-1, 0), (0, 1e-9), (0.01, 1e-9), (0.5, -0.5)])
+    cells = np.array([(0, 1, 2), (0, 2, 3), (4, 5, 6)])
+    edges = np.array([(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 4)])
+    assert touching(x, cells, edges) == 5
+    assert touching(x, cells[:, ::-1], edges[::-1]) == 5

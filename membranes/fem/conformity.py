@@ -93,7 +93,9 @@ def _on_edges(x, edges, length, own, round_off, part):
 def _crossing(x, edges, length, own, round_off):
     """Check 2: the ends of boundary edges that cross. Where two edges cross, the shorter
     one's midpoint lies within the longer one's length of the longer one's midpoint. An end
-    on the other edge's line (a common end, or one that check 1 finds) is no crossing."""
+    on the other edge's line (a common end, or one that check 1 finds) is no crossing; *on*
+    as in check 1, with the end's own shortest edge: an end 1e-9 off a line, its edge to
+    there 0.7 long but another of 0.01, is no hanging node and must cross."""
     from scipy.spatial import cKDTree
     a, b = x[edges[:, 0]], x[edges[:, 1]]
     mid = (a + b) / 2
@@ -105,9 +107,10 @@ def _crossing(x, edges, length, own, round_off):
         """Which side of edge e each end of edge f lies on: +1, -1, or 0 if on its line."""
         d = (b[e] - a[e]) / length[e][:, None]
         out = []
-        for end in (a[f], b[f]):
-            dist = d[:, 0] * (end - a[e])[:, 1] - d[:, 1] * (end - a[e])[:, 0]
-            tol = TOL * np.minimum(length[e], length[f]) + round_off
+        for end in edges[f].T:
+            q = x[end] - a[e]
+            dist = d[:, 0] * q[:, 1] - d[:, 1] * q[:, 0]
+            tol = TOL * np.minimum(length[e], own[end]) + round_off
             out.append(np.where(np.abs(dist) <= tol, 0, np.sign(dist)))
         return out[0] * out[1] < 0
 
