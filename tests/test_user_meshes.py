@@ -520,3 +520,22 @@ def test_an_edge_from_just_outside_a_part_into_it():
     edges = np.array([(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 4)])
     assert touching(x, cells, edges) == 5
     assert touching(x, cells[:, ::-1], edges[::-1]) == 5
+
+
+@pytest.mark.parametrize("turns, found", [(8, 0), (10, 12)])
+def test_a_strip_wound_onto_itself_is_no_crack(turns, found):
+    """The ring 1 < r < 2 as a strip of `turns` eighths of a turn, one triangle pair each,
+    on nodes of its own at every angle: 8 eighths meet at angle 0 on two copies of its
+    nodes, a crack (a slit ring) and read; 10 lap over the first two eighths, their nodes
+    at the same places, a connected mesh: two membranes on top of each other. The nodes at
+    one place were taken for a crack's faces, each alone showed nothing, and the mesh was
+    read. At one place, the angles of all their triangles are compared: the 12 nodes."""
+    from membranes.fem.conformity import nonconforming_nodes as touching
+    angle = np.pi / 4 * np.arange(turns + 1)
+    x = np.vstack([np.c_[r * np.cos(angle), r * np.sin(angle)] for r in (1, 2)])
+    k = np.arange(turns)
+    cells = np.r_[np.c_[k, k + 1, k + turns + 2], np.c_[k, k + turns + 2, k + turns + 1]]
+    sides = np.sort(cells[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    unique, count = np.unique(sides, axis=0, return_counts=True)
+    assert touching(x, cells, unique[count == 1]) == found
+    assert touching(x, cells[:, ::-1], unique[count == 1]) == found

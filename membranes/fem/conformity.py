@@ -24,7 +24,9 @@ compared (a node's own: its shortest boundary edge), a node is *on* an edge with
 2. Two boundary edges that cross.
 3. A connected part of the mesh inside another (ray casting through the other's boundary).
 4. At a boundary node, two of its triangles' angles overlapping (a tangle that shares its
-   nodes).
+   nodes). The nodes at one place that check 1 takes for a crack's faces count as one node
+   here: a crack's faces lie on its two sides, the angles of their triangles apart; a strip
+   wound onto itself, its nodes where those of its start are, overlaps there.
 
 A mesh that wraps twice around a domain without a boundary crossing is not found.
 """
@@ -52,11 +54,16 @@ def nonconforming_nodes(x, cells, edges):
                        shape=(len(x),) * 2)
     parts, part = connected_components(links, directed=False)
     bad = np.zeros(len(x), dtype=bool)
-    bad[_on_edges(x, edges, length, own, round_off, part)] = True
+    on, twins = _on_edges(x, edges, length, own, round_off, part)
+    bad[on] = True
     bad[_crossing(x, edges, length, own, round_off)] = True
     if parts > 1:
         bad[_inside_other_parts(x, edges, part, parts)] = True
-    bad[_overlapping_angles(x, cells, own < np.inf)] = True
+    pairs = coo_matrix((np.ones(len(twins)), twins.T), shape=(len(x),) * 2)
+    place = connected_components(pairs, directed=False)[1]      # twins: one place
+    slack = np.full(len(x), TOL)
+    slack[twins.ravel()] = 3 * TOL + 2 * round_off / own[twins.ravel()]
+    bad[_overlapping_angles(x, cells, own < np.inf, place, slack)] = True
     return int(np.count_nonzero(bad))
 
 
@@ -71,8 +78,9 @@ def _pairs(tree, centres, radii, alone=0):
 
 
 def _on_edges(x, edges, length, own, round_off, part):
-    """Check 1: boundary nodes on a boundary edge they do not end, but for a crack's faces.
-    A node on a segment lies within half its length of its midpoint."""
+    """Check 1: boundary nodes on a boundary edge they do not end, but for a crack's faces;
+    and those faces' (k, 2) pairs of twins (node, end at its place). A node on a segment
+    lies within half its length of its midpoint."""
     from scipy.spatial import cKDTree
     nodes = np.unique(edges)
     a, b = x[edges[:, 0]], x[edges[:, 1]]
@@ -87,7 +95,8 @@ def _on_edges(x, edges, length, own, round_off, part):
     on = np.hypot(*(t[:, None] * d - q).T) <= tol
     end = edges[edge, (t > 0.5).astype(int)]
     twin = np.hypot(*(x[end] - x[node]).T) <= tol
-    return node[on & ~(twin & (part[node] == part[end]))]
+    crack = on & twin & (part[node] == part[end])
+    return node[on & ~crack], np.c_[node[crack], end[crack]]
 
 
 def _crossing(x, edges, length, own, round_off):
@@ -138,11 +147,13 @@ def _inside_other_parts(x, edges, part, parts):
     return np.array(found, dtype=np.int64)
 
 
-def _overlapping_angles(x, cells, boundary):
+def _overlapping_angles(x, cells, boundary, place, slack):
     """Check 4: boundary nodes where two of their triangles' angles overlap: each
     triangle's angle at a node is the arc from one edge's direction to the other's; at a
     node, sorted by their start, each must end before the next starts (within TOL radians,
-    the angle seen from the shorter edge that 1e-8 of it subtends), around the full turn."""
+    the angle seen from the shorter edge that 1e-8 of it subtends), around the full turn.
+    Nodes of one `place` (twins) are one node; `slack` is the overlap allowed at a node
+    (TOL; at twins, also the turn of the edges by the up to 1e-8 of them between twins)."""
     at = np.argwhere(boundary[cells])                    # (cell, corner) at a boundary node
     cell, corner = at[:, 0], at[:, 1]
     p = x[cells[cell]]
@@ -155,11 +166,12 @@ def _overlapping_angles(x, cells, boundary):
     start = np.arctan2(u[:, 1], u[:, 0]) % (2 * np.pi)
     span = np.arctan2(np.abs(turn), (u * v).sum(axis=1))
     node = cells[cell, corner]
-    order = np.lexsort((start, node))
+    order = np.lexsort((start, place[node]))
     node, start, span = node[order], start[order], span[order]
-    first = np.r_[True, node[1:] != node[:-1]]
-    last = np.r_[node[1:] != node[:-1], True]
-    # the next angle's start at the node; for its last angle, the first's a full turn on
+    new = place[node][1:] != place[node][:-1]
+    first, last = np.r_[True, new], np.r_[new, True]
+    # the next angle's start at the place; for its last angle, the first's a full turn on
     after = np.r_[start[1:], 0.0]
     after[last] = start[first] + 2 * np.pi
-    return np.unique(node[start + span > after + TOL])
+    over = np.unique(place[node[start + span > after + slack[node]]])
+    return np.flatnonzero(np.isin(place, over) & boundary)
