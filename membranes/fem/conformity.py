@@ -13,8 +13,10 @@ the bound would then certify:
   top of each other.
 
 All show on the boundary, so all four checks below look at the boundary edges (m of them)
-and their end nodes, never at every triangle: their cost is that of the m edges and one
-pass over the cells, whatever the cells' shapes. With L the shorter of the two edges
+and their end nodes, never at every triangle: their cost is that of the m edges (k-d
+trees) and one pass over the cells, whatever the cells' shapes, but for many long
+boundary edges close together (thousands of parallel slivers apart, nested rings), whose
+searches meet each other's edges. With L the shorter of the two edges
 compared (a node's own: its shortest boundary edge), a node is *on* an edge within
 1e-8 L (plus the coordinates' round-off).
 
