@@ -40,11 +40,22 @@ import numpy as np
 TOL = 1e-8      # relative to the shorter edge compared: a node on an edge, an angle
 
 
+# what each kind of node found says, for the error message
+FOUND = {"hanging": "on another boundary edge (a hanging node, or a seam of surfaces meshed "
+                    "on nodes of their own, its nodes at different places)",
+         "apart": "at the place of a node of a part of the mesh not joined to theirs (surfaces "
+                  "meshed on nodes of their own)",
+         "crossing": "on boundary edges that cross (overlapping surfaces)",
+         "inside": "inside another part of the mesh (overlapping surfaces)",
+         "angles": "where triangles overlap"}
+
+
 def nonconforming_nodes(x, cells, edges):
-    """How many boundary nodes (the ends of `edges`, the (m, 2) boundary edges, indices
-    into the (n, 2) coordinates x; `cells` the (T, 3) triangles) show that the mesh is no
-    conforming mesh of one domain (module notes, checks 1-4): 0 for a conforming mesh, the
-    faces of cracks included."""
+    """{kind: boundary nodes} of the kinds of `FOUND` (checks 1-4 of the module notes;
+    check 1 gives "hanging" and "apart"): the boundary nodes (ends of `edges`, the (m, 2)
+    boundary edges, indices into the (n, 2) coordinates x; `cells` the (T, 3) triangles)
+    that show the mesh is no conforming mesh of one domain. All empty for a conforming
+    mesh, the faces of cracks included."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     a, b = x[edges[:, 0]], x[edges[:, 1]]
@@ -55,18 +66,29 @@ def nonconforming_nodes(x, cells, edges):
     links = coo_matrix((np.ones(2 * len(cells)), (cells[:, :2].ravel(), cells[:, 1:].ravel())),
                        shape=(len(x),) * 2)
     parts, part = connected_components(links, directed=False)
-    bad = np.zeros(len(x), dtype=bool)
-    on, twins = _on_edges(x, edges, length, own, round_off, part)
-    bad[on] = True
-    bad[_crossing(x, edges, length, own, round_off)] = True
+    found = dict.fromkeys(FOUND, np.empty(0, dtype=np.int64))
+    found["hanging"], found["apart"], twins = _on_edges(x, edges, length, own, round_off, part)
+    found["crossing"] = _crossing(x, edges, length, own, round_off)
     if parts > 1:
-        bad[_inside_other_parts(x, edges, part, parts)] = True
+        found["inside"] = _inside_other_parts(x, edges, part, parts)
     pairs = coo_matrix((np.ones(len(twins)), twins.T), shape=(len(x),) * 2)
     place = connected_components(pairs, directed=False)[1]      # twins: one place
     slack = np.full(len(x), TOL)
     slack[twins.ravel()] = 3 * TOL + 2 * round_off / own[twins.ravel()]
-    bad[_overlapping_angles(x, cells, own < np.inf, place, slack)] = True
-    return int(np.count_nonzero(bad))
+    found["angles"] = _overlapping_angles(x, cells, own < np.inf, place, slack)
+    return found
+
+
+def count(found):
+    """How many nodes `nonconforming_nodes` found, each once."""
+    return len(np.unique(np.concatenate(list(found.values()))))
+
+
+def message(found):
+    """What `nonconforming_nodes` found, in words: its count, then each kind's."""
+    kinds = [f"{len(np.unique(nodes))} {FOUND[kind]}" for kind, nodes in found.items()
+             if len(nodes)]
+    return f"{count(found)} boundary node(s): {'; '.join(kinds)}"
 
 
 def _pairs(tree, centres, radii, alone=0):
@@ -80,8 +102,9 @@ def _pairs(tree, centres, radii, alone=0):
 
 
 def _on_edges(x, edges, length, own, round_off, part):
-    """Check 1: boundary nodes on a boundary edge they do not end, but for a crack's faces;
-    and those faces' (k, 2) pairs of twins (node, end at its place). A node on a segment
+    """Check 1: boundary nodes on a boundary edge they do not end: inside it ("hanging"),
+    and at the place of its end in a part not joined to theirs ("apart"); and a crack's
+    faces, (k, 2) pairs of twins (node, end at its place) in one part. A node on a segment
     lies within half its length of its midpoint."""
     from scipy.spatial import cKDTree
     nodes = np.unique(edges)
@@ -97,8 +120,9 @@ def _on_edges(x, edges, length, own, round_off, part):
     on = np.hypot(*(t[:, None] * d - q).T) <= tol
     end = edges[edge, (t > 0.5).astype(int)]
     twin = np.hypot(*(x[end] - x[node]).T) <= tol
-    crack = on & twin & (part[node] == part[end])
-    return node[on & ~crack], np.c_[node[crack], end[crack]]
+    joined = part[node] == part[end]
+    crack = on & twin & joined
+    return node[on & ~twin], node[on & twin & ~joined], np.c_[node[crack], end[crack]]
 
 
 def _crossing(x, edges, length, own, round_off):

@@ -37,7 +37,7 @@ import numpy as np
 from mpi4py import MPI
 
 from ..model.problem import real_number
-from .conformity import nonconforming_nodes
+from . import conformity
 
 GMSH_TRIANGLE = 2  # gmsh element type of the 3-node triangle
 
@@ -286,13 +286,11 @@ def _model_cells(gmsh, what, conforming=False):
     if folded:
         raise ValueError(f"{what} has {folded} edge(s) whose two triangles lie on the same "
                          f"side (a folded or tangled mesh)")
-    touching = 0 if conforming else nonconforming_nodes(x, cells, ends[first[shared == 1]])
-    if touching:
-        raise ValueError(f"{what} is not conforming: {touching} boundary node(s) on another "
-                         f"boundary edge or node, on crossing edges, inside another part or "
-                         f"in overlapping triangles (a hanging node, or surfaces meshed on "
-                         f"nodes of their own, overlapping or not joined: join them with "
-                         f"gmsh's fragment)")
+    found = {} if conforming else conformity.nonconforming_nodes(x, cells,
+                                                                   ends[first[shared == 1]])
+    if found and conformity.count(found):
+        raise ValueError(f"{what} is not conforming: {conformity.message(found)} (join "
+                         f"surfaces with gmsh's fragment)")
     return cells, x
 
 
