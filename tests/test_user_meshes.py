@@ -214,8 +214,8 @@ def test_a_node_near_a_triangle_not_its_own(offset, found):
     δ (inside it for δ < 0, the triangles overlapping). It counts as a hanging node within
     1e-8 of its shortest edge (one node); inside, the angles of the triangles above and
     below overlap at (0, 0) and (1, 0) by about 2 δ, beyond 1e-8 radians (two nodes)."""
-    from membranes.fem.conformity import count as counted
     from membranes.fem.conformity import nonconforming_nodes
+    from membranes.fem.conformity import total as counted
     x = np.array([(0, 0), (1, 0), (0.5, 0), (0.5, -1), (0.5, 1)], dtype=float)
     x[2, 1] = 0.5 * offset
     cells = np.array([(0, 3, 1), (0, 2, 4), (2, 1, 4)])
@@ -228,8 +228,8 @@ def test_a_crack_narrower_than_its_edges():
     """The unit square's two triangles, the second on its own copies of the diagonal's ends
     moved 1e-12 off it: a crack. Each of the four ends lies 1.4e-12 off the other triangle,
     within 1e-8 of its boundary edges (about 1), though its twin is nearer still."""
-    from membranes.fem.conformity import count as counted
     from membranes.fem.conformity import nonconforming_nodes
+    from membranes.fem.conformity import total as counted
     shift = np.array([-1e-12, 1e-12])
     x = np.array([(0, 0), (1, 0), (1, 1), (0, 1), (0, 0) + shift, (1, 1) + shift])
     cells = np.array([(0, 1, 2), (4, 5, 3)])
@@ -246,8 +246,8 @@ def test_a_crack_is_no_hanging_node(tip, found):
     1e-8 of the edges: the same place). The last triangle on copies of all its nodes,
     moved by (-1, 1)·1e-12, is a part of the mesh joined to none: refused, its three nodes
     and the three they lie 1.4e-12 off."""
-    from membranes.fem.conformity import count as counted
     from membranes.fem.conformity import nonconforming_nodes
+    from membranes.fem.conformity import total as counted
     x = np.array([(0, 0), (1, 0), (1, 1), (0, 1), (0.5, 0.5), (0, 0), (0.5, 0.5), (0, 1)])
     last = {False: (3, 5, 4), True: (3, 5, 6), "moved": (3, 5, 4), "apart": (7, 5, 6)}[tip]
     if tip in ("moved", "apart"):
@@ -263,8 +263,8 @@ def test_graded_corner_has_no_hanging_node():
     the corner, edges of length about 1 meet edges down to 1e-12. The small edges' nodes lie
     within 1e-8 of the long edges' length of the large triangles, but far from them measured
     by their own edges: no hanging node."""
-    from membranes.fem.conformity import count as counted
     from membranes.fem.conformity import nonconforming_nodes
+    from membranes.fem.conformity import total as counted
     heights = np.r_[10.0 ** -np.arange(13), 0.0]
     x = np.vstack([[(1, 0)], np.c_[np.zeros(14), heights]])
     cells = np.array([(0, k + 1, k + 2) for k in range(13)])
@@ -302,8 +302,8 @@ def test_a_boundary_layer_is_checked_in_bounded_memory():
     count of numpy's arrays, the same on every machine)."""
     import tracemalloc
 
-    from membranes.fem.conformity import count as counted
     from membranes.fem.conformity import nonconforming_nodes
+    from membranes.fem.conformity import total as counted
     n = 200
     grid = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1e-4, n + 1))
     x = np.c_[grid[0].ravel(), grid[1].ravel()]
@@ -524,8 +524,8 @@ def test_an_edge_from_just_outside_a_part_into_it():
     shortest edge), but two of the triangle's edges cross the rectangle's top. With the
     crossing test's tolerance taken from the longer edges (1e-8 of about 0.7) the corners
     were on the top's line, nothing crossed, and the overlap was read: its five ends."""
-    from membranes.fem.conformity import count as counted
     from membranes.fem.conformity import nonconforming_nodes
+    from membranes.fem.conformity import total as counted
     x = np.array([(-1, -1), (1, -1), (1, 0), (-1, 0), (0, 1e-9), (0.01, 1e-9), (0.5, -0.5)])
     cells = np.array([(0, 1, 2), (0, 2, 3), (4, 5, 6)])
     edges = np.array([(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 4)])
@@ -541,8 +541,8 @@ def test_a_strip_wound_onto_itself_is_no_crack(turns, found):
     at the same places, a connected mesh: two membranes on top of each other. The nodes at
     one place were taken for a crack's faces, each alone showed nothing, and the mesh was
     read. At one place, the angles of all their triangles are compared: the 12 nodes."""
-    from membranes.fem.conformity import count as counted
     from membranes.fem.conformity import nonconforming_nodes
+    from membranes.fem.conformity import total as counted
     angle = np.pi / 4 * np.arange(turns + 1)
     x = np.vstack([np.c_[r * np.cos(angle), r * np.sin(angle)] for r in (1, 2)])
     k = np.arange(turns)
@@ -561,8 +561,8 @@ def test_many_parts_and_a_part_inside_a_thin_one():
     A long thin triangle below the grid (its box thin in y: found along the y axis) with a
     small triangle inside it, and a small triangle inside the grid's first (found in the
     square about its box): those two nodes are refused."""
-    from membranes.fem.conformity import count as counted
     from membranes.fem.conformity import nonconforming_nodes
+    from membranes.fem.conformity import total as counted
     k = 30000
     corner = np.c_[np.arange(k) % 173, np.arange(k) // 173] * 1.0
     corner += np.random.default_rng(0).random((k, 2)) * 0.3

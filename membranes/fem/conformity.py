@@ -79,7 +79,7 @@ def nonconforming_nodes(x, cells, edges):
     return found
 
 
-def count(found):
+def total(found):
     """How many nodes `nonconforming_nodes` found, each once."""
     return len(np.unique(np.concatenate(list(found.values()))))
 
@@ -88,16 +88,16 @@ def message(found):
     """What `nonconforming_nodes` found, in words: its count, then each kind's."""
     kinds = [f"{len(np.unique(nodes))} {FOUND[kind]}" for kind, nodes in found.items()
              if len(nodes)]
-    return f"{count(found)} boundary node(s): {'; '.join(kinds)}"
+    return f"{total(found)} boundary node(s): {'; '.join(kinds)}"
 
 
 def _pairs(tree, centres, radii, alone=0):
     """(i, j): the tree's points j within radii[i] of centres[i], for the centres with more
     than `alone` of them (a k-d tree of scipy's)."""
-    count = tree.query_ball_point(centres, radii, return_length=True)
-    more = np.flatnonzero(count > alone)
+    within = tree.query_ball_point(centres, radii, return_length=True)
+    more = np.flatnonzero(within > alone)
     near = tree.query_ball_point(centres[more], radii[more])
-    i = np.repeat(more, count[more])
+    i = np.repeat(more, within[more])
     return i, np.fromiter(itertools.chain.from_iterable(near), dtype=np.int64, count=len(i))
 
 

@@ -288,7 +288,7 @@ def _model_cells(gmsh, what, conforming=False):
                          f"side (a folded or tangled mesh)")
     found = {} if conforming else conformity.nonconforming_nodes(x, cells,
                                                                    ends[first[shared == 1]])
-    if found and conformity.count(found):
+    if found and conformity.total(found):
         raise ValueError(f"{what} is not conforming: {conformity.message(found)} (join "
                          f"surfaces with gmsh's fragment)")
     return cells, x
