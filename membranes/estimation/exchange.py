@@ -1,14 +1,16 @@
 """Communication helpers of the patch engine on a distributed mesh (§12): owned/ghost exchange
 with any numpy ufunc on a dolfinx IndexMap (`Shared`), MPI Alltoallv of numpy rows, a
 distributed reduction by key, and the vertex colouring that makes the groups of §5 and §6; and
-the array helpers they and the set-up share (a linear-time stable sort of integer keys, runs
-and segments).
+the array helpers they and the set-up share (a linear-time stable sort of integer keys, runs;
+the segments' `ranges` lives in `fem.segments`, which the mesh checks share).
 
 Split off `patches`, which re-exports these names.
 """
 
 import numpy as np
 from mpi4py import MPI
+
+from ..fem.segments import ranges  # noqa: F401  (patches and homes take it from here)
 
 # ## Sorting and segments
 
@@ -24,23 +26,6 @@ def stable_order(keys):
         order = order[np.argsort(digit[order], kind="stable")]
         shift += 16
     return order
-
-
-def ranges(starts, lengths):
-    """The concatenation of arange(s, s + n) over zip(starts, lengths) (int64): the entries of
-    segments given by their starts and lengths, as one cumulative sum of steps (1 within a
-    segment, the jump to the next segment's start at its first entry)."""
-    starts = np.asarray(starts, dtype=np.int64)
-    lengths = np.asarray(lengths, dtype=np.int64)
-    if np.any(lengths == 0):
-        starts, lengths = starts[lengths > 0], lengths[lengths > 0]
-    ends = np.cumsum(lengths)
-    out = np.ones(int(ends[-1]) if ends.size else 0, dtype=np.int64)
-    if out.size:
-        out[0] = starts[0]
-        out[ends[:-1]] = starts[1:] - starts[:-1] - lengths[:-1] + 1
-        np.cumsum(out, out=out)
-    return out
 
 
 def run_starts(values):

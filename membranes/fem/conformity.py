@@ -16,9 +16,9 @@ All show on the boundary, so all four checks below look at the boundary edges (m
 and their end nodes, never at every triangle: their cost is that of the m edges (k-d
 trees) and one pass over the cells, whatever the cells' shapes, but for many long
 boundary edges close together (thousands of parallel slivers apart, nested rings), whose
-searches meet each other's edges. With L the shorter of the two edges
-compared (a node's own: its shortest boundary edge), a node is *on* an edge within
-1e-8 L (plus the coordinates' round-off).
+searches meet each other's edges. With L the shorter of the two edges compared (a node's
+own: its shortest boundary edge), a node is *on* an edge within 1e-8 L (plus the
+coordinates' round-off).
 
 1. A boundary node on a boundary edge it does not end. At one of the edge's ends, it is a
    node at the place of another: the two faces of a crack (gmsh's Crack plugin duplicates a
@@ -36,6 +36,8 @@ A mesh that wraps twice around a domain without a boundary crossing is not found
 import itertools
 
 import numpy as np
+
+from .segments import ranges
 
 TOL = 1e-8      # relative to the shorter edge compared: a node on an edge, an angle
 
@@ -235,10 +237,7 @@ def _ranges(begin, count, piece=1 << 20):
     k = 0
     while k < len(count):
         stop = max(int(np.searchsorted(end, end[k] - count[k] + piece, side="right")), k + 1)
-        ks = np.repeat(np.arange(k, stop), count[k:stop])
-        offset = np.arange(len(ks)) - np.repeat(end[k:stop] - count[k:stop] - (end[k] - count[k]),
-                                                count[k:stop])
-        yield ks, begin[ks] + offset
+        yield np.repeat(np.arange(k, stop), count[k:stop]), ranges(begin[k:stop], count[k:stop])
         k = stop
 
 
