@@ -286,11 +286,11 @@ def _model_cells(gmsh, what, conforming=False):
     if folded:
         raise ValueError(f"{what} has {folded} edge(s) whose two triangles lie on the same "
                          f"side (a folded or tangled mesh)")
-    found = {} if conforming else conformity.nonconforming_nodes(x, cells,
-                                                                   ends[first[shared == 1]])
-    if found and conformity.total(found):
-        raise ValueError(f"{what} is not conforming: {conformity.message(found)} (join "
-                         f"surfaces with gmsh's fragment)")
+    if not conforming:
+        found = conformity.nonconforming_nodes(x, cells, ends[first[shared == 1]])
+        if conformity.total(found):
+            raise ValueError(f"{what} is not conforming: {conformity.message(found)} (join "
+                             f"surfaces with gmsh's fragment)")
     return cells, x
 
 
