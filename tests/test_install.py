@@ -122,3 +122,57 @@ def test_installed_package_runs_outside_the_tree(wheel, tmp_path):
     assert summary["converged"] and summary["eta"] >= summary["energy_error"] > 0
     assert sorted(os.listdir(work / "out")) == ["history.csv", "solution.h5", "solution.xdmf",
                                                  "summary.json"]
+
+
+def test_dolfinx_release_is_checked_first():
+    """The code is written against dolfinx 0.5's API: 0.5.x is taken, another release is
+    refused with an ImportError naming both (its `name` dolfinx, as for a missing module)."""
+    from membranes.fem import require_dolfinx
+    for version in ("0.5.2", "0.5.0", "0.5.3.dev0"):
+        require_dolfinx(version)
+    for version in ("0.9.0", "0.6.0.dev0", "0.4.1", "1.5.0", "5.0"):
+        with pytest.raises(ImportError, match=rf"needs dolfinx 0\.5\.x .*found dolfinx "
+                                              rf"{version.replace('.', '[.]')} ") as e:
+            require_dolfinx(version)
+        assert e.value.name == "dolfinx"
+
+
+@pytest.mark.parametrize("command", [["solve", "--h", "0.3"], ["scenes"]])
+def test_cli_on_another_dolfinx_says_so_in_one_line(command, tmp_path):
+    """A dolfinx of another release (here 0.5.2 relabelled 0.9.0 before membranes is
+    imported): the command line ends at once with one line, exit 1 (not bad input), and
+    writes nothing."""
+    script = ("import sys, dolfinx; dolfinx.__version__ = '0.9.0'; "
+              "from membranes.app.cli import main; sys.exit(main(sys.argv[1:]))")
+    out = tmp_path / "out"
+    extra = ["--out", str(out)] if command[0] == "solve" else []
+    proc = subprocess.run([sys.executable, "-c", script, *command, *extra], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1
+    assert proc.stderr.splitlines() == [
+        "membranes: error: membranes needs dolfinx 0.5.x (Debian bookworm's python3-dolfinx "
+        "0.5.2), found dolfinx 0.9.0 (README, Set-up)"]
+    assert proc.stdout == ""
+    assert not out.exists()
+
+
+def test_setup_stops_on_another_dolfinx(tmp_path):
+    """`.ci/setup` (copied, its system Python replaced by one whose dolfinx says 0.9.0) stops
+    with one line before it makes a venv."""
+    (tmp_path / ".ci").mkdir()
+    with open(os.path.join(ROOT, ".ci", "setup")) as f:
+        text = f.read()
+    fake = tmp_path / "python3"
+    fake.write_text('#!/bin/bash\ncase "$*" in *"print(dolfinx.__version__)"*) echo 0.9.0 ;;\n'
+                    '  *) exec /usr/bin/python3 "$@" ;;\nesac\n')
+    fake.chmod(0o755)
+    assert text.count("SYS_PY=/usr/bin/python3\n") == 1
+    (tmp_path / ".ci" / "setup").write_text(text.replace("SYS_PY=/usr/bin/python3\n",
+                                                         f"SYS_PY={fake}\n"))
+    proc = subprocess.run(["bash", str(tmp_path / ".ci" / "setup")], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 1
+    assert proc.stderr.splitlines() == [
+        "setup: membranes needs dolfinx 0.5.x (Debian bookworm's python3-dolfinx 0.5.2), "
+        "this system's python3-dolfinx is 0.9.0"]
+    assert not (tmp_path / ".venv").exists()

@@ -352,13 +352,11 @@ def main(argv=None):
     try:
         return _main(argv)
     except ValueError as e:   # BadInput and every data/mesh error of the API
-        line = "membranes: error: " + " ".join(str(e).split())
-        if world.rank == 0:       # every process meets the same error: say it once
-            print(line, file=sys.stderr, flush=True)
-        _leave(errors, EXIT_BAD_INPUT,   # (alone, another process says it)
-               lambda: world.rank != 0 and print(line, file=sys.stderr, flush=True))
-        return EXIT_BAD_INPUT
-    except Exception:
+        return _one_line(world, errors, e, EXIT_BAD_INPUT)
+    except Exception as e:
+        if isinstance(e, ImportError) and e.name == "dolfinx" \
+                and str(e).startswith("membranes needs"):       # fem.require_dolfinx
+            return _one_line(world, errors, e, 1)
         import traceback
         _leave(errors, 1, traceback.print_exc)
         raise
@@ -377,6 +375,17 @@ def main(argv=None):
         interrupts.restore(previous)
         if errors is not None:
             errors.Free()
+
+
+def _one_line(world, errors, error, code):
+    """Say `error` in one line (process 0; every process meets the same error) and return
+    `code`."""
+    line = "membranes: error: " + " ".join(str(error).split())
+    if world.rank == 0:
+        print(line, file=sys.stderr, flush=True)
+    _leave(errors, code,   # (alone, another process says it)
+           lambda: world.rank != 0 and print(line, file=sys.stderr, flush=True))
+    return code
 
 
 def _main(argv=None):
