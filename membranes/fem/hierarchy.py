@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..model.progress import reporter
-from .meshes import on_boundary
+from .meshes import on_boundary, without_ghosts
 
 
 @dataclass
@@ -182,6 +182,7 @@ def refine(mesh, projection=None):
 def build_hierarchy(coarse, levels, projection=None, domain=None, progress=None):
     """T_0 = `coarse` and `levels` uniform refinements of it (§6), new boundary vertices moved
     onto the curve by `projection` (§9); `domain` names the domain T_0 meshes (scenes only).
+    A coarse mesh with ghost cells is refined as `meshes.without_ghosts` makes it anew.
     `progress`: one line per refinement, as `solve`'s (`model.progress.reporter`: True for
     stderr, or a callable; process 0 writes), since refining is a long silent phase on fine
     meshes (dolfinx's mesh creation costs more than linear time, BENCHMARKS.md)."""
@@ -189,6 +190,8 @@ def build_hierarchy(coarse, levels, projection=None, domain=None, progress=None)
     if levels < 0:
         raise ValueError(f"levels must be a non-negative integer, got {levels}")
     say = reporter(progress, coarse.comm)
+    if levels:                                  # (plaza refinement needs it, `meshes`)
+        coarse = without_ghosts(coarse)
     h = Hierarchy([coarse], projection=projection, domain=domain)
     for j in range(1, levels + 1):
         t = time.perf_counter()

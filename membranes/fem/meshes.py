@@ -327,6 +327,56 @@ def read_msh(path, comm=MPI.COMM_WORLD):
     return _on_rank0(comm, lambda gmsh: _check_msh(gmsh, path))
 
 
+def given_mesh(mesh, what="mesh"):
+    """A dolfinx mesh given through the API (`scenes.square(mesh=...)`) as the coarse mesh
+    T_0, checked as a file's mesh is (§2: P1 on triangles in the plane): ValueError, the same
+    on every process and naming it as `what`, unless it is a dolfinx Mesh of triangles with
+    an affine (degree 1) geometry of dimension 2, finite coordinates and no triangle of zero
+    area. Collective; returns the mesh."""
+    from dolfinx.mesh import CellType, Mesh
+    if not isinstance(mesh, Mesh):
+        raise ValueError(f"{what} must be a dolfinx Mesh, got {type(mesh).__name__}")
+    if mesh.topology.cell_type != CellType.triangle:
+        raise ValueError(f"{what} is not a triangular mesh (cells: "
+                         f"{mesh.topology.cell_type.name})")
+    degree = mesh.ufl_domain().ufl_coordinate_element().degree()
+    if degree != 1 or mesh.geometry.dim != 2:
+        raise ValueError(f"{what} must have an affine geometry of dimension 2 (P1 "
+                         f"triangles in the plane), got degree {degree} in dimension "
+                         f"{mesh.geometry.dim}")
+    p = mesh.geometry.x[:, :2][mesh.geometry.dofmap.array.reshape(-1, 3)[:owned_cells(mesh)]]
+    finite = np.isfinite(p).all(axis=(1, 2))
+    p = p[finite]
+    longest = np.max([((p[:, i] - p[:, i - 1]) ** 2).sum(axis=1) for i in range(3)], axis=0) \
+        if len(p) else np.zeros(0)
+    bad = [np.count_nonzero(~finite), np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest)]
+    bad = mesh.comm.allreduce(np.array(bad), op=MPI.SUM)
+    if bad[0]:
+        raise ValueError(f"{what} has {bad[0]} triangle(s) with non-finite coordinates")
+    if bad[1]:
+        raise ValueError(f"{what} has {bad[1]} degenerate triangle(s) (zero area)")
+    return mesh
+
+
+def without_ghosts(mesh):
+    """`mesh` itself if no process holds ghost cells, else the same triangles distributed
+    anew by dolfinx without ghost cells (module notes: plaza refinement of a ghosted mesh,
+    as dolfinx's default GhostMode.shared_facet makes them, gave two copies of a ghost cell
+    on 3 processes). Each process hands over its owned cells and geometry nodes only.
+    Collective."""
+    from dolfinx.io import gmshio
+    from dolfinx.mesh import GhostMode, create_mesh
+    if not mesh.comm.allreduce(mesh.topology.index_map(2).num_ghosts, op=MPI.SUM):
+        return mesh
+    nodes = mesh.geometry.index_map()
+    cells = mesh.geometry.dofmap.array.reshape(-1, 3)[:owned_cells(mesh)]
+    cells = np.asarray(nodes.local_to_global(cells.ravel()), dtype=np.int64).reshape(-1, 3)
+    x = np.ascontiguousarray(mesh.geometry.x[:nodes.size_local, :2])
+    with one_scotch_thread():
+        return create_mesh(mesh.comm, cells, x, gmshio.ufl_mesh(GMSH_TRIANGLE, 2),
+                           ghost_mode=GhostMode.none)
+
+
 def owned_cells(mesh):
     return mesh.topology.index_map(2).size_local
 

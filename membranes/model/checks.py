@@ -392,9 +392,9 @@ def check_max_vertices(max_vertices):
 
 def describe_request(h=None, levels=0, domain="disk", mesh_file=None):
     """'h = 0.05 and 12 levels on the unit disk' (the words of the size check's message)."""
-    where = f"mesh file {mesh_file}" if mesh_file is not None else \
-        f"the unit {domain}" if isinstance(domain, str) else "the domain"
-    size = "" if mesh_file is not None else f"h = {h:g}, "
+    where = f"mesh file {mesh_file}" if mesh_file is not None else "the given mesh" \
+        if h is None else f"the unit {domain}" if isinstance(domain, str) else "the domain"
+    size = "" if mesh_file is not None or h is None else f"h = {h:g}, "
     return f"{size}{int(levels)} level{'s' if int(levels) != 1 else ''} on {where}"
 
 
@@ -456,7 +456,8 @@ def check_request(h=None, levels=0, domain="disk", mesh_file=None, max_vertices=
                   available=None, comm=None, counts=None, **method):
     """The size check before meshing (issue 29): the estimated finest mesh of a gmsh mesh of
     `domain` ('disk', 'square' or (area, boundary length)) at size h, or of `mesh_file`,
-    refined `levels` times (`counts`: the file's mesh read, `estimate_vertices`), against
+    refined `levels` times (`counts`: the file's mesh read, `estimate_vertices`; a mesh given
+    through the API, `counts` without a file or h), against
     the memory of `method` (`estimate_memory`'s arguments;
     none: the leanest method) on `available` bytes per process (default
     `available_memory(comm)`), or against `max_vertices`. ValueError as `check_size`;
@@ -472,8 +473,9 @@ def check_request(h=None, levels=0, domain="disk", mesh_file=None, max_vertices=
 
     def hint(largest):
         fit = largest_levels(largest, h, domain, mesh_file, counts)
-        if mesh_file is not None:
-            return f"at most {fit} levels on this file" if fit >= 0 else "not this file"
+        if mesh_file is not None or h is None:
+            this = "this file" if mesh_file is not None else "this mesh"
+            return f"at most {fit} levels on {this}" if fit >= 0 else f"not {this}"
         h_min = smallest_h(largest, levels, domain)
         ways = [] if h_min is None else [f"h >= {h_min:g} with {int(levels)} levels"]
         if fit >= 0 and fit != int(levels):

@@ -158,6 +158,24 @@ def disk(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
 # the loads are f1 = -μ1 Δu1 - λ and f2 = -μ2 Δu2 + λ (UFL differentiates the formulas).
 # μ1 ≠ μ2 and f1 + f2 ≠ 0, so the decoupled check of §10 is not trivial here.
 
+def _check_unit_square(mesh):
+    """ValueError unless `mesh` (a checked triangular mesh, `meshes.given_mesh`) is a mesh of
+    (0, 1)², whose exact solution the square scene gives: its cells' areas add up to 1 and its
+    boundary vertices lie on the square's sides, to round-off (a hole or a slit, a smaller or
+    larger domain would leave the exact solution another problem's). Collective."""
+    x = mesh.geometry.x[:, :2]
+    cells = mesh.geometry.dofmap.array.reshape(-1, 3)
+    owned = cells[:meshes.owned_cells(mesh)]
+    area = mesh.comm.allreduce(meshes.triangle_areas(x[owned]).sum(), op=MPI.SUM)
+    rim = x[meshes.on_boundary(mesh, cells, mesh.geometry.index_map())]
+    off = np.min(np.abs(np.c_[rim, 1.0 - rim]), axis=1) if len(rim) else np.zeros(0)
+    off = mesh.comm.allreduce(np.max(off, initial=0.0), op=MPI.MAX)
+    if abs(area - 1.0) > 1e-12 or off > 1e-12:
+        raise ValueError(f"the square scene's mesh must be a mesh of the unit square (0, 1)^2: "
+                         f"its cells cover an area of {area:.15g}, its boundary vertices lie "
+                         f"up to {off:.3g} off the square's sides")
+
+
 SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
 
 
@@ -175,11 +193,9 @@ def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORL
         if not isinstance(mesh, dolfinx.mesh.Mesh):
             raise ValueError(f"mesh must be a dolfinx Mesh of the unit square, got "
                              f"{type(mesh).__name__} (a mesh file goes to scenes.user(mesh=...))")
-        x = mesh.geometry.x[:, :2]
-        lo = mesh.comm.allreduce(x.min(initial=np.inf), op=MPI.MIN)
-        hi = mesh.comm.allreduce(x.max(initial=-np.inf), op=MPI.MAX)
-        if abs(lo) > 1e-12 or abs(hi - 1.0) > 1e-12:
-            raise ValueError("the square scene's mesh must cover the unit square (0, 1)^2")
+        _check_unit_square(meshes.given_mesh(mesh))
+        check_request(levels=levels, max_vertices=max_vertices, comm=mesh.comm,
+                      counts=meshes.mesh_counts(mesh))
     mu1, mu2, g, s0, lam0 = (SQUARE[k] for k in ("mu1", "mu2", "g", "s0", "lam0"))
 
     def s(x):
