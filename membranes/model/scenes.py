@@ -25,7 +25,7 @@ import ufl
 from mpi4py import MPI
 
 from ..fem import meshes
-from ..fem.hierarchy import build_hierarchy, onto_unit_circle
+from ..fem.hierarchy import boundary_vertices, build_hierarchy, onto_unit_circle
 from .checks import check_request
 from .expressions import Formula
 from .problem import ExactSolution, Problem, positive_number, real_number
@@ -167,7 +167,7 @@ def _check_unit_square(mesh):
     cells = mesh.geometry.dofmap.array.reshape(-1, 3)
     owned = cells[:meshes.owned_cells(mesh)]
     area = mesh.comm.allreduce(meshes.triangle_areas(x[owned]).sum(), op=MPI.SUM)
-    rim = x[meshes.on_boundary(mesh, cells, mesh.geometry.index_map())]
+    rim = x[boundary_vertices(mesh)]
     off = np.min(np.abs(np.c_[rim, 1.0 - rim]), axis=1) if len(rim) else np.zeros(0)
     off = mesh.comm.allreduce(np.max(off, initial=0.0), op=MPI.MAX)
     if abs(area - 1.0) > 1e-12 or off > 1e-12:
