@@ -405,6 +405,11 @@ def test_api_mesh_that_is_no_path(tmp_path):
     problem = scenes.user(mesh=os.fsencode(msh))
     assert problem.mesh.topology.index_map(0).size_global == 25
     assert problem.domain == msh
+    # a dolfinx Mesh (a FEniCSx user's first try) is named as such, not shown as its repr
+    with pytest.raises(ValueError, match=r"^mesh must be the path of a \.msh file, got a "
+                                         r"dolfinx Mesh: the user scene reads its mesh from a "
+                                         r"gmsh file \(and checks it there\)$"):
+        scenes.user(mesh=problem.mesh)
 
 
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")

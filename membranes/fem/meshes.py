@@ -298,6 +298,10 @@ def check_msh_path(path):
     """The readable file at `path` (str, bytes or os.PathLike) as a str, or ValueError naming
     what is wrong (no gmsh needed). Anything else is refused before a file is touched: an int
     would be taken for an open file descriptor of the process, and closed after reading."""
+    from dolfinx.mesh import Mesh
+    if isinstance(path, Mesh):
+        raise ValueError("mesh must be the path of a .msh file, got a dolfinx Mesh: the user "
+                         "scene reads its mesh from a gmsh file (and checks it there)")
     try:
         path = os.fsdecode(path)
     except TypeError:
