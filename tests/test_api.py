@@ -244,6 +244,33 @@ def test_a_given_mesh_of_no_unit_square_is_refused(make, message):
         scenes.square(mesh=make())
 
 
+def test_a_given_mesh_takes_no_h():
+    """scenes.square(mesh=m, h=0.01) solved on m without a word about h (scenes.user refuses
+    the same mix)."""
+    mesh = _given_square()
+    with pytest.raises(ValueError, match=r"^give mesh or h, not both"):
+        scenes.square(mesh=mesh, h=0.01)
+    assert scenes.square(mesh=mesh).mesh is mesh
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("interface", lambda p: 1.0, r"^interface must be a level set, .* got function giving "
+                                 r"shape \(\)$"),
+    ("interface", lambda p: p[5], r"got function giving IndexError: index 5 is out of bounds"),
+    ("interface", 3, r"got int$"),
+    ("name", None, r"^name must be a str, got NoneType$"),
+    ("description", 5, r"^description must be a str, got int$")])
+def test_replaced_fields_of_other_kinds_are_refused(field, value, message):
+    """dataclasses.replace(problem, interface=lambda p: 1.0): one value for all points was
+    taken as no interface (the data rule then missed the cut cells: η 0.0994441 against
+    0.0995876); a name or description that is no str reached summary.json."""
+    problem = scene("square", h=0.25)
+    with pytest.raises(ValueError, match=message):
+        replace(problem, **{field: value})
+    moved = replace(problem, interface=lambda p: p[0] - 0.5)
+    assert moved.interface(np.array([[0.25, 0.75], [0.0, 0.0]])).tolist() == [-0.25, 0.25]
+
+
 def test_a_given_mesh_is_checked_for_size():
     """scenes.square(mesh=...) skipped the size check: 12 levels of a 50 x 50 grid (4.2e10
     vertices) were refined until memory ran out. Refused before refining, as a file's; 3
@@ -267,6 +294,11 @@ import dolfinx.mesh as dm
 from membranes import scenes, solve
 mesh = dm.create_unit_square(MPI.COMM_WORLD, 8, 8)      # dolfinx's default: ghost cells
 assert MPI.COMM_WORLD.allreduce(mesh.topology.index_map(2).num_ghosts) > 0
+try:                                           # (the scene solves on mesh.comm)
+    scenes.square(mesh=mesh, comm=MPI.COMM_SELF)
+    raise SystemExit("comm=COMM_SELF was taken for a mesh on 3 processes")
+except ValueError as e:
+    assert str(e).startswith("comm is not the mesh's communicator"), e
 sol = solve(scenes.square(mesh=mesh, levels=2), newton="exact", solver="direct")
 if MPI.COMM_WORLD.rank == 0:
     print(json.dumps([sol.estimates["eta"], sol.energy_error, sol.newton_iterations]))
@@ -275,7 +307,8 @@ if MPI.COMM_WORLD.rank == 0:
 
 def test_a_ghosted_mesh_is_refined_on_three_processes():
     """A mesh made with dolfinx's default ghost mode (shared_facet), given to scenes.square
-    with levels: on 3 processes plaza refinement made two copies of a ghost cell and the
+    (with comm=COMM_SELF refused: the scene solved on mesh.comm, and said 3 processes) with
+    levels: on 3 processes plaza refinement made two copies of a ghost cell and the
     estimators stopped on a facet of three cells (RuntimeError). The coarse mesh is made anew
     without ghost cells: the serial η and error to round-off (exact Newton with MUMPS;
     measured 1.1e-11 with the amg solver)."""

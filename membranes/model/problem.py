@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Callable, Optional, Union
 import numpy as np
 import ufl
 from dolfinx.mesh import Mesh
+from mpi4py import MPI
 
 from .expressions import Formula
 
@@ -114,7 +115,6 @@ class Problem:
         1/(π sqrt(1/a² + 1/b²)) of the bounding box a × b of the computational mesh."""
         if self.poincare is not None:
             return float(self.poincare)
-        from mpi4py import MPI
         x = self.mesh.geometry.x[:, :2]
         comm = self.mesh.comm
         lo = [comm.allreduce(x[:, k].min(initial=np.inf), op=MPI.MIN) for k in (0, 1)]
@@ -137,10 +137,25 @@ class Problem:
         if self.exact is not None and not isinstance(self.exact, ExactSolution):
             raise ValueError(f"exact must be an ExactSolution or None, got "
                              f"{type(self.exact).__name__}")
-        if self.interface is not None and not callable(self.interface):
-            raise ValueError(f"interface must be a level set (a function of points (2, n)) "
-                             f"or None, got {type(self.interface).__name__}")
+        for name in ("name", "description"):
+            if not isinstance(getattr(self, name), str):
+                raise ValueError(f"{name} must be a str, got "
+                                 f"{type(getattr(self, name)).__name__}")
         points = None
+        if self.interface is not None:
+            # (a function returning one number, not one per point, was taken for no interface)
+            points, shape = _sample_points(self.mesh), None
+            if callable(self.interface):
+                try:
+                    shape = f"shape {np.shape(self.interface(points))}"
+                except Exception as e:          # (on every process alike, below)
+                    shape = f"{type(e).__name__}: {e}"
+            n = f"shape {(points.shape[1],)}"
+            if not self.mesh.comm.allreduce(shape == n, op=MPI.LAND):
+                raise ValueError(f"interface must be a level set, a function of points "
+                                 f"(2, n) returning n values, or None, got "
+                                 f"{type(self.interface).__name__}"
+                                 + (f" giving {shape}" if shape else ""))
         for name in ("f1", "f2"):
             data = getattr(self, name)
             if isinstance(data, str):

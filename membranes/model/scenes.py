@@ -173,26 +173,37 @@ def _check_unit_square(mesh):
     if abs(area - 1.0) > 1e-12 or off > 1e-12:
         raise ValueError(f"the square scene's mesh must be a mesh of the unit square (0, 1)^2: "
                          f"its cells cover an area of {area:.15g}, its boundary vertices lie "
-                         f"up to {off:.3g} off the square's sides")
+                         f"up to {off:.3g} off the square's sides (a hole, a slit, or cells "
+                         f"not joined: nodes twice, or vertices of one place on several "
+                         f"processes)")
 
 
 SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
 
 
-def square(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
+def square(h: Optional[float] = None, levels: int = 0, comm: Optional[MPI.Comm] = None,
            mesh: Optional[dolfinx.mesh.Mesh] = None,
            max_vertices: Optional[int] = None, progress: Progress = None) -> Problem:
-    """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
-    `mesh`: a dolfinx mesh of (0, 1)² to use instead of gmsh's at size h (API only: the
-    anisotropic, graded and tiny meshes of §11, meshes.structured_square)."""
-    comm = _communicator(comm)
+    """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone, on
+    gmsh's mesh at size h (default DEFAULT_H) on `comm` (default MPI.COMM_WORLD), or on
+    `mesh`, a dolfinx mesh of (0, 1)² (API only: the anisotropic, graded and tiny meshes of
+    §11, meshes.structured_square; your own), on its communicator: h and another `comm` are
+    refused with it, as they cannot apply."""
     levels = _check_levels(levels)
     if mesh is None:
-        h = _check_size(h, levels, "square", None, max_vertices, comm)
+        comm = _communicator(comm)
+        h = _check_size(DEFAULT_H if h is None else h, levels, "square", None, max_vertices,
+                        comm)
     else:
         if not isinstance(mesh, dolfinx.mesh.Mesh):
             raise ValueError(f"mesh must be a dolfinx Mesh of the unit square, got "
                              f"{type(mesh).__name__} (a mesh file goes to scenes.user(mesh=...))")
+        if h is not None:
+            raise ValueError("give mesh or h, not both: the mesh is the coarse mesh")
+        if comm is not None and MPI.Comm.Compare(_communicator(comm), mesh.comm) not in \
+                (MPI.IDENT, MPI.CONGRUENT):
+            raise ValueError("comm is not the mesh's communicator: the square scene solves on "
+                             "mesh.comm (leave comm out)")
         _check_unit_square(meshes.given_mesh(mesh))
         check_request(levels=levels, max_vertices=max_vertices, comm=mesh.comm,
                       counts=meshes.mesh_counts(mesh))
