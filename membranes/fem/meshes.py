@@ -256,7 +256,15 @@ def _model_cells(gmsh, what, conforming=False):
     if np.ptp(x[:, 2]) > 1e-12 * max(1.0, np.abs(x).max()):
         raise ValueError(f"{what} is 3D (its triangles' nodes have z from "
                          f"{x[:, 2].min():g} to {x[:, 2].max():g}, not one plane z = const)")
-    x = np.ascontiguousarray(x[:, :2])
+    return checked_cells(np.ascontiguousarray(x[:, :2]), cells, what, conforming)
+
+
+def checked_cells(x, cells, what, conforming=False,
+                  fix="(join surfaces with gmsh's fragment)"):
+    """(cells, x), the triangles `cells` ((T, 3) indices into the (n, 2) finite coordinates
+    `x`) checked as `_model_cells` says (`what` names them in messages, `fix` ends that of a
+    mesh that is not conforming); the conformity is not looked for where they are
+    `conforming`."""
     p = x[cells]
     longest = np.max([((p[:, i] - p[:, i - 1]) ** 2).sum(axis=1) for i in range(3)], axis=0)
     flat = np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest)
@@ -289,8 +297,8 @@ def _model_cells(gmsh, what, conforming=False):
     if not conforming:
         found = conformity.nonconforming_nodes(x, cells, ends[first[shared == 1]])
         if conformity.total(found):
-            raise ValueError(f"{what} is not conforming: {conformity.message(found)} (join "
-                             f"surfaces with gmsh's fragment)")
+            raise ValueError(f"{what} is not conforming: {conformity.message(found)} "
+                             f"{fix}")
     return cells, x
 
 
@@ -298,10 +306,6 @@ def check_msh_path(path):
     """The readable file at `path` (str, bytes or os.PathLike) as a str, or ValueError naming
     what is wrong (no gmsh needed). Anything else is refused before a file is touched: an int
     would be taken for an open file descriptor of the process, and closed after reading."""
-    from dolfinx.mesh import Mesh
-    if isinstance(path, Mesh):
-        raise ValueError("mesh must be the path of a .msh file, got a dolfinx Mesh: the user "
-                         "scene reads its mesh from a gmsh file (and checks it there)")
     try:
         path = os.fsdecode(path)
     except TypeError:
@@ -332,11 +336,14 @@ def read_msh(path, comm=MPI.COMM_WORLD):
 
 
 def given_mesh(mesh, what="mesh"):
-    """A dolfinx mesh given through the API (`scenes.square(mesh=...)`) as the coarse mesh
-    T_0, checked as a file's mesh is (§2: P1 on triangles in the plane): ValueError, the same
-    on every process and naming it as `what`, unless it is a dolfinx Mesh of triangles with
-    an affine (degree 1) geometry of dimension 2, finite coordinates and no triangle of zero
-    area. Collective; returns the mesh."""
+    """A dolfinx mesh given through the API (`scenes.square(mesh=...)`, `scenes.user`) as the
+    coarse mesh T_0, checked as a file's mesh is (§2: P1 on a conforming triangulation in
+    the plane; module notes): ValueError, the same on every process and naming it as
+    `what`, unless it is a dolfinx Mesh of triangles with an affine (degree 1) geometry of
+    dimension 2 whose cells pass `checked_cells`. For those checks its owned cells and their
+    nodes (by the input indices it was created from: a vertex dolfinx made twice, where
+    parts meet at it alone, is one node) are gathered on rank 0, as a file's mesh is read
+    there, and let go after. Collective; returns the mesh."""
     from dolfinx.mesh import CellType, Mesh
     if not isinstance(mesh, Mesh):
         raise ValueError(f"{what} must be a dolfinx Mesh, got {type(mesh).__name__}")
@@ -348,17 +355,29 @@ def given_mesh(mesh, what="mesh"):
         raise ValueError(f"{what} must have an affine geometry of dimension 2 (P1 "
                          f"triangles in the plane), got degree {degree} in dimension "
                          f"{mesh.geometry.dim}")
-    p = mesh.geometry.x[:, :2][mesh.geometry.dofmap.array.reshape(-1, 3)[:owned_cells(mesh)]]
-    finite = np.isfinite(p).all(axis=(1, 2))
-    p = p[finite]
-    longest = np.max([((p[:, i] - p[:, i - 1]) ** 2).sum(axis=1) for i in range(3)], axis=0) \
-        if len(p) else np.zeros(0)
-    bad = [np.count_nonzero(~finite), np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest)]
-    bad = mesh.comm.allreduce(np.array(bad), op=MPI.SUM)
-    if bad[0]:
-        raise ValueError(f"{what} has {bad[0]} triangle(s) with non-finite coordinates")
-    if bad[1]:
-        raise ValueError(f"{what} has {bad[1]} degenerate triangle(s) (zero area)")
+    g = mesh.geometry
+    local = g.dofmap.array.reshape(-1, 3)[:owned_cells(mesh)]
+    used = np.unique(local)
+    ids = np.asarray(g.input_global_indices, dtype=np.int64)
+    parts = mesh.comm.gather((ids[local], ids[used], g.x[used, :2]), root=0)
+    error = None
+    if mesh.comm.rank == 0:
+        cells, nodes, x = (np.concatenate([part[k] for part in parts]) for k in range(3))
+        nodes, first = np.unique(nodes, return_index=True)
+        x = x[first]
+        try:
+            if not np.all(np.isfinite(x)):
+                raise ValueError(f"{what} has non-finite node coordinates")
+            if not len(cells):
+                raise ValueError(f"{what} has no cells")
+            checked_cells(x, np.searchsorted(nodes, cells), what,
+                          fix="(its cells must share their nodes where they meet)")
+        except ValueError as e:
+            error = str(e)
+    del parts
+    error = mesh.comm.bcast(error, root=0)
+    if error is not None:
+        raise ValueError(error)
     return mesh
 
 

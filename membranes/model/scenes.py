@@ -158,6 +158,22 @@ def disk(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
 # the loads are f1 = -μ1 Δu1 - λ and f2 = -μ2 Δu2 + λ (UFL differentiates the formulas).
 # μ1 ≠ μ2 and f1 + f2 ≠ 0, so the decoupled check of §10 is not trivial here.
 
+def _given(mesh, comm, levels, max_vertices):
+    """A dolfinx mesh given as T_0 (`meshes.given_mesh`), without ghost cells
+    (`meshes.without_ghosts`: before dolfinx makes its edges, which on 3 processes waited for
+    ever on a ghosted mesh of two squares touching at a corner), with the size check of its
+    hierarchy; `comm`, if given, must be its communicator (the scene solves on mesh.comm).
+    Collective."""
+    if comm is not None and MPI.Comm.Compare(_communicator(comm), mesh.comm) not in \
+            (MPI.IDENT, MPI.CONGRUENT):
+        raise ValueError("comm is not the mesh's communicator: a scene on a given mesh "
+                         "solves on mesh.comm (leave comm out)")
+    mesh = meshes.without_ghosts(meshes.given_mesh(mesh))
+    check_request(levels=levels, max_vertices=max_vertices, comm=mesh.comm,
+                  counts=meshes.mesh_counts(mesh))
+    return mesh
+
+
 def _check_unit_square(mesh):
     """ValueError unless `mesh` (a checked triangular mesh, `meshes.given_mesh`) is a mesh of
     (0, 1)², whose exact solution the square scene gives: its cells' areas add up to 1 and its
@@ -200,13 +216,8 @@ def square(h: Optional[float] = None, levels: int = 0, comm: Optional[MPI.Comm] 
                              f"{type(mesh).__name__} (a mesh file goes to scenes.user(mesh=...))")
         if h is not None:
             raise ValueError("give mesh or h, not both: the mesh is the coarse mesh")
-        if comm is not None and MPI.Comm.Compare(_communicator(comm), mesh.comm) not in \
-                (MPI.IDENT, MPI.CONGRUENT):
-            raise ValueError("comm is not the mesh's communicator: the square scene solves on "
-                             "mesh.comm (leave comm out)")
-        _check_unit_square(meshes.given_mesh(mesh))
-        check_request(levels=levels, max_vertices=max_vertices, comm=mesh.comm,
-                      counts=meshes.mesh_counts(mesh))
+        mesh = _given(mesh, comm, levels, max_vertices)
+        _check_unit_square(mesh)
     mu1, mu2, g, s0, lam0 = (SQUARE[k] for k in ("mu1", "mu2", "g", "s0", "lam0"))
 
     def s(x):
@@ -311,21 +322,30 @@ USER_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "g": 0.05, "f1": "0", "f2": "0"}
 
 
 def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, float] = "0",
-         f2: Union[str, float] = "0", mesh: Union[None, str, os.PathLike] = None,
+         f2: Union[str, float] = "0",
+         mesh: Union[None, str, os.PathLike, dolfinx.mesh.Mesh] = None,
          domain: Optional[str] = None,
-         h: Optional[float] = None, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
+         h: Optional[float] = None, levels: int = 0, comm: Optional[MPI.Comm] = None,
          max_vertices: Optional[int] = None, progress: Progress = None) -> Problem:
-    """User data: f1, f2 formulas in x, y; on a gmsh file `mesh` or the unit disk/square.
-    `domain` ('disk' by default) and `h` (DEFAULT_H) apply without `mesh` only."""
-    comm = _communicator(comm)
+    """User data: f1, f2 formulas in x, y; on a gmsh file `mesh`, on `mesh` a dolfinx mesh
+    (on its communicator, checked as a file's: `meshes.given_mesh`), or on the unit
+    disk/square. `domain` ('disk' by default) and `h` (DEFAULT_H) apply without `mesh` only;
+    `comm` (default MPI.COMM_WORLD) must be a dolfinx mesh's own."""
     if mesh is not None and (h is not None or domain is not None):  # (as the command line)
         raise ValueError(f"give mesh or {'h' if h is not None else 'domain'}, not both: the "
                          f"mesh file is the coarse mesh")
-    h = DEFAULT_H if h is None else h
-    domain = "disk" if domain is None else domain
     levels = _check_levels(levels)
     f1, f2 = Formula(f1, "f1"), Formula(f2, "f2")   # fail on bad input before any meshing
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
+    if isinstance(mesh, dolfinx.mesh.Mesh):
+        hierarchy = build_hierarchy(_given(mesh, comm, levels, max_vertices), levels,
+                                    progress=progress)
+        return Problem("user", hierarchy, mu1, mu2, g, f1, f2,
+                       description=f"given mesh, mu1 = {mu1}, mu2 = {mu2}, g = {g}, "
+                                   f"f1 = {f1.text}, f2 = {f2.text}")
+    comm = _communicator(comm)
+    h = DEFAULT_H if h is None else h
+    domain = "disk" if domain is None else domain
     if mesh is None and domain not in ("disk", "square"):
         raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
     if mesh is not None:
