@@ -1,5 +1,5 @@
-"""Computational domains on a communicator: the unit disk and square from gmsh, gmsh files
-(§9, §12).
+"""Computational domains on a communicator: the unit disk and square from gmsh, gmsh files,
+and dolfinx meshes given through the API (§9, §12).
 
 Every mesh is a dolfinx P1 triangular mesh with geometric dimension 2, partitioned by dolfinx on
 the communicator it is given (default `MPI.COMM_WORLD`): gmsh meshes (or reads) on rank 0 only,
@@ -25,6 +25,11 @@ same run on 2 processes took 24 or 25 Newton steps, and its η differed in the f
 `create_mesh` is therefore called with Scotch's documented SCOTCH_PTHREAD_NUMBER = 1 (unless
 the user set it), under which the partition of a mesh on P processes is the same in every
 run. The hierarchy is refined without redistribution, so it inherits T_0's partition.
+
+A dolfinx mesh given through the API (`given_mesh`) gets the same checks: its cells and
+their nodes are gathered on rank 0 for them, as a file's mesh is read there, then let go;
+the mesh is used as given, or made anew without ghost cells (`without_ghosts`) where it has
+them and is to be refined.
 
 Bad input raises ValueError on every process with the same one-line message (rank 0 checks,
 the message is broadcast).
