@@ -29,7 +29,7 @@ run. The hierarchy is refined without redistribution, so it inherits T_0's parti
 A dolfinx mesh given through the API (`given_mesh`) gets the same checks: its cells and
 their nodes are gathered on rank 0 for them, as a file's mesh is read there, then let go;
 the mesh is used as given, or made anew without ghost cells (`without_ghosts`) where it has
-them and is to be refined.
+them (plaza refinement, and dolfinx's edges of a pinched mesh, failed on ghosts).
 
 Bad input raises ValueError on every process with the same one-line message (rank 0 checks,
 the message is broadcast).
