@@ -213,6 +213,19 @@ def _without_middle(x, cells):
     return x, cells[np.abs(middle - 0.5).max(axis=1) > 0.25]
 
 
+def _corner_hinged(x, cells):
+    """The triangle at the corner (1, 0) cut off along its edge from (0.75, 0) to (1, 0.25),
+    its node (0.75, 0) its own: a slit from the bottom side to the right one, the triangle
+    hinged at (1, 0.25), one connected mesh."""
+    at = lambda p: int(np.flatnonzero(np.abs(x - p).max(axis=1) < 1e-12)[0])   # noqa: E731
+    corner, cut = at((1.0, 0.0)), at((0.75, 0.0))
+    (k,) = np.flatnonzero((cells == corner).any(axis=1))
+    assert at((1.0, 0.25)) in cells[k] and cut in cells[k]
+    cells = cells.copy()
+    cells[k][cells[k] == cut] = len(x)
+    return np.vstack([x, x[cut]]), cells
+
+
 def _moved(k, to):
     def change(x, cells):
         x[k] = to
@@ -226,10 +239,15 @@ def _moved(k, to):
         cell_type=__import__("dolfinx.mesh").mesh.CellType.quadrilateral),
      r"mesh is not a triangular mesh \(cells: quadrilateral\)"),
     (lambda: _given_square(change=_without_middle),
-     r"must be a mesh of the unit square \(0, 1\)\^2: its cells cover an area of 0\.75, "
-     r"its boundary vertices lie up to 0\.25 off the square's sides"),
+     r"^the square scene's mesh must be a mesh of the unit square \(0, 1\)\^2: its cells cover "
+     r"an area of 0\.75, 8 of its 24 boundary edges lie off the square's sides \(a hole, a "
+     r"slit, another domain, or cells not joined\)$"),
     (lambda: _given_square(change=lambda x, c: (2 * x, c)),
-     r"an area of 4, its boundary vertices lie up to 1 off"),
+     r"an area of 4, 12 of its 16 boundary edges lie off"),
+    (lambda: _given_square(change=lambda x, c: (x + (1.0, 0.0), c)),
+     r"an area of 1, 12 of its 16 boundary edges lie off"),
+    (lambda: _given_square(change=_corner_hinged),
+     r"an area of 1, 2 of its 18 boundary edges lie off"),
     (lambda: _given_square(change=_moved(5, np.nan)),
      r"^mesh has non-finite node coordinates$"),
     (lambda: _given_square(change=_moved(6, (0.25, 0.25))),
@@ -238,8 +256,11 @@ def test_a_given_mesh_of_no_unit_square_is_refused(make, message):
     """scenes.square(mesh=...) with a dolfinx mesh checked its bounding box only: a
     quadrilateral mesh failed in FFCx (UnboundLocalError), a mesh of the square with a hole
     was solved and its error measured against the exact solution of the whole square
-    (effectivity 1.11 of a wrong error), non-finite or flat cells went on. Node 5 of the 4 x 4
-    grid is (0.25, 0.25), in three of its triangles; node 6 moved onto it flattens two."""
+    (effectivity 1.11 of a wrong error), non-finite or flat cells went on. Then a check of
+    the boundary vertices' distance to the sides' lines let the square moved to (1, 2) x
+    (0, 1) through (η 13.19 against an error of 34.23), and a slit between two sides (η
+    0.1138 against 0.1579). Node 5 of the 4 x 4 grid is (0.25, 0.25), in three of its
+    triangles; node 6 moved onto it flattens two."""
     with pytest.raises(ValueError, match=message):
         scenes.square(mesh=make())
 
@@ -289,6 +310,7 @@ def test_a_given_mesh_is_checked_for_size():
 
 GHOSTED = """
 import json
+from dataclasses import replace
 from mpi4py import MPI
 import dolfinx.mesh as dm
 from membranes import scenes, solve
@@ -300,7 +322,22 @@ try:                                           # (the scene solves on mesh.comm)
 except ValueError as e:
     assert str(e).startswith("comm is not the mesh's communicator"), e
 sol = solve(scenes.square(mesh=mesh, levels=2), newton="exact", solver="direct")
+said = []
+try:                        # one process's points past 0.5 only: shapes differ by process
+    replace(sol.problem, interface=lambda p: p[0][p[0] > 0.5])
+except ValueError as e:
+    said.append(str(e))
+moved = dm.create_unit_square(MPI.COMM_WORLD, 4, 4, ghost_mode=dm.GhostMode.none)
+inner = (moved.geometry.x[:, :2] > 0).all(axis=1) & (moved.geometry.x[:, :2] < 1).all(axis=1)
+moved.geometry.x[inner, 0] += 0.01 * MPI.COMM_WORLD.rank   # each process its own copies
+try:
+    scenes.square(mesh=moved)
+except ValueError as e:
+    said.append(str(e))
+said = MPI.COMM_WORLD.allgather(said)
+assert all(s == said[0] for s in said), said
 if MPI.COMM_WORLD.rank == 0:
+    print(json.dumps(said[0]))
     print(json.dumps([sol.estimates["eta"], sol.energy_error, sol.newton_iterations]))
 """
 
@@ -311,14 +348,23 @@ def test_a_ghosted_mesh_is_refined_on_three_processes():
     levels: on 3 processes plaza refinement made two copies of a ghost cell and the
     estimators stopped on a facet of three cells (RuntimeError). The coarse mesh is made anew
     without ghost cells: the serial η and error to round-off (exact Newton with MUMPS;
-    measured 1.1e-11 with the amg solver)."""
+    measured 1.1e-11 with the amg solver). Two refusals say the same on every process: a
+    level set giving each process another wrong shape (each said its own), and a mesh whose
+    processes hold their copies of a node at different places (taken, one copy checked and
+    another solved)."""
     import dolfinx.mesh as dm
     from mpi4py import MPI
     serial = solve(scenes.square(mesh=dm.create_unit_square(MPI.COMM_SELF, 8, 8), levels=2),
                    newton="exact", solver="direct")
     proc = mpirun(["-c", GHOSTED], processes=3, timeout=240)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    eta, error, steps = json.loads(proc.stdout.strip().splitlines()[-1])
+    said, numbers = proc.stdout.strip().splitlines()[-2:]
+    interface, moved = json.loads(said)
+    assert interface.startswith("interface must be a level set") and " giving shape (" in interface
+    assert moved.startswith("mesh has ") and moved.endswith(" copies of nodes on several "
+                                                          "processes at other places than "
+                                                          "the node's first copy")
+    eta, error, steps = json.loads(numbers)
     assert eta == pytest.approx(serial.estimates["eta"], rel=1e-10)
     assert error == pytest.approx(serial.energy_error, rel=1e-10)
     assert steps == serial.newton_iterations

@@ -71,8 +71,6 @@ def _on_rank0(comm, build):
     """Run `build(gmsh)` in a gmsh session on rank 0; it returns the coarse mesh as (cells, x)
     (`_model_cells`), which dolfinx distributes on `comm` without ghost cells (module notes).
     A ValueError on rank 0 reaches every rank."""
-    from dolfinx.io import gmshio
-    from dolfinx.mesh import GhostMode, create_mesh
     error, arrays = None, None
     with contextlib.ExitStack() as stack:
         if comm.rank == 0:
@@ -86,6 +84,15 @@ def _on_rank0(comm, build):
             raise ValueError(error)
         cells, x = arrays if comm.rank == 0 else \
             (np.empty((0, 3), dtype=np.int64), np.empty((0, 2)))
+    return _distribute(comm, cells, x)
+
+
+def _distribute(comm, cells, x):
+    """dolfinx's mesh of the triangles `cells` (global indices of nodes, int64) on the nodes
+    whose coordinates `x` this process holds (in blocks of consecutive indices, process by
+    process), partitioned on `comm` without ghost cells (module notes). Collective."""
+    from dolfinx.io import gmshio
+    from dolfinx.mesh import GhostMode, create_mesh
     with one_scotch_thread():
         return create_mesh(comm, cells, x, gmshio.ufl_mesh(GMSH_TRIANGLE, 2),
                            ghost_mode=GhostMode.none)
@@ -256,20 +263,20 @@ def _model_cells(gmsh, what, conforming=False):
     if not np.array_equal(node_tags[at], used):
         raise ValueError(f"{what} has triangles on nodes it does not list")
     x, cells = coords[at], cells.reshape(-1, 3).astype(np.int64)
-    if not np.all(np.isfinite(x)):
-        raise ValueError(f"{what} has non-finite node coordinates")
-    if np.ptp(x[:, 2]) > 1e-12 * max(1.0, np.abs(x).max()):
+    if np.ptp(x[:, 2]) > 1e-12 * max(1.0, np.abs(x).max()):       # (NaN: below)
         raise ValueError(f"{what} is 3D (its triangles' nodes have z from "
                          f"{x[:, 2].min():g} to {x[:, 2].max():g}, not one plane z = const)")
-    return checked_cells(np.ascontiguousarray(x[:, :2]), cells, what, conforming)
+    return checked_cells(np.ascontiguousarray(x[:, :2]), cells, what, conforming)[:2]
 
 
 def checked_cells(x, cells, what, conforming=False,
                   fix="(join surfaces with gmsh's fragment)"):
-    """(cells, x), the triangles `cells` ((T, 3) indices into the (n, 2) finite coordinates
-    `x`) checked as `_model_cells` says (`what` names them in messages, `fix` ends that of a
-    mesh that is not conforming); the conformity is not looked for where they are
-    `conforming`."""
+    """(cells, x, boundary edges), the triangles `cells` ((T, 3) indices into the (n, 2)
+    coordinates `x`) checked as `_model_cells` says (`what` names them in messages, `fix`
+    ends that of a mesh that is not conforming; the conformity is not looked for where they
+    are `conforming`), and their boundary edges ((m, 2) node pairs)."""
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{what} has non-finite node coordinates")
     p = x[cells]
     longest = np.max([((p[:, i] - p[:, i - 1]) ** 2).sum(axis=1) for i in range(3)], axis=0)
     flat = np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest)
@@ -299,12 +306,13 @@ def checked_cells(x, cells, what, conforming=False,
     if folded:
         raise ValueError(f"{what} has {folded} edge(s) whose two triangles lie on the same "
                          f"side (a folded or tangled mesh)")
+    edges = ends[first[shared == 1]]
     if not conforming:
-        found = conformity.nonconforming_nodes(x, cells, ends[first[shared == 1]])
+        found = conformity.nonconforming_nodes(x, cells, edges)
         if conformity.total(found):
             raise ValueError(f"{what} is not conforming: {conformity.message(found)} "
                              f"{fix}")
-    return cells, x
+    return cells, x, edges
 
 
 def check_msh_path(path):
@@ -340,7 +348,7 @@ def read_msh(path, comm=MPI.COMM_WORLD):
     return _on_rank0(comm, lambda gmsh: _check_msh(gmsh, path))
 
 
-def given_mesh(mesh, what="mesh"):
+def given_mesh(mesh, what="mesh", domain=None):
     """A dolfinx mesh given through the API (`scenes.square(mesh=...)`, `scenes.user`) as the
     coarse mesh T_0, checked as a file's mesh is (§2: P1 on a conforming triangulation in
     the plane; module notes): ValueError, the same on every process and naming it as
@@ -348,7 +356,9 @@ def given_mesh(mesh, what="mesh"):
     dimension 2 whose cells pass `checked_cells`. For those checks its owned cells and their
     nodes (by the input indices it was created from: a vertex dolfinx made twice, where
     parts meet at it alone, is one node) are gathered on rank 0, as a file's mesh is read
-    there, and let go after. Collective; returns the mesh."""
+    there, and let go after; the copies of a node on several processes must agree. `domain`
+    (x, cells, boundary edges) ↦ what is wrong (None: nothing), run there too, checks the
+    domain the cells cover (a scene's). Collective; returns the mesh."""
     from dolfinx.mesh import CellType, Mesh
     if not isinstance(mesh, Mesh):
         raise ValueError(f"{what} must be a dolfinx Mesh, got {type(mesh).__name__}")
@@ -368,15 +378,19 @@ def given_mesh(mesh, what="mesh"):
     error = None
     if mesh.comm.rank == 0:
         cells, nodes, x = (np.concatenate([part[k] for part in parts]) for k in range(3))
-        nodes, first = np.unique(nodes, return_index=True)
+        nodes, first, copy = np.unique(nodes, return_index=True, return_inverse=True)
+        moved = np.count_nonzero(np.any((x != x[first][copy]) & ~np.isnan(x), axis=1))
         x = x[first]
         try:
-            if not np.all(np.isfinite(x)):
-                raise ValueError(f"{what} has non-finite node coordinates")
+            if moved:
+                raise ValueError(f"{what} has {moved} copies of nodes on several processes "
+                                 f"at other places than the node's first copy")
             if not len(cells):
                 raise ValueError(f"{what} has no cells")
-            checked_cells(x, np.searchsorted(nodes, cells), what,
-                          fix="(its cells must share their nodes where they meet)")
+            cells, x, edges = checked_cells(
+                x, np.searchsorted(nodes, cells), what,
+                fix="(its cells must share their nodes where they meet)")
+            error = domain(x, cells, edges) if domain is not None else None
         except ValueError as e:
             error = str(e)
     del parts
@@ -392,17 +406,13 @@ def without_ghosts(mesh):
     as dolfinx's default GhostMode.shared_facet makes them, gave two copies of a ghost cell
     on 3 processes). Each process hands over its owned cells and geometry nodes only.
     Collective."""
-    from dolfinx.io import gmshio
-    from dolfinx.mesh import GhostMode, create_mesh
     if not mesh.comm.allreduce(mesh.topology.index_map(2).num_ghosts, op=MPI.SUM):
         return mesh
     nodes = mesh.geometry.index_map()
     cells = mesh.geometry.dofmap.array.reshape(-1, 3)[:owned_cells(mesh)]
     cells = np.asarray(nodes.local_to_global(cells.ravel()), dtype=np.int64).reshape(-1, 3)
-    x = np.ascontiguousarray(mesh.geometry.x[:nodes.size_local, :2])
-    with one_scotch_thread():
-        return create_mesh(mesh.comm, cells, x, gmshio.ufl_mesh(GMSH_TRIANGLE, 2),
-                           ghost_mode=GhostMode.none)
+    return _distribute(mesh.comm, cells,
+                       np.ascontiguousarray(mesh.geometry.x[:nodes.size_local, :2]))
 
 
 def owned_cells(mesh):

@@ -143,19 +143,21 @@ class Problem:
                                  f"{type(getattr(self, name)).__name__}")
         points = None
         if self.interface is not None:
-            # (a function returning one number, not one per point, was taken for no interface)
+            # (a function returning one number, not one per point, was taken for no interface;
+            # collective, with the same message on every process: the first wrong answer)
             points, shape = _sample_points(self.mesh), None
             if callable(self.interface):
                 try:
                     shape = f"shape {np.shape(self.interface(points))}"
                 except Exception as e:          # (on every process alike, below)
                     shape = f"{type(e).__name__}: {e}"
-            n = f"shape {(points.shape[1],)}"
-            if not self.mesh.comm.allreduce(shape == n, op=MPI.LAND):
+            wrong = [shape] if shape != f"shape {(points.shape[1],)}" else None
+            wrong = next((w for w in self.mesh.comm.allgather(wrong) if w is not None), None)
+            if wrong is not None:
                 raise ValueError(f"interface must be a level set, a function of points "
                                  f"(2, n) returning n values, or None, got "
                                  f"{type(self.interface).__name__}"
-                                 + (f" giving {shape}" if shape else ""))
+                                 + (f" giving {wrong[0]}" if wrong[0] else ""))
         for name in ("f1", "f2"):
             data = getattr(self, name)
             if isinstance(data, str):

@@ -25,7 +25,7 @@ import ufl
 from mpi4py import MPI
 
 from ..fem import meshes
-from ..fem.hierarchy import boundary_vertices, build_hierarchy, onto_unit_circle
+from ..fem.hierarchy import build_hierarchy, onto_unit_circle
 from .checks import check_request
 from .expressions import Formula
 from .problem import ExactSolution, Problem, positive_number, real_number
@@ -158,40 +158,40 @@ def disk(h: float = DEFAULT_H, levels: int = 0, comm: MPI.Comm = MPI.COMM_WORLD,
 # the loads are f1 = -μ1 Δu1 - λ and f2 = -μ2 Δu2 + λ (UFL differentiates the formulas).
 # μ1 ≠ μ2 and f1 + f2 ≠ 0, so the decoupled check of §10 is not trivial here.
 
-def _given(mesh, comm, levels, max_vertices):
+def _given(mesh, comm, levels, max_vertices, domain=None):
     """A dolfinx mesh given as T_0 (`meshes.given_mesh`), without ghost cells
     (`meshes.without_ghosts`: before dolfinx makes its edges, which on 3 processes waited for
     ever on a ghosted mesh of two squares touching at a corner), with the size check of its
-    hierarchy; `comm`, if given, must be its communicator (the scene solves on mesh.comm).
-    Collective."""
+    hierarchy; `comm`, if given, must be its communicator (the scene solves on mesh.comm);
+    `domain`: as `meshes.given_mesh`'s. Collective."""
     if comm is not None and MPI.Comm.Compare(_communicator(comm), mesh.comm) not in \
             (MPI.IDENT, MPI.CONGRUENT):
         raise ValueError("comm is not the mesh's communicator: a scene on a given mesh "
                          "solves on mesh.comm (leave comm out)")
-    mesh = meshes.without_ghosts(meshes.given_mesh(mesh))
+    mesh = meshes.without_ghosts(meshes.given_mesh(mesh, domain=domain))
     check_request(levels=levels, max_vertices=max_vertices, comm=mesh.comm,
                   counts=meshes.mesh_counts(mesh))
     return mesh
 
 
-def _check_unit_square(mesh):
-    """ValueError unless `mesh` (a checked triangular mesh, `meshes.given_mesh`) is a mesh of
-    (0, 1)², whose exact solution the square scene gives: its cells' areas add up to 1 and its
-    boundary vertices lie on the square's sides, to round-off (a hole or a slit, a smaller or
-    larger domain would leave the exact solution another problem's). Collective."""
-    x = mesh.geometry.x[:, :2]
-    cells = mesh.geometry.dofmap.array.reshape(-1, 3)
-    owned = cells[:meshes.owned_cells(mesh)]
-    area = mesh.comm.allreduce(meshes.triangle_areas(x[owned]).sum(), op=MPI.SUM)
-    rim = x[boundary_vertices(mesh)]
-    off = np.min(np.abs(np.c_[rim, 1.0 - rim]), axis=1) if len(rim) else np.zeros(0)
-    off = mesh.comm.allreduce(np.max(off, initial=0.0), op=MPI.MAX)
-    if abs(area - 1.0) > 1e-12 or off > 1e-12:
-        raise ValueError(f"the square scene's mesh must be a mesh of the unit square (0, 1)^2: "
-                         f"its cells cover an area of {area:.15g}, its boundary vertices lie "
-                         f"up to {off:.3g} off the square's sides (a hole, a slit, or cells "
-                         f"not joined: nodes twice, or vertices of one place on several "
-                         f"processes)")
+def _off_the_unit_square(x, cells, edges):
+    """What keeps the triangles `cells` on the nodes x, with boundary edges `edges`, from
+    being a mesh of (0, 1)², whose exact solution the square scene gives (None: nothing):
+    each boundary edge must lie on one of the square's sides and the cells cover an area of
+    1, to round-off. A hole, a slit, another domain would leave the exact solution another
+    problem's (`meshes.given_mesh` runs it on the gathered T_0)."""
+    tol = 1e-12
+    a, b = x[edges[:, 0]], x[edges[:, 1]]
+    inside = np.all((x[edges] >= -tol) & (x[edges] <= 1.0 + tol), axis=(1, 2))
+    along = (np.abs(a - b) <= tol) & ((np.abs(a) <= tol) | (np.abs(a - 1.0) <= tol))
+    off = np.count_nonzero(~(inside & along.any(axis=1)))
+    area = meshes.triangle_areas(x[cells]).sum()
+    if off or abs(area - 1.0) > tol:
+        return (f"the square scene's mesh must be a mesh of the unit square (0, 1)^2: its "
+                f"cells cover an area of {area:.15g}, {off} of its {len(edges)} boundary "
+                f"edges lie off the square's sides (a hole, a slit, another domain, or cells "
+                f"not joined)")
+    return None
 
 
 SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
@@ -200,8 +200,9 @@ SQUARE = {"mu1": 1.0, "mu2": 2.0, "g": 0.1, "s0": 0.5, "lam0": 0.8}
 def square(h: Optional[float] = None, levels: int = 0, comm: Optional[MPI.Comm] = None,
            mesh: Optional[dolfinx.mesh.Mesh] = None,
            max_vertices: Optional[int] = None, progress: Progress = None) -> Problem:
-    """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone, on
-    gmsh's mesh at size h (default DEFAULT_H) on `comm` (default MPI.COMM_WORLD), or on
+    """Unit square, μ1 = 1, μ2 = 2, g = 0.1, manufactured solution with a contact zone.
+
+    On gmsh's mesh at size h (default DEFAULT_H) on `comm` (default MPI.COMM_WORLD), or on
     `mesh`, a dolfinx mesh of (0, 1)² (API only: the anisotropic, graded and tiny meshes of
     §11, meshes.structured_square; your own), on its communicator: h and another `comm` are
     refused with it, as they cannot apply."""
@@ -216,8 +217,7 @@ def square(h: Optional[float] = None, levels: int = 0, comm: Optional[MPI.Comm] 
                              f"{type(mesh).__name__} (a mesh file goes to scenes.user(mesh=...))")
         if h is not None:
             raise ValueError("give mesh or h, not both: the mesh is the coarse mesh")
-        mesh = _given(mesh, comm, levels, max_vertices)
-        _check_unit_square(mesh)
+        mesh = _given(mesh, comm, levels, max_vertices, _off_the_unit_square)
     mu1, mu2, g, s0, lam0 = (SQUARE[k] for k in ("mu1", "mu2", "g", "s0", "lam0"))
 
     def s(x):
@@ -327,13 +327,14 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
          domain: Optional[str] = None,
          h: Optional[float] = None, levels: int = 0, comm: Optional[MPI.Comm] = None,
          max_vertices: Optional[int] = None, progress: Progress = None) -> Problem:
-    """User data: f1, f2 formulas in x, y; on a gmsh file `mesh`, on `mesh` a dolfinx mesh
-    (on its communicator, checked as a file's: `meshes.given_mesh`), or on the unit
-    disk/square. `domain` ('disk' by default) and `h` (DEFAULT_H) apply without `mesh` only;
-    `comm` (default MPI.COMM_WORLD) must be a dolfinx mesh's own."""
+    """User data: f1, f2 formulas in x, y; on the unit disk/square or your mesh.
+
+    `mesh`: a gmsh file, or a dolfinx mesh (on its communicator, checked as a file's mesh
+    is: `meshes.given_mesh`). `domain` ('disk' by default) and `h` (DEFAULT_H) apply without
+    `mesh` only; `comm` (default MPI.COMM_WORLD) must be a dolfinx mesh's own."""
     if mesh is not None and (h is not None or domain is not None):  # (as the command line)
         raise ValueError(f"give mesh or {'h' if h is not None else 'domain'}, not both: the "
-                         f"mesh file is the coarse mesh")
+                         f"mesh is the coarse mesh")
     levels = _check_levels(levels)
     f1, f2 = Formula(f1, "f1"), Formula(f2, "f2")   # fail on bad input before any meshing
     mu1, mu2, g = (positive_number(k, v) for k, v in (("mu1", mu1), ("mu2", mu2), ("g", g)))
