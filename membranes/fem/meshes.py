@@ -379,7 +379,8 @@ def given_mesh(mesh, what="mesh", domain=None):
     if mesh.comm.rank == 0:
         cells, nodes, x = (np.concatenate([part[k] for part in parts]) for k in range(3))
         nodes, first, copy = np.unique(nodes, return_index=True, return_inverse=True)
-        moved = np.count_nonzero(np.any((x != x[first][copy]) & ~np.isnan(x), axis=1))
+        same = x[first][copy]
+        moved = np.count_nonzero(np.any((x != same) & ~(np.isnan(x) & np.isnan(same)), axis=1))
         x = x[first]
         try:
             if moved:
