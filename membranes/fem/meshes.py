@@ -378,24 +378,26 @@ def given_mesh(mesh, what="mesh", domain=None):
     error = None
     if mesh.comm.rank == 0:
         cells, nodes, x = (np.concatenate([part[k] for part in parts]) for k in range(3))
-        nodes, first, copy = np.unique(nodes, return_index=True, return_inverse=True)
-        same = x[first][copy]
-        moved = np.count_nonzero(np.any((x != same) & ~(np.isnan(x) & np.isnan(same)), axis=1))
-        x = x[first]
         try:
+            if not np.all(np.isfinite(x)):          # (every copy: the same words at any P)
+                raise ValueError(f"{what} has non-finite node coordinates")
+            nodes, first, copy = np.unique(nodes, return_index=True, return_inverse=True)
+            moved = np.count_nonzero(np.any(x != x[first][copy], axis=1))
             if moved:
                 raise ValueError(f"{what} has {moved} copies of nodes on several processes "
                                  f"at other places than the node's first copy")
             if not len(cells):
                 raise ValueError(f"{what} has no cells")
             cells, x, edges = checked_cells(
-                x, np.searchsorted(nodes, cells), what,
+                x[first], np.searchsorted(nodes, cells), what,
                 fix="(its cells must share their nodes where they meet)")
             error = domain(x, cells, edges) if domain is not None else None
-        except ValueError as e:
-            error = str(e)
+        except Exception as e:       # (every process must leave the broadcast below)
+            error = str(e) if isinstance(e, ValueError) else (type(e).__name__, str(e))
     del parts
     error = mesh.comm.bcast(error, root=0)
+    if isinstance(error, tuple):
+        raise RuntimeError(f"checking {what} on rank 0 failed: {error[0]}: {error[1]}")
     if error is not None:
         raise ValueError(error)
     return mesh

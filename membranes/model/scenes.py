@@ -178,15 +178,16 @@ def _off_the_unit_square(x, cells, edges):
     """What keeps the triangles `cells` on the nodes x, with boundary edges `edges`, from
     being a mesh of (0, 1)², whose exact solution the square scene gives (None: nothing):
     each boundary edge must lie on one of the square's sides and the cells cover an area of
-    1, to round-off. A hole, a slit, another domain would leave the exact solution another
-    problem's (`meshes.given_mesh` runs it on the gathered T_0)."""
+    1, to round-off (nodes within tol of the sides, the area within the 4 tol that allows
+    along the perimeter). A hole, a slit, another domain would leave the exact solution
+    another problem's (`meshes.given_mesh` runs it on the gathered T_0)."""
     tol = 1e-12
     a, b = x[edges[:, 0]], x[edges[:, 1]]
     inside = np.all((x[edges] >= -tol) & (x[edges] <= 1.0 + tol), axis=(1, 2))
     along = (np.abs(a - b) <= tol) & ((np.abs(a) <= tol) | (np.abs(a - 1.0) <= tol))
     off = np.count_nonzero(~(inside & along.any(axis=1)))
     area = meshes.triangle_areas(x[cells]).sum()
-    if off or abs(area - 1.0) > tol:
+    if off or abs(area - 1.0) > 5 * tol:
         return (f"the square scene's mesh must be a mesh of the unit square (0, 1)^2: its "
                 f"cells cover an area of {area:.15g}, {off} of its {len(edges)} boundary "
                 f"edges lie off the square's sides (a hole, a slit, another domain, or cells "
