@@ -392,9 +392,14 @@ def check_max_vertices(max_vertices):
 
 def describe_request(h=None, levels=0, domain="disk", mesh_file=None):
     """'h = 0.05 and 12 levels on the unit disk' (the words of the size check's message)."""
-    where = f"mesh file {mesh_file}" if mesh_file is not None else "the given mesh" \
-        if h is None else f"the unit {domain}" if isinstance(domain, str) else "the domain"
-    size = "" if mesh_file is not None or h is None else f"h = {h:g}, "
+    size = ""
+    if mesh_file is not None:
+        where = f"mesh file {mesh_file}"
+    elif h is None:
+        where = "the given mesh"
+    else:
+        size = f"h = {h:g}, "
+        where = f"the unit {domain}" if isinstance(domain, str) else "the domain"
     return f"{size}{int(levels)} level{'s' if int(levels) != 1 else ''} on {where}"
 
 
