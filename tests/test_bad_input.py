@@ -11,7 +11,8 @@ import pytest
 
 from membranes import Problem, scenes, solve
 from membranes.fem.hierarchy import build_hierarchy
-from membranes.fem.meshes import read_msh, unit_disk
+from membranes.fem.mesh_files import read_msh
+from membranes.fem.meshes import unit_disk
 from membranes.model.expressions import Formula
 
 from .conftest import cli_bad_input, mpirun, scene, write_msh
@@ -507,7 +508,7 @@ def test_refused_before_the_mesh_is_built(case, tmp_path, capsys, monkeypatch):
 
     def never(*args, **kwargs):
         raise AssertionError("the mesh was built")
-    monkeypatch.setattr(meshes, "_on_rank0", never)
+    monkeypatch.setattr(meshes, "on_rank0", never)
     monkeypatch.setattr(hierarchy, "refine", never)
     args, expected = CASES[case]
     out = tmp_path / "out"
@@ -820,7 +821,7 @@ def test_scene_range_errors_name_the_parameter(monkeypatch):
 
     def no_meshing(*args, **kwargs):
         raise AssertionError("meshed before the parameters were checked")
-    monkeypatch.setattr(meshes, "_on_rank0", no_meshing)
+    monkeypatch.setattr(meshes, "on_rank0", no_meshing)
     with pytest.raises(ValueError, match="levels must be a non-negative integer, got -1"):
         scenes.disk(h=0.5, levels=-1)
     with pytest.raises(ValueError, match="levels must be a non-negative integer, got -1"):

@@ -11,7 +11,7 @@ import pytest
 from membranes import scenes, solve
 from membranes.fem.hierarchy import build_hierarchy
 from membranes.fem.meshes import unit_disk, unit_square
-from membranes.model import checks, folders, petsc_options
+from membranes.model import checks, folders, mesh_headers, petsc_options
 
 from .conftest import mpirun, scene
 
@@ -74,7 +74,7 @@ def test_mesh_file_vertices_from_the_header(version, binary, tmp_path):
         gmsh.write(path)
     finally:
         gmsh.finalize()
-    assert checks.mesh_file_vertices(path) == nodes
+    assert mesh_headers.mesh_file_vertices(path) == nodes
     finest, _ = checks.estimate_vertices(levels=2, mesh_file=path)
     assert finest == checks.refined_vertices(nodes, nodes - 2, 2)     # a lower bound
 
@@ -85,7 +85,7 @@ def test_mesh_file_that_is_not_one(tmp_path):
     garbage = tmp_path / "garbage.msh"
     garbage.write_text("this is not a mesh\n")
     for path in (garbage, tmp_path / "missing.msh", tmp_path):
-        assert checks.mesh_file_vertices(str(path)) is None
+        assert mesh_headers.mesh_file_vertices(str(path)) is None
         assert checks.check_request(levels=20, mesh_file=str(path)) is None
 
 
@@ -245,7 +245,7 @@ def test_scenes_refuse_before_gmsh(monkeypatch):
 
     def no_gmsh(*args, **kwargs):
         raise AssertionError("gmsh was called")
-    monkeypatch.setattr(meshes, "_on_rank0", no_gmsh)
+    monkeypatch.setattr(meshes, "on_rank0", no_gmsh)
     for make in (lambda: scenes.disk(h=0.05, levels=12), lambda: scenes.disk(h=1e-5),
                  lambda: scenes.square(h=1e-5),
                  lambda: scenes.radial(h=0.05, levels=12),

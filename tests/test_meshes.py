@@ -7,7 +7,8 @@ import pytest
 from mpi4py import MPI
 
 from membranes.fem.hierarchy import build_hierarchy
-from membranes.fem.meshes import mesh_size, read_msh, unit_disk, unit_square
+from membranes.fem.mesh_files import read_msh
+from membranes.fem.meshes import mesh_size, unit_disk, unit_square
 
 from .conftest import mpirun, write_msh
 

@@ -11,7 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from membranes import scenes, solve
-from membranes.fem.meshes import read_msh
+from membranes.fem.mesh_files import read_msh
 
 from .conftest import cli_bad_input, mpirun
 
@@ -397,7 +397,8 @@ def test_api_mesh_that_is_no_path(tmp_path):
     fd = os.open(msh, os.O_RDONLY)
     try:
         for bad in (fd, 2.5, [msh]):
-            with pytest.raises(ValueError, match="mesh must be the path of a .msh file"):
+            with pytest.raises(ValueError, match=r"mesh must be the path of a \.msh or "
+                                                 r"\.xdmf file \(or a dolfinx Mesh\), got "):
                 scenes.user(mesh=bad)
         os.fstat(fd)                                   # (OSError if it was closed)
     finally:

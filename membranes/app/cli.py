@@ -120,7 +120,8 @@ def _parser():
     s.add_argument("--scene", choices=("disk", "square", "user"),
                    help="disk (default) or square with known exact solutions, or user data "
                         "(implied by --mu1/--mu2/--g/--f1/--f2/--mesh/--domain)")
-    s.add_argument("--mesh", metavar="FILE", help="2D triangular gmsh .msh file (user scene)")
+    s.add_argument("--mesh", metavar="FILE",
+                   help="2D triangular mesh file, gmsh .msh or XDMF (user scene)")
     s.add_argument("--domain", choices=("disk", "square"),
                    help="domain of the user scene when no --mesh is given (default disk)")
     s.add_argument("--h", type=float, help="gmsh target size of the coarse mesh (default 0.05)")

@@ -1,5 +1,6 @@
-"""Computational domains on a communicator: the unit disk and square from gmsh, gmsh files,
-and dolfinx meshes given through the API (§9, §12).
+"""Computational domains on a communicator: the unit disk and square from gmsh, the cells of a
+gmsh model (a generated domain, or a `.msh` file opened by `mesh_files`), and dolfinx meshes
+given through the API or read from an XDMF file (§9, §12).
 
 Every mesh is a dolfinx P1 triangular mesh with geometric dimension 2, partitioned by dolfinx on
 the communicator it is given (default `MPI.COMM_WORLD`): gmsh meshes (or reads) on rank 0 only,
@@ -8,11 +9,11 @@ and dolfinx's `create_mesh` distributes the cells. No process holds the whole me
 a clean model (every node used, node tags 1..N, each cell in one physical group): nodes no cell
 uses (a physical group covering part of the surfaces) crash it, and so does a surface in two
 physical groups. So the triangles of a gmsh model's 2D physical groups (of every surface if it
-has none; a generated disk or square, or an opened `.msh` file) are taken once each, on the
-nodes they use, and checked (no zero-area triangle, no triangle listed twice, by its nodes or
-their places, no edge of three or more triangles, no fold: the two triangles of an edge lie
-on its two sides; conforming (`conformity`): no hanging node, no surfaces overlapping or
-left unjoined; the nodes in one plane z = const), and
+has none; a generated disk or square, or an opened `.msh` file: `model_cells`) are taken
+once each, on the nodes they use, and checked (no zero-area triangle, no triangle listed
+twice, by its nodes or their places, no edge of three or more triangles, no fold: the two
+triangles of an edge lie on its two sides; conforming (`conformity`): no hanging node, no
+surfaces overlapping or left unjoined; the nodes in one plane z = const), and
 dolfinx's `create_mesh` distributes them, without ghost cells (§12): plaza refinement of a
 ghosted mesh gave two copies of a ghost cell on some processes (a file of two squares on 3
 processes), and the estimators met facets of three cells.
@@ -26,7 +27,8 @@ same run on 2 processes took 24 or 25 Newton steps, and its η differed in the f
 the user set it), under which the partition of a mesh on P processes is the same in every
 run. The hierarchy is refined without redistribution, so it inherits T_0's partition.
 
-A dolfinx mesh given through the API (`given_mesh`) gets the same checks: its cells and
+A dolfinx mesh given through the API, or read from an XDMF file (`mesh_files`), gets the
+same checks (`given_mesh`): its cells and
 their nodes are gathered on rank 0 for them, as a file's mesh is read there, then let go;
 the mesh is used as given, or made anew without ghost cells (`without_ghosts`) where it has
 them (plaza refinement, and dolfinx's edges of a pinched mesh, failed on ghosts).
@@ -67,9 +69,9 @@ def check_size(h):
     return h
 
 
-def _on_rank0(comm, build):
+def on_rank0(comm, build):
     """Run `build(gmsh)` in a gmsh session on rank 0; it returns the coarse mesh as (cells, x)
-    (`_model_cells`), which dolfinx distributes on `comm` without ghost cells (module notes).
+    (`model_cells`), which dolfinx distributes on `comm` without ghost cells (module notes).
     A ValueError on rank 0 reaches every rank."""
     error, arrays = None, None
     with contextlib.ExitStack() as stack:
@@ -84,10 +86,10 @@ def _on_rank0(comm, build):
             raise ValueError(error)
         cells, x = arrays if comm.rank == 0 else \
             (np.empty((0, 3), dtype=np.int64), np.empty((0, 2)))
-    return _distribute(comm, cells, x)
+    return distribute(comm, cells, x)
 
 
-def _distribute(comm, cells, x):
+def distribute(comm, cells, x):
     """dolfinx's mesh of the triangles `cells` (global indices of nodes, int64) on the nodes
     whose coordinates `x` this process holds (in blocks of consecutive indices, process by
     process), partitioned on `comm` without ghost cells (module notes). Collective."""
@@ -126,7 +128,7 @@ def _shape(shape, h):
         gmsh.option.setNumber("Mesh.CharacteristicLengthMin", 0.0)
         gmsh.option.setNumber("Mesh.CharacteristicLengthMax", h)
         gmsh.model.mesh.generate(2)
-        return _model_cells(gmsh, f"the generated unit {shape}", conforming=True)
+        return model_cells(gmsh, f"the generated unit {shape}", conforming=True)
     return build
 
 
@@ -134,13 +136,13 @@ def unit_disk(h, comm=MPI.COMM_WORLD):
     """Unstructured mesh of the unit disk with target cell size h (§9): at most h, and at
     most the size gmsh gives the geometry's points, so that h above about 0.3 gives the same
     mesh (71 vertices)."""
-    return _on_rank0(comm, _shape("disk", check_size(h)))
+    return on_rank0(comm, _shape("disk", check_size(h)))
 
 
 def unit_square(h, comm=MPI.COMM_WORLD):
     """Unstructured mesh of (0, 1)² with target cell size h: at most h, and at most the size
     gmsh gives the corners, so that h above about 0.15 gives the same mesh (98 vertices)."""
-    return _on_rank0(comm, _shape("square", check_size(h)))
+    return on_rank0(comm, _shape("square", check_size(h)))
 
 
 def structured_square(nx, ny, grading=1.0, comm=MPI.COMM_WORLD):
@@ -161,79 +163,7 @@ def structured_square(nx, ny, grading=1.0, comm=MPI.COMM_WORLD):
     return m
 
 
-def _element_tags_in_range(gmsh, path):
-    """ValueError if the element section of the .msh file at `path` holds a tag of 2^31 or
-    more. gmsh 4.8 crashes on such node tags in MSH 4.x files (a segmentation fault inside
-    gmsh.open: 3 of 40 random byte corruptions of a binary file) and wraps those of 2^32 and
-    more onto other nodes; no mesh this program can hold has them. Looked at without gmsh:
-    the text of an ASCII file, the element blocks of a little-endian binary MSH 4.1 file (an
-    int dim, entity and type and a size_t count, then per element its tag and node tags).
-    What gmsh reads otherwise (MSH 2.2 binary: C ints) it checks itself."""
-    import re
-    limit = 1 << 31
-    with open(path, "rb") as f:
-        data = f.read()
-    head = re.match(rb"\s*\$MeshFormat\s+(\S+)\s+(\d)\s+(\d+)[^\n]*\n", data[:256])
-    start = max(data.find(b"$Elements\n"), data.find(b"$ELM\n"))
-    if start < 0:
-        return                                          # (gmsh says what is missing)
-    start = data.find(b"\n", start) + 1
-
-    def refuse(tag):
-        raise ValueError(f"mesh file {path!r} has a tag of 2^31 or more in its elements "
-                         f"({tag}): a corrupt file?")
-
-    if head is None or head.group(2) == b"0":           # ASCII (MSH 1.0 has no header)
-        end = data.find(b"$End", start)
-        for number in re.finditer(rb"\d{10,}", data[start:end if end > 0 else None]):
-            if int(number.group()) >= limit:
-                refuse(int(number.group()))
-        return
-    if head.group(1) != b"4.1" or head.group(3) != b"8" or \
-            data[head.end():head.end() + 4] != (1).to_bytes(4, "little"):
-        return
-
-    def read(dtype, offset, count=1):
-        return np.frombuffer(data, dtype=dtype, count=count, offset=offset)
-
-    at = start + 32                                     # (the section's 4 size_t)
-    for _ in range(int(read("<u8", start)[0]) if start + 32 <= len(data) else 0):
-        if at + 20 > len(data):
-            return                                      # (too short: gmsh refuses it)
-        kind, count = int(read("<i4", at + 8)[0]), int(read("<u8", at + 12)[0])
-        try:
-            width = 1 + int(gmsh.model.mesh.getElementProperties(kind)[3])
-        except Exception:
-            return                                      # (an unknown type: gmsh refuses it)
-        if count > (len(data) - at - 20) // (8 * width):
-            return                                      # (too short: gmsh refuses it)
-        tags = read("<u8", at + 20, width * count)
-        if tags.size and tags.max() >= limit:
-            refuse(int(tags.max()))
-        at += 20 + 8 * width * count
-
-
-def _check_msh(gmsh, path):
-    _element_tags_in_range(gmsh, path)
-    try:
-        gmsh.open(path)
-    except Exception as e:
-        reason = str(e).strip() or "gmsh stopped without saying why"
-        raise ValueError(f"cannot read mesh file {path!r}: {reason}") from None
-    dim = gmsh.model.getDimension()
-    if dim == 3 or gmsh.model.mesh.getElementTypes(3).size:
-        raise ValueError(f"mesh file {path!r} is 3D; a 2D triangular mesh is required")
-    types = list(gmsh.model.mesh.getElementTypes(2))
-    if dim < 2 or not types:
-        raise ValueError(f"mesh file {path!r} has no 2D cells")
-    if types != [GMSH_TRIANGLE]:
-        names = [gmsh.model.mesh.getElementProperties(t)[0] for t in types]
-        raise ValueError(f"mesh file {path!r} is not a linear triangular mesh "
-                         f"(cells: {', '.join(names)})")
-    return _model_cells(gmsh, f"mesh file {path!r}")
-
-
-def _model_cells(gmsh, what, conforming=False):
+def model_cells(gmsh, what, conforming=False):
     """(cells, x) of gmsh's current model (`what` names it in messages): its triangles in 2D
     physical groups (in every surface if it has none), each once, as rows of indices into x,
     the (n, 2) coordinates of the n nodes they use (module notes). ValueError for degenerate,
@@ -272,7 +202,7 @@ def _model_cells(gmsh, what, conforming=False):
 def checked_cells(x, cells, what, conforming=False,
                   fix="(join surfaces with gmsh's fragment)"):
     """(cells, x, boundary edges), the triangles `cells` ((T, 3) indices into the (n, 2)
-    coordinates `x`) checked as `_model_cells` says (`what` names them in messages, `fix`
+    coordinates `x`) checked as `model_cells` says (`what` names them in messages, `fix`
     ends that of a mesh that is not conforming; the conformity is not looked for where they
     are `conforming`), and their boundary edges ((m, 2) node pairs)."""
     if not np.all(np.isfinite(x)):
@@ -313,39 +243,6 @@ def checked_cells(x, cells, what, conforming=False,
             raise ValueError(f"{what} is not conforming: {conformity.message(found)} "
                              f"{fix}")
     return cells, x, edges
-
-
-def check_msh_path(path):
-    """The readable file at `path` (str, bytes or os.PathLike) as a str, or ValueError naming
-    what is wrong (no gmsh needed). Anything else is refused before a file is touched: an int
-    would be taken for an open file descriptor of the process, and closed after reading."""
-    try:
-        path = os.fsdecode(path)
-    except TypeError:
-        raise ValueError(f"mesh must be the path of a .msh file, got {path!r}") from None
-    if not os.path.exists(path):
-        raise ValueError(f"mesh file {path!r} does not exist")
-    if not os.path.isfile(path):
-        raise ValueError(f"mesh file {path!r} is not a file")
-    if not os.access(path, os.R_OK):
-        raise ValueError(f"mesh file {path!r} is not readable")
-    try:
-        with open(path, "rb") as f:
-            head = f.read(64).lstrip()
-    except OSError as e:
-        raise ValueError(f"mesh file {path!r} cannot be read: {e.strerror or e}") from None
-    if not head.startswith((b"$MeshFormat", b"$NOD")):
-        # (gmsh.open would run anything else as a .geo script, SystemCall included)
-        raise ValueError(f"mesh file {path!r} is not a gmsh .msh file (it does not begin "
-                         f"with $MeshFormat)")
-    return path
-
-
-def read_msh(path, comm=MPI.COMM_WORLD):
-    """Read a 2D triangular gmsh `.msh` file on rank 0 and distribute it; ValueError names
-    what is wrong with it."""
-    path = check_msh_path(path)
-    return _on_rank0(comm, lambda gmsh: _check_msh(gmsh, path))
 
 
 def given_mesh(mesh, what="mesh", domain=None):
@@ -414,7 +311,7 @@ def without_ghosts(mesh):
     nodes = mesh.geometry.index_map()
     cells = mesh.geometry.dofmap.array.reshape(-1, 3)[:owned_cells(mesh)]
     cells = np.asarray(nodes.local_to_global(cells.ravel()), dtype=np.int64).reshape(-1, 3)
-    return _distribute(mesh.comm, cells,
+    return distribute(mesh.comm, cells,
                        np.ascontiguousarray(mesh.geometry.x[:nodes.size_local, :2]))
 
 

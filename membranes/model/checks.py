@@ -5,7 +5,7 @@ Three kinds of request fail late or never if nobody looks at them first:
 * **a size beyond memory.** ``--levels 12`` asks for ~1e10 vertices, ``--h 1e-5`` for ~3e10;
   gmsh or the refinement would run for minutes before anything fails. `check_size` estimates
   the vertex count of the requested mesh and hierarchy from the domain's area and boundary, h
-  and the levels (or from a gmsh file's header), the memory of the run from the measured
+  and the levels (or from a mesh file's header), the memory of the run from the measured
   bytes per vertex of its method, and refuses when that exceeds the memory available to each
   process. ``max_vertices`` (``--max-vertices N``) replaces the memory limit by a vertex count.
 * **an output folder that cannot be written** (``--out /proc/x``):
@@ -14,12 +14,15 @@ Three kinds of request fail late or never if nobody looks at them first:
 
 Every check raises ValueError with a one-line message; the command line turns it into exit
 code 2. The functions take plain values (sizes, dicts, a communicator) and import nothing
-from the rest of the package, so that any driver can call them before it meshes.
+from the rest of the package but `mesh_headers` (plain Python too), so that any driver can
+call them before it meshes.
 """
 
 import math
 import os
 import sys
+
+from .mesh_headers import mesh_file_vertices
 
 # ## Underflow of squares at round-off
 #
@@ -66,10 +69,6 @@ DOMAINS = {"disk": (math.pi, 2.0 * math.pi),    # (area, boundary length) of the
 # The coarsest meshes gmsh makes of them, (vertices, triangles), whatever h: h ≥ 0.3 on the
 # disk, h ≥ 0.14 on the square give these (measured up to h = 10).
 COARSEST = {"disk": (71.0, 117.0), "square": (98.0, 162.0)}
-# Bytes of a gmsh file per vertex, a lower bound: gmsh writes 84-100 B per vertex with its
-# triangles (a rectangle at h = 0.02 in msh 2.2 and 4.1, ASCII and binary), so a file's size
-# over 40 B bounds its vertex count from above where its header cannot be read.
-MIN_FILE_BYTES_PER_VERTEX = 40.0
 
 
 def coarse_mesh_size(h, domain="disk"):
@@ -113,45 +112,6 @@ def _level_vertices(vertices, triangles, levels, euler=1.0):
 def hierarchy_vertices(vertices, triangles, levels, euler=1.0):
     """Vertices of every level T_0 … T_J (the hierarchy is kept whole): Σ_j V_j ≈ 4/3 V_J."""
     return sum(_level_vertices(vertices, triangles, levels, euler))
-
-
-def mesh_file_vertices(path):
-    """The node count a gmsh .msh file declares (formats 2 and 4, ASCII or binary), read from
-    its $Nodes header without reading the nodes; its size over MIN_FILE_BYTES_PER_VERTEX
-    where the header is not found in the first 64 MiB; None where the path is no readable
-    gmsh file (the mesh reader then says what is wrong with it)."""
-    try:
-        size = os.path.getsize(path)
-        with open(path, "rb") as f:
-            head = f.read(1 << 16)
-            if not head.startswith(b"$MeshFormat"):
-                return None
-            fmt = head.split(b"\n", 2)[1].split()
-            version, binary, word = float(fmt[0]), fmt[1] == b"1", int(fmt[2])
-            data, at = head, 0
-            while b"$Nodes" not in data and at < (1 << 26):
-                more = f.read(1 << 20)
-                if not more:
-                    return None
-                at += len(more)
-                data = data[-16:] + more
-            if b"$Nodes" not in data:
-                return size / MIN_FILE_BYTES_PER_VERTEX
-            start = data.index(b"$Nodes")
-            tail = data[start:] + f.read(256)
-    except (OSError, ValueError, IndexError):
-        return None
-    body = tail.split(b"\n", 1)[1]
-    try:
-        if version < 4:                            # "$Nodes\nN\n" (ASCII even in binary files)
-            return float(int(body.split(b"\n", 1)[0]))
-        if not binary:                             # "blocks nodes min max"
-            return float(int(body.split(b"\n", 1)[0].split()[1]))
-        endian = "little" if int.from_bytes(head.split(b"\n", 3)[2][:4], "little") == 1 \
-            else "big"
-        return float(int.from_bytes(body[word:2 * word], endian))   # blocks, nodes, ...
-    except (ValueError, IndexError):
-        return size / MIN_FILE_BYTES_PER_VERTEX
 
 
 def estimate_vertices(h=None, levels=0, domain="disk", mesh_file=None, counts=None):

@@ -9,7 +9,7 @@ the data jump. Nothing else is attached, so the driver computes nothing a scene 
 * ``radial`` — the unit disk with exact radial solutions for any μ1, μ2, g, from no contact to
   near-total contact (API only, not on the command line).
 * ``user``   — μ1, μ2, g, f1, f2 from the command line (f as formulas in x, y) on the unit disk,
-  the unit square, or a gmsh file.
+  the unit square, a gmsh or XDMF mesh file, or a dolfinx mesh.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import numpy as np
 import ufl
 from mpi4py import MPI
 
-from ..fem import meshes
+from ..fem import mesh_files, meshes
 from ..fem.hierarchy import build_hierarchy, onto_unit_circle
 from .checks import check_request
 from .expressions import Formula
@@ -44,7 +44,7 @@ def _projection(domain, mesh_file):
 
 def _coarse_mesh(domain, h, mesh_file, comm):
     if mesh_file is not None:
-        return meshes.read_msh(mesh_file, comm)
+        return mesh_files.read_mesh_file(mesh_file, comm)
     if domain == "disk":
         return meshes.unit_disk(h, comm)
     if domain == "square":
@@ -330,9 +330,10 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
          max_vertices: Optional[int] = None, progress: Progress = None) -> Problem:
     """User data: f1, f2 formulas in x, y; on the unit disk/square or your mesh.
 
-    `mesh`: a gmsh file, or a dolfinx mesh (on its communicator, checked as a file's mesh
-    is: `meshes.given_mesh`). `domain` ('disk' by default) and `h` (DEFAULT_H) apply without
-    `mesh` only; `comm` (default MPI.COMM_WORLD) must be a dolfinx mesh's own."""
+    `mesh`: a gmsh .msh or XDMF file (`fem.mesh_files`), or a dolfinx mesh (on its
+    communicator, checked as a file's mesh is: `meshes.given_mesh`). `domain` ('disk' by
+    default) and `h` (DEFAULT_H) apply without `mesh` only; `comm` (default
+    MPI.COMM_WORLD) must be a dolfinx mesh's own."""
     if mesh is not None and (h is not None or domain is not None):  # (as the command line)
         raise ValueError(f"give mesh or {'h' if h is not None else 'domain'}, not both: the "
                          f"mesh is the coarse mesh")
@@ -351,7 +352,7 @@ def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, flo
     if mesh is None and domain not in ("disk", "square"):
         raise ValueError(f"unknown domain {domain!r} (choose from: disk, square)")
     if mesh is not None:
-        mesh = meshes.check_msh_path(mesh)
+        mesh = mesh_files.check_mesh_path(mesh)
     h = _check_size(h, levels, domain, mesh, max_vertices, comm)
     coarse = _coarse_mesh(domain, h, mesh, comm)
     if mesh is not None and levels:     # the header's estimate was a lower bound: now exact

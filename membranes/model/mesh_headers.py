@@ -1,0 +1,134 @@
+"""What a mesh file declares, read without reading its mesh: the kind of file (a gmsh `.msh`
+or an XDMF file, by its first bytes, whatever its name), the node count of a gmsh file's
+header, and the grid of an XDMF file that holds the mesh (§12). The size check reads the
+counts before any mesh is read (`checks.estimate_vertices`); the readers of `fem.mesh_files`
+read the mesh the grid names. Plain Python: nothing here needs dolfinx or gmsh.
+"""
+
+import os
+import xml.etree.ElementTree as ElementTree
+
+# Bytes of a gmsh file per vertex, a lower bound: gmsh writes 84-100 B per vertex with its
+# triangles (a rectangle at h = 0.02 in msh 2.2 and 4.1, ASCII and binary), so a file's size
+# over 40 B bounds its vertex count from above where its header cannot be read.
+MIN_FILE_BYTES_PER_VERTEX = 40.0
+
+
+def _msh_vertices(path):
+    """The node count a gmsh .msh file declares (formats 2 and 4, ASCII or binary), read from
+    its $Nodes header without reading the nodes; its size over MIN_FILE_BYTES_PER_VERTEX
+    where the header is not found in the first 64 MiB; None where the path is no readable
+    gmsh file (the mesh reader then says what is wrong with it)."""
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+            if not head.startswith(b"$MeshFormat"):
+                return None
+            fmt = head.split(b"\n", 2)[1].split()
+            version, binary, word = float(fmt[0]), fmt[1] == b"1", int(fmt[2])
+            data, at = head, 0
+            while b"$Nodes" not in data and at < (1 << 26):
+                more = f.read(1 << 20)
+                if not more:
+                    return None
+                at += len(more)
+                data = data[-16:] + more
+            if b"$Nodes" not in data:
+                return size / MIN_FILE_BYTES_PER_VERTEX
+            start = data.index(b"$Nodes")
+            tail = data[start:] + f.read(256)
+    except (OSError, ValueError, IndexError):
+        return None
+    body = tail.split(b"\n", 1)[1]
+    try:
+        if version < 4:                            # "$Nodes\nN\n" (ASCII even in binary files)
+            return float(int(body.split(b"\n", 1)[0]))
+        if not binary:                             # "blocks nodes min max"
+            return float(int(body.split(b"\n", 1)[0].split()[1]))
+        endian = "little" if int.from_bytes(head.split(b"\n", 3)[2][:4], "little") == 1 \
+            else "big"
+        return float(int.from_bytes(body[word:2 * word], endian))   # blocks, nodes, ...
+    except (ValueError, IndexError):
+        return size / MIN_FILE_BYTES_PER_VERTEX
+
+
+def mesh_file_kind(path):
+    """'msh' for a gmsh file (it begins with $MeshFormat, or $NOD in format 1), 'xdmf' for an
+    XML file (it begins with <?xml, <!DOCTYPE or <Xdmf), else None (also where it cannot be
+    read)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(256).lstrip(b"\xef\xbb\xbf \t\r\n")
+    except OSError:
+        return None
+    if head.startswith((b"$MeshFormat", b"$NOD")):
+        return "msh"
+    if head.startswith((b"<?xml", b"<!DOCTYPE", b"<Xdmf")):
+        return "xdmf"
+    return None
+
+
+def _leading_count(item):
+    """The first number of a DataItem's Dimensions ("25 2" -> 25), None if it has none."""
+    try:
+        return int(item.get("Dimensions", "").split()[0])
+    except (AttributeError, IndexError, ValueError):
+        return None
+
+
+def xdmf_grid(path):
+    """(name, cell type, nodes, cells) of the grid of the XDMF file at `path` that holds its
+    mesh: the one Grid of its Domain with a Topology, or, of several, the one of triangles, or
+    the one named 'mesh' (dolfinx's name); its TopologyType as written, the counts its
+    Geometry and Topology declare (None where absent). ValueError naming what is wrong: no
+    XML, no Xdmf/Domain, no grid with a topology, several meshes."""
+    try:
+        root = ElementTree.parse(path).getroot()
+    except ElementTree.ParseError as e:
+        raise ValueError(f"mesh file {path!r} is not an XDMF file (XML: {e})") from None
+    except OSError as e:
+        raise ValueError(f"mesh file {path!r} cannot be read: {e.strerror or e}") from None
+    domain = root.find("Domain") if root.tag == "Xdmf" else None
+    if domain is None:
+        raise ValueError(f"mesh file {path!r} is not an XDMF file (no Xdmf/Domain element)")
+    grids = [g for g in domain.findall("Grid") if g.find("Topology") is not None]
+    if not grids:
+        raise ValueError(f"mesh file {path!r} has no mesh (no Grid with a Topology in its "
+                         f"Domain)")
+
+    def kind(grid):
+        topology = grid.find("Topology")
+        return topology.get("TopologyType", topology.get("Type", ""))
+
+    if len(grids) > 1:
+        grids = [g for g in grids if kind(g).lower().startswith("triangle")] or grids
+    if len(grids) > 1:
+        grids = [g for g in grids if g.get("Name") == "mesh"] or grids
+    if len(grids) > 1:
+        names = ", ".join(repr(g.get("Name", "")) for g in grids)
+        raise ValueError(f"mesh file {path!r} has {len(grids)} meshes (grids {names}): give "
+                         f"a file of one mesh, or name 'mesh' the one to use")
+    grid = grids[0]
+    geometry, topology = grid.find("Geometry"), grid.find("Topology")
+    nodes = _leading_count(geometry.find("DataItem")) if geometry is not None else None
+    cells = topology.get("NumberOfElements")
+    cells = int(cells) if cells is not None and cells.strip().isdigit() else \
+        _leading_count(topology.find("DataItem"))
+    return grid.get("Name", ""), kind(grid), nodes, cells
+
+
+def mesh_file_vertices(path):
+    """The node count the mesh file at `path` declares (a gmsh file's $Nodes header, an XDMF
+    file's Geometry), without reading its nodes; None where the path is no readable mesh file
+    of either kind (its reader then says what is wrong with it)."""
+    kind = mesh_file_kind(path)
+    if kind == "msh":
+        return _msh_vertices(path)
+    if kind == "xdmf":
+        try:
+            nodes = xdmf_grid(path)[2]
+        except ValueError:
+            return None
+        return None if nodes is None else float(nodes)
+    return None

@@ -1,0 +1,214 @@
+"""XDMF files as user meshes (membranes.fem.mesh_files.read_xdmf, §12): read by dolfinx on
+every process, checked as every mesh is, refused in one line when they cannot be used."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from membranes import scenes, solve
+from membranes.model import mesh_headers
+
+from .conftest import cli_bad_input, mpirun
+from .test_user_meshes import _dolfinx_mesh, _grid, msh22
+
+DATA = {"f1": "-1 + x", "f2": "0.5", "mu2": 3.0, "levels": 1}
+
+
+def written(path, nodes, cells):
+    """The triangles `cells` on `nodes` written by dolfinx's XDMFFile (path.xdmf, path.h5)."""
+    from dolfinx.io import XDMFFile
+    with XDMFFile(MPI.COMM_SELF, str(path), "w") as f:
+        f.write_mesh(_dolfinx_mesh(nodes, cells, MPI.COMM_SELF))
+    return str(path)
+
+
+def inline(path, nodes, cells, topology="Triangle", grids=None):
+    """An XDMF file with its data in the XML (as meshio writes with data_format='XML'): the
+    grid 'Grid' of `cells` on `nodes` (2 or 3 coordinates), or the grids `grids` as
+    (name, topology, nodes, cells); beside it an HDF5 file of its name (dolfinx 0.5.2 opens
+    one), here the one dolfinx writes for a single triangle."""
+    def numbers(a):
+        return "\n".join(" ".join(repr(v) for v in row) for row in np.asarray(a).tolist())
+
+    grids = grids or [("Grid", topology, nodes, cells)]
+    text = ['<?xml version="1.0"?>', '<Xdmf Version="3.0">', "<Domain>"]
+    for name, kind, x, c in grids:
+        x, c = np.asarray(x, dtype=float), np.asarray(c, dtype=np.int64)
+        text += [f'<Grid Name="{name}" GridType="Uniform">',
+                 f'<Topology TopologyType="{kind}" NumberOfElements="{len(c)}">',
+                 f'<DataItem Dimensions="{c.shape[0]} {c.shape[1]}" NumberType="Int" '
+                 f'Format="XML">', numbers(c), "</DataItem>", "</Topology>",
+                 f'<Geometry GeometryType="{"XYZ" if x.shape[1] == 3 else "XY"}">',
+                 f'<DataItem Dimensions="{x.shape[0]} {x.shape[1]}" Format="XML">',
+                 numbers(x), "</DataItem>", "</Geometry>", "</Grid>"]
+    text += ["</Domain>", "</Xdmf>"]
+    written(path, [(0, 0), (1, 0), (0, 1)], [(0, 1, 2)])
+    with open(path, "w") as f:
+        f.write("\n".join(text) + "\n")
+    return str(path)
+
+
+def test_an_xdmf_file_is_a_user_mesh(tmp_path):
+    """The same triangles as a .msh file, as dolfinx's XDMF file (HDF5 data) and as an XDMF
+    file with its data in the XML and three coordinates in the plane z = 0.5, give the .msh
+    file's solution (exact Newton, MUMPS: the nodes in other orders, η to round-off, asserted
+    1e-10) on hierarchies of the same size; the size check reads the node count from the
+    XML."""
+    nodes, cells = _grid(6)
+    reference = solve(scenes.user(mesh=msh22(tmp_path / "grid.msh", nodes, cells), **DATA),
+                      newton="exact", solver="direct")
+    raised = np.hstack([nodes, np.full((len(nodes), 1), 0.5)])
+    for path in (written(tmp_path / "grid.xdmf", nodes, cells),
+                 inline(tmp_path / "plane.xdmf", raised, cells)):
+        assert mesh_headers.mesh_file_vertices(path) == 49
+        problem = scenes.user(mesh=path, **DATA)
+        assert problem.domain == path and problem.description.startswith(f"mesh {path}, ")
+        sol = solve(problem, newton="exact", solver="direct")
+        assert sol.per_level[-1]["n_vertices"] == reference.per_level[-1]["n_vertices"] == 169
+        assert sol.estimates["eta"] == pytest.approx(reference.estimates["eta"], rel=1e-10)
+
+
+def _renamed_dataset(path):
+    written(path, *_grid(2))
+    text = open(path).read().replace("/Mesh/mesh/topology", "/Mesh/mesh/elsewhere")
+    open(path, "w").write(text)
+    return str(path)
+
+
+def _without_h5(path):
+    written(path, *_grid(2))
+    os.remove(os.path.splitext(path)[0] + ".h5")
+    return str(path)
+
+
+def _quads(path):
+    from dolfinx.io import XDMFFile
+    from dolfinx.mesh import CellType, create_unit_square
+    with XDMFFile(MPI.COMM_SELF, str(path), "w") as f:
+        f.write_mesh(create_unit_square(MPI.COMM_SELF, 2, 2, CellType.quadrilateral))
+    return str(path)
+
+
+def _two_meshes(path):
+    nodes, cells = _grid(2)
+    return inline(path, None, None, grids=[("a", "Triangle", nodes, cells),
+                                           ("b", "Triangle", nodes + 2.0, cells)])
+
+
+def _unjoined(path):
+    left, cells = _grid(2)
+    right, _ = _grid(2, shift=(1.0, 0.0))
+    return inline(path, np.vstack([left, right]), np.vstack([cells, cells + len(left)]))
+
+
+def _edited(text, old, new):
+    def build(path):
+        written(path, *_grid(2))
+        with open(path) as f:
+            content = f.read()
+        with open(path, "w") as f:
+            f.write(content.replace(old, new) if old else text)
+        return str(path)
+    return build
+
+
+NODES, CELLS = _grid(2)
+BAD = {
+    "no HDF5 file": (_without_h5, r"has no HDF5 file '.*grid\.h5' beside it"),
+    "a dataset it does not have": (_renamed_dataset, r"^cannot read mesh file '.*': Failed to "
+                                                     r"open HDF5 dataset by name$"),
+    "quadrilaterals": (_quads, r"is not a linear triangular mesh \(cells: Quadrilateral\)"),
+    "quadratic triangles": (lambda p: inline(p, NODES, np.hstack([CELLS, CELLS]),
+                                             "Triangle_6"),
+                            r"is not a linear triangular mesh \(cells: Triangle_6\)"),
+    "mixed cells": (lambda p: inline(p, NODES, CELLS, "Mixed"),
+                    r"is not a linear triangular mesh \(cells: Mixed\)"),
+    "a tilted plane": (lambda p: inline(p, np.hstack([NODES, NODES[:, :1]]), CELLS),
+                       r"is 3D \(its nodes have z from 0 to 1, not one plane z = const\)"),
+    "a cell on a node not listed": (lambda p: inline(p, NODES, np.vstack([CELLS, [(0, 1, 9)]])),
+                                    r"has cells on nodes it does not list \(node 9 of 9 "
+                                    r"nodes\)"),
+    "a NaN coordinate": (lambda p: inline(p, np.where(np.arange(9)[:, None] == 4, np.nan,
+                                                      NODES), CELLS),
+                         "has non-finite node coordinates"),
+    "two meshes": (_two_meshes, r"has 2 meshes \(grids 'a', 'b'\): give a file of one mesh"),
+    "no grid": (_edited('<?xml version="1.0"?><Xdmf><Domain/></Xdmf>', None, None),
+                r"has no mesh \(no Grid with a Topology in its Domain\)"),
+    "broken XML": (_edited('<?xml version="1.0"?><Xdmf><Domain>', None, None),
+                   r"is not an XDMF file \(XML: "),
+    "another XML file": (_edited('<?xml version="1.0"?><svg/>', None, None),
+                         r"is not an XDMF file \(no Xdmf/Domain element\)"),
+    "surfaces not joined": (_unjoined, r"is not conforming: 6 boundary node\(s\)"),
+    "no cells": (lambda p: inline(p, NODES, np.zeros((0, 3), dtype=np.int64)),
+                 r"has no cells"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_xdmf_files(case, tmp_path, capfd):
+    """Each is refused with one line naming the file and what is wrong with it, before any
+    run; HDF5's own error stack is not printed (stderr, file descriptor 2, stays empty)."""
+    build, message = BAD[case]
+    path = build(tmp_path / "grid.xdmf")
+    capfd.readouterr()
+    with pytest.raises(ValueError, match=message) as error:
+        scenes.user(mesh=path)
+    assert "\n" not in str(error.value) and "grid.xdmf" in str(error.value)
+    assert capfd.readouterr().err == ""
+
+
+def test_a_bad_xdmf_file_on_the_command_line(tmp_path, capsys):
+    """The command line: exit code 2, one line naming the file, nothing written."""
+    err = cli_bad_input(["--mesh", _renamed_dataset(tmp_path / "grid.xdmf")],
+                        tmp_path / "out", capsys)
+    assert "cannot read mesh file" in err and "grid.xdmf" in err
+
+
+def test_an_xdmf_file_is_size_checked_before_it_is_read(tmp_path, monkeypatch):
+    """--max-vertices against the node count the XML declares, before dolfinx reads the file
+    (the reader is replaced by one that fails the test), then exactly once it is read."""
+    from membranes.fem import mesh_files
+    path = written(tmp_path / "grid.xdmf", *_grid(6))
+    real = mesh_files.read_xdmf
+
+    def never(*args, **kwargs):
+        raise AssertionError("the file was read")
+    monkeypatch.setattr(mesh_files, "read_xdmf", never)
+    with pytest.raises(ValueError, match="more than the limit --max-vertices 100 "):
+        scenes.user(mesh=path, levels=2, max_vertices=100)
+    monkeypatch.setattr(mesh_files, "read_xdmf", real)
+    assert scenes.user(mesh=path, levels=1, max_vertices=169).mesh.topology.index_map(
+        0).size_global == 169
+    with pytest.raises(ValueError, match="more than the limit --max-vertices 168 "):
+        scenes.user(mesh=path, levels=1, max_vertices=168)
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
+def test_an_xdmf_file_on_three_processes(tmp_path):
+    """On 3 processes each reads its block of the cells and nodes (of an L-shaped mesh, in
+    HDF5), and the run gives the serial η (exact Newton, MUMPS: round-off, asserted 1e-10)
+    with the same Newton steps; a bad file is refused in one line, exit code 2, on every
+    process alike."""
+    nodes, cells = _grid(4)
+    keep = ~np.all(nodes[cells].mean(axis=1) > 0.5, axis=1)
+    path = written(tmp_path / "l.xdmf", nodes, cells[keep])
+    serial = solve(scenes.user(mesh=path, levels=1, f1="-1"), newton="exact", solver="direct")
+    proc = mpirun(["-m", "membranes.app.cli", "solve", "--mesh", path, "--levels", "1", "--f1",
+                   "-1", "--newton", "exact", "--solver", "direct", "--quiet"], processes=3,
+                  timeout=240)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    line = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert line["processes"] == 3 and line["newton_iterations"] == serial.newton_iterations
+    assert line["eta"] == pytest.approx(serial.estimates["eta"], rel=1e-10)
+    bad = _renamed_dataset(tmp_path / "bad.xdmf")
+    proc = mpirun(["-m", "membranes.app.cli", "solve", "--mesh", bad, "--quiet", "--out",
+                   tmp_path / "out"], processes=3, timeout=240)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    ours = [line for line in proc.stderr.splitlines() if line.startswith("membranes")]
+    assert ours == [f"membranes: error: cannot read mesh file {bad!r}: Failed to open HDF5 "
+                    f"dataset by name"], proc.stderr        # (and mpirun's banner)
+    assert "HDF5-DIAG" not in proc.stderr
+    assert not (tmp_path / "out").exists()
