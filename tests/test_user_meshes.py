@@ -615,6 +615,40 @@ def test_a_dolfinx_mesh_is_a_user_mesh(tmp_path):
             scenes.user(mesh=problem.hierarchy.meshes[0], **kwargs)
 
 
+def test_a_planar_dolfinx_mesh_of_dimension_3(tmp_path):
+    """A dolfinx mesh whose nodes have three coordinates in one plane z = c (what gmshio's
+    model_to_mesh makes of a 2D model by default) was refused; it is made anew in 2D and
+    gives the 2D mesh's solution (exact Newton, MUMPS: η to round-off, asserted 1e-10), in
+    the user and square scenes. Nodes off one plane are refused, in one line."""
+    from dolfinx.io import gmshio
+    from dolfinx.mesh import create_mesh
+
+    def raised(nodes, cells, z):
+        nodes = np.hstack([nodes, np.reshape(z, (-1, 1)) * np.ones((len(nodes), 1))])
+        return create_mesh(MPI.COMM_WORLD, np.asarray(cells, dtype=np.int64), nodes,
+                           gmshio.ufl_mesh(2, 3))
+
+    nodes, cells = _grid(6)
+    data = {"f1": "-1 + x", "f2": "0.5", "levels": 1}
+    flat = solve(scenes.user(mesh=_dolfinx_mesh(nodes, cells), **data), newton="exact",
+                 solver="direct")
+    for make in (scenes.user, lambda mesh, **kw: scenes.square(mesh=mesh, levels=1)):
+        problem = make(mesh=raised(nodes, cells, 0.25), **data) if make is scenes.user \
+            else make(raised(nodes, cells, -3.0))
+        assert problem.mesh.geometry.dim == 2
+        sol = solve(problem, newton="exact", solver="direct")
+        assert sol.per_level[-1]["n_vertices"] == 169
+        if make is scenes.user:
+            assert sol.estimates["eta"] == pytest.approx(flat.estimates["eta"], rel=1e-10)
+        else:
+            square = solve(scenes.square(mesh=_dolfinx_mesh(nodes, cells), levels=1),
+                           newton="exact", solver="direct")
+            assert sol.estimates["eta"] == pytest.approx(square.estimates["eta"], rel=1e-10)
+    with pytest.raises(ValueError, match=r"^mesh is 3D \(its triangles' nodes have z from 0 "
+                                         r"to 1, not one plane z = const\)$"):
+        scenes.user(mesh=raised(nodes, cells, nodes[:, 0]))
+
+
 def test_a_dolfinx_mesh_of_two_unjoined_squares_is_refused():
     """Two unit squares side by side, each on nodes of its own (the seam's nodes twice), made
     a dolfinx mesh: read as a mesh cut along the seam, as such a file was. Refused as the

@@ -250,7 +250,9 @@ def given_mesh(mesh, what="mesh", domain=None):
     coarse mesh T_0, checked as a file's mesh is (§2: P1 on a conforming triangulation in
     the plane; module notes): ValueError, the same on every process and naming it as
     `what`, unless it is a dolfinx Mesh of triangles with an affine (degree 1) geometry of
-    dimension 2 whose cells pass `checked_cells`. For those checks its owned cells and their
+    dimension 2, or of dimension 3 with its nodes in one plane z = const (as gmshio's
+    `model_to_mesh` makes a 2D model by default; `without_ghosts` makes it anew in 2D),
+    whose cells pass `checked_cells`. For those checks its owned cells and their
     nodes (by the input indices it was created from: a vertex dolfinx made twice, where
     parts meet at it alone, is one node) are gathered on rank 0, as a file's mesh is read
     there, and let go after; the copies of a node on several processes must agree. `domain`
@@ -263,15 +265,14 @@ def given_mesh(mesh, what="mesh", domain=None):
         raise ValueError(f"{what} is not a triangular mesh (cells: "
                          f"{mesh.topology.cell_type.name})")
     degree = mesh.ufl_domain().ufl_coordinate_element().degree()
-    if degree != 1 or mesh.geometry.dim != 2:
-        raise ValueError(f"{what} must have an affine geometry of dimension 2 (P1 "
-                         f"triangles in the plane), got degree {degree} in dimension "
-                         f"{mesh.geometry.dim}")
+    if degree != 1 or mesh.geometry.dim not in (2, 3):
+        raise ValueError(f"{what} must have an affine geometry (P1 triangles in the plane), "
+                         f"got degree {degree} in dimension {mesh.geometry.dim}")
     g = mesh.geometry
     local = g.dofmap.array.reshape(-1, 3)[:owned_cells(mesh)]
     used = np.unique(local)
     ids = np.asarray(g.input_global_indices, dtype=np.int64)
-    parts = mesh.comm.gather((ids[local], ids[used], g.x[used, :2]), root=0)
+    parts = mesh.comm.gather((ids[local], ids[used], g.x[used]), root=0)   # (x, y, z)
     error = None
     if mesh.comm.rank == 0:
         cells, nodes, x = (np.concatenate([part[k] for part in parts]) for k in range(3))
@@ -285,8 +286,13 @@ def given_mesh(mesh, what="mesh", domain=None):
                                  f"at other places than the node's first copy")
             if not len(cells):
                 raise ValueError(f"{what} has no cells")
+            x = x[first]
+            if np.ptp(x[:, 2]) > 1e-12 * max(1.0, np.abs(x).max()):
+                raise ValueError(f"{what} is 3D (its triangles' nodes have z from "
+                                 f"{x[:, 2].min():g} to {x[:, 2].max():g}, not one plane "
+                                 f"z = const)")
             cells, x, edges = checked_cells(
-                x[first], np.searchsorted(nodes, cells), what,
+                np.ascontiguousarray(x[:, :2]), np.searchsorted(nodes, cells), what,
                 fix="(its cells must share their nodes where they meet)")
             error = domain(x, cells, edges) if domain is not None else None
         except Exception as e:       # (every process must leave the broadcast below)
@@ -301,12 +307,14 @@ def given_mesh(mesh, what="mesh", domain=None):
 
 
 def without_ghosts(mesh):
-    """`mesh` itself if no process holds ghost cells, else the same triangles distributed
-    anew by dolfinx without ghost cells (module notes: plaza refinement of a ghosted mesh,
-    as dolfinx's default GhostMode.shared_facet makes them, gave two copies of a ghost cell
-    on 3 processes). Each process hands over its owned cells and geometry nodes only.
-    Collective."""
-    if not mesh.comm.allreduce(mesh.topology.index_map(2).num_ghosts, op=MPI.SUM):
+    """`mesh` itself if no process holds ghost cells and its geometry is 2D, else the same
+    triangles distributed anew by dolfinx without ghost cells, on their nodes' (x, y)
+    (module notes: plaza refinement of a ghosted mesh, as dolfinx's default
+    GhostMode.shared_facet makes them, gave two copies of a ghost cell on 3 processes; a
+    planar mesh of dimension 3, checked by `given_mesh`, is made 2D). Each process hands
+    over its owned cells and geometry nodes only. Collective."""
+    if mesh.geometry.dim == 2 and \
+            not mesh.comm.allreduce(mesh.topology.index_map(2).num_ghosts, op=MPI.SUM):
         return mesh
     nodes = mesh.geometry.index_map()
     cells = mesh.geometry.dofmap.array.reshape(-1, 3)[:owned_cells(mesh)]
