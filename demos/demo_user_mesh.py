@@ -9,7 +9,8 @@
 #   no exact solution to compare with, and the guaranteed bound η is what tells you how
 #   accurate the answer is ([theory](../docs/theory.md) §7),
 # - draw the gap $u_1 - u_2$, the contact pressure $\lambda$ and the local estimator
-#   $\eta_K$, which shows where the error sits.
+#   $\eta_K$, which shows where the error sits,
+# - use the finest mesh, written as XDMF, as the mesh of a second problem.
 #
 # Run it as `python demos/demo_user_mesh.py [--quick] [--out DIR]` (`--quick`, or
 # `MEMBRANES_DEMO_QUICK=1`: a coarse mesh, seconds); `mpirun -n P` runs it on P processes.
@@ -143,3 +144,19 @@ except RuntimeError as e:       # pyvista cannot draw here (no OpenGL, ...): the
 # for ParaView, as `membranes solve --out` writes them (docs/outputs.md).
 
 say("written to", write_outputs(sol, os.path.join(out, "solution")))
+
+# ## The mesh again, from the XDMF file
+#
+# An XDMF file is a mesh file too (`--mesh`, `mesh=`), as dolfinx or meshio write it: each
+# process reads its part of the cells and nodes. `solution.xdmf` holds $T_J$, so a second
+# problem on it, here a stronger load on membrane 1, needs neither gmsh nor the refinements
+# again. Its hierarchy is $T_J$ alone, so it is solved on that one mesh.
+
+# +
+again = scenes.user(mu1=1.0, mu2=3.0, g=0.02, f1="-0.3 - 0.1*y",
+                    f2="0.2 + 0.1*sin(2*pi*x)*cos(pi*y)",
+                    mesh=os.path.join(out, "solution", "solution.xdmf"))
+sol2 = solve(again)
+say(f"on T_J read back ({again.mesh.topology.index_map(0).size_global} vertices), f1 = "
+    f"-0.3 - 0.1*y: {sol2.newton_iterations} Newton steps, eta = {sol2.estimates['eta']:.4e}")
+# -

@@ -102,6 +102,8 @@ def test_demo_user_mesh(tmp_path, processes):
     assert s["energy_error"] is None            # user data: no exact solution, η alone
     assert math.isfinite(s["eta"]) and s["eta"] > 0 and s["bound_guaranteed"]
     assert "guaranteed bound" in stdout
+    again = [line for line in stdout.splitlines() if "on T_J read back" in line]
+    assert len(again) == 1 and f"({s['n_vertices']} vertices)" in again[0]
 
 
 def test_demo_user_mesh_without_pyvista(tmp_path):
