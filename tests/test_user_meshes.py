@@ -417,9 +417,14 @@ def test_refined_file_mesh_on_three_processes(tmp_path):
     depend on the partition (the adaptive run's Krylov iterates, and so where it stops, do),
     so η agrees to round-off, ε times the systems' condition ≲ 1e3 (asserted 1e-10, measured
     6e-15), with the same Newton steps."""
-    msh = two_squares(tmp_path / "two.msh", {7: [1], 8: [2]})
-    serial = solve(scenes.user(mesh=msh, levels=1, f1="-1"), newton="exact", solver="direct")
-    proc = mpirun(["-m", "membranes.app.cli", "solve", "--mesh", msh, "--levels", "1", "--f1",
+    same_on_three_processes(two_squares(tmp_path / "two.msh", {7: [1], 8: [2]}))
+
+
+def same_on_three_processes(path):
+    """The mesh file at `path` refined once, exact Newton with MUMPS, serially in this process
+    and by the command line on 3 processes: the same Newton steps, η to 1e-10 (as above)."""
+    serial = solve(scenes.user(mesh=path, levels=1, f1="-1"), newton="exact", solver="direct")
+    proc = mpirun(["-m", "membranes.app.cli", "solve", "--mesh", path, "--levels", "1", "--f1",
                    "-1", "--newton", "exact", "--solver", "direct", "--quiet"], processes=3,
                   timeout=240)
     assert proc.returncode == 0, proc.stdout + proc.stderr

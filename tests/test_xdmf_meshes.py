@@ -1,7 +1,6 @@
 """XDMF files as user meshes (membranes.fem.mesh_files.read_xdmf, §12): read by dolfinx on
 every process, checked as every mesh is, refused in one line when they cannot be used."""
 
-import json
 import os
 
 import numpy as np
@@ -12,7 +11,7 @@ from membranes import scenes, solve
 from membranes.model import mesh_headers
 
 from .conftest import cli_bad_input, mpirun
-from .test_user_meshes import _dolfinx_mesh, _grid, msh22
+from .test_user_meshes import _dolfinx_mesh, _grid, msh22, same_on_three_processes
 
 DATA = {"f1": "-1 + x", "f2": "0.5", "mu2": 3.0, "levels": 1}
 
@@ -194,15 +193,7 @@ def test_an_xdmf_file_on_three_processes(tmp_path):
     process alike."""
     nodes, cells = _grid(4)
     keep = ~np.all(nodes[cells].mean(axis=1) > 0.5, axis=1)
-    path = written(tmp_path / "l.xdmf", nodes, cells[keep])
-    serial = solve(scenes.user(mesh=path, levels=1, f1="-1"), newton="exact", solver="direct")
-    proc = mpirun(["-m", "membranes.app.cli", "solve", "--mesh", path, "--levels", "1", "--f1",
-                   "-1", "--newton", "exact", "--solver", "direct", "--quiet"], processes=3,
-                  timeout=240)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    line = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert line["processes"] == 3 and line["newton_iterations"] == serial.newton_iterations
-    assert line["eta"] == pytest.approx(serial.estimates["eta"], rel=1e-10)
+    same_on_three_processes(written(tmp_path / "l.xdmf", nodes, cells[keep]))
     bad = _renamed_dataset(tmp_path / "bad.xdmf")
     proc = mpirun(["-m", "membranes.app.cli", "solve", "--mesh", bad, "--quiet", "--out",
                    tmp_path / "out"], processes=3, timeout=240)
