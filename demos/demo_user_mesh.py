@@ -147,8 +147,8 @@ say("written to", write_outputs(sol, os.path.join(out, "solution")))
 
 # ## The mesh again, from the XDMF file
 #
-# An XDMF file is a mesh file too (`--mesh`, `mesh=`), as dolfinx or meshio write it: each
-# process reads its part of the cells and nodes. `solution.xdmf` holds $T_J$, so a second
+# An XDMF file is a mesh file too (`--mesh`, `mesh=`), as dolfinx or meshio write it, read
+# and checked on process 0 as a `.msh` file is. `solution.xdmf` holds $T_J$, so a second
 # problem on it, here a stronger load on membrane 1, needs neither gmsh nor the refinements
 # again. Its hierarchy is $T_J$ alone, so it is solved on that one mesh.
 

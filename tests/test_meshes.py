@@ -350,3 +350,18 @@ def test_poincare_constant_of_a_rectangle_is_its_own():
         problem = Problem("box", build_hierarchy(mesh, 0), 1.0, 1.0, 0.1, 0.0, 0.0)
         want = 1.0 / (np.pi * np.sqrt(1.0 / a ** 2 + 1.0 / b ** 2))
         assert problem.poincare_constant() == pytest.approx(want, rel=1e-14), (a, b)
+
+
+def test_the_plane_of_a_mesh_is_measured_against_its_extent():
+    """Nodes in one plane z = c are taken as z = 0, whatever c; the tolerance of the plane is
+    1e-12 of the nodes' extent in it, not of |z|: a plane tilted by 0.4 at z = 1e12 passed
+    (1e-12 |z| = 1 there) and was solved on its projection."""
+    from membranes.fem.meshes import in_the_plane
+    xy = np.array([(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])
+    for c in (0.0, -3.0, 1e12):
+        assert np.array_equal(in_the_plane(np.column_stack([xy, np.full(4, c)]), "m"), xy)
+    for z, message in ((1e12 + 0.4 * xy[:, 0], "m is 3D"), (1e-11 * xy[:, 1], "m is 3D"),
+                       (np.array([0.0, 0.0, np.nan, 0.0]), "non-finite")):
+        with pytest.raises(ValueError, match=message):
+            in_the_plane(np.column_stack([xy, z]), "m")
+    assert np.array_equal(in_the_plane(np.column_stack([xy, 1e-13 * xy[:, 1]]), "m"), xy)

@@ -126,7 +126,8 @@ BAD = {
     "mixed cells": (lambda p: inline(p, NODES, CELLS, "Mixed"),
                     r"is not a linear triangular mesh \(cells: Mixed\)"),
     "a tilted plane": (lambda p: inline(p, np.hstack([NODES, NODES[:, :1]]), CELLS),
-                       r"is 3D \(its nodes have z from 0 to 1, not one plane z = const\)"),
+                       r"is 3D \(its triangles' nodes have z from 0 to 1, not one plane "
+                       r"z = const\)"),
     "a cell on a node not listed": (lambda p: inline(p, NODES, np.vstack([CELLS, [(0, 1, 9)]])),
                                     r"has cells on nodes it does not list \(node 9 of 9 "
                                     r"nodes\)"),
@@ -143,6 +144,25 @@ BAD = {
     "surfaces not joined": (_unjoined, r"is not conforming: 6 boundary node\(s\)"),
     "no cells": (lambda p: inline(p, NODES, np.zeros((0, 3), dtype=np.int64)),
                  r"has no cells"),
+    # dolfinx's create_mesh corrupted memory (free(): invalid next size) or raised a
+    # traceback on these; the checks now run before it
+    "a cell twice": (lambda p: inline(p, NODES, np.vstack([CELLS, CELLS[1:2, ::-1]])),
+                     r"lists 1 triangle\(s\) twice"),
+    "a cell with a repeated node": (lambda p: inline(p, NODES, np.vstack([CELLS, [(0, 0, 4)]])),
+                                    r"has 1 degenerate triangle\(s\)"),
+    "more cells than nodes can carry": (
+        lambda p: inline(p, NODES, np.zeros((19, 3), dtype=np.int64)),
+        r"declares 19 cells on 9 nodes, more than a triangulation of 9 nodes can have"),
+    # the tolerance of the plane was relative to |z|: this was solved on its projection
+    "a tilted plane far from z = 0": (
+        lambda p: inline(p, np.hstack([NODES, 1e12 + 0.4 * NODES[:, :1]]), CELLS),
+        r"is 3D \(its triangles' nodes have z from 1e\+12 to 1e\+12"),
+    "HDF5 data without its file's name": (
+        _edited(None, "grid.h5:/Mesh/mesh/geometry", "/Mesh/mesh/geometry"),
+        r"names its Geometry's HDF5 data '/Mesh/mesh/geometry', not as 'file.h5:/dataset'"),
+    "XDMF 2's Type attribute": (
+        _edited(None, 'TopologyType="Triangle"', 'Type="Triangle"'),
+        r"is not a linear triangular mesh \(cells: no TopologyType given\)"),
 }
 
 
@@ -187,13 +207,17 @@ def test_an_xdmf_file_is_size_checked_before_it_is_read(tmp_path, monkeypatch):
 
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
 def test_an_xdmf_file_on_three_processes(tmp_path):
-    """On 3 processes each reads its block of the cells and nodes (of an L-shaped mesh, in
-    HDF5), and the run gives the serial η (exact Newton, MUMPS: round-off, asserted 1e-10)
+    """On 3 processes (rank 0 reads, dolfinx distributes) an L-shaped mesh, in HDF5 and in
+    the XML, gives the serial η (exact Newton, MUMPS: round-off, asserted 1e-10)
     with the same Newton steps; a bad file is refused in one line, exit code 2, on every
     process alike."""
     nodes, cells = _grid(4)
     keep = ~np.all(nodes[cells].mean(axis=1) > 0.5, axis=1)
     same_on_three_processes(written(tmp_path / "l.xdmf", nodes, cells[keep]))
+    # nodes in a plane z = 0.5, data in the XML: dolfinx gave rank 0 all nodes, and the
+    # plane's check took the others' none for z = 0 ("is 3D" on 3 processes only)
+    raised = np.hstack([nodes, np.full((len(nodes), 1), 0.5)])
+    same_on_three_processes(inline(tmp_path / "plane.xdmf", raised, cells[keep]))
     bad = _renamed_dataset(tmp_path / "bad.xdmf")
     proc = mpirun(["-m", "membranes.app.cli", "solve", "--mesh", bad, "--quiet", "--out",
                    tmp_path / "out"], processes=3, timeout=240)
@@ -203,3 +227,32 @@ def test_an_xdmf_file_on_three_processes(tmp_path):
                     f"dataset by name"], proc.stderr        # (and mpirun's banner)
     assert "HDF5-DIAG" not in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_counts_below_zero_are_no_size(tmp_path):
+    """A file declaring a negative node count (a gmsh header, an XDMF Dimensions) has no size
+    for the check before reading (a complex power of it ended in a TypeError traceback in
+    the memory estimate of the direct solver); the reader then says what is wrong."""
+    nodes, cells = _grid(2)
+    msh = msh22(tmp_path / "grid.msh", nodes, cells)
+    text = open(msh).read().replace("$Nodes\n9\n", "$Nodes\n-9\n")
+    open(msh, "w").write(text)
+    xdmf = _edited(None, 'Dimensions="9 2"', 'Dimensions="-9 2"')(tmp_path / "grid.xdmf")
+    for path in (msh, xdmf):
+        assert mesh_headers.mesh_file_vertices(path) is None
+        with pytest.raises(ValueError, match="cannot read mesh file"):
+            scenes.user(mesh=path)
+
+
+def test_a_process_without_stderr_reads_xdmf(tmp_path):
+    """With file descriptor 2 closed (`2>&-`), the quiet reads failed on every file ('NoneType'
+    object has no attribute 'flush'); there is nothing to hide then, and the file is read."""
+    import subprocess
+    import sys
+    path = written(tmp_path / "grid.xdmf", *_grid(3))
+    code = ("from membranes import scenes; "
+            f"print(scenes.user(mesh={path!r}).mesh.topology.index_map(0).size_global)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=False,
+                          stdout=subprocess.PIPE, text=True, timeout=120,
+                          preexec_fn=lambda: os.close(2))
+    assert proc.returncode == 0 and proc.stdout.split() == ["16"]

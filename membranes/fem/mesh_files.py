@@ -1,26 +1,28 @@
-"""Mesh files as the coarse mesh T_0 (§12): gmsh `.msh` files, read by gmsh on rank 0, and
-XDMF files, read by dolfinx on every process. Which reader a file goes to is decided by its
-first bytes (`model.mesh_headers.mesh_file_kind`), not by its name, and both end in the checks
-every mesh gets (`meshes.checked_cells`): a file that is neither is refused before any reader
-sees it (gmsh would run any other text as a `.geo` script, `SystemCall` included).
+"""Mesh files as the coarse mesh T_0 (§12): gmsh `.msh` files, read by gmsh, and XDMF files,
+read by dolfinx, both on rank 0, as the generated domains are meshed there; dolfinx then
+distributes the checked cells (`meshes.on_rank0`). Which reader a file goes to is decided by
+its first bytes (`model.mesh_headers.mesh_file_kind`), not by its name, and both end in the
+checks every mesh gets (`meshes.checked_cells`): a file that is neither is refused before
+any reader sees it (gmsh would run any other text as a `.geo` script, `SystemCall`
+included).
 
-**gmsh files** are opened by gmsh on rank 0 and their triangles taken as `meshes.model_cells`
-says; dolfinx distributes them. gmsh 4.8 crashes on element tags of 2^31 or more, so those
-are looked for first (`_element_tags_in_range`).
+**gmsh files** are opened by gmsh and their triangles taken as `meshes.model_cells` says.
+gmsh 4.8 crashes on element tags of 2^31 or more, so those are looked for first
+(`_element_tags_in_range`).
 
 **XDMF files** are the format dolfinx writes (`dolfinx.io.XDMFFile.write_mesh`) and meshio
 writes. The grid that holds the mesh (`mesh_headers.xdmf_grid`: the one with a topology, or
-the one of triangles, or the one named 'mesh') is read by dolfinx's XDMFFile, each process
-its own block of the cells and nodes, so no process reads the whole file. The cells must be
-linear triangles; the nodes may have two coordinates, or three in one plane z = c (taken as
-z = 0; unlike a gmsh file's, every node listed is looked at, not only those of cells). dolfinx
-0.5.2 opens `name.h5` beside `name.xdmf` whatever the XML names (even where the data are in
-the XML), so that file must be there. The cells must index the nodes listed (dolfinx would
-crash otherwise); dolfinx then distributes them without ghost cells, and the mesh gets the
-checks of a dolfinx mesh given through the API (`meshes.given_mesh`, on T_0 gathered on rank
-0, as a gmsh file is read there). HDF5 prints its error stack on stderr: the reads run with
-the process's stderr sent to /dev/null, and dolfinx's exception, agreed by all processes,
-becomes the one-line ValueError.
+the one of triangles, or the one named 'mesh'; at most 2 cells a node declared, HDF5 data
+named 'file.h5:/dataset') is read by dolfinx's XDMFFile on `MPI.COMM_SELF`. dolfinx 0.5.2
+opens `name.h5` beside `name.xdmf` whatever the XML names (even where the data are in the
+XML), so that file must be there. The cells and nodes are checked before dolfinx's
+`create_mesh` sees them (it crashed, or hung, on repeated cells): linear triangles on nodes
+the file lists, those nodes with two coordinates, or three in one plane z = c
+(`meshes.in_the_plane`, taken as z = 0), then the checks of every mesh. Read on all
+processes at once (MPI-IO), a dataset that failed to read on some of them left HDF5 unable
+to close the file, and the process aborted; on one process it closes. HDF5 prints its error
+stack on stderr: the reads run with the process's stderr sent to /dev/null, and dolfinx's
+exception becomes the one-line ValueError.
 """
 
 import contextlib
@@ -85,95 +87,96 @@ def read_msh(path, comm=MPI.COMM_WORLD):
 @contextlib.contextmanager
 def _no_stderr():
     """The process's stderr (file descriptor 2, where HDF5 prints its error stack) sent to
-    /dev/null, and back after."""
-    sys.stderr.flush()
-    saved = os.dup(2)
+    /dev/null, and back after; nothing to do where the process has no stderr."""
+    if sys.stderr is not None:
+        sys.stderr.flush()
     try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
+        saved = os.dup(2)
+    except OSError:                       # (fd 2 closed: nothing would be printed)
+        saved = None
+    try:
+        if saved is not None:
+            with open(os.devnull, "wb") as null:
+                os.dup2(null.fileno(), 2)
         yield
     finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+        if saved is not None:
+            os.dup2(saved, 2)
+            os.close(saved)
 
 
-def _agreed(comm, what, step):
-    """step() on every process, quietly; ValueError on every process if it failed on any
-    (the message of the lowest rank that failed)."""
+def _quietly(what, step):
+    """step(), with stderr sent to /dev/null; dolfinx's exception as a ValueError."""
     try:
         with _no_stderr():
-            result, error = step(), None
+            return step()
     except Exception as e:
-        result, error = None, str(e).strip() or type(e).__name__
-    failed = [e for e in comm.allgather(error) if e is not None]
-    if failed:
-        raise ValueError(f"cannot read {what}: {failed[0]}")
-    return result
+        raise ValueError(f"cannot read {what}: {str(e).strip() or type(e).__name__}") \
+            from None
 
 
-def _grid(path, comm):
-    """`mesh_headers.xdmf_grid` of the file, read on rank 0, with its HDF5 file beside it
-    (module notes); ValueError on every process."""
-    grid = None
-    if comm.rank == 0:
-        try:
-            grid = xdmf_grid(path)
-            h5 = os.path.splitext(path)[0] + ".h5"
-            if not os.path.isfile(h5):
-                raise ValueError(f"mesh file {path!r} has no HDF5 file {h5!r} beside it "
-                                 f"(dolfinx 0.5 reads an XDMF file with the .h5 file of "
-                                 f"its name)")
-        except ValueError as e:
-            grid = str(e)
-    grid = comm.bcast(grid, root=0)
-    if isinstance(grid, str):
-        raise ValueError(grid)
-    return grid
+def _closed(xdmf):
+    """Close the file, quietly: after a read that failed on some process HDF5 cannot close it
+    (on several processes, "Failed to close HDF5 file" and its error stack), and the error
+    to report is the read's."""
+    try:
+        with _no_stderr():
+            xdmf.close()
+    except Exception:
+        pass
 
 
 def read_xdmf(path, comm=MPI.COMM_WORLD):
-    """Read the mesh of an XDMF file with dolfinx on every process of `comm` and check it
-    (module notes); ValueError, the same on every process, names what is wrong. Collective."""
+    """Read the mesh of an XDMF file with dolfinx on rank 0, check it there and distribute it
+    on `comm` (module notes); ValueError, the same on every process, names what is wrong.
+    Collective."""
+    path = check_mesh_path(path)
+    return meshes.on_rank0(comm, lambda _: _read_xdmf(path), contextlib.nullcontext)
+
+
+def _read_xdmf(path):
+    """(cells, x) of the XDMF file's mesh, checked: rank 0's part of `read_xdmf`."""
     from dolfinx.io import XDMFFile
     from dolfinx.mesh import CellType
-    path = check_mesh_path(path)
     what = f"mesh file {path!r}"
-    name, kind, _, _ = _grid(path, comm)
+    name, kind, _, _ = xdmf_grid(path)
+    h5 = os.path.splitext(path)[0] + ".h5"
+    if not os.path.isfile(h5):
+        raise ValueError(f"{what} has no HDF5 file {h5!r} beside it (dolfinx 0.5 reads an "
+                         f"XDMF file with the .h5 file of its name)")
     if kind.lower() != "triangle":              # (dolfinx: "Unknown value: mixed", or worse)
-        raise ValueError(f"{what} is not a linear triangular mesh (cells: {kind or 'none'})")
-    xdmf = _agreed(comm, what, lambda: XDMFFile(comm, path, "r"))
+        raise ValueError(f"{what} is not a linear triangular mesh (cells: "
+                         f"{kind or 'no TopologyType given'})")
+    xdmf = _quietly(what, lambda: XDMFFile(MPI.COMM_SELF, path, "r"))
     try:
-        cell, degree = _agreed(comm, what, lambda: xdmf.read_cell_type(name, XPATH))
+        cell, degree = _quietly(what, lambda: xdmf.read_cell_type(name, XPATH))
         if cell != CellType.triangle or degree != 1:
-            raise ValueError(f"{what} is not a linear triangular mesh (cells: "
-                             f"{kind or cell.name})")
-        cells = _agreed(comm, what, lambda: xdmf.read_topology_data(name, XPATH))
-        x = _agreed(comm, what, lambda: xdmf.read_geometry_data(name, XPATH))
+            raise ValueError(f"{what} is not a linear triangular mesh (cells: {kind})")
+        cells = _quietly(what, lambda: xdmf.read_topology_data(name, XPATH))
+        x = _quietly(what, lambda: xdmf.read_geometry_data(name, XPATH))
     finally:
-        xdmf.close()
-    cells, x = np.asarray(cells, dtype=np.int64).reshape(-1, 3), np.asarray(x, dtype=float)
-    nodes = comm.allreduce(len(x), op=MPI.SUM)
-    if not comm.allreduce(len(cells), op=MPI.SUM):
-        raise ValueError(f"{what} has no cells")
-    low = comm.allreduce(cells.min() if cells.size else 0, op=MPI.MIN)
-    high = comm.allreduce(cells.max() if cells.size else 0, op=MPI.MAX)
-    if low < 0 or high >= nodes:
-        bad = low if low < 0 else high
-        raise ValueError(f"{what} has cells on nodes it does not list (node {bad} of "
-                         f"{nodes} nodes)")
+        _closed(xdmf)
+    return _checked(np.asarray(cells), np.asarray(x, dtype=float), what)
+
+
+def _checked(cells, x, what):
+    """(cells, x) of an XDMF file's cells and nodes, on the nodes the cells use, checked as a
+    .msh file's (`meshes.checked_cells`) before dolfinx sees them: its create_mesh crashed
+    or hung on repeated cells and on cells with a repeated node."""
     if x.ndim != 2 or x.shape[1] not in (2, 3):
-        raise ValueError(f"{what} has nodes of {x.shape[-1]} coordinates, not 2 or 3")
-    if comm.allreduce(int(np.count_nonzero(~np.isfinite(x))), op=MPI.SUM):
-        raise ValueError(f"{what} has non-finite node coordinates")
-    if x.shape[1] == 3:
-        z = x[:, 2] if len(x) else np.zeros(1)
-        low, high = comm.allreduce(z.min(), op=MPI.MIN), comm.allreduce(z.max(), op=MPI.MAX)
-        scale = comm.allreduce(np.abs(x).max() if len(x) else 0.0, op=MPI.MAX)
-        if high - low > 1e-12 * max(1.0, scale):
-            raise ValueError(f"{what} is 3D (its nodes have z from {low:g} to {high:g}, not "
-                             f"one plane z = const)")
-    mesh = meshes.distribute(comm, cells, np.ascontiguousarray(x[:, :2]))
-    return meshes.given_mesh(mesh, what)
+        raise ValueError(f"{what} has nodes of other than 2 or 3 coordinates")
+    cells = np.reshape(cells, (-1, 3)).astype(np.int64)
+    x = np.pad(x, ((0, 0), (0, 3 - x.shape[1])))
+    if not len(cells):
+        raise ValueError(f"{what} has no cells")
+    if cells.min() < 0 or cells.max() >= len(x):
+        bad = cells.min() if cells.min() < 0 else cells.max()
+        raise ValueError(f"{what} has cells on nodes it does not list (node {bad} of "
+                         f"{len(x)} nodes)")
+    used, cells = np.unique(cells, return_inverse=True)
+    cells = cells.reshape(-1, 3)
+    x = meshes.in_the_plane(x[used], what)
+    return meshes.checked_cells(x, cells, what, fix=meshes.JOIN_NODES)[:2]
 
 
 # ## gmsh files

@@ -47,6 +47,7 @@ from ..model.problem import real_number
 from . import conformity
 
 GMSH_TRIANGLE = 2  # gmsh element type of the 3-node triangle
+JOIN_NODES = "(its cells must share their nodes where they meet)"   # (not from gmsh)
 
 
 @contextlib.contextmanager
@@ -69,19 +70,23 @@ def check_size(h):
     return h
 
 
-def on_rank0(comm, build):
-    """Run `build(gmsh)` in a gmsh session on rank 0; it returns the coarse mesh as (cells, x)
-    (`model_cells`), which dolfinx distributes on `comm` without ghost cells (module notes).
-    A ValueError on rank 0 reaches every rank."""
+def on_rank0(comm, build, session=gmsh_session):
+    """Run `build(gmsh)` in a gmsh session on rank 0 (`build(None)` for a `session` of
+    contextlib.nullcontext: a file read without gmsh); it returns the coarse mesh as (cells,
+    x) (`model_cells`), which dolfinx distributes on `comm` without ghost cells (module
+    notes). A ValueError on rank 0 reaches every rank, any other error as a RuntimeError."""
     error, arrays = None, None
     with contextlib.ExitStack() as stack:
         if comm.rank == 0:
-            gmsh = stack.enter_context(gmsh_session())
+            gmsh = stack.enter_context(session())
             try:
                 arrays = build(gmsh)
-            except ValueError as e:
-                error = str(e)
+            except Exception as e:   # (every process must leave the broadcast below)
+                error = str(e) if isinstance(e, ValueError) else (type(e).__name__, str(e))
         error = comm.bcast(error, root=0)
+        if isinstance(error, tuple):
+            raise RuntimeError(f"reading the coarse mesh on rank 0 failed: {error[0]}: "
+                               f"{error[1]}")
         if error is not None:
             raise ValueError(error)
         cells, x = arrays if comm.rank == 0 else \
@@ -193,10 +198,24 @@ def model_cells(gmsh, what, conforming=False):
     if not np.array_equal(node_tags[at], used):
         raise ValueError(f"{what} has triangles on nodes it does not list")
     x, cells = coords[at], cells.reshape(-1, 3).astype(np.int64)
-    if np.ptp(x[:, 2]) > 1e-12 * max(1.0, np.abs(x).max()):       # (NaN: below)
-        raise ValueError(f"{what} is 3D (its triangles' nodes have z from "
-                         f"{x[:, 2].min():g} to {x[:, 2].max():g}, not one plane z = const)")
-    return checked_cells(np.ascontiguousarray(x[:, :2]), cells, what, conforming)[:2]
+    return checked_cells(in_the_plane(x, what), cells, what, conforming)[:2]
+
+
+def in_the_plane(x, what):
+    """The (n, 2) coordinates (x, y) of the n nodes x (n, 3) of triangles (`what` names them
+    in messages), which must lie in one plane z = const, taken as z = 0: ValueError if their
+    z are not finite or differ by more than 1e-12 of the nodes' extent in the plane. The
+    tolerance is relative to that extent, not to |z|: a mesh at z = 1e12 tilted by 0.3 rad
+    would otherwise pass, and be solved on its projection; a plane at a large c must be
+    given as one value of z."""
+    z = x[:, 2]
+    extent = max(np.ptp(x[:, 0]), np.ptp(x[:, 1])) if len(x) else 0.0
+    if not np.all(np.isfinite(z)):
+        raise ValueError(f"{what} has non-finite node coordinates")
+    if len(x) and np.ptp(z) > 1e-12 * extent:
+        raise ValueError(f"{what} is 3D (its triangles' nodes have z from {z.min():g} to "
+                         f"{z.max():g}, not one plane z = const)")
+    return np.ascontiguousarray(x[:, :2])
 
 
 def checked_cells(x, cells, what, conforming=False,
@@ -286,14 +305,9 @@ def given_mesh(mesh, what="mesh", domain=None):
                                  f"at other places than the node's first copy")
             if not len(cells):
                 raise ValueError(f"{what} has no cells")
-            x = x[first]
-            if np.ptp(x[:, 2]) > 1e-12 * max(1.0, np.abs(x).max()):
-                raise ValueError(f"{what} is 3D (its triangles' nodes have z from "
-                                 f"{x[:, 2].min():g} to {x[:, 2].max():g}, not one plane "
-                                 f"z = const)")
             cells, x, edges = checked_cells(
-                np.ascontiguousarray(x[:, :2]), np.searchsorted(nodes, cells), what,
-                fix="(its cells must share their nodes where they meet)")
+                in_the_plane(x[first], what), np.searchsorted(nodes, cells), what,
+                fix=JOIN_NODES)
             error = domain(x, cells, edges) if domain is not None else None
         except Exception as e:       # (every process must leave the broadcast below)
             error = str(e) if isinstance(e, ValueError) else (type(e).__name__, str(e))

@@ -43,14 +43,19 @@ def _msh_vertices(path):
     body = tail.split(b"\n", 1)[1]
     try:
         if version < 4:                            # "$Nodes\nN\n" (ASCII even in binary files)
-            return float(int(body.split(b"\n", 1)[0]))
+            return _count(int(body.split(b"\n", 1)[0]))
         if not binary:                             # "blocks nodes min max"
-            return float(int(body.split(b"\n", 1)[0].split()[1]))
+            return _count(int(body.split(b"\n", 1)[0].split()[1]))
         endian = "little" if int.from_bytes(head.split(b"\n", 3)[2][:4], "little") == 1 \
             else "big"
-        return float(int.from_bytes(body[word:2 * word], endian))   # blocks, nodes, ...
+        return _count(int.from_bytes(body[word:2 * word], endian))   # blocks, nodes, ...
     except (ValueError, IndexError):
         return size / MIN_FILE_BYTES_PER_VERTEX
+
+
+def _count(n):
+    """A declared count as a float, None where it is negative (the reader refuses it)."""
+    return float(n) if n >= 0 else None
 
 
 def mesh_file_kind(path):
@@ -70,19 +75,35 @@ def mesh_file_kind(path):
 
 
 def _leading_count(item):
-    """The first number of a DataItem's Dimensions ("25 2" -> 25), None if it has none."""
+    """The first number of a DataItem's Dimensions ("25 2" -> 25), None if it has none or
+    it is negative (dolfinx then refuses the file)."""
     try:
-        return int(item.get("Dimensions", "").split()[0])
+        count = int(item.get("Dimensions", "").split()[0])
     except (AttributeError, IndexError, ValueError):
         return None
+    return count if count >= 0 else None
+
+
+def _hdf_path(path, part, item):
+    """ValueError unless the DataItem `item` of the grid's `part` (Topology, Geometry) holds
+    data dolfinx can look for: XML numbers, or HDF5 data named 'file.h5:/dataset' (without
+    the file name dolfinx 0.5.2 crashed, a segmentation fault, on 3 processes)."""
+    if item is None:
+        raise ValueError(f"mesh file {path!r} has no DataItem in its {part}")
+    if item.get("Format", "XML") == "HDF":
+        file, _, dataset = (item.text or "").strip().partition(":")
+        if not file or not dataset.startswith("/"):
+            raise ValueError(f"mesh file {path!r} names its {part}'s HDF5 data "
+                             f"{(item.text or '').strip()!r}, not as 'file.h5:/dataset'")
 
 
 def xdmf_grid(path):
     """(name, cell type, nodes, cells) of the grid of the XDMF file at `path` that holds its
     mesh: the one Grid of its Domain with a Topology, or, of several, the one of triangles, or
     the one named 'mesh' (dolfinx's name); its TopologyType as written, the counts its
-    Geometry and Topology declare (None where absent). ValueError naming what is wrong: no
-    XML, no Xdmf/Domain, no grid with a topology, several meshes."""
+    Geometry and Topology DataItems declare (None where absent). ValueError naming what is
+    wrong: no XML, no Xdmf/Domain, no grid with a topology, several meshes, HDF5 data not
+    named 'file.h5:/dataset', more cells than nodes can carry."""
     try:
         root = ElementTree.parse(path).getroot()
     except ElementTree.ParseError as e:
@@ -97,9 +118,8 @@ def xdmf_grid(path):
         raise ValueError(f"mesh file {path!r} has no mesh (no Grid with a Topology in its "
                          f"Domain)")
 
-    def kind(grid):
-        topology = grid.find("Topology")
-        return topology.get("TopologyType", topology.get("Type", ""))
+    def kind(grid):         # (XDMF 2's Type= dolfinx does not read: "" then)
+        return grid.find("Topology").get("TopologyType", "")
 
     if len(grids) > 1:
         grids = [g for g in grids if kind(g).lower().startswith("triangle")] or grids
@@ -111,10 +131,17 @@ def xdmf_grid(path):
                          f"a file of one mesh, or name 'mesh' the one to use")
     grid = grids[0]
     geometry, topology = grid.find("Geometry"), grid.find("Topology")
-    nodes = _leading_count(geometry.find("DataItem")) if geometry is not None else None
-    cells = topology.get("NumberOfElements")
-    cells = int(cells) if cells is not None and cells.strip().isdigit() else \
-        _leading_count(topology.find("DataItem"))
+    if geometry is None:
+        raise ValueError(f"mesh file {path!r} has no Geometry in its grid")
+    for part, element in (("Topology", topology), ("Geometry", geometry)):
+        _hdf_path(path, part, element.find("DataItem"))
+    nodes = _leading_count(geometry.find("DataItem"))
+    cells = _leading_count(topology.find("DataItem"))
+    if nodes is not None and cells is not None and cells > 2 * nodes:
+        # a triangulation of the plane on V nodes has at most 2 V - 5 triangles; dolfinx's
+        # create_mesh crashed or hung on such files (many repeated cells on few nodes)
+        raise ValueError(f"mesh file {path!r} declares {cells} cells on {nodes} nodes, more "
+                         f"than a triangulation of {nodes} nodes can have")
     return grid.get("Name", ""), kind(grid), nodes, cells
 
 
