@@ -354,8 +354,8 @@ def test_poincare_constant_of_a_rectangle_is_its_own():
 
 def test_the_plane_of_a_mesh_is_measured_against_its_extent():
     """Nodes in one plane z = c are taken as z = 0, whatever c; the tolerance of the plane is
-    1e-12 of the nodes' extent in it, not of |z|: a plane tilted by 0.4 at z = 1e12 passed
-    (1e-12 |z| = 1 there) and was solved on its projection."""
+    1e-12 of the nodes' extent in it, plus z's own round-off, not 1e-12 |z|: a plane tilted
+    by 0.4 at z = 1e12 passed (1e-12 |z| = 1 there) and was solved on its projection."""
     from membranes.fem.meshes import in_the_plane
     xy = np.array([(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])
     for c in (0.0, -3.0, 1e12):
@@ -365,3 +365,6 @@ def test_the_plane_of_a_mesh_is_measured_against_its_extent():
         with pytest.raises(ValueError, match=message):
             in_the_plane(np.column_stack([xy, z]), "m")
     assert np.array_equal(in_the_plane(np.column_stack([xy, 1e-13 * xy[:, 1]]), "m"), xy)
+    # a plane moved to z = 1e5 + 0.3 by a computation: z differ by its round-off (1.5e-11)
+    moved = 1e5 + 0.3 + np.array([0.0, 1.4551915228366852e-11, 0.0, 0.0])
+    assert np.array_equal(in_the_plane(np.column_stack([xy, moved]), "m"), xy)

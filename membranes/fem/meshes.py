@@ -204,15 +204,15 @@ def model_cells(gmsh, what, conforming=False):
 def in_the_plane(x, what):
     """The (n, 2) coordinates (x, y) of the n nodes x (n, 3) of triangles (`what` names them
     in messages), which must lie in one plane z = const, taken as z = 0: ValueError if their
-    z are not finite or differ by more than 1e-12 of the nodes' extent in the plane. The
-    tolerance is relative to that extent, not to |z|: a mesh at z = 1e12 tilted by 0.3 rad
-    would otherwise pass, and be solved on its projection; a plane at a large c must be
-    given as one value of z."""
+    z are not finite or differ by more than 1e-12 of the nodes' extent in the plane, plus
+    the round-off of z's own size (8 ε max |z|: a plane moved to z = c by a computation).
+    The tolerance is not relative to |z| alone: a mesh at z = 1e12 tilted by 0.4 rad passed
+    that way, and was solved on its projection."""
     z = x[:, 2]
     extent = max(np.ptp(x[:, 0]), np.ptp(x[:, 1])) if len(x) else 0.0
     if not np.all(np.isfinite(z)):
         raise ValueError(f"{what} has non-finite node coordinates")
-    if len(x) and np.ptp(z) > 1e-12 * extent:
+    if len(x) and np.ptp(z) > 1e-12 * extent + 8 * np.finfo(float).eps * np.abs(z).max():
         raise ValueError(f"{what} is 3D (its triangles' nodes have z from {z.min():g} to "
                          f"{z.max():g}, not one plane z = const)")
     return np.ascontiguousarray(x[:, :2])
