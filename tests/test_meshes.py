@@ -368,3 +368,26 @@ def test_the_plane_of_a_mesh_is_measured_against_its_extent():
     # a plane moved to z = 1e5 + 0.3 by a computation: z differ by its round-off (1.5e-11)
     moved = 1e5 + 0.3 + np.array([0.0, 1.4551915228366852e-11, 0.0, 0.0])
     assert np.array_equal(in_the_plane(np.column_stack([xy, moved]), "m"), xy)
+
+
+def test_a_reader_failing_to_start_on_rank_0_is_an_error_on_every_rank():
+    """`on_rank0`: gmsh failing as its session starts on rank 0 was raised there alone, before
+    the broadcast the other ranks wait in; it now goes through it, as a RuntimeError (an
+    error other than ValueError in the reader alike)."""
+    import contextlib
+
+    from mpi4py import MPI
+
+    from membranes.fem.meshes import on_rank0
+
+    @contextlib.contextmanager
+    def broken():
+        raise OSError("gmsh: cannot open display")
+        yield
+
+    def failing(_):
+        raise KeyError("node")
+    for session, build, message in ((broken, lambda g: None, "OSError: gmsh: cannot open"),
+                                    (contextlib.nullcontext, failing, "KeyError: 'node'")):
+        with pytest.raises(RuntimeError, match=f"on rank 0 failed: {message}"):
+            on_rank0(MPI.COMM_WORLD, build, session)

@@ -650,7 +650,8 @@ def test_a_planar_dolfinx_mesh_of_dimension_3(tmp_path):
                            newton="exact", solver="direct")
             assert sol.estimates["eta"] == pytest.approx(square.estimates["eta"], rel=1e-10)
     with pytest.raises(ValueError, match=r"^mesh is 3D \(its triangles' nodes have z from 0 "
-                                         r"to 1, not one plane z = const\)$"):
+                                         r"to 1, a spread of 1 over an extent of 1 in the "
+                                         r"plane: not one plane z = const\)$"):
         scenes.user(mesh=raised(nodes, cells, nodes[:, 0]))
 
 

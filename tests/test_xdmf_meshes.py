@@ -1,7 +1,8 @@
 """XDMF files as user meshes (membranes.fem.mesh_files.read_xdmf, §12): read by dolfinx on
-every process, checked as every mesh is, refused in one line when they cannot be used."""
+rank 0, checked as every mesh is, refused in one line when they cannot be used."""
 
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -114,6 +115,18 @@ def _edited(text, old, new):
     return build
 
 
+def _elsewhere(path):
+    """The grid's data in other.h5 (named so in the XML), and grid.h5 beside it: a copy of
+    another mesh's file, of the same shapes."""
+    written(path, *_grid(2))
+    shutil.copy(os.path.splitext(path)[0] + ".h5", path.parent / "other.h5")
+    written(path.parent / "moved.xdmf", _grid(2)[0] * 3.0, _grid(2)[1])
+    shutil.copy(path.parent / "moved.h5", os.path.splitext(path)[0] + ".h5")
+    text = open(path).read().replace("grid.h5:", "other.h5:")
+    open(path, "w").write(text)
+    return str(path)
+
+
 NODES, CELLS = _grid(2)
 BAD = {
     "no HDF5 file": (_without_h5, r"has no HDF5 file '.*grid\.h5' beside it"),
@@ -126,8 +139,8 @@ BAD = {
     "mixed cells": (lambda p: inline(p, NODES, CELLS, "Mixed"),
                     r"is not a linear triangular mesh \(cells: Mixed\)"),
     "a tilted plane": (lambda p: inline(p, np.hstack([NODES, NODES[:, :1]]), CELLS),
-                       r"is 3D \(its triangles' nodes have z from 0 to 1, not one plane "
-                       r"z = const\)"),
+                       r"is 3D \(its triangles' nodes have z from 0 to 1, a spread of 1 "
+                       r"over an extent of 1 in the plane: not one plane z = const\)"),
     "a cell on a node not listed": (lambda p: inline(p, NODES, np.vstack([CELLS, [(0, 1, 9)]])),
                                     r"has cells on nodes it does not list \(node 9 of 9 "
                                     r"nodes\)"),
@@ -156,10 +169,22 @@ BAD = {
     # the tolerance of the plane was relative to |z|: this was solved on its projection
     "a tilted plane far from z = 0": (
         lambda p: inline(p, np.hstack([NODES, 1e12 + 0.4 * NODES[:, :1]]), CELLS),
-        r"is 3D \(its triangles' nodes have z from 1e\+12 to 1e\+12"),
+        r"is 3D \(its triangles' nodes have z from 1e\+12 to 1e\+12, a spread of 0\.4 "
+        r"over an extent of 1 in the plane"),
     "HDF5 data without its file's name": (
         _edited(None, "grid.h5:/Mesh/mesh/geometry", "/Mesh/mesh/geometry"),
         r"names its Geometry's HDF5 data '/Mesh/mesh/geometry', not as 'file.h5:/dataset'"),
+    # Dimensions="18" for 6 triangles is legal XDMF: dolfinx died of a SIGFPE (exit 59)
+    "a flat topology": (_edited(None, 'Dimensions="8 3"', 'Dimensions="24"'),
+                        r"gives its triangles' Topology Dimensions '24', not 'cells 3'"),
+    # dolfinx reads grid.h5 whatever the XML names: this square's data were read from it
+    "its data in another .h5 file": (_elsewhere, r"holds its Topology's data in '.*other\.h5', "
+                                                 r"but dolfinx 0.5 reads it from '.*grid\.h5'"),
+    "a grid without a Name": (_edited(None, ' Name="mesh"', ""),
+                              r"has a grid without a Name \(dolfinx reads a grid by its name"),
+    "an encoding Python does not know": (
+        _edited('<?xml version="1.0" encoding="bogus"?><Xdmf/>', None, None),
+        r"is not an XDMF file \(XML: unknown encoding"),
     "XDMF 2's Type attribute": (
         _edited(None, 'TopologyType="Triangle"', 'Type="Triangle"'),
         r"is not a linear triangular mesh \(cells: no TopologyType given\)"),
@@ -256,3 +281,12 @@ def test_a_process_without_stderr_reads_xdmf(tmp_path):
                           stdout=subprocess.PIPE, text=True, timeout=120,
                           preexec_fn=lambda: os.close(2))
     assert proc.returncode == 0 and proc.stdout.split() == ["16"]
+
+
+def test_a_comment_before_the_xdmf(tmp_path):
+    """An XML comment before the root is XDMF still (it was taken for neither kind of file)."""
+    path = written(tmp_path / "grid.xdmf", *_grid(2))
+    text = open(path).read()
+    assert text.startswith("<?xml")          # (an XML declaration can only come first)
+    open(path, "w").write("<!-- written by hand -->\n" + text.split("\n", 1)[1])
+    assert scenes.user(mesh=path).mesh.topology.index_map(0).size_global == 9

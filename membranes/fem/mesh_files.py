@@ -61,7 +61,7 @@ def check_mesh_path(path):
         raise ValueError(f"mesh file {path!r} cannot be read: {e.strerror or e}") from None
     if mesh_file_kind(path) is None:
         raise ValueError(f"mesh file {path!r} is not a gmsh .msh file nor an XDMF file (it "
-                         f"begins with neither $MeshFormat nor <?xml)")
+                         f"begins with neither $MeshFormat nor XML)")
     return path
 
 

@@ -27,8 +27,8 @@ same run on 2 processes took 24 or 25 Newton steps, and its η differed in the f
 the user set it), under which the partition of a mesh on P processes is the same in every
 run. The hierarchy is refined without redistribution, so it inherits T_0's partition.
 
-A dolfinx mesh given through the API, or read from an XDMF file (`mesh_files`), gets the
-same checks (`given_mesh`): its cells and
+A dolfinx mesh given through the API gets the same checks (`given_mesh`; an XDMF file's
+cells are checked on rank 0 before dolfinx makes a mesh of them, `mesh_files`): its cells and
 their nodes are gathered on rank 0 for them, as a file's mesh is read there, then let go;
 the mesh is used as given, or made anew without ghost cells (`without_ghosts`) where it has
 them (plaza refinement, and dolfinx's edges of a pinched mesh, failed on ghosts).
@@ -78,9 +78,8 @@ def on_rank0(comm, build, session=gmsh_session):
     error, arrays = None, None
     with contextlib.ExitStack() as stack:
         if comm.rank == 0:
-            gmsh = stack.enter_context(session())
-            try:
-                arrays = build(gmsh)
+            try:                     # (gmsh failing to start too: the others wait below)
+                arrays = build(stack.enter_context(session()))
             except Exception as e:   # (every process must leave the broadcast below)
                 error = str(e) if isinstance(e, ValueError) else (type(e).__name__, str(e))
         error = comm.bcast(error, root=0)
@@ -214,7 +213,8 @@ def in_the_plane(x, what):
         raise ValueError(f"{what} has non-finite node coordinates")
     if len(x) and np.ptp(z) > 1e-12 * extent + 8 * np.finfo(float).eps * np.abs(z).max():
         raise ValueError(f"{what} is 3D (its triangles' nodes have z from {z.min():g} to "
-                         f"{z.max():g}, not one plane z = const)")
+                         f"{z.max():g}, a spread of {np.ptp(z):.3g} over an extent of "
+                         f"{extent:.3g} in the plane: not one plane z = const)")
     return np.ascontiguousarray(x[:, :2])
 
 

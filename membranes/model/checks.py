@@ -116,7 +116,7 @@ def hierarchy_vertices(vertices, triangles, levels, euler=1.0):
 
 def estimate_vertices(h=None, levels=0, domain="disk", mesh_file=None, counts=None):
     """(finest, all levels): the estimated vertices of T_J and of the whole hierarchy
-    T_0 … T_J for a gmsh mesh of `domain` with size h, or of the gmsh file `mesh_file`,
+    T_0 … T_J for a gmsh mesh of `domain` with size h, or of the mesh file `mesh_file`,
     refined `levels` times; exact from `counts` (V_0, T_0, χ) of a mesh read. From a file's
     header, a lower bound (its triangles are not counted: T_0 ≥ V_0 - 2, a strip, where a
     mesh has up to 2 V_0), so that no run within --max-vertices is refused; the exact count

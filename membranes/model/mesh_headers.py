@@ -69,7 +69,7 @@ def mesh_file_kind(path):
         return None
     if head.startswith((b"$MeshFormat", b"$NOD")):
         return "msh"
-    if head.startswith((b"<?xml", b"<!DOCTYPE", b"<Xdmf")):
+    if head.startswith((b"<?xml", b"<!DOCTYPE", b"<!--", b"<Xdmf")):
         return "xdmf"
     return None
 
@@ -86,8 +86,10 @@ def _leading_count(item):
 
 def _hdf_path(path, part, item):
     """ValueError unless the DataItem `item` of the grid's `part` (Topology, Geometry) holds
-    data dolfinx can look for: XML numbers, or HDF5 data named 'file.h5:/dataset' (without
-    the file name dolfinx 0.5.2 crashed, a segmentation fault, on 3 processes)."""
+    data dolfinx 0.5.2 reads as named: XML numbers, or HDF5 data named 'file.h5:/dataset'
+    (without the file name it crashed, a segmentation fault) in the file `name.h5` beside
+    `name.xdmf`, the one it opens whatever the XML names (another file's data of the same
+    shape would be read from the wrong file, without a word)."""
     if item is None:
         raise ValueError(f"mesh file {path!r} has no DataItem in its {part}")
     if item.get("Format", "XML") == "HDF":
@@ -95,6 +97,12 @@ def _hdf_path(path, part, item):
         if not file or not dataset.startswith("/"):
             raise ValueError(f"mesh file {path!r} names its {part}'s HDF5 data "
                              f"{(item.text or '').strip()!r}, not as 'file.h5:/dataset'")
+        named = os.path.join(os.path.dirname(path), file)
+        beside = os.path.splitext(path)[0] + ".h5"
+        if os.path.exists(named) and os.path.realpath(named) != os.path.realpath(beside):
+            raise ValueError(f"mesh file {path!r} holds its {part}'s data in {named!r}, but "
+                             f"dolfinx 0.5 reads it from {beside!r}, the .h5 file of its "
+                             f"name: rename them to one name")
 
 
 def xdmf_grid(path):
@@ -106,7 +114,8 @@ def xdmf_grid(path):
     named 'file.h5:/dataset', more cells than nodes can carry."""
     try:
         root = ElementTree.parse(path).getroot()
-    except ElementTree.ParseError as e:
+    except (ElementTree.ParseError, LookupError, ValueError) as e:   # (LookupError: an
+        # unknown encoding; ValueError: "multi-byte encodings are not supported")
         raise ValueError(f"mesh file {path!r} is not an XDMF file (XML: {e})") from None
     except OSError as e:
         raise ValueError(f"mesh file {path!r} cannot be read: {e.strerror or e}") from None
@@ -133,6 +142,15 @@ def xdmf_grid(path):
     geometry, topology = grid.find("Geometry"), grid.find("Topology")
     if geometry is None:
         raise ValueError(f"mesh file {path!r} has no Geometry in its grid")
+    if grid.get("Name") is None:
+        raise ValueError(f"mesh file {path!r} has a grid without a Name (dolfinx reads a "
+                         f"grid by its name: give it Name=\"mesh\")")
+    shape = (topology.find("DataItem").get("Dimensions", "").split()
+             if topology.find("DataItem") is not None else [])
+    if kind(grid).lower() == "triangle" and (len(shape) != 2 or shape[1] != "3"):
+        # (Dimensions="6" for two triangles, legal XDMF: dolfinx died of a SIGFPE)
+        raise ValueError(f"mesh file {path!r} gives its triangles' Topology Dimensions "
+                         f"{' '.join(shape)!r}, not 'cells 3'")
     for part, element in (("Topology", topology), ("Geometry", geometry)):
         _hdf_path(path, part, element.find("DataItem"))
     nodes = _leading_count(geometry.find("DataItem"))
