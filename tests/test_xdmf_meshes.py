@@ -283,6 +283,17 @@ def test_a_process_without_stderr_reads_xdmf(tmp_path):
     assert proc.returncode == 0 and proc.stdout.split() == ["16"]
 
 
+def test_a_pair_copied_to_a_new_name(tmp_path):
+    """grid.xdmf and grid.h5 copied to copy.xdmf and copy.h5: the XML still names grid.h5,
+    dolfinx reads copy.h5, the same bytes; read as the original."""
+    path = written(tmp_path / "grid.xdmf", *_grid(2))
+    shutil.copy(path, tmp_path / "copy.xdmf")
+    shutil.copy(tmp_path / "grid.h5", tmp_path / "copy.h5")
+    assert "grid.h5:" in open(tmp_path / "copy.xdmf").read()
+    assert scenes.user(mesh=tmp_path / "copy.xdmf").mesh.topology.index_map(
+        0).size_global == 9
+
+
 def test_a_comment_before_the_xdmf(tmp_path):
     """An XML comment before the root is XDMF still (it was taken for neither kind of file)."""
     path = written(tmp_path / "grid.xdmf", *_grid(2))

@@ -5,6 +5,7 @@ counts before any mesh is read (`checks.estimate_vertices`); the readers of `fem
 read the mesh the grid names. Plain Python: nothing here needs dolfinx or gmsh.
 """
 
+import filecmp
 import os
 import xml.etree.ElementTree as ElementTree
 
@@ -88,8 +89,9 @@ def _hdf_path(path, part, item):
     """ValueError unless the DataItem `item` of the grid's `part` (Topology, Geometry) holds
     data dolfinx 0.5.2 reads as named: XML numbers, or HDF5 data named 'file.h5:/dataset'
     (without the file name it crashed, a segmentation fault) in the file `name.h5` beside
-    `name.xdmf`, the one it opens whatever the XML names (another file's data of the same
-    shape would be read from the wrong file, without a word)."""
+    `name.xdmf`, the one it opens whatever the XML names: another file's data of the same
+    shape would be read from the wrong file, without a word. (A copy of the named file, as a
+    pair copied to a new name leaves it, is read as well as the file itself.)"""
     if item is None:
         raise ValueError(f"mesh file {path!r} has no DataItem in its {part}")
     if item.get("Format", "XML") == "HDF":
@@ -99,7 +101,8 @@ def _hdf_path(path, part, item):
                              f"{(item.text or '').strip()!r}, not as 'file.h5:/dataset'")
         named = os.path.join(os.path.dirname(path), file)
         beside = os.path.splitext(path)[0] + ".h5"
-        if os.path.exists(named) and os.path.realpath(named) != os.path.realpath(beside):
+        if os.path.isfile(named) and os.path.isfile(beside) and \
+                not filecmp.cmp(named, beside, shallow=False):     # (a copy of it is fine)
             raise ValueError(f"mesh file {path!r} holds its {part}'s data in {named!r}, but "
                              f"dolfinx 0.5 reads it from {beside!r}, the .h5 file of its "
                              f"name: rename them to one name")
