@@ -116,8 +116,8 @@ def _quietly(what, step):
 
 
 def _closed(xdmf):
-    """Close the file, quietly: after a read that failed on some process HDF5 cannot close it
-    (on several processes, "Failed to close HDF5 file" and its error stack), and the error
+    """Close the file, quietly: after a failed read HDF5 may not close it (read on several
+    processes it could not: "Failed to close HDF5 file" and its error stack), and the error
     to report is the read's."""
     try:
         with _no_stderr():
