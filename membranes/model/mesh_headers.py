@@ -85,6 +85,15 @@ def _leading_count(item):
     return count if count >= 0 else None
 
 
+def _same_bytes(a, b):
+    """Whether the files a and b hold the same bytes (True where they cannot be read: the
+    reader then says so)."""
+    try:
+        return filecmp.cmp(a, b, shallow=False)
+    except OSError:
+        return True
+
+
 def _hdf_path(path, part, item):
     """ValueError unless the DataItem `item` of the grid's `part` (Topology, Geometry) holds
     data dolfinx 0.5.2 reads as named: XML numbers, or HDF5 data named 'file.h5:/dataset'
@@ -102,7 +111,8 @@ def _hdf_path(path, part, item):
         named = os.path.join(os.path.dirname(path), file)
         beside = os.path.splitext(path)[0] + ".h5"
         if os.path.isfile(named) and os.path.isfile(beside) and \
-                not filecmp.cmp(named, beside, shallow=False):     # (a copy of it is fine)
+                os.path.realpath(named) != os.path.realpath(beside) and \
+                not _same_bytes(named, beside):                    # (a copy of it is fine)
             raise ValueError(f"mesh file {path!r} holds its {part}'s data in {named!r}, but "
                              f"dolfinx 0.5 reads it from {beside!r}, the .h5 file of its "
                              f"name: rename them to one name")
