@@ -137,21 +137,15 @@ def read_xdmf(path, comm=MPI.COMM_WORLD):
 def _read_xdmf(path):
     """(cells, x) of the XDMF file's mesh, checked: rank 0's part of `read_xdmf`."""
     from dolfinx.io import XDMFFile
-    from dolfinx.mesh import CellType
     what = f"mesh file {path!r}"
     name, kind, _, _ = xdmf_grid(path)
-    h5 = os.path.splitext(path)[0] + ".h5"
-    if not os.path.isfile(h5):
-        raise ValueError(f"{what} has no HDF5 file {h5!r} beside it (dolfinx 0.5 reads an "
-                         f"XDMF file with the .h5 file of its name)")
-    if kind.lower() != "triangle":              # (dolfinx: "Unknown value: mixed", or worse)
+    # (dolfinx's own reading of the type: "Unknown value: mixed", or worse; "Triangle" is
+    # its linear triangle)
+    if kind.lower() != "triangle":
         raise ValueError(f"{what} is not a linear triangular mesh (cells: "
                          f"{kind or 'no TopologyType given'})")
     xdmf = _quietly(what, lambda: XDMFFile(MPI.COMM_SELF, path, "r"))
     try:
-        cell, degree = _quietly(what, lambda: xdmf.read_cell_type(name, XPATH))
-        if cell != CellType.triangle or degree != 1:
-            raise ValueError(f"{what} is not a linear triangular mesh (cells: {kind})")
         cells = _quietly(what, lambda: xdmf.read_topology_data(name, XPATH))
         x = _quietly(what, lambda: xdmf.read_geometry_data(name, XPATH))
     finally:

@@ -60,9 +60,9 @@ def _count(n):
 
 
 def mesh_file_kind(path):
-    """'msh' for a gmsh file (it begins with $MeshFormat, or $NOD in format 1), 'xdmf' for an
-    XML file (it begins with <?xml, <!DOCTYPE or <Xdmf), else None (also where it cannot be
-    read)."""
+    """'msh' for a gmsh file (it begins with $MeshFormat, or $NOD in format 1), 'xdmf' for
+    an XML file (it begins with <?xml, <!DOCTYPE, a comment or <Xdmf), else None (also where
+    it cannot be read)."""
     try:
         with open(path, "rb") as f:
             head = f.read(256).lstrip(b"\xef\xbb\xbf \t\r\n")
@@ -94,6 +94,11 @@ def _same_bytes(a, b):
         return True
 
 
+def h5_beside(path):
+    """`name.h5` of the XDMF file `name.xdmf`: the HDF5 file dolfinx 0.5.2 opens with it."""
+    return os.path.splitext(path)[0] + ".h5"
+
+
 def _hdf_path(path, part, item):
     """ValueError unless the DataItem `item` of the grid's `part` (Topology, Geometry) holds
     data dolfinx 0.5.2 reads as named: XML numbers, or HDF5 data named 'file.h5:/dataset'
@@ -109,7 +114,7 @@ def _hdf_path(path, part, item):
             raise ValueError(f"mesh file {path!r} names its {part}'s HDF5 data "
                              f"{(item.text or '').strip()!r}, not as 'file.h5:/dataset'")
         named = os.path.join(os.path.dirname(path), file)
-        beside = os.path.splitext(path)[0] + ".h5"
+        beside = h5_beside(path)
         if os.path.isfile(named) and os.path.isfile(beside) and \
                 os.path.realpath(named) != os.path.realpath(beside) and \
                 not _same_bytes(named, beside):                    # (a copy of it is fine)
@@ -123,8 +128,8 @@ def xdmf_grid(path):
     mesh: the one Grid of its Domain with a Topology, or, of several, the one of triangles, or
     the one named 'mesh' (dolfinx's name); its TopologyType as written, the counts its
     Geometry and Topology DataItems declare (None where absent). ValueError naming what is
-    wrong: no XML, no Xdmf/Domain, no grid with a topology, several meshes, HDF5 data not
-    named 'file.h5:/dataset', more cells than nodes can carry."""
+    wrong: no XML, no Xdmf/Domain, no grid with a topology, several meshes, no `h5_beside`,
+    HDF5 data not named 'file.h5:/dataset', more cells than nodes can carry."""
     try:
         root = ElementTree.parse(path).getroot()
     except (ElementTree.ParseError, LookupError, ValueError) as e:   # (LookupError: an
@@ -164,6 +169,9 @@ def xdmf_grid(path):
         # (Dimensions="6" for two triangles, legal XDMF: dolfinx died of a SIGFPE)
         raise ValueError(f"mesh file {path!r} gives its triangles' Topology Dimensions "
                          f"{' '.join(shape)!r}, not 'cells 3'")
+    if not os.path.isfile(h5_beside(path)):
+        raise ValueError(f"mesh file {path!r} has no HDF5 file {h5_beside(path)!r} beside it "
+                         f"(dolfinx 0.5 reads an XDMF file with the .h5 file of its name)")
     for part, element in (("Topology", topology), ("Geometry", geometry)):
         _hdf_path(path, part, element.find("DataItem"))
     nodes = _leading_count(geometry.find("DataItem"))
