@@ -207,6 +207,27 @@ def test_hanging_node(tmp_path, capsys):
     read_msh(msh22(tmp_path / "conforming.msh", nodes, cells + [(1, 6, 2)]))
 
 
+@pytest.mark.parametrize("scale, words", [(1e200, r"node coordinates up to 1e\+200, beyond"),
+                                           (1e-200, "triangles as small as 3.54e-201"),
+                                           (1e-150, "triangles as small as 3.54e-151")])
+def test_mesh_scales_beyond_double_precision(tmp_path, capsys, scale, words):
+    """The unit square's 4 x 4 grid, 32 triangles, scaled: by 1e200 it was refused as "32
+    degenerate triangle(s)" after two RuntimeWarnings (the squares of its edges overflow),
+    by 1e-200 as degenerate too (they underflow to 0). Refused naming the scale, before
+    any square is taken; by 1e-150 too, whose longest edges' squares times the area test's
+    1e-12 are no normal doubles. Scaled by 1e150 it is read (the data's own checks
+    follow)."""
+    nodes = [(0.25 * i, 0.25 * j) for j in range(5) for i in range(5)]
+    cells = [c for j in range(4) for i in range(4) for c in
+             ((5 * j + i, 5 * j + i + 1, 5 * j + i + 6), (5 * j + i, 5 * j + i + 6, 5 * j + i + 5))]
+    msh = msh22(tmp_path / "scaled.msh", [(scale * x, scale * y) for x, y in nodes], cells)
+    with pytest.raises(ValueError, match=words):
+        read_msh(msh)
+    assert "rescale the mesh" in cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
+    large = msh22(tmp_path / "large.msh", [(1e150 * x, 1e150 * y) for x, y in nodes], cells)
+    assert global_counts(read_msh(large)) == (25, 32)
+
+
 @pytest.mark.parametrize("offset, found", [(1e-7, 0), (1e-9, 1), (-1e-3, 2), (-1e-9, 1)])
 def test_a_node_near_a_triangle_not_its_own(offset, found):
     """The triangle (0, 0), (1, 0), (0.5, -1) below, and above it two triangles on the node

@@ -38,7 +38,9 @@ the message is broadcast).
 """
 
 import contextlib
+import math
 import os
+import sys
 
 import numpy as np
 from mpi4py import MPI
@@ -218,6 +220,13 @@ def in_the_plane(x, what):
     return np.ascontiguousarray(x[:, :2])
 
 
+# The sizes a mesh's squares can take (`checked_cells`): coordinates whose squares (the areas,
+# the edges' squared lengths) overflow, and triangles whose squared longest edge, times the
+# 1e-12 of the area test, is no longer a normal double (sqrt(2.2e-308 / 1e-12) ≈ 1.5e-148).
+LARGEST_COORDINATE = 1e150
+SMALLEST_TRIANGLE = math.sqrt(sys.float_info.min / 1e-12)
+
+
 def checked_cells(x, cells, what, conforming=False,
                   fix="(join surfaces with gmsh's fragment)"):
     """(cells, x, boundary edges), the triangles `cells` ((T, 3) indices into the (n, 2)
@@ -226,7 +235,18 @@ def checked_cells(x, cells, what, conforming=False,
     are `conforming`), and their boundary edges ((m, 2) node pairs)."""
     if not np.all(np.isfinite(x)):
         raise ValueError(f"{what} has non-finite node coordinates")
+    size = np.abs(x).max(initial=0.0)
+    if size > LARGEST_COORDINATE:
+        raise ValueError(f"{what} has node coordinates up to {size:.3g}, beyond "
+                         f"{LARGEST_COORDINATE:.0e}, whose squares overflow double precision: "
+                         f"rescale the mesh")
     p = x[cells]
+    if len(p):
+        small = np.max([np.hypot(*(p[:, i] - p[:, i - 1]).T) for i in range(3)], axis=0).min()
+        if small < SMALLEST_TRIANGLE:
+            raise ValueError(f"{what} has triangles as small as {small:.3g} (longest edge), "
+                             f"below {SMALLEST_TRIANGLE:.1e}, whose areas underflow double "
+                             f"precision: rescale the mesh")
     longest = np.max([((p[:, i] - p[:, i - 1]) ** 2).sum(axis=1) for i in range(3)], axis=0)
     flat = np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest)
     if flat:
