@@ -113,4 +113,6 @@ if comm.rank == 0 and Figure is not None:
     ax.set_title(f"load sweep on one mesh ({levels} refinements), kept set-ups")
     fig.savefig(picture, dpi=100)
     say("picture:", picture)
+elif comm.rank == 0:
+    say("no picture: matplotlib is not installed (the folder stays empty)")
 # -

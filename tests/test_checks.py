@@ -7,6 +7,7 @@ import math
 import os
 
 import pytest
+from mpi4py import MPI
 
 from membranes import scenes, solve
 from membranes.fem.hierarchy import build_hierarchy
@@ -143,6 +144,23 @@ def test_a_run_beyond_memory_is_refused_with_both_figures():
         checks.estimate_vertices(0.05, fits + 1, "disk")[0]
     with pytest.raises(ValueError, match=r"h >= [0-9.e-]+ with 0 levels"):
         checks.check_request(1e-5, 0, "disk", available=24 * GiB)
+
+
+def test_refusals_name_only_what_the_command_can_set():
+    """A run beyond memory names solve's vertex limit, which `report` and `stability` do not
+    have (they said `membranes solve --max-vertices N` all the same); a limit below gmsh's
+    coarsest mesh of the disk (71 vertices) says so, where it said "no mesh with 0
+    levels"."""
+    with pytest.raises(ValueError, match=r"--max-vertices N`\) sets a vertex limit"):
+        checks.check_request(0.16, 12, "disk", available=24 * GiB)
+    from membranes.app.report import check_memory
+    with pytest.raises(ValueError, match="available per process") as e:
+        check_memory(0.16, 12, "disk", MPI.COMM_SELF)
+    assert "max-vertices" not in str(e.value) and "max_vertices" not in str(e.value)
+    for levels in (0, 2):
+        with pytest.raises(ValueError, match="even gmsh's coarsest mesh of the disk has 71 "
+                                             "vertices$"):
+            checks.check_request(0.3, levels, "disk", max_vertices=50)
 
 
 def test_smallest_h_is_the_bound():

@@ -12,7 +12,7 @@ def options(name, description, out_help):
     """Parse the demo's command line: --quick (a coarse mesh that runs in seconds; also the
     environment variable MEMBRANES_DEMO_QUICK=1, which the tests set) and --out (default
     out/demos/NAME; made if missing; one error line and exit 2 where it cannot be
-    written). Silences the JIT's log lines, so that stderr keeps Newton's progress lines.
+    written). Silences the JIT's log lines, so that stderr keeps only the demo's own lines.
     Returns (out, quick)."""
     from .logs import quiet_jit_logging
     quiet_jit_logging()

@@ -333,8 +333,8 @@ def solve(problem: Problem,
     tol: exact and inexact stop at ‖R_lin‖/‖(F, 0)‖ ≤ tol (1e-10, in (0, 1)); max_newton:
     Newton steps allowed on each level (100; beyond them the run ends not converged);
     estimators: certify the final iterate (and let adaptive use them); alg_flux: 'nu' or
-    'multilevel' (§6); initial_guess: 'paper' (default, (g, 0, 0)), 'zero', or a PETSc Vec
-    in the iterate layout (or a function of the discretisation returning one) on the first
+    'multilevel' (§6); initial_guess: None or 'paper' (the default, (g, 0, 0)), 'zero', or a
+    PETSc Vec in the iterate layout (or a function of the discretisation returning one) on the first
     mesh solved, whose boundary vertices take the Dirichlet values (u1 = g, u2 = λ = 0);
     nested: solve T_0, …, T_J in turn, each from the prolonged solution of the last
     (default where the problem has levels ≥ 1); errors: the energy error at the 'final'

@@ -540,7 +540,7 @@ def check_memory(h, levels, domain, comm, solvers=None):
     methods = [dict(MEMORY_METHOD[solver], estimators=True, alg_flux="nu")
                for solver in solvers]
     check_request(h, levels, domain, comm=comm, processes=comm.size, replicated=False,
-                  **heaviest(vertices, methods))
+                  limit_option=False, **heaviest(vertices, methods))
 
 
 def main(args):

@@ -168,13 +168,16 @@ CASE_NAMES = tuple(c.name for c in CASES)
 
 def select(names=None):
     """The cases called `names` (all by default), with the cases they are scaled copies of;
-    ValueError for an unknown name."""
+    ValueError for an unknown name or one given twice (as for options given twice)."""
     if names is None:
         return list(CASES)
     unknown = [n for n in names if n not in CASE_NAMES]
     if unknown:
         raise ValueError(f"unknown stability case {unknown[0]!r} (choose from: "
                          f"{', '.join(CASE_NAMES)})")
+    twice = [n for i, n in enumerate(names) if n in names[:i]]
+    if twice:
+        raise ValueError(f"stability case {twice[0]!r} given twice")
     wanted = set(names) | {c.scaled_from for c in CASES if c.name in names and c.scaled_from}
     return [c for c in CASES if c.name in wanted]
 

@@ -364,12 +364,14 @@ def describe_request(h=None, levels=0, domain="disk", mesh_file=None):
 
 
 def check_size(vertices, available=None, max_vertices=None, what="the run", hint=None,
-               **method):
+               limit_option=True, **method):
     """Refuse a run on a finest mesh of about `vertices` vertices that will not fit: the
     memory `estimate_memory(vertices, **method)` needs against `available` bytes per process
     (None: not known, no memory check), or, when `max_vertices` is given, `vertices` against
     it instead. ValueError with one line: both figures and the largest size that fits
-    (`hint(largest)`, if given, adds how to ask for it). Returns the bytes needed."""
+    (`hint(largest)`, if given, adds how to ask for it), and, where the caller can set one
+    (`limit_option`: `solve` and the scenes, not `report` or `stability`), that a vertex
+    limit can replace the memory check. Returns the bytes needed."""
     limit = check_max_vertices(max_vertices)
     need = estimate_memory(vertices, **method)
     if limit is not None:
@@ -384,11 +386,12 @@ def check_size(vertices, available=None, max_vertices=None, what="the run", hint
         return need
     largest = largest_fitting(available, **method)
     extra = f" ({hint(largest)})" if hint is not None else ""
+    option = ("; max_vertices=N (`membranes solve --max-vertices N`) sets a vertex limit "
+              "instead") if limit_option else ""
     raise ValueError(f"{what} has {_about(vertices, _count)} vertices and needs "
                      f"{_about(need, _bytes, ' bytes')} of memory, but {_bytes(available)} is "
                      f"available per process: the largest run that fits has about "
-                     f"{_count(largest)} vertices{extra}; max_vertices=N (`membranes solve "
-                     f"--max-vertices N`) sets a vertex limit instead")
+                     f"{_count(largest)} vertices{extra}{option}")
 
 
 def largest_levels(limit, h=None, domain="disk", mesh_file=None, counts=None):
@@ -418,7 +421,7 @@ def smallest_h(limit, levels=0, domain="disk"):
 
 
 def check_request(h=None, levels=0, domain="disk", mesh_file=None, max_vertices=None,
-                  available=None, comm=None, counts=None, **method):
+                  available=None, comm=None, counts=None, limit_option=True, **method):
     """The size check before meshing (issue 29): the estimated finest mesh of a gmsh mesh of
     `domain` ('disk', 'square' or (area, boundary length)) at size h, or of `mesh_file`,
     refined `levels` times (`counts`: the file's mesh read, `estimate_vertices`; a mesh given
@@ -445,8 +448,14 @@ def check_request(h=None, levels=0, domain="disk", mesh_file=None, max_vertices=
         ways = [] if h_min is None else [f"h >= {h_min:g} with {int(levels)} levels"]
         if fit >= 0 and fit != int(levels):
             ways.append(f"at most {fit} levels at h = {h:g}")
-        return " or ".join(ways) or f"no mesh with {int(levels)} levels"
+        if ways:
+            return " or ".join(ways)
+        if isinstance(domain, str) and domain in COARSEST:
+            return (f"even gmsh's coarsest mesh of the {domain} has {COARSEST[domain][0]:.0f} "
+                    f"vertices")
+        return f"no gmsh mesh of this domain with {int(levels)} levels is that small"
 
     check_size(vertices, available, max_vertices,
-               what=describe_request(h, levels, domain, mesh_file), hint=hint, **method)
+               what=describe_request(h, levels, domain, mesh_file), hint=hint,
+               limit_option=limit_option, **method)
     return vertices

@@ -49,6 +49,8 @@ def test_select():
         ["mu_ratio_1", "scaled_1e+08"]                  # with the case it is a copy of
     with pytest.raises(ValueError, match="unknown stability case 'nonsense'"):
         stability.select(["tiny", "nonsense"])
+    with pytest.raises(ValueError, match="stability case 'tiny' given twice"):
+        stability.select(["tiny", "grazing", "tiny"])             # (it was run once)
     for bad in (0, -1.0, float("nan"), float("inf"), True):
         with pytest.raises(ValueError, match="positive finite"):
             stability.check_h(bad)
