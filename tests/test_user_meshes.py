@@ -492,18 +492,27 @@ def _with_node_tag(path, tag, binary):
     return path
 
 
-@pytest.mark.parametrize("tag, binary", [(2 ** 31 + 5, 1), (2 ** 32 + 1, 0)])
-def test_element_node_tags_of_2_to_the_31_or_more(tag, binary, tmp_path):
+def _line_ends(path, crlf):
+    """The file at `path` with its lines ending in CR LF (as written on Windows), or LF."""
+    data = open(path, "rb").read().replace(b"\r\n", b"\n")
+    open(path, "wb").write(data.replace(b"\n", b"\r\n") if crlf else data)
+    return path
+
+
+@pytest.mark.parametrize("tag, binary, crlf", [(2 ** 31 + 5, 1, False), (2 ** 32 + 1, 0, False),
+                                               (2 ** 31 + 5, 0, True), (2 ** 32 + 1, 0, True)])
+def test_element_node_tags_of_2_to_the_31_or_more(tag, binary, crlf, tmp_path):
     """A corrupt byte in a MSH 4.1 file's element node tags: gmsh 4.8 crashed on tags from
     2^31 to 2^32 - 1 (a segmentation fault inside gmsh.open, exit -11: 3 of 40 random byte
     corruptions of a binary file), and read 2^32 + 1 as node 1 without a word. Such a file
     is refused before gmsh opens it: exit 2, one line (a child process: the crash would end
-    this one)."""
+    this one). Also with its lines ending in CR LF, which gmsh reads: the check looked for
+    "$Elements" and a LF, missed their section, and let gmsh crash or wrap the tag."""
     def build(gmsh):
         gmsh.model.occ.addRectangle(0, 0, 0, 1, 1)
         gmsh.model.occ.synchronize()
         gmsh.option.setNumber("Mesh.Binary", binary)
-    msh = _with_node_tag(meshed(tmp_path / "one.msh", build), tag, binary)
+    msh = _line_ends(_with_node_tag(meshed(tmp_path / "one.msh", build), tag, binary), crlf)
     env = dict(os.environ, PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
     proc = subprocess.run([sys.executable, "-m", "membranes.app.cli", "solve", "--mesh", msh,
                            "--quiet", "--out", str(tmp_path / "out")],
@@ -513,7 +522,8 @@ def test_element_node_tags_of_2_to_the_31_or_more(tag, binary, tmp_path):
         f"or more in its elements ({tag}): a corrupt file?"
     assert not (tmp_path / "out").exists()
     # the same file with the node tag it had is read
-    assert read_msh(_with_node_tag(msh, 1, binary)).topology.index_map(2).size_global > 0
+    msh = _line_ends(_with_node_tag(_line_ends(msh, False), 1, binary), crlf)
+    assert read_msh(msh).topology.index_map(2).size_global > 0
 
 
 def test_pinch_vertex_on_two_processes(tmp_path):

@@ -122,9 +122,23 @@ def _elsewhere(path):
     shutil.copy(os.path.splitext(path)[0] + ".h5", path.parent / "other.h5")
     written(path.parent / "moved.xdmf", _grid(2)[0] * 3.0, _grid(2)[1])
     shutil.copy(path.parent / "moved.h5", os.path.splitext(path)[0] + ".h5")
+    # (the same size and times as other.h5: only their bytes tell the two apart)
+    times = os.stat(path.parent / "other.h5")
+    os.utime(os.path.splitext(path)[0] + ".h5", ns=(times.st_atime_ns, times.st_mtime_ns))
     text = open(path).read().replace("grid.h5:", "other.h5:")
     open(path, "w").write(text)
     return str(path)
+
+
+def _two_of_one_name(path):
+    """A grid of three quadrilaterals and one of triangles, both named 'mesh': the triangles
+    were checked and dolfinx read the first grid of the name, the quadrilaterals' numbers
+    three at a time (a mesh of 8 vertices on [0, 3] x [0, 1], without a word)."""
+    nodes, cells = _grid(2)
+    quad_nodes = [(i, j) for j in (0, 1) for i in range(4)]
+    quads = [(i, i + 1, i + 5, i + 4) for i in range(3)]
+    return inline(path, None, None, grids=[("mesh", "Quadrilateral", quad_nodes, quads),
+                                           ("mesh", "Triangle", nodes, cells)])
 
 
 NODES, CELLS = _grid(2)
@@ -144,6 +158,11 @@ BAD = {
     "a cell on a node not listed": (lambda p: inline(p, NODES, np.vstack([CELLS, [(0, 1, 9)]])),
                                     r"has cells on nodes it does not list \(node 9 of 9 "
                                     r"nodes\)"),
+    # (-1 was taken as the last node by numpy's indexing)
+    "a negative node": (lambda p: inline(p, NODES, np.where(CELLS == 8, -1, CELLS)),
+                        r"has cells on nodes it does not list \(node -1 of 9 nodes\)"),
+    "two grids of one name": (_two_of_one_name, r"has 2 grids named 'mesh': dolfinx reads a "
+                                                r"grid by its name, give each its own$"),
     "a NaN coordinate": (lambda p: inline(p, np.where(np.arange(9)[:, None] == 4, np.nan,
                                                       NODES), CELLS),
                          "has non-finite node coordinates"),
@@ -301,3 +320,29 @@ def test_a_comment_before_the_xdmf(tmp_path):
     assert text.startswith("<?xml")          # (an XML declaration can only come first)
     open(path, "w").write("<!-- written by hand -->\n" + text.split("\n", 1)[1])
     assert scenes.user(mesh=path).mesh.topology.index_map(0).size_global == 9
+
+
+def test_files_dolfinx_and_editors_write_are_read(tmp_path):
+    """What a mutation round found no test reading: a dolfinx mesh file with cell tags
+    written after the mesh (a second grid, 'mesh_tags', a common dolfinx output), an XDMF
+    file beginning with a UTF-8 byte-order mark, a TopologyType written in lower case, and
+    a node no triangle uses off the plane of the others (it is no part of the mesh, as in a
+    .msh file)."""
+    from dolfinx.io import XDMFFile
+    from dolfinx.mesh import meshtags
+    mesh = _dolfinx_mesh(NODES, CELLS, MPI.COMM_SELF)
+    with XDMFFile(MPI.COMM_SELF, str(tmp_path / "tags.xdmf"), "w") as f:
+        f.write_mesh(mesh)
+        cells = np.arange(mesh.topology.index_map(2).size_local, dtype=np.int32)
+        f.write_meshtags(meshtags(mesh, 2, cells, np.ones_like(cells)))
+    assert open(tmp_path / "tags.xdmf").read().count("<Grid ") == 2
+    bom = written(tmp_path / "bom.xdmf", NODES, CELLS)
+    text = open(bom, "rb").read()
+    open(bom, "wb").write(b"\xef\xbb\xbf" + text)
+    lower = inline(tmp_path / "lower.xdmf", NODES, CELLS, topology="triangle")
+    unused = inline(tmp_path / "unused.xdmf", np.vstack([np.c_[NODES, np.zeros(9)],
+                                                         [(0.5, 0.5, 3.0)]]), CELLS)
+    for path in (tmp_path / "tags.xdmf", bom, lower, unused):
+        mesh = scenes.user(mesh=path).mesh
+        assert mesh.topology.index_map(0).size_global == 9, path
+        assert mesh.topology.index_map(2).size_global == 8, path

@@ -188,10 +188,12 @@ def _element_tags_in_range(gmsh, path):
     with open(path, "rb") as f:
         data = f.read()
     head = re.match(rb"\s*\$MeshFormat\s+(\S+)\s+(\d)\s+(\d+)[^\n]*\n", data[:256])
-    start = max(data.find(b"$Elements\n"), data.find(b"$ELM\n"))
-    if start < 0:
+    # (the line may end in CR LF: gmsh reads such files, and a search for "$Elements\n"
+    # missed their section, so that a tag of 2^31 crashed gmsh and one of 2^32 was wrapped)
+    section = re.search(rb"^\$(Elements|ELM)[ \t\r]*$", data, re.M)
+    if section is None:
         return                                          # (gmsh says what is missing)
-    start = data.find(b"\n", start) + 1
+    start = data.find(b"\n", section.end()) + 1
 
     def refuse(tag):
         raise ValueError(f"mesh file {path!r} has a tag of 2^31 or more in its elements "
@@ -228,6 +230,11 @@ def _element_tags_in_range(gmsh, path):
 
 
 def _check_msh(gmsh, path):
+    with open(path, "rb") as f:
+        if not f.read(16).startswith((b"$MeshFormat", b"$NOD")):
+            # (gmsh picks its reader by the first bytes: it parsed such a file as a script)
+            raise ValueError(f"mesh file {path!r} has blank space or a byte-order mark before "
+                             f"its $MeshFormat line, which gmsh cannot read: remove them")
     _element_tags_in_range(gmsh, path)
     try:
         gmsh.open(path)

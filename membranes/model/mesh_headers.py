@@ -24,6 +24,8 @@ def _msh_vertices(path):
         size = os.path.getsize(path)
         with open(path, "rb") as f:
             head = f.read(1 << 16)
+            if head.startswith(b"$NOD"):            # MSH 1: "$NOD\nN\n" (no size check
+                return _count(int(head.split(b"\n", 2)[1]))   # read it before)
             if not head.startswith(b"$MeshFormat"):
                 return None
             fmt = head.split(b"\n", 2)[1].split()
@@ -157,6 +159,12 @@ def xdmf_grid(path):
         raise ValueError(f"mesh file {path!r} has {len(grids)} meshes (grids {names}): give "
                          f"a file of one mesh, or name 'mesh' the one to use")
     grid = grids[0]
+    same = [g for g in domain.iter("Grid") if g.get("Name") == grid.get("Name")]
+    if grid.get("Name") is not None and len(same) > 1:
+        # (dolfinx reads the first grid of the name: another mesh than the one checked)
+        raise ValueError(f"mesh file {path!r} has {len(same)} grids named "
+                         f"{grid.get('Name')!r}: dolfinx reads a grid by its name, give each "
+                         f"its own")
     geometry, topology = grid.find("Geometry"), grid.find("Topology")
     if geometry is None:
         raise ValueError(f"mesh file {path!r} has no Geometry in its grid")
