@@ -492,6 +492,22 @@ def _with_node_tag(path, tag, binary):
     return path
 
 
+@pytest.mark.parametrize("lead", [b"\n", b"  ", b"\xef\xbb\xbf"])
+def test_a_msh_file_with_bytes_before_its_header(lead, tmp_path, capsys):
+    """gmsh picks its reader by a file's first bytes: a .msh file with a blank line, spaces or
+    a UTF-8 byte-order mark before $MeshFormat was parsed as a .geo script ("syntax error",
+    or a codec's message). Refused naming the cause; without them the file is read."""
+    msh = msh22(tmp_path / "lead.msh", [(0, 0), (1, 0), (0, 1)], [(0, 1, 2)])
+    text = open(msh, "rb").read()
+    open(msh, "wb").write(lead + text)
+    with pytest.raises(ValueError, match=r"has blank space or a byte-order mark before its "
+                                         r"\$MeshFormat line, which gmsh cannot read"):
+        read_msh(msh)
+    cli_bad_input(["--mesh", msh], tmp_path / "out", capsys)
+    open(msh, "wb").write(text)
+    assert global_counts(read_msh(msh)) == (3, 1)
+
+
 def _line_ends(path, crlf):
     """The file at `path` with its lines ending in CR LF (as written on Windows), or LF."""
     data = open(path, "rb").read().replace(b"\r\n", b"\n")
