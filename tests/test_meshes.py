@@ -368,6 +368,12 @@ def test_the_plane_of_a_mesh_is_measured_against_its_extent():
     # a plane moved to z = 1e5 + 0.3 by a computation: z differ by its round-off (1.5e-11)
     moved = 1e5 + 0.3 + np.array([0.0, 1.4551915228366852e-11, 0.0, 0.0])
     assert np.array_equal(in_the_plane(np.column_stack([xy, moved]), "m"), xy)
+    # four of its ulps (5.8e-11 < 8 ε |z| = 1.8e-10; one ulp passed ε |z| alone too)
+    moved = 1e5 + 0.3 + np.array([0.0, 4 * 1.4551915228366852e-11, 0.0, 0.0])
+    assert np.array_equal(in_the_plane(np.column_stack([xy, moved]), "m"), xy)
+    # the extent is the larger side's: a strip 100 x 1 may have z spread by 1e-11
+    strip = xy * [100.0, 1.0]
+    assert np.array_equal(in_the_plane(np.column_stack([strip, 1e-11 * xy[:, 1]]), "m"), strip)
 
 
 def test_a_reader_failing_to_start_on_rank_0_is_an_error_on_every_rank():

@@ -492,6 +492,19 @@ def _with_node_tag(path, tag, binary):
     return path
 
 
+@pytest.mark.parametrize("nodes, cells, reason", [
+    # a sliver: area 5e-14 against a longest edge of 1 (2 |K| <= 1e-12 h²)
+    ([(0, 0), (1, 0), (0.5, 1e-13)], [(0, 1, 2)], r"has 1 degenerate triangle\(s\) \(zero area"),
+    # three triangles on the edge (0, 0)-(1, 0): two of them overlap
+    ([(0, 0), (1, 0), (0.5, 1), (0.5, -1), (0.5, -2)], [(0, 1, 2), (0, 1, 3), (0, 1, 4)],
+     r"has 1 edge\(s\) of three or more triangles \(overlapping surfaces\?\)$")])
+def test_cells_refused_for_what_they_are(nodes, cells, reason, tmp_path):
+    """Each was refused all the same by a later check (not conforming) had its own been
+    lost; the message names the defect."""
+    with pytest.raises(ValueError, match=reason):
+        read_msh(msh22(tmp_path / "cells.msh", nodes, cells))
+
+
 @pytest.mark.parametrize("lead", [b"\n", b"  ", b"\xef\xbb\xbf"])
 def test_a_msh_file_with_bytes_before_its_header(lead, tmp_path, capsys):
     """gmsh picks its reader by a file's first bytes: a .msh file with a blank line, spaces or

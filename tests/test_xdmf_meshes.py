@@ -173,7 +173,8 @@ BAD = {
                    r"is not an XDMF file \(XML: "),
     "another XML file": (_edited('<?xml version="1.0"?><svg/>', None, None),
                          r"is not an XDMF file \(no Xdmf/Domain element\)"),
-    "surfaces not joined": (_unjoined, r"is not conforming: 6 boundary node\(s\)"),
+    "surfaces not joined": (_unjoined, r"is not conforming: 6 boundary node\(s\).* \(its cells "
+                                       r"must share their nodes where they meet\)$"),
     "no cells": (lambda p: inline(p, NODES, np.zeros((0, 3), dtype=np.int64)),
                  r"has no cells"),
     # dolfinx's create_mesh corrupted memory (free(): invalid next size) or raised a
