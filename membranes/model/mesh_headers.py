@@ -24,8 +24,9 @@ def _msh_vertices(path):
         size = os.path.getsize(path)
         with open(path, "rb") as f:
             head = f.read(1 << 16)
-            if head.startswith(b"$NOD"):            # MSH 1: "$NOD\nN\n" (no size check
-                return _count(int(head.split(b"\n", 2)[1]))   # read it before)
+            # MSH 1, "$NOD\nN\n" and no $MeshFormat (such files had no size check)
+            if head.startswith(b"$NOD"):
+                return _count(int(head.split(b"\n", 2)[1]))
             if not head.startswith(b"$MeshFormat"):
                 return None
             fmt = head.split(b"\n", 2)[1].split()
@@ -159,9 +160,10 @@ def xdmf_grid(path):
         raise ValueError(f"mesh file {path!r} has {len(grids)} meshes (grids {names}): give "
                          f"a file of one mesh, or name 'mesh' the one to use")
     grid = grids[0]
-    same = [g for g in domain.iter("Grid") if g.get("Name") == grid.get("Name")]
+    same = [g for g in domain.findall("Grid") if g.get("Name") == grid.get("Name")]
     if grid.get("Name") is not None and len(same) > 1:
-        # (dolfinx reads the first grid of the name: another mesh than the one checked)
+        # (dolfinx reads the first grid of the name, /Xdmf/Domain/Grid[@Name=...]: another
+        # mesh than the one checked)
         raise ValueError(f"mesh file {path!r} has {len(same)} grids named "
                          f"{grid.get('Name')!r}: dolfinx reads a grid by its name, give each "
                          f"its own")
