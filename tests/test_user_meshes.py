@@ -512,6 +512,71 @@ def test_cells_refused_for_what_they_are(nodes, cells, reason, tmp_path):
         read_msh(msh22(tmp_path / "cells.msh", nodes, cells))
 
 
+def test_mixed_cells_and_a_quadratic_mesh_are_named(tmp_path):
+    """A .msh file of triangles and quadrilaterals (a refusal by cell type, which a later
+    check made "5 edge(s) ... folded" when the types were not all compared), and a dolfinx
+    mesh of P2 triangles (made "not conforming: 30 boundary node(s)" without its own check):
+    each refused for what it is."""
+    import ufl
+    from dolfinx.mesh import create_mesh
+
+    def mixed(gmsh):
+        a = gmsh.model.occ.addRectangle(0, 0, 0, 1, 1)
+        b = gmsh.model.occ.addRectangle(1, 0, 0, 1, 1)
+        gmsh.model.occ.fragment([(2, a)], [(2, b)])
+        gmsh.model.occ.synchronize()
+        gmsh.model.mesh.setRecombine(2, b)
+    with pytest.raises(ValueError, match=r"is not a linear triangular mesh \(cells: Triangle 3, "
+                                         r"Quadrilateral 4\)$"):
+        read_msh(meshed(tmp_path / "mixed.msh", mixed))
+    x = np.array([(0, 0), (1, 0), (0, 1), (0.5, 0.5), (0, 0.5), (0.5, 0)])
+    p2 = create_mesh(MPI.COMM_SELF, np.array([[0, 1, 2, 3, 4, 5]]), x,
+                     ufl.Mesh(ufl.VectorElement("Lagrange", ufl.triangle, 2)))
+    with pytest.raises(ValueError, match=r"^mesh must have an affine geometry \(P1 triangles in "
+                                         r"the plane\), got degree 2"):
+        scenes.user(mesh=p2)
+
+
+def test_msh_1_tags_and_a_nodes_header_across_the_first_read(tmp_path):
+    """Two file layouts the header readers met in no test: a MSH 1 file (sections $NOD and
+    $ELM) with an element's node tag of 2^32 + 1, which gmsh reads as node 1, is refused by
+    the tag guard (its $ELM section was looked for too); and a file whose $Nodes line
+    begins 3 bytes before the end of the first 64 KiB read (a $Comments section before it)
+    still gives its node count."""
+    import gmsh
+
+    from membranes.model.mesh_headers import mesh_file_vertices
+    msh = str(tmp_path / "one.msh")
+    gmsh.initialize([])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.occ.addRectangle(0, 0, 0, 1, 1)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", 0.25)
+        gmsh.model.mesh.generate(2)
+        gmsh.option.setNumber("Mesh.MshFileVersion", 1)
+        gmsh.write(msh)
+    finally:
+        gmsh.finalize()
+    lines = open(msh).read().split("\n")
+    first = lines.index("$ELM") + 2                 # "tag type physical elementary n nodes…"
+    words = lines[first].split()
+    words[5] = str(2 ** 32 + 1)
+    lines[first] = " ".join(words)
+    open(msh, "w").write("\n".join(lines))
+    with pytest.raises(ValueError, match=r"has a tag of 2\^31 or more in its elements"):
+        read_msh(msh)
+    nodes = [(0.1 * i, 0.1 * j) for j in range(11) for i in range(11)]
+    cells = [(11 * j + i, 11 * j + i + 1, 11 * j + i + 12) for j in range(10) for i in range(10)]
+    text = open(msh22(tmp_path / "late.msh", nodes, cells)).read()
+    head, rest = text.split("$Nodes", 1)
+    pad = (1 << 16) - 3 - len(head) - len("$Comments\n\n$EndComments\n")
+    open(tmp_path / "late.msh", "w").write(head + "$Comments\n" + "x" * pad +
+                                           "\n$EndComments\n$Nodes" + rest)
+    assert open(tmp_path / "late.msh", "rb").read().index(b"$Nodes") == (1 << 16) - 3
+    assert mesh_file_vertices(str(tmp_path / "late.msh")) == 121
+
+
 @pytest.mark.parametrize("lead", [b"\n", b"  ", b"\xef\xbb\xbf"])
 def test_a_msh_file_with_bytes_before_its_header(lead, tmp_path, capsys):
     """gmsh picks its reader by a file's first bytes: a .msh file with a blank line, spaces or
