@@ -6,6 +6,7 @@ the options it used."""
 import math
 import os
 
+import numpy as np
 import pytest
 from mpi4py import MPI
 
@@ -783,3 +784,20 @@ def test_a_factorisation_petsc_cannot_distribute_is_refused_up_front():
     said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
     assert len(said) == 2 and all(m is not None and "matrix type mpiaij" in m
                                   and "-sub_pc_type ilu" in m for m in said), said
+
+
+def test_data_scales_against_their_formula():
+    """(u_data, λ_data) of §11 recomputed from the assembled vectors: λ_data = max over the
+    interior vertices and α of |F_α,a| / D_a, u_data = max(g, (C_PF h_Ω)² max_α λ_α / μ_α),
+    on the square (μ1 = 1, μ2 = 2, so a swap of the moduli shows). The same arithmetic on
+    the same arrays: equal to round-off (1e-14)."""
+    from membranes.fem.discretisation import discretise
+    problem = scenes.square(h=0.2)
+    assert problem.mu1 != problem.mu2
+    disc = discretise(problem)
+    inner = disc.interior
+    lam = [np.abs(F.array[inner] / disc.D.array[inner]).max() for F in (disc.F1, disc.F2)]
+    c = problem.poincare_constant()
+    u = max(problem.g, c * c * max(lam[0] / problem.mu1, lam[1] / problem.mu2))
+    assert disc.data_scales() == pytest.approx((u, max(lam)), rel=1e-14)
+    assert u > problem.g                   # (the loads' term is the one compared)

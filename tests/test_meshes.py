@@ -397,3 +397,16 @@ def test_a_reader_failing_to_start_on_rank_0_is_an_error_on_every_rank():
                                     (contextlib.nullcontext, failing, "KeyError: 'node'")):
         with pytest.raises(RuntimeError, match=f"on rank 0 failed: {message}"):
             on_rank0(MPI.COMM_WORLD, build, session)
+
+
+def test_refined_boundary_vertices_lie_on_the_circle():
+    """Every boundary vertex of the disk's T_2 lies on the unit circle to round-off (1e-15:
+    the projection divides by the radius), the new ones included (§9); and a hierarchy cut
+    to its first levels keeps the projection that put them there."""
+    from membranes import scenes
+    from membranes.fem.hierarchy import boundary_vertices
+    hierarchy = scenes.disk(h=0.3, levels=2).hierarchy
+    mesh = hierarchy.finest
+    radius = np.hypot(*mesh.geometry.x[boundary_vertices(mesh), :2].T)
+    assert len(radius) == 92 and np.abs(radius - 1.0).max() <= 1e-15     # (4 x 23)
+    assert hierarchy.up_to(1).projection is hierarchy.projection is not None

@@ -26,6 +26,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from mpi4py import MPI
 
 from ..model.progress import reporter
 from .meshes import on_boundary, without_ghosts
@@ -94,7 +95,9 @@ def _refine(mesh):
     offset = mesh.comm.exscan(len(parent_cell)) or 0
     owned = fine.topology.index_map(2).size_local
     created = np.asarray(fine.topology.original_cell_index, dtype=np.int64)[:owned] - offset
-    if owned and (created.min() < 0 or created.max() >= len(parent_cell)):
+    # (decided on every process: raised on one alone, it left the others waiting)
+    moved = bool(owned and (created.min() < 0 or created.max() >= len(parent_cell)))
+    if mesh.comm.allreduce(moved, op=MPI.LOR):
         raise RuntimeError("plaza refinement moved cells between processes")
     return fine, parent_cell[created]
 
