@@ -79,6 +79,11 @@ def read_msh(path, comm=MPI.COMM_WORLD):
     if mesh_file_kind(path) != "msh":
         raise ValueError(f"mesh file {path!r} is not a gmsh .msh file (it does not begin "
                          f"with $MeshFormat)")
+    with open(path, "rb") as f:
+        if not f.read(16).startswith((b"$MeshFormat", b"$NOD")):
+            # (gmsh picks its reader by the first bytes: it parsed such a file as a script)
+            raise ValueError(f"mesh file {path!r} has blank space or a byte-order mark before "
+                             f"its $MeshFormat line, which gmsh cannot read: remove them")
     return meshes.on_rank0(comm, lambda gmsh: _check_msh(gmsh, path))
 
 
@@ -230,11 +235,6 @@ def _element_tags_in_range(gmsh, path):
 
 
 def _check_msh(gmsh, path):
-    with open(path, "rb") as f:
-        if not f.read(16).startswith((b"$MeshFormat", b"$NOD")):
-            # (gmsh picks its reader by the first bytes: it parsed such a file as a script)
-            raise ValueError(f"mesh file {path!r} has blank space or a byte-order mark before "
-                             f"its $MeshFormat line, which gmsh cannot read: remove them")
     _element_tags_in_range(gmsh, path)
     try:
         gmsh.open(path)
