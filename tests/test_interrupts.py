@@ -163,3 +163,34 @@ def test_restore_puts_back_the_alarm_handler_a_signal_set():
         assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)
     finally:
         signal.signal(signal.SIGALRM, before)
+
+
+@pytest.mark.parametrize("args, stderr_too", [
+    # PETSc's monitors print to stdout: PETSc's own SIGPIPE handler ended this run with
+    # "PETSC ERROR: Caught signal number 13 Broken Pipe" and MPI_Abort (exit 59)
+    (["solve", "--h", "0.4", "--levels", "1", "--quiet", "--petsc-options", "-ksp_monitor"],
+     False),
+    # progress on stderr into a closed pipe (`2>&1 | head`): a BrokenPipeError traceback
+    (["solve", "--h", "0.4", "--levels", "1"], True),
+    (["scenes"], False)], ids=["petsc monitor", "progress", "scenes"])
+def test_a_closed_pipe_ends_the_run_silently(tmp_path, args, stderr_too):
+    """`membranes ... | head`: the reader of stdout (here closed before the first write)
+    goes away; the run ends as the shell's tools do, exit 141 (128 + SIGPIPE), nothing on
+    stderr. A run cut short writes nothing (the progress case); one whose stdout broke only
+    in PETSc's monitors (which ignore failed writes) runs to its end and writes its outputs."""
+    out = tmp_path / "out"
+    if args[0] == "solve":
+        args = args + ["--out", str(out)]
+    proc = subprocess.Popen([sys.executable, "-m", "membranes.app.cli"] + args,
+                            stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT if stderr_too else subprocess.PIPE,
+                            env=_env(), cwd=ROOT)
+    proc.stdout.close()
+    said = b"" if stderr_too else proc.stderr.read()
+    assert proc.wait(timeout=120) == 141, said
+    assert said == b""
+    if stderr_too:
+        assert os.listdir(tmp_path) == []
+    elif args[0] == "solve":
+        assert sorted(os.listdir(out)) == ["history.csv", "solution.h5", "solution.xdmf",
+                                           "summary.json"]

@@ -3,8 +3,10 @@
 
 Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out),
 3 the solver did not converge (the outputs are written, with converged = false and a reason),
-130 interrupted (Ctrl-C; nothing written), 143 terminated (SIGTERM: a batch scheduler's time
-limit, or mpirun passing Ctrl-C on; nothing written).
+130 interrupted (Ctrl-C; nothing written), 141 the reader of stdout went away (`membranes
+solve ... | head`: silent, as the shell's tools; nothing written if the run had not ended),
+143 terminated (SIGTERM: a batch scheduler's time limit, or mpirun passing Ctrl-C on; nothing
+written).
 Progress: one line per Newton step on stderr (``--quiet`` silences it).
 ``mpirun -n P membranes solve ...`` runs the same code on P processes: dolfinx distributes
 the mesh, PETSc the solves; rank 0 prints, every rank writes its part of the solution.
@@ -21,6 +23,7 @@ from .logs import quiet_jit_logging
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 3
 EXIT_INTERRUPTED = 130    # the shell's code for a run ended by Ctrl-C (128 + SIGINT)
+EXIT_BROKEN_PIPE = 141    # by a write to a pipe no process reads (128 + SIGPIPE)
 EXIT_TERMINATED = 143     # and by SIGTERM (128 + SIGTERM)
 
 
@@ -351,9 +354,17 @@ def main(argv=None):
     errors = world.Dup() if world.size > 1 else None
     previous = interrupts.install()
     try:
-        return _main(argv)
+        try:
+            code = _main(argv)
+        except SystemExit:    # --help, --version: their text is out before the exit
+            sys.stdout.flush()
+            raise
+        sys.stdout.flush()    # (a closed pipe is met here, not at the interpreter's exit)
+        return code
     except ValueError as e:   # BadInput and every data/mesh error of the API
         return _one_line(world, errors, e, EXIT_BAD_INPUT)
+    except BrokenPipeError:   # `membranes solve ... | head`: the reader has gone
+        return _pipe_closed(errors)
     except Exception as e:
         if isinstance(e, ImportError) and e.name == "dolfinx" \
                 and str(e).startswith("membranes needs"):       # fem.require_dolfinx
@@ -389,9 +400,28 @@ def _one_line(world, errors, error, code):
     return code
 
 
+def _pipe_closed(errors):
+    """End silently with EXIT_BROKEN_PIPE, as the shell's tools do when the process reading
+    their output has gone (`membranes scenes | head -1`). The error ended the run where it
+    was met: outputs not yet staged are not written. Stdout is pointed at /dev/null, so that
+    what is left in its buffer raises nothing at the interpreter's exit."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):     # (a stdout that is no file: nothing left to flush)
+        pass
+    _leave(errors, EXIT_BROKEN_PIPE, lambda: None)
+    return EXIT_BROKEN_PIPE
+
+
 def _main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(_glue_values(argv))
+    from . import interrupts
+    interrupts.python_pipes()        # (after PETSc's initialisation, which sets the handler)
+    if args.command == "scenes":
+        return _scenes()
     if args.command == "report":
         from .report import main as report_main
         quiet_jit_logging()
@@ -400,8 +430,6 @@ def _main(argv=None):
         from .stability import main as stability_main
         quiet_jit_logging()
         return stability_main(args)
-    if args.command == "scenes":
-        return _scenes()
     return _solve(args)
 
 

@@ -58,6 +58,15 @@ def install():
     return previous
 
 
+def python_pipes():
+    """Initialise PETSc, then give SIGPIPE back to Python: ignored, so that a write to a pipe
+    no process reads raises BrokenPipeError (the command line ends silently on it). PETSc's
+    initialisation sets a handler of its own that ends the run with a PETSc error and
+    MPI_Abort (exit 59) when stdout is piped into `head` and its monitors print."""
+    from petsc4py import PETSc  # noqa: F401
+    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+
+
 def caught():
     """The interrupt reached code that handles it: no more raises (its clean-up must not be
     interrupted in turn)."""
