@@ -130,8 +130,9 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None, xy=None):
     """The code of every local W dof (owned and ghost); the interior blocks; the number of
     facet dofs on which the two cells of the facet disagree (0: both see the same vertex
     order); and the positions of the entities along DIRECTION and across it, which order the
-    dofs of a patch: of every local facet (its midpoint, as seen by the last of its cells,
-    (facets, 2)) and of every local cell (its centroid, (cells, 2)). The dofs of an entity
+    dofs of a patch: of every local facet (its midpoint, (facets, 2)) and of every local cell
+    (its centroid, (cells, 2)), summed in the canonical vertex order: the same values on any
+    number of processes. The dofs of an entity
     share its position; its global index breaks ties. `rt`, `dg`: W's RT and DG basix
     elements, `xy` the (cells, 3, 2) coordinates of the local cells' nodes, if at hand."""
     cmap = mesh.topology.index_map(2)
@@ -165,8 +166,14 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None, xy=None):
     # facet k opposite it); flat[k]: its entry in a (cells, 3) table
     order = np.array(ORDERS, dtype=np.int64).T[:, p]
     flat = order + np.arange(0, 3 * nall, 3)
-    total = along.sum(axis=1)
-    side = across.sum(axis=1)
+    # positions summed in the canonical vertex order, which does not depend on the partition
+    # (dolfinx's local order does): a key rounds the same sums on any number of processes,
+    # and a facet's two cells give its midpoint the same value (a sum in dolfinx's order
+    # split one class of the square's T_2 in two on 3 processes: 491 → 492 keys)
+    a, b, c = along.take(flat)
+    total = (a + b) + c
+    canon_across = across.take(flat)
+    side = (canon_across[0] + canon_across[1]) + canon_across[2]
     nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
     fmap = mesh.topology.index_map(1)
     facet_point = np.zeros((fmap.size_local + fmap.num_ghosts, 2))
@@ -182,8 +189,11 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None, xy=None):
     # every cell, then 1, then 2: facet i is opposite vertex i), or the dofs (cells, dofs of
     # the entity); of a facet's two cells the later writes last
     facets = np.ascontiguousarray(c2f[:nall]).take(flat)
-    facet_point[facets, 0] = 0.5 * (total - along.take(flat))
-    facet_point[facets, 1] = 0.5 * (side - across.take(flat))
+    facet_point[facets, 0] = 0.5 * np.stack([b + c, a + c, a + b])
+    facet_point[facets, 1] = 0.5 * np.stack([canon_across[1] + canon_across[2],
+                                             canon_across[0] + canon_across[2],
+                                             canon_across[0] + canon_across[1]])
+    del a, b, c, canon_across
     del facets
     cell_first = np.arange(nall)[:, None] * rt_dofs.shape[1]     # (flat positions in rt_dofs)
     facet_dofs, facet_codes = [], []

@@ -6,7 +6,8 @@ sharing inverses between congruent patches and without, and prints on rank 0 one
 the largest difference of the two solutions (over all colours and processes) against the
 largest entry, the global numbers of patches, classes and key collisions, the number of
 patches whose cells lie on several processes, and the home entries that the gathers of all
-colours leave unwritten (`uncovered`).
+colours leave unwritten (`uncovered`), and whether the distinct keys of the classes over all
+processes are those of a serial run (`same_keys`, `keys_as_serial`).
 """
 
 import numpy as np
@@ -188,8 +189,35 @@ def partial_assembly_error(mesh):
             abs(M[0]).max(), int(inside.size))
 
 
+def class_keys(mesh):
+    """The distinct keys of the classes of `mesh`'s vertex patches over all its processes
+    (sorted; on rank 0, None elsewhere)."""
+    from membranes.estimation.patches import PatchSystems, mixed_space
+    patches, interior = vertex_groups(mesh)
+    systems = PatchSystems(mesh, patches, interior, mixed_space(mesh))
+    keys = mesh.comm.gather(systems.store.keys, root=0)
+    systems.destroy()
+    return np.unique(np.concatenate(keys)) if mesh.comm.rank == 0 else None
+
+
+def keys_as_serial(comm):
+    """Whether the classes' keys over all processes are those of the serial run, for the disk
+    refined twice from h = 0.3 and the square's gmsh mesh refined twice from h = 0.2 (a key
+    that rounded a position summed in dolfinx's local vertex order split a class of the
+    square on 3 processes); on rank 0, None elsewhere."""
+    from membranes.model import scenes
+    same = []
+    for make in (lambda c: refined_disk(c, 0.3, 2),
+                 lambda c: scenes.square(h=0.2, levels=2, comm=c).hierarchy.finest):
+        keys = class_keys(make(comm))
+        if comm.rank == 0:
+            same.append(np.array_equal(keys, class_keys(make(MPI.COMM_SELF))))
+    return int(all(same)) if comm.rank == 0 else None
+
+
 def main():
     comm = MPI.COMM_WORLD
+    same_keys = keys_as_serial(comm)
     mesh = refined_disk(comm, 0.3, 2)
     shared, _, scale, diff = random_solutions(mesh)
     stats = shared.stats()
@@ -202,7 +230,7 @@ def main():
               f"straddling={count} scale={scale:.6e} diff={diff:.3e} "
               f"collisions={stats['collisions']} inside={inside:.3e} "
               f"outside={outside:.3e} entry={entry:.6e} ninside={ninside} "
-              f"uncovered={left} home={home}", flush=True)
+              f"uncovered={left} home={home} same_keys={same_keys}", flush=True)
 
 
 if __name__ == "__main__":

@@ -432,3 +432,4 @@ def test_parallel_sharing(nproc):
     assert float(fields["inside"]) <= 1e-14 * float(fields["entry"])
     assert float(fields["outside"]) > 0.01 * float(fields["entry"])
     assert int(fields["uncovered"]) == 0 and int(fields["home"]) > 0
+    assert int(fields["same_keys"]) == 1
