@@ -175,6 +175,30 @@ def test_cli_process_exit_code_and_clean_stderr(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux's /dev/full")
+@pytest.mark.parametrize("args", [["scenes"], ["--help"], ["--version"],
+                                  ["solve", "--h", "0.4", "--levels", "0", "--quiet"]],
+                         ids=["scenes", "help", "version", "solve"])
+def test_a_stdout_that_cannot_be_written_is_one_line(args, tmp_path):
+    """stdout on a full disk (/dev/full fails every write with ENOSPC): one stderr line
+    naming it, exit 2, as for an output folder that cannot be written; it was a traceback
+    and exit 1 (and for --help the failed flush again at the interpreter's exit). A solve's
+    outputs, written before its summary line, are complete."""
+    out = tmp_path / "out"
+    if args[0] == "solve":
+        args = args + ["--out", str(out)]
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", "membranes.app.cli"] + args, stdout=full,
+                              stderr=subprocess.PIPE, text=True, env=dict(os.environ,
+                                                                          OMP_NUM_THREADS="1"))
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr == ("membranes: error: standard output cannot be written: No space "
+                           "left on device\n")
+    if args[0] == "solve":
+        assert sorted(os.listdir(out)) == ["history.csv", "solution.h5", "solution.xdmf",
+                                           "summary.json"]
+
+
 
 def test_a_run_that_does_not_converge_exits_3_with_its_outputs(tmp_path, capsys):
     """docs/cli.md: a run that does not converge exits with 3, says so in one stderr line

@@ -1,7 +1,8 @@
 """Command line: ``membranes solve ...``, ``membranes scenes``, ``membranes report`` and
 ``membranes stability`` (docs/cli.md).
 
-Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out),
+Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out;
+also a stdout that cannot be written, `writing_stdout`),
 3 the solver did not converge (the outputs are written, with converged = false and a reason),
 130 interrupted (Ctrl-C; nothing written), 141 the reader of stdout went away (`membranes
 solve ... | head`: silent, as the shell's tools; nothing written if the run had not ended),
@@ -13,6 +14,7 @@ the mesh, PETSc the solves; rank 0 prints, every rank writes its part of the sol
 """
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -41,6 +43,36 @@ VALUE_OPTIONS = ("--f1", "--f2", "--mu1", "--mu2", "--g", "--h", "--levels", "--
 
 class BadInput(ValueError):
     pass
+
+
+@contextlib.contextmanager
+def writing_stdout():
+    """Around writes to stdout: a closed pipe raises BrokenPipeError (`main` ends silently,
+    EXIT_BROKEN_PIPE); a stdout that cannot be written otherwise (a full disk, /dev/full) is
+    an output that cannot be written: BadInput, one line, EXIT_BAD_INPUT (stdout pointed at
+    /dev/null first: what is left in its buffer would fail again at the exit)."""
+    try:
+        yield
+    except BrokenPipeError:
+        raise
+    except OSError as e:
+        _stdout_to_devnull()
+        raise BadInput(f"standard output cannot be written: {e.strerror or e}") from None
+
+
+def emit(text):
+    """Print `text` on stdout, flushed (`writing_stdout`)."""
+    with writing_stdout():
+        print(text, flush=True)
+
+
+def _stdout_to_devnull():
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):     # (a stdout that is no file: nothing left to flush)
+        pass
 
 
 class _Once(argparse._StoreAction):
@@ -88,7 +120,7 @@ class _Version(argparse.Action):
         from .versions import one_line, software
         versions = software()
         if MPI.COMM_WORLD.rank == 0:
-            print(f"membranes {versions.pop('membranes')}\n{one_line(versions)}", flush=True)
+            emit(f"membranes {versions.pop('membranes')}\n{one_line(versions)}")
         parser.exit()
 
 
@@ -109,7 +141,8 @@ class _Parser(argparse.ArgumentParser):
     def _print_message(self, message, file=None):
         from mpi4py import MPI
         if MPI.COMM_WORLD.rank == 0:
-            super()._print_message(message, file)
+            with writing_stdout() if file is sys.stdout else contextlib.nullcontext():
+                super()._print_message(message, file)
 
 
 def _parser():
@@ -297,7 +330,7 @@ def _solve(args):
                 "wall_time_s", "energy_error", "eta", "effectivity", "nested")
         line = {k: summary[k] for k in keys}
         line["newton_per_level"] = [r["newton_iterations"] for r in summary["per_level"]]
-        print(json.dumps(line))
+        emit(json.dumps(line))
         if not sol.converged:
             print(f"membranes: not converged: {sol.reason}", file=sys.stderr)
     return 0 if sol.converged else EXIT_NOT_CONVERGED
@@ -308,9 +341,8 @@ def _scenes():
 
     from ..model.scenes import NEEDS, SCENES
     if MPI.COMM_WORLD.rank == 0:                  # (under mpirun: printed once)
-        for name, fn in SCENES.items():
-            print(f"{name:8s} {fn.__doc__.strip().splitlines()[0]}")
-            print(f"{'':8s} needs: {NEEDS[name]}")
+        emit("\n".join(f"{name:8s} {fn.__doc__.strip().splitlines()[0]}\n"
+                       f"{'':8s} needs: {NEEDS[name]}" for name, fn in SCENES.items()))
     return 0
 
 
@@ -357,9 +389,11 @@ def main(argv=None):
         try:
             code = _main(argv)
         except SystemExit:    # --help, --version: their text is out before the exit
-            sys.stdout.flush()
+            with writing_stdout():
+                sys.stdout.flush()
             raise
-        sys.stdout.flush()    # (a closed pipe is met here, not at the interpreter's exit)
+        with writing_stdout():   # (a failed write is met here, not at the interpreter's exit)
+            sys.stdout.flush()
         return code
     except ValueError as e:   # BadInput and every data/mesh error of the API
         return _one_line(world, errors, e, EXIT_BAD_INPUT)
@@ -405,12 +439,7 @@ def _pipe_closed(errors):
     their output has gone (`membranes scenes | head -1`). The error ended the run where it
     was met: outputs not yet staged are not written. Stdout is pointed at /dev/null, so that
     what is left in its buffer raises nothing at the interpreter's exit."""
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
-    except (OSError, ValueError):     # (a stdout that is no file: nothing left to flush)
-        pass
+    _stdout_to_devnull()
     _leave(errors, EXIT_BROKEN_PIPE, lambda: None)
     return EXIT_BROKEN_PIPE
 

@@ -548,7 +548,7 @@ def main(args):
     is written all the same); bad input raises ValueError before anything is written."""
     from ..model import scenes
     from ..model.folders import check_output_folder
-    from .cli import EXIT_NOT_CONVERGED
+    from .cli import EXIT_NOT_CONVERGED, emit
     comm = MPI.COMM_WORLD
     check_matplotlib()
     check_output_folder(args.out, comm)
@@ -563,8 +563,8 @@ def main(args):
     if comm.rank == 0:
         from .outputs import json_safe
         table = [{k: r.get(k) for k in TABLE_COLUMNS + ("reason",)} for r in rows]
-        print(json.dumps({"report": os.path.join(os.path.abspath(args.out), "report.md"),
-                          "table": json_safe(table)}))
+        emit(json.dumps({"report": os.path.join(os.path.abspath(args.out), "report.md"),
+                         "table": json_safe(table)}))
     failed = [r["method"] for r in rows if not r["converged"]]
     if failed:
         if comm.rank == 0:

@@ -406,7 +406,7 @@ def add_parser(sub):
 
 
 def main(args):
-    from .cli import EXIT_NOT_CONVERGED
+    from .cli import EXIT_NOT_CONVERGED, emit
     comm = MPI.COMM_WORLD
     names = None if args.cases is None else [n.strip() for n in args.cases.split(",")]
     check_h(args.h)
@@ -417,6 +417,6 @@ def main(args):
     rows = write_stability(args.out, args.h, names, say=say, comm=comm)
     f = findings(rows)
     if comm.rank == 0:
-        print(f"stability: {f['converged']} of {f['runs']} runs converged; "
-              f"{os.path.join(os.path.abspath(args.out), 'stability.md')}")
+        emit(f"stability: {f['converged']} of {f['runs']} runs converged; "
+             f"{os.path.join(os.path.abspath(args.out), 'stability.md')}")
     return 0 if f["converged"] == f["runs"] else EXIT_NOT_CONVERGED
