@@ -168,8 +168,8 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None, xy=None):
     flat = order + np.arange(0, 3 * nall, 3)
     # positions summed in the canonical vertex order, which does not depend on the partition
     # (dolfinx's local order does): a key rounds the same sums on any number of processes,
-    # and a facet's two cells give its midpoint the same value (a sum in dolfinx's order
-    # split one class of the square's T_2 in two on 3 processes: 491 → 492 keys)
+    # and a facet's two cells give its midpoint the same value (sums in dolfinx's order
+    # split classes on some partitions: tests/core/mpi_patches.py)
     a, b, c = along.take(flat)
     total = (a + b) + c
     canon_across = across.take(flat)
