@@ -386,6 +386,19 @@ def main(argv=None):
     errors = world.Dup() if world.size > 1 else None
     previous = interrupts.install()
     try:
+        return _ended(argv, world, errors)
+    except BrokenPipeError:   # stdout or stderr read by a process that has gone (`| head`),
+        return _pipe_closed(errors)     # met by the run or by the line that says its end
+    finally:
+        interrupts.restore(previous)
+        if errors is not None:
+            errors.Free()
+
+
+def _ended(argv, world, errors):
+    """Run the command; its exit code, also for an error or an interrupt (one line)."""
+    from . import interrupts
+    try:
         try:
             code = _main(argv)
         except SystemExit:    # --help, --version: their text is out before the exit
@@ -397,8 +410,8 @@ def main(argv=None):
         return code
     except ValueError as e:   # BadInput and every data/mesh error of the API
         return _one_line(world, errors, e, EXIT_BAD_INPUT)
-    except BrokenPipeError:   # `membranes solve ... | head`: the reader has gone
-        return _pipe_closed(errors)
+    except BrokenPipeError:
+        raise
     except Exception as e:
         if isinstance(e, ImportError) and e.name == "dolfinx" \
                 and str(e).startswith("membranes needs"):       # fem.require_dolfinx
@@ -417,10 +430,6 @@ def main(argv=None):
             sys.stdout.flush()
             os._exit(code)
         return code
-    finally:
-        interrupts.restore(previous)
-        if errors is not None:
-            errors.Free()
 
 
 def _one_line(world, errors, error, code):

@@ -187,7 +187,8 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=(), names=()):
     everyone = comm.allreduce(failed is None, op=MPI.LAND)
     written = None                      # why a process could not write, if one could not
     if not everyone:
-        mine = f"{failed.strerror or failed}" if isinstance(failed, OSError) else None
+        mine = f"{failed.strerror or failed}" if isinstance(failed, OSError) and \
+            not isinstance(failed, BrokenPipeError) else None      # (`| head`: no output's)
         written = next((r for r in comm.allgather(mine) if r is not None), None)
     error, stranded = None, False
     if comm.rank == 0:
