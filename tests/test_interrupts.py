@@ -102,7 +102,11 @@ def interrupted(launcher, args, when, sig):
     # SIGTERM (a batch scheduler's time limit) while a report's outputs are staged (it was
     # killed at once, the staging folder left beside the output folder)
     (["report", "--h", "0.5", "--levels", "0"], "report: exact/amg", signal.SIGTERM, 143,
-     "membranes: terminated")], ids=["ctrl-c solve", "sigterm report"])
+     "membranes: terminated"),
+    # SIGHUP (the terminal or ssh session gone): PETSc's handler ended the run with a PETSc
+    # error and MPI_Abort (exit 59), the staging folder left behind
+    (["solve", "--h", "0.2", "--levels", "5"], "level 2: Newton", signal.SIGHUP, 129,
+     "membranes: hung up")], ids=["ctrl-c solve", "sigterm report", "sighup solve"])
 def test_an_interrupted_run_says_so_and_leaves_nothing(tmp_path, command, when, sig, code,
                                                         said):
     """One line, the exit code of the signal, neither the output folder nor the staging
@@ -198,3 +202,60 @@ def test_a_closed_pipe_ends_the_run_silently(tmp_path, args, stderr_too):
     elif args[0] == "solve":
         assert sorted(os.listdir(out)) == ["history.csv", "solution.h5", "solution.xdmf",
                                            "summary.json"]
+
+
+def test_gmsh_leaves_the_ctrl_c_handler_in_place():
+    """gmsh 4.8's first import sets SIGINT to its default (put back by gmsh.finalize only
+    where a gmsh session ran): a run on an XDMF mesh (gmsh imported by dolfinx.io.gmshio
+    alone), the processes other than rank 0, and Ctrl-C during the first meshing ended at
+    once, without a word, their staging folders left behind. In a fresh process."""
+    code = "\n".join([
+        "import signal", "import numpy as np", "from mpi4py import MPI",
+        "from membranes.app import interrupts", "from membranes.fem import meshes",
+        "interrupts.install()", "mine = signal.getsignal(signal.SIGINT)",
+        "meshes.distribute(MPI.COMM_WORLD, np.array([[0, 1, 2]], dtype=np.int64),",
+        "                  np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]))",
+        "assert signal.getsignal(signal.SIGINT) is mine, 'after gmshio'",
+        "with meshes.gmsh_session():", "    pass",
+        "assert signal.getsignal(signal.SIGINT) is mine, 'after a gmsh session'"])
+    proc = subprocess.run([sys.executable, "-c", code], env=_env(), cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_a_signal_while_the_outputs_move_in_waits_for_the_last_rename(tmp_path, monkeypatch):
+    """SIGTERM after the first rename of the outputs into a folder of an older run: the
+    renames go on to the last, then the run ends as terminated, every output the new one;
+    the signal used to stop the moves halfway, old and new outputs side by side and the
+    older copies of the moved ones deleted."""
+    from mpi4py import MPI
+
+    from membranes.app import outputs
+    out = tmp_path / "out"
+    out.mkdir()
+    names = ("a.txt", "b.txt", "c.txt")
+    for name in names:
+        (out / name).write_text("old")
+    real, renames = os.replace, []
+
+    def replace(source, target):
+        real(source, target)
+        if os.path.dirname(target) == str(out) and os.path.basename(target) in names:
+            renames.append(target)
+            if len(renames) == 1:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(os, "replace", replace)
+    previous = interrupts.install()
+    try:
+        with pytest.raises(interrupts.Terminated):
+            with outputs.staged_folder(str(out), MPI.COMM_SELF) as tmp:
+                for name in names:
+                    with open(os.path.join(tmp, name), "w") as f:
+                        f.write("new")
+        interrupts.caught()
+    finally:
+        interrupts.restore(previous)
+    assert len(renames) == len(names)
+    assert {p.name: p.read_text() for p in out.iterdir()} == dict.fromkeys(names, "new")
+    assert os.listdir(tmp_path) == ["out"]

@@ -4,7 +4,8 @@
 Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out;
 also a stdout that cannot be written, `writing_stdout`),
 3 the solver did not converge (the outputs are written, with converged = false and a reason),
-130 interrupted (Ctrl-C; nothing written), 141 the reader of stdout went away (`membranes
+129 hung up (SIGHUP: the terminal or ssh session has gone; nothing written), 130 interrupted
+(Ctrl-C; nothing written), 141 the reader of stdout went away (`membranes
 solve ... | head`: silent, as the shell's tools; nothing written if the run had not ended),
 143 terminated (SIGTERM: a batch scheduler's time limit, or mpirun passing Ctrl-C on; nothing
 written).
@@ -24,7 +25,8 @@ from .logs import quiet_jit_logging
 
 EXIT_BAD_INPUT = 2
 EXIT_NOT_CONVERGED = 3
-EXIT_INTERRUPTED = 130    # the shell's code for a run ended by Ctrl-C (128 + SIGINT)
+EXIT_HUNG_UP = 129        # the shell's code for a run ended by SIGHUP (128 + SIGHUP)
+EXIT_INTERRUPTED = 130    # by Ctrl-C (128 + SIGINT)
 EXIT_BROKEN_PIPE = 141    # by a write to a pipe no process reads (128 + SIGPIPE)
 EXIT_TERMINATED = 143     # and by SIGTERM (128 + SIGTERM)
 
@@ -419,13 +421,13 @@ def _ended(argv, world, errors):
         import traceback
         _leave(errors, 1, traceback.print_exc)
         raise
-    except KeyboardInterrupt as e:   # Ctrl-C, SIGTERM: one line; the staged outputs are gone
+    except KeyboardInterrupt as e:   # Ctrl-C, SIGTERM, SIGHUP: one line; staged outputs gone
         interrupts.caught()
-        terminated = isinstance(e, interrupts.Terminated)
-        code = EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+        code, said = ((EXIT_HUNG_UP, "hung up") if isinstance(e, interrupts.HungUp) else
+                      (EXIT_TERMINATED, "terminated") if isinstance(e, interrupts.Terminated)
+                      else (EXIT_INTERRUPTED, "interrupted"))
         if world.rank == 0:
-            print("membranes: " + ("terminated" if terminated else "interrupted"),
-                  file=sys.stderr, flush=True)
+            print(f"membranes: {said}", file=sys.stderr, flush=True)
         if errors is not None:  # the others may wait in a collective: no MPI_Finalize
             sys.stdout.flush()
             os._exit(code)
@@ -457,7 +459,7 @@ def _main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(_glue_values(argv))
     from . import interrupts
-    interrupts.python_pipes()        # (after PETSc's initialisation, which sets the handler)
+    interrupts.take_back()           # (the signals PETSc's initialisation took)
     if args.command == "scenes":
         return _scenes()
     if args.command == "report":

@@ -1,5 +1,5 @@
-"""Ending a run on Ctrl-C or SIGTERM as on any error: the staged outputs removed, one line,
-no traceback (membranes.app.cli, membranes.app.outputs.staged_folder).
+"""Ending a run on Ctrl-C, SIGTERM or SIGHUP as on any error: the staged outputs removed, one
+line, no traceback (membranes.app.cli, membranes.app.outputs.staged_folder).
 
 Python raises the exception of a signal at the next bytecode it runs, and that may be a
 weakref callback or a `__del__` run by a deallocation, whose exceptions Python prints and
@@ -9,9 +9,12 @@ mpirun passes Ctrl-C on as SIGTERM, then kills the processes a moment later). So
 signal the exception is raised again every RETRY seconds (SIGALRM) until code that handles it
 says so (`caught`). And the folder a process is staging outputs in (`staging`) is removed by the
 handler itself, at once: mpirun kills the processes about a second after its SIGTERM, which
-may come before the exception has made its way up through MPI calls and clean-ups.
+may come before the exception has made its way up through MPI calls and clean-ups. Inside
+a `deferred` block (the renames that move the outputs in, all or nothing) a signal waits for
+the block's end.
 """
 
+import contextlib
 import shutil
 import signal
 import sys
@@ -19,6 +22,7 @@ import sys
 RETRY = 0.05        # seconds between raises of a pending interrupt
 
 _pending = None     # the exception class of the signal met, until `caught`
+_deferring = 0      # inside `deferred` blocks: a signal is raised at the end of the outermost
 staging = None      # the folder this process stages outputs in (outputs.staged_folder)
 
 
@@ -28,43 +32,69 @@ class Terminated(KeyboardInterrupt):
     it ends the run as Ctrl-C does."""
 
 
+class HungUp(Terminated):
+    """SIGHUP: the terminal or the ssh session of the run has gone. Ends the run as SIGTERM
+    does (PETSc's initialisation sets a handler of its own for it, `take_back`)."""
+
+
 def _raise_pending(signum, frame):
     # (not while an interrupt is being handled, or propagates through a `finally`: it has not
     # been dropped, and a raise there, e.g. in the handler before it calls `caught`, would
     # end the run with a traceback; a run whose plaza refinement met SIGTERM did)
-    if _pending is not None and not isinstance(sys.exc_info()[1], KeyboardInterrupt):
+    if _pending is not None and not _deferring \
+            and not isinstance(sys.exc_info()[1], KeyboardInterrupt):
         raise _pending
 
 
 def _handler(exception):
     def handler(signum, frame):
         global _pending
-        if staging is not None:
+        if staging is not None and not _deferring:
             shutil.rmtree(staging, ignore_errors=True)
         _pending = exception
         signal.signal(signal.SIGALRM, _raise_pending)
         signal.setitimer(signal.ITIMER_REAL, RETRY, RETRY)
-        raise exception
+        if not _deferring:
+            raise exception
     return handler
 
 
+SIGNALS = ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated),
+           (signal.SIGHUP, HungUp))
+
+
 def install():
-    """Raise KeyboardInterrupt on SIGINT and `Terminated` on SIGTERM, again until `caught`.
-    Returns what `restore` needs (the handlers before, SIGALRM's too: a signal met sets it).
-    Main thread only."""
+    """Raise KeyboardInterrupt on SIGINT, `Terminated` on SIGTERM and `HungUp` on SIGHUP,
+    again until `caught`. Returns what `restore` needs (the handlers before, SIGALRM's too: a
+    signal met sets it). Main thread only."""
     previous = {signal.SIGALRM: signal.getsignal(signal.SIGALRM)}
-    previous.update({s: signal.signal(s, _handler(e)) for s, e in
-                     ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated))})
+    previous.update({s: signal.signal(s, _handler(e)) for s, e in SIGNALS})
     return previous
 
 
-def python_pipes():
-    """Initialise PETSc, then give SIGPIPE back to Python: ignored, so that a write to a pipe
-    no process reads raises BrokenPipeError (the command line ends silently on it). PETSc's
-    initialisation sets a handler of its own that ends the run with a PETSc error and
-    MPI_Abort (exit 59) when stdout is piped into `head` and its monitors print."""
+def take_back():
+    """Initialise PETSc, then take back the signals its initialisation took: SIGHUP (ours,
+    `install`) and SIGPIPE, given back to Python: ignored, so that a write to a pipe no
+    process reads raises BrokenPipeError (the command line ends silently on it). PETSc's
+    handlers end the run with a PETSc error and MPI_Abort (exit 59), leaving staged outputs
+    behind: for SIGPIPE when stdout is piped into `head` and its monitors print."""
     from petsc4py import PETSc  # noqa: F401
     signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, _handler(HungUp))
+
+
+@contextlib.contextmanager
+def deferred():
+    """A block that a signal must not stop halfway (the renames that move the outputs in):
+    a signal met inside is raised at its end (if it ended without an error)."""
+    global _deferring
+    _deferring += 1
+    try:
+        yield
+    finally:
+        _deferring -= 1
+    if _pending is not None and not _deferring:
+        raise _pending
 
 
 def caught():

@@ -186,28 +186,37 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=(), names=()):
         interrupts.staging = None       # (process 0 may move the files in from here on)
     everyone = comm.allreduce(failed is None, op=MPI.LAND)
     written = None                      # why a process could not write, if one could not
+    signalled = False                   # whether a process met a signal
     if not everyone:
         mine = f"{failed.strerror or failed}" if isinstance(failed, OSError) and \
             not isinstance(failed, BrokenPipeError) else None      # (`| head`: no output's)
-        written = next((r for r in comm.allgather(mine) if r is not None), None)
+        reasons = comm.allgather((mine, isinstance(failed, KeyboardInterrupt)))
+        signalled = any(s for _, s in reasons)
+        if not signalled:
+            written = next((r for r, _ in reasons if r is not None), None)
     error, stranded = None, False
-    if comm.rank == 0:
-        try:
-            if everyone:
-                interrupts.staging = None     # (moving in: no longer removed as a whole)
-                os.makedirs(out, exist_ok=True)
-                _move_in(tmp, out, replaces)
-        except OSError as e:
-            where = f"{e.filename}: " if e.filename else ""
-            stranded = getattr(e, "stranded", False)
-            error = f"cannot move the outputs into {out}: {where}{e.strerror or e}; " + (
-                f"it could not be undone in full: the older files are in {tmp}/old" if
-                stranded else "nothing was changed")
-        finally:
-            if not stranded:
-                shutil.rmtree(tmp, ignore_errors=True)
-            interrupts.staging = None
-    error = comm.bcast(error, root=0)
+    with interrupts.deferred():        # (a signal waits for the last rename)
+        if comm.rank == 0:
+            try:
+                if everyone:
+                    interrupts.staging = None     # (moving in: no longer removed as a whole)
+                    os.makedirs(out, exist_ok=True)
+                    _move_in(tmp, out, replaces)
+            except OSError as e:
+                where = f"{e.filename}: " if e.filename else ""
+                stranded = getattr(e, "stranded", False)
+                error = f"cannot move the outputs into {out}: {where}{e.strerror or e}; " + (
+                    f"it could not be undone in full: the older files are in {tmp}/old" if
+                    stranded else "nothing was changed")
+            finally:
+                if not stranded:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                interrupts.staging = None
+        error = comm.bcast(error, root=0)
+    if signalled and not isinstance(failed, KeyboardInterrupt):
+        # the handler of the process that met it removed the folder the others write into
+        # (`interrupts`): they end as it does, not with a failed write
+        raise interrupts.Terminated from failed
     if written is not None:
         raise ValueError(f"the outputs cannot be written into {out}: {written}; nothing was "
                          f"written") from failed

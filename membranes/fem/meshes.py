@@ -40,6 +40,7 @@ the message is broadcast).
 import contextlib
 import math
 import os
+import signal
 import sys
 
 import numpy as np
@@ -53,8 +54,24 @@ JOIN_NODES = "(its cells must share their nodes where they meet)"   # (not from 
 
 
 @contextlib.contextmanager
+def keeping_sigint():
+    """Around an import of gmsh (4.8, also through dolfinx.io.gmshio): its first import sets
+    SIGINT to its default, and only gmsh.finalize puts back the handler it found, where a gmsh
+    session ran (rank 0). Ctrl-C would end the process at once, without the command line's
+    clean-up (membranes.app.interrupts: staged outputs removed, one line). Puts back the
+    handler found before the import."""
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        yield
+    finally:
+        if before is not None and signal.getsignal(signal.SIGINT) is not before:
+            signal.signal(signal.SIGINT, before)
+
+
+@contextlib.contextmanager
 def gmsh_session():
-    import gmsh
+    with keeping_sigint():
+        import gmsh
     gmsh.initialize([])
     try:
         gmsh.option.setNumber("General.Terminal", 0)
@@ -99,8 +116,9 @@ def distribute(comm, cells, x):
     """dolfinx's mesh of the triangles `cells` (global indices of nodes, int64) on the nodes
     whose coordinates `x` this process holds (in blocks of consecutive indices, process by
     process), partitioned on `comm` without ghost cells (module notes). Collective."""
-    from dolfinx.io import gmshio
     from dolfinx.mesh import GhostMode, create_mesh
+    with keeping_sigint():
+        from dolfinx.io import gmshio
     with one_scotch_thread():
         return create_mesh(comm, cells, x, gmshio.ufl_mesh(GMSH_TRIANGLE, 2),
                            ghost_mode=GhostMode.none)
