@@ -2,6 +2,7 @@
 nothing left in or beside the output folder, serially and under mpirun (which passes Ctrl-C
 on as SIGTERM and kills the processes a moment later)."""
 
+import json
 import os
 import shutil
 import signal
@@ -259,3 +260,23 @@ def test_a_signal_while_the_outputs_move_in_waits_for_the_last_rename(tmp_path, 
     assert len(renames) == len(names)
     assert {p.name: p.read_text() for p in out.iterdir()} == dict.fromkeys(names, "new")
     assert os.listdir(tmp_path) == ["out"]
+
+
+@pytest.mark.parametrize("fd", [0, 1, 2], ids=["stdin", "stdout", "stderr"])
+def test_a_closed_standard_stream_is_as_if_discarded(tmp_path, fd):
+    """`membranes ... >&-` (and `<&-`, `2>&-`): the run goes on as with /dev/null there; with
+    stdout closed ufl's import failed on sys.stdout None (a traceback, exit 1); with stderr
+    closed the progress lines went to stdout (print's default for a file of None), before
+    the summary line that is stdout's only line."""
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "membranes.app.cli", "solve", "--h", "0.4",
+                           "--levels", "0", "--out", str(out)], env=_env(), cwd=ROOT,
+                          preexec_fn=lambda: os.close(fd), timeout=120,
+                          stdin=subprocess.DEVNULL if fd else None,
+                          stdout=subprocess.PIPE if fd != 1 else None,
+                          stderr=subprocess.DEVNULL if fd != 2 else None, text=True)
+    assert proc.returncode == 0
+    if fd != 1:
+        assert len(proc.stdout.splitlines()) == 1 and json.loads(proc.stdout)["converged"]
+    assert sorted(os.listdir(out)) == ["history.csv", "solution.h5", "solution.xdmf",
+                                       "summary.json"]

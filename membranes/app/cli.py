@@ -381,6 +381,7 @@ def _leave(errors, code, say):
 
 
 def main(argv=None):
+    _standard_streams()
     from mpi4py import MPI
 
     from . import interrupts
@@ -395,6 +396,23 @@ def main(argv=None):
         interrupts.restore(previous)
         if errors is not None:
             errors.Free()
+
+
+def _standard_streams():
+    """A process started with stdin, stdout or stderr closed (`>&-`) gets /dev/null in its
+    place, as though what it reads or prints were discarded: Python leaves sys.stdout None,
+    on which ufl's import failed (a traceback, exit 1), and a file opened later would take
+    the free descriptor and receive what is printed."""
+    for fd, name, mode in ((0, "stdin", "r"), (1, "stdout", "w"), (2, "stderr", "w")):
+        try:
+            os.fstat(fd)
+        except OSError:
+            devnull = os.open(os.devnull, os.O_RDWR)
+            if devnull != fd:
+                os.dup2(devnull, fd)
+                os.close(devnull)
+            if getattr(sys, name) is None:
+                setattr(sys, name, open(fd, mode, closefd=False))
 
 
 def _ended(argv, world, errors):
