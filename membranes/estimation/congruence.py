@@ -126,6 +126,13 @@ def basis_changes(W, rt=None, dg=None):
     return signs, blocks
 
 
+def _canonical_sums(values):
+    """For a coordinate of the cells' vertices in canonical order ((3, cells)): their sum
+    per cell, and the midpoints of the facets opposite vertices 0, 1, 2 ((3, cells))."""
+    a, b, c = values
+    return (a + b) + c, 0.5 * np.stack([b + c, a + c, a + b])
+
+
 def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None, xy=None):
     """The code of every local W dof (owned and ghost); the interior blocks; the number of
     facet dofs on which the two cells of the facet disagree (0: both see the same vertex
@@ -170,10 +177,8 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None, xy=None):
     # (dolfinx's local order does): a key rounds the same sums on any number of processes,
     # and a facet's two cells give its midpoint the same value (sums in dolfinx's order
     # split classes on some partitions: tests/core/mpi_patches.py)
-    a, b, c = along.take(flat)
-    total = (a + b) + c
-    canon_across = across.take(flat)
-    side = (canon_across[0] + canon_across[1]) + canon_across[2]
+    total, facet_along = _canonical_sums(along.take(flat))
+    side, facet_across = _canonical_sums(across.take(flat))
     nlocal = W.dofmap.index_map.size_local + W.dofmap.index_map.num_ghosts
     fmap = mesh.topology.index_map(1)
     facet_point = np.zeros((fmap.size_local + fmap.num_ghosts, 2))
@@ -189,12 +194,9 @@ def canonical_dofs(mesh, W, c2f, rt_dofs, dg_dofs, rt=None, dg=None, xy=None):
     # every cell, then 1, then 2: facet i is opposite vertex i), or the dofs (cells, dofs of
     # the entity); of a facet's two cells the later writes last
     facets = np.ascontiguousarray(c2f[:nall]).take(flat)
-    facet_point[facets, 0] = 0.5 * np.stack([b + c, a + c, a + b])
-    facet_point[facets, 1] = 0.5 * np.stack([canon_across[1] + canon_across[2],
-                                             canon_across[0] + canon_across[2],
-                                             canon_across[0] + canon_across[1]])
-    del a, b, c, canon_across
-    del facets
+    facet_point[facets, 0] = facet_along
+    facet_point[facets, 1] = facet_across
+    del facets, facet_along, facet_across
     cell_first = np.arange(nall)[:, None] * rt_dofs.shape[1]     # (flat positions in rt_dofs)
     facet_dofs, facet_codes = [], []
     for i in range(3):
