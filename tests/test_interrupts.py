@@ -118,6 +118,26 @@ def test_an_interrupted_run_says_so_and_leaves_nothing(tmp_path, command, when, 
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.parametrize("sig, code, said", [(signal.SIGINT, 130, "membranes: interrupted"),
+                                             (signal.SIGTERM, 143, "membranes: terminated")])
+def test_a_signal_while_mpi_starts_says_so(sig, code, said):
+    """A signal in MPI's start (mpi4py's import, the first few tenths of a second of a run),
+    sent here by an import hook as the import begins: the handlers were installed after it,
+    and Ctrl-C printed a KeyboardInterrupt traceback."""
+    source = "\n".join([
+        "import os, sys",
+        "class Hook:",
+        "    def find_spec(self, name, path=None, target=None):",
+        "        if name == 'mpi4py.MPI':",
+        f"            os.kill(os.getpid(), {int(sig)})",
+        "sys.meta_path.insert(0, Hook())",
+        "from membranes.app.cli import main",
+        "sys.exit(main(['scenes']))"])
+    proc = subprocess.run([sys.executable, "-c", source], env=_env(), cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert (proc.returncode, proc.stderr, proc.stdout) == (code, said + "\n", "")
+
+
 def test_ctrl_c_under_mpirun_leaves_nothing(tmp_path):
     """Ctrl-C to mpirun -n 2 during a report: mpirun sends the processes SIGTERM and kills
     them about a second later, while they wait in MPI calls or run clean-ups; the staging

@@ -382,16 +382,21 @@ def _leave(errors, code, say):
 
 def main(argv=None):
     _standard_streams()
-    from mpi4py import MPI
-
     from . import interrupts
-    world = MPI.COMM_WORLD
-    errors = world.Dup() if world.size > 1 else None
+
+    # the handlers first: MPI's start (mpi4py's import, a few tenths of a second) would
+    # otherwise meet Ctrl-C with a traceback
     previous = interrupts.install()
+    world = errors = None
     try:
+        from mpi4py import MPI
+        world = MPI.COMM_WORLD
+        errors = world.Dup() if world.size > 1 else None
         return _ended(argv, world, errors)
     except BrokenPipeError:   # stdout or stderr read by a process that has gone (`| head`),
         return _pipe_closed(errors)     # met by the run or by the line that says its end
+    except KeyboardInterrupt as e:   # Ctrl-C, SIGTERM, SIGHUP: one line, staged outputs gone
+        return _signalled(e, world, errors)      # (also in MPI's start, before `_ended`)
     finally:
         interrupts.restore(previous)
         if errors is not None:
@@ -416,8 +421,7 @@ def _standard_streams():
 
 
 def _ended(argv, world, errors):
-    """Run the command; its exit code, also for an error or an interrupt (one line)."""
-    from . import interrupts
+    """Run the command; its exit code, also for an error (one line; a signal: `main`)."""
     try:
         try:
             code = _main(argv)
@@ -439,17 +443,31 @@ def _ended(argv, world, errors):
         import traceback
         _leave(errors, 1, traceback.print_exc)
         raise
-    except KeyboardInterrupt as e:   # Ctrl-C, SIGTERM, SIGHUP: one line; staged outputs gone
-        interrupts.caught()
-        code, said = ((EXIT_HUNG_UP, "hung up") if isinstance(e, interrupts.HungUp) else
-                      (EXIT_TERMINATED, "terminated") if isinstance(e, interrupts.Terminated)
-                      else (EXIT_INTERRUPTED, "interrupted"))
-        if world.rank == 0:
-            print(f"membranes: {said}", file=sys.stderr, flush=True)
-        if errors is not None:  # the others may wait in a collective: no MPI_Finalize
-            sys.stdout.flush()
-            os._exit(code)
-        return code
+
+
+def _signalled(e, world, errors):
+    """The exit code of the signal that raised `e`, said in one line by process 0 (`world`
+    None: met in MPI's start)."""
+    from . import interrupts
+    interrupts.caught()
+    code, said = ((EXIT_HUNG_UP, "hung up") if isinstance(e, interrupts.HungUp) else
+                  (EXIT_TERMINATED, "terminated") if isinstance(e, interrupts.Terminated)
+                  else (EXIT_INTERRUPTED, "interrupted"))
+    if (world.rank if world is not None else _rank()) == 0:
+        print(f"membranes: {said}", file=sys.stderr, flush=True)
+    if errors is not None:  # the others may wait in a collective: no MPI_Finalize
+        sys.stdout.flush()
+        os._exit(code)
+    return code
+
+
+def _rank():
+    """This process's rank in MPI_COMM_WORLD, 0 where MPI has not started."""
+    MPI = sys.modules.get("mpi4py.MPI")
+    try:
+        return MPI.COMM_WORLD.rank if MPI is not None and MPI.Is_initialized() else 0
+    except AttributeError:      # (mpi4py's import itself was interrupted)
+        return 0
 
 
 def _one_line(world, errors, error, code):
