@@ -138,6 +138,26 @@ def test_a_signal_while_mpi_starts_says_so(sig, code, said):
     assert (proc.returncode, proc.stderr, proc.stdout) == (code, said + "\n", "")
 
 
+@pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGINT], ids=["nohup", "background"])
+def test_a_signal_ignored_at_the_start_stays_ignored(tmp_path, sig):
+    """A run started with a signal ignored goes on when it comes: `nohup membranes solve ...`
+    ignores SIGHUP so that the run outlives its terminal, and a shell script's background job
+    ignores SIGINT. Our handlers replaced both, and the nohup run ended as hung up (129)."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "membranes.app.cli", "solve", "--h", "0.2",
+                             "--levels", "3", "--out", str(out)],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT,
+                            preexec_fn=lambda: signal.signal(sig, signal.SIG_IGN))
+    for line in proc.stderr:
+        if line.startswith("level 1: Newton"):
+            proc.send_signal(sig)
+            break
+    rest = proc.communicate(timeout=120)[1]
+    assert proc.returncode == 0, rest
+    assert "summary.json" in os.listdir(out)
+
+
 def test_ctrl_c_under_mpirun_leaves_nothing(tmp_path):
     """Ctrl-C to mpirun -n 2 during a report: mpirun sends the processes SIGTERM and kills
     them about a second later, while they wait in MPI calls or run clean-ups; the staging

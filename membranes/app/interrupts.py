@@ -65,22 +65,28 @@ SIGNALS = ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated),
 
 def install():
     """Raise KeyboardInterrupt on SIGINT, `Terminated` on SIGTERM and `HungUp` on SIGHUP,
-    again until `caught`. Returns what `restore` needs (the handlers before, SIGALRM's too: a
+    again until `caught`; a signal the process was started with ignored stays ignored (`nohup`
+    ignores SIGHUP so that a run outlives its terminal; a shell script's background job
+    ignores SIGINT). Returns what `restore` needs (the handlers before, SIGALRM's too: a
     signal met sets it). Main thread only."""
     previous = {signal.SIGALRM: signal.getsignal(signal.SIGALRM)}
-    previous.update({s: signal.signal(s, _handler(e)) for s, e in SIGNALS})
+    for s, e in SIGNALS:
+        if signal.getsignal(s) is not signal.SIG_IGN:
+            previous[s] = signal.signal(s, _handler(e))
     return previous
 
 
 def take_back():
     """Initialise PETSc, then take back the signals its initialisation took: SIGHUP (ours,
-    `install`) and SIGPIPE, given back to Python: ignored, so that a write to a pipe no
-    process reads raises BrokenPipeError (the command line ends silently on it). PETSc's
-    handlers end the run with a PETSc error and MPI_Abort (exit 59), leaving staged outputs
-    behind: for SIGPIPE when stdout is piped into `head` and its monitors print."""
+    `install`, or ignored as the process found it) and SIGPIPE, given back to Python:
+    ignored, so that a write to a pipe no process reads raises BrokenPipeError (the command
+    line ends silently on it). PETSc's handlers end the run with a PETSc error and MPI_Abort
+    (exit 59), leaving staged outputs behind: for SIGPIPE when stdout is piped into `head`
+    and its monitors print."""
+    hup = signal.getsignal(signal.SIGHUP)
     from petsc4py import PETSc  # noqa: F401
     signal.signal(signal.SIGPIPE, signal.SIG_IGN)
-    signal.signal(signal.SIGHUP, _handler(HungUp))
+    signal.signal(signal.SIGHUP, hup if hup is signal.SIG_IGN else _handler(HungUp))
 
 
 @contextlib.contextmanager
