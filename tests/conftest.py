@@ -87,14 +87,15 @@ def cli_bad_input(args, out, capsys):
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def mpirun(args, processes=2, timeout=120, extra=(), unset=()):
+def mpirun(args, processes=2, timeout=120, extra=(), unset=(), environ=None):
     """`mpirun [extra] -n processes python args…` (oversubscribed, as root too) from a test
     run serially, in the repository: the environment without this process's own MPI
     variables (it is an MPI singleton: they would confuse the new mpirun) nor the variables
-    `unset`, one BLAS thread, the repository on the path. Returns the CompletedProcess (text
-    output captured)."""
+    `unset`, with the variables `environ` (a dict), one BLAS thread, the repository on the
+    path. Returns the CompletedProcess (text output captured)."""
     env = {k: v for k, v in os.environ.items()
            if not k.startswith(("OMPI_", "PMIX_")) and k not in unset}
+    env.update(environ or {})
     env.update(OMP_NUM_THREADS="1", PYTHONPATH=ROOT)
     return subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
                            *extra, "-n", str(processes), sys.executable, *map(str, args)],

@@ -175,6 +175,30 @@ def test_cli_process_exit_code_and_clean_stderr(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("processes", [1, 2])
+def test_a_jit_cache_that_cannot_be_made_is_refused_before_meshing(processes, tmp_path):
+    """The folder dolfinx compiles forms into ($XDG_CACHE_HOME/fenics) cannot be created
+    (here under a file; a home folder that is read-only or missing, as on some compute nodes
+    and in containers, alike): one line naming it and XDG_CACHE_HOME, exit 2, nothing written,
+    before gmsh runs; it was three chained tracebacks and exit 1 at the first compilation."""
+    (tmp_path / "file").write_text("")
+    out = tmp_path / "out"
+    args = ["-m", "membranes.app.cli", "solve", "--h", "0.3", "--levels", "0", "--out",
+            str(out)]
+    cache = {"XDG_CACHE_HOME": str(tmp_path / "file")}
+    proc = subprocess.run([sys.executable] + args, capture_output=True, text=True,
+                          env=dict(os.environ, OMP_NUM_THREADS="1", **cache)) \
+        if processes == 1 else mpirun(args, processes, environ=cache)
+    folder = tmp_path / "file" / "fenics"
+    assert proc.returncode == 2, proc.stderr
+    ours = proc.stderr if processes == 1 else \
+        proc.stderr.split("-" * 10)[0]         # (mpirun's own note on the exit code follows)
+    assert ours == (f"membranes: error: the JIT cache folder {folder} cannot be written (Not "
+                    f"a directory): dolfinx compiles the forms there; set XDG_CACHE_HOME to a "
+                    f"writable folder\n")
+    assert not out.exists()
+
+
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux's /dev/full")
 @pytest.mark.parametrize("args", [["scenes"], ["--help"], ["--version"],
                                   ["solve", "--h", "0.4", "--levels", "0", "--quiet"]],

@@ -90,3 +90,30 @@ def test_module_put_into_the_cache_meanwhile_is_found(tmp_path, lookups):
         got = fem.assemble_vector(fem.form(L, jit_params={"cache_dir": str(cache)})).array
         assert np.array_equal(got, b)
     assert lookups == [(name, False) for name in names]
+
+
+def test_a_form_compiled_into_a_folder_that_cannot_be_written_says_so(tmp_path):
+    """A form that must be compiled into a cache folder that cannot be written (here one under
+    a file, NotADirectoryError; a read-only cache without the form, PermissionError, alike): a
+    ValueError naming the folder and XDG_CACHE_HOME, instead of FFCx's chained tracebacks."""
+    (tmp_path / "file").write_text("")
+    cache = tmp_path / "file" / "fenics"
+    V = fem.FunctionSpace(mesh.create_unit_square(MPI.COMM_SELF, 2, 2), ("Lagrange", 1))
+    with pytest.raises(ValueError, match=rf"^the JIT cache folder {cache} cannot be written "
+                                         r"\(Not a directory\): .* set XDG_CACHE_HOME"):
+        fem.form(membrane_linear(ufl.as_ufl(1.0), ufl.TestFunction(V)),
+                 jit_params={"cache_dir": str(cache)})
+
+
+def test_an_unwritable_cache_is_refused_unless_it_holds_forms(tmp_path, monkeypatch):
+    """`check_cache` on a folder without write permission (os.access patched: this may run as
+    root, who may write anywhere): refused while it holds no compiled form, accepted once it
+    holds one (a cache made beforehand, e.g. by `make warmup` in a container image, whose
+    forms load without a write)."""
+    cache = tmp_path / "fenics"
+    monkeypatch.setattr(jit, "cache_folder", lambda: str(cache))
+    monkeypatch.setattr(jit.os, "access", lambda path, mode: False)
+    with pytest.raises(ValueError, match=r"cannot be written \(no write permission\)"):
+        jit.check_cache(MPI.COMM_WORLD)
+    (cache / "libffcx_forms_0.c.cached").write_text("")
+    jit.check_cache(MPI.COMM_WORLD)

@@ -11,11 +11,26 @@ meanwhile, by this process or another), and the modules it has loaded, which are
 without any listing. Whatever is not yet compiled and ready goes through FFCx's own function
 unchanged (it creates the C file, compiles, or waits for another process to finish), so the
 cache's protocol between processes stays FFCx's.
+
+A cache folder that cannot be written (a home folder that is read-only or missing, as on
+some clusters' compute nodes and in containers) made the first compilation fail deep inside a
+solve with three chained tracebacks. `check_cache` refuses it before any mesh is built, in one
+line that says how to choose another (XDG_CACHE_HOME); a read-only cache that already holds
+compiled forms (made beforehand, by `make warmup` in a container image) is accepted, since its
+forms load without a write, and a form missing from it is refused in the same words where FFCx
+would have to compile it (serially; dolfinx reports an error of its JIT on several processes
+as its own RuntimeError).
 """
 
+import errno
 import importlib.machinery
 import importlib.util
 import os
+
+# the errors of a write into a folder that cannot take it (not FFCx's TimeoutError, also an
+# OSError: a compilation that another process left unfinished)
+UNWRITABLE = (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.ENOSPC,
+              errno.EDQUOT)
 
 _loaded = {}       # (cache directory, module name) -> module
 _finders = {}      # cache directory -> importlib FileFinder (lists again when the dir changes)
@@ -47,6 +62,36 @@ def cached_module(module_name, object_names, cache_dir, timeout, *, ffcx_lookup)
     return [getattr(module.lib, name) for name in object_names], module
 
 
+def cache_folder():
+    """The folder dolfinx compiles forms into: its JIT parameter `cache_dir`
+    ($XDG_CACHE_HOME/fenics, by default ~/.cache/fenics)."""
+    from dolfinx import jit
+    return str(jit.get_parameters()["cache_dir"])
+
+
+def _unwritable(folder, reason):
+    return ValueError(f"the JIT cache folder {folder} cannot be written ({reason}): dolfinx "
+                      f"compiles the forms there; set XDG_CACHE_HOME to a writable folder")
+
+
+def _look_at_cache(folder):
+    try:
+        os.makedirs(folder, exist_ok=True)       # (as FFCx does before it compiles)
+    except OSError as e:
+        raise _unwritable(folder, e.strerror or str(e)) from None
+    if not os.access(folder, os.W_OK | os.X_OK) and \
+            not any(name.endswith(".c.cached") for name in os.listdir(folder)):
+        raise _unwritable(folder, "no write permission")
+
+
+def check_cache(comm=None):
+    """ValueError (one line, on every process of `comm`) if forms cannot be compiled into
+    the JIT cache folder: it cannot be created, or it is not writable and holds no compiled
+    form (module notes). Process 0 looks: it compiles, the others load (dolfinx.jit)."""
+    from ..model.folders import looked_at_on_rank0
+    looked_at_on_rank0(lambda: _look_at_cache(cache_folder()), comm)
+
+
 def install():
     """Route FFCx's cache lookups through `cached_module` (once; `membranes.fem` does it on
     import, before any form is compiled)."""
@@ -56,8 +101,13 @@ def install():
         return
 
     def get_cached_module(module_name, object_names, cache_dir, timeout):
-        return cached_module(module_name, object_names, cache_dir, timeout,
-                             ffcx_lookup=original)
+        try:
+            return cached_module(module_name, object_names, cache_dir, timeout,
+                                 ffcx_lookup=original)
+        except OSError as e:     # (a read-only cache without this form: module notes)
+            if e.errno not in UNWRITABLE:
+                raise
+            raise _unwritable(cache_dir, e.strerror or str(e)) from None
 
     get_cached_module.membranes = True
     ffcx_jit.get_cached_module = get_cached_module

@@ -24,10 +24,10 @@ def check_output_folder(path, comm=None, names=()):
         # the outputs there; a name of blanks is as likely a slip)
         raise ValueError(f"the output folder is an empty or blank path ({os.fspath(path)!r}): "
                          f"name a folder")
-    _looked_at_on_rank0(lambda: _probe_folder(os.path.abspath(os.fspath(path)), names), comm)
+    looked_at_on_rank0(lambda: _probe_folder(os.path.abspath(os.fspath(path)), names), comm)
 
 
-def _looked_at_on_rank0(look, comm):
+def looked_at_on_rank0(look, comm):
     """Run `look()` on process 0 of `comm` (everywhere without one) and raise its ValueError
     on every process, with the same message."""
     error = None
@@ -72,7 +72,7 @@ def check_output_room(path, nbytes, comm=None):
             raise ValueError(f"output folder {out} has {free / 2**20:.1f} MiB free, the "
                              f"outputs need about {nbytes / 2**20:.1f} MiB")
 
-    _looked_at_on_rank0(look, comm)
+    looked_at_on_rank0(look, comm)
 
 
 def staging_parent(out):

@@ -24,7 +24,7 @@ import numpy as np
 import ufl
 from mpi4py import MPI
 
-from ..fem import mesh_files, meshes
+from ..fem import jit, mesh_files, meshes
 from ..fem.hierarchy import build_hierarchy, onto_unit_circle
 from .checks import check_request
 from .expressions import Formula
@@ -77,6 +77,7 @@ def _check_size(h, levels, domain, mesh_file, max_vertices, comm):
     if mesh_file is None:
         h = meshes.check_size(h)
     check_request(h, levels, domain, mesh_file, max_vertices, comm=comm)
+    jit.check_cache(comm)
     return h
 
 
@@ -171,6 +172,7 @@ def _given(mesh, comm, levels, max_vertices, domain=None):
     mesh = meshes.without_ghosts(meshes.given_mesh(mesh, domain=domain))
     check_request(levels=levels, max_vertices=max_vertices, comm=mesh.comm,
                   counts=meshes.mesh_counts(mesh))
+    jit.check_cache(mesh.comm)
     return mesh
 
 
