@@ -224,6 +224,17 @@ def test_a_stdout_that_cannot_be_written_is_one_line(args, tmp_path):
 
 
 
+@pytest.mark.parametrize("encoding", ["latin-1", "ascii"])
+def test_a_stdout_without_a_character_gets_its_escape(encoding):
+    """stdout in an encoding without μ (a Latin-1 or ASCII locale): `membranes scenes`
+    prints it as an escape and exits 0, as Python prints on stderr; it said "membranes:
+    error: 'latin-1' codec can't encode character '\\u03bc' …" and exited 2, as bad input."""
+    proc = subprocess.run([sys.executable, "-m", "membranes.app.cli", "scenes"],
+                          capture_output=True, env=dict(os.environ, PYTHONIOENCODING=encoding))
+    assert (proc.returncode, proc.stderr) == (0, b""), proc.stderr
+    assert b"\\u03bc1 = 1, \\u03bc2 = 2" in proc.stdout
+
+
 def test_a_run_that_does_not_converge_exits_3_with_its_outputs(tmp_path, capsys):
     """docs/cli.md: a run that does not converge exits with 3, says so in one stderr line
     after its JSON line, and writes its outputs all the same, with converged = false and the

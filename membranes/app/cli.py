@@ -407,7 +407,9 @@ def _standard_streams():
     """A process started with stdin, stdout or stderr closed (`>&-`) gets /dev/null in its
     place, as though what it reads or prints were discarded: Python leaves sys.stdout None,
     on which ufl's import failed (a traceback, exit 1), and a file opened later would take
-    the free descriptor and receive what is printed."""
+    the free descriptor and receive what is printed. A character stdout's encoding lacks
+    (μ, λ, § under a Latin-1 or ASCII locale) is printed as an escape (`\\u03bc`), as Python
+    does on stderr: it was a UnicodeEncodeError, a ValueError, said as bad input (exit 2)."""
     for fd, name, mode in ((0, "stdin", "r"), (1, "stdout", "w"), (2, "stderr", "w")):
         try:
             os.fstat(fd)
@@ -418,6 +420,9 @@ def _standard_streams():
                 os.close(devnull)
             if getattr(sys, name) is None:
                 setattr(sys, name, open(fd, mode, closefd=False))
+    for stream in (sys.stdout, sys.stderr):
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
 
 
 def _ended(argv, world, errors):
