@@ -80,7 +80,7 @@ def json_safe(value):
 
 
 def write_summary(path, summary):
-    with open(path, "w") as f:
+    with open(path, "w", encoding="utf-8") as f:
         json.dump(json_safe(summary), f, indent=2)
         f.write("\n")
 
@@ -92,7 +92,7 @@ def _cell(value):
 
 def write_rows(path, rows, columns=HISTORY_COLUMNS):
     """A CSV with the given columns, one line per dict of `rows` (missing values empty)."""
-    with open(path, "w", newline="") as f:
+    with open(path, "w", newline="", encoding="utf-8") as f:
         writer = csv.writer(f)
         writer.writerow(columns)
         for row in rows:

@@ -502,7 +502,7 @@ def write_report(problem, out, say=lambda line: None):
             text = markdown(problem, runs, summaries, rows, cells,
                             {m: f[1] for m, f in figures.items()}, time.perf_counter() - t,
                             missing)
-            with open(os.path.join(tmp, "report.md"), "w") as f:
+            with open(os.path.join(tmp, "report.md"), "w", encoding="utf-8") as f:
                 f.write(text)
     return runs, rows
 

@@ -378,13 +378,14 @@ def write_stability(out, h=DEFAULT_H, names=None, methods=METHODS, say=lambda li
         rows = table(cases, runs)
         seconds = time.perf_counter() - t
         if comm.rank == 0:
-            with open(os.path.join(tmp, "stability.csv"), "w", newline="") as f:
+            with open(os.path.join(tmp, "stability.csv"), "w", newline="",
+                      encoding="utf-8") as f:
                 writer = csv.writer(f)
                 writer.writerow(COLUMNS)
                 for r in rows:
                     writer.writerow(["" if json_safe(r.get(c)) is None else json_safe(r[c])
                                      for c in COLUMNS])
-            with open(os.path.join(tmp, "stability.md"), "w") as f:
+            with open(os.path.join(tmp, "stability.md"), "w", encoding="utf-8") as f:
                 f.write(markdown(rows, h, seconds, comm.size))
     return rows
 
