@@ -3,8 +3,11 @@ without listing the cache directory, and a module another process puts into the 
 meanwhile is found by the kept listing, which is made anew when the directory changes."""
 
 import importlib.machinery
+import os
 import pathlib
 import shutil
+import signal
+import time
 
 import dolfinx.jit
 import numpy as np
@@ -117,3 +120,44 @@ def test_an_unwritable_cache_is_refused_unless_it_holds_forms(tmp_path, monkeypa
         jit.check_cache(MPI.COMM_WORLD)
     (cache / "libffcx_forms_0.c.cached").write_text("")
     jit.check_cache(MPI.COMM_WORLD)
+
+
+def test_a_compilation_left_unfinished_is_made_again(tmp_path, lookups):
+    """A C file without its `.c.cached` marker, as a run killed during its first compilation
+    leaves (here the form's C file copied alone into an empty cache): FFCx waits for it and
+    times out; the lookup then drops the file and compiles the form itself, which assembles
+    as before. The later runs failed with FFCx's TimeoutError until the file was removed by
+    hand."""
+    V = fem.FunctionSpace(mesh.create_unit_square(MPI.COMM_SELF, 3, 3), ("Lagrange", 1))
+    L = membrane_linear(ufl.as_ufl(1.0), ufl.TestFunction(V))
+    lookups.clear()
+    expected = fem.assemble_vector(fem.form(L)).array
+    name, = [name for name, _ in lookups if name.startswith("libffcx_forms_")]
+    home = pathlib.Path(dolfinx.jit.get_parameters()["cache_dir"])
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    shutil.copy2(home / (name + ".c"), cache / (name + ".c"))
+    params = {"cache_dir": str(cache), "timeout": 1}
+    got = fem.assemble_vector(fem.form(L, jit_params=params)).array
+    assert np.array_equal(got, expected)
+    assert (cache / (name + ".c.cached")).exists()
+
+
+def test_abandon_removes_the_compilations_not_ready(tmp_path, monkeypatch):
+    """A signal's handler (membranes.app.interrupts) removes the C files of this process's
+    compilations that are not ready, so that the next run does not wait for them; a ready
+    one (its `.c.cached` written) is left."""
+    from membranes.app import interrupts
+    ready, unfinished = tmp_path / "a.c", tmp_path / "b.c"
+    for path in (ready, unfinished, tmp_path / "a.c.cached"):
+        path.write_text("")
+    monkeypatch.setattr(jit, "_compiling", {str(ready), str(unfinished)})
+    previous = interrupts.install()
+    try:
+        with pytest.raises(interrupts.Terminated):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5.0)
+        interrupts.caught()
+    finally:
+        interrupts.restore(previous)
+    assert ready.exists() and not unfinished.exists() and not jit._compiling

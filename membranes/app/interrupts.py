@@ -9,7 +9,8 @@ mpirun passes Ctrl-C on as SIGTERM, then kills the processes a moment later). So
 signal the exception is raised again every RETRY seconds (SIGALRM) until code that handles it
 says so (`caught`). And the folder a process is staging outputs in (`staging`) is removed by the
 handler itself, at once: mpirun kills the processes about a second after its SIGTERM, which
-may come before the exception has made its way up through MPI calls and clean-ups. Inside
+may come before the exception has made its way up through MPI calls and clean-ups; so are
+the C files of compilations the run leaves unfinished (membranes.fem.jit.abandon). Inside
 a `deferred` block (the renames that move the outputs in, all or nothing) a signal waits for
 the block's end.
 """
@@ -51,6 +52,9 @@ def _handler(exception):
         global _pending
         if staging is not None and not _deferring:
             shutil.rmtree(staging, ignore_errors=True)
+        jit = sys.modules.get("membranes.fem.jit")      # (loaded: forms may be compiling)
+        if jit is not None:
+            jit.abandon()
         _pending = exception
         signal.signal(signal.SIGALRM, _raise_pending)
         signal.setitimer(signal.ITIMER_REAL, RETRY, RETRY)

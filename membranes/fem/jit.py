@@ -12,6 +12,16 @@ without any listing. Whatever is not yet compiled and ready goes through FFCx's 
 unchanged (it creates the C file, compiles, or waits for another process to finish), so the
 cache's protocol between processes stays FFCx's.
 
+**Compilations a run left unfinished.** FFCx takes a C file without its `.c.cached` marker
+for a compilation under way in another process, waits for it (`timeout`, 10 s) and then fails
+with a TimeoutError. A run ended by a signal during its first compilations (Ctrl-C in a first
+solve, a batch system's time limit) left such a file, and every later run needing that form
+waited and failed, until the file was removed by hand. So the C files this process creates
+are remembered until they are ready (`_compiling`), and removed if a signal ends the run
+before (`abandon`, called by membranes.app.interrupts' handler); and a lookup that times out
+drops the C file it waited for and compiles the form itself (a process killed outright, or a
+compilation in another process slower than the wait; two processes may then both compile it).
+
 A cache folder that cannot be written (a home folder that is read-only or missing, as on
 some clusters' compute nodes and in containers) made the first compilation fail deep inside a
 solve with three chained tracebacks. `check_cache` refuses it before any mesh is built, in one
@@ -33,6 +43,7 @@ UNWRITABLE = (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.ENOSP
               errno.EDQUOT)
 
 _loaded = {}       # (cache directory, module name) -> module
+_compiling = set()  # the C files this process created whose compilation it has not seen ready
 _finders = {}      # cache directory -> importlib FileFinder (lists again when the dir changes)
 
 
@@ -52,14 +63,51 @@ def cached_module(module_name, object_names, cache_dir, timeout, *, ffcx_lookup)
     module = _loaded.get(key)
     if module is None:
         if not os.path.exists(os.path.join(key[0], module_name + ".c.cached")):
-            return ffcx_lookup(module_name, object_names, cache_dir, timeout)
+            return _ffcx_lookup(module_name, object_names, cache_dir, timeout, ffcx_lookup)
         spec = _finder(key[0]).find_spec(module_name)
         if spec is None:          # written within the finder's last listing's mtime tick
-            return ffcx_lookup(module_name, object_names, cache_dir, timeout)
+            return _ffcx_lookup(module_name, object_names, cache_dir, timeout, ffcx_lookup)
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
         _loaded[key] = module
     return [getattr(module.lib, name) for name in object_names], module
+
+
+def _ffcx_lookup(module_name, object_names, cache_dir, timeout, ffcx_lookup):
+    """FFCx's lookup of a module not ready in the cache; once more, after dropping the C file
+    it waited for, if it timed out (module notes). Remembers the C file this process then
+    compiles (FFCx's answer (None, None): it created the file)."""
+    c_file = os.path.join(str(cache_dir), module_name + ".c")
+    _prune()
+    try:
+        found = ffcx_lookup(module_name, object_names, cache_dir, timeout)
+    except TimeoutError:
+        _remove(c_file)
+        found = ffcx_lookup(module_name, object_names, cache_dir, timeout)
+    if found[0] is None:
+        _compiling.add(c_file)
+    return found
+
+
+def _prune():
+    """Forget the compilations of this process that are ready."""
+    _compiling.difference_update([c for c in _compiling if os.path.exists(c + ".cached")])
+
+
+def _remove(path):
+    try:
+        os.remove(path)
+    except FileNotFoundError:
+        pass
+
+
+def abandon():
+    """Remove the C files of this process's compilations that are not ready (a signal ends
+    the run): else the next run would wait for them and fail (module notes)."""
+    _prune()
+    for c_file in list(_compiling):
+        _remove(c_file)
+    _compiling.clear()
 
 
 def cache_folder():
