@@ -66,13 +66,6 @@ def warm_scene(name, comm=MPI.COMM_SELF):
     return time.perf_counter() - t
 
 
-def cache_dir():
-    """dolfinx's JIT cache folder (its own rule: $XDG_CACHE_HOME/fenics, the JSON parameter
-    files of dolfinx.jit taking priority)."""
-    from dolfinx import jit
-    return Path(jit.get_parameters()["cache_dir"])
-
-
 def stamp(names):
     """The stamp file of a warm-up of scenes `names` with the code as it is now."""
     import dolfinx
@@ -82,7 +75,8 @@ def stamp(names):
             sorted((root / "membranes").rglob("*.py")):
         digest.update(path.relative_to(root).as_posix().encode())
         digest.update(path.read_bytes())
-    return cache_dir() / f"membranes-warm-{'-'.join(names)}-{digest.hexdigest()[:16]}"
+    from ..fem.jit import cache_folder
+    return Path(cache_folder()) / f"membranes-warm-{'-'.join(names)}-{digest.hexdigest()[:16]}"
 
 
 def main(argv=None):

@@ -111,8 +111,9 @@ def abandon():
 
 
 def cache_folder():
-    """The folder dolfinx compiles forms into: its JIT parameter `cache_dir`
-    ($XDG_CACHE_HOME/fenics, by default ~/.cache/fenics)."""
+    """The folder dolfinx compiles forms into: its JIT parameter `cache_dir` (its own rule:
+    $XDG_CACHE_HOME/fenics, by default ~/.cache/fenics, the JSON parameter files of
+    dolfinx.jit taking priority)."""
     from dolfinx import jit
     return str(jit.get_parameters()["cache_dir"])
 
