@@ -12,8 +12,31 @@ The names below (`from membranes import scenes, solve`) are imported when first 
 """
 
 import importlib
+import importlib.util
+import os
+import sys
 
 __version__ = "0.2.0"
+
+
+def _forms_beside():
+    """The UFL forms, `forms/` (UFL only), are imported as `membranes.forms`: an install holds
+    them there (pyproject.toml), the source tree beside this package, where they are loaded
+    under that name here. Not as a top-level `forms`, which a user's own forms.py beside
+    their script would shadow (`from membranes import solve` failed in such a folder)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    root = os.path.join(os.path.dirname(here), "forms")
+    if os.path.isdir(os.path.join(here, "forms")) or "membranes.forms" in sys.modules:
+        return
+    spec = importlib.util.spec_from_file_location(
+        "membranes.forms", os.path.join(root, "__init__.py"), submodule_search_locations=[root])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    globals()["forms"] = module          # (as the import system sets a loaded submodule)
+
+
+_forms_beside()
 
 # name -> (module, attribute; None: the module itself)
 _EXPORTS = {"solve": ("membranes.app.driver", "solve"),

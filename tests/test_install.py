@@ -24,13 +24,14 @@ pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1,
 
 
 def _modules():
-    """Paths (relative to ROOT, '/'-separated) of every module of the two packages (they hold
-    no other files: the code reads nothing else from its own folders)."""
+    """Paths in the wheel ('/'-separated) of every module of membranes/ and forms/ (they hold
+    no other files: the code reads nothing else from its own folders); forms/ is the package
+    membranes.forms."""
     found = set()
-    for package in ("membranes", "forms"):
+    for package, into in (("membranes", "membranes"), ("forms", "membranes/forms")):
         for folder, _, files in os.walk(os.path.join(ROOT, package)):
-            found |= {os.path.relpath(os.path.join(folder, f), ROOT).replace(os.sep, "/")
-                      for f in files if f.endswith(".py")}
+            found |= {into + "/" + os.path.relpath(os.path.join(folder, f), os.path.join(
+                ROOT, package)).replace(os.sep, "/") for f in files if f.endswith(".py")}
     return found
 
 
@@ -59,7 +60,8 @@ def test_wheel_holds_every_file_the_code_needs(wheel):
         names = set(z.namelist())
         info = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
         entry_points = z.read(info).decode()
-    shipped = {n for n in names if n.split("/")[0] in ("membranes", "forms")}
+    shipped = {n for n in names if n.split("/")[0] == "membranes"}
+    assert not any(n.startswith("forms/") for n in names)      # (no top-level `forms`)
     assert _modules() <= shipped, sorted(_modules() - shipped)
     assert "membranes/app/render.py" in shipped          # run by its path as a script
     assert "membranes = membranes.app.cli:main" in entry_points
@@ -110,18 +112,33 @@ def test_installed_package_runs_outside_the_tree(wheel, tmp_path):
         return proc.stdout
 
     from membranes.app.warmup import stamp
-    where = json.loads(run("-c", "import json, forms, membranes; "
+    where = json.loads(run("-c", "import json, membranes.forms; "
                            "from membranes.app.warmup import stamp; "
-                           "print(json.dumps([membranes.__file__, forms.__file__, "
+                           "print(json.dumps([membranes.__file__, membranes.forms.__file__, "
                            "str(stamp(['disk', 'square']))]))"))
     assert where[0] == str(site / "membranes" / "__init__.py")
-    assert where[1] == str(site / "forms" / "__init__.py")
+    assert where[1] == str(site / "membranes" / "forms" / "__init__.py")
     assert where[2] == str(stamp(["disk", "square"]))
     summary = json.loads(run("-m", "membranes.app.cli", "solve", "--scene", "disk", "--h",
                              "0.5", "--levels", "1", "--out", "out", "--quiet"))
     assert summary["converged"] and summary["eta"] >= summary["energy_error"] > 0
     assert sorted(os.listdir(work / "out")) == ["history.csv", "solution.h5", "solution.xdmf",
                                                  "summary.json"]
+
+
+def test_a_forms_module_of_the_users_does_not_shadow_ours(tmp_path):
+    """A user's own forms.py (a natural name for one's UFL forms) beside their script, from
+    the source tree (installed, the forms are membranes/forms/: the test above): the script's
+    solve converges. The UFL forms were a top-level package `forms`, which the script's folder
+    shadowed: `from membranes import solve` met "'forms' is not a package"."""
+    (tmp_path / "forms.py").write_text("raise ImportError('the user forms.py was imported')\n")
+    (tmp_path / "script.py").write_text("from membranes import scenes, solve\n"
+                                        "print(solve(scenes.disk(h=0.5, levels=0)).converged)\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
+    env.update(PYTHONPATH=ROOT, OMP_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, "script.py"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert (proc.returncode, proc.stdout) == (0, "True\n"), proc.stderr[-3000:]
 
 
 def test_dolfinx_release_is_checked_first():

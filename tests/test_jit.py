@@ -17,8 +17,8 @@ from dolfinx import fem, mesh
 from mpi4py import MPI
 
 import membranes.fem  # noqa: F401  (installs the lookups)
-from forms.membrane import contact_term, membrane_linear
 from membranes.fem import jit
+from membranes.forms.membrane import contact_term, membrane_linear
 
 
 @pytest.fixture

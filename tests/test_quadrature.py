@@ -102,9 +102,9 @@ def test_energy_error_integrates_cut_cells_with_the_composite_rule():
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from forms.estimators import energy_squared
     from membranes.estimation.energy_error import EnergyError
     from membranes.fem.quadrature import DATA_DEGREE
+    from membranes.forms.estimators import energy_squared
 
     from .conftest import solved
     sol = solved("disk", 0.2)

@@ -69,11 +69,16 @@ def warm_scene(name, comm=MPI.COMM_SELF):
 def stamp(names):
     """The stamp file of a warm-up of scenes `names` with the code as it is now."""
     import dolfinx
-    root = Path(__file__).resolve().parents[2]
+
+    import membranes.forms
+    package = Path(__file__).resolve().parents[1]
+    forms = Path(membranes.forms.__file__).resolve().parent    # (beside it in the source tree)
     digest = hashlib.sha1(dolfinx.__version__.encode())
-    for path in sorted((root / "forms").glob("*.py")) + \
-            sorted((root / "membranes").rglob("*.py")):
-        digest.update(path.relative_to(root).as_posix().encode())
+    for path in sorted(forms.glob("*.py")):
+        digest.update(f"forms/{path.name}".encode())
+        digest.update(path.read_bytes())
+    for path in sorted(p for p in package.rglob("*.py") if forms not in p.parents):
+        digest.update(f"membranes/{path.relative_to(package).as_posix()}".encode())
         digest.update(path.read_bytes())
     from ..fem.jit import cache_folder
     return Path(cache_folder()) / f"membranes-warm-{'-'.join(names)}-{digest.hexdigest()[:16]}"

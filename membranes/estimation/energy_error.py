@@ -16,9 +16,8 @@ the estimators of §7 bound it.
 import numpy as np
 import ufl
 
-from forms.estimators import energy_squared
-
 from ..fem.quadrature import over
+from ..forms.estimators import energy_squared
 from .cell_forms import CellForm, global_sums
 
 

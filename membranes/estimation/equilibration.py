@@ -39,9 +39,8 @@ import ufl
 from mpi4py import MPI
 from petsc4py import PETSc
 
-import forms.equilibration as equilibration_forms
-
 from ..fem.discretisation import boundary_dofs, ghosted_vector
+from ..forms import equilibration as equilibration_forms
 from .cell_forms import compiled
 from .divergence import assemble, check, largest
 from .patches import PatchSystems, colour_vertices, local_vec

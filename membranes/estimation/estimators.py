@@ -49,7 +49,8 @@ import numpy as np
 import ufl
 from mpi4py import MPI
 
-from forms.estimators import (
+from ..fem.quadrature import over
+from ..forms.estimators import (
     FLUX_RULE,
     P1_RULE,
     cell_norm_squared,
@@ -61,8 +62,6 @@ from forms.estimators import (
     recovery_load,
     weighted_norm_squared,
 )
-
-from ..fem.quadrature import over
 from ..model.checks import check_force_scale
 from .cell_forms import CellForm, chunks, compiled, global_sums
 from .equilibration import nodal_function

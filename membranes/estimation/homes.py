@@ -21,8 +21,7 @@ import ufl
 from mpi4py import MPI
 from petsc4py import PETSc
 
-import forms.equilibration as equilibration_forms
-
+from ..forms import equilibration as equilibration_forms
 from .congruence import DG, INTERIOR, _kind, patch_keys
 from .exchange import (
     Shared,

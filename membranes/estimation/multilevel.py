@@ -93,11 +93,10 @@ import scipy.sparse as sp
 import ufl
 from petsc4py import PETSc
 
-import forms.equilibration as equilibration_forms
-from forms.membrane import membrane_linear
-
 from ..fem.discretisation import boundary_dofs, ghosted_vector
 from ..fem.meshes import cell_vertices, owned_cells, triangle_areas
+from ..forms import equilibration as equilibration_forms
+from ..forms.membrane import membrane_linear
 from .classes import ClassStore
 from .congruence import dof_transformation, piola_reference_block
 from .lifting import mass_inverse

@@ -21,8 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import ufl
 
-from forms.membrane import contact_term, membrane_bilinear, membrane_linear
-
+from ..forms.membrane import contact_term, membrane_bilinear, membrane_linear
 from .meshes import on_boundary
 from .quadrature import data_measures, load, over
 

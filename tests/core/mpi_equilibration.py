@@ -128,7 +128,7 @@ class Compatible:
         """(max_K ‖∇·σ - (Π f ± λ - r)‖_K, max_K ‖Π f ± λ - r‖_K) over all processes."""
         from dolfinx import fem
 
-        from forms.estimators import cell_norm_squared
+        from membranes.forms.estimators import cell_norm_squared
         w = ufl.TestFunction(fem.FunctionSpace(self.mesh, ("DG", 0)))
         target = self.Pf + self.sign(alpha) * self.lam - self.r[alpha]
         e = assembled(cell_norm_squared(ufl.div(sigma) - target, w))

@@ -38,7 +38,7 @@ def cell_measures(sigma, r):
     from dolfinx import fem
     from dolfinx.fem.petsc import assemble_vector
 
-    from forms.estimators import cell_norm_squared
+    from membranes.forms.estimators import cell_norm_squared
     mesh = r.function_space.mesh
     w = ufl.TestFunction(fem.FunctionSpace(mesh, ("DG", 0)))
     n = mesh.topology.index_map(2).size_local

@@ -106,7 +106,7 @@ def _full_matrix(W):
     from dolfinx import fem
     from dolfinx.fem.petsc import assemble_matrix
 
-    import forms.equilibration as equilibration_forms
+    import membranes.forms.equilibration as equilibration_forms
     (sigma, gamma), (tau, q) = ufl.TrialFunctions(W), ufl.TestFunctions(W)
     A = assemble_matrix(fem.form(equilibration_forms.patch_system(sigma, gamma, tau, q,
                                                                   ufl.dx(domain=W.mesh))))

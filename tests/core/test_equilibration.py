@@ -17,7 +17,7 @@ import pytest
 import ufl
 from mpi4py import MPI
 
-import forms.equilibration as equilibration_forms
+import membranes.forms.equilibration as equilibration_forms
 from membranes.estimation.patches import PatchSystems, colour_vertices
 from tests.conftest import mpirun
 
