@@ -266,6 +266,37 @@ def test_an_error_of_several_lines_is_said_in_one(monkeypatch, capsys):
     assert capsys.readouterr().err == "membranes: error: first line second line\n"
 
 
+@pytest.mark.parametrize("kind", ["numpy", "petsc"])
+def test_running_out_of_memory_is_one_line(kind, monkeypatch, capsys):
+    """An allocation that fails during the run, numpy's MemoryError or PETSc's own error
+    (under `ulimit -v`, which the size checks do not count: the run's failures were a
+    traceback, exit 1, or hypre's MPI_Abort): one line naming it and the process's limits,
+    exit 2. PETSc's is met for real, under an address-space limit set here for a moment."""
+    import resource
+
+    from petsc4py import PETSc
+
+    from membranes.app import cli, driver
+
+    def failing_solve(problem, **kwargs):
+        if kind == "numpy":
+            raise MemoryError("Unable to allocate 8 GiB")
+        soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+        with open("/proc/self/status") as f:
+            size = next(int(line.split()[1]) for line in f if line.startswith("VmSize"))
+        resource.setrlimit(resource.RLIMIT_AS, ((size << 10) + (64 << 20), hard))
+        try:
+            PETSc.Vec().createSeq(1 << 27)          # 1 GiB of doubles
+        finally:
+            resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+    monkeypatch.setattr(driver, "solve", failing_solve)
+    assert cli.main(["solve", "--quiet", "--h", "0.4"]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    what = "Unable to allocate 8 GiB" if kind == "numpy" else "PETSc could not allocate memory"
+    assert err == f"membranes: error: out of memory ({what})\n"
+
+
 # (argv after `solve`; the scene and its arguments `scenes.make` gets; the arguments `solve`
 # gets besides the problem) for one run of each kind, every option given a value other than
 # its default

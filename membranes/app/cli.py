@@ -439,15 +439,28 @@ def _ended(argv, world, errors):
         return code
     except ValueError as e:   # BadInput and every data/mesh error of the API
         return _one_line(world, errors, e, EXIT_BAD_INPUT)
+    except MemoryError as e:  # a size beyond memory that the checks let through (a limit)
+        return _out_of_memory(world, errors, str(e) or "an allocation failed")
     except BrokenPipeError:
         raise
     except Exception as e:
+        if "PetscMallocA()" in str(e):       # PETSc's (a petsc4py.PETSc.Error with its trace)
+            return _out_of_memory(world, errors, "PETSc could not allocate memory")
         if isinstance(e, ImportError) and e.name == "dolfinx" \
                 and str(e).startswith("membranes needs"):       # fem.require_dolfinx
             return _one_line(world, errors, e, 1)
         import traceback
         _leave(errors, 1, traceback.print_exc)
         raise
+
+
+def _out_of_memory(world, errors, what):
+    """A size beyond memory met during the run (the checks before it count what the node
+    has, not a process's own limits, `checks.own_limits`): said as bad input, in one line."""
+    from ..model.checks import own_limits
+    limits = own_limits()
+    return _one_line(world, errors, f"out of memory ({what})" +
+                     (f"; this process's limits: {limits}" if limits else ""), EXIT_BAD_INPUT)
 
 
 def _signalled(e, world, errors):
