@@ -86,19 +86,21 @@ def projection(f, Q, dx):
 
 
 class Compatible:
-    """u, λ, f, and per membrane α the residual R_α (owned), r_α (DG1), Π f (DG1)."""
+    """u, λ, f, and per membrane α the residual R_α (owned), r_α (DG1), Π f (DG1); f times
+    `load`, u interpolated from `u_of` (points (3, n) → values) if given."""
 
-    def __init__(self, mesh):
+    def __init__(self, mesh, load=1.0, u_of=None):
         from dolfinx import fem
 
         from membranes.estimation.lifting import Lifting
         self.mesh = mesh
         self.V = V = fem.FunctionSpace(mesh, ("Lagrange", 1))
         x = ufl.SpatialCoordinate(mesh)
-        self.f = 10.0 * ufl.sin(3.0 * x[0]) * ufl.exp(x[1]) + 1.0
+        self.f = load * (10.0 * ufl.sin(3.0 * x[0]) * ufl.exp(x[1]) + 1.0)
         self.dx_data = ufl.dx(domain=mesh, metadata=DATA)
         self.u = fem.Function(V)
-        self.u.interpolate(lambda p: np.cos(2.0 * p[0]) * p[1] + p[0] ** 2 + 0.3 * p[0] * p[1])
+        self.u.interpolate(u_of if u_of is not None else
+                           lambda p: np.cos(2.0 * p[0]) * p[1] + p[0] ** 2 + 0.3 * p[0] * p[1])
         self.lam = fem.Function(V)
         self.lam.interpolate(lambda p: 4.0 * np.maximum(1.0 - p[0] ** 2 - p[1] ** 2, 0.0)
                              * p[0] * (1.0 - p[0]) * (1.0 + p[1]) ** 2)
@@ -168,8 +170,30 @@ def straddling(eq):
     return count(eq.comm, patches)
 
 
+def reductions(comm):
+    """`divergence.check` on P processes: the largest defect and the largest scale over the
+    processes decide. Process p has defect (p + 1) 1e-10 and scale p + 1, so the relative
+    defect is P 1e-10 / P = 1e-10 (to round-off), whatever P; a defect on the last process
+    only is refused by every process. Returns the relative defect."""
+    from membranes.estimation import divergence
+    relative = divergence.check((comm.rank + 1) * 1e-10, comm.rank + 1.0, comm, "test")
+    assert abs(relative - 1e-10) <= 1e-25, relative
+    try:
+        divergence.check(1.0 if comm.rank == comm.size - 1 else 0.0, 1.0, comm, "one flux")
+    except RuntimeError:
+        refused = True
+    else:
+        refused = False
+    assert refused, "a defect on one process passed the check"
+    return relative
+
+
 def main(mode):
     comm = MPI.COMM_WORLD
+    if mode == "equilibration":
+        relative = reductions(comm)
+        if comm.rank == 0:
+            print(f"OK check P={comm.size} relative={relative:.3e}", flush=True)
     meshes = [("square", square), ("disk", disk)]
     if mode == "equilibration":
         meshes.append(("ghosted", ghosted_square))

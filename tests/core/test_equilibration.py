@@ -295,6 +295,39 @@ def test_the_check_lies_between_round_off_and_small_defects(monkeypatch):
         monkeypatch.undo()
 
 
+def test_the_check_is_relative_and_refuses_nan():
+    """`divergence.check` compares the defect with TOLERANCE times the scale, not with
+    TOLERANCE alone: a defect of 1e-6 against right-hand sides of 1e3 (relative 1e-9) passes
+    and returns 1e-9, one of 1e-9 against right-hand sides of 1e-3 (relative 1e-6) is refused
+    although it is below TOLERANCE in absolute terms; a `tolerance` given replaces TOLERANCE;
+    with no scale (zero data) the defect itself is compared; and a NaN defect (a solve gone
+    wrong) is refused, never taken for a small one."""
+    from membranes.estimation import divergence
+    comm = MPI.COMM_WORLD
+    assert divergence.check(1e-6, 1e3, comm, "large data") == pytest.approx(1e-9, rel=1e-15)
+    with pytest.raises(RuntimeError, match="small data violates its divergence identity"):
+        divergence.check(1e-9, 1e-3, comm, "small data")
+    assert divergence.check(1e-9, 1e-3, comm, "accounted", tolerance=1e-4) == \
+        pytest.approx(1e-6, rel=1e-15)
+    with pytest.raises(RuntimeError, match="divergence identity"):
+        divergence.check(1e-6, 0.0, comm, "zero data")
+    for scale in (1.0, 0.0):
+        with pytest.raises(RuntimeError, match="divergence identity"):
+            divergence.check(float("nan"), scale, comm, "NaN")
+
+
+def test_the_check_scales_with_the_right_hand_sides():
+    """The check's scale is the size of the right-hand sides, not only μ max|u|: at u = 0
+    (μ max|u| = 0) the true flux passes with a relative defect at round-off for a load of 1
+    and for a load of 1e9, whose defect is 1e9 times larger in absolute terms (measured
+    5e-7, above TOLERANCE: an absolute check would refuse it)."""
+    for load in (1.0, 1e9):
+        data = Compatible(square(MPI.COMM_WORLD, 6), load=load, u_of=lambda p: 0.0 * p[0])
+        assert np.all(data.u.x.array == 0.0)
+        eq, _ = equilibrate(data)
+        assert 0.0 <= eq.defect <= ROUND_OFF
+
+
 # ## The forms are those of forms/equilibration.py
 
 def test_forms_drive_the_result(monkeypatch):
@@ -343,6 +376,28 @@ def test_colouring_generic():
     assert np.all((c[:, 0] != c[:, 1]) & (c[:, 1] != c[:, 2]) & (c[:, 0] != c[:, 2]))
 
 
+def test_new_data_measures_drop_the_kept_loads():
+    """`use_data_measures` drops the Loads made with the old measures (a kept set-up,
+    membranes.app.setups): the residuals of `Compatible` were assembled with the degree-6
+    rule, so the interior patches are compatible only with loads integrated by it. After a
+    switch to the one-point rule σ_disc fails its divergence check (a quadrature error of
+    the load: measured 2.7e-3 of the right-hand sides, far above TOLERANCE), although f is
+    the expression whose Load the first call kept; back on the degree-6 rule it passes
+    again, with the σ of the first call."""
+    from membranes.estimation.divergence import TOLERANCE
+    data = Compatible(square(MPI.COMM_WORLD, 6))
+    eq, sigmas = equilibrate(data)
+    assert eq.defect <= ROUND_OFF
+    eq.use_data_measures([ufl.dx(domain=data.mesh, metadata={"quadrature_degree": 1})])
+    with pytest.raises(RuntimeError, match="divergence identity"):
+        eq.sigma(1, data.u, data.lam, data.r[1], data.f, MU)
+    eq.use_data_measures([data.dx_data])
+    again = eq.sigma(1, data.u, data.lam, data.r[1], data.f, MU)
+    assert eq.defect <= ROUND_OFF < TOLERANCE
+    assert np.allclose(again.x.array, sigmas[1].x.array, rtol=0,
+                       atol=ROUND_OFF * np.abs(sigmas[1].x.array).max())
+
+
 def test_sigma_api_errors(data, fluxes):
     eq, _ = fluxes
     with pytest.raises(ValueError):
@@ -364,8 +419,13 @@ def run_mpi(n, *extra):
 def test_parallel_equals_serial(nproc, extra):
     """On P processes (the square, the disk, and the square with ghost cells): divergence
     identity to round-off, the same σ as in serial (norms and moments to 1e-11), and patches
-    that straddle processes (the script asserts all three)."""
+    that straddle processes (the script asserts all three); and the divergence check reduces
+    its defect and its scale by their largest values over the processes
+    (mpi_equilibration.reductions)."""
     lines = run_mpi(nproc, *extra)
+    assert [line.split()[:3] for line in lines if line.startswith("OK check")] == \
+        [["OK", "check", f"P={nproc}"]], lines
+    lines = [line for line in lines if line.startswith("OK equilibration")]
     assert len(lines) == 6, lines
     for line in lines:
         fields = dict(item.split("=") for item in line.split()[3:])

@@ -531,7 +531,10 @@ def test_one_kernel_for_every_chunk_count(setup):
 def test_compiled_chunks_equal_forms(setup):
     """`cell_forms.compiled` (one JIT lookup for all the chunks of a form) makes the forms
     that `dolfinx.fem.form` makes chunk by chunk: the same vector to the last bit, for a form
-    with coefficients and constants (the coefficients' order comes from the first chunk)."""
+    with coefficients and constants (the coefficients' order comes from the first chunk). The
+    form's first coefficient z drops out when UFL applies the derivative in it, so the
+    compiled form's coefficients are the form's second and third (FFCx's
+    original_coefficient_position is not the identity)."""
     import ufl
     from dolfinx import fem
 
@@ -539,11 +542,16 @@ def test_compiled_chunks_equal_forms(setup):
     disc = setup[0]
     V = fem.VectorFunctionSpace(disc.mesh, ("DG", 0), dim=2)
     w = ufl.TestFunction(V)
+    z = fem.Function(fem.FunctionSpace(disc.mesh, ("DG", 1)))
     a, b = fem.Function(disc.V), fem.Function(fem.FunctionSpace(disc.mesh, ("RT", 2)))
+    z.x.array[:] = 7.0
     a.x.array[:] = np.sin(np.arange(a.x.array.size))
     b.x.array[:] = np.cos(np.arange(b.x.array.size))
     c = fem.Constant(disc.mesh, 3.0)
-    form = (c * a * a * w[0] + ufl.div(b) * a * w[1]) * ufl.dx(domain=disc.mesh)
+    dx = ufl.dx(domain=disc.mesh)
+    form = (c * a * a * w[0] + ufl.div(b) * a * w[1]) * dx \
+        + ufl.derivative(z * b[0] * w[1] * dx, z, a)            # a b[0] w[1]: z drops out
+    assert form.coefficients()[0] is z
     nc = disc.mesh.topology.index_map(2).size_local
     parts = chunks(form, disc.mesh, size=max(1, nc // 4))
     assert len(parts) >= 4

@@ -92,10 +92,15 @@ def test_canonical_block_is_the_dense_product():
     assert np.abs(got - expected).max() <= 1e-14 * np.abs(expected).max()
 
 
-def test_basis_change_by_runs_is_the_dense_product():
+@pytest.mark.parametrize("chunk", [None, 3])
+def test_basis_change_by_runs_is_the_dense_product(monkeypatch, chunk):
     """BasisChange (G and Gᵀ by slices over runs of patches of one shape) equals the dense G
     built from the codes, for patches in canonical order (facets, interior pairs, DG) of three
-    shapes, two runs of one of them."""
+    shapes, two runs of one of them; also with the 2 × 2 blocks applied 3 patches at a time
+    (APPLY_CHUNK, 2¹⁵ in a run: runs of 4 patches then take two passes, as the runs of large
+    meshes do)."""
+    if chunk is not None:
+        monkeypatch.setattr(engine, "APPLY_CHUNK", chunk)
     _, blocks = basis_changes(mixed_space(_square(2)))
     rng = np.random.default_rng(5)
     code, offsets = [], [0]
@@ -132,6 +137,48 @@ def test_basis_changes_are_integer_and_invertible():
     assert np.array_equal(blocks[0], np.eye(2))        # vertices already in order: identity
 
 
+def test_a_vertex_order_not_global_is_counted_as_disagreement(monkeypatch):
+    """The count of facet dofs on whose canonical function the two cells of the facet
+    disagree (`canonical_dofs`; the tests above assert it is 0) sees an order that is not a
+    global one: with every cell's first two canonical vertices swapped (the table of orders
+    by ranks permuted), two cells along a facet see its vertices in opposite orders wherever
+    their third vertices fall on different sides, so the count is positive on a 4 × 4 square
+    (measured 24)."""
+    from dolfinx import fem
+    V = fem.FunctionSpace(_square(4), ("Lagrange", 1))
+    assert FluxEquilibration(V).summary()["sharing"]["disagree"] == 0
+    table = engine._BY_RANKS.copy()
+    for r, p in enumerate(engine._BY_RANKS.tolist()):
+        order = engine.ORDERS[p]
+        table[r] = engine.ORDERS.index((order[1], order[0], order[2]))
+    monkeypatch.setattr(engine, "_BY_RANKS", table)
+    assert FluxEquilibration(V).summary()["sharing"]["disagree"] > 0
+
+
+def test_malformed_blocks_are_refused():
+    """The engine's guards on the CSR rows it transforms and keeps: a patch row with a column
+    of the next patch (one past its last dof, `Blocks.add`), an interior dof of a cell not
+    followed by the cell's other one, and a row that couples the first interior dof of a
+    cell but not the second (`canonical_block`) raise instead of mixing patches or applying
+    a 2 × 2 block to the wrong entries."""
+    _, blocks = basis_changes(mixed_space(_square(2)))
+    full = [[0, 1, 2]] * 3
+    ia, ja, a, offsets = _csr([(full, np.ones(9)), (full, np.ones(9))])
+    assert Blocks().add(ia, ja, a, offsets, np.array([2, 2])).tolist() == [0, 1]
+    ja[2] = 3                                # patch 0's first row: the first dof of patch 1
+    with pytest.raises(RuntimeError, match="couples two patches"):
+        Blocks().add(ia, ja, a, offsets, np.array([2, 2]))
+    pair = [(INNER << 2) | (1 << engine.BLOCK), (INNER << 2) | 1 | (1 << engine.BLOCK)]
+    code = np.array(pair + [FACET << 2])
+    ia, ja, a, _ = _csr([(full, np.arange(9.0))])
+    canonical_block(ia, ja, a, code, blocks)                            # well formed
+    with pytest.raises(RuntimeError, match="not adjacent"):
+        canonical_block(ia, ja, a, code[[0, 2, 1]], blocks)
+    ia, ja, a, _ = _csr([([[0, 1], [0, 1], [0, 2]], np.arange(6.0))])   # row 2: dof 0, not 1
+    with pytest.raises(RuntimeError, match="couples one interior dof"):
+        canonical_block(ia, ja, a, code, blocks)
+
+
 # ## Classes
 
 def _csr(blocks):
@@ -152,8 +199,9 @@ def test_keys_of_translates_agree():
     """Keys are equal for a translated patch (positions shifted by far more than the grid,
     with round-off), and differ for another shape, another code or a moved entity: moved
     along DIRECTION, across it, or mirrored in a line along it (the positions are (along,
-    across) pairs: the mirror image changes the second coordinate only). 1e-3 h is ~7e7
-    grid units, far from any rounding boundary."""
+    across) pairs: the mirror image changes the second coordinate only). Positions count in
+    units of the patch's h: the patch scaled with its h by 1e-6 keeps its key. 1e-3 h is
+    ~7e7 grid units, far from any rounding boundary."""
     rng = np.random.default_rng(4)
     code = np.array([0, 1, 0, 1, (INNER << 2), (INNER << 2) | 1, 8, 9, 10])
     point = rng.random((9, 2))
@@ -173,6 +221,10 @@ def test_keys_of_translates_agree():
     other[6] ^= engine.INTERIOR
     assert engine.patch_keys(offsets, other, point, h) != key
     assert engine.patch_keys(offsets, code, point * 2.0, h) != key
+    # positions in units of h: a mesh in other units (all lengths times 1e-6) gets the same
+    # keys, and still tells a moved entity apart
+    assert engine.patch_keys(offsets, code, point * 1e-6, h * 1e-6) == key
+    assert engine.patch_keys(offsets, code, moved * 1e-6, h * 1e-6) != key
     two = engine.patch_keys(np.array([0, 9, 18]), np.tile(code, 2),
                             np.vstack([point, shifted]), np.array([0.25, 0.25]))
     assert two[0] == two[1] == key[0]
