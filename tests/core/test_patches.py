@@ -199,9 +199,10 @@ def test_keys_of_translates_agree():
     """Keys are equal for a translated patch (positions shifted by far more than the grid,
     with round-off), and differ for another shape, another code or a moved entity: moved
     along DIRECTION, across it, or mirrored in a line along it (the positions are (along,
-    across) pairs: the mirror image changes the second coordinate only). Positions count in
-    units of the patch's h: the patch scaled with its h by 1e-6 keeps its key. 1e-3 h is
-    ~7e7 grid units, far from any rounding boundary."""
+    across) pairs: the mirror image changes the second coordinate only), or mirrored in a
+    line at 45° to it (the two coordinates swap: a key must not be symmetric in them).
+    Positions count in units of the patch's h: the patch scaled with its h by 1e-6 keeps
+    its key. 1e-3 h is ~7e7 grid units, far from any rounding boundary."""
     rng = np.random.default_rng(4)
     code = np.array([0, 1, 0, 1, (INNER << 2), (INNER << 2) | 1, 8, 9, 10])
     point = rng.random((9, 2))
@@ -217,6 +218,7 @@ def test_keys_of_translates_agree():
     across[2, 1] += 1e-3 * h[0]
     assert engine.patch_keys(offsets, code, across, h) != key
     assert engine.patch_keys(offsets, code, point * [1.0, -1.0], h) != key
+    assert engine.patch_keys(offsets, code, point[:, ::-1].copy(), h) != key    # (along ↔ across)
     other = code.copy()
     other[6] ^= engine.INTERIOR
     assert engine.patch_keys(offsets, other, point, h) != key
