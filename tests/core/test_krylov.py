@@ -68,6 +68,37 @@ def test_fischer_burmeister_kink_element_is_in_the_clarke_jacobian():
     assert xi ** 2 + zeta ** 2 <= 1 + 1e-15 and xi == zeta == cfunctions.FB_KINK
 
 
+def test_fischer_burmeister_kink_element_is_the_limit_along_the_diagonal():
+    """At the kink FB's row is the limit of its gradient along a = b > 0 (module notes of
+    cfunctions), which is 1/√2 - 1 in both entries at every a = b > 0 (the gradient is
+    homogeneous of degree 0): the element at (0, 0) agrees with it to round-off of the
+    division a/ρ (a few ulps), not merely with any element of the Clarke Jacobian."""
+    at_kink = cfunctions.jacobian_fb(np.zeros(1), np.zeros(1))
+    for t in (1e-3, 1.0, 1e3):
+        on_diagonal = cfunctions.jacobian_fb(np.full(1, t), np.full(1, t))
+        for k, d in zip(at_kink, on_diagonal):
+            assert abs(k[0] - d[0]) <= 4 * np.finfo(float).eps
+
+
+@pytest.mark.parametrize("name", ["min", "fb"])
+def test_c_functions_are_homogeneous_over_the_whole_double_range(name):
+    """C is positively homogeneous of degree 1 and its Jacobian row of degree 0 (§3, §11: the
+    data, and so the iterates, may be rescaled): C(t a, t b) = t C(a, b) and J(t a, t b) =
+    J(a, b) for t = 2^±1000, where a², b² overflow or underflow (FB is computed with hypot
+    for that). Scaling by a power of 2 is exact, so only the rounding of hypot and of the
+    sums differs: a few ulps of |a| + |b|. (ρ = hypot(a, b) is far from 0 at t = 2^-1000: the
+    kink element is taken at ρ = 0 only.)"""
+    a = np.array([3.0, -1.0, 0.5, 0.0, 2.0, -4.0, 1e-3])
+    b = np.array([4.0, 2.0, -7.0, 3.0, 0.0, -5.0, 2e-3])
+    C, J = cfunctions.get(name)
+    size = np.abs(a) + np.abs(b)
+    for t in (2.0 ** -1000, 2.0 ** 1000):
+        scaled = C(t * a, t * b) / t
+        assert np.all(np.abs(scaled - C(a, b)) <= 4 * np.finfo(float).eps * size), (t, scaled)
+        for row, ref in zip(J(t * a, t * b), J(a, b)):
+            assert np.all(np.abs(row - ref) <= 4 * np.finfo(float).eps), (t, row, ref)
+
+
 def test_min_kink_takes_the_row_of_the_gap():
     # §3: at a = b the Clarke row of min is e1 - e2 (α = 1, β = 0); with the scale κ the
     # kink is a = κ λ (b = 2 here, κ = 0.75, a = 1.5 exactly), also at a = κ λ = 0
@@ -316,6 +347,63 @@ def test_callback_every_nu_iterations_sees_the_true_residual():
     sys_.destroy()
 
 
+def test_callback_once_per_multiple_of_nu_across_a_gmres_restart():
+    """GMRES(30) calls the convergence test twice at iteration 30, at the end of a cycle and
+    at the start of the next, with the same iterate: the test skips the second call, so the
+    adaptive variant estimates X^{k,30} once (a second call recorded it twice in the step's
+    history, at twice an estimate's cost)."""
+    disc, sys_, lin, step = _step()
+    seen = []
+
+    def on_iterate(i, y, r):
+        seen.append(i)
+        return i == 40
+
+    solver = LinearSolver(Krylov("paper", nu=10), disc.comm)
+    y = step.guess(contact_iterate("disk", "min"))
+    its, reason, ok, norm = solver.solve(step, y, EXACT_TOL * lin.norm_B, 1, on_iterate)
+    assert ok and its == 40 and reason == "CONVERGED_ITS"
+    assert seen == [10, 20, 30, 40]
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
+def test_exact_test_accepts_the_initial_guess():
+    """Exact Newton tests the initial guess itself (every = 1, module notes of krylov): a
+    guess that meets the bound ends the solve after no iteration (Newton then reports the
+    step as stalled, not a step that moved), where every = ν does not test it (the test
+    above)."""
+    disc, sys_, lin, step = _step()
+    solver = LinearSolver("paper", disc.comm)
+    y = step.guess(contact_iterate("disk", "min"))
+    its, reason, ok, norm = solver.solve(step, y, EXACT_TOL * lin.norm_B)
+    assert ok and its > 0
+    its, reason, ok, again = solver.solve(step, y, 1e-6 * lin.norm_B)     # from its answer
+    assert (its, reason, ok) == (0, "CONVERGED_ATOL", True) and again == norm
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
+def test_a_positive_petsc_reason_is_no_convergence_without_the_bound():
+    """A KSP may end with a positive reason of its own that is no solve: a trust-region CG
+    (-ksp_type stcg with a radius) stops on its radius after one step with
+    CONVERGED_CG_CONSTRAINED, its residual still about the right-hand side's. The solve
+    counts as converged only where our test decided (the bound met, or the callback's stop),
+    so this one fails."""
+    disc, sys_, lin, step = _step()
+    options = {"ksp_type": "stcg", "ksp_cg_radius": 1e-3, "pc_type": "jacobi",
+               "ksp_pc_side": "left", "ksp_norm_type": "preconditioned"}
+    solver = LinearSolver(Krylov("paper", options), disc.comm)
+    y = step.guess(contact_iterate("disk", "min"))
+    its, reason, ok, norm = solver.solve(step, y, EXACT_TOL * lin.norm_B)
+    assert reason == "CONVERGED_CG_CONSTRAINED" and norm > 1e-3 * lin.norm_B and not ok
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
 def test_exact_tolerance_is_met_by_the_true_residual():
     disc, sys_, lin, step = _step("fb")
     solver = LinearSolver("paper", disc.comm)
@@ -482,5 +570,8 @@ def test_bad_krylov_specs(kwargs, message):
 
 
 def test_options_petsc_refuses():
-    with pytest.raises(ValueError, match="PETSc options"):
+    """PETSc's own reason is the message: the last line of its error, not its 'error code'
+    line nor the traceback."""
+    with pytest.raises(ValueError, match="^PETSc options: Unable to find requested KSP type "
+                                         "no_such_method$"):
         LinearSolver(Krylov("paper", {"ksp_type": "no_such_method"}), disc_of("disk", 0.1).comm)
