@@ -108,8 +108,11 @@ def test_min_kink_takes_the_row_of_the_gap():
 
 
 def test_unknown_c_function():
-    with pytest.raises(ValueError, match="C-function"):
-        cfunctions.get("max")
+    """`get` is the API's check of `cfun`: ValueError for an unknown name, and for a value
+    that is no key at all (unhashable: a list)."""
+    for name in ("max", ["min"], {"fb": 1}):
+        with pytest.raises(ValueError, match="unknown C-function"):
+            cfunctions.get(name)
 
 
 # ## The Newton systems (§2, §3, §4)
@@ -151,10 +154,17 @@ def test_full_and_eliminated_systems(scene, cfun):
         y = step.guess(Y)
         Z, R = disc.vector3(), disc.vector3()
         step.expand(y, Z)
-        step.residual(y, R)
+        norm = step.residual(y, R)
         ref = independent_residual(disc, Z, lin.B3, lin.alpha, lin.beta)
         scale = np.abs(ref).max()
         assert np.abs(R.array_r - ref).max() <= 1e-13 * scale
+        # the same R from the weighted residual b - A y the solver made (`rw`, as the
+        # adaptive variant hands it): W⁻¹ rw, the same operations, so exactly equal
+        rw, again = step.b.duplicate(), disc.vector3()
+        step.A.mult(y, rw)
+        rw.aypx(-1.0, step.b)
+        assert step.residual(y, again, rw=rw) == norm
+        assert np.array_equal(again.array_r, R.array_r)
         if step.system == "eliminated":         # R3 = 0: complementarity rows hold exactly
             assert np.abs(ref[2 * disc.n:]).max() <= 1e-13 * np.abs(Z.array_r).max()
     # the operator and the assembled matrix: the same right-hand side, and products equal to
@@ -404,6 +414,27 @@ def test_a_positive_petsc_reason_is_no_convergence_without_the_bound():
     sys_.destroy()
 
 
+def test_a_preconditioned_norm_does_not_gate_the_true_residual_test():
+    """With a preconditioned norm (left ILU, -ksp_norm_type preconditioned) the rnorm PETSc
+    hands the test is ‖M⁻¹ r‖, not comparable with the bound (here larger than ‖r‖: M⁻¹
+    inverts a stiffness matrix): the true residual is tested at every iteration, so the
+    solve stops at the first iterate that meets the bound, and one iteration fewer does not
+    meet it. Gated by rnorm ≤ bound it went on 6 iterations past it."""
+    disc, sys_, lin, step = _step()
+    options = {"ksp_pc_side": "left", "ksp_norm_type": "preconditioned"}
+    solver = LinearSolver(Krylov("paper", options), disc.comm)
+    bound = EXACT_TOL * lin.norm_B
+    y = step.guess(contact_iterate("disk", "min"))
+    its, reason, ok, norm = solver.solve(step, y, bound)
+    assert ok and reason == "CONVERGED_ATOL" and norm <= bound
+    y = step.guess(contact_iterate("disk", "min"))
+    fewer, reason, ok, norm = solver.solve(step, y, bound, max_it=its - 1)
+    assert fewer == its - 1 and not ok and norm > bound, (its, norm / bound)
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
+
+
 def test_exact_tolerance_is_met_by_the_true_residual():
     disc, sys_, lin, step = _step("fb")
     solver = LinearSolver("paper", disc.comm)
@@ -560,6 +591,7 @@ def test_user_options_reach_our_ksp_only():
 @pytest.mark.parametrize("kwargs, message", [
     ({"preset": "gmres"}, "preset"),
     ({"options": {"ksp_atol": 1}}, "ksp_atol"),
+    ({"options": {"-KSP_RTOL": 1}}, "ksp_rtol"),      # PETSc ignores the case of names
     ({"options": {"pc_type": object()}}, "string or number"),
     ({"nu": 0}, "nu"),
     ({"max_it": 2.5}, "max_it"),
@@ -569,9 +601,23 @@ def test_bad_krylov_specs(kwargs, message):
         Krylov(**kwargs)
 
 
+def test_the_description_names_a_direct_solve_by_its_preset_or_options():
+    """The messages that refuse a direct solve for the inexact and adaptive variants name it:
+    the direct preset by its name, another preset made direct by its options."""
+    assert Krylov("direct").description == "'direct'"
+    assert Krylov("paper").description == "'paper'"
+    made_direct = Krylov("paper", {"ksp_type": "preonly", "pc_type": "lu"})
+    assert made_direct.description == "'paper' with -ksp_type preonly"
+
+
 def test_options_petsc_refuses():
     """PETSc's own reason is the message: the last line of its error, not its 'error code'
     line nor the traceback."""
     with pytest.raises(ValueError, match="^PETSc options: Unable to find requested KSP type "
                                          "no_such_method$"):
         LinearSolver(Krylov("paper", {"ksp_type": "no_such_method"}), disc_of("disk", 0.1).comm)
+    # a norm or side the KSP does not support is refused when the solver is configured,
+    # not at the first solve (where it would end the run as a failed Krylov solve)
+    with pytest.raises(ValueError, match="^PETSc options: KSP stcg does not support norm "
+                                         "type UNPRECONDITIONED"):
+        LinearSolver(Krylov("paper", {"ksp_type": "stcg"}), disc_of("disk", 0.1).comm)
