@@ -26,6 +26,7 @@ from membranes.model import scenes
 from membranes.nonlinear.newton import newton
 from membranes.nonlinear.system import NewtonSystem
 from tests.conftest import mpirun
+from tests.core.mpi_newton import make_scene
 from tests.core.mpi_newton import run as mpi_run
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -626,6 +627,29 @@ def test_the_same_solution_on_several_processes(tmp_path, procs, scene, runs, ex
         a, b = parallel[key], serial[f"{spec}/X"]
         assert np.abs(a[:2] - b[:2]).max() <= SAME * u_data
         assert np.abs(a[2] - b[2]).max() <= SAME * lam_data
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches its own MPI run")
+def test_the_mean_gap_split_on_a_process_without_contact(tmp_path):
+    """Newton-min's mean/gap preconditioner solves for λ at the contact vertices with one
+    parallel product S_D δ, made where any process has such a vertex (a collective: every
+    process must take part). On the radial scene with the small contact disk r ≤ 0.1 on 3
+    processes, one process owns no contact vertex: the run converges to the serial solution.
+    Decided on the local contact set alone, that process skipped the product and the run
+    hung."""
+    scene, runs = "radial,rho=0.1", ["amg:min:exact"]
+    done = mpirun([os.path.join(ROOT, "tests", "core", "mpi_newton.py"), tmp_path / "out.npz",
+                   scene, 0.1, *runs], processes=3, timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    line = [json.loads(s) for s in done.stdout.splitlines() if s.startswith("{")][-1]
+    assert line["converged"] and line["processes"] == 3, line
+    assert min(line["contact_per_process"]) == 0 < max(line["contact_per_process"]), line
+    parallel = np.load(tmp_path / "out.npz")
+    serial, _ = mpi_run(scene, 0.1, runs)
+    u_data, lam_data = discretise(make_scene(scene, 0.1)).data_scales()
+    a, b = parallel["amg_min_exact__X"], serial["amg:min:exact/X"]
+    assert np.abs(a[:2] - b[:2]).max() <= SAME * u_data
+    assert np.abs(a[2] - b[2]).max() <= SAME * lam_data
 
 
 @pytest.mark.parametrize("nu", [1, 10])
