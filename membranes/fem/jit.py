@@ -28,8 +28,7 @@ solve with three chained tracebacks. `check_cache` refuses it before any mesh is
 line that says how to choose another (XDG_CACHE_HOME); a read-only cache that already holds
 compiled forms (made beforehand, by `make warmup` in a container image) is accepted, since its
 forms load without a write, and a form missing from it is refused in the same words where FFCx
-would have to compile it (serially; dolfinx reports an error of its JIT on several processes
-as its own RuntimeError).
+would have to compile it, on every process (`_route_collective_errors`).
 """
 
 import errno
@@ -160,3 +159,33 @@ def install():
 
     get_cached_module.membranes = True
     ffcx_jit.get_cached_module = get_cached_module
+    _route_collective_errors()
+
+
+COLLECTIVE = "Failed just-in-time compilation of form: "   # dolfinx.jit's text, every process
+
+
+def _route_collective_errors():
+    """On several processes dolfinx's JIT compiles on process 0 and raises an error met there
+    on every process as a RuntimeError (COLLECTIVE), the others without its text. Where it
+    is a cache folder that cannot be written (`_unwritable`), every process raises that
+    ValueError instead, with process 0's text (one line and exit 2 from the command line,
+    as serially, where FFCx's lookup raises it directly)."""
+    import dolfinx.jit
+    original = dolfinx.jit.ffcx_jit
+    if getattr(original, "membranes", False):
+        return
+
+    def ffcx_jit(comm, *args, **kwargs):
+        try:
+            return original(comm, *args, **kwargs)
+        except RuntimeError as e:
+            if comm.size == 1 or not str(e).startswith(COLLECTIVE):
+                raise
+            said = comm.bcast(str(e)[len(COLLECTIVE):] if comm.rank == 0 else None, root=0)
+            if not said.startswith("the JIT cache folder "):
+                raise
+            raise ValueError(said) from None
+
+    ffcx_jit.membranes = True
+    dolfinx.jit.ffcx_jit = ffcx_jit
