@@ -266,6 +266,25 @@ def test_an_error_of_several_lines_is_said_in_one(monkeypatch, capsys):
     assert capsys.readouterr().err == "membranes: error: first line second line\n"
 
 
+def test_a_home_path_is_expanded(tmp_path, monkeypatch, capsys):
+    """`--out=~/x` (the shell expands a `~` that starts a word, not one after `=`): the
+    outputs go into the home folder's x, as the shell's `--out ~/x` puts them; they went
+    into a folder named `~` in the working folder. The same for every path option."""
+    from membranes.app import cli
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    parse = cli._parser().parse_args
+    home = str(tmp_path / "home")
+    assert parse(["solve", "--out=~/a", "--mesh=~/m.msh"]).out == home + "/a"
+    assert parse(["solve", "--mesh=~/m.msh"]).mesh == home + "/m.msh"
+    assert parse(["report", "--out=~/r"]).out == home + "/r"
+    assert parse(["stability", "--out=~/s"]).out == home + "/s"
+    assert cli.main(["solve", "--quiet", "--h", "0.4", "--out=~/a"]) == 0
+    assert sorted(os.listdir(tmp_path / "home" / "a")) == [
+        "history.csv", "solution.h5", "solution.xdmf", "summary.json"]
+    assert os.listdir(tmp_path) == ["home"]
+
+
 @pytest.mark.parametrize("kind", ["numpy", "petsc"])
 def test_running_out_of_memory_is_one_line(kind, monkeypatch, capsys):
     """An allocation that fails during the run, numpy's MemoryError or PETSc's own error

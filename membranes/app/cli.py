@@ -158,7 +158,7 @@ def _parser():
     s.add_argument("--scene", choices=("disk", "square", "user"),
                    help="disk (default) or square with known exact solutions, or user data "
                         "(implied by --mu1/--mu2/--g/--f1/--f2/--mesh/--domain)")
-    s.add_argument("--mesh", metavar="FILE",
+    s.add_argument("--mesh", metavar="FILE", type=os.path.expanduser,
                    help="2D triangular mesh file, gmsh .msh or XDMF (user scene)")
     s.add_argument("--domain", choices=("disk", "square"),
                    help="domain of the user scene when no --mesh is given (default disk)")
@@ -217,8 +217,8 @@ def _parser():
                         "(estimated); the finest level is certified either way")
     s.add_argument("--coarse-tol", type=float, metavar="TOL",
                    help="--coarse residual: the coarse levels' tolerance (default 1e-6)")
-    s.add_argument("--out", metavar="DIR", help="write summary.json, history.csv, "
-                   "solution.xdmf there")
+    s.add_argument("--out", metavar="DIR", type=os.path.expanduser,    # (--out=~/x too)
+                   help="write summary.json, history.csv, solution.xdmf there")
     s.add_argument("--max-vertices", type=int, metavar="N",
                    help="refuse a computational mesh of more than N vertices (default: "
                         "refuse a run that needs more memory than the processes have)")

@@ -18,7 +18,8 @@ def options(name, description, out_help):
     quiet_jit_logging()
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--quick", action="store_true", help="a coarse mesh (seconds)")
-    parser.add_argument("--out", default=os.path.join("out", "demos", name), help=out_help)
+    parser.add_argument("--out", default=os.path.join("out", "demos", name),
+                        type=os.path.expanduser, help=out_help)
     args = parser.parse_args()
     from ..model.folders import check_output_folder
     try:            # an unwritable or empty --out: one line and exit 2, as the CLI

@@ -519,7 +519,7 @@ def add_parser(sub):
                    help="gmsh target size of the coarse mesh (default 0.16)")
     r.add_argument("--levels", type=int, default=3,
                    help="uniform refinements; the runs compute on the finest mesh (default 3)")
-    r.add_argument("--out", metavar="DIR", required=True,
+    r.add_argument("--out", metavar="DIR", required=True, type=os.path.expanduser,
                    help="folder for the outputs (made if missing; nothing is written on bad "
                         "input)")
     r.add_argument("--quiet", action="store_true", help="no progress lines")

@@ -395,7 +395,7 @@ def write_stability(out, h=DEFAULT_H, names=None, methods=METHODS, say=lambda li
 def add_parser(sub):
     p = sub.add_parser("stability", help="run the stiff and extreme cases of §11 with every "
                        "method; write stability.md and stability.csv")
-    p.add_argument("--out", metavar="DIR", required=True,
+    p.add_argument("--out", metavar="DIR", required=True, type=os.path.expanduser,
                    help="folder for the outputs (made if missing; nothing is written on bad "
                         "input)")
     p.add_argument("--h", type=float, default=DEFAULT_H,
