@@ -117,8 +117,11 @@ def cache_folder():
     return str(jit.get_parameters()["cache_dir"])
 
 
+UNWRITABLE_TEXT = "the JIT cache folder "     # how `_unwritable`'s message begins
+
+
 def _unwritable(folder, reason):
-    return ValueError(f"the JIT cache folder {folder} cannot be written ({reason}): dolfinx "
+    return ValueError(f"{UNWRITABLE_TEXT}{folder} cannot be written ({reason}): dolfinx "
                       f"compiles the forms there; set XDG_CACHE_HOME to a writable folder")
 
 
@@ -183,7 +186,7 @@ def _route_collective_errors():
             if comm.size == 1 or not str(e).startswith(COLLECTIVE):
                 raise
             said = comm.bcast(str(e)[len(COLLECTIVE):] if comm.rank == 0 else None, root=0)
-            if not said.startswith("the JIT cache folder "):
+            if not said.startswith(UNWRITABLE_TEXT):
                 raise
             raise ValueError(said) from None
 
