@@ -1,8 +1,9 @@
 # # UFL forms of the patchwise flux equilibration (§5) and of the multilevel flux (§6)
 #
-# UFL only. `membranes.estimation.patches` assembles the mixed RT_1 × DG1 form once per mesh
-# over the whole distributed mesh, and each colour's patch matrices are its principal
-# submatrices; the right-hand sides are assembled per colour from the forms below.
+# UFL only. `membranes.estimation.homes.assemble_rows` assembles the mixed RT_1 × DG1 form
+# per colour on the cells of the patches whose blocks are taken, and each patch matrix is a
+# principal submatrix of it; the right-hand sides are assembled per colour from the forms
+# below.
 
 import ufl
 

@@ -14,8 +14,7 @@ the orientation of a facet by global vertex indices). This module removes that d
   ±1 on facet dofs, the identity on the DG dofs (Lagrange at the vertices: only their labels
   change) and a 2 × 2 integer block on the two interior RT dofs of a cell (`basis_changes`
   checks this form on basix's elements); `canonical_block` forms Ã_p = G_pᵀ A_p G_p on the rows
-  of the patches, `pair_change` applies the blocks of Gᵀ and G to vectors, `BasisChange` all
-  of G on home vectors by slices.
+  of the patches, `BasisChange.apply` applies G and Gᵀ to home vectors by slices.
 * `patch_keys` and `Blocks`: translated patches get equal keys (dof kinds and rounded relative
   positions); `Blocks` keeps one block per class.
 

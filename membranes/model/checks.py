@@ -53,7 +53,7 @@ def check_force_scale(disc):
 # ## Vertex counts of a requested mesh and hierarchy
 #
 # gmsh meshes a domain of area A and boundary length L with target size h into
-# V_0 ≈ c_A A/h² + c_L L/h vertices. Measured with the meshing of membranes.meshes (disk and
+# V_0 ≈ c_A A/h² + c_L L/h vertices. Measured with the meshing of membranes.fem.meshes (disk and
 # square, h = 0.1 … 0.005): V_0 h²/A → 1.15 as h → 0, and the boundary's share is ~0.6-0.75
 # L/h (disk h = 0.005: 146 055 vertices against 145 200 + 940; square: 46 686 against
 # 46 400 + 600). An equilateral triangulation of size h would have 2/√3 = 1.155 A/h².
