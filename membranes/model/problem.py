@@ -243,8 +243,9 @@ class Problem:
         return self.hierarchy.levels
 
     def on_level(self, j: int) -> "Problem":
-        """The problem on T_j (nested iteration, §8; docs/choices.md): a shallow copy whose hierarchy stops at
-        level j (the same meshes and maps), or the problem itself on its finest level."""
+        """The problem on T_j (nested iteration, §8; docs/choices.md): a shallow copy whose
+        hierarchy stops at level j (the same meshes and maps), or the problem itself on its
+        finest level."""
         if j == self.levels:
             return self
         return replace(self, hierarchy=self.hierarchy.up_to(j))
