@@ -39,9 +39,9 @@ The cases (`CASES`; h is the gmsh size of the disk meshes, DEFAULT_H by default)
 * nested — the cases of `NESTED_CASES` on a hierarchy T_0 … T_2 with T_0 at size 2h (T_2
   twice as fine as their single meshes), run as the product runs by default: nested
   iteration, the coarse levels by inexact Newton at a forcing term (membranes.app.driver),
-  the initial guess (if any) on T_0. (With T_0 at 4h every method converged before the
-  forcing safeguard of membranes.nonlinear.newton; at 2h min/adaptive/paper drifted away
-  on two of them.)
+  the initial guess (if any) on T_0. T_0 at 2h rather than 4h: the coarser T_0 hid the
+  drift the forcing safeguard of membranes.nonlinear.newton guards against (BENCHMARKS.md,
+  "Tried and dropped").
 
 Exit code 0 when every run converged, EXIT_NOT_CONVERGED otherwise (the files are written in
 any case, with the reasons); bad input (h, also one at which a case's mesh would not fit in

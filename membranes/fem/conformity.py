@@ -160,8 +160,8 @@ def _inside_other_parts(x, edges, part, parts):
     part: a ray from it in +x crosses that part's boundary edges an odd number of times.
     (A part inside another's hole crosses it an even number of times: it is read.) Only the
     parts whose bounding box holds the node are looked at, so that many small parts side
-    by side cost little (a loop over the parts, each through all edges, took 9 s for 30000
-    separate triangles); edges and pairs in pieces (`_ranges`), in bounded memory."""
+    by side cost little (not a loop over the parts, each through all edges: quadratic);
+    edges and pairs in pieces (`_ranges`), in bounded memory."""
     rep = np.full(parts, -1)
     rep[part[edges[:, 0]]] = edges[:, 0]
     has = np.flatnonzero(rep >= 0)                              # parts with an edge
