@@ -1,8 +1,10 @@
 """Command line: ``membranes solve ...``, ``membranes scenes``, ``membranes report`` and
 ``membranes stability`` (docs/cli.md).
 
-Exit codes: 0 converged, 2 bad input (one-line message on stderr, nothing written to --out;
-also a stdout that cannot be written, `writing_stdout`),
+Exit codes: 0 converged, 1 a dolfinx that is not a 0.5 release (one line) or an unexpected
+error (its traceback), 2 bad input (one-line message on stderr, nothing written to --out;
+also a stdout that cannot be written, `writing_stdout`, and an allocation that fails during
+the run, `_out_of_memory`),
 3 the solver did not converge (the outputs are written, with converged = false and a reason),
 129 hung up (SIGHUP: the terminal or ssh session has gone; nothing written), 130 interrupted
 (Ctrl-C; nothing written), 141 the reader of stdout went away (`membranes
