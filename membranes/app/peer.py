@@ -100,7 +100,6 @@ class LevelRecord:
     active: int                 # vertices with λ > 0 at the end
     wall_time_s: float          # solver work: prolongation, operators, solves, λ
     setup_time_s: float         # discretisation of the level (dolfinx assembly)
-    cpu_time_s: float = 0.0     # this process's CPU time for the solver work
 
 
 @dataclass
@@ -132,12 +131,6 @@ class PeerResult:
     @property
     def setup_time_s(self):
         return sum(r.setup_time_s for r in self.levels)
-
-    @property
-    def cpu_time_s(self):
-        """This process's CPU time for the solver work (on a loaded machine a steadier
-        measure of a serial run than the wall time)."""
-        return sum(r.cpu_time_s for r in self.levels)
 
     @property
     def converged(self):
@@ -390,7 +383,7 @@ def _run(label, problems, progress, monitor, **settings):
     records, prev, reference = [], None, [0.0]
     for j, make in enumerate(problems):
         disc, setup = make()
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0 = time.perf_counter()
         solver = DecoupledSolver(disc, reference=reference, **settings)
         z, w = disc.S.createVecRight(), disc.S.createVecRight()
         if prev is None:                                   # from zero (g on ∂Ω)
@@ -404,20 +397,18 @@ def _run(label, problems, progress, monitor, **settings):
             wc.destroy()
         w.array[solver.bl] = disc.g
         z_its, z_reason = solver.solve_z(z)
-        clock = [t0, 0.0, 0.0]                             # start, wall and CPU paused
+        clock = [t0, 0.0]                                  # start, wall paused
 
         def snes_monitor(its, wv, disc=disc, z=z, level=j, clock=clock, solver=solver):
-            paused, cpu = time.perf_counter(), time.process_time()
+            paused = time.perf_counter()
             monitor(level, its, paused - clock[0] - clock[1], disc,
                     to_iterate(disc, z, wv, solver.multiplier(wv)))
             clock[1] += time.perf_counter() - paused
-            clock[2] += time.process_time() - cpu
 
         its, lin, reason, lam = solver.solve_w(w, snes_monitor if monitor else None)
         wall = time.perf_counter() - t0 - clock[1]
-        cpu = time.process_time() - c0 - clock[2]
         rec = LevelRecord(j, disc.n_global, its, lin, z_its, reason, z_reason,
-                          solver.active(lam), wall, setup, cpu)
+                          solver.active(lam), wall, setup)
         records.append(rec)
         if progress is not None:
             progress(f"peer ({label}) level {j}: {rec.vertices} vertices, "
@@ -426,10 +417,9 @@ def _run(label, problems, progress, monitor, **settings):
         if j + 1 < len(problems):
             prev = (z, w)
             lam.destroy()
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0 = time.perf_counter()
     X = to_iterate(disc, z, w, lam)
     records[-1].wall_time_s += time.perf_counter() - t0
-    records[-1].cpu_time_s += time.process_time() - c0
     return PeerResult(label, disc, X, z, w, lam, records)
 
 

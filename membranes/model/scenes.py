@@ -321,9 +321,6 @@ def radial(h: float = DEFAULT_H, levels: int = 0, rho: float = 0.5, mu1: float =
 
 # ## User data
 
-USER_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "g": 0.05, "f1": "0", "f2": "0"}
-
-
 def user(mu1: float = 1.0, mu2: float = 1.0, g: float = 0.05, f1: Union[str, float] = "0",
          f2: Union[str, float] = "0",
          mesh: Union[None, str, os.PathLike, dolfinx.mesh.Mesh] = None,

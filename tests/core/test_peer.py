@@ -192,7 +192,7 @@ def test_snes_steps_per_level(capsys):
     assert result.converged and plain.converged
     assert len(result.levels) == levels + 1
     assert max(steps) <= 6, steps
-    assert all(lv.wall_time_s > 0 and lv.cpu_time_s > 0 for lv in result.levels)
+    assert all(lv.wall_time_s > 0 for lv in result.levels)
     assert plain.snes_iterations >= 3 * steps[-1]
     # the monitor sees each SNES iterate of each level, times that grow, the final iterate
     for lv in result.levels:
