@@ -93,7 +93,7 @@ import scipy.sparse as sp
 import ufl
 from petsc4py import PETSc
 
-from ..fem.discretisation import boundary_dofs, ghosted_vector
+from ..fem.discretisation import boundary_dofs, ghosted_vector, p1_space
 from ..fem.meshes import cell_vertices, owned_cells, triangle_areas
 from ..forms import equilibration as equilibration_forms
 from ..forms.membrane import membrane_linear
@@ -106,11 +106,6 @@ ROUND_OFF = 1e-8      # tolerance on the barycentric coordinates 0, 1/2, 1 of pl
 # entries of the RT transfer's blocks below this times the largest are round-off of exact
 # zeros (the others are at least 1e-2 of it; `rt_prolongation`)
 EXACT_ZERO = 1e-12
-
-
-def _p1(mesh):
-    from dolfinx import fem
-    return fem.FunctionSpace(mesh, ("Lagrange", 1))
 
 
 def _check(comm, ok, message):
@@ -361,7 +356,7 @@ class MultilevelFlux:
         self.disc, self.hierarchy = disc, hierarchy
         self.comm = disc.comm
         J = hierarchy.levels
-        spaces = [_p1(m) for m in hierarchy.meshes[:-1]] + [disc.V]
+        spaces = [p1_space(m) for m in hierarchy.meshes[:-1]] + [disc.V]
         store = ClassStore("divergence", "flux")       # one for all levels (`classes`)
         self.levels = [_Level(j, hierarchy, spaces[j - 1], spaces[j], store)
                        for j in range(1, J + 1)]

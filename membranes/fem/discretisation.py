@@ -173,11 +173,16 @@ def assemble_matrix(a):
     return A
 
 
+def p1_space(mesh):
+    """The conforming P1 space of §2 on `mesh` (each level's own, for the hierarchy's maps)."""
+    from dolfinx import fem
+    return fem.FunctionSpace(mesh, ("Lagrange", 1))
+
+
 def discretise(problem):
     """Assemble S, D, F1, F2 and find the boundary vertices of `problem` (§2)."""
-    from dolfinx import fem
     mesh = problem.mesh
-    V = fem.FunctionSpace(mesh, ("Lagrange", 1))
+    V = p1_space(mesh)
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
     S = assemble_matrix(membrane_bilinear(1.0, u, v))
     # the lumped contact matrix is diagonal: its diagonal is the form's action on λ = 1

@@ -29,6 +29,7 @@ import numpy as np
 from mpi4py import MPI
 
 from ..model.progress import reporter
+from .discretisation import p1_space
 from .meshes import on_boundary, without_ghosts
 
 
@@ -102,11 +103,6 @@ def _refine(mesh):
     return fine, parent_cell[created]
 
 
-def _p1(mesh):
-    from dolfinx import fem
-    return fem.FunctionSpace(mesh, ("Lagrange", 1))
-
-
 def _cell_dofs(V):
     return V.dofmap.list.array.reshape(-1, 3)
 
@@ -120,7 +116,7 @@ def prolongation(coarse, fine, parents, unmoved=None):
     vertices a projection moved); every cell holding a vertex gives the same row, so one cell
     per vertex is read. A row has one entry (1) or two (1/2, 1/2)."""
     from petsc4py import PETSc
-    Vc, Vf = _p1(coarse), _p1(fine)
+    Vc, Vf = p1_space(coarse), p1_space(fine)
     ncf = fine.topology.index_map(2).size_local
     imf, imc = Vf.dofmap.index_map, Vc.dofmap.index_map
     # one (owned cell, local vertex k) per fine dof of the owned cells
