@@ -286,8 +286,8 @@ def test_sizes_and_shapes_of_a_structured_mesh():
         aspect_ratios,
         cell_diameters,
         cell_vertices,
-        check_size,
         structured_square,
+        target_size,
         triangle_areas,
     )
     n = 4
@@ -298,7 +298,7 @@ def test_sizes_and_shapes_of_a_structured_mesh():
     assert np.allclose(aspect_ratios(mesh), 2.0, rtol=1e-13)
     for bad in (0.0, -0.0, -1.0, float("inf"), float("nan")):   # no gmsh run at h = 0
         with pytest.raises(ValueError, match="mesh size h must be a positive finite number"):
-            check_size(bad)
+            target_size(bad)
     with pytest.raises(ValueError, match="grading must be a finite number >= 1"):
         structured_square(2, 2, grading=0.5)          # (p < 1: cells grow towards (0, 0))
 

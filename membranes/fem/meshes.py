@@ -82,7 +82,8 @@ def gmsh_session():
         gmsh.finalize()
 
 
-def check_size(h):
+def target_size(h):
+    """`h` as a positive finite float (the gmsh target size); ValueError otherwise."""
     h = real_number("mesh size h", h)    # (a bool is no number: True meshed at h = 1)
     if not np.isfinite(h) or h <= 0:
         raise ValueError(f"mesh size h must be a positive finite number, got {h}")
@@ -160,13 +161,13 @@ def unit_disk(h, comm=MPI.COMM_WORLD):
     """Unstructured mesh of the unit disk with target cell size h (§9): at most h, and at
     most the size gmsh gives the geometry's points, so that h above about 0.3 gives the same
     mesh (71 vertices)."""
-    return on_rank0(comm, _shape("disk", check_size(h)))
+    return on_rank0(comm, _shape("disk", target_size(h)))
 
 
 def unit_square(h, comm=MPI.COMM_WORLD):
     """Unstructured mesh of (0, 1)² with target cell size h: at most h, and at most the size
     gmsh gives the corners, so that h above about 0.15 gives the same mesh (98 vertices)."""
-    return on_rank0(comm, _shape("square", check_size(h)))
+    return on_rank0(comm, _shape("square", target_size(h)))
 
 
 def structured_square(nx, ny, grading=1.0, comm=MPI.COMM_WORLD):

@@ -75,7 +75,7 @@ def _check_size(h, levels, domain, mesh_file, max_vertices, comm):
     more vertices than `max_vertices`): checks.check_request with the leanest method. Returns
     h as a float (a number given as text too) where gmsh meshes the domain."""
     if mesh_file is None:
-        h = meshes.check_size(h)
+        h = meshes.target_size(h)
     check_request(h, levels, domain, mesh_file, max_vertices, comm=comm)
     jit.check_cache(comm)
     return h
