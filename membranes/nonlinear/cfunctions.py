@@ -64,8 +64,9 @@ def linearise(name, a, b, kappa=1.0):
     """α, β, B3 of the semismooth Newton rows α a + β b = B3 of C(a, κ b) at (a, b) (§3).
 
     By the chain rule β = κ ∂C/∂b, and B3 = α a + β b - C(a, κ b). A fixed κ > 0 leaves the
-    solutions of C = 0 unchanged and sets the units: with κ = (1/μ1 + 1/μ2)/2, κλ is the gap
-    change a pressure λ makes (§11; `membranes.nonlinear.system`). Both C-functions are
+    solutions of C = 0 unchanged and sets the units: with κ = (1/μ1 + 1/μ2)/2, κ D_a λ_a is
+    the size of the gap change a nodal pressure λ_a makes, so κλ is a displacement per unit
+    area (docs/theory.md §3; §11; `membranes.nonlinear.system`). Both C-functions are
     positively homogeneous of degree 1, so B3 = 0 up to round-off wherever (a, b) ≠ 0
     (Euler's identity): it is computed anyway, as §3 defines it."""
     C, J = get(name)
