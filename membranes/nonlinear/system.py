@@ -212,10 +212,6 @@ class NewtonSystem:
 
     # ## Iterates
 
-    def initial_guess(self):
-        """X⁰ = (g, 0, 0) of the paper: u1 = g everywhere, u2 = 0, λ = 0 (§3)."""
-        return initial_guess(self.disc)
-
     def split(self, X):
         return self.disc.split(X)
 
