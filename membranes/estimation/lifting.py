@@ -74,8 +74,3 @@ class Lifting:
         r.x.array[self.dg] = mass_inverse(self.area, values)
         r.x.scatter_forward()
         return r
-
-
-def lift(V, R_owned, out=None):
-    """r_h ∈ DG1 with (r_h, ψ_l)_Ω = R_l for every P1 dof l (§4); one-off use of `Lifting`."""
-    return Lifting(V)(R_owned, out)

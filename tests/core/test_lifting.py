@@ -13,7 +13,7 @@ import pytest
 import ufl
 from mpi4py import MPI
 
-from membranes.estimation.lifting import Lifting, lift
+from membranes.estimation.lifting import Lifting
 from tests.conftest import mpirun
 
 from .mpi_equilibration import assembled, boundary, disk, square
@@ -39,7 +39,7 @@ def residual(V, seed=0):
 def test_moments_against_every_hat_function(space):
     """(r_h, ψ_l)_Ω = R_l for every P1 dof, to round-off."""
     R = residual(space)
-    r = lift(space, R)
+    r = Lifting(space)(R)
     back = assembled(r * ufl.TestFunction(space) * ufl.dx)
     comm = space.mesh.comm
     err = comm.allreduce(np.abs(back - R).max(initial=0.0), op=MPI.MAX)
