@@ -516,3 +516,53 @@ def test_the_final_record_is_timed_after_its_certificate(monkeypatch):
     assert sol.final_record is sol.history[-1] and sol.estimates["bound"]
     assert sol.estimator_times[1] >= 0.4
     assert 0.0 <= sol.wall_time_s - sol.final_record["wall_time_s"] < 0.2
+
+
+# ## The Solution's own figures
+
+def test_summary_h_coarse_is_the_coarse_mesh_size(run):
+    """summary.json's h is T_J's mesh size and h_coarse T_0's, which one refinement of the
+    disk roughly halves (the boundary midpoints moved onto the circle: not exactly)."""
+    from membranes.fem.meshes import mesh_size
+    sol, _ = run
+    s, meshes = sol.summary(), sol.problem.hierarchy.meshes
+    assert len(meshes) == 2
+    assert s["h"] == mesh_size(meshes[-1]) and s["h_coarse"] == mesh_size(meshes[0])
+    assert 0.4 < s["h"] / s["h_coarse"] < 0.6
+
+
+def test_complementarity_violation_of_iterates_made_by_hand():
+    """Solution.complementarity_violation on iterates set by hand on the zero-load square (so
+    u_data = g, λ_data = 0, and the λ scale is λ_u = g / ((1/μ1 + 1/μ2) (C_PF h_Ω)²) = g π²,
+    C_PF h_Ω = 1/(π √2) on the unit square): each of its three parts alone, against the
+    values worked out here. Boundary vertices (values set there too) are left out. A few
+    float operations apart: 1e-12 relative."""
+    from dataclasses import replace
+    sol = solve(scenes.user(domain="square", h=0.3), newton="exact", estimators=False)
+    d = sol.disc
+    g = d.g
+    assert g == 0.05 and d.data_scales() == (g, 0.0)
+    lam_u = g * np.pi ** 2
+    inner = np.flatnonzero(d.interior)
+    edge = np.flatnonzero(~d.interior)
+    assert inner.size >= 3 and edge.size >= 1
+    i, b = inner[0], edge[0]
+
+    def violation(u1_at, lam_at):
+        """The violation at u2 = 0, u1 = g and λ = 0 but for the values given {dof: value}."""
+        u1, lam = np.full(d.n, g), np.zeros(d.n)
+        for k, v in u1_at.items():
+            u1[k] = v
+        for k, v in lam_at.items():
+            lam[k] = v
+        X = d.vector3()
+        X.array[:] = np.concatenate([u1, np.zeros(d.n), lam])
+        return replace(sol, X=X).complementarity_violation()
+
+    assert violation({}, {}) == 0.0
+    # w = -0.01 at an interior vertex (and -0.04 on the boundary): 0.01 / u_scale, u_scale = g
+    assert violation({i: -0.01, b: -0.04}, {}) == pytest.approx(0.01 / g, rel=1e-12)
+    # λ = -0.1 λ_u at an interior vertex (-1 on the boundary): 0.1 against λ_u
+    assert violation({}, {i: -0.1 * lam_u, b: -1.0}) == pytest.approx(0.1, rel=1e-12)
+    # w = g/2 and λ = 3 λ_u at one interior vertex: w λ / (u_scale · |λ|∞) = 1/2
+    assert violation({i: g / 2}, {i: 3 * lam_u}) == pytest.approx(0.5, rel=1e-12)
