@@ -193,3 +193,59 @@ def test_a_form_that_cannot_be_compiled_into_the_cache_on_two_processes(tmp_path
     said = (f"ValueError: the JIT cache folder {cache} cannot be written (Not a directory): "
             f"dolfinx compiles the forms there; set XDG_CACHE_HOME to a writable folder")
     assert json.loads(proc.stdout) == [said, said]
+
+
+def test_a_module_without_its_marker_is_not_loaded(tmp_path, lookups):
+    """A compiled module whose `.c.cached` marker is missing (a compilation killed between
+    its link and the marker, or still linking in another process: the library may be half
+    written) is not loaded from the cache: FFCx's lookup takes it as a compilation under
+    way, waits for it, and the form is compiled again, marker and all."""
+    V = fem.FunctionSpace(mesh.create_unit_square(MPI.COMM_SELF, 3, 3), ("Lagrange", 1))
+    L = membrane_linear(ufl.as_ufl(1.0), ufl.TestFunction(V))
+    lookups.clear()
+    expected = fem.assemble_vector(fem.form(L)).array
+    name, = [name for name, _ in lookups if name.startswith("libffcx_forms_")]
+    home = pathlib.Path(dolfinx.jit.get_parameters()["cache_dir"])
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    copied = [path for path in home.glob(name + ".*") if not path.name.endswith(".cached")]
+    assert {p.suffix for p in copied} >= {".c", ".so"}
+    for path in copied:
+        shutil.copy2(path, cache / path.name)
+    lookups.clear()
+    params = {"cache_dir": str(cache), "timeout": 1}
+    got = fem.assemble_vector(fem.form(L, jit_params=params)).array
+    assert np.array_equal(got, expected)
+    assert lookups == [(name, True)] and (cache / (name + ".c.cached")).exists()
+
+
+def test_the_compilations_ffcx_starts_are_remembered_until_ready(tmp_path, monkeypatch):
+    """FFCx's lookup answers (None, None) when it created the C file and this process must
+    compile it: that file is remembered (`abandon` removes it while its `.c.cached` is
+    missing); a module FFCx found, or whose compilation another process finished, is not
+    (its C file is left)."""
+    monkeypatch.setattr(jit, "_compiling", set())
+
+    def ffcx(created):
+        def lookup(name, object_names, cache_dir, timeout):
+            (pathlib.Path(cache_dir) / (name + ".c")).write_text("")
+            return (None, None) if created else (["compiled"], "module")
+        return lookup
+    assert jit.cached_module("mine", [], tmp_path, 1, ffcx_lookup=ffcx(True)) == (None, None)
+    assert jit.cached_module("theirs", [], tmp_path, 1, ffcx_lookup=ffcx(False)) == \
+        (["compiled"], "module")
+    assert jit._compiling == {str(tmp_path / "mine.c")}
+    jit.abandon()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["theirs.c"] and not jit._compiling
+
+
+def test_a_cache_without_write_permission_is_refused(tmp_path, monkeypatch):
+    """`check_cache` asks for the permissions a compilation needs in the folder, writing and
+    entering (os.access patched as the permissions of a read-only folder: this may run as
+    root); a folder that may be read and entered but not written, without compiled forms,
+    is refused."""
+    cache = tmp_path / "fenics"
+    monkeypatch.setattr(jit, "cache_folder", lambda: str(cache))
+    monkeypatch.setattr(jit.os, "access", lambda path, mode: not mode & os.W_OK)
+    with pytest.raises(ValueError, match=r"cannot be written \(no write permission\)"):
+        jit.check_cache(MPI.COMM_WORLD)
