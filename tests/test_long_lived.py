@@ -84,6 +84,56 @@ def test_progress_error_and_sub_communicators_on_three_processes():
     assert abs(err - serial[2]) <= 1e-12 * serial[2]
 
 
+class OneOfTwo:
+    """What `reporter` asks of a communicator, as process `rank` of two sees it: process 0's
+    broadcast is what process 0 sends (`sent`), the others' what process 0 sent them
+    (`received`)."""
+    size = 2
+
+    def __init__(self, rank, received=None):
+        self.rank, self.received, self.sent = rank, received, []
+
+    def bcast(self, obj, root=0):
+        assert root == 0
+        if self.rank == 0:
+            self.sent.append(obj)
+            return obj
+        return self.received
+
+
+def test_progress_lines_and_their_failures_on_each_process():
+    """`reporter` on two processes, each side alone: process 0 writes the line and sends
+    None, or the failure of its callable, which it raises itself; process 1 writes nothing
+    and raises what process 0 sent: a KeyboardInterrupt as one (Ctrl-C in the callable stops
+    every process as Ctrl-C), anything else as a RuntimeError naming it."""
+    from membranes.model.progress import reporter
+    lines = []
+    comm = OneOfTwo(0)
+    reporter(lines.append, comm)("a line")
+    assert lines == ["a line"] and comm.sent == [None]
+
+    def interrupted(line):
+        raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        reporter(interrupted, comm)("a line")
+    assert comm.sent[-1] == ("KeyboardInterrupt", "")
+    say = reporter(failing_progress(), comm)
+    say("1")
+    say("2")
+    with pytest.raises(OSError, match="^the log is full$"):
+        say("3")
+    assert comm.sent[-1] == ("OSError", "the log is full")
+
+    reporter(lines.append, OneOfTwo(1))("not here")
+    assert lines == ["a line"]
+    with pytest.raises(KeyboardInterrupt):
+        reporter(lines.append, OneOfTwo(1, ("KeyboardInterrupt", "")))("not here")
+    with pytest.raises(RuntimeError, match=r"^the progress callable failed on process 0: "
+                                           r"OSError: the log is full$"):
+        reporter(lines.append, OneOfTwo(1, ("OSError", "the log is full")))("not here")
+    assert lines == ["a line"]
+
+
 if __name__ == "__main__":
     result = main()
     if MPI.COMM_WORLD.rank == 0:
