@@ -109,3 +109,44 @@ def test_dropped_problems_leave_no_petsc_objects():
         gc.collect()
         live.append(live_petsc_objects())
     assert live[0] and live[1] == live[0] and live[2] == live[0], live
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="one process's log")
+def test_a_problem_kept_while_others_are_dropped_is_released_later():
+    """A Solution kept while the problems solved after it are dropped one by one (their
+    meshes' communicators let go of as they go), and dropped itself later: its objects,
+    parked on its own meshes' communicators, are freed at the next solve like those of any
+    dropped problem. The live objects after that solve are those after a solve whose earlier
+    problem was dropped at once."""
+    PETSc.Log.begin()
+
+    def problem():
+        return scenes.disk(h=0.3, levels=1)
+    solve(problem())
+    sol = solve(problem())
+    del sol
+    gc.collect()
+    before = live_petsc_objects()
+    kept = solve(problem())
+    for _ in range(2):
+        sol = solve(problem())
+        del sol
+    del kept
+    gc.collect()
+    sol = solve(problem())
+    del sol
+    gc.collect()
+    assert live_petsc_objects() == before
+
+
+def test_a_mesh_solved_on_again_is_watched_once():
+    """Each mesh solved on is watched once, by one duplicate of its communicator, however
+    often it is solved on (a parameter study of many solves on one hierarchy would otherwise
+    duplicate its communicators at every solve, a limited resource of MPI)."""
+    from membranes.app import garbage
+    problem = scenes.disk(h=0.3, levels=1)
+    counts = []
+    for mu2 in (1.0, 2.0, 3.0):
+        solve(replace(problem, mu2=mu2, exact=None), newton="exact", estimators=False)
+        counts.append(sum(ref() in problem.hierarchy.meshes for ref, _ in garbage._WATCHED))
+    assert counts == [2, 2, 2]
