@@ -135,8 +135,49 @@ def test_kept_setup_on_several_processes(processes):
     check(json.loads(proc.stdout.strip().splitlines()[-1]))
 
 
+def moved_on_one_process(comm=MPI.COMM_WORLD):
+    """The square solved with a kept set-up, then some of its interior vertices that the last
+    process alone holds moved by 3 % towards the centre (a deformation of its own part only:
+    the other processes' vertices stay where they were) and solved again, with the kept
+    store and without. Returns the number of moved vertices, the relative η difference, the
+    counts' equality and every process's hits, gathered."""
+    square = scenes.user(f1="-3", domain="square", h=0.125, comm=comm)
+    kept = Setups()
+    solve(square, setups=kept)
+    x = square.mesh.geometry.x
+    others = comm.gather({tuple(p) for p in x[:, :2]} if comm.rank < comm.size - 1 else set())
+    others = comm.bcast(set().union(*others) if comm.rank == 0 else None)
+    moved = 0
+    if comm.rank == comm.size - 1:
+        for k, p in enumerate(x[:, :2]):
+            if min(p.min(), 1 - p.max()) > 1e-12 and tuple(p) not in others:
+                x[k, :2] = 0.5 + 0.97 * (p - 0.5)
+                moved += 1
+    a, b = solve(square, setups=kept), solve(square)
+    out = dict(moved=comm.allreduce(moved), eta=rel(a.estimates["eta"], b.estimates["eta"]),
+               same_counts=(a.newton_iterations, a.linear_iterations) ==
+               (b.newton_iterations, b.linear_iterations), hits=comm.gather(kept.hits))
+    kept.clear()
+    return out
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
+def test_a_mesh_moved_on_one_process_is_set_up_anew_on_all():
+    """Whether the kept set-up is taken is decided by all processes together: where the
+    vertices moved on one process only, every process sets up anew (a process that took its
+    kept blocks would combine them with the other's new ones: another η than a fresh
+    set-up's), and the run is the run without kept set-ups, to round-off."""
+    from .conftest import mpirun  # (not at the top: this file runs as a script too)
+    proc = mpirun([os.path.abspath(__file__), "moved"], processes=2, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["moved"] > 0 and out["hits"] == [0, 0]
+    assert out["eta"] <= ROUND_OFF and out["same_counts"]
+
+
 if __name__ == "__main__":
-    result = compare()
+    import sys
+    result = moved_on_one_process() if sys.argv[1:] == ["moved"] else compare()
     if MPI.COMM_WORLD.rank == 0:
         print(json.dumps(result))
 
