@@ -491,3 +491,63 @@ def test_replayed_rows_carry_every_estimator(made, method):
     est = runs[method].estimates
     for k in ("eta_disc", "eta_lin"):
         assert float(rows[-1][k]) == pytest.approx(est[k], rel=1e-9), k
+
+
+# a snapshot of one cell field on a 2 × 2 square, on every process of an mpirun: each
+# process's outcome gathered on process 0, which prints them as one JSON line (argv: the
+# folder put in front of PYTHONPATH for the rendering process, the picture's path)
+SNAPSHOT_ON_EVERY_PROCESS = "\n".join([
+    "import json, os, sys", "import numpy as np", "from dolfinx import fem, mesh",
+    "from mpi4py import MPI", "from membranes.app.render import snapshot",
+    "comm = MPI.COMM_WORLD",
+    "square = mesh.create_unit_square(comm, 2, 2, ghost_mode=mesh.GhostMode.none)",
+    "V = fem.FunctionSpace(square, ('Lagrange', 1))",
+    "cells = np.ones(square.topology.index_map(2).size_local)",
+    "os.environ['PYTHONPATH'] = os.pathsep.join([sys.argv[1], os.environ['PYTHONPATH']])",
+    "try:",
+    "    snapshot(V, [('c', 'cell', cells, '')], sys.argv[2])",
+    "    said = 'drawn'",
+    "except Exception as e:",
+    "    said = f'{type(e).__name__}: {e}'",
+    "said = comm.gather(said, root=0)",
+    "if comm.rank == 0:",
+    "    print(json.dumps(said), flush=True)"])
+
+
+def test_a_rendering_that_fails_raises_on_every_process(tmp_path):
+    """`snapshot` is collective and process 0 renders: where it fails (here pyvista not
+    importable in the rendering process) every process raises the same RuntimeError, so
+    that all of them go without the picture together (a caller such as the report goes on
+    to its next collective step on every process), and no picture or data file is left."""
+    import json
+
+    from tests.conftest import mpirun
+    picture = tmp_path / "out" / "c.png"
+    picture.parent.mkdir()
+    proc = mpirun(["-c", SNAPSHOT_ON_EVERY_PROCESS, blocking_folder(tmp_path, "pyvista"),
+                   picture], processes=2)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    said = "RuntimeError: rendering c.png failed: ImportError: no pyvista here"
+    assert json.loads(proc.stdout) == [said, said]
+    assert not any(picture.parent.iterdir())
+
+
+def test_a_picture_whose_rendering_failed_is_removed(tmp_path, monkeypatch):
+    """A rendering process that fails after it wrote its picture (here it exits with code 3
+    at its end, as a GL driver crashing at exit does): the picture may be half drawn, so it
+    is removed, with the data file, and `snapshot` raises, naming the exit code."""
+    from dolfinx import fem, mesh
+
+    from membranes.app.render import snapshot
+    folder = tmp_path / "exit3"
+    folder.mkdir()
+    (folder / "sitecustomize.py").write_text(
+        "import atexit, os\natexit.register(lambda: os._exit(3))\n")
+    monkeypatch.setenv("PYTHONPATH", with_folder_first(folder))
+    square = mesh.create_unit_square(MPI.COMM_SELF, 2, 2)
+    V = fem.FunctionSpace(square, ("Lagrange", 1))
+    out = tmp_path / "out"
+    out.mkdir()
+    with pytest.raises(RuntimeError, match=r"^rendering c.png failed: exit code 3$"):
+        snapshot(V, [("c", "cell", np.ones(8), "")], str(out / "c.png"))
+    assert not any(out.iterdir())
