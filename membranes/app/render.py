@@ -114,7 +114,8 @@ def snapshot(V, panels, path, log=False, contour=None, cmap="viridis"):
     one colour scale for all panels if `log` (logarithmic), else one per panel; `contour`: a
     function of the points (2, n) whose zero line is drawn in red. Values: "cell" panels the
     owned cells' values (mesh order), "point" panels P1 Functions on V. Collective; process 0
-    renders, and every process raises RuntimeError if the rendering failed."""
+    renders, and every process raises RuntimeError if the rendering failed (its data file
+    not written included)."""
     import subprocess
     comm = V.mesh.comm
     points, _ = gather_points(V)
@@ -134,8 +135,8 @@ def snapshot(V, panels, path, log=False, contour=None, cmap="viridis"):
         if contour is not None:
             data["contour"] = np.asarray(contour(points[:, :2].T), dtype=float)
         npz = path + ".npz"
-        np.savez(npz, **data)
         try:
+            np.savez(npz, **data)
             proc = subprocess.run([sys.executable, os.path.abspath(__file__), npz, path],
                                   capture_output=True, text=True, timeout=RENDER_SECONDS)
             if proc.returncode != 0 or not os.path.exists(path):
@@ -144,8 +145,11 @@ def snapshot(V, panels, path, log=False, contour=None, cmap="viridis"):
                          f"{tail[-1].strip() if tail else f'exit code {proc.returncode}'}")
         except subprocess.TimeoutExpired:
             error = f"rendering {os.path.basename(path)} failed: no picture in {RENDER_SECONDS} s"
+        except OSError as e:    # the data file not written (raised, it left the others waiting)
+            error = f"rendering {os.path.basename(path)} failed: {type(e).__name__}: {e}"
         finally:
-            os.remove(npz)
+            if os.path.exists(npz):
+                os.remove(npz)
         if error is not None and os.path.exists(path):      # no half-drawn picture
             os.remove(path)
     error = comm.bcast(error, root=0)

@@ -551,3 +551,21 @@ def test_a_picture_whose_rendering_failed_is_removed(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match=r"^rendering c.png failed: exit code 3$"):
         snapshot(V, [("c", "cell", np.ones(8), "")], str(out / "c.png"))
     assert not any(out.iterdir())
+
+
+def test_a_data_file_that_cannot_be_written_fails_on_every_process(tmp_path):
+    """Where process 0 cannot write the rendering's data file (here its folder is missing;
+    a full disk alike) every process raises the same RuntimeError, naming the error. It was
+    an OSError on process 0 alone, the others waiting for it in `snapshot`'s broadcast for
+    ever (a hang under mpirun)."""
+    import json
+
+    from tests.conftest import mpirun
+    picture = tmp_path / "missing" / "c.png"
+    proc = mpirun(["-c", SNAPSHOT_ON_EVERY_PROCESS, tmp_path, picture], processes=2,
+                  timeout=60)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    said = ("RuntimeError: rendering c.png failed: FileNotFoundError: [Errno 2] No such file "
+            f"or directory: '{picture}.npz'")
+    assert json.loads(proc.stdout) == [said, said]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
