@@ -531,38 +531,63 @@ def test_summary_h_coarse_is_the_coarse_mesh_size(run):
     assert 0.4 < s["h"] / s["h_coarse"] < 0.6
 
 
-def test_complementarity_violation_of_iterates_made_by_hand():
+def complementarity_by_hand(comm=MPI.COMM_WORLD):
     """Solution.complementarity_violation on iterates set by hand on the zero-load square (so
     u_data = g, λ_data = 0, and the λ scale is λ_u = g / ((1/μ1 + 1/μ2) (C_PF h_Ω)²) = g π²,
-    C_PF h_Ω = 1/(π √2) on the unit square): each of its three parts alone, against the
-    values worked out here. Boundary vertices (values set there too) are left out. A few
-    float operations apart: 1e-12 relative."""
+    C_PF h_Ω = 1/(π √2) on the unit square): u2 = 0, u1 = g and λ = 0 but for values set on
+    process 0 only, at one interior and one boundary vertex (left out). Returns the pairs
+    (violation, its value worked out here), the same on every process."""
     from dataclasses import replace
-    sol = solve(scenes.user(domain="square", h=0.3), newton="exact", estimators=False)
+    sol = solve(scenes.user(domain="square", h=0.3, comm=comm), newton="exact",
+                estimators=False)
     d = sol.disc
     g = d.g
     assert g == 0.05 and d.data_scales() == (g, 0.0)
     lam_u = g * np.pi ** 2
-    inner = np.flatnonzero(d.interior)
-    edge = np.flatnonzero(~d.interior)
-    assert inner.size >= 3 and edge.size >= 1
-    i, b = inner[0], edge[0]
+    inner, edge = np.flatnonzero(d.interior), np.flatnonzero(~d.interior)
+    if comm.rank == 0:
+        assert inner.size and edge.size
+    i, b = (inner[0], edge[0]) if comm.rank == 0 else (None, None)
 
     def violation(u1_at, lam_at):
-        """The violation at u2 = 0, u1 = g and λ = 0 but for the values given {dof: value}."""
         u1, lam = np.full(d.n, g), np.zeros(d.n)
-        for k, v in u1_at.items():
-            u1[k] = v
-        for k, v in lam_at.items():
-            lam[k] = v
+        if comm.rank == 0:
+            for k, v in u1_at.items():
+                u1[k] = v
+            for k, v in lam_at.items():
+                lam[k] = v
         X = d.vector3()
         X.array[:] = np.concatenate([u1, np.zeros(d.n), lam])
         return replace(sol, X=X).complementarity_violation()
 
-    assert violation({}, {}) == 0.0
-    # w = -0.01 at an interior vertex (and -0.04 on the boundary): 0.01 / u_scale, u_scale = g
-    assert violation({i: -0.01, b: -0.04}, {}) == pytest.approx(0.01 / g, rel=1e-12)
-    # λ = -0.1 λ_u at an interior vertex (-1 on the boundary): 0.1 against λ_u
-    assert violation({}, {i: -0.1 * lam_u, b: -1.0}) == pytest.approx(0.1, rel=1e-12)
-    # w = g/2 and λ = 3 λ_u at one interior vertex: w λ / (u_scale · |λ|∞) = 1/2
-    assert violation({i: g / 2}, {i: 3 * lam_u}) == pytest.approx(0.5, rel=1e-12)
+    return [
+        (violation({}, {}), 0.0),
+        # w = -0.01 at an interior vertex (-0.04 on the boundary): 0.01 / u_scale, u_scale = g
+        (violation({i: -0.01, b: -0.04}, {}), 0.01 / g),
+        # λ = -0.1 λ_u at an interior vertex (-1 on the boundary): 0.1 against λ_u
+        (violation({}, {i: -0.1 * lam_u, b: -1.0}), 0.1),
+        # w = g/2 and λ = 3 λ_u at one interior vertex: w λ / (u_scale · |λ|∞) = 1/2
+        (violation({i: g / 2}, {i: 3 * lam_u}), 0.5)]
+
+
+def test_complementarity_violation_of_iterates_made_by_hand():
+    """Each of the violation's three parts alone (`complementarity_by_hand`), a few float
+    operations from the value worked out: 1e-12 relative."""
+    for got, expected in complementarity_by_hand():
+        assert got == pytest.approx(expected, rel=1e-12, abs=0)
+
+
+@serial_only
+def test_complementarity_violation_on_two_processes():
+    """The same on two processes, process 0 holding the values set by hand: the maxima
+    are over all processes (MPI.MAX, not a sum of the processes' own)."""
+    source = ("import json; from mpi4py import MPI; "
+              "from tests.core.test_outputs import complementarity_by_hand as by_hand; "
+              "pairs = MPI.COMM_WORLD.gather(by_hand()); "
+              "MPI.COMM_WORLD.rank or print(json.dumps(pairs))")
+    done = mpirun(["-c", source], processes=2)
+    assert done.returncode == 0, done.stderr[-2000:]
+    pairs = json.loads(done.stdout.strip().splitlines()[-1])
+    assert pairs[0] == pairs[1]
+    for got, expected in pairs[0]:
+        assert got == pytest.approx(expected, rel=1e-12, abs=0)
