@@ -907,6 +907,37 @@ def test_api_options_are_named_when_wrong(kwargs, message):
         solve(scenes.disk(h=0.5), **kwargs)
 
 
+@pytest.mark.parametrize("levels,kwargs,message", [
+    (0, {"gamma_lin": 0.0}, r"gamma_lin must lie in \(0, 1\), got 0.0"),
+    (0, {"gamma_alg": 0.0}, r"gamma_alg must lie in \(0, 1\), got 0.0"),
+    (0, {"gamma_lin": 1.0}, r"gamma_lin must lie in \(0, 1\), got 1.0"),
+    (0, {"newton": "exact", "tol": 1.0}, r"tol must lie in \(0, 1\), got 1.0"),
+    (1, {"coarse_tol": 1.0}, r"coarse_tol must lie in \(0, 1\), got 1.0"),
+    (1, {"nested": "no"}, "nested must be True, False or None, got 'no'"),
+    (1, {"nested": 0}, "nested must be True, False or None, got 0"),
+])
+def test_method_limits_are_open_and_exact(levels, kwargs, message):
+    """The ends of the open intervals are refused: γ = 0 is a Newton or Krylov test that only
+    an exact solve meets, γ = 1 no reduction; tol = 1 and coarse_tol = 1 are met by any start
+    (a run of no step, called converged). nested='no' is truthy: it ran nested. Refused by
+    the method check, with no mesh."""
+    from membranes.app.driver import check_method
+    with pytest.raises(ValueError, match=message):
+        check_method(levels, **kwargs)
+
+
+def test_the_largest_krylov_limit_petsc_holds_is_accepted():
+    """max_linear_its up to PETSc's largest integer (KSP's max_it is a PetscInt) is a valid
+    limit; one more is refused."""
+    from petsc4py import PETSc
+
+    from membranes.app.driver import check_method
+    largest = int(np.iinfo(PETSc.IntType).max)
+    assert check_method(0, max_linear_its=largest)[0].max_it == largest
+    with pytest.raises(ValueError, match="max_linear_its must be at most"):
+        check_method(0, max_linear_its=largest + 1)
+
+
 def test_scene_numbers_are_named_when_wrong():
     for levels in (None, "x", 2.5, float("inf")):
         with pytest.raises(ValueError, match="levels must be a non-negative integer"):
