@@ -261,6 +261,47 @@ def test_a_run_counts_the_memory_its_process_holds(monkeypatch):
     assert checks.room_for_run(problem.mesh.comm) == need + 2 ** 20
 
 
+@pytest.mark.parametrize("options,method", [
+    ({}, dict(linear_solver="gmres", pc_type="vertex_amg", estimators=True, alg_flux="nu")),
+    ({"solver": "direct"}, dict(linear_solver="direct", estimators=True, alg_flux="nu")),
+    ({"estimators": False}, dict(linear_solver="gmres", pc_type="vertex_amg",
+                                 estimators=False)),
+    ({"alg_flux": "multilevel"}, dict(linear_solver="gmres", pc_type="vertex_amg",
+                                      estimators=True, alg_flux="multilevel")),
+])
+def test_solve_checks_the_memory_of_its_own_method(options, method, monkeypatch):
+    """solve() checks the computational mesh against the memory its method needs
+    (checks.estimate_memory of its solver, estimators and algebraic flux): refused with a
+    byte less than that, let through (to the assembly, stopped here) with exactly that. The
+    four methods' figures differ on this mesh, so a check of another method's figure fails
+    one side."""
+    from membranes.app import driver
+    problem = scenes.disk(h=0.5, levels=1)
+    n = problem.mesh.topology.index_map(0).size_global
+    figures = {checks.estimate_memory(n, **m) for m in (
+        dict(linear_solver="gmres", pc_type="vertex_amg", estimators=True, alg_flux="nu"),
+        dict(linear_solver="direct", estimators=True, alg_flux="nu"),
+        dict(linear_solver="gmres", pc_type="vertex_amg", estimators=False),
+        dict(linear_solver="gmres", pc_type="vertex_amg", estimators=True,
+             alg_flux="multilevel"))}
+    assert len(figures) == 4
+    need = checks.estimate_memory(n, **method)
+
+    class Assembled(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Assembled
+    monkeypatch.setattr(driver, "discretise", stop)
+    monkeypatch.setattr(checks, "resident_memory", lambda: 0.0)
+    monkeypatch.setattr(checks, "available_memory", lambda comm=None: need - 1.0)
+    with pytest.raises(ValueError, match="needs .* of memory"):
+        solve(problem, **options)
+    monkeypatch.setattr(checks, "available_memory", lambda comm=None: need)
+    with pytest.raises(Assembled):
+        solve(problem, **options)
+
+
 def test_scenes_refuse_before_gmsh(monkeypatch):
     """The size check runs before any meshing: with gmsh made to fail, an oversized scene is
     refused by the check (ValueError naming the size), a small one reaches gmsh."""
