@@ -591,3 +591,70 @@ def test_complementarity_violation_on_two_processes():
     assert pairs[0] == pairs[1]
     for got, expected in pairs[0]:
         assert got == pytest.approx(expected, rel=1e-12, abs=0)
+
+
+def _slowed(monkeypatch, cls, name, seconds):
+    """cls.name made `seconds` slower (a sleep after the call): a lower bound on its time
+    that no machine load lowers."""
+    import time
+    original = getattr(cls, name)
+
+    def slow(self, *args, **kwargs):
+        out = original(self, *args, **kwargs)
+        time.sleep(seconds)
+        return out
+    monkeypatch.setattr(cls, name, slow)
+
+
+def test_adaptive_records_are_timed_after_their_estimates(monkeypatch):
+    """The adaptive variant's final record is the Newton iterate whose estimate met the
+    stopping test (no estimate after Newton): its wall_time_s is taken after that estimate,
+    slowed by 0.4 s here, so the run ends a moment of bookkeeping after it (a record stamped
+    before its estimate lies at least 0.4 s before the end; 0.2 s margin as above)."""
+    from membranes.estimation.estimators import Estimators
+    _slowed(monkeypatch, Estimators, "evaluate", 0.4)
+    sol = solve(scenes.disk(h=0.3), newton="adaptive", errors="none")
+    assert sol.converged and sol.final_record is sol.history[-1]
+    assert sol.final_record["kind"] == "newton" and sol.estimates["bound"]
+    assert 0.0 <= sol.wall_time_s - sol.final_record["wall_time_s"] < 0.2
+
+
+def test_the_start_and_the_level_are_timed_with_the_estimators_set_up(monkeypatch):
+    """The estimators' set-up is on the clock and comes before Newton: X⁰ (the adaptive
+    variant's first record) is stamped when Newton starts, after it, and the level's
+    wall_time_s spans it and every evaluation. The set-up is slowed by 0.5 s, so a stamp
+    taken at the level's start, or a level time counted from Newton's start, falls short
+    (the rest of the run takes some 0.1 s)."""
+    from membranes.estimation.estimators import Estimators
+    _slowed(monkeypatch, Estimators, "__init__", 0.5)
+    sol = solve(scenes.disk(h=0.3), newton="adaptive", errors="none")
+    setup, evaluations = sol.estimator_times
+    assert setup >= 0.5
+    assert sol.history[0]["kind"] == "initial"
+    assert setup <= sol.history[0]["wall_time_s"] <= sol.history[1]["wall_time_s"]
+    level = sol.per_level[0]["wall_time_s"]
+    assert setup + evaluations <= level <= sol.wall_time_s
+
+
+@pytest.mark.parametrize("errors", ["iterates", "final"])
+def test_energy_errors_are_off_the_clock(errors, monkeypatch):
+    """Energy errors are diagnostics, not part of the run's wall time: each evaluation,
+    slowed by 0.3 s here, is taken off the clock, so the time measured around `solve`
+    exceeds wall_time_s by at least 0.3 s per evaluation (every record's with 'iterates',
+    the final iterate's with 'final'), whatever the machine's load."""
+    import time
+
+    from membranes.estimation.energy_error import EnergyError
+    calls = []
+    _slowed(monkeypatch, EnergyError, "__call__", 0.3)
+    original = EnergyError.__call__
+    monkeypatch.setattr(EnergyError, "__call__",
+                        lambda self, X: calls.append(1) or original(self, X))
+    started = time.perf_counter()
+    sol = solve(scenes.disk(h=0.3), newton="exact", estimators=False, errors=errors)
+    elapsed = time.perf_counter() - started
+    assert sol.converged
+    assert len(calls) == (len(sol.history) if errors == "iterates" else 1)
+    assert len(sol.history) >= 3
+    assert elapsed - sol.wall_time_s >= 0.3 * len(calls)
+    assert all(r["wall_time_s"] <= sol.wall_time_s for r in sol.history)
