@@ -401,3 +401,27 @@ def test_a_typeset_minus_is_a_minus():
     typeset, ascii_ = Formula("\u22121 + x*(\u2212y)"), Formula("-1 + x*(-y)")
     assert np.array_equal(typeset.numpy(points), ascii_.numpy(points))
     assert typeset.shown == "\u22121 + x*(\u2212y)"
+
+
+def test_named_initial_guesses_are_the_vectors_they_name():
+    """initial_guess='zero' is the zero vector (with the Dirichlet values), the same run as
+    that from a function returning disc.vector3(); 'paper' and the default are the paper's
+    (g, 0, 0), the same run as from a function returning that vector, and a different start:
+    equal histories (the same arithmetic), different first residuals."""
+    problem = scene("disk", 0.3)
+
+    def paper(disc):
+        X = disc.vector3()
+        X.array[:disc.n] = disc.g
+        return X
+
+    def run(guess):
+        sol = solve(problem, newton="exact", estimators=False, errors="none",
+                    initial_guess=guess)
+        assert sol.converged, sol.reason
+        return [(r["kind"], r["residual"]) for r in sol.history]
+
+    zero = run("zero")
+    assert zero == run(lambda disc: disc.vector3())
+    assert run("paper") == run(None) == run(paper)
+    assert zero[0][1] != run(None)[0][1]
