@@ -658,3 +658,12 @@ def test_energy_errors_are_off_the_clock(errors, monkeypatch):
     assert len(sol.history) >= 3
     assert elapsed - sol.wall_time_s >= 0.3 * len(calls)
     assert all(r["wall_time_s"] <= sol.wall_time_s for r in sol.history)
+
+
+def test_exact_newton_stops_at_the_default_tol():
+    """Without `tol`, exact Newton stops at ‖R_lin‖/‖(F, 0)‖ ≤ 1e-10 (docs, `solve`): the
+    summary says 1e-10, the returned iterate meets it and no Newton iterate before it did."""
+    sol = solve(scenes.disk(h=0.3), newton="exact", estimators=False, errors="none")
+    assert sol.converged and sol.summary()["tol"] == 1e-10
+    residuals = [r["residual"] for r in sol.history if r["kind"] in ("initial", "newton")]
+    assert residuals[-1] <= 1e-10 < min(residuals[:-1])
