@@ -667,3 +667,38 @@ def test_exact_newton_stops_at_the_default_tol():
     assert sol.converged and sol.summary()["tol"] == 1e-10
     residuals = [r["residual"] for r in sol.history if r["kind"] in ("initial", "newton")]
     assert residuals[-1] <= 1e-10 < min(residuals[:-1])
+
+
+def test_history_errors_of_the_eliminated_steps_first_iterates(monkeypatch):
+    """As above with the amg preset (the eliminated system, ν = 1): there X^{k,0} is the
+    expansion of the solver's initial guess, whose eliminated unknowns follow the new
+    linearisation, so it is not X^{k-1}. A record estimated with the ν flux from X^{k,0}
+    (linear_it 0) carries the energy error of X^{k,0}, measured here anew at the iterate
+    the estimators were handed as kind 'step' (the same assembly on a copy: 1e-12)."""
+    from membranes.app import driver
+    from membranes.estimation.energy_error import EnergyError
+    starts = []
+
+    class Recording(driver.LevelEstimates):
+        def __call__(self, X, R, kind=None):
+            if kind == "step":
+                starts.append(X.copy())
+            return super().__call__(X, R, kind)
+
+    monkeypatch.setattr(driver, "LevelEstimates", Recording)
+    sol = solve(scenes.disk(h=0.3, levels=1), nested=False, nu=1, gamma_alg=0.01,
+                errors="iterates")
+    assert sol.converged and sol.options["system"] == "eliminated"
+    error = EnergyError(sol.disc)
+    steps, moved = 0, 0
+    for k, r in enumerate(sol.history):
+        if r["kind"] == "newton":
+            steps += 1
+        elif r["kind"] == "krylov" and r["linear_it"] == 0:
+            expected = error(starts[steps])
+            assert r["energy_error"] == pytest.approx(expected, rel=1e-12)
+            before = next(b for b in reversed(sol.history[:k]) if b["kind"] != "krylov")
+            moved += abs(before["energy_error"] - expected) > 1e-3 * expected
+    assert moved >= 1                                  # the case this test is about
+    for X in starts:
+        X.destroy()
