@@ -702,3 +702,26 @@ def test_history_errors_of_the_eliminated_steps_first_iterates(monkeypatch):
     assert moved >= 1                                  # the case this test is about
     for X in starts:
         X.destroy()
+
+
+@pytest.mark.parametrize("newton", ["adaptive", "exact"])
+def test_the_certificate_is_made_once(newton, monkeypatch):
+    """Lean runs: the adaptive variant's answer is certified by the full estimate its
+    stopping test read, so `solve` estimates nothing after Newton; exact Newton estimates
+    only after it, once (the certificate). Counted at the estimators' calls: the calls
+    after Newton are those of no kind."""
+    from membranes.app import driver
+    kinds = []
+
+    class Recording(driver.LevelEstimates):
+        def __call__(self, X, R, kind=None):
+            kinds.append(kind)
+            return super().__call__(X, R, kind)
+
+    monkeypatch.setattr(driver, "LevelEstimates", Recording)
+    sol = solve(scenes.disk(h=0.3), newton=newton, errors="none")
+    assert sol.converged and sol.final_record["bound"]
+    if newton == "exact":                   # (Newton itself estimates nothing)
+        assert kinds == [None]
+    else:
+        assert None not in kinds and kinds[-1] == "newton"
