@@ -417,3 +417,14 @@ def test_the_paper_preset_has_no_forcing_term(monkeypatch):
     assert paper.linear_iterations == paper_plain.linear_iterations
     assert paper.estimates["eta"] == paper_plain.estimates["eta"]
     assert amg.linear_iterations < amg_plain.linear_iterations
+
+
+def test_final_errors_measure_the_answer_only():
+    """errors='final' (the default) measures the iterate the run returns and no other
+    (docs/outputs.md, history.csv: 'the last only by default'): in a nested run the coarse
+    levels' last iterates, handed on, carry none."""
+    sol = solve(scene("disk", 0.3, levels=2))
+    assert sol.converged and len(sol.per_level) == 3
+    measured = [r for r in sol.history if r["energy_error"] is not None]
+    assert measured == [sol.final_record] and sol.energy_error is not None
+    assert [p["energy_error"] is None for p in sol.per_level] == [True, True, False]
