@@ -926,6 +926,20 @@ def test_method_limits_are_open_and_exact(levels, kwargs, message):
         check_method(levels, **kwargs)
 
 
+@pytest.mark.parametrize("kwargs,message", [
+    ({"newton": "exact", "gamma_lin": 0.1}, "gamma_lin applies to newton 'adaptive' only"),
+    ({"newton": "exact", "gamma_alg": 0.1}, "gamma_alg applies to newton 'adaptive' only"),
+    ({"newton": "inexact", "gamma_alg": 0.1}, "gamma_alg applies to newton 'adaptive' only"),
+    ({"newton": "adaptive", "tol": 1e-8}, "tol applies to newton 'exact' and 'inexact'"),
+])
+def test_stopping_options_of_another_variant_are_refused(kwargs, message):
+    """Each variant stops by its own test (§8): exact and inexact by tol, adaptive by γ_lin
+    and γ_alg; the other's option would be ignored without a word, so it is refused."""
+    from membranes.app.driver import check_method
+    with pytest.raises(ValueError, match=message):
+        check_method(0, **kwargs)
+
+
 def test_the_largest_krylov_limit_petsc_holds_is_accepted():
     """max_linear_its up to PETSc's largest integer (KSP's max_it is a PetscInt) is a valid
     limit; one more is refused."""
