@@ -658,6 +658,57 @@ def test_two_processes_share_the_node_and_refuse_together(tmp_path):
     assert not out.exists()
 
 
+SHARED_MESH_MEMORY = """
+from mpi4py import MPI
+from membranes import scenes, solve
+from membranes.app import driver
+from membranes.model import checks
+comm = MPI.COMM_WORLD
+problem = scenes.disk(h=0.5)
+n = problem.mesh.topology.index_map(0).size_global
+need = checks.estimate_memory(n, linear_solver="gmres", pc_type="vertex_amg",
+                              estimators=True, alg_flux="nu", processes=comm.size,
+                              replicated=False)
+
+
+class Assembled(Exception):
+    pass
+
+
+def stop(*args, **kwargs):
+    raise Assembled
+
+
+driver.discretise = stop
+checks.resident_memory = lambda: 0.0
+said = []
+for room in (need - 1.0, need):
+    checks.available_memory = lambda comm=None, room=room: room
+    try:
+        solve(problem)
+        said.append("ran")
+    except ValueError as e:
+        said.append("refused" if "of memory" in str(e) else str(e))
+    except Assembled:
+        said.append("assembled")
+said = comm.gather(said, root=0)
+print(repr(said) if comm.rank == 0 else "", flush=True)
+"""
+
+
+def test_solve_checks_each_process_for_its_share_of_the_mesh():
+    """Under mpirun -n 2 the computational mesh is distributed: each process needs its
+    share of the part of the run that grows with the mesh (estimate_memory with processes=2,
+    not replicated), the figure `solve` checks against: refused with a byte less on every
+    process, let through (to the assembly, stopped here) with exactly that."""
+    import ast
+
+    proc = mpirun(["-c", SHARED_MESH_MEMORY])
+    assert proc.returncode == 0, proc.stderr
+    said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    assert said == [["refused", "assembled"]] * 2, said
+
+
 LOCAL_ERROR = """
 import sys
 from mpi4py import MPI
