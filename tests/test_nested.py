@@ -428,3 +428,21 @@ def test_final_errors_measure_the_answer_only():
     measured = [r for r in sol.history if r["energy_error"] is not None]
     assert measured == [sol.final_record] and sol.energy_error is not None
     assert [p["energy_error"] is None for p in sol.per_level] == [True, True, False]
+
+
+@pytest.mark.parametrize("gamma_lin,gamma_alg", [(0.01, 0.5), (0.5, 0.01)])
+def test_adaptive_newton_stops_by_gamma_lin(gamma_lin, gamma_alg):
+    """Algorithm 1 with γ_lin ≠ γ_alg (the paper preset, which estimates every Newton
+    iterate in full here): Newton stops at the first iterate with η_lin ≤ γ_lin η_disc (§8),
+    whatever γ_alg, and the Krylov solve of that iterate met η_alg ≤ γ_alg max(η_disc, η_lin).
+    Read from the records: the certified final one meets both, every Newton record before it
+    fails the Newton test."""
+    sol = solve(scene("disk", 0.3, levels=1), nested=False, solver="paper",
+                gamma_lin=gamma_lin, gamma_alg=gamma_alg, errors="none")
+    assert sol.converged, sol.reason
+    newton = [r for r in sol.history if r["kind"] == "newton"]
+    *before, final = newton
+    assert final is sol.final_record and final["bound"]
+    assert final["eta_lin"] <= gamma_lin * final["eta_disc"]
+    assert final["eta_alg"] <= gamma_alg * max(final["eta_disc"], final["eta_lin"])
+    assert before and all(r["eta_lin"] > gamma_lin * r["eta_disc"] for r in before)
