@@ -940,6 +940,23 @@ def test_stopping_options_of_another_variant_are_refused(kwargs, message):
         check_method(0, **kwargs)
 
 
+@pytest.mark.parametrize("levels,kwargs,expected", [
+    (1, {}, ("residual", 1e-6)),
+    (1, {"coarse_tol": 1e-3}, ("residual", 1e-3)),
+    (1, {"coarse": "estimated"}, ("estimated", None)),
+    (1, {"newton": "exact"}, (None, None)),
+    (1, {"nested": False}, (None, None)),
+    (0, {}, (None, None)),
+])
+def test_coarse_options_as_the_run_uses_them(levels, kwargs, expected):
+    """(coarse, coarse_tol) as check_method completes them (and the summary reports them):
+    the default 'residual' with 1e-6 where an adaptive nested run has coarse levels, no
+    tolerance where 'estimated' stops them by the estimators, and neither where there are
+    no coarse levels to leave (other variants, a single level)."""
+    from membranes.app.driver import check_method
+    assert check_method(levels, **kwargs)[-2:] == expected
+
+
 def test_the_largest_krylov_limit_petsc_holds_is_accepted():
     """max_linear_its up to PETSc's largest integer (KSP's max_it is a PetscInt) is a valid
     limit; one more is refused."""

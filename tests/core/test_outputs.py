@@ -725,3 +725,13 @@ def test_the_certificate_is_made_once(newton, monkeypatch):
         assert kinds == [None]
     else:
         assert None not in kinds and kinds[-1] == "newton"
+
+
+@pytest.mark.parametrize("make,errors", [(lambda: scenes.disk(h=0.3), "none"),
+                                         (lambda: scenes.user(h=0.3), "final")])
+def test_no_energy_error_no_kind(make, errors):
+    """energy_error_kind says what energy_error measures: without an energy error (errors
+    'none', or a scene without an exact solution) both are null."""
+    sol = solve(make(), newton="exact", estimators=False, errors=errors)
+    assert sol.converged and sol.energy_error is None
+    assert sol.energy_error_kind is None and sol.summary()["energy_error_kind"] is None
