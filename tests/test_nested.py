@@ -446,3 +446,18 @@ def test_adaptive_newton_stops_by_gamma_lin(gamma_lin, gamma_alg):
     assert final["eta_lin"] <= gamma_lin * final["eta_disc"]
     assert final["eta_alg"] <= gamma_alg * max(final["eta_disc"], final["eta_lin"])
     assert before and all(r["eta_lin"] > gamma_lin * r["eta_disc"] for r in before)
+
+
+def test_estimated_coarse_levels_use_the_forcing_term_too(monkeypatch):
+    """coarse='estimated' runs Algorithm 1 on every level, with the amg preset's forcing
+    term for the steps expected not to be the last (ADAPTIVE_FORCING) on the coarse levels
+    as on T_J: against the run without it, T_0 makes the same Newton steps with fewer
+    Krylov steps."""
+    from membranes.app import driver
+    problem = scene("disk", 0.2, levels=1)
+    forced = solve(problem, coarse="estimated", errors="none")
+    monkeypatch.setattr(driver, "ADAPTIVE_FORCING", None)
+    plain = solve(problem, coarse="estimated", errors="none")
+    first = [run.per_level[0] for run in (forced, plain)]
+    assert first[0]["newton_iterations"] == first[1]["newton_iterations"] >= 2
+    assert first[0]["linear_iterations"] < first[1]["linear_iterations"]
