@@ -461,3 +461,18 @@ def test_estimated_coarse_levels_use_the_forcing_term_too(monkeypatch):
     first = [run.per_level[0] for run in (forced, plain)]
     assert first[0]["newton_iterations"] == first[1]["newton_iterations"] >= 2
     assert first[0]["linear_iterations"] < first[1]["linear_iterations"]
+
+
+def test_residual_coarse_levels_stop_krylov_at_the_coarse_forcing(monkeypatch):
+    """coarse='residual': each Krylov solve of a coarse level stops at COARSE_FORCING (0.1)
+    times its initial residual (`_coarse_levels`); the paper's inexact test instead (forcing
+    None) is met by a step's initial guess and so solves every step ν iterations deep: T_0
+    and T_1 take more Krylov steps that way."""
+    from membranes.app import driver
+    problem = scene("disk", 0.2, levels=2)
+    forced = solve(problem, errors="none")
+    monkeypatch.setattr(driver, "COARSE_FORCING", None)
+    plain = solve(problem, errors="none")
+    for level in (0, 1):
+        assert forced.per_level[level]["linear_iterations"] < \
+            plain.per_level[level]["linear_iterations"]
