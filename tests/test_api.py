@@ -425,3 +425,16 @@ def test_named_initial_guesses_are_the_vectors_they_name():
     assert zero == run(lambda disc: disc.vector3())
     assert run("paper") == run(None) == run(paper)
     assert zero[0][1] != run(None)[0][1]
+
+
+def test_krylov_options_recorded_as_the_run_used_them():
+    """summary's `nu` and `max_linear_its` are the Krylov solve's (the defaults, or the values
+    given); a direct solve has neither (docs/outputs.md): null, not a value it never used."""
+    from membranes.linalg.krylov import DEFAULT_NU, Krylov
+    problem = scene("disk", 0.3)
+    direct = solve(problem, solver="direct", estimators=False).summary()
+    assert direct["nu"] is None and direct["max_linear_its"] is None
+    default = solve(problem, newton="exact", estimators=False).summary()
+    assert (default["nu"], default["max_linear_its"]) == (DEFAULT_NU, Krylov("amg").max_it)
+    given = solve(problem, newton="exact", estimators=False, nu=3, max_linear_its=77).summary()
+    assert (given["nu"], given["max_linear_its"]) == (3, 77)

@@ -48,7 +48,7 @@ from .garbage import release_garbage
 from .logs import quiet_jit_logging
 from .schedule import DEFAULT_GAMMA, GATE, LevelEstimates
 from .setups import Setups
-from .solution import ESTIMATOR_COLUMNS, Solution
+from .solution import ESTIMATOR_COLUMNS, Solution, record_of_X
 
 DEFAULT_TOL = 1e-10
 ALG_FLUXES = ("nu", "multilevel")
@@ -376,7 +376,9 @@ def solve(problem: Problem,
     say = reporter(progress, comm)
     options = {"newton": newton, "cfun": cfun, "solver": solver,
                "system": system or krylov.system, "petsc_options": dict(petsc_options or {}),
-               "nu": krylov.nu, "gamma_lin": gamma_lin, "gamma_alg": gamma_alg,
+               "nu": krylov.nu if krylov.iterative else None,
+               "max_linear_its": krylov.max_it if krylov.iterative else None,
+               "gamma_lin": gamma_lin, "gamma_alg": gamma_alg,
                "alg_flux": alg_flux, "nested": nested,
                "tol": None if newton == "adaptive" else tol,        # (adaptive: unused)
                "coarse": coarse, "coarse_tol": coarse_tol,
@@ -442,7 +444,7 @@ def solve(problem: Problem,
             result.history[0]["wall_time_s"] = t_start
             result.history[0]["energy_error"] = None if error is None or \
                 errors != "iterates" else clock.off(error, newton_guess(disc, X0))
-        final = _record_of_X(result.history)
+        final = record_of_X(result.history)
         if estimate is not None and (variant != "adaptive" or
                                      not (final.get("estimates") or {}).get("bound")):
             # exact, inexact: the certificate; adaptive: an X that Newton left before a full
@@ -485,7 +487,7 @@ def solve(problem: Problem,
             disc.destroy()             # its PETSc objects (Solution keeps only T_J's)
     X = result.X
     wall = clock.now()
-    final = _record_of_X(history)
+    final = record_of_X(history)
     eta_K = final.pop("_eta_K", None)
     for rec in history:
         rec.pop("_eta_K", None)
@@ -535,12 +537,6 @@ def _coarse_levels(coarse, coarse_tol, newton, nested):
     if not (np.isfinite(coarse_tol) and 0.0 < coarse_tol < 1.0):
         raise ValueError(f"coarse_tol must lie in (0, 1), got {coarse_tol}")
     return coarse, coarse_tol
-
-
-def _record_of_X(history):
-    """The record of the returned iterate X: the last that is not a Krylov iterate (a solve
-    that failed leaves the Krylov records of the step it did not finish after it)."""
-    return next(rec for rec in reversed(history) if rec["kind"] != "krylov")
 
 
 def _error_kind(problem):

@@ -114,7 +114,8 @@ def replay(problem, sol):
     from .schedule import LevelEstimates
     from .solution import ESTIMATOR_COLUMNS
     o = sol.options
-    krylov = Krylov(o["solver"], o["petsc_options"] or None, nu=o["nu"])
+    krylov = Krylov(o["solver"], o["petsc_options"] or None,
+                    **({} if o["nu"] is None else {"nu": o["nu"], "max_it": o["max_linear_its"]}))
     J = problem.levels
     records, prev, offset = [], None, 0
     for j in (range(J + 1) if o["nested"] else [J]):

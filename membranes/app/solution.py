@@ -25,6 +25,12 @@ ESTIMATOR_COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc"
                      "eta_lin1", "eta_lin2", "eta_lin3", "eta_rem")
 
 
+
+def record_of_X(history):
+    """The record of the returned iterate X: the last that is not a Krylov iterate (a solve
+    that failed leaves the Krylov records of the step it did not finish after it)."""
+    return next(rec for rec in reversed(history) if rec["kind"] != "krylov")
+
 @dataclass
 class Solution:
     problem: Problem
@@ -65,8 +71,8 @@ class Solution:
 
     @property
     def final_record(self) -> dict[str, Any]:
-        """The history record of X (Krylov records may follow it after a failed solve)."""
-        return next(rec for rec in reversed(self.history) if rec["kind"] != "krylov")
+        """The history record of X (`record_of_X`)."""
+        return record_of_X(self.history)
 
     def complementarity_violation(self) -> float:
         """Largest violation of w = u1 - u2 ≥ 0, λ ≥ 0, λ w = 0 at interior vertices, relative

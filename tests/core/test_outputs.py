@@ -28,8 +28,8 @@ serial_only = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="reads files se
 
 SUMMARY_KEYS = {"scene", "description", "n_vertices", "n_cells", "h", "h_coarse", "levels",
                 "mu1", "mu2", "g", "processes", "newton", "cfun", "solver", "system",
-                "petsc_options", "nu", "gamma_lin", "gamma_alg", "alg_flux", "nested", "tol",
-                "coarse", "coarse_tol",
+                "petsc_options", "nu", "max_linear_its", "gamma_lin", "gamma_alg", "alg_flux",
+                "nested", "tol", "coarse", "coarse_tol",
                 "initial_guess", "per_level", "converged", "reason", "newton_iterations",
                 "linear_iterations", "wall_time_s", "final_residual",
                 "complementarity_violation", "energy_error", "energy_error_kind", "eta",
