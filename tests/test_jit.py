@@ -122,12 +122,9 @@ def test_an_unwritable_cache_is_refused_unless_it_holds_forms(tmp_path, monkeypa
     jit.check_cache(MPI.COMM_WORLD)
 
 
-def test_a_compilation_left_unfinished_is_made_again(tmp_path, lookups):
-    """A C file without its `.c.cached` marker, as a run killed during its first compilation
-    leaves (here the form's C file copied alone into an empty cache): FFCx waits for it and
-    times out; the lookup then drops the file and compiles the form itself, which assembles
-    as before. The later runs failed with FFCx's TimeoutError until the file was removed by
-    hand."""
+def _a_compiled_form(tmp_path, lookups):
+    """A small linear form compiled in the usual cache: the form, its assembled vector, its
+    module's name, the usual cache folder and an empty one made under tmp_path."""
     V = fem.FunctionSpace(mesh.create_unit_square(MPI.COMM_SELF, 3, 3), ("Lagrange", 1))
     L = membrane_linear(ufl.as_ufl(1.0), ufl.TestFunction(V))
     lookups.clear()
@@ -136,6 +133,16 @@ def test_a_compilation_left_unfinished_is_made_again(tmp_path, lookups):
     home = pathlib.Path(dolfinx.jit.get_parameters()["cache_dir"])
     cache = tmp_path / "cache"
     cache.mkdir()
+    return L, expected, name, home, cache
+
+
+def test_a_compilation_left_unfinished_is_made_again(tmp_path, lookups):
+    """A C file without its `.c.cached` marker, as a run killed during its first compilation
+    leaves (here the form's C file copied alone into an empty cache): FFCx waits for it and
+    times out; the lookup then drops the file and compiles the form itself, which assembles
+    as before. The later runs failed with FFCx's TimeoutError until the file was removed by
+    hand."""
+    L, expected, name, home, cache = _a_compiled_form(tmp_path, lookups)
     shutil.copy2(home / (name + ".c"), cache / (name + ".c"))
     params = {"cache_dir": str(cache), "timeout": 1}
     got = fem.assemble_vector(fem.form(L, jit_params=params)).array
@@ -200,14 +207,7 @@ def test_a_module_without_its_marker_is_not_loaded(tmp_path, lookups):
     its link and the marker, or still linking in another process: the library may be half
     written) is not loaded from the cache: FFCx's lookup takes it as a compilation under
     way, waits for it, and the form is compiled again, marker and all."""
-    V = fem.FunctionSpace(mesh.create_unit_square(MPI.COMM_SELF, 3, 3), ("Lagrange", 1))
-    L = membrane_linear(ufl.as_ufl(1.0), ufl.TestFunction(V))
-    lookups.clear()
-    expected = fem.assemble_vector(fem.form(L)).array
-    name, = [name for name, _ in lookups if name.startswith("libffcx_forms_")]
-    home = pathlib.Path(dolfinx.jit.get_parameters()["cache_dir"])
-    cache = tmp_path / "cache"
-    cache.mkdir()
+    L, expected, name, home, cache = _a_compiled_form(tmp_path, lookups)
     copied = [path for path in home.glob(name + ".*") if not path.name.endswith(".cached")]
     assert {p.suffix for p in copied} >= {".c", ".so"}
     for path in copied:
