@@ -25,11 +25,11 @@ ESTIMATOR_COLUMNS = ("eta", "eta_disc", "eta_lin", "eta_alg", "eta_F", "eta_osc"
                      "eta_lin1", "eta_lin2", "eta_lin3", "eta_rem")
 
 
-
 def record_of_X(history):
     """The record of the returned iterate X: the last that is not a Krylov iterate (a solve
     that failed leaves the Krylov records of the step it did not finish after it)."""
     return next(rec for rec in reversed(history) if rec["kind"] != "krylov")
+
 
 @dataclass
 class Solution:
