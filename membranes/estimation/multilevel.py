@@ -94,6 +94,7 @@ import ufl
 from petsc4py import PETSc
 
 from ..fem.discretisation import boundary_dofs, ghosted_vector, p1_space
+from ..fem.hierarchy import barycentric
 from ..fem.meshes import cell_vertices, owned_cells, triangle_areas
 from ..forms import equilibration as equilibration_forms
 from ..forms.membrane import membrane_linear
@@ -143,9 +144,7 @@ def child_positions(Vc, Vf, P, parents):
     nc = len(parents)
     corners = Xc[Vc.dofmap.list.array.reshape(-1, 3)[parents]]           # (c, 3, 2)
     pts = xhat[Vf.dofmap.list.array.reshape(-1, 3)[:nc]]                  # (c, 3, 2)
-    jac = np.stack([corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]], axis=2)
-    ref = np.einsum("cij,clj->cli", np.linalg.inv(jac), pts - corners[:, None, 0])
-    beta = np.concatenate([1.0 - ref.sum(axis=2, keepdims=True), ref], axis=2)
+    beta = barycentric(corners, pts)
     rounded = np.round(2.0 * beta) / 2.0
     _check(Vf.mesh.comm, np.abs(beta - rounded).max(initial=0.0) <= ROUND_OFF,
            "a fine vertex is neither a coarse vertex nor a coarse edge's midpoint: the "

@@ -107,6 +107,18 @@ def _cell_dofs(V):
     return V.dofmap.list.array.reshape(-1, 3)
 
 
+def barycentric(corners, points):
+    """Barycentric coordinates (n, k, 3) of the points (n, k, 2) in the triangles (n, 3, 2)
+    `corners`, in the corners' order. A vertex plaza made has the coordinates 0, 1/2 or 1 in
+    its parent (a coarse vertex or an edge's midpoint): the callers round to those."""
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    d = points - corners[:, None, 0]
+    det = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])[:, None]
+    l1 = (d[..., 0] * e2[:, None, 1] - d[..., 1] * e2[:, None, 0]) / det
+    l2 = (e1[:, None, 0] * d[..., 1] - e1[:, None, 1] * d[..., 0]) / det
+    return np.stack([1.0 - l1 - l2, l1, l2], axis=-1)
+
+
 def prolongation(coarse, fine, parents, unmoved=None):
     """P1 prolongation P : P1(coarse) → P1(fine) as a distributed PETSc matrix (rows: fine
     dofs, columns: coarse dofs), from the barycentric coordinates of each fine vertex in the
@@ -134,14 +146,8 @@ def prolongation(coarse, fine, parents, unmoved=None):
         xf[unmoved[0]] = unmoved[1]
     gc = coarse.geometry.dofmap.array.reshape(-1, 3)
     gf = fine.geometry.dofmap.array.reshape(-1, 3)
-    corners = xc[gc[parents[cell]]]                               # (n, 3, 2)
-    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    d = xf[gf[cell, k]] - corners[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    l1 = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
-    l2 = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
-    bary = np.round(2.0 * np.stack([1.0 - l1 - l2, l1, l2], axis=1)) / 2.0    # (n, 3)
-    del corners, e1, e2, d, det, l1, l2
+    bary = barycentric(xc[gc[parents[cell]]], xf[gf[cell, k]][:, None])[:, 0]   # (n, 3)
+    bary = np.round(2.0 * bary) / 2.0
     keep = bary != 0.0
     cols = imc.local_to_global(_cell_dofs(Vc)[parents[cell]][keep])   # row by row
     ptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))]).astype(PETSc.IntType)
