@@ -66,9 +66,9 @@ recovered on that set, where w = 0 after PETSc's projection onto the bounds in p
 the data give w: max(g, (C_PF h_Ω)² max b_a⁺/(κ D_a)), §11), with data b / s and g / s; the
 problem is positively homogeneous, so this is the same problem, and w, λ are scaled back.
 Without it a gap of g ≤ 1e-6 (the radial scene) put vertices with 0 < w_a ≤ 1e-8 into the
-active set, frozen off the bound, and the nested peer reported convergence at an iterate 24 %
-to 150 % away from the discrete solution. PETSc options that set absolute sizes (snes_atol)
-act on w / s.
+active set, frozen off the bound, and the nested peer reported convergence at an iterate far
+from the discrete solution (BENCHMARKS.md, robustness: "the peer at small g"). PETSc options
+that set absolute sizes (snes_atol) act on w / s.
 """
 
 import time

@@ -55,19 +55,19 @@ class LevelEstimates:
     without a bound: its Newton test would hold only if η_disc grew in one step, and Newton goes
     on. Before the first full estimate on the mesh, the gradient recovery estimate η_rec
     (`Estimators.recovered`, two small assemblies) stands in for η_disc: both estimate the same
-    discretisation error, but η_rec is no bound and η_disc may exceed it (by 3× on a mesh of
-    aspect ratio 100). So within REC_MARGIN (2) of the gate an iterate is estimated in full,
-    unless the rate of the last Newton step takes η_lin below the gate at the next step
-    (`_skip`). An iterate clearly above the gate is skipped against the last η_rec on the mesh,
-    with η_lin alone (`_recovered`, STALE). This is a schedule of the estimates, like ν for
-    Krylov (§8): a wrong guess costs about one more Newton step, never the bound; the iterate
-    Newton stops at is always estimated in full and certified. GATE = 1 because a full estimate
-    whose test fails is wasted, and on T_J it costs more than the Newton step that a skipped,
-    passing test costs: estimating an iterate pays only if its test is likely to hold
-    (docs/choices.md). `gate=None` estimates every Newton iterate in full, and so does kind
-    'stalled' (an iterate that its Newton step left unchanged: η_lin no longer falls, and η_rec
-    may be far below η_disc where the mesh does not resolve the data, so the gate would skip it
-    at every repetition).
+    discretisation error, but η_rec is no bound and η_disc may exceed it (several times on an
+    anisotropic mesh: BENCHMARKS.md, "The Newton gates"). So within REC_MARGIN (2) of the gate
+    an iterate is estimated in full, unless the rate of the last Newton step takes η_lin below
+    the gate at the next step (`_skip`). An iterate clearly above the gate is skipped against
+    the last η_rec on the mesh, with η_lin alone (`_recovered`, STALE). This is a schedule of
+    the estimates, like ν for Krylov (§8): a wrong guess costs about one more Newton step, never
+    the bound; the iterate Newton stops at is always estimated in full and certified. GATE = 1
+    because a full estimate whose test fails is wasted, and on T_J it costs more than the Newton
+    step that a skipped, passing test costs: estimating an iterate pays only if its test is
+    likely to hold (docs/choices.md). `gate=None` estimates every Newton iterate in full, and so
+    does kind 'stalled' (an iterate that its Newton step left unchanged: η_lin no longer falls,
+    and η_rec may be far below η_disc where the mesh does not resolve the data, so the gate
+    would skip it at every repetition).
 
     Each answer to kind 'newton' whose test fails says whether the next step is expected not
     to be the last either (`more_steps`, `_more_steps`): Newton then stops that step's Krylov

@@ -22,7 +22,8 @@ processes), and the estimators met facets of three cells.
 several threads by default; its partitions then differ from run to run (on 3 and 4 processes
 the parts themselves, on 2 which process gets which half). The matrices' orderings, and with
 them BoomerAMG's hierarchies, block-Jacobi ILU(0) and the Krylov iterates, followed: the
-same run on 2 processes took 24 or 25 Newton steps, and its η differed in the fourth digit.
+same run on 2 processes could take another number of Newton steps and give another η
+(BENCHMARKS.md, "Reproducible partitions on several processes").
 `create_mesh` is therefore called with Scotch's documented SCOTCH_PTHREAD_NUMBER = 1 (unless
 the user set it), under which the partition of a mesh on P processes is the same in every
 run. The hierarchy is refined without redistribution, so it inherits T_0's partition.

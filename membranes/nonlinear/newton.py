@@ -18,8 +18,8 @@ The step is solved on the full 3N system or on the eliminated 2N one
   ‖R_alg‖ ≤ max(η ‖R_alg(X^{k,0})‖, 2e-12 ‖B‖), tested at every iteration (the nested run's
   coarse levels, membranes.app.driver); η is divided by 10 (`FORCING_SHRINK`) after every
   forced step whose ‖R_lin‖/‖(F, 0)‖ is no smaller than its predecessor's: with one or two
-  GMRES + ILU(0) iterations per step, Newton-min drifted away (residual 1e11 after 100 steps
-  on a stiff case), while deeper solves converge;
+  GMRES + ILU(0) iterations per step, Newton-min drifted away on stiff cases (BENCHMARKS.md,
+  robustness: "coarse levels' inexact Newton"), while deeper solves converge;
 * adaptive (Algorithm 1): every ν Krylov steps the iterate X^{k,i} and its residual R^{k,i}
   go to the estimators (`estimate(X, R, 'krylov')`), and the solve stops at the first with
   η_alg ≤ γ_alg max(η_disc, η_lin) (or at the exact floor 2e-12); that iterate is X^k, whose
