@@ -313,8 +313,7 @@ class Estimators:
     def linearisation(self, X):
         """η_lin = η_lin1 + η_lin3 + η_lin2^{1/2} and its parts at X (§7), without σ_disc: the
         same integrals as `evaluate`'s, one small assembly. It lets a caller skip the flux
-        equilibration where η_lin alone shows that a stopping test fails
-        (`membranes.app.schedule.LevelEstimates`)."""
+        equilibration where η_lin alone shows that a stopping test fails (`app.schedule`)."""
         self._write(X)
         q = self._cell_form("lin").cells()
         return self._linearisation_parts(*self._linearisation_sums(q))
