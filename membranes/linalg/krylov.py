@@ -16,22 +16,17 @@
   100 ε ≈ 2.2e-14, but every entry of the λ column (D/μ_α, κ ∂C/∂b), and so every λ pivot
   (about κ h²), carries the unit 1/μ. Scaling μ1, μ2, f1, f2 by c scales that column by 1/c
   and leaves u unchanged (§11); ILU(0) and right-preconditioned GMRES are invariant under
-  column scaling, so the whole run is, save for that test: with it, μ1 = μ2 = 1e11 on the
-  disk at h = 0.1 failed in its first Newton step (DIVERGED_PCSETUP_FAILED), and so did
-  ``-pc_type ilu`` on the eliminated system at μ1 = μ2 = 1e12.
+  column scaling, so the whole run is, save for that test, which broke it at large moduli
+  (BENCHMARKS.md, Robustness, "ILU's pivots").
 * ``direct``: MUMPS, distributed LU of the full 3N system (``preonly``, ``lu``), analysed
   anew at every step, with ICNTL(14) = 100 (100 % more working memory than its analysis
-  estimates): the zero λ-diagonal of a min contact vertex makes MUMPS delay pivots, and with
-  its default 20 % the factorisation stopped with INFOG(1) = -9 (workspace too small) from the
-  second Newton step on, on the disk from h = 0.1 down (one process and two). MUMPS's own
-  scaling is off (ICNTL(8) = 0): its default, an iterative row and column equilibration, is
-  not invariant under the 1/μ of the λ column, and with μ1 = μ2 = 1e-16 on the square
-  (16 × 16, the data scaled alike, §11) exact Newton ended at a relative residual of 1e-12
-  instead of 5e-16, with η_alg at 0.94 η and η at 75 times the error instead of 1.08 (786279
-  times at 1e-20; one process and two). Unscaled, the run is that of μ = 1 scaled, on one
-  process and on several (MUMPS's column scalings, 3 and 4, act as 0 on a distributed
-  matrix); the price is round-off: on the disk (h = 0.05, J = 1, 2) η_alg is 2e-11 to 3e-10
-  of η instead of 6e-12 to 6e-11.
+  estimates): the zero λ-diagonal of a min contact vertex makes MUMPS delay pivots, which
+  outgrew its default 20 % (INFOG(1) = -9). MUMPS's own scaling is off (ICNTL(8) = 0): its
+  default, an iterative row and column equilibration, is not invariant under the 1/μ of the
+  λ column, and at extreme moduli it left an algebraic error that dominated η (BENCHMARKS.md,
+  Robustness, "MUMPS's scaling"). Unscaled, the run is that of μ = 1 scaled, on one process
+  and on several (MUMPS's column scalings, 3 and 4, act as 0 on a distributed matrix); the
+  price is a little more round-off in η_alg, still far below η.
 * ``amg`` (the default): FGMRES on the eliminated 2N system, preconditioned by the mean/gap
   split of §10 with one BoomerAMG V-cycle on the mean and one on the gap (`preconditioners.
   MeanGapPC`; for Newton-min and Fischer–Burmeister alike). Iterations per Newton step do not
