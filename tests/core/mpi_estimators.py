@@ -8,8 +8,9 @@ liftings; `iterate` and `residual` give iterates with the boundary values of §2
 residuals R = B - A X, for the flux equilibration. Run as a script
 (`mpirun -n P python tests/core/mpi_estimators.py N`) it prints, on rank 0, one JSON line
 with the global estimators, the remainder and the energy error, after checking that every
-rank holds the same numbers: the estimators with the given fluxes, and with the flux
-equilibration and the ν flux.
+rank holds the same numbers: the estimators with the given fluxes, η_lin and η_rec alone,
+and with the flux equilibration and the ν flux (and at an iterate that differs from the
+last one at a single vertex).
 """
 
 import sys
@@ -153,6 +154,12 @@ def main(N):
     plain = est.assemble(X, sigma)
     full = est.assemble(X, sigma, alg, eta_rem)
     out = {"eta_rem": eta_rem, "energy_error": EnergyError(disc)(X)}
+    # the shortcuts without σ_disc (the gates' signals), reduced over the processes too
+    lin = est.linearisation(X)
+    eta_rec, rec_lin = est.recovered(X, linearisation=True)
+    out.update({f"lin.{k}": v for k, v in lin.items()})
+    out.update({f"rec.{k}": v for k, v in rec_lin.items()})
+    out["rec.eta_rec"] = eta_rec
     for name, values in (("plain", plain), ("full", full)):
         for key, v in values.items():
             if key == "eta_K":
@@ -169,6 +176,15 @@ def main(N):
             if key == "eta_K":
                 v = float(np.sqrt(comm.allreduce(float((v ** 2).sum()), op=MPI.SUM)))
             out[f"{name}.{key}"] = v
+    # an iterate that differs from X2 in λh at one vertex, owned by one process, and so does
+    # its residual (D is diagonal): σ_disc(X2, R2), kept, is not its σ_disc on any process
+    # (the kept pairs are compared on every process)
+    n = disc.n
+    xy = disc.V.tabulate_dof_coordinates()[:n, :2]
+    d = np.hypot(xy[:, 0] - 0.5, xy[:, 1] - 0.5)
+    X3 = X2.copy()
+    X3[2 * n:][d == comm.allreduce(d.min(initial=np.inf), op=MPI.MIN)] += 0.5
+    out["bump.eta"] = est.evaluate(X3, residual(disc, X3))["eta"]
     from mpi_common import print_agreed  # run as a script from tests/core
     print_agreed(comm, out)
 

@@ -40,13 +40,14 @@ PHI = np.stack([1 - PTS[:, 0] - PTS[:, 1], PTS[:, 0], PTS[:, 1]], axis=1)   # (q
 DPHI = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
 
 
-def reference(disc, X, sigma_f, alg_f, f_np, r_f=None, dlam=None, exact=None):
-    """Every per-cell quantity by numpy quadrature on the owned cells (mesh order)."""
+def reference(disc, X, sigma_f, alg_f, f_np, r_f=None, dlam=None, exact=None, nodal=NP):
+    """Every per-cell quantity by numpy quadrature on the owned cells (mesh order); X's u1,
+    u2, λ are the formulas nodal["u1"], nodal["u2"], nodal["lam"] (default: the scene's)."""
     V, n = disc.V, disc.n
     coords = V.tabulate_dof_coordinates()[:, :2]
     ghosts = V.dofmap.index_map.num_ghosts
     # nodal values on owned and ghost dofs from the formulas (not from a scatter)
-    vals = {k: NP[k](coords.T) for k in ("u1", "u2", "lam")}
+    vals = {k: nodal[k](coords.T) for k in ("u1", "u2", "lam")}
     assert np.array_equal(np.concatenate([vals[k][:n] for k in ("u1", "u2", "lam")]), X)
     u1, u2, lam = vals["u1"], vals["u2"], vals["lam"]
     lp, ln = np.maximum(lam, 0), np.minimum(lam, 0)
@@ -197,6 +198,32 @@ def test_global_values_and_bound(setup):
     plain = est.assemble(X, sigma)
     assert np.isclose(plain["eta_F"], np.sqrt((D ** 2).sum()), rtol=TOL, atol=0)
     assert plain["eta_alg"] == 0.0 and plain["eta_rem"] == 0.0
+
+
+def test_a_negative_contact_sum_enters_eta_and_eta_disc_as_section_7_says(setup):
+    """An iterate with λh > 0 where u1h < u2h (the scene's iterate with the membranes
+    swapped): Σ_C = 2 Σ_K (u1h - u2h, λ^pos)_K < 0. §7 adds max(0, Σ_C) = 0 to η² and
+    |Σ_C|^{1/2} to η_disc; the scene's own iterate has Σ_C > 0, where max(0, Σ_C), |Σ_C| and
+    Σ_C agree, so only an iterate like this one tells them apart. Against the numpy
+    quadrature of that iterate, to round-off as above; |Σ_C| ≥ 1e-6 η² (here 1e-3), so
+    adding |Σ_C| to η² would move η by ≥ 5e-7 relative, far beyond that tolerance."""
+    disc, X, sigma, alg, r, dlam, _ = setup
+    n = disc.n
+    swapped = {"u1": NP["u2"], "u2": NP["u1"], "lam": NP["lam"]}
+    Xs = np.concatenate([X[n:2 * n], X[:n], X[2 * n:]])
+    ref = reference(disc, Xs, (NP["sigma1"], NP["sigma2"]), (NP["alg1"], NP["alg2"]),
+                    (NP["f1"], NP["f2"]), nodal=swapped)
+    sum_C = disc.comm.allreduce(float(ref["C"].sum()), op=MPI.SUM)
+    assert sum_C < 0
+    got = Estimators(disc).assemble(Xs, sigma)
+    osc = np.sqrt(np.stack([ref["osc1"], ref["osc2"]], 1))
+    D = np.sqrt(np.stack([ref["disc1"], ref["disc2"]], 1))
+    eta_1 = np.sqrt(((D + osc) ** 2).sum())
+    lin1, lin2, lin3 = linearisation_reference(ref)
+    assert lin1 > 0 and abs(sum_C) > 1e-6 * ((eta_1 + lin1 + lin3) ** 2 + lin2)
+    assert np.isclose(got["eta_C"], sum_C, rtol=TOL, atol=0)
+    assert np.isclose(got["eta"], np.sqrt((eta_1 + lin1 + lin3) ** 2 + lin2), rtol=TOL, atol=0)
+    assert np.isclose(got["eta_disc"], eta_1 + np.sqrt(-sum_C), rtol=TOL, atol=0)
 
 
 def test_the_shortcuts_against_numpy_quadrature(setup):
@@ -431,6 +458,17 @@ def test_evaluate_with_the_equilibration(equilibrated):
     for key in ("eta_disc", "eta_lin", "eta_osc", "eta_C"):
         assert got[key] == plain[key], key
     assert got["eta_alg"] > eta_rem > 0
+
+
+def test_the_estimators_refuse_forces_that_underflow(setup, monkeypatch):
+    """Estimators refuses, in its set-up, data whose forces min(μ1, μ2) u_data lie below
+    model.checks.UNDERFLOW_SCALE (module notes: there η_F's squares underflow and η fell
+    below the error): a caller of the estimators alone (not through the driver, which checks
+    the coarsest level itself) is refused too. The data scale is set to 1e-145 (μ = 1, 3)."""
+    disc = setup[0]
+    monkeypatch.setattr(disc, "data_scales", lambda: (1e-145, 1.0))
+    with pytest.raises(ValueError, match="the estimators underflow double precision"):
+        Estimators(disc)
 
 
 def test_the_data_parts_wait_for_the_first_full_evaluation():
