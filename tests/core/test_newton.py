@@ -279,6 +279,23 @@ def test_the_forcing_term_shrinks_after_a_step_that_did_not_help(monkeypatch):
             eta /= 10
 
 
+def test_inexact_krylov_solves_stop_at_the_last_nonlinear_residual(monkeypatch):
+    """Inexact Newton without forcing (§8): step k's Krylov solve stops at ‖R_alg‖/‖B‖ ≤
+    ‖R_lin(X^{k-1})‖/‖(F, 0)‖ (never below the exact floor 2e-12): its bound is that of
+    X^{k-1}, the previous record, not of X⁰. The residuals fall by orders of magnitude
+    between steps, so a bound from another iterate is off by far more than the round-off of
+    the product (rtol 1e-12)."""
+    from membranes.linalg.krylov import EXACT_TOL
+    seen = forcing_bounds(monkeypatch)
+    result = newton(disc_of("disk", 0.1), variant="inexact", krylov="paper")
+    assert result.converged, result.reason
+    residuals = [r["residual"] for r in result.history if r["kind"] in ("initial", "newton")]
+    assert len(seen) == len(residuals) - 1 >= 3
+    assert residuals[-2] < 1e-3 * residuals[0]
+    for k, (bound, _, norm_B) in enumerate(seen):
+        assert np.isclose(bound, max(residuals[k], EXACT_TOL) * norm_B, rtol=1e-12, atol=0), k
+
+
 def test_the_first_krylov_solve_of_each_level_is_forced_as_documented(monkeypatch):
     """A default nested solve (adaptive, amg, coarse='residual'): the first Krylov solve of
     each coarse level stops at 0.1 of its initial residual, the first of T_J at 0.01 (README,
@@ -389,8 +406,88 @@ def test_adaptive_newton_with_a_forcing_term():
     assert (True, False) in tests            # Newton's test alone would have stopped there
 
 
+def test_only_steps_expected_not_to_be_the_last_are_forced():
+    """Adaptive with forcing: a step is forced (its solve stops at the forcing term, its
+    iterate handed over as kind 'forced') only where the estimates expect it not to be the
+    last: the first step, or after an answer with `more_steps` True. Every answer here says
+    False, so only step 1 is forced (one 'forced' call); the later steps solve to the linear
+    criterion as without forcing. The run has at least two steps, so forcing every step
+    would show as more 'forced' calls."""
+    from membranes.estimation.equilibration import FluxEquilibration
+    from membranes.estimation.estimators import Estimators
+    disc = disc_of("disk", 0.1)
+    est = Estimators(disc, FluxEquilibration(disc))
+    kinds = []
+
+    def estimate(X, R, kind):
+        kinds.append(kind)
+        if kind == "step":
+            return None
+        e = est.evaluate(X, R)
+        e.pop("eta_K")
+        e["more_steps"] = False
+        return e
+
+    res = newton(disc, variant="adaptive", krylov="amg", estimate=estimate, forcing=0.5)
+    assert res.converged, res.reason
+    assert res.newton_steps >= 2 and kinds.count("step") == res.newton_steps
+    assert kinds.count("forced") == 1
+    first_step_ends = kinds.index("step", 1)
+    assert "forced" in kinds[:first_step_ends]
+
+
+def literal_estimates(kinds, answers):
+    """An `estimate` callback that records the kinds it is asked for and answers each kind
+    with the literal dict `answers[kind]` (None where absent): Newton's decisions on given
+    numbers, no estimators."""
+    def estimate(X, R, kind):
+        kinds.append(kind)
+        answer = answers.get(kind)
+        return None if answer is None else dict(answer)
+    return estimate
+
+
+def test_a_forced_step_finished_to_the_floor_needs_only_the_newton_test():
+    """A forced step whose 'forced' answer is None (its Newton test may hold) is solved on to
+    the exact floor; it is then no longer a forced step, and its iterate stops Newton where
+    η_lin ≤ γ_lin η_disc, whatever η_alg says (the linear criterion is asked only of a solve
+    the forcing term cut short; newton's notes). Literal estimates: η_lin = 0 ≤ 0.3 · 1, and
+    η_alg = 1 > 0.3 max(1, 0), so the run stops at step 1 only if the criterion is not asked
+    (asked, it would go on to a second step)."""
+    kinds = []
+    answer = {"eta_disc": 1.0, "eta_lin": 0.0, "eta_alg": 1.0}
+    estimate = literal_estimates(kinds, {"newton": answer, "krylov": answer})
+    res = newton(disc_of("disk", 0.1), variant="adaptive", krylov="amg", estimate=estimate,
+                 forcing=0.5)
+    assert res.converged, res.reason
+    assert kinds.count("forced") == 1 and res.newton_steps == 1
+    assert res.history[-1]["alg_residual"] <= 2e-12
+
+
+def test_an_iterate_accepted_in_a_forced_solve_is_the_one_returned():
+    """Adaptive with forcing and ν = 1: the linear criterion holds on the first Krylov iterate
+    of the forced first step (literal estimates: η_alg = 0), which stops the solve there, so
+    that iterate is X^1: no 'forced' estimate follows (which, answered None, would finish the
+    solve to the floor under the accepted iterate's record), and the returned X is the iterate
+    the record describes: its ‖R_lin‖/‖(F, 0)‖ is the record's (the same computation on the
+    same vector: 1e-10 covers the reductions' order), and far from the floor-solved step's."""
+    kinds = []
+    answer = {"eta_disc": 1.0, "eta_lin": 0.0, "eta_alg": 0.0}
+    estimate = literal_estimates(kinds, {"newton": answer, "krylov": answer})
+    disc = disc_of("disk", 0.1)
+    res = newton(disc, variant="adaptive", krylov={"preset": "amg", "nu": 1},
+                 estimate=estimate, forcing=1e-9)
+    assert res.converged, res.reason
+    assert "forced" not in kinds and res.newton_steps == 1
+    final = res.history[-1]
+    assert final["kind"] == "newton" and final["i"] == 1 and final["alg_residual"] > 1e-6
+    sys_ = NewtonSystem(disc)
+    assert sys_.relative_residual(res.X, "min") == pytest.approx(final["residual"], rel=1e-10)
+    sys_.destroy()
+
+
 def test_the_stopping_criteria_are_those_of_section_8():
-    """§8's two tests on literal estimates, on both sides of each boundary: Newton's
+    """§8's two tests on literal estimates, on both sides of each boundary and on it: Newton's
     η_lin ≤ γ_lin η_disc, Krylov's η_alg ≤ γ_alg max(η_disc, η_lin) (the tests above take
     them as given)."""
     from membranes.nonlinear.newton import linear_criterion, newton_criterion
@@ -401,6 +498,10 @@ def test_the_stopping_criteria_are_those_of_section_8():
     assert linear_criterion({"eta_alg": 0.59, "eta_disc": 0.1, "eta_lin": 2.0}, 0.3)
     assert not linear_criterion({"eta_alg": 0.61, "eta_disc": 0.1, "eta_lin": 2.0}, 0.3)
     assert not linear_criterion({"eta_alg": 0.31, "eta_disc": 1.0, "eta_lin": 0.1}, 0.3)
+    # both tests are ≤ (§8): an iterate with every estimate 0 (the exact discrete solution of
+    # data that P1 holds, solved exactly) meets them, and so stops Newton and its solve
+    assert newton_criterion({"eta_lin": 0.0, "eta_disc": 0.0}, 0.3)
+    assert linear_criterion({"eta_alg": 0.0, "eta_disc": 0.0, "eta_lin": 0.0}, 0.3)
 
 
 def test_a_forced_step_finished_to_the_floor_keeps_the_krylov_limit():
@@ -520,6 +621,10 @@ def test_every_estimated_iterate_has_the_dirichlet_values(guess):
     ({"krylov": "amg", "system": "full"}, "eliminated"),
     ({"gamma_lin": -1.0}, "gamma_lin"),
     ({"tol": 0.0}, "tol"),
+    ({"tol": float("inf")}, "tol"),            # would call X⁰ converged
+    ({"gamma_alg": True}, "gamma_alg"),        # a bool is no number here
+    ({"variant": "adaptive", "krylov": "direct", "estimate": lambda X, R, kind: None},
+     "iterative"),
     ({"max_newton": 0}, "max_newton"),
     ({"forcing": 0.1}, "inexact"),
     ({"variant": "inexact", "krylov": "amg", "forcing": 1.0}, "forcing"),
@@ -545,6 +650,25 @@ def test_a_failed_krylov_solve_is_reported():
     assert "Krylov solver failed at Newton step 1" in res.reason
     assert "DIVERGED_MAX_IT after 3 iterations" in res.reason
     assert res.newton_steps == 1 and len(res.history) == 1       # X⁰ only
+
+
+def test_a_non_finite_iterate_ends_the_run(monkeypatch):
+    """A Newton step whose linear solve hands back non-finite values (here forced: the
+    solver's answer overwritten with NaN) ends the run at that step, not converged, with the
+    reason; the run does not go on from a NaN iterate (which no test would stop before
+    max_newton)."""
+    from membranes.nonlinear import newton as newton_module
+
+    class Poisoned(newton_module.LinearSolver):
+        def solve(self, step, y, *args, **kwargs):
+            out = super().solve(step, y, *args, **kwargs)
+            y.set(np.nan)
+            return out
+
+    monkeypatch.setattr(newton_module, "LinearSolver", Poisoned)
+    res = newton(disc_of("disk", 0.1), krylov="direct", max_newton=3)
+    assert not res.converged
+    assert res.reason == "non-finite iterate at Newton step 1" and res.newton_steps == 1
 
 
 def test_a_diverging_newton_stops_and_a_rising_one_does_not():
