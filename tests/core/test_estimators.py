@@ -460,6 +460,33 @@ def test_evaluate_with_the_equilibration(equilibrated):
     assert got["eta_alg"] > eta_rem > 0
 
 
+def test_an_iterate_without_residual_after_three_with_one():
+    """σ_disc of an iterate given without residual (R = None: r_αh = 0, e.g. the discrete
+    solution, whose R = B - A X is round-off) is solved into the Functions of the oldest
+    kept iterate where two are kept (after three evaluations with residuals: the first's
+    σ_disc, in the forms' own Functions, is dropped by the second's, and the second and third
+    are kept in their own): its lifted residual is zeroed first, so the estimates are those
+    of a fresh Estimators (to 8 ε of each value, as in the test above), not those of r_αh
+    left at an earlier iterate's (then σ_disc failed its divergence check). The discrete
+    solution comes from exact Newton with MUMPS."""
+    from membranes.estimation.equilibration import FluxEquilibration
+    from membranes.nonlinear.newton import newton
+    disc = scene(MPI.COMM_WORLD, 6)[0]
+    solution = newton(disc, krylov="direct")
+    assert solution.converged, solution.reason
+    Xs = np.array(solution.X.array_r)
+    est = Estimators(disc, FluxEquilibration(disc))
+    for seed in (0.0, 0.7, 0.3):
+        Y = iterate(disc, seed)
+        est.evaluate(Y, residual(disc, Y))
+    assert len(est._recent) == 2 and all(r is not None for (_, r), _ in est._recent)
+    got = est.evaluate(Xs)
+    fresh = Estimators(disc, FluxEquilibration(disc)).evaluate(Xs)
+    tol = 8 * np.finfo(float).eps
+    assert all(close(got[k], fresh[k], tol) for k in fresh), \
+        [k for k in fresh if not close(got[k], fresh[k], tol)]
+
+
 def test_the_estimators_refuse_forces_that_underflow(setup, monkeypatch):
     """Estimators refuses, in its set-up, data whose forces min(μ1, μ2) u_data lie below
     model.checks.UNDERFLOW_SCALE (module notes: there η_F's squares underflow and η fell
