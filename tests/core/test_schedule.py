@@ -15,6 +15,7 @@ a real run (disk, J = 2).
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from petsc4py import PETSc
 
 from membranes import scenes, solve
@@ -75,14 +76,14 @@ class StubEstimators:
         return out
 
 
-def level_estimates(monkeypatch, stub):
+def level_estimates(monkeypatch, stub, gate=1.0):
     """A LevelEstimates for alg_flux 'nu' made by its own __init__, with the stub as its
     estimators (a Setups-like stand-in hands over the flux equilibration, which the stub does
-    not use); γ_lin = γ_alg = 0.3 and the gate GATE = 1 given explicitly, since the numbers
-    of the tests are chosen around them."""
+    not use); γ_lin = γ_alg = 0.3 and the gate GATE = 1 (unless `gate`) given explicitly,
+    since the numbers of the tests are chosen around them."""
     monkeypatch.setattr(estimators, "Estimators", lambda disc, equilibration: stub)
     setups = SimpleNamespace(equilibration=lambda disc: None)
-    return LevelEstimates(None, "nu", gamma_alg=GAMMA, gamma_lin=GAMMA, gate=1.0,
+    return LevelEstimates(None, "nu", gamma_alg=GAMMA, gamma_lin=GAMMA, gate=gate,
                           setups=setups)
 
 
@@ -121,6 +122,78 @@ def test_after_a_full_estimate_the_gate_reads_its_eta_disc_not_eta_rec(monkeypat
     assert stub.calls["evaluate"] == [(1, None), (2, None)]
     assert stub.calls["nu_flux"] == []
     assert schedule.count == 2
+
+
+def test_an_iterate_whose_test_holds_with_equality_is_estimated_in_full(monkeypatch):
+    """Newton's test is η_lin ≤ γ_lin η_disc (§8), so the gate lets through an iterate at
+    η_lin = γ_lin · GATE · η_disc exactly (the same product of the same floats as the
+    schedule's): it is estimated in full, a bound, and not skipped as if its test failed. X^1
+    (η_lin 0.05 within REC_MARGIN of γ_lin η_rec = 0.03, no rate yet) gives η_disc = 0.1."""
+    own = {1: {"eta_disc": 0.1, "eta_lin": 0.05, "eta_alg": 0.0},
+           2: {"eta_disc": 0.1, "eta_lin": GAMMA * 1.0 * 0.1, "eta_alg": 0.0}}
+    stub = StubEstimators(own, eta_rec=0.1)
+    schedule = level_estimates(monkeypatch, stub)
+    assert "partial" not in call(schedule, 1, "newton")
+    second = call(schedule, 2, "newton")
+    assert "partial" not in second and second["bound"] and second["iterate"] == 2
+    assert stub.calls["evaluate"] == [(1, None), (2, None)]
+
+
+@pytest.mark.parametrize("first_rec", [0.01, 0.0])
+def test_eta_rec_is_made_anew_unless_eta_lin_is_clearly_above(monkeypatch, first_rec):
+    """Before the first full estimate, a gate reuses the last η_rec (η_lin alone) only where
+    η_lin lies above STALE · REC_MARGIN · γ_lin · GATE · that η_rec (4 · 2 · 0.3 · η_rec),
+    and never after an η_rec of 0 (against which every η_lin would be above). X^1 (η_rec =
+    `first_rec`, η_lin 0.05 > 2 · 0.3 · 0.01 = 0.006) is skipped; at X^2 η_lin = 0.02 lies
+    below 8 · 0.003 = 0.024 (by 17 %), or the last η_rec was 0, so η_rec is made anew (0.1
+    now: the data moved) and X^2, whose η_lin 0.02 ≤ 0.3 · 0.1 = 0.03, is estimated in full.
+    The forecast from X^1 (0.05, no rate yet) is above 0.024, so η_lin is computed alone
+    first."""
+    own = {1: {"eta_disc": 0.1, "eta_lin": 0.05, "eta_alg": 0.0},
+           2: {"eta_disc": 0.1, "eta_lin": 0.02, "eta_alg": 0.0}}
+    stub = StubEstimators(own, eta_rec=first_rec)
+    schedule = level_estimates(monkeypatch, stub)
+    first = call(schedule, 1, "newton")
+    assert first["partial"] and first["more_steps"] is True
+    stub.eta_rec = 0.1
+    second = call(schedule, 2, "newton")
+    assert "partial" not in second and second["bound"] and second["iterate"] == 2
+    assert stub.calls["recovered"] == [1, 2]
+    assert stub.calls["linearisation"] == ([2] if first_rec else [])
+    assert stub.calls["evaluate"] == [(2, None)]
+
+
+def test_the_gate_scales_the_target(monkeypatch):
+    """With gate = 0.5 an iterate is estimated in full only where η_lin ≤ γ_lin · 0.5 ·
+    η_disc: after a full estimate with η_disc = 0.1 (X^1, η_lin 0.01 ≤ 0.3 · 0.5 · η_rec =
+    0.015), X^2 with η_lin 0.02 is skipped (0.02 > 0.015, by 33 %), though its test against
+    γ_lin η_disc = 0.03 itself would hold."""
+    own = {1: {"eta_disc": 0.1, "eta_lin": 0.01, "eta_alg": 0.0},
+           2: {"eta_disc": 0.1, "eta_lin": 0.02, "eta_alg": 0.0}}
+    stub = StubEstimators(own, eta_rec=0.1)
+    schedule = level_estimates(monkeypatch, stub, gate=0.5)
+    assert "partial" not in call(schedule, 1, "newton")
+    second = call(schedule, 2, "newton")
+    assert second["partial"] and second["eta_lin"] == 0.02
+    assert stub.calls["evaluate"] == [(1, None)] and stub.calls["linearisation"] == [2]
+
+
+def test_more_steps_takes_the_rate_of_the_last_newton_step(monkeypatch):
+    """`more_steps` of a full estimate whose test fails forecasts the next η_lin at the rate
+    of the last Newton step, η_lin(X^1) → η_lin(X^2) (X^1 skipped with η_lin 0.2, X^2
+    estimated in full: η_lin 0.025 ≤ 0.3 · η_rec = 0.03). Its test fails (0.025 > 0.3 · 0.03
+    = 0.009), and the forecast 0.025 · 0.025 / 0.2 = 0.0031 lies below REC_MARGIN · 0.009 =
+    0.018: the next step may be the last, False. At rate 1 (X^2's own η_lin as the previous
+    one, or none) the forecast 0.025 would lie above 0.018 (by 39 %): True."""
+    own = {1: {"eta_disc": 0.1, "eta_lin": 0.2, "eta_alg": 0.0},
+           2: {"eta_disc": 0.03, "eta_lin": 0.025, "eta_alg": 0.0}}
+    stub = StubEstimators(own, eta_rec=0.1)
+    schedule = level_estimates(monkeypatch, stub)
+    first = call(schedule, 1, "newton")
+    assert first["partial"] and first["more_steps"] is True
+    second = call(schedule, 2, "newton")
+    assert "partial" not in second and second["iterate"] == 2
+    assert second["more_steps"] is False
 
 
 def test_a_krylov_iterate_meeting_the_criterion_alone_is_its_own_answer(monkeypatch):
@@ -173,6 +246,53 @@ def test_each_nu_flux_pairs_an_iterate_with_the_one_handed_over_before_it(monkey
     assert answers == [(0, (0, 1)), (1, (1, 2)), (3, (3, 4))]
     assert stub.calls["evaluate"] == [(1, None), (0, (0, 1)), (2, None), (1, (1, 2)),
                                       (4, None), (3, (3, 4))]
+
+
+def test_the_multilevel_flux_hands_its_divergence_defects_to_the_remainder(monkeypatch):
+    """With alg_flux 'multilevel' every iterate with a residual gets σ_alg,α of each lifted
+    residual r_αh, and the round-off defects ‖∇·σ_alg,α - r_αh‖² its construction measured
+    (`defect_sq`, §6) go to the bound as η_rem = `remainder_of` of them, membrane 1's first:
+    the bound covers the flux as computed, not as in exact arithmetic. Stubs stand in for the
+    flux (defects 1e-20 and 4e-20) and the estimators; an iterate without residual (X⁰) gets
+    neither."""
+    from membranes.estimation import multilevel
+    seen = []
+
+    class Flux:
+        defects = iter([1e-20, 4e-20])
+
+        def __init__(self, disc, hierarchy):
+            self.defect_sq = None
+
+        def sigma(self, r):
+            self.defect_sq = next(self.defects)
+            return ("sigma_alg", r)
+
+    class Stub:
+        def lifted(self, R):
+            return ["r1", "r2"]
+
+        def remainder_of(self, squares):
+            return ("eta_rem", tuple(squares))
+
+        def evaluate(self, X, R=None, sigma_alg=None, eta_rem=None):
+            seen.append((R is None, sigma_alg, eta_rem))
+            return {"eta_disc": 1.0, "eta_lin": 0.1, "eta_alg": 0.01}
+
+    monkeypatch.setattr(multilevel, "MultilevelFlux", Flux)
+    monkeypatch.setattr(estimators, "Estimators", lambda disc, equilibration: Stub())
+    setups = SimpleNamespace(equilibration=lambda disc: None)
+    schedule = LevelEstimates(None, "multilevel", gamma_alg=GAMMA, gamma_lin=GAMMA,
+                              gate=None, setups=setups)
+    X = iterate(1)
+    try:
+        assert schedule(X, None, "initial")["bound"]
+        assert schedule(X, X, "krylov")["bound"]
+    finally:
+        X.destroy()
+    assert seen == [(True, None, None),
+                    (False, [("sigma_alg", "r1"), ("sigma_alg", "r2")],
+                     ("eta_rem", (1e-20, 4e-20)))]
 
 
 def test_nu_flux_costs_no_krylov_steps_where_the_remainder_alone_suffices():
