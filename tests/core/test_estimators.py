@@ -458,6 +458,11 @@ def test_evaluate_with_the_equilibration(equilibrated):
     for key in ("eta_disc", "eta_lin", "eta_osc", "eta_C"):
         assert got[key] == plain[key], key
     assert got["eta_alg"] > eta_rem > 0
+    # with σ_alg but no eta_rem the remainder is 0 (the multilevel flux's, exact arithmetic):
+    # η_alg is ‖μ^{-1/2} σ_alg‖ alone (the same sum as in `got`, less η_rem: round-off)
+    bare = est.evaluate(X, R, alg)
+    assert bare["eta_rem"] == 0.0
+    assert np.isclose(bare["eta_alg"], got["eta_alg"] - eta_rem, rtol=1e-12, atol=0)
 
 
 def test_an_iterate_without_residual_after_three_with_one():
@@ -485,6 +490,19 @@ def test_an_iterate_without_residual_after_three_with_one():
     tol = 8 * np.finfo(float).eps
     assert all(close(got[k], fresh[k], tol) for k in fresh), \
         [k for k in fresh if not close(got[k], fresh[k], tol)]
+
+
+def test_what_the_estimators_refuse(setup):
+    """σ_disc needs the flux equilibration (an Estimators without one says so, rather than
+    failing inside), and a remainder's r_αh must be DG1 Functions of the lifting's layout
+    (P1 ones are refused, not copied dof by dof)."""
+    from dolfinx import fem
+    disc, X, *_ = setup
+    est = Estimators(disc)
+    with pytest.raises(ValueError, match="needs an equilibration"):
+        est.sigma_disc(X)
+    with pytest.raises(ValueError, match="DG1"):
+        est.remainder([fem.Function(disc.V), fem.Function(disc.V)])
 
 
 def test_the_estimators_refuse_forces_that_underflow(setup, monkeypatch):
