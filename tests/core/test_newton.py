@@ -671,6 +671,25 @@ def test_a_non_finite_iterate_ends_the_run(monkeypatch):
     assert res.reason == "non-finite iterate at Newton step 1" and res.newton_steps == 1
 
 
+def test_a_first_step_that_runs_away_stops_the_run(monkeypatch):
+    """The divergence test holds from the first Newton iterate on: a step whose solve hands
+    back its answer times 1e12 (then R_lin ≈ -1e12 E X^1 ≈ -1e12 (F, 0): ‖R_lin‖/‖(F, 0)‖ of
+    order 1e12, far above DIVERGENCE · max(X⁰'s, 1), with X⁰'s of order 1) stops the run at
+    step 1, not converged, as diverged; it does not take a second step from there."""
+    from membranes.nonlinear import newton as newton_module
+
+    class Scaled(newton_module.LinearSolver):
+        def solve(self, step, y, *args, **kwargs):
+            out = super().solve(step, y, *args, **kwargs)
+            y.scale(1e12)
+            return out
+
+    monkeypatch.setattr(newton_module, "LinearSolver", Scaled)
+    res = newton(disc_of("disk", 0.1), krylov="direct", max_newton=3)
+    assert not res.converged and res.newton_steps == 1
+    assert res.reason.startswith("diverged at Newton step 1: "), res.reason
+
+
 def test_a_diverging_newton_stops_and_a_rising_one_does_not():
     """The divergence test (newton's module notes) on the stability matrix's anisotropic mesh:
     inexact Newton-min with the paper's GMRES + ILU(0) diverges there (2.7e72 times its start
