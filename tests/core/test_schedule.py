@@ -163,6 +163,24 @@ def test_eta_rec_is_made_anew_unless_eta_lin_is_clearly_above(monkeypatch, first
     assert stub.calls["evaluate"] == [(2, None)]
 
 
+def test_the_reuse_of_eta_rec_is_decided_on_the_rate_of_the_last_two(monkeypatch):
+    """`_recovered` forecasts η_lin at the rate of the last two Newton iterates: η_rec = 0.01
+    throughout (gate 0.003, reuse only above STALE · REC_MARGIN · 0.003 = 0.024). X^1 (η_lin
+    1) makes the first η_rec; X^2 (η_lin 0.1) is forecast at 1 (no rate yet), above 0.024,
+    and its η_lin alone, 0.1, is too: skipped against that η_rec. X^3 is forecast at
+    0.1 · 0.1 / 1 = 0.01 ≤ 0.024, so η_rec is made anew with η_lin (one assembly for both),
+    not η_lin alone first (the forecast at rate 1, 0.1, would have asked for it). All three
+    are skipped (η_lin ≥ 0.05 > 2 · 0.003)."""
+    own = {k: {"eta_disc": 0.1, "eta_lin": v, "eta_alg": 0.0}
+           for k, v in ((1, 1.0), (2, 0.1), (3, 0.05))}
+    stub = StubEstimators(own, eta_rec=0.01)
+    schedule = level_estimates(monkeypatch, stub)
+    assert all(call(schedule, k, "newton")["partial"] for k in (1, 2, 3))
+    assert stub.calls["recovered"] == [1, 3]
+    assert stub.calls["linearisation"] == [2]
+    assert stub.calls["evaluate"] == []
+
+
 def test_the_gate_scales_the_target(monkeypatch):
     """With gate = 0.5 an iterate is estimated in full only where η_lin ≤ γ_lin · 0.5 ·
     η_disc: after a full estimate with η_disc = 0.1 (X^1, η_lin 0.01 ≤ 0.3 · 0.5 · η_rec =
