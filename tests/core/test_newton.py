@@ -470,17 +470,30 @@ def test_an_iterate_accepted_in_a_forced_solve_is_the_one_returned():
     that iterate is X^1: no 'forced' estimate follows (which, answered None, would finish the
     solve to the floor under the accepted iterate's record), and the returned X is the iterate
     the record describes: its ‖R_lin‖/‖(F, 0)‖ is the record's (the same computation on the
-    same vector: 1e-10 covers the reductions' order), and far from the floor-solved step's."""
-    kinds = []
+    same vector: 1e-10 covers the reductions' order), and far from the floor-solved step's;
+    its ‖R_alg‖/‖B‖ is the solve's final ‖b - A y‖ over the step's ‖B‖ (a relative figure,
+    as for every record; the same norm computed twice: 1e-10 again)."""
+    from membranes.nonlinear import newton as newton_module
+    kinds, ends = [], []
+
+    class Recording(newton_module.LinearSolver):
+        def solve(self, step, y, *args, **kwargs):
+            out = super().solve(step, y, *args, **kwargs)
+            ends.append(out[3] / step.norm_B)
+            return out
+
     answer = {"eta_disc": 1.0, "eta_lin": 0.0, "eta_alg": 0.0}
     estimate = literal_estimates(kinds, {"newton": answer, "krylov": answer})
     disc = disc_of("disk", 0.1)
-    res = newton(disc, variant="adaptive", krylov={"preset": "amg", "nu": 1},
-                 estimate=estimate, forcing=1e-9)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(newton_module, "LinearSolver", Recording)
+        res = newton(disc, variant="adaptive", krylov={"preset": "amg", "nu": 1},
+                     estimate=estimate, forcing=1e-9)
     assert res.converged, res.reason
     assert "forced" not in kinds and res.newton_steps == 1
     final = res.history[-1]
     assert final["kind"] == "newton" and final["i"] == 1 and final["alg_residual"] > 1e-6
+    assert len(ends) == 1 and final["alg_residual"] == pytest.approx(ends[0], rel=1e-10)
     sys_ = NewtonSystem(disc)
     assert sys_.relative_residual(res.X, "min") == pytest.approx(final["residual"], rel=1e-10)
     sys_.destroy()
