@@ -48,6 +48,21 @@ def test_refinement_recursion_is_exact():
     assert checks.hierarchy_vertices(v0, t0, 3) == sum(_counts(m)[0] for m in h.meshes)
 
 
+def test_estimates_grow_with_the_levels_whatever_h():
+    """A refinement adds vertices: the estimated V_J is positive and grows with J for any h
+    and domain (area, boundary length). At a size h far above the domain's the coarse
+    formula T_0 = 2 V_0 - L/h - 2 is negative (V_0 < 1 + L/(2h)); a triangulation has at
+    least one triangle, and with T_0 < χ the recursion V ← 2 V + T - χ would shrink V and
+    end below 0. Exact comparisons: the recursion is a few float additions of numbers >= 1."""
+    for domain in ((1.0, 4.0), (math.pi, 2.0 * math.pi), (0.01, 0.4)):
+        for h in (0.1, 10.0, 1e3):
+            v0, t0 = checks.coarse_mesh_size(h, domain)
+            assert v0 > 0 and t0 >= 1.0
+            finest = [checks.estimate_vertices(h, j, domain)[0] for j in range(4)]
+            assert finest[0] == v0
+            assert all(0 < a < b for a, b in zip(finest, finest[1:])), (domain, h, finest)
+
+
 def test_estimate_of_a_hierarchy():
     """disk, h = 0.2, J = 3: 6 913 vertices measured; the estimate from h alone within 8 %
     (the coarse estimate's error at this coarse h, carried through the refinement)."""
@@ -221,6 +236,23 @@ def test_force_scale_check_is_where_round_off_squares_underflow():
         checks.check_force_scale(disc(1e-120, (1e-25, 1.0)))     # the smaller modulus counts
     checks.check_force_scale(disc(1e-130))
     checks.check_force_scale(disc(1e-130, (1.0, 1e3)))
+
+
+def test_force_scale_check_is_at_the_underflow_scale():
+    """The refusal is at UNDERFLOW_SCALE itself, not some orders of magnitude away from it:
+    forces min(μ1, μ2) u = S/2 are refused and 2 S accepted (the factors 2 on either side of
+    the test above: the threshold is exact up to S's rounding), with either modulus the
+    smaller one."""
+    from types import SimpleNamespace
+    scale = checks.UNDERFLOW_SCALE
+
+    def disc(u, mu):
+        return SimpleNamespace(mu1=mu[0], mu2=mu[1], data_scales=lambda: (u, 1.0))
+    for mu in ((1.0, 1.0), (1e-3, 1.0), (1.0, 1e-3)):
+        small = min(mu)
+        with pytest.raises(ValueError, match="the estimators underflow double precision"):
+            checks.check_force_scale(disc(scale / 2 / small, mu))
+        checks.check_force_scale(disc(2 * scale / small, mu))
 
 
 def test_available_memory_is_memavailable_per_process(monkeypatch):
