@@ -140,6 +140,39 @@ def test_a_run_of_about_1e6_vertices_fits_in_24_GiB():
     assert checks.check_request(0.05, 5, "disk", available=24 * GiB, **default) > 1e6
 
 
+def test_the_part_that_grows_with_the_mesh_is_shared_out():
+    """A run on P processes needs BASE_BYTES plus the per-vertex part over P on each (module
+    notes; `solve` on a distributed mesh, processes=P, replicated=False), and the whole part
+    where every process holds the whole mesh (replicated, the default). The MPI test of
+    `solve` above takes its figure from estimate_memory itself, so it cannot see the share;
+    here the parts are compared with each other (exact up to the round-off of one division:
+    relative 1e-12)."""
+    base = checks.BASE_BYTES
+    for method in ({"linear_solver": "gmres", "pc_type": "vertex_amg"},
+                   {"linear_solver": "direct", "estimators": False}, {"linear_solver": None}):
+        whole = checks.estimate_memory(1e6, **method) - base
+        assert whole > 0
+        for p in (2, 3, 8):
+            shared = checks.estimate_memory(1e6, processes=p, replicated=False, **method)
+            assert shared - base == pytest.approx(whole / p, rel=1e-12)
+            assert checks.estimate_memory(1e6, processes=p, **method) - base == whole
+
+
+def test_heaviest_is_the_method_that_needs_the_most():
+    """`heaviest` (what `report` and `stability` check) is the method of the largest
+    estimate, which depends on the size: MUMPS's c N^p (p > 1) lies below the amg preset's
+    slope on small meshes and above it on large ones (130 N^1.35 = 1.5e6 bytes against 2.5e6
+    at N = 1e3; 1.6e10 against 2.5e9 at N = 1e6), so neither order of the list decides."""
+    amg = {"linear_solver": "gmres", "pc_type": "vertex_amg", "estimators": True}
+    direct = {"linear_solver": "direct", "estimators": True}
+    for methods in ([amg, direct], [direct, amg]):
+        assert checks.heaviest(1e3, methods) is amg
+        assert checks.heaviest(1e6, methods) is direct
+        for n in (1e3, 1e6):
+            assert checks.estimate_memory(n, **checks.heaviest(n, methods)) == \
+                max(checks.estimate_memory(n, **m) for m in methods)
+
+
 @pytest.mark.parametrize("method", [{"linear_solver": "gmres"}, {"linear_solver": "direct"},
                                     {"linear_solver": None}])
 def test_largest_fitting_is_the_bound(method):
