@@ -305,6 +305,40 @@ def test_available_memory_is_memavailable_per_process(monkeypatch):
     assert checks.available_memory() == 2 * GiB
 
 
+UNEVEN_MEMORY = """
+from mpi4py import MPI
+from membranes.model import checks
+GiB = 2.0 ** 30
+comm = MPI.COMM_WORLD
+r = comm.rank
+checks._cgroup_room = lambda: None
+checks.resident_memory = lambda: (r + 1) * GiB
+said = [checks.processes_on_node(comm)]
+checks._meminfo_available = lambda: (r + 1) * 4 * GiB
+said += [checks.available_memory(comm) / GiB, checks.room_for_run(comm) / GiB]
+checks._meminfo_available = lambda: None if r == 1 else 4 * GiB
+said += [checks.available_memory(comm) / GiB]
+said = comm.gather(said, root=0)
+print(repr(said) if r == 0 else "", flush=True)
+"""
+
+
+def test_uneven_memory_of_the_processes_gives_the_least(tmp_path):
+    """`mpirun -n 2` on one node: both processes share the node (processes_on_node 2, from
+    the communicator) and each may use the least share of any process: MemAvailable of 4 and
+    8 GiB (as the node's memory moves between the reads) gives 4/2 = 2 GiB on both, and the
+    room for a run adds the least memory held (1 and 2 GiB held: 3 GiB), the same figure on
+    every process so that all refuse or none. A process that cannot read its memory does not
+    count (4/2 from the other): it took no part in the count of the node's processes, a
+    collective, and both waited for ever. Exact: sums and halves of powers of two. (A
+    timeout of a minute: the run takes seconds, and a wait for ever must fail the test.)"""
+    import ast
+    proc = mpirun(["-c", UNEVEN_MEMORY], timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    assert said == [[2, 2.0, 3.0, 2.0]] * 2, said
+
+
 def test_a_run_counts_the_memory_its_process_holds(monkeypatch):
     """A run is checked against its whole peak (interpreter, dolfinx, mesh hierarchy
     included), and once the mesh is built the process already holds part of it, which

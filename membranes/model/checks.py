@@ -290,7 +290,8 @@ def available_memory(comm=None):
     cgroup = _cgroup_room()
     if room is None or (cgroup is not None and cgroup < room):
         room = cgroup
-    share = None if room is None else room / processes_on_node(comm)
+    on_node = processes_on_node(comm)   # (collective: also where room is None)
+    share = None if room is None else room / on_node
     if comm is not None and comm.size > 1:
         shares = [s for s in comm.allgather(share) if s is not None]
         share = min(shares) if shares else None
