@@ -249,6 +249,28 @@ def test_a_run_of_exactly_max_vertices_is_accepted():
         checks.check_request(levels=1, mesh_file="unused", max_vertices=30, counts=(10, 12, 1))
 
 
+def test_the_hint_counts_a_level_of_exactly_the_limit():
+    """A limit that the finest mesh of some level meets exactly admits that level: from a
+    mesh's counts (V_0, T_0, χ) = (10, 12, 1), V_1 = 31 and V_2 = 109 (the exact recursion,
+    test above), so --max-vertices 31 refuses 2 levels and names 1 as the most that fits,
+    and 30 names 0."""
+    for limit, fit in ((31, 1), (30, 0), (109, 2)):
+        with pytest.raises(ValueError, match=f"at most {fit} levels on this mesh$"):
+            checks.check_request(levels=3, max_vertices=limit, counts=(10, 12, 1))
+
+
+def test_a_bad_limit_is_refused_with_a_mesh_file_it_cannot_size(tmp_path):
+    """A mesh file whose size cannot be read is left to the mesh reader, but a bad
+    max_vertices is still refused at once (the check of the value does not need the
+    count)."""
+    garbage = tmp_path / "garbage.msh"
+    garbage.write_text("this is not a mesh\n")
+    for bad in (0, -1, 2.5, True, "many"):
+        with pytest.raises(ValueError, match="max_vertices must be a positive integer"):
+            checks.check_request(levels=1, mesh_file=str(garbage), max_vertices=bad)
+    assert checks.check_request(levels=1, mesh_file=str(garbage), max_vertices=5) is None
+
+
 def test_force_scale_check_is_where_round_off_squares_underflow():
     """UNDERFLOW_SCALE is the size x below which the square of a round-off error on x,
     (ε x)², is no longer a normal double (module notes, theory §11): (ε S)² is normal, (ε S/2)²
