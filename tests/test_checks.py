@@ -319,6 +319,16 @@ def test_available_memory_is_memavailable_per_process(monkeypatch):
     assert 0 < alone <= total
     monkeypatch.setenv("OMPI_COMM_WORLD_LOCAL_SIZE", "4")
     assert checks.processes_on_node() == 4
+    # a launcher's count that is no count is passed over; 0 counts as this process alone
+    # (a share of the memory over 0 processes raised ZeroDivisionError)
+    monkeypatch.setenv("OMPI_COMM_WORLD_LOCAL_SIZE", "four")
+    monkeypatch.setenv("MPI_LOCALNRANKS", "0")
+    assert checks.processes_on_node() == 1
+    monkeypatch.setattr(checks, "_meminfo_available", lambda: 20 * GiB)
+    monkeypatch.setattr(checks, "_cgroup_room", lambda: None)
+    assert checks.available_memory() == 20 * GiB
+    monkeypatch.delenv("MPI_LOCALNRANKS")
+    monkeypatch.setenv("OMPI_COMM_WORLD_LOCAL_SIZE", "4")
     # the other three processes share the node (a fixed MemAvailable: it moves between reads)
     monkeypatch.setattr(checks, "_meminfo_available", lambda: 20 * GiB)
     monkeypatch.setattr(checks, "_cgroup_room", lambda: None)
