@@ -183,6 +183,12 @@ def test_largest_fitting_is_the_bound(method):
     assert checks.largest_fitting(0.1 * GiB, **method) == 0        # below the base
 
 
+def test_vertex_counts_in_messages():
+    """Counts below 1e4 are given whole ('9412'), larger ones to two digits ('2.5e10')."""
+    assert [checks._count(n) for n in (71, 9412.4, 9999.4, 10000, 2.5e10)] == \
+        ["71", "9412", "9999", "1.0e4", "2.5e10"]
+
+
 def test_a_run_beyond_memory_is_refused_with_both_figures():
     with pytest.raises(ValueError) as e:
         checks.check_request(0.05, 12, "disk", available=24 * GiB)
@@ -338,8 +344,11 @@ def test_available_memory_is_memavailable_per_process(monkeypatch):
 
 
 UNEVEN_MEMORY = """
+import os
 from mpi4py import MPI
 from membranes.model import checks
+for name in ("OMPI_COMM_WORLD_LOCAL_SIZE", "MPI_LOCALNRANKS", "SLURM_NTASKS_PER_NODE"):
+    os.environ.pop(name, None)             # (the communicator counts, not the launcher)
 GiB = 2.0 ** 30
 comm = MPI.COMM_WORLD
 r = comm.rank
@@ -357,7 +366,7 @@ print(repr(said) if r == 0 else "", flush=True)
 
 def test_uneven_memory_of_the_processes_gives_the_least(tmp_path):
     """`mpirun -n 2` on one node: both processes share the node (processes_on_node 2, from
-    the communicator) and each may use the least share of any process: MemAvailable of 4 and
+    the communicator, without the launcher's variables) and each may use the least share of any process: MemAvailable of 4 and
     8 GiB (as the node's memory moves between the reads) gives 4/2 = 2 GiB on both, and the
     room for a run adds the least memory held (1 and 2 GiB held: 3 GiB), the same figure on
     every process so that all refuse or none. A process that cannot read its memory does not
