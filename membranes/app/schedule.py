@@ -197,7 +197,6 @@ class LevelEstimates:
                     return lin
                 if kind == "forced":             # its test may hold: finish the solve
                     return None
-                self._newton_lin(lin["eta_lin"])
             out = self._evaluate(X, R)
             if kind in ("newton", "stalled"):
                 self._newton_lin(out["eta_lin"])
