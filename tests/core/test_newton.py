@@ -372,6 +372,24 @@ def test_adaptive_newton_stops_where_the_estimators_say():
     assert res.krylov_steps < 0.5 * solved("disk", 0.1, "paper").krylov_steps
 
 
+def full_estimates(disc, more_steps, kinds=None):
+    """An `estimate` callback that estimates every iterate in full (no gate) and answers
+    `more_steps` as given; `kinds`, if a list, records the kinds it is asked for."""
+    from membranes.estimation.equilibration import FluxEquilibration
+    from membranes.estimation.estimators import Estimators
+    est = Estimators(disc, FluxEquilibration(disc))
+
+    def estimate(X, R, kind):
+        if kinds is not None:
+            kinds.append(kind)
+        if kind == "step":
+            return None
+        e = est.evaluate(X, R)
+        e.pop("eta_K")
+        e["more_steps"] = more_steps
+        return e
+    return estimate
+
 def test_adaptive_newton_with_a_forcing_term():
     """Adaptive with forcing η: a step the estimates expect not to be the last (key
     `more_steps`; always here) stops its Krylov solve at ‖R_alg‖ ≤ η ‖R_alg(X^{k,0})‖, so its
@@ -379,20 +397,9 @@ def test_adaptive_newton_with_a_forcing_term():
     linear criterion holds on its estimates as well. With η = 0.5 each solve is one Krylov
     step; with γ_alg = 0.01 there is an iterate whose Newton test holds but whose linear
     criterion fails, and the run goes on to the first iterate where both hold."""
-    from membranes.estimation.equilibration import FluxEquilibration
-    from membranes.estimation.estimators import Estimators
     from membranes.nonlinear.newton import linear_criterion, newton_criterion
     disc = disc_of("disk", 0.1)
-    est = Estimators(disc, FluxEquilibration(disc))
-
-    def estimate(X, R, kind):
-        if kind == "step":
-            return None
-        e = est.evaluate(X, R)
-        e.pop("eta_K")
-        e["more_steps"] = True
-        return e
-
+    estimate = full_estimates(disc, more_steps=True)
     res = newton(disc, variant="adaptive", krylov="amg", estimate=estimate, forcing=0.5,
                  gamma_alg=0.01)
     exact = newton(disc, variant="adaptive", krylov="amg", estimate=estimate, gamma_alg=0.01)
@@ -413,21 +420,9 @@ def test_only_steps_expected_not_to_be_the_last_are_forced():
     False, so only step 1 is forced (one 'forced' call); the later steps solve to the linear
     criterion as without forcing. The run has at least two steps, so forcing every step
     would show as more 'forced' calls."""
-    from membranes.estimation.equilibration import FluxEquilibration
-    from membranes.estimation.estimators import Estimators
     disc = disc_of("disk", 0.1)
-    est = Estimators(disc, FluxEquilibration(disc))
     kinds = []
-
-    def estimate(X, R, kind):
-        kinds.append(kind)
-        if kind == "step":
-            return None
-        e = est.evaluate(X, R)
-        e.pop("eta_K")
-        e["more_steps"] = False
-        return e
-
+    estimate = full_estimates(disc, more_steps=False, kinds=kinds)
     res = newton(disc, variant="adaptive", krylov="amg", estimate=estimate, forcing=0.5)
     assert res.converged, res.reason
     assert res.newton_steps >= 2 and kinds.count("step") == res.newton_steps
