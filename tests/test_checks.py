@@ -601,6 +601,9 @@ def test_petsc_record_of_used_options_until_the_end_of_a_solve():
         ksp.setFromOptions()
         assert petsc_options.unused_petsc_options(options, prefix) == ["ksp_gmres_restartt",
                                                                "ksp_converged_reason"]
+        # a name the database does not hold under the prefix is no unused option of it
+        assert petsc_options.unused_petsc_options({"ksp_rtol": "1e-3", "pc_type": None},
+                                                  prefix) == []
         b, x = A.createVecs()
         b.set(1.0)
         ksp.solve(b, x)
