@@ -396,6 +396,17 @@ def test_json_safe_gives_python_scalars():
     assert json.loads(json.dumps(value)) == value
 
 
+def test_json_safe_inside_tuples():
+    """Tuples (a pair of figures, a record of several) are made safe as lists are: a nan or
+    a numpy scalar inside one reached json.dump as it was, which writes NaN (no JSON) or
+    refuses np.int64. Exact: no arithmetic."""
+    value = outputs.json_safe({"pair": (np.float64(np.nan), np.int64(2)),
+                               "nested": [(np.inf, (np.float32(0.5),))]})
+    assert value == {"pair": [None, 2], "nested": [[None, [0.5]]]}
+    assert type(value["pair"][1]) is int
+    assert json.loads(json.dumps(value, allow_nan=False)) == value
+
+
 def test_per_level_counts_add_up_to_the_totals(run):
     """summary.json's per_level: each level's own Newton and Krylov steps (not running totals),
     counted independently from the history (its Newton rows on that level and their
