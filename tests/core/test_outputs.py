@@ -379,6 +379,51 @@ def test_staged_folder_replaces_files_it_did_not_make(tmp_path):
     assert (out / "notes.txt").read_text() == "old\n"
 
 
+def test_staged_folder_removes_links_named_in_replaces(tmp_path):
+    """A link named in `replaces` is an older output too (a file the target held through a
+    link, or a link left dangling): it goes, whether it points to a file, to a folder or to
+    nothing; the file it pointed to stays."""
+    out = tmp_path / "a"
+    out.mkdir()
+    (tmp_path / "elsewhere.png").write_text("theirs\n")
+    (tmp_path / "folder").mkdir()
+    os.symlink(tmp_path / "elsewhere.png", out / "file.png")
+    os.symlink(tmp_path / "folder", out / "folder.png")
+    os.symlink(tmp_path / "nowhere.png", out / "dangling.png")
+    with staged_folder(out, replaces=("file.png", "folder.png", "dangling.png")) as tmp:
+        (open(os.path.join(tmp, "new.txt"), "w")).write("new\n")
+    assert sorted(p.name for p in out.iterdir()) == ["new.txt"]
+    assert (tmp_path / "elsewhere.png").read_text() == "theirs\n"
+
+
+def test_a_move_failing_midway_restores_links_and_removes_new_names(tmp_path, monkeypatch):
+    """The undo of a move that fails midway (planted at the last output) leaves the target as
+    it was: an output moved in under a name the target did not hold goes again, and one
+    that replaced a dangling link puts the link back (a link counts as an older file whether
+    or not it points anywhere)."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "notes.txt").write_text("old notes.txt\n")
+    os.symlink("nowhere.txt", out / "b.txt")
+    real = os.replace
+
+    def replace(src, dst):
+        if os.fspath(dst) == str(out / "c.txt"):
+            raise OSError(28, "No space left on device (planted)", str(dst))
+        real(src, dst)
+
+    monkeypatch.setattr(outputs.os, "replace", replace)
+    with pytest.raises(ValueError, match=r"c.txt: No space left on device .planted.; nothing "
+                                         r"was changed"):
+        with staged_folder(out) as tmp:
+            for name in ("a.txt", "b.txt", "c.txt"):
+                (open(os.path.join(tmp, name), "w")).write("new\n")
+    assert sorted(p.name for p in out.iterdir()) == ["b.txt", "notes.txt"]
+    assert os.readlink(out / "b.txt") == "nowhere.txt"
+    assert (out / "notes.txt").read_text() == "old notes.txt\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+
+
 def test_json_safe():
     value = {"a": np.float64(np.nan), "b": [np.int32(3), np.inf], "c": np.array([1.5]),
              "d": np.bool_(True)}
