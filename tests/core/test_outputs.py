@@ -424,6 +424,31 @@ def test_a_move_failing_midway_restores_links_and_removes_new_names(tmp_path, mo
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
 
 
+ROOM_OF_A_DISTRIBUTED_MESH = """
+from mpi4py import MPI
+from membranes.app.outputs import room_for
+from membranes.fem.meshes import unit_disk
+from membranes.model.folders import output_bytes
+comm = MPI.COMM_WORLD
+mesh = unit_disk(0.3, comm)
+maps = [mesh.topology.index_map(d) for d in (0, 2)]
+owned = [m.size_local for m in maps]
+total = [comm.allreduce(n, op=MPI.SUM) for n in owned]
+said = comm.gather((room_for(mesh) == output_bytes(*total), owned[0] < total[0]), root=0)
+print(repr(said) if comm.rank == 0 else "", flush=True)
+"""
+
+
+def test_room_for_counts_the_whole_distributed_mesh():
+    """The room the outputs need (checked before the collective HDF5 write) is that of the
+    whole mesh on every process, not of the process's own part: vertices and cells owned
+    by each, summed here over the processes (exact: integer counts)."""
+    import ast
+    proc = mpirun(["-c", ROOM_OF_A_DISTRIBUTED_MESH], timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert ast.literal_eval(proc.stdout.strip().splitlines()[-1]) == [(True, True)] * 2
+
+
 def test_json_safe():
     value = {"a": np.float64(np.nan), "b": [np.int32(3), np.inf], "c": np.array([1.5]),
              "d": np.bool_(True)}
