@@ -449,6 +449,17 @@ def test_room_for_counts_the_whole_distributed_mesh():
     assert ast.literal_eval(proc.stdout.strip().splitlines()[-1]) == [(True, True)] * 2
 
 
+def test_an_error_in_the_block_passes_on_as_itself(tmp_path):
+    """An error of the block that is no failed write (a bug, a bad value) reaches the caller
+    as it was raised, not as another process's failure, and nothing is written."""
+    out = tmp_path / "a"
+    with pytest.raises(KeyError, match="mine"):
+        with staged_folder(out) as tmp:
+            (open(os.path.join(tmp, "x.txt"), "w")).write("x\n")
+            raise KeyError("mine")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_json_safe():
     value = {"a": np.float64(np.nan), "b": [np.int32(3), np.inf], "c": np.array([1.5]),
              "d": np.bool_(True)}
