@@ -197,6 +197,13 @@ def test_a_hierarchy_of_another_domain_drops_the_scene_exact_solution_and_c_pf()
     assert other.poincare_constant() == pytest.approx(1.0 / (np.pi * np.sqrt(2.0)), rel=1e-12)
     assert other.description.startswith("unit square, ") and other.domain == "square"
     assert replace(other, poincare=0.3).poincare == 0.3
+    # values given anew for the new domain in the same copy are taken (the message's "or
+    # values for the new domain"); only the scene's own objects are refused
+    from membranes.model.problem import ExactSolution
+    mine = ExactSolution(lambda x: 0.05 + 0 * x[0], lambda x: 0 * x[0], lambda x: 0 * x[0])
+    given = replace(disk, hierarchy=square.hierarchy, exact=mine, poincare=0.3)
+    assert given.exact is mine and given.poincare_constant() == 0.3
+    assert given.description.endswith(", exact solution given")
     # a hierarchy built outside the scenes names no domain: taken for another one
     mine = build_hierarchy(disk.mesh, 0)
     with pytest.raises(ValueError, match="own domain only"):
