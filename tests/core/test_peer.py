@@ -294,9 +294,13 @@ def test_the_peer_is_scale_invariant():
     """g = 1e-12 on the radial scene (all data scale with g): PETSc's absolute active-set
     threshold 1e-8 used to freeze vertices with 0 < w ≤ 1e-8 off the bound, and the nested peer
     reported convergence 150 % away from the discrete solution. Solving for w / s (§10, §11)
-    makes it the same run as at g = 1 (same SNES steps) and the discrete solution."""
+    makes it the same run as at g = 1 (same SNES steps) and the discrete solution, with the
+    same active set: λ is recovered where w_a ≤ 1e-8 s, PETSc's threshold in units of s (an
+    absolute 1e-8 took every vertex for active at g = 1e-12, and gave λ > 0 where w > 0 and
+    Φ_a > 0 at round-off). λ w = 0 exactly: λ is nonzero only where PETSc's projection put
+    w on the bound."""
     from membranes.app.driver import solve
-    steps = {}
+    steps, active = {}, {}
     for g in (1.0, 1e-12):
         problem = scenes.radial(h=0.3, levels=1, g=g)
         ours = solve(problem, newton="exact", solver="direct", errors="none",
@@ -307,7 +311,10 @@ def test_the_peer_is_scale_invariant():
             assert np.abs(X - Y).max() <= 1e-7 * np.abs(Y).max(), (g, result.label)
             steps.setdefault(result.label, []).append(
                 [lv.snes_iterations for lv in result.levels])
+            active.setdefault(result.label, []).append(result.levels[-1].active)
+            assert np.all(result.lam.array_r * result.w.array_r == 0.0), (g, result.label)
     assert all(a == b for a, b in steps.values()), steps
+    assert all(a == b > 0 for a, b in active.values()), active
 
 
 class _Snes:
