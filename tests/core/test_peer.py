@@ -338,7 +338,9 @@ def test_a_stagnating_step_stops_only_at_a_small_residual():
     Level 0 stagnating at 1e-3 of it keeps iterating: stopping there would report a poor
     iterate as CONVERGED_SNORM_RELATIVE. Level 1 starts near its solution (1e-6, so its own
     rtol test needs 1e-14): stagnating at 1e-9 ≤ rtol · reference stops it, a moving step
-    at 1e-9 and a stagnating one at 1e-7 do not. Decisions on given numbers, no tolerance."""
+    at 1e-9 and a stagnating one at 1e-7 do not. A level that starts below rtol · reference
+    (1e-9) is not stopped before its first step (no step yet, ynorm 0: PETSc's stol test
+    compares a step). Decisions on given numbers, no tolerance."""
     from petsc4py import PETSc
 
     from membranes.app.peer import _converged
@@ -354,6 +356,10 @@ def test_a_stagnating_step_stops_only_at_a_small_residual():
             == R.CONVERGED_SNORM_RELATIVE)
     assert _converged(snes, 1, (1.0, 1e-3, 1e-9), reference, level1) == R.CONVERGED_ITERATING
     assert _converged(snes, 1, (1.0, 1e-12, 1e-7), reference, level1) == R.CONVERGED_ITERATING
+    level2 = [0.0]
+    assert _converged(snes, 0, (1.0, 0.0, 1e-9), reference, level2) == R.CONVERGED_ITERATING
+    assert (_converged(snes, 1, (1.0, 1e-12, 1e-9), reference, level2)
+            == R.CONVERGED_SNORM_RELATIVE)
 
 
 @serial_only
