@@ -362,6 +362,21 @@ def test_a_stagnating_step_stops_only_at_a_small_residual():
             == R.CONVERGED_SNORM_RELATIVE)
 
 
+def test_a_peer_converged_where_every_solve_of_every_level_did():
+    """PeerResult.converged: every level's SNES and its z solve (the Poisson problem's KSP)
+    converged (reason > 0); a z solve that stopped at its iteration limit (KSP reason -3)
+    makes the run unconverged even where SNES converged, and the counts add up over the
+    levels, the z solve's CG steps with SNES's. Given numbers, exact."""
+    from membranes.app.peer import LevelRecord, PeerResult
+
+    def level(j, reason, z_reason):
+        return LevelRecord(j, 10, 2, 5, 7, reason, z_reason, 1, 0.5, 0.25)
+    fine = PeerResult("nested", None, None, None, None, None, [level(0, 3, 2), level(1, 2, 2)])
+    assert fine.converged and fine.ksp_iterations == 24 and fine.snes_iterations == 4
+    for levels in ([level(0, 3, -3), level(1, 2, 2)], [level(0, 3, 2), level(1, -5, 2)]):
+        assert not PeerResult("nested", None, None, None, None, None, levels).converged
+
+
 @serial_only
 def test_gap_scale_on_data_dominated_by_the_loads():
     """The decoupled solver's scale s = max(g, (C_PF h_Ω)² max_a b_a⁺ / (κ D_a)) over the
