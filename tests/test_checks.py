@@ -366,13 +366,14 @@ print(repr(said) if r == 0 else "", flush=True)
 
 def test_uneven_memory_of_the_processes_gives_the_least(tmp_path):
     """`mpirun -n 2` on one node: both processes share the node (processes_on_node 2, from
-    the communicator, without the launcher's variables) and each may use the least share of any process: MemAvailable of 4 and
-    8 GiB (as the node's memory moves between the reads) gives 4/2 = 2 GiB on both, and the
-    room for a run adds the least memory held (1 and 2 GiB held: 3 GiB), the same figure on
-    every process so that all refuse or none. A process that cannot read its memory does not
-    count (4/2 from the other): it took no part in the count of the node's processes, a
-    collective, and both waited for ever. Exact: sums and halves of powers of two. (A
-    timeout of a minute: the run takes seconds, and a wait for ever must fail the test.)"""
+    the communicator, without the launcher's variables) and each may use the least share of
+    any process: MemAvailable of 4 and 8 GiB (as the node's memory moves between the reads)
+    gives 4/2 = 2 GiB on both, and the room for a run adds the least memory held (1 and 2
+    GiB held: 3 GiB), the same figure on every process so that all refuse or none. A process
+    that cannot read its memory does not count (4/2 from the other): it took no part in the
+    count of the node's processes, a collective, and both waited for ever. Exact: sums and
+    halves of powers of two. (A timeout of a minute: the run takes seconds, and a wait for
+    ever must fail the test.)"""
     import ast
     proc = mpirun(["-c", UNEVEN_MEMORY], timeout=60)
     assert proc.returncode == 0, proc.stderr
