@@ -665,6 +665,20 @@ def test_api_accepts_options_petsc_uses():
     assert math.isfinite(run.energy_error)
 
 
+def test_an_inner_preconditioner_is_checked_for_the_users_options_only():
+    """check_petsc_options_used refuses the user's options that PETSc would not read: of an
+    inner PC's complete options (`inner`, defaults included) only those the user gave count.
+    Here the inner PC's own default -pc_factor_levels, which Jacobi does not read, is not
+    the user's doing and passes; the user's -mean_pc_factor_levels is refused, naming the
+    inner PC."""
+    inner = {"mean_": {"pc_type": "jacobi", "pc_factor_levels": "2"}}
+    outer = {"ksp_type": "fgmres", "pc_type": "none"}
+    petsc_options.check_petsc_options_used(["mean_pc_type"], outer, inner)
+    with pytest.raises(ValueError, match="-mean_pc_factor_levels is not used by the inner "
+                                         "preconditioner 'mean_'"):
+        petsc_options.check_petsc_options_used(["mean_pc_factor_levels"], outer, inner)
+
+
 def test_api_accepts_options_of_the_mean_and_gap_preconditioners():
     """The amg preset's inner PCs read the options under 'mean_' and 'gap_' (documented in
     membranes.linalg.preconditioners); the check up front sends them to those PCs, not to the
