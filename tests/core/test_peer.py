@@ -221,6 +221,24 @@ def test_plain_peer_on_a_discretisation():
         assert np.abs(x - y).max() <= 1e-12 * max(np.abs(y).max(), 1e-300) + 1e-15
 
 
+def test_the_step_limit_reaches_snes():
+    """max_it is SNES's step limit on each level: with one step the disk's contact problem
+    (several SNES steps from zero, test_snes_steps_per_level) stops after that step with
+    DIVERGED_MAX_IT and the run is not converged; the plain peer's default limit is
+    PLAIN_MAX_IT, not PETSc's 50."""
+    import inspect
+
+    from petsc4py import PETSc
+
+    from membranes.app.peer import PLAIN_MAX_IT
+    for run in (nested_peer, plain_peer):
+        result = run(disk(1), max_it=1)
+        assert not result.converged
+        assert [lv.snes_iterations for lv in result.levels] == [1] * len(result.levels)
+        assert result.levels[-1].reason == PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
+    assert inspect.signature(plain_peer).parameters["max_it"].default == PLAIN_MAX_IT > 50
+
+
 def test_on_level_is_the_truncated_hierarchy():
     problem = disk(2)
     for j in range(3):
