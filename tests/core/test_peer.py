@@ -418,6 +418,34 @@ def test_gap_scale_on_data_dominated_by_the_loads():
     assert abs(s - max(problem.g, data)) <= 1e-12 * data
 
 
+GAP_SCALE = """
+from mpi4py import MPI
+from membranes.app.peer import DecoupledSolver
+from membranes.fem.discretisation import discretise
+from membranes.model import scenes
+problem = scenes.user(g=1e-8, f1="-10*x", f2="10*y-3", domain="square", h=0.1)
+scales = MPI.COMM_WORLD.gather(DecoupledSolver(discretise(problem)).scale, root=0)
+print(repr(scales) if MPI.COMM_WORLD.rank == 0 else "", flush=True)
+"""
+
+
+@serial_only
+def test_gap_scale_is_the_whole_meshs_on_two_processes():
+    """The scale s of the test above is a maximum over the interior vertices of the whole
+    mesh: on two processes, each holding part of it, both get the serial value (the same
+    maximum of the same numbers: 1e-12 relative for the load vector's assembly order)."""
+    import ast
+
+    from membranes.app.peer import DecoupledSolver
+    problem = scenes.user(g=1e-8, f1="-10*x", f2="10*y-3", domain="square", h=0.1)
+    serial = DecoupledSolver(discretise(problem)).scale
+    proc = mpirun(["-c", GAP_SCALE], timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    scales = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    assert len(scales) == 2
+    assert all(abs(s - serial) <= 1e-12 * serial for s in scales), (scales, serial)
+
+
 @pytest.mark.parametrize("run", [nested_peer, plain_peer])
 def test_monitored_multipliers_are_nonnegative(run):
     """Every iterate the monitor sees (from which the benchmarks draw the peer's η against
