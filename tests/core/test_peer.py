@@ -380,6 +380,29 @@ def test_a_stagnating_step_stops_only_at_a_small_residual():
             == R.CONVERGED_SNORM_RELATIVE)
 
 
+def test_the_rest_of_petscs_vi_test():
+    """peer._converged keeps the rest of PETSc's VI test (SNESConvergedDefault_VI): a
+    residual below atol (1e-50 by default) converges at once, even the first one (a level
+    whose data are zero: no relative test can pass at 0); a NaN diverges; the function
+    evaluations, once at their limit, end the run. Given numbers, no tolerance."""
+    from petsc4py import PETSc
+
+    from membranes.app.peer import _converged
+    R = PETSc.SNES.ConvergedReason
+
+    class Limited(_Snes):
+        def getMaxFunctionEvaluations(self):
+            return 3
+    for its in (0, 2):
+        assert _converged(_Snes(), its, (1.0, 0.0, 0.0), [0.0], [0.0]) == \
+            R.CONVERGED_FNORM_ABS
+        assert _converged(_Snes(), its, (1.0, 0.0, np.nan), [1.0], [0.0]) == \
+            R.DIVERGED_FNORM_NAN
+    assert _converged(Limited(), 1, (1.0, 1e-3, 0.5), [1.0], [1e-8]) == \
+        R.DIVERGED_FUNCTION_COUNT
+    assert _converged(_Snes(), 1, (1.0, 1e-3, 0.5), [1.0], [1e-8]) == R.CONVERGED_ITERATING
+
+
 def test_a_peer_converged_where_every_solve_of_every_level_did():
     """PeerResult.converged: every level's SNES and its z solve (the Poisson problem's KSP)
     converged (reason > 0); a z solve that stopped at its iteration limit (KSP reason -3)
