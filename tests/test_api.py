@@ -438,3 +438,28 @@ def test_krylov_options_recorded_as_the_run_used_them():
     assert (default["nu"], default["max_linear_its"]) == (DEFAULT_NU, Krylov("amg").max_it)
     given = solve(problem, newton="exact", estimators=False, nu=3, max_linear_its=77).summary()
     assert (given["nu"], given["max_linear_its"]) == (3, 77)
+
+
+BOX_CONSTANT = """
+from dataclasses import replace
+from mpi4py import MPI
+from membranes.model import scenes
+problem = replace(scenes.user(h=0.3, domain="square"), poincare=None)
+said = MPI.COMM_WORLD.gather(problem.poincare_constant(), root=0)
+print(repr(said) if MPI.COMM_WORLD.rank == 0 else "", flush=True)
+"""
+
+
+def test_the_bounding_box_constant_is_the_whole_meshs_on_two_processes():
+    """Without a scene's C_PF h_Ω, `Problem.poincare_constant` bounds it by the bounding box
+    of the computational mesh (§7): of the whole mesh, also where each process holds a part
+    of it (a part's box is smaller, and so would be the constant: η no bound). The unit
+    square's box gives 1/(π √2) on both processes (its corners are vertices: exact up to
+    round-off, 1e-12 relative)."""
+    import ast
+    import math
+    proc = mpirun(["-c", BOX_CONSTANT], timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    exact = 1.0 / (math.pi * math.sqrt(2.0))
+    assert len(said) == 2 and all(abs(c - exact) <= 1e-12 * exact for c in said), said
