@@ -243,3 +243,146 @@ def test_bound_and_effectivity_lines_of_the_markdown():
     text = stability.markdown(rows, 0.1, 1.0, 1)
     assert "η < error in: a m0 (0.500)" in text
     assert "over the converged runs): a 1.5 – 2.5." in text
+
+
+def test_not_robust_above_an_effectivity_of_three():
+    """stability.md lists as not robust the cases whose effectivity exceeds 3 in a converged
+    run (docs/theory.md: 'the stability matrix lists the cases whose effectivity exceeds 3
+    as not robust'); a failed run's effectivity does not count, and an effectivity of 1
+    exactly (η = error) is a bound, not below one. Made-up rows; exact."""
+    rows = [{"case": c, "class": "k", "method": "m", "converged": ok, "effectivity": eff,
+             "reason": "r", "description": "d"}
+            for c, ok, eff in (("a", True, 2.9), ("b", True, 3.5), ("c", False, 5.0),
+                               ("d", True, 1.0))]
+    f = stability.findings(rows)
+    assert [r["case"] for r in f["not_robust"]] == ["b"] and f["below_one"] == []
+    text = stability.markdown(rows, 0.1, 1.0, 1)
+    assert "Not robust (effectivity above 3): b." in text
+    assert "η ≥ |||u - u_h||| in all 4 runs where both are known" in text
+
+
+def test_the_command_exits_3_when_a_run_fails(tmp_path, monkeypatch, capsys):
+    """`membranes stability` returns EXIT_NOT_CONVERGED (3) when a run failed, with its files
+    written (the docstring: 'the files are written in any case, with the reasons') and its
+    one stdout line (docs/cli.md: 'stability: C of R runs converged; path of stability.md'); the
+    names of --cases are read with the blanks after the commas left out. run_case is
+    replaced by one whose every run raises: no solve here."""
+    from membranes.app.cli import EXIT_NOT_CONVERGED
+    ran = []
+
+    def failing(case, h, methods, say):
+        ran.append(case.name)
+        return {stability.method_name(*m): RuntimeError("planted") for m in methods}
+    monkeypatch.setattr(stability, "run_case", failing)
+    parser = argparse.ArgumentParser()
+    stability.add_parser(parser.add_subparsers(dest="command"))
+    out = tmp_path / "stab"
+    args = parser.parse_args(["stability", "--quiet", "--cases", "tiny, grazing", "--h",
+                              str(H), "--out", str(out)])
+    assert stability.main(args) == EXIT_NOT_CONVERGED
+    assert capsys.readouterr().out == (f"stability: 0 of {2 * len(stability.METHODS)} runs "
+                                       f"converged; {out / 'stability.md'}\n")
+    assert ran == ["grazing", "tiny"]                         # (in the order of CASES)
+    rows = list(csv.DictReader(open(out / "stability.csv")))
+    assert len(rows) == 2 * len(stability.METHODS)
+    assert all(r["converged"] == "False" and r["reason"] == "RuntimeError: planted"
+               for r in rows)
+    assert f"0 of {len(rows)} runs converged" in (out / "stability.md").read_text()
+
+
+def test_the_cases_hold_the_designs_extremes():
+    """The matrix covers the ranges of DESIGN.md §11 at their ends: μ1/μ2 = 1e-6 … 1e6 (μ2 =
+    1), g = 1e-12 … 1e3, data scaled by 1e-8 and 1e8 (g = 0.05 s: the radial loads are
+    proportional to g), near-total contact at ρ = 0.95 (its level set vanishes there).
+    The numbers are the specification's; the scenes are built at a coarse h."""
+    case = {c.name: c for c in stability.CASES}
+    h = 0.5
+    for r in (1e-6, 1e-3, 1.0, 1e3, 1e6):
+        p = case[f"mu_ratio_{r:g}"].build(h)
+        assert (p.mu1, p.mu2, p.g) == (r, 1.0, 0.05)
+    for g in (1e-12, 1e-6, 1e3):
+        assert case[f"g_{g:g}"].build(h).g == g
+    for s in (1e-8, 1e8):
+        scaled = case[f"scaled_{s:g}"]
+        assert (scaled.scaled_from, scaled.factor) == ("mu_ratio_1", s)
+        assert scaled.build(h).g == 0.05 * s
+    near = case["near_total"].build(h)
+    assert abs(near.interface(np.array([[0.95], [0.0]]))[0]) <= 1e-15
+
+
+def test_the_far_off_guess_violates_every_constraint():
+    """far_off_guess: u1 - u2 = -2e3 u_data < 0 (the gap constraint) and λ = -1e3 max(λ_data,
+    1) < 0 at every vertex, three orders of magnitude beyond the data's sizes (exact
+    multiples of u_data and λ_data)."""
+    from membranes.fem.discretisation import discretise
+    disc = discretise(stability.select(["far_guess"])[0].build(H))
+    u_data, lam_data = disc.data_scales()
+    X = stability.far_off_guess(disc)
+    u1, u2, lam = (np.asarray(a) for a in disc.split(X))
+    assert np.all(u1 == -1e3 * u_data) and np.all(u2 == 1e3 * u_data)
+    assert np.all(u1 - u2 < 0) and np.all(lam == -1e3 * max(lam_data, 1.0))
+
+
+def test_sizes_are_checked_at_the_size_each_case_is_meshed(monkeypatch):
+    """check_sizes checks a nested case's T_0 … T_2 at size 2h (as run_case builds it) and a
+    single mesh at h, the structured square meshes (no gmsh size) not at all: checked at h,
+    the nested hierarchy was estimated 16 times larger and refused at sizes that fit."""
+    seen = []
+    monkeypatch.setattr(report, "check_memory",
+                        lambda h, levels, domain, comm, solvers: seen.append((h, levels)))
+    stability.check_sizes(stability.select(["tiny", "grazing", "nested_grazing"]), 0.2,
+                          MPI.COMM_WORLD)
+    assert seen == [(0.2, 0), (0.4, 2)]
+
+
+def test_scale_defect_of_a_component_zero_in_the_reference():
+    """Where a component is identically 0 in the unscaled run, the defect is the scaled
+    run's size of it, ‖X_s/s‖∞ (relative to nothing): a λ that appears only under scaling
+    shows. Planted on a real run (λ of the reference set to 0, s = 1); exact. A component
+    0 in both adds nothing (s = 2: u1, u2 give |X/2 - X|/|X| = 1/2, exact in binary)."""
+    _, runs = matrix(("tiny", "far_guess"))
+    sol = runs["tiny"]["min/exact/direct"]
+    X = sol.X.copy()
+    ref = type(sol)(**{**sol.__dict__, "X": X})
+    lam_ref = sol.disc.split(X)[2]
+    lam_ref[:] = 0.0
+    lam = np.asarray(sol.disc.split(sol.X)[2])
+    assert np.abs(lam).max() > 0
+    assert stability.scale_defect(sol, ref, 1.0) == np.abs(lam).max()   # (u1, u2: 0)
+    assert stability.scale_defect(ref, ref, 2.0) == 0.5      # |X/2 - X|/|X|, λ = 0 in both
+
+
+def test_a_non_finite_iterate_makes_a_failed_row():
+    """A NaN in the final iterate (not only in the history) makes the run a failed row with
+    that reason (stability.finite: 'no NaN or infinity in the iterate nor in any recorded
+    number'); planted in a real run's copy."""
+    from dataclasses import replace
+    _, runs = matrix(("tiny", "far_guess"))
+    case = stability.select(["tiny"])[0]
+    m = stability.method_name(*METHODS[0])
+    sol = runs["tiny"][m]
+    X = sol.X.copy()
+    X.array[0] = np.inf
+    row = stability.table([case], {"tiny": {m: replace(sol, X=X)}})[0]
+    assert row["converged"] is False and row["reason"] == "non-finite value in the output"
+
+
+def test_iterative_runs_are_capped_at_max_linear_its():
+    """Every Krylov run of the matrix is allowed MAX_LINEAR_ITS = 2000 iterations a Newton
+    step (docs/cli.md: 'at most 2000 Krylov iterations a Newton step'), not the solver's
+    default of 10000; a direct run has no such limit."""
+    _, runs = matrix(("tiny", "far_guess"))
+    assert stability.MAX_LINEAR_ITS == 2000
+    for method in METHODS:
+        name = stability.method_name(*method)
+        limit = runs["tiny"][name].options["max_linear_its"]
+        assert limit == (None if method[2] == "direct" else 2000), name
+
+
+def test_the_command_needs_out(capsys):
+    """`membranes stability` without --out is bad input (docs/cli.md: --out required): exit
+    2, one line naming the option, before any run."""
+    from membranes.app import cli
+    assert cli.main(["stability", "--quiet", "--cases", "tiny"]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert err == "membranes: error: the following arguments are required: --out\n"
