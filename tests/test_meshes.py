@@ -410,3 +410,43 @@ def test_refined_boundary_vertices_lie_on_the_circle():
     radius = np.hypot(*mesh.geometry.x[boundary_vertices(mesh), :2].T)
     assert len(radius) == 92 and np.abs(radius - 1.0).max() <= 1e-15     # (4 x 23)
     assert hierarchy.up_to(1).projection is hierarchy.projection is not None
+
+
+def test_the_user_scene_refines_its_own_domain():
+    """The user scene moves new boundary vertices onto the circle on the unit disk only (§9):
+    on the unit square the midpoints of its boundary edges stay on the sides, so T_2 is
+    still a mesh of (0, 1)² (every boundary vertex on a side, the cells' area 1); moved
+    onto the circle, (1, y) went to (1, y)/√(1 + y²), off the square. On the disk, as for
+    the disk scene, every boundary vertex of T_2 lies on the circle. Tolerance: round-off
+    (a midpoint of a side keeps its coordinate 0 or 1 exactly; the projection divides by
+    the radius, 1e-15; the area is a sum of a few hundred products, 1e-13)."""
+    from membranes import scenes
+    from membranes.fem.hierarchy import boundary_vertices
+    from membranes.fem.meshes import triangle_areas
+    mesh = scenes.user(domain="square", h=0.3, levels=2).hierarchy.finest
+    x = mesh.geometry.x[boundary_vertices(mesh), :2]
+    assert len(x) > 0
+    assert np.all(np.any((x == 0.0) | (x == 1.0), axis=1))
+    cells = mesh.geometry.dofmap.array.reshape(-1, 3)
+    assert triangle_areas(mesh.geometry.x[cells, :2]).sum() == pytest.approx(1.0, abs=1e-13)
+    mesh = scenes.user(domain="disk", h=0.3, levels=2).hierarchy.finest
+    radius = np.hypot(*mesh.geometry.x[boundary_vertices(mesh), :2].T)
+    assert len(radius) == 92 and np.abs(radius - 1.0).max() <= 1e-15     # (as the disk's)
+
+
+def test_scenes_mesh_at_the_default_size_without_h():
+    """A scene built without h meshes its domain at DEFAULT_H, 0.05 (the command line's
+    documented default for --h, which it leaves to the scene): the disk, square and user
+    scenes' coarse meshes are gmsh's meshes at that size (gmsh is deterministic: the vertex
+    counts are equal, exactly)."""
+    from membranes import scenes
+    assert scenes.DEFAULT_H == 0.05
+
+    def count(mesh):
+        return mesh.topology.index_map(0).size_global
+    disk, square = count(unit_disk(0.05)), count(unit_square(0.05))
+    assert disk != square
+    for problem, expected in ((scenes.disk(), disk), (scenes.square(), square),
+                              (scenes.user(f1="-1"), disk),
+                              (scenes.user(domain="square"), square)):
+        assert count(problem.mesh) == expected, problem.description

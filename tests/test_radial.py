@@ -166,6 +166,17 @@ def test_disk_exact_solution_solves_the_disk_data():
         assert abs(problem.exact.u2(ufl_x)(point)) <= 1e-12 * g
 
 
+def test_disk_and_square_parameters_are_those_of_the_design():
+    """The data the sympy checks above take from scenes.py (DISK_G, SQUARE) are those DESIGN.md
+    states: the disk scene is the paper's case μ1 = μ2 = 1, g = 0.05 (§9; the checks derive
+    the rest from g, so another g passed them), the square's μ1 = 1, μ2 = 2, g = 0.1 with its
+    contact zone s ≥ 1/2 (the module's header); exact numbers of the specification."""
+    disk = scenes.disk(h=0.5)
+    assert (disk.mu1, disk.mu2, disk.g) == (1.0, 1.0, 0.05)
+    square = scenes.square(h=0.5)
+    assert (square.mu1, square.mu2, square.g, scenes.SQUARE["s0"]) == (1.0, 2.0, 0.1, 0.5)
+
+
 def test_square_exact_solution_solves_the_square_data():
     """The square scene (manufactured, μ1 = 1, μ2 = 2, g = 0.1): u2 = (g/2) sin πx sin πy,
     u1 = u2 + w with w = g ((s0 - s)/s0)² off Z = {s ≥ s0} and 0 on Z, λ = λ0 (s - s0)/(1 - s0)
@@ -189,6 +200,18 @@ def test_square_exact_solution_solves_the_square_data():
     assert w.min() >= -1e-15 and got["lam"].min() >= 0
     assert np.abs(w * got["lam"]).max() <= 1e-15
     assert got["lam"].max() > 0.1 * lam0                  # the contact zone is sampled
+
+
+def test_no_interface_where_the_data_do_not_jump():
+    """A scene declares an interface only where its data jump (the module's header): the
+    radial scene's λ and loads are smooth with no contact (λ = 0) and with grazing contact
+    (ρ = 0: λ = 0 off the origin), so it declares none and the driver spends no composite
+    rule on cells at a level set r² that cuts no cell; with a contact disk it declares one.
+    The user scene knows no jump of its formulas: none either."""
+    assert scenes.radial(h=0.5, rho=0.0).interface is None
+    assert scenes.radial(h=0.5, contact=False).interface is None
+    assert scenes.radial(h=0.5, rho=0.5).interface is not None
+    assert scenes.user(h=0.5, f1="-1").interface is None
 
 
 def test_interfaces_are_where_the_data_jump():
