@@ -677,6 +677,93 @@ def test_default_variant_is_one_that_can_run(tmp_path, capsys):
     assert '"newton": "exact"' in capsys.readouterr().out
 
 
+def test_solve_defaults_are_the_documented_ones():
+    """`membranes solve` with no option runs what docs/cli.md's table gives as defaults:
+    the disk scene (left to `_scene_arguments`) at the scene's h, T_0 itself (--levels 0),
+    Newton-min with the amg solver, at most 100 Newton steps a level, the paper's initial
+    guess; the variant and nesting are left to `solve` (None). Exact values."""
+    from membranes.app import cli
+    args = cli._parser().parse_args(["solve"])
+    assert (args.levels, args.cfun, args.solver, args.max_newton, args.initial_guess) == \
+        (0, "min", "amg", 100, "paper")
+    assert (args.scene, args.h, args.newton, args.nested, args.out) == (None,) * 5
+    assert cli._scene_arguments(args) == ("disk", {"levels": 0})
+
+
+def test_mesh_with_h_or_domain_names_the_options(tmp_path, capsys):
+    """`--mesh` with `--h` or `--domain` is refused by the command line in its own words,
+    naming the options as typed ('give --mesh or --h, not both'), not by the API's message
+    about its arguments (mesh, h); exit 2, nothing written."""
+    msh = str(write_msh(tmp_path / "t.msh", "triangles"))
+    for extra, name in ((["--h", "0.3"], "--h"), (["--domain", "square"], "--domain")):
+        err = cli_bad_input(["--mesh", msh] + extra, tmp_path / "out", capsys)
+        assert err == f"membranes: error: give --mesh or {name}, not both"
+
+
+@pytest.mark.parametrize("args, line", [
+    (["--levels", "-1"], "--levels must be a non-negative integer, got -1"),
+    (["--max-newton", "0"], "--max-newton must be at least 1, got 0"),
+    (["--levels", "1", "--coarse-tol", "1"], "--coarse-tol must lie in (0, 1), got 1.0"),
+    (["--max-vertices", "0"], "--max-vertices must be a positive integer, got 0")])
+def test_counts_and_limits_are_refused_under_their_option_names(args, line, tmp_path, capsys):
+    """A value out of range at the ends of its range (levels 0, max-newton 1, coarse-tol
+    below 1, max-vertices 1 are the smallest or largest allowed) is refused by the command
+    line with the option's own name, as typed; the API's later checks refuse them too, in
+    the words of its arguments (max_newton, coarse_tol), which the user did not type."""
+    assert cli_bad_input(args, tmp_path / "out", capsys) == f"membranes: error: {line}"
+
+
+def test_no_room_for_the_outputs_is_refused_before_the_run(tmp_path, monkeypatch, capsys):
+    """A filesystem without room for the outputs of the mesh built is refused before the
+    solve starts (`membranes solve` checks the room once the mesh is made), not after a run
+    whose outputs the writer then refuses: exit 2, one line, nothing written, no solve. The
+    room asked for is made larger than any disk (2^62 bytes)."""
+    from membranes.app import driver, outputs
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("solved before the room was checked")
+    monkeypatch.setattr(outputs, "room_for", lambda mesh: 2 ** 62)
+    monkeypatch.setattr(driver, "solve", no_solve)
+    err = cli_bad_input([], tmp_path / "out", capsys)
+    assert "MiB free, the outputs need about" in err
+
+
+JSON_LINE_KEYS = ("scene", "n_vertices", "n_cells", "h", "newton", "cfun", "solver", "system",
+                  "processes", "converged", "newton_iterations", "linear_iterations",
+                  "wall_time_s", "energy_error", "eta", "effectivity", "nested",
+                  "newton_per_level")
+
+
+def test_the_json_line_holds_the_documented_keys(tmp_path, capsys):
+    """`membranes solve` ends with one JSON line on stdout whose keys are those docs/cli.md
+    lists, in its order, each with summary.json's value (the same summary, exact), and
+    newton_per_level the Newton steps of each level of the nested run (J = 1: two)."""
+    from membranes.app import cli
+    out = tmp_path / "out"
+    assert cli.main(["solve", "--quiet", "--h", "0.3", "--levels", "1", "--out", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert len(stdout.splitlines()) == 1
+    line = json.loads(stdout)
+    assert tuple(line) == JSON_LINE_KEYS
+    summary = json.loads((out / "summary.json").read_text())
+    assert all(line[k] == summary[k] for k in JSON_LINE_KEYS[:-1])
+    assert line["newton_per_level"] == [r["newton_iterations"] for r in summary["per_level"]]
+    assert len(line["newton_per_level"]) == 2 and line["effectivity"] >= 1.0
+
+
+def test_scenes_lists_each_scene_with_what_it_needs(capsys):
+    """`membranes scenes` lists every scene of the API (radial too) on a line of its name and
+    description, then a line of what it knows (docs/cli.md: 'Lists the scenes with what each
+    knows (exact solution, data jump)')."""
+    from membranes.app import cli
+    assert cli.main(["scenes"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines[::2]] == ["disk", "square", "radial", "user"]
+    assert all(line.split()[0] == "needs:" for line in lines[1::2]) and len(lines) == 8
+    assert "exact solution -> energy error" in lines[1]
+    assert lines[7].strip() == "needs: data only (no exact solution, no energy error)"
+
+
 @pytest.mark.parametrize("out", ["", "  "])
 def test_an_empty_output_folder_is_refused(out, tmp_path, monkeypatch, capsys):
     """`--out ""` (an unset shell variable) is the working folder to os.path.abspath: the
@@ -977,6 +1064,25 @@ def test_scene_numbers_are_named_when_wrong():
         scenes.radial(h=0.5, rho="x")
     with pytest.raises(ValueError, match="max_vertices must be a positive integer"):
         scenes.disk(h=0.5, max_vertices="a")
+
+
+def test_unknown_domain_and_scene_are_named(monkeypatch):
+    """The API's user scene on a domain other than the unit disk or square, and a scene name
+    `make` does not know, are refused with a ValueError that lists the choices (the command
+    line's --domain and --scene take the choices only), before any meshing: without the
+    scene's own check the size estimate met the unknown domain first (a KeyError, a
+    traceback on the command line's path)."""
+    from membranes.fem import meshes
+
+    def no_meshing(*args, **kwargs):
+        raise AssertionError("meshed before the domain was checked")
+    monkeypatch.setattr(meshes, "on_rank0", no_meshing)
+    with pytest.raises(ValueError, match=r"unknown domain 'triangle' \(choose from: disk, "
+                                         r"square\)"):
+        scenes.user(h=0.5, domain="triangle")
+    with pytest.raises(ValueError, match=r"unknown scene 'circle' \(choose from: disk, "
+                                         r"square, radial, user\)"):
+        scenes.make("circle", h=0.5)
 
 
 def test_user_scene_refuses_a_mesh_with_h_or_domain(tmp_path):
