@@ -522,6 +522,50 @@ def test_output_folder_accepts_a_link_named_as_an_output(tmp_path):
     assert (out / "summary.json").read_text() == "{}" and (tmp_path / "kept").is_dir()
 
 
+FOLDER_ON_EVERY_PROCESS = """
+import sys
+from mpi4py import MPI
+from membranes.model import folders
+w = MPI.COMM_WORLD
+said = []
+for check in (lambda: folders.check_output_folder("/proc/membranes-x", w),
+              lambda: folders.check_output_room(sys.argv[1], 2 ** 62, w),
+              lambda: folders.check_output_folder(sys.argv[1], w)):
+    try:
+        check()
+        said.append(None)
+    except ValueError as e:
+        said.append(str(e))
+said = w.gather(said, root=0)
+if w.rank == 0:
+    print(repr(said), flush=True)
+"""
+
+
+def test_output_folder_answer_reaches_every_process(tmp_path):
+    """On 2 processes process 0 looks at the output folder and both get its answer, the
+    same message (a process left without it went on into the run while the other stopped,
+    and waited for it in a collective): a folder that cannot be written, a filesystem
+    without room (2^62 bytes asked for), and a folder that can be written (no error)."""
+    import ast
+    proc = mpirun(["-c", FOLDER_ON_EVERY_PROCESS, str(tmp_path / "out")])
+    assert proc.returncode == 0, proc.stderr
+    said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    assert said[0] == said[1] and said[0][2] is None
+    assert "cannot be written" in said[0][0] and "MiB free" in said[0][1]
+    assert os.listdir(tmp_path) == []
+
+
+def test_output_room_without_statvfs_is_left_to_the_writers(tmp_path, monkeypatch):
+    """Where the filesystem's free space cannot be read (os.statvfs fails), the room check
+    says nothing: the writers report a failed write in their own line (folders: 'no
+    statvfs here: the writers report a failure'); it is no reason to refuse the run."""
+    def no_statvfs(path):
+        raise OSError(38, "Function not implemented")
+    monkeypatch.setattr(os, "statvfs", no_statvfs)
+    folders.check_output_room(tmp_path / "out", 2 ** 62)
+
+
 @pytest.mark.parametrize("where", ["proc", "under a file", "a file", "a dangling link"])
 def test_output_folder_that_cannot_be_written(where, tmp_path):
     a_file = tmp_path / "file"
