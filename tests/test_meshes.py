@@ -168,6 +168,21 @@ def test_every_scene_reports_its_refinements(name):
     assert all(line.endswith(" s") for line in lines)
 
 
+@pytest.mark.parametrize("name", ["square", "user"])
+def test_a_scene_on_a_given_mesh_reports_its_refinements(name):
+    """The same on a dolfinx mesh given as T_0 (square and user scenes): one line per
+    refinement with the refined mesh's size."""
+    from dolfinx.mesh import create_unit_square
+
+    from membranes import scenes
+    lines = []
+    mesh = create_unit_square(MPI.COMM_WORLD, 2, 2)
+    problem = scenes.make(name, mesh=mesh, levels=2, progress=lines.append)
+    sizes = [m.topology.index_map(0).size_global for m in problem.hierarchy.meshes[1:]]
+    assert [line.split(" vertices in ")[0] for line in lines] == \
+        [f"refinement {j} of 2: {n:,}" for j, n in enumerate(sizes, 1)]
+
+
 def test_refinement_progress_on_stderr_or_refused(capsys):
     """progress=True prints the lines on stderr, as `solve`'s; anything else that is not a
     callable is refused before any refinement, and by `solve` before any solve (one check,

@@ -386,3 +386,14 @@ def test_the_command_needs_out(capsys):
     assert cli.main(["stability", "--quiet", "--cases", "tiny"]) == cli.EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert err == "membranes: error: the following arguments are required: --out\n"
+
+
+def test_scale_invariance_line_gives_the_largest_defect():
+    """stability.md's scale-invariance section gives the largest defect over the scaled runs
+    and how many kept both counts (made-up rows; exact)."""
+    rows = [{"case": "s", "class": "scaling", "method": f"m{k}", "converged": True,
+             "effectivity": None, "reason": "r", "description": "d", "scale_defect": d,
+             "same_counts": same}
+            for k, (d, same) in enumerate(((1e-14, True), (3e-12, False), (None, None)))]
+    text = stability.markdown(rows, 0.1, 1.0, 1)
+    assert "Largest defect 3.0e-12; iteration counts equal in 1 of 2 scaled runs." in text
