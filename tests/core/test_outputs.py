@@ -339,6 +339,19 @@ def test_a_move_failing_midway_is_undone(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
 
 
+
+def fail_renames_onto(monkeypatch, path, errno, message):
+    """Every `os.replace` of the outputs module onto `path` raises OSError(errno, message);
+    the others rename."""
+    real = os.replace
+
+    def replace(src, dst):
+        if os.fspath(dst) == str(path):
+            raise OSError(errno, message, str(dst))
+        real(src, dst)
+
+    monkeypatch.setattr(outputs.os, "replace", replace)
+
 def test_a_move_that_cannot_be_undone_keeps_the_older_files(tmp_path, monkeypatch):
     """Where the filesystem refuses the undo too (every rename onto run/b.txt fails), the
     older b.txt is not deleted with the staging folder: the folder stays, and the message
@@ -346,14 +359,7 @@ def test_a_move_that_cannot_be_undone_keeps_the_older_files(tmp_path, monkeypatc
     import re
     out = tmp_path / "run"
     _previous_run(out)
-    real = os.replace
-
-    def replace(src, dst):
-        if os.fspath(dst) == str(out / "b.txt"):
-            raise OSError(5, "Input/output error (planted)", str(dst))
-        real(src, dst)
-
-    monkeypatch.setattr(outputs.os, "replace", replace)
+    fail_renames_onto(monkeypatch, out / "b.txt", 5, "Input/output error (planted)")
     with pytest.raises(ValueError, match="could not be undone in full: the older files are "
                                          "in ") as e:
         with staged_folder(out) as tmp:
@@ -405,14 +411,7 @@ def test_a_move_failing_midway_restores_links_and_removes_new_names(tmp_path, mo
     out.mkdir()
     (out / "notes.txt").write_text("old notes.txt\n")
     os.symlink("nowhere.txt", out / "b.txt")
-    real = os.replace
-
-    def replace(src, dst):
-        if os.fspath(dst) == str(out / "c.txt"):
-            raise OSError(28, "No space left on device (planted)", str(dst))
-        real(src, dst)
-
-    monkeypatch.setattr(outputs.os, "replace", replace)
+    fail_renames_onto(monkeypatch, out / "c.txt", 28, "No space left on device (planted)")
     with pytest.raises(ValueError, match=r"c.txt: No space left on device .planted.; nothing "
                                          r"was changed"):
         with staged_folder(out) as tmp:
