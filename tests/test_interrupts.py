@@ -17,6 +17,20 @@ from membranes.app import interrupts
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+@pytest.fixture(autouse=True)
+def signals_at_their_defaults():
+    """The signals these tests send, at their defaults in this process and so in the runs it
+    starts (an ignored signal stays ignored across exec, and the product keeps it ignored):
+    the suite run as a background job (SIGINT ignored) or under nohup (SIGHUP) is tested as
+    from a terminal."""
+    defaults = {signal.SIGINT: signal.default_int_handler, signal.SIGHUP: signal.SIG_DFL,
+                signal.SIGTERM: signal.SIG_DFL}
+    before = {sig: signal.signal(sig, handler) for sig, handler in defaults.items()}
+    yield
+    for sig, handler in before.items():
+        signal.signal(sig, handler)
+
+
 def _env():
     env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_"))}
     env.update(OMP_NUM_THREADS="1", PYTHONPATH=ROOT)
