@@ -100,3 +100,9 @@ def mpirun(args, processes=2, timeout=120, extra=(), unset=(), environ=None):
     return subprocess.run([shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe",
                            *extra, "-n", str(processes), sys.executable, *map(str, args)],
                           cwd=ROOT, capture_output=True, text=True, timeout=timeout, env=env)
+
+
+def aspect_ratios(mesh):
+    """Longest edge over smallest altitude, h_K² / (2 |K|), of every owned cell."""
+    from membranes.fem.meshes import cell_diameters, cell_vertices, triangle_areas
+    return cell_diameters(mesh) ** 2 / (2.0 * triangle_areas(cell_vertices(mesh)))

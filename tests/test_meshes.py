@@ -10,7 +10,7 @@ from membranes.fem.hierarchy import build_hierarchy
 from membranes.fem.mesh_files import read_msh
 from membranes.fem.meshes import mesh_size, unit_disk, unit_square
 
-from .conftest import mpirun, write_msh
+from .conftest import aspect_ratios, mpirun, write_msh
 
 
 def _boundary_edges(m):
@@ -298,7 +298,6 @@ def test_sizes_and_shapes_of_a_structured_mesh():
     round-off of a few operations on coordinates of size 1. And the bad sizes are refused
     before gmsh runs (h = 0 asked gmsh for cells of size 0), a grading p < 1 as documented."""
     from membranes.fem.meshes import (
-        aspect_ratios,
         cell_diameters,
         cell_vertices,
         structured_square,
@@ -321,10 +320,10 @@ def test_sizes_and_shapes_of_a_structured_mesh():
 SIZES = """
 import json
 from mpi4py import MPI
-from membranes.fem.meshes import mesh_counts, mesh_size, unit_disk, vertex_count
+from membranes.fem.meshes import mesh_counts, mesh_size, unit_disk
 m = unit_disk(0.3, MPI.COMM_WORLD)
 local = m.topology.index_map(2).size_local
-out = [mesh_size(m), vertex_count(m), list(mesh_counts(m)), local]
+out = [mesh_size(m), list(mesh_counts(m)), local]
 out = MPI.COMM_WORLD.gather(out)
 if MPI.COMM_WORLD.rank == 0:
     print(json.dumps(out))
@@ -333,22 +332,22 @@ if MPI.COMM_WORLD.rank == 0:
 
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="launches mpirun itself")
 def test_sizes_and_counts_are_global_on_several_processes(tmp_path):
-    """mesh_size (h = max_K h_K over *all* processes, what summary.json reports), vertex_count
-    and mesh_counts (V, T, χ) of the disk on 3 processes are the serial mesh's on every
+    """mesh_size (h = max_K h_K over *all* processes, what summary.json reports) and
+    mesh_counts (V, T, χ) of the disk on 3 processes are the serial mesh's on every
     process: exactly, as the partition only distributes the same cells (dolfinx keeps the
     coordinates)."""
-    from membranes.fem.meshes import mesh_counts, vertex_count
+    from membranes.fem.meshes import mesh_counts
     serial = unit_disk(0.3)
-    want = [mesh_size(serial), vertex_count(serial), list(mesh_counts(serial))]
+    want = [mesh_size(serial), list(mesh_counts(serial))]
     script = tmp_path / "sizes.py"
     script.write_text(SIZES)
     proc = mpirun([script], processes=3)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     ranks = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert len(ranks) == 3 and all(r[3] > 0 for r in ranks)
-    assert sum(r[3] for r in ranks) == want[2][1]
+    assert len(ranks) == 3 and all(r[2] > 0 for r in ranks)
+    assert sum(r[2] for r in ranks) == want[1][1]
     for r in ranks:
-        assert r[:3] == want
+        assert r[:2] == want
 
 
 def test_poincare_constant_of_a_rectangle_is_its_own():

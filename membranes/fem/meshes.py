@@ -425,7 +425,7 @@ def on_boundary(mesh, cell_nodes, imap):
 def triangle_areas(p):
     """|K| of the triangles with vertex coordinates p ((c, 3, 2)): half the absolute cross
     product of two edges. The cell masses M_K = |K|/12 (I + 1 1ᵀ) of the DG1 algebra (§4, §6)
-    and the aspect ratios use it."""
+    use it."""
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
@@ -435,11 +435,6 @@ def cell_diameters(mesh):
     p = cell_vertices(mesh)
     edges = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]], axis=1)
     return np.sqrt((edges ** 2).sum(axis=2)).max(axis=1)
-
-
-def aspect_ratios(mesh):
-    """Longest edge over smallest altitude, h_K² / (2 |K|), of every owned cell."""
-    return cell_diameters(mesh) ** 2 / (2.0 * triangle_areas(cell_vertices(mesh)))
 
 
 def mesh_size(mesh):
@@ -454,8 +449,3 @@ def mesh_counts(mesh):
     mesh.topology.create_entities(1)
     v, e, t = (mesh.topology.index_map(d).size_global for d in (0, 1, 2))
     return v, t, v - e + t
-
-
-def vertex_count(mesh):
-    """Global number of vertices."""
-    return mesh.topology.index_map(0).size_global

@@ -14,6 +14,8 @@ from mpi4py import MPI
 from membranes.app import report, stability
 from membranes.fem import meshes
 
+from ..conftest import aspect_ratios
+
 pytestmark = pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial subset")
 
 H = 0.3              # the disk meshes of the quick subset
@@ -33,7 +35,7 @@ def matrix(names):
 def test_case_meshes_are_what_they_claim():
     case = {c.name: c for c in stability.CASES}
     aniso = case["anisotropic"].build(H).mesh
-    assert meshes.aspect_ratios(aniso).max() >= 100
+    assert aspect_ratios(aniso).max() >= 100
     assert case["tiny"].build(H).mesh.topology.index_map(2).size_global == 18
     d = meshes.cell_diameters(case["graded"].build(H).mesh)
     assert d.max() / d.min() > 100
