@@ -527,6 +527,13 @@ import sys
 from mpi4py import MPI
 from membranes.model import folders
 w = MPI.COMM_WORLD
+touched = []
+if w.rank != 0:          # only process 0 may touch the filesystem (the others would race it)
+    import os, tempfile
+    def refused(*args, **kwargs):
+        touched.append(args)
+        raise PermissionError(13, "Permission denied")
+    os.mkdir = tempfile.mkdtemp = os.statvfs = refused
 said = []
 for check in (lambda: folders.check_output_folder("/proc/membranes-x", w),
               lambda: folders.check_output_room(sys.argv[1], 2 ** 62, w),
@@ -536,7 +543,7 @@ for check in (lambda: folders.check_output_folder("/proc/membranes-x", w),
         said.append(None)
     except ValueError as e:
         said.append(str(e))
-said = w.gather(said, root=0)
+said = w.gather(said + [len(touched)], root=0)
 if w.rank == 0:
     print(repr(said), flush=True)
 """
@@ -546,12 +553,15 @@ def test_output_folder_answer_reaches_every_process(tmp_path):
     """On 2 processes process 0 looks at the output folder and both get its answer, the
     same message (a process left without it went on into the run while the other stopped,
     and waited for it in a collective): a folder that cannot be written, a filesystem
-    without room (2^62 bytes asked for), and a folder that can be written (no error)."""
+    without room (2^62 bytes asked for), and a folder that can be written (no error). Only
+    process 0 looks: on the others the script makes mkdir, mkdtemp and statvfs fail and counts
+    their calls, none (every process probing one folder would race to create and remove
+    it)."""
     import ast
     proc = mpirun(["-c", FOLDER_ON_EVERY_PROCESS, str(tmp_path / "out")])
     assert proc.returncode == 0, proc.stderr
     said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
-    assert said[0] == said[1] and said[0][2] is None
+    assert said[0] == said[1] and said[0][2] is None and said[1][3] == 0
     assert "cannot be written" in said[0][0] and "MiB free" in said[0][1]
     assert os.listdir(tmp_path) == []
 
