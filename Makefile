@@ -25,10 +25,10 @@ demos: warmup
 lint: setup
 	.venv/bin/ruff check .
 
-# The suite on up to 4 pytest-xdist workers (one per core), each test sent to the next free
-# worker: many tests wait on MPI start-up and subprocesses, which the workers overlap.
+# The suite on up to 4 pytest-xdist workers (one per core), a test file per worker: many
+# tests wait on MPI start-up and subprocesses, which the workers overlap.
 test: warmup
-	.venv/bin/python -m pytest -q -n auto --maxprocesses 4 --dist load tests
+	.venv/bin/python -m pytest -q -n auto --maxprocesses 4 --dist loadfile tests
 
 clean:
 	rm -rf out .pytest_cache
