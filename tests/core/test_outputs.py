@@ -339,7 +339,6 @@ def test_a_move_failing_midway_is_undone(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
 
 
-
 def fail_renames_onto(monkeypatch, path, errno, message):
     """Every `os.replace` of the outputs module onto `path` raises OSError(errno, message);
     the others rename."""
@@ -351,6 +350,7 @@ def fail_renames_onto(monkeypatch, path, errno, message):
         real(src, dst)
 
     monkeypatch.setattr(outputs.os, "replace", replace)
+
 
 def test_a_move_that_cannot_be_undone_keeps_the_older_files(tmp_path, monkeypatch):
     """Where the filesystem refuses the undo too (every rename onto run/b.txt fails), the
