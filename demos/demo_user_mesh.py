@@ -33,7 +33,7 @@ from mpi4py import MPI
 from membranes import scenes, solve
 from membranes.app.demo import options, say
 from membranes.app.outputs import write_outputs
-from membranes.app.render import snapshot
+from membranes.app.render import snapshots
 
 out, quick = options("user_mesh", "the contact problem on your own gmsh mesh",
                      "folder for the mesh file, the pictures and the outputs")
@@ -115,27 +115,28 @@ say(f"|||u_h||| = {norm:.4e}: relative error at most {est['eta'] / norm:.2%}")
 
 # ## Pictures
 #
-# `membranes.app.render.snapshot` draws fields on the (distributed) mesh with pyvista,
-# off-screen: P1 functions at the vertices, per-cell values on the cells. The gap vanishes
-# where the membranes touch, and there the pressure is positive; $\eta_K$ (logarithmic
-# scale) is largest by far at the re-entrant corner, where the solution is least smooth,
-# smallest inside the contact zone, and a little larger along the free boundary, the edge
-# of the contact zone, than around it.
+# `membranes.app.render.snapshots` draws pictures of fields on the (distributed) mesh with
+# pyvista, off-screen, all in one rendering process: P1 functions at the vertices, per-cell
+# values on the cells. The gap vanishes where the membranes touch, and there the pressure is
+# positive; $\eta_K$ (logarithmic scale) is largest by far at the re-entrant corner, where
+# the solution is least smooth, smallest inside the contact zone, and a little larger along
+# the free boundary, the edge of the contact zone, than around it.
 
 # +
 gap = fem.Function(sol.disc.V)
 gap.x.array[:] = sol.u1.x.array - sol.u2.x.array
 contact_png = os.path.join(out, "contact.png")
 eta_png = os.path.join(out, "eta_K.png")
-try:
-    snapshot(sol.disc.V, [("u1 - u2", "point", gap, "gap u1 - u2"),
-                          ("lambda", "point", sol.lam, "contact pressure lambda")],
-             contact_png, cmap="plasma")
-    snapshot(sol.disc.V, [("eta_K", "cell", sol.eta_K, "local estimator eta_K")], eta_png,
-             log=True)
+pictures = [([("u1 - u2", "point", gap, "gap u1 - u2"),
+              ("lambda", "point", sol.lam, "contact pressure lambda")], contact_png,
+             dict(cmap="plasma")),
+            ([("eta_K", "cell", sol.eta_K, "local estimator eta_K")], eta_png, dict(log=True))]
+# (None: drawn; else why not, as when pyvista cannot draw here: the rest goes on)
+missing = [why for why in snapshots(sol.disc.V, pictures) if why]
+if missing:
+    say("pictures skipped:", "; ".join(missing))
+else:
     say("pictures:", contact_png, eta_png)
-except RuntimeError as e:       # pyvista cannot draw here (no OpenGL, ...): the rest goes on
-    say("pictures skipped:", e)
 # -
 
 # ## Outputs

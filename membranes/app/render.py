@@ -1,10 +1,12 @@
 """Off-screen pyvista pictures of fields on the mesh, for the report.
 
 VTK's scalar bars crash (std::bad_alloc in libstdc++'s regex) in a process that has loaded
-dolfinx's C++ libraries, so the picture is drawn by this file run as a separate script,
-`python render.py DATA.npz OUT.png`, which imports numpy and pyvista only. `snapshot` (the
-dolfinx side) gathers the cells of the distributed mesh and the fields onto process 0 — for a
-picture only, which a report can afford — writes DATA.npz and runs the script.
+dolfinx's C++ libraries, so the pictures are drawn by this file run as a separate script,
+`python render.py DATA.npz OUT.png [DATA2.npz OUT2.png ...]`, which imports numpy and pyvista
+only (once for all the pictures it is given: the import is most of a small picture's time).
+`snapshots` (the dolfinx side) gathers the cells of the distributed mesh and the fields onto
+process 0 — for pictures only, which a report can afford — writes one DATA.npz per picture
+and runs the script once; `snapshot` draws one picture.
 
 DATA.npz holds `points` (n, 3), `cells` (VTK cell array), `types`, and panels: `names` (k,),
 `kinds` ("cell"/"point"), `field_<i>` arrays, `titles`, `cmap`, `log` (True: one logarithmic
@@ -27,6 +29,7 @@ import numpy as np
 VTK_TRIANGLE = 5
 RENDER_SECONDS = 300        # a picture of a report's mesh takes seconds; a hung GL driver not
 ANSI = re.compile(r"\x1b\[[0-9;]*m")     # VTK colours its log lines
+FAILED = "render: failed: "                 # how the script names a picture it could not draw
 
 
 # ## The script side (numpy and pyvista only)
@@ -116,46 +119,85 @@ def snapshot(V, panels, path, log=False, contour=None, cmap="viridis"):
     owned cells' values (mesh order), "point" panels P1 Functions on V. Collective; process 0
     renders, and every process raises RuntimeError if the rendering failed (its data file
     not written included)."""
-    import subprocess
-    comm = V.mesh.comm
-    points, _ = gather_points(V)
-    fields = [gather_cells(comm, values) if kind == "cell" else gather_vertices(V, values)
-              for _, kind, values, _ in panels]
-    error = None
-    if comm.rank == 0:
-        c = len(points) // 3
-        cells = np.column_stack([np.full(c, 3), np.arange(3 * c).reshape(c, 3)]).ravel()
-        data = {"cells": cells, "types": np.full(c, VTK_TRIANGLE, dtype=np.uint8),
-                "points": points, "names": np.array([p[0] for p in panels]),
-                "kinds": np.array([p[1] for p in panels]),
-                "titles": np.array([p[3] for p in panels]), "cmap": np.array(cmap),
-                "log": np.array(log)}
-        for i, values in enumerate(fields):
-            data[f"field_{i}"] = np.asarray(values, dtype=float)
-        if contour is not None:
-            data["contour"] = np.asarray(contour(points[:, :2].T), dtype=float)
-        npz = path + ".npz"
-        try:
-            np.savez(npz, **data)
-            proc = subprocess.run([sys.executable, os.path.abspath(__file__), npz, path],
-                                  capture_output=True, text=True, timeout=RENDER_SECONDS)
-            if proc.returncode != 0 or not os.path.exists(path):
-                tail = [line for line in ANSI.sub("", proc.stderr).splitlines() if line.strip()]
-                error = (f"rendering {os.path.basename(path)} failed: "
-                         f"{tail[-1].strip() if tail else f'exit code {proc.returncode}'}")
-        except subprocess.TimeoutExpired:
-            error = f"rendering {os.path.basename(path)} failed: no picture in {RENDER_SECONDS} s"
-        except OSError as e:    # the data file not written (raised, it left the others waiting)
-            error = f"rendering {os.path.basename(path)} failed: {type(e).__name__}: {e}"
-        finally:
-            if os.path.exists(npz):
-                os.remove(npz)
-        if error is not None and os.path.exists(path):      # no half-drawn picture
-            os.remove(path)
-    error = comm.bcast(error, root=0)
+    error, = snapshots(V, [(panels, path, dict(log=log, contour=contour, cmap=cmap))])
     if error is not None:
         raise RuntimeError(error)
 
 
+def snapshots(V, pictures):
+    """`snapshot` of several pictures [(panels, path, options)] on V's mesh in one rendering
+    process (module notes). Returns, on every process, per picture None (drawn) or why it
+    is missing (one line); a missing picture leaves no file. Collective."""
+    import subprocess
+    comm = V.mesh.comm
+    points, _ = gather_points(V)
+    gathered = [[gather_cells(comm, values) if kind == "cell" else gather_vertices(V, values)
+                 for _, kind, values, _ in panels] for panels, _, _ in pictures]
+    errors = [None] * len(pictures)
+    if comm.rank == 0:
+        c = len(points) // 3
+        cells = np.column_stack([np.full(c, 3), np.arange(3 * c).reshape(c, 3)]).ravel()
+        paths = [path for _, path, _ in pictures]
+        names = [os.path.basename(path) for path in paths]
+        written = []
+        try:
+            for (panels, path, options), fields in zip(pictures, gathered):
+                written.append(path + ".npz")
+                np.savez(written[-1], **_data(cells, points, panels, fields, **options))
+            proc = subprocess.run([sys.executable, os.path.abspath(__file__),
+                                   *[a for pair in zip(written, paths) for a in pair]],
+                                  capture_output=True, text=True, timeout=RENDER_SECONDS)
+            lines = [line.strip() for line in ANSI.sub("", proc.stderr).splitlines()
+                     if line.strip()]
+            for i, path in enumerate(paths):
+                named = [line[len(FAILED + path) + 2:] for line in lines
+                         if line.startswith(f"{FAILED}{path}: ")]
+                if named:
+                    errors[i] = f"rendering {names[i]} failed: {named[-1]}"
+                elif proc.returncode != 0 or not os.path.exists(path):
+                    errors[i] = (f"rendering {names[i]} failed: "
+                                 f"{lines[-1] if lines else f'exit code {proc.returncode}'}")
+        except subprocess.TimeoutExpired:
+            errors = [f"rendering {name} failed: no picture in {RENDER_SECONDS} s"
+                      for name in names]
+        except OSError as e:    # a data file not written (raised, it left the others waiting)
+            errors = [f"rendering {name} failed: {type(e).__name__}: {e}" for name in names]
+        finally:
+            for npz in written:
+                if os.path.exists(npz):
+                    os.remove(npz)
+        for path, error in zip(paths, errors):
+            if error is not None and os.path.exists(path):      # no half-drawn picture
+                os.remove(path)
+    return comm.bcast(errors, root=0)
+
+
+def _data(cells, points, panels, fields, log=False, contour=None, cmap="viridis"):
+    """The contents of one picture's DATA.npz (module notes)."""
+    c = len(cells) // 4
+    data = {"cells": cells, "types": np.full(c, VTK_TRIANGLE, dtype=np.uint8),
+            "points": points, "names": np.array([p[0] for p in panels]),
+            "kinds": np.array([p[1] for p in panels]),
+            "titles": np.array([p[3] for p in panels]), "cmap": np.array(cmap),
+            "log": np.array(log)}
+    for i, values in enumerate(fields):
+        data[f"field_{i}"] = np.asarray(values, dtype=float)
+    if contour is not None:
+        data["contour"] = np.asarray(contour(points[:, :2].T), dtype=float)
+    return data
+
+
+def render_all(pairs):
+    """Render every (DATA.npz, OUT.png) pair; a picture that raises is named on stderr in one
+    line (FAILED, its path, the error) and the others are still drawn. Exit code 0: any
+    other code is a crash (a GL driver's at exit, say), which spoils every picture."""
+    for data_path, png_path in pairs:
+        try:
+            render(data_path, png_path)
+        except Exception as e:
+            print(f"{FAILED}{png_path}: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
+    return 0
+
+
 if __name__ == "__main__":
-    render(sys.argv[1], sys.argv[2])
+    sys.exit(render_all(zip(sys.argv[1::2], sys.argv[2::2])))

@@ -321,20 +321,10 @@ def plot_estimators(method, rows, path):
 
 # ## Pictures of the final iterate (pyvista via render.py)
 
-def _picture(V, panels, path, **options):
-    """render.snapshot, or, when pyvista cannot draw (not importable, no OpenGL, ...), the
-    reason in one line (every process): the report then goes without that picture."""
-    from .render import snapshot
-    try:
-        snapshot(V, panels, path, **options)
-    except RuntimeError as e:
-        return str(e)
-    return None
-
-
 def error_distribution(sol, path):
-    """|||u - u_h|||_K beside η_K (cells) and the CSV behind them (process 0); returns the
-    gathered (error_K, eta_K) on process 0 and why the picture is missing (None: drawn)."""
+    """|||u - u_h|||_K beside η_K (cells): the CSV (process 0) and the picture's
+    (panels, path, options) for `render.snapshots`; returns the gathered (error_K, eta_K) on
+    process 0 and the picture."""
     from ..estimation.energy_error import EnergyError
     from .outputs import write_columns
     from .render import gather_cells, gather_points
@@ -347,16 +337,14 @@ def error_distribution(sol, path):
     if comm.rank == 0:
         write_columns(path + ".csv", {"cell": np.arange(len(a)), "x": centres[:, 0],
                                       "y": centres[:, 1], "error_K": a, "eta_K": e})
-    missing = _picture(V, [("error_K", "cell", actual, "actual error (energy norm on each "
-                                                        "cell)"),
-                           ("eta_K", "cell", eta_K, "estimated error eta_K")], path + ".png",
-                       log=True)
-    return (a, e), missing
+    picture = ([("error_K", "cell", actual, "actual error (energy norm on each cell)"),
+                ("eta_K", "cell", eta_K, "estimated error eta_K")], path + ".png", dict(log=True))
+    return (a, e), picture
 
 
 def contact_zone(sol, path):
-    """u1 - u2 and λ with the scene's interface, and the CSV behind them (process 0); returns
-    why the picture is missing (None: drawn)."""
+    """u1 - u2 and λ with the scene's interface: the CSV (process 0); returns the picture's
+    (panels, path, options) for `render.snapshots`."""
     from dolfinx import fem
 
     from .outputs import write_columns
@@ -371,9 +359,9 @@ def contact_zone(sol, path):
     if sol.comm.rank == 0:
         write_columns(path + ".csv", {"vertex": np.arange(len(cols[0])), "x": cols[0],
                                       "y": cols[1], "gap": cols[2], "lambda": cols[3]})
-    return _picture(V, [("u1 - u2", "point", gap, "gap u1 - u2"),
-                        ("lambda", "point", sol.lam, "contact pressure lambda")], path + ".png",
-                    contour=sol.problem.interface, cmap="plasma")
+    return ([("u1 - u2", "point", gap, "gap u1 - u2"),
+             ("lambda", "point", sol.lam, "contact pressure lambda")], path + ".png",
+            dict(contour=sol.problem.interface, cmap="plasma"))
 
 
 # ## report.md
@@ -473,6 +461,7 @@ def write_report(problem, out, say=lambda line: None):
     """Run every method and peer on `problem` and write the report into `out` (collective;
     process 0 writes). Returns (runs {label: Solution}, table rows)."""
     from .outputs import staged_folder, write_rows
+    from .render import snapshots
     check_matplotlib()
     comm = problem.mesh.comm
     t = time.perf_counter()
@@ -485,11 +474,13 @@ def write_report(problem, out, say=lambda line: None):
         figures = {m: estimator_rows(problem, runs[m]) for m in METHOD_NAMES}
         curves = [dict(r, method=m) for m in METHOD_NAMES for r in runs[m].history
                   if r["kind"] != "krylov"] + peer_curves
-        cells, no_errors = error_distribution(runs["adaptive/amg"],
-                                              os.path.join(tmp, "error_distribution"))
-        no_contact = contact_zone(runs["adaptive/amg"], os.path.join(tmp, "contact"))
-        missing = {name: why for name, why in (("error_distribution.png", no_errors),
-                                                ("contact.png", no_contact)) if why}
+        final = runs["adaptive/amg"]
+        cells, errors = error_distribution(final, os.path.join(tmp, "error_distribution"))
+        pictures = [errors, contact_zone(final, os.path.join(tmp, "contact"))]
+        # both pyvista pictures in one rendering process; one that pyvista cannot draw (not
+        # importable, no OpenGL, ...) is left out, with the reason
+        missing = {os.path.basename(path): why for (_, path, _), why in
+                   zip(pictures, snapshots(final.disc.V, pictures)) if why}
         for why in missing.values():
             say(f"report: warning: {why}; the report goes without that picture")
         if comm.rank == 0:

@@ -553,6 +553,23 @@ def test_a_picture_whose_rendering_failed_is_removed(tmp_path, monkeypatch):
     assert not any(out.iterdir())
 
 
+def test_pictures_drawn_together_fail_one_by_one(tmp_path):
+    """`snapshots` draws several pictures in one rendering process: one that fails there
+    (here an unknown colour map) is missing with its own reason, and the others are drawn; no
+    data file is left."""
+    from dolfinx import fem, mesh
+
+    from membranes.app.render import snapshots
+    square = mesh.create_unit_square(MPI.COMM_SELF, 2, 2)
+    V = fem.FunctionSpace(square, ("Lagrange", 1))
+    panels = [("c", "cell", np.arange(8.0), "")]
+    drawn, bad = str(tmp_path / "drawn.png"), str(tmp_path / "bad.png")
+    errors = snapshots(V, [(panels, bad, dict(cmap="no_such_map")), (panels, drawn, {})])
+    assert errors[0].startswith("rendering bad.png failed: ") and "no_such_map" in errors[0]
+    assert errors[1] is None
+    assert sorted(os.listdir(tmp_path)) == ["drawn.png"]
+
+
 def test_a_data_file_that_cannot_be_written_fails_on_every_process(tmp_path):
     """Where process 0 cannot write the rendering's data file (here its folder is missing;
     a full disk alike) every process raises the same RuntimeError, naming the error. It was
