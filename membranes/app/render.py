@@ -155,8 +155,9 @@ def snapshots(V, pictures):
                 if named:
                     errors[i] = f"rendering {names[i]} failed: {named[-1]}"
                 elif proc.returncode != 0 or not os.path.exists(path):
+                    crash = [line for line in lines if not line.startswith(FAILED)]
                     errors[i] = (f"rendering {names[i]} failed: "
-                                 f"{lines[-1] if lines else f'exit code {proc.returncode}'}")
+                                 f"{crash[-1] if crash else f'exit code {proc.returncode}'}")
         except subprocess.TimeoutExpired:
             errors = [f"rendering {name} failed: no picture in {RENDER_SECONDS} s"
                       for name in names]

@@ -570,6 +570,30 @@ def test_pictures_drawn_together_fail_one_by_one(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["drawn.png"]
 
 
+def test_a_crash_after_one_failed_picture_names_the_crash(tmp_path, monkeypatch):
+    """A rendering process in which one picture failed (an unknown colour map) and which
+    then crashes (exit code 3 at its end): the failed picture keeps its own reason, and the
+    other, spoilt by the crash, names the crash, not the first picture's failure."""
+    from dolfinx import fem, mesh
+
+    from membranes.app.render import snapshots
+    folder = tmp_path / "exit3"
+    folder.mkdir()
+    (folder / "sitecustomize.py").write_text(
+        "import atexit, os\natexit.register(lambda: os._exit(3))\n")
+    monkeypatch.setenv("PYTHONPATH", with_folder_first(folder))
+    square = mesh.create_unit_square(MPI.COMM_SELF, 2, 2)
+    V = fem.FunctionSpace(square, ("Lagrange", 1))
+    panels = [("c", "cell", np.arange(8.0), "")]
+    out = tmp_path / "out"
+    out.mkdir()
+    bad, spoilt = str(out / "bad.png"), str(out / "spoilt.png")
+    errors = snapshots(V, [(panels, bad, dict(cmap="no_such_map")), (panels, spoilt, {})])
+    assert errors[0].startswith("rendering bad.png failed: ") and "no_such_map" in errors[0]
+    assert errors[1] == "rendering spoilt.png failed: exit code 3"
+    assert not any(out.iterdir())
+
+
 def test_a_data_file_that_cannot_be_written_fails_on_every_process(tmp_path):
     """Where process 0 cannot write the rendering's data file (here its folder is missing;
     a full disk alike) every process raises the same RuntimeError, naming the error. It was
