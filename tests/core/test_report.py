@@ -532,6 +532,16 @@ def test_a_rendering_that_fails_raises_on_every_process(tmp_path):
     assert not any(picture.parent.iterdir())
 
 
+def rendering_exits_with_3(tmp_path, monkeypatch):
+    """Python processes started from here on exit with code 3 at their end, as a rendering
+    process whose GL driver crashes at exit does."""
+    folder = tmp_path / "exit3"
+    folder.mkdir()
+    (folder / "sitecustomize.py").write_text(
+        "import atexit, os\natexit.register(lambda: os._exit(3))\n")
+    monkeypatch.setenv("PYTHONPATH", with_folder_first(folder))
+
+
 def test_a_picture_whose_rendering_failed_is_removed(tmp_path, monkeypatch):
     """A rendering process that fails after it wrote its picture (here it exits with code 3
     at its end, as a GL driver crashing at exit does): the picture may be half drawn, so it
@@ -539,11 +549,7 @@ def test_a_picture_whose_rendering_failed_is_removed(tmp_path, monkeypatch):
     from dolfinx import fem, mesh
 
     from membranes.app.render import snapshot
-    folder = tmp_path / "exit3"
-    folder.mkdir()
-    (folder / "sitecustomize.py").write_text(
-        "import atexit, os\natexit.register(lambda: os._exit(3))\n")
-    monkeypatch.setenv("PYTHONPATH", with_folder_first(folder))
+    rendering_exits_with_3(tmp_path, monkeypatch)
     square = mesh.create_unit_square(MPI.COMM_SELF, 2, 2)
     V = fem.FunctionSpace(square, ("Lagrange", 1))
     out = tmp_path / "out"
@@ -577,11 +583,7 @@ def test_a_crash_after_one_failed_picture_names_the_crash(tmp_path, monkeypatch)
     from dolfinx import fem, mesh
 
     from membranes.app.render import snapshots
-    folder = tmp_path / "exit3"
-    folder.mkdir()
-    (folder / "sitecustomize.py").write_text(
-        "import atexit, os\natexit.register(lambda: os._exit(3))\n")
-    monkeypatch.setenv("PYTHONPATH", with_folder_first(folder))
+    rendering_exits_with_3(tmp_path, monkeypatch)
     square = mesh.create_unit_square(MPI.COMM_SELF, 2, 2)
     V = fem.FunctionSpace(square, ("Lagrange", 1))
     panels = [("c", "cell", np.arange(8.0), "")]
