@@ -149,15 +149,17 @@ def snapshots(V, pictures):
                                   capture_output=True, text=True, timeout=RENDER_SECONDS)
             lines = [line.strip() for line in ANSI.sub("", proc.stderr).splitlines()
                      if line.strip()]
+            # what spoilt a picture that names no failure of its own: the process's last
+            # line that is not another picture's failure, or its exit code
+            own = [line for line in lines if not line.startswith(FAILED)]
+            crash = own[-1] if own else f"exit code {proc.returncode}"
             for i, path in enumerate(paths):
                 named = [line[len(FAILED + path) + 2:] for line in lines
                          if line.startswith(f"{FAILED}{path}: ")]
                 if named:
                     errors[i] = f"rendering {names[i]} failed: {named[-1]}"
                 elif proc.returncode != 0 or not os.path.exists(path):
-                    crash = [line for line in lines if not line.startswith(FAILED)]
-                    errors[i] = (f"rendering {names[i]} failed: "
-                                 f"{crash[-1] if crash else f'exit code {proc.returncode}'}")
+                    errors[i] = f"rendering {names[i]} failed: {crash}"
         except subprocess.TimeoutExpired:
             errors = [f"rendering {name} failed: no picture in {RENDER_SECONDS} s"
                       for name in names]
