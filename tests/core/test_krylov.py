@@ -184,7 +184,7 @@ def test_full_and_eliminated_systems(scene, cfun):
     for name, step in steps.items():
         solver = LinearSolver("direct", disc.comm)
         y = step.guess(X)
-        its, reason, ok, norm = solver.solve(step, y, 0.0)
+        its, reason, ok, norm = solver.solve(step, y, EXACT_TOL * step.norm_B)
         assert ok, reason
         sols[name] = step.expand(y, disc.vector3()).array_r.copy()
         solver.destroy()
@@ -599,6 +599,91 @@ def test_user_options_reach_our_ksp_only():
 def test_bad_krylov_specs(kwargs, message):
     with pytest.raises(ValueError, match=message):
         Krylov(**kwargs)
+
+
+def _laplacian(n, comm):
+    """The 1D Dirichlet Laplacian tridiag(-1, 2, -1) of size n, a PETSc AIJ on `comm`."""
+    A = PETSc.Mat().createAIJ([n, n], nnz=3, comm=comm)
+    lo, hi = A.getOwnershipRange()
+    for i in range(lo, hi):
+        A.setValue(i, i, 2.0)
+        for j in (i - 1, i + 1):
+            if 0 <= j < n:
+                A.setValue(i, j, -1.0)
+    A.assemble()
+    return A
+
+
+def _lu(A, P):
+    """A PC holding MUMPS's LU factors of P (applied to residuals of A)."""
+    pc = PETSc.PC().create(A.getComm())
+    pc.setOperators(A, P)
+    pc.setType("lu")
+    pc.setFactorSolverType("mumps")
+    pc.setUp()
+    return pc
+
+
+def test_refinement_with_the_factors_of_a_multiple_converges_geometrically():
+    # factors of P = (1 + δ) A: P⁻¹ A = I / (1 + δ), so the back-solve leaves b - A y₀ = q b
+    # and each refinement step multiplies the residual by exactly q = δ / (1 + δ): with
+    # δ = 1e-3, ‖r‖/‖b‖ = q^(k+1) after k steps, ≤ EXACT_TOL first at k = 3 (q⁴ ≈ 1.0e-12).
+    # Computing r = b - A y errs by about ε ‖A‖ ‖y‖ ≤ 2.2e-16 · 4 · 5.8 ≈ 5e-15, which is
+    # 5e-5 of q³ ‖b‖ (‖b‖ = 0.106 here): the geometric law is asserted at k = 2 to 1e-4
+    from membranes.linalg.krylov import refine
+    n, delta = 64, 1e-3
+    A = _laplacian(n, PETSc.COMM_WORLD)
+    P = A.copy()
+    P.scale(1.0 + delta)
+    pc = _lu(A, P)
+    x = A.createVecRight()
+    x.setArray(np.sin(np.linspace(0.0, 3.0, n))[slice(*x.getOwnershipRange())])
+    b = A.createVecLeft()
+    A.mult(x, b)
+    y, r, check = x.duplicate(), b.duplicate(), b.duplicate()
+    q, norm_b = delta / (1.0 + delta), b.norm()
+
+    def solved(pc):
+        pc.apply(b, y)
+        A.mult(y, r)
+        r.aypx(-1.0, b)
+        return r.norm()
+
+    assert solved(pc) == pytest.approx(q * norm_b, rel=1e-9)
+    steps, norm = refine(pc, A, b, y, r, 0.0, r.norm(), steps=2)
+    assert steps == 2 and norm == pytest.approx(q ** 3 * norm_b, rel=1e-4)
+    steps, norm = refine(pc, A, b, y, r, EXACT_TOL * norm_b, solved(pc))
+    assert steps == 3 and norm <= EXACT_TOL * norm_b
+    A.mult(y, check)
+    check.aypx(-1.0, b)
+    assert check.norm() == norm         # r is b - A y of the returned y
+    # an unreachable bound: the exact factors' residual is round-off, which a step does not
+    # halve; the step is undone, and the residual stays at round-off (≲ 5e-15 / ‖b‖)
+    exact = _lu(A, A)
+    steps, norm = refine(exact, A, b, y, r, 0.0, solved(exact))
+    assert steps == 0 and 0.0 < norm <= 1e-13 * norm_b
+    for obj in (pc, exact, A, P, x, b, y, r, check):
+        obj.destroy()
+
+
+def test_a_direct_solve_above_its_bound_has_failed():
+    # the exact variant's bound 2e-12 ‖B‖ holds for MUMPS on the Newton step (converged); a
+    # bound below round-off cannot hold, and the direct solve says so instead of passing
+    disc = disc_of("square", 0.1)
+    sys_ = NewtonSystem(disc)
+    X = contact_iterate("square", "min")
+    step = sys_.full_step(sys_.linearise(X, "min"))
+    solver = LinearSolver("direct", disc.comm)
+    y = step.guess(X)
+    its, reason, ok, norm = solver.solve(step, y, EXACT_TOL * step.norm_B)
+    assert ok and its == 1 and norm <= EXACT_TOL * step.norm_B, reason
+    y = step.guess(X)
+    its, reason, ok, norm = solver.solve(step, y, 1e-30 * step.norm_B)
+    assert not ok and norm > 1e-30 * step.norm_B
+    assert norm <= 1e-13 * step.norm_B       # still the round-off of the factors
+    solver.destroy()
+    step.destroy()
+    sys_.destroy()
 
 
 def test_the_description_names_a_direct_solve_by_its_preset_or_options():
