@@ -341,6 +341,7 @@ def canonical_block(ia, ja, a, code, blocks):
 # gets a class of its own).
 
 KEY_GRID = 2.0 ** 36     # relative positions in a key: multiples of 2⁻³⁶ h
+KEY_LIMIT = 2.0 ** 62    # the largest |position| / 2⁻³⁶ h a key's int64 word holds
 KEY_CODE = 15 | INTERIOR                # the code bits in a key: index, kind, interior patch
 
 
@@ -386,7 +387,16 @@ def _keys(offsets, code, point, h):
     first = np.repeat(offsets[:-1], n)
     rel = point - point.take(first, axis=0)
     rel *= np.repeat(KEY_GRID / h, n)[:, None]
+    wide = None
+    if not (rel.max(initial=0.0) < KEY_LIMIT and rel.min(initial=0.0) > -KEY_LIMIT):
+        # a patch longer than 2⁶²⁻³⁶ h (cells of aspect ratio ≳ 1e7; or NaN): its position
+        # does not fit a key word, so the word is the entity's absolute position (its bits),
+        # which no other patch shares: the patch gets a class of its own
+        wide = ~(np.abs(rel) < KEY_LIMIT)
+        rel[wide] = 0.0
     word = np.rint(rel, out=rel).astype(np.int64).view(np.uint64)
+    if wide is not None:
+        word[wide] = np.ascontiguousarray(point)[wide].view(np.uint64)
     first -= np.arange(offsets[-1])                                # minus the index in the patch
     with np.errstate(over="ignore"):
         word[:, 0] *= np.uint64(0x9E3779B97F4A7C15)

@@ -232,6 +232,27 @@ def test_keys_of_translates_agree():
     assert two[0] == two[1] == key[0]
 
 
+def test_keys_of_patches_too_long_for_a_key_word_differ():
+    """A patch whose entities lie more than 2⁶²⁻³⁶ h from its first (cells of aspect ratio
+    beyond about 1e7, the graded square of structured_square(16, 16, 8)) has positions that
+    no int64 word holds: their cast gave one value for all (and a RuntimeWarning), so two
+    such patches of other shapes shared a key, and one was solved with the other's block
+    (σ_disc's divergence defect there 0.41 of the right-hand sides). Now each keeps a key of
+    its own, and patches of ordinary length keep theirs."""
+    import warnings
+    code = np.zeros(4, dtype=np.int64)
+    offsets = np.array([0, 2, 4])
+    h = np.array([1e-20, 1e-20])                  # 1 / h · 2³⁶ ≈ 6.9e30 > 2⁶³
+    point = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0], [2.0, 0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")            # (the old cast warned)
+        wide = engine.patch_keys(offsets, code, point, h)
+    assert wide[0] != wide[1]
+    ordinary = engine.patch_keys(offsets, code, point, np.array([1.0, 1.0]))
+    shifted = engine.patch_keys(offsets, code, point + [0.5, 0.0], np.array([1.0, 1.0]))
+    assert ordinary[0] != ordinary[1] and np.array_equal(ordinary, shifted)
+
+
 def test_blocks_keep_their_classes():
     """Blocks.add: each new class keeps its block (dense), its shape (n, L, n_σ), and more
     classes are numbered on."""
