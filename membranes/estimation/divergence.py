@@ -17,11 +17,22 @@ gives about (block condition) · ε of the scale, the largest right-hand side en
 round-off unit of the moments that cancel in the sum (for σ_disc μ max|u|: the moments
 (μ ∇u·∇ψ_a, q) of a u far from 0). TOLERANCE sits between the two (measured round-off: up to
 6e-13 on the disk at 9.3e5 vertices, the stability matrix's cases in BENCHMARKS.md).
+
+The block condition grows like the square of the cells' aspect ratio A (longest edge over
+smallest altitude), so on a mesh stretched enough that A² ε reaches the defect, round-off
+explains a failed check: the graded squares of `fem.meshes.structured_square(16, 16, p)`
+passed at p = 4 (A = 1.5e4), and σ_disc failed with a relative defect of 1.2e-7 at p = 8
+(A = 1.7e9, A² ε ≈ 6e2) on T_0. Such a failure is said as a mesh too stretched for a bound in
+double precision (ValueError, bad input); any other as the bug it is (RuntimeError).
 """
 
+import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from ..fem.meshes import aspect_ratios
+
+EPS = np.finfo(float).eps
 TOLERANCE = 1e-8
 # σ_alg of the multilevel flux: its defect, whatever its size, is measured and enters the
 # bound as the remainder (multilevel notes), so the check only catches a wrong block (a defect
@@ -56,16 +67,25 @@ def largest(values):
     return float(max(a.max(initial=0.0), -a.min(initial=0.0)))
 
 
-def check(defect, scale, comm, what, tolerance=None):
+def check(defect, scale, comm, what, tolerance=None, mesh=None):
     """`defect` (the largest |moment| of the defect on this process) against `tolerance`
     (TOLERANCE if None) · `scale` (the size of the right-hand sides, see the module notes),
-    over all processes; raises RuntimeError naming `what` if it fails. Returns the relative
-    defect."""
+    over all processes; if it fails, raises ValueError where the cells of `mesh` are so
+    stretched that round-off explains the defect (module notes), else RuntimeError, naming
+    `what`. Returns the relative defect."""
     tolerance = TOLERANCE if tolerance is None else tolerance
     defect = comm.allreduce(float(defect), op=MPI.MAX)
     scale = comm.allreduce(float(scale), op=MPI.MAX)
     relative = defect / scale if scale > 0.0 else defect
     if not relative <= tolerance:                     # (also for NaN)
+        stretch = None if mesh is None else comm.allreduce(
+            float(aspect_ratios(mesh).max(initial=0.0)), op=MPI.MAX)
+        if stretch is not None and relative <= stretch ** 2 * EPS:
+            raise ValueError(f"the mesh's cells are too stretched for a guaranteed bound in "
+                             f"double precision: largest aspect ratio {stretch:.1e}, and the "
+                             f"round-off of {what}'s patch solves leaves a divergence defect "
+                             f"of {relative:.1e} of the right-hand sides (above {tolerance:g})"
+                             f"; grade the mesh less (theory §11)")
         raise RuntimeError(f"{what} violates its divergence identity, so no bound can rest on "
                            f"it: largest DG1 moment of the defect {defect:.3e}, {relative:.1e} "
                            f"of the right-hand sides' (a patch solved with a block not its "

@@ -383,7 +383,7 @@ class FluxEquilibration:
             for c, (touching, _) in enumerate(self.touching()):
                 self._add_data(moments, cells.take(touching, axis=0), f, c)
             defect = largest(moments)
-        return check(defect, scale, self.comm, "σ_disc (§5)")
+        return check(defect, scale, self.comm, "σ_disc (§5)", mesh=self.mesh)
 
     @staticmethod
     def _add_data(into, dofs, f, c):

@@ -510,7 +510,8 @@ class MultilevelFlux:
         local = float(np.einsum("ij,ij->", mass_inverse(self.areaJ, b), b))
         self.defect_sq = self.comm.allreduce(local, op=MPI.SUM)
         defect.destroy()
-        return check(worst, scale, self.comm, "σ_alg (§6)", ACCOUNTED_TOLERANCE)
+        return check(worst, scale, self.comm, "σ_alg (§6)", ACCOUNTED_TOLERANCE,
+                     self.disc.mesh)
 
     def summary(self):
         """Global facts of the set-up: per level j = 1..J the colours of T_{j-1} and the

@@ -437,6 +437,12 @@ def cell_diameters(mesh):
     return np.sqrt((edges ** 2).sum(axis=2)).max(axis=1)
 
 
+def aspect_ratios(mesh):
+    """Longest edge over smallest altitude, h_K² / (2 |K|), of every owned cell: about the
+    square root of the condition of the cell's (and its patch's) local matrices."""
+    return cell_diameters(mesh) ** 2 / (2.0 * triangle_areas(cell_vertices(mesh)))
+
+
 def mesh_size(mesh):
     """h = max_K h_K over all processes."""
     local = cell_diameters(mesh).max(initial=0.0)
