@@ -28,8 +28,10 @@
   and on several (MUMPS's column scalings, 3 and 4, act as 0 on a distributed matrix); the
   price is a little more round-off in η_alg, still far below η. A direct solve is held to the
   same test as a Krylov one (exact: ‖R_alg‖ ≤ 2e-12 ‖B‖, §8): where the back-solve leaves more,
-  iterative refinement with the same factors (`refine`) goes on while the residual falls, and
-  a solve still above the bound has failed, with the residual it reached.
+  iterative refinement with the same factors (`refine`) goes on while each step halves the
+  residual. A solve that stops above the bound at the round-off of its factors is as exact as
+  the arithmetic allows and is taken (on strongly graded meshes that floor lies above 2e-12,
+  where an exact Krylov solve cannot stop); one whose refinement steps ran out has failed.
 * ``amg`` (the default): FGMRES on the eliminated 2N system, preconditioned by the mean/gap
   split of §10 with one BoomerAMG V-cycle on the mean and one on the gap (`preconditioners.
   MeanGapPC`; for Newton-min and Fischer–Burmeister alike). Iterations per Newton step do not
@@ -303,14 +305,15 @@ class StoppingTest:
 def refine(pc, A, b, y, r, bound, norm, steps=REFINEMENTS):
     """Iterative refinement of a direct solve (Wilkinson's): y += P⁻¹ r, r = b - A y with the
     factors P of A that `pc` holds, while ‖r‖ > `bound` and each step at least halves ‖r‖, at
-    most `steps` times. A step that does not halve ‖r‖ is undone: the back-solve has reached
-    round-off. `r` holds b - A y of `y` (norm `norm`) on entry, and of the returned iterate on
-    exit. Returns (steps kept, ‖r‖). Collective."""
+    most `steps` times. A step that does not halve ‖r‖ is undone: the solve has reached the
+    round-off of its factors. `r` holds b - A y of `y` (norm `norm`) on entry, and of the
+    returned iterate on exit. Returns (steps kept, ‖r‖, settled): settled where ‖r‖ ≤ bound
+    or at round-off, not where the steps ran out or ‖r‖ is not finite. Collective."""
     d = y.duplicate()
     try:
         for done in range(steps):
             if norm <= bound:
-                return done, norm
+                return done, norm, True
             pc.apply(r, d)
             y.axpy(1.0, d)
             A.mult(y, r)
@@ -320,9 +323,10 @@ def refine(pc, A, b, y, r, bound, norm, steps=REFINEMENTS):
                 y.axpy(-1.0, d)
                 A.mult(y, r)
                 r.aypx(-1.0, b)
-                return done, r.norm()
+                norm = r.norm()
+                return done, norm, math.isfinite(norm)
             norm = new
-        return steps, norm
+        return steps, norm, norm <= bound
     finally:
         d.destroy()
 
@@ -404,8 +408,8 @@ class LinearSolver:
         Newton step that solves twice shares its limit between them); `residual`: a Vec that
         receives b - A y at the end (not where PETSc raised: the solve then failed). A direct
         solve (``preonly``) counts one iteration and its refinement steps (`refine`), and has
-        converged only at ‖b - A y‖ ≤ bound. Returns (iterations, reason name, converged,
-        ‖b - A y‖ at the end)."""
+        converged at ‖b - A y‖ ≤ bound or at the round-off of its factors. Returns
+        (iterations, reason name, converged, ‖b - A y‖ at the end)."""
         ksp = self.ksp
         if not self.krylov.iterative:
             # a factorisation is analysed anew each step: MUMPS's pivot order of the step
@@ -432,7 +436,7 @@ class LinearSolver:
                 return ksp.getIterationNumber(), f"PETSc error: {petsc_message(e)}", False, \
                     float("nan")
             its, reason = ksp.getIterationNumber(), ksp.getConvergedReason()
-            refined = 0
+            refined, settled = 0, False
             if test is not None and test.decided:
                 # the iterate the test judged (and the estimators saw) is the answer: some
                 # KSPs end a step past the one they build (Chebyshev), or keep right-
@@ -448,7 +452,8 @@ class LinearSolver:
                 r.aypx(-1.0, step.b)
                 norm = r.norm()
                 if not iterative and reason > 0:
-                    refined, norm = refine(ksp.getPC(), step.A, step.b, y, r, bound, norm)
+                    refined, norm, settled = refine(ksp.getPC(), step.A, step.b, y, r, bound,
+                                                    norm)
                 if residual is None:
                     r.destroy()
             name = REASONS.get(reason, str(reason))
@@ -457,7 +462,9 @@ class LinearSolver:
             if not iterative:
                 if refined:
                     name += f" and {refined} refinement step{'s' * (refined > 1)}"
-                return max(its, 1) + refined, name, reason > 0 and norm <= bound, norm
+                if settled and norm > bound:
+                    name += ", at the round-off of its factors"
+                return max(its, 1) + refined, name, reason > 0 and settled, norm
             # the true residual decides: a solve cut off by max_it before its test was made
             # (every > max_it: inexact with --max-linear-its below ν) may have met the bound
             converged = (reason > 0 and test.stopped) or norm <= bound
