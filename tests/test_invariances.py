@@ -147,6 +147,33 @@ def test_moduli_scaling_direct(cfun):
                          direct=True)
 
 
+@pytest.mark.parametrize("cfun, newton, solver", [("min", "adaptive", "amg"),
+                                                  ("fb", "exact", "direct")])
+def test_domain_scaling(cfun, newton, solver):
+    """The square of side L = 1e-6 and 1e6 (a mesh in other units) with the same loads and g
+    times L²: u scales by L², λ is unchanged, η's parts scale by L² (the energy norm of u:
+    ∇u by L, the area by L²; η_C, η_lin2 by L⁴). κ carries the length unit ℓ² (ℓ = L here,
+    `system.length_unit`), so C(a, κλ) and every weighted row scale by L² and the run is the
+    same, counts included. With κ without ℓ² both runs here fail at L = 1e-6 (and with
+    f1 = -1 and J = 2 every method diverged at its second Newton step, relative residual
+    1.2e13). On T_0 only: the refined meshes of the squares of side 1e-3 and 1e6 came out
+    with their vertices numbered otherwise than at side 1, so their solver paths differ."""
+    from membranes.fem.meshes import structured_square
+    options = {"cfun": cfun, "newton": newton, "solver": solver}
+
+    def run(L):
+        mesh = structured_square(8, 8)
+        mesh.geometry.x[:, :2] *= L
+        return solve(scenes.user(mesh=mesh, f1=f"-1 + 0.5 * y / {L!r}", f2="1",
+                                 g=0.05 * L * L), **options)
+    ref = run(1.0)
+    assert ref.converged and ref.newton_iterations >= 3        # (a contact set to find)
+    for L in (1e-6, 1e6):
+        _assert_same_run(ref, run(L), lambda u1, u2, lam: (u1 / L ** 2, u2 / L ** 2, lam),
+                         lambda name: L ** 4 if name in QUADRATIC else L ** 2, L ** 2,
+                         direct=solver == "direct")
+
+
 def test_moduli_and_data_scaling_until_the_forces_underflow():
     """Moduli by 1e-20 and data by 1e-100 on the radial scene, adaptive: forces μ u of
     1e-120, and the run of c = 1 scaled (u by 1e-100, λ by 1e-120, η and the energy error by

@@ -14,8 +14,16 @@ Two fixed, data-independent scalings put every row in units of a displacement:
 
 * the row weights W: the rows of membrane α at interior vertices are divided by μ_α (the
   Dirichlet rows u_α = g, 0 keep weight 1, the complementarity rows too);
-* the scale κ = (1/μ1 + 1/μ2)/2 of the pressure: the C-function acts on (u1 - u2, κ λ), so that
-  its Newton path does not depend on the unit of λ (`cfunctions.linearise`).
+* the scale κ = ℓ² (1/μ1 + 1/μ2)/2 of the pressure: the C-function acts on (u1 - u2, κ λ), so
+  that its Newton path does not depend on the unit of λ (`cfunctions.linearise`). ℓ is the
+  domain's unit of length (`length_unit`): a pressure λ bends a membrane of modulus μ by about
+  ℓ² λ / μ on a domain of size ℓ, so κ λ is a displacement whatever the domain's size. It is
+  π C_PF h_Ω rounded to a power of ten: 1 on the unit disk and square (κ as the design notes
+  write it), and a change of the length unit by 10^k (a mesh in mm instead of m) scales κ by
+  10^(2k), so the run is the same, counts included. With ℓ = 1 on a square of side 1e-6
+  every method diverged at its second Newton step (relative residual 1.2e13: the
+  complementarity rows, κ λ ≈ λ, were 1e12 times the membrane rows), and on a side of 1e6 the
+  paper preset did not converge in 100 Newton steps.
 
 Without them, for μ1/μ2 = 1e6, a relative residual is that of the stiffer membrane alone and
 the constraint of the softer one is left violated far above round-off. Every matrix and
@@ -68,6 +76,7 @@ MatMatMult per step on the symbolic product of the first. The mean/gap precondit
 no product to form at every step, nor its memory.
 """
 
+import math
 import weakref
 from dataclasses import dataclass
 
@@ -152,6 +161,12 @@ class Linearisation:
     norm_B: float
 
 
+def length_unit(poincare):
+    """ℓ of κ (module notes): the power of ten nearest to π C_PF h_Ω, `poincare` = C_PF h_Ω
+    (§7; for a box a × b, π C_PF h_Ω = (1/a² + 1/b²)^(-1/2), the shorter side for a strip)."""
+    return 10.0 ** round(math.log10(math.pi * poincare))
+
+
 class NewtonSystem:
     """The linear rows of §2 on one discretisation, weighted by W (module notes), and the
     Newton systems of its iterates."""
@@ -161,7 +176,7 @@ class NewtonSystem:
         self.n, self.N = disc.n, disc.n_global
         mu1, mu2 = float(disc.mu1), float(disc.mu2)
         self.mu = (mu1, mu2)
-        self.kappa = 0.5 * (1.0 / mu1 + 1.0 / mu2)          # κ of §3, §11
+        self.kappa = 0.5 * (1.0 / mu1 + 1.0 / mu2) * length_unit(disc.poincare) ** 2   # κ, §3
         self.theta = mu2 / (mu1 + mu2)                      # z = μ1 u1 + μ2 u2 ∝ (1-θ) u1 + θ u2
         self.offset = disc.S.getOwnershipRange()[0]          # first owned P1 dof (global)
         self.boundary = disc.boundary_owned
