@@ -1130,3 +1130,15 @@ def test_a_load_not_finite_at_a_cell_midpoint_only_is_refused():
     assert vertices.min() > 0                        # finite at every vertex
     with pytest.raises(ValueError, match=f"f1 = .* is not finite on the mesh .*x = {a:.6g}"):
         Problem("p", base.hierarchy, 1.0, 1.0, 0.1, formula, 0.0)
+
+
+def test_a_pressure_scale_that_underflows_is_refused():
+    """κ = ℓ² (1/μ1 + 1/μ2)/2 on a square of side 1e-140 (ℓ = 1e-140, nearly the smallest
+    mesh the size checks let through) with μ1 = μ2 = 1e200 is 1e-480: 0 in double precision,
+    which would make the C-function ignore λ. Refused in one line, naming κ and ℓ."""
+    from membranes.fem.meshes import structured_square
+    mesh = structured_square(4, 4)
+    mesh.geometry.x[:, :2] *= 1e-140
+    with pytest.raises(ValueError, match=r"kappa = .* underflows double precision \(l = 1e-140"):
+        solve(scenes.user(mesh=mesh, mu1=1e200, mu2=1e200, f1="-1", f2="1", g=1e-300),
+              newton="exact", solver="direct")

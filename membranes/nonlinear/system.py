@@ -216,6 +216,11 @@ class NewtonSystem:
                              f"{self.norm_F:g}, kappa = {self.kappa:g} (mu1 = {mu1:g}, "
                              f"mu2 = {mu2:g}, g = {float(disc.g):g}); rescale them: the "
                              f"solution scales with f / mu and g (theory §11)")
+        if not self.kappa > 0.0:
+            raise ValueError(f"the pressure scale kappa = l^2 (1/mu1 + 1/mu2)/2 underflows "
+                             f"double precision (l = {length_unit(disc.poincare):g}, mu1 = "
+                             f"{mu1:g}, mu2 = {mu2:g}); rescale the lengths or the moduli "
+                             f"(theory §3, §11)")
         if self.norm_F < UNDERFLOW_SCALE:
             raise ValueError(f"the data underflow double precision: ||W (F, 0)|| = "
                              f"{self.norm_F:g} < {UNDERFLOW_SCALE:.1e} (mu1 = {mu1:g}, "
