@@ -104,6 +104,9 @@ from .lifting import mass_inverse
 from .patches import PatchSystems, colour_vertices
 
 ROUND_OFF = 1e-8      # tolerance on the barycentric coordinates 0, 1/2, 1 of plaza's vertices
+# the round-off of a barycentric coordinate computed from coordinates |x| with cells of altitude
+# a is a few ε |x| / a; the tolerance allows 1e3 times that (`child_positions`)
+COORDINATE_ROUND_OFF = 1e3 * np.finfo(float).eps
 # entries of the RT transfer's blocks below this times the largest are round-off of exact
 # zeros (the others are at least 1e-2 of it; `rt_prolongation`)
 EXACT_ZERO = 1e-12
@@ -146,7 +149,13 @@ def child_positions(Vc, Vf, P, parents):
     pts = xhat[Vf.dofmap.list.array.reshape(-1, 3)[:nc]]                  # (c, 3, 2)
     beta = barycentric(corners, pts)
     rounded = np.round(2.0 * beta) / 2.0
-    _check(Vf.mesh.comm, np.abs(beta - rounded).max(initial=0.0) <= ROUND_OFF,
+    # β errs by the coordinates' round-off ε |x| over the parent's smallest altitude: on a
+    # mesh far from the origin more than ROUND_OFF (cells of 1/64 at 1e9: about 3e-5)
+    edges = corners - np.roll(corners, 1, axis=1)
+    altitude = 2.0 * triangle_areas(corners) / np.sqrt((edges ** 2).sum(axis=2)).max(axis=1)
+    noise = COORDINATE_ROUND_OFF * np.abs(corners).max(axis=(1, 2)) / altitude
+    error = np.abs(beta - rounded).max(axis=(1, 2))
+    _check(Vf.mesh.comm, np.all(error <= np.maximum(ROUND_OFF, noise)),
            "a fine vertex is neither a coarse vertex nor a coarse edge's midpoint: the "
            "hierarchy's P1 numbering does not match")
     return rounded

@@ -372,6 +372,26 @@ def test_a_mesh_too_stretched_for_a_bound_is_refused_as_such(tmp_path, capsys):
 
 
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial run of solve")
+def test_a_mesh_far_from_the_origin():
+    """The square moved by (1e9, 1e9): its coordinates carry round-off ε |x| ≈ 2e-7, so the
+    barycentric coordinates of plaza's vertices in their parents (cells of altitude 1/64 on
+    T_2) err by about 1.4e-5, above the 1e-8 the multilevel flux allowed: it refused the
+    hierarchy ("neither a coarse vertex nor a coarse edge's midpoint"). Its tolerance now
+    counts that round-off. The moved problem differs from the square's by the geometry's
+    round-off (≈ 1.4e-5 relative per cell), so η agrees to 1e-3."""
+    from membranes import scenes, solve
+    from membranes.fem.meshes import structured_square
+    etas = []
+    for shift in (0.0, 1e9):
+        mesh = structured_square(16, 16)
+        mesh.geometry.x[:, :2] += shift
+        sol = solve(scenes.user(mesh=mesh, f1="-1", f2="1", levels=2), alg_flux="multilevel")
+        assert sol.converged and sol.estimates["eta_alg"] > 0.0
+        etas.append(sol.estimates["eta"])
+    assert etas[1] == pytest.approx(etas[0], rel=1e-3)
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial run of solve")
 def test_graded_mesh_defect_enters_the_bound():
     """On a strongly graded mesh (cells of aspect ratio 1.5e4) the patch solves' round-off
     leaves ∇·σ_alg - r_h at 8e-8 of the right-hand sides, beyond the 1e-8 of σ_disc's check:
