@@ -85,7 +85,7 @@ def check(defect, scale, comm, what, tolerance=None, mesh=None):
                              f"double precision: largest aspect ratio {stretch:.1e}, and the "
                              f"round-off of {what}'s patch solves leaves a divergence defect "
                              f"of {relative:.1e} of the right-hand sides (above {tolerance:g})"
-                             f"; grade the mesh less (theory §11)")
+                             f"; mesh with less stretched cells (theory §11)")
         raise RuntimeError(f"{what} violates its divergence identity, so no bound can rest on "
                            f"it: largest DG1 moment of the defect {defect:.3e}, {relative:.1e} "
                            f"of the right-hand sides' (a patch solved with a block not its "
