@@ -60,6 +60,16 @@ def assemble(form, mesh, into):
     return into
 
 
+def norm_squared(moments, area, comm):
+    """‖d‖² of a DG1 function d from its moments b_K = ((d, φ_m)_K)_m on the owned cells
+    (`moments` (cells, 3), `area` their |K|): Σ_K b_Kᵀ M_K⁻¹ b_K, exact for d in DG1 (the
+    defects of every flux are), reduced over the processes. The defect's norm enters the
+    bound as a remainder (§6, `Estimators.remainder_of`)."""
+    from .lifting import mass_inverse
+    local = float(np.einsum("ij,ij->", mass_inverse(area, moments), moments))
+    return comm.allreduce(local, op=MPI.SUM)
+
+
 def largest(values):
     """The largest |entry| of a PETSc Vec's owned entries (or of a numpy array) on this
     process (no temporary, no communication: `check` reduces over the processes once)."""

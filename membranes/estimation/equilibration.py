@@ -40,9 +40,10 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from ..fem.discretisation import boundary_dofs, ghosted_vector
+from ..fem.meshes import cell_vertices, triangle_areas
 from ..forms import equilibration as equilibration_forms
 from .cell_forms import compiled
-from .divergence import assemble, check, largest
+from .divergence import assemble, check, largest, norm_squared
 from .patches import PatchSystems, colour_vertices, local_vec
 
 PSI, LAMC, U = range(3)      # components of FluxEquilibration.nodal
@@ -226,6 +227,8 @@ class FluxEquilibration:
         self._b = self._x = None
         self._loads = {}
         self.defect = None           # the relative divergence defect of the last σ made
+        self.defect_sq = None        # ‖∇·σ_α,disc - (Π f ± λ - r)‖² of the last σ made (global)
+        self._area = None            # |K| of the owned cells (the defect's norm), at first use
 
     @property
     def b(self):
@@ -368,7 +371,8 @@ class FluxEquilibration:
         loads' data parts -(f, q) added; their largest entry against `scale`. Returns the
         relative defect; raises if the identity fails. A DG1 dof belongs to one cell, so its
         moment is whole on the process that integrates that cell (its owner): no exchange,
-        and the largest entry is taken over all local entries."""
+        and the largest entry is taken over all local entries. The defect's squared L² norm
+        goes into `defect_sq`: the estimators count it in the bound (their module notes)."""
         Q = self.r.function_space
         imap = Q.dofmap.index_map
         size = imap.size_local + imap.num_ghosts
@@ -383,6 +387,10 @@ class FluxEquilibration:
             for c, (touching, _) in enumerate(self.touching()):
                 self._add_data(moments, cells.take(touching, axis=0), f, c)
             defect = largest(moments)
+            if self._area is None:
+                self._area = triangle_areas(cell_vertices(self.mesh))
+            self.defect_sq = norm_squared(moments[cells[:self._area.size]], self._area,
+                                          self.comm)
         return check(defect, scale, self.comm, "σ_disc (§5)", mesh=self.mesh)
 
     @staticmethod

@@ -1,4 +1,5 @@
-"""The lifting of an algebraic residual into a discontinuous P1 function (§4).
+"""The lifting of an algebraic residual into a discontinuous P1 function (§4), and the DG1
+cell algebra it rests on.
 
 A residual R (one value per P1 dof, zero at Dirichlet vertices) is lifted to r_h ∈ DG1: on each
 cell K and each of its vertices a_l,
@@ -12,8 +13,9 @@ On K the P1 mass matrix is M_K = |K|/12 (I + 1 1ᵀ) (vertex order), whose inver
 M_K⁻¹ = (3/|K|) (4 I - 1 1ᵀ) = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]]; the DG1 coefficients of
 r_h on K (Lagrange, the same vertex order as P1) are r_K = M_K⁻¹ (R_l / N_l)_{l ∈ K}. This is
 cell-local algebra, vectorised over the owned cells (`mass_inverse`, which the cellwise
-projections of §7 and the multilevel moments of §6 apply too). N_l counts the owned cells at
-each dof on every process, added up on the owner by dolfinx's reverse scatter.
+projections of §7, `dg1_projections`, the multilevel moments of §6 and the fluxes' defect
+norms apply too). N_l counts the owned cells at each dof on every process, added up on the
+owner by dolfinx's reverse scatter.
 """
 
 import numpy as np
@@ -74,3 +76,36 @@ class Lifting:
         r.x.array[self.dg] = mass_inverse(self.area, values)
         r.x.scatter_forward()
         return r
+
+
+def dg1_projections(disc, fs, lifting, moments=None):
+    """Π_P1 f for each f of `fs` (η_osc, §7): the L² projections onto discontinuous P1 (cell
+    by cell), as Functions of `lifting.Q`. The loads (f, q) are assembled in one pass (vector
+    DG1 with a component per f, the data measures), unless `moments` gives them ((owned cells,
+    3, len(fs)), (f, q_m)_K with the same measures, e.g. from `FluxEquilibration.loads`); the
+    DG1 mass matrix is block diagonal with the block
+    M_K = |K|/12 (I + 1 1ᵀ), whose inverse (`mass_inverse`) is applied cell by cell
+    on the owned cells."""
+    import ufl
+    from dolfinx import fem, la
+
+    from ..fem.quadrature import over
+    from ..forms.estimators import projection_load
+    mesh, k = disc.mesh, len(fs)
+    nc = lifting.ncells
+    if moments is not None:
+        blocks = moments                                                       # (nc, 3, k)
+    else:
+        Z = fem.VectorFunctionSpace(mesh, ("DG", 1), dim=k)
+        q = ufl.TestFunction(Z)
+        b = fem.assemble_vector(fem.form(over(disc.dx_data, lambda dx: sum(
+            projection_load(f, q[i], dx) for i, f in enumerate(fs)))))
+        b.scatter_reverse(la.ScatterMode.add)
+        blocks = b.array.reshape(-1, k)[Z.dofmap.list.array.reshape(-1, 3)[:nc]]
+    out = []
+    for i in range(k):
+        pf = fem.Function(lifting.Q)
+        pf.x.array[lifting.dg] = mass_inverse(lifting.area, blocks[:, :, i])
+        pf.x.scatter_forward()
+        out.append(pf)
+    return out

@@ -507,17 +507,15 @@ class MultilevelFlux:
         its defect against `scale` (ACCOUNTED_TOLERANCE), and the defect's squared L² norm
         into `defect_sq` (module notes). Returns the relative defect; raises if it fails."""
         from dolfinx import la
-        from mpi4py import MPI
 
-        from .divergence import ACCOUNTED_TOLERANCE, assemble, check, largest
+        from .divergence import ACCOUNTED_TOLERANCE, assemble, check, largest, norm_squared
         defect = la.create_petsc_vector(self.Q.dofmap.index_map, self.Q.dofmap.index_map_bs)
         assemble(equilibration_forms.flux_divergence(sigma, self.r, ufl.TestFunction(self.Q)),
                  self.disc.mesh, defect)
         worst = largest(defect)
-        # b_K: the moments of the owned cells (their DG1 dofs are owned); ‖d‖_K² = b_Kᵀ M_K⁻¹ b_K
-        b = defect.array_r[self.dgJ].reshape(-1, 3)
-        local = float(np.einsum("ij,ij->", mass_inverse(self.areaJ, b), b))
-        self.defect_sq = self.comm.allreduce(local, op=MPI.SUM)
+        # b_K: the moments of the owned cells (their DG1 dofs are owned)
+        self.defect_sq = norm_squared(defect.array_r[self.dgJ].reshape(-1, 3), self.areaJ,
+                                      self.comm)
         defect.destroy()
         return check(worst, scale, self.comm, "σ_alg (§6)", ACCOUNTED_TOLERANCE,
                      self.disc.mesh)

@@ -397,12 +397,15 @@ def test_graded_mesh_defect_enters_the_bound():
     leaves ∇·σ_alg - r_h at 8e-8 of the right-hand sides, beyond the 1e-8 of σ_disc's check:
     the run used to stop with a RuntimeError. The defect is measured and enters η as η_rem
     (§6), so the bound stays guaranteed: η ≥ the energy error of the square's exact
-    solution, and η_rem is the round-off size it is."""
+    solution, and η_rem is the round-off size it is. η_rem holds σ_disc's measured defect
+    too (estimators' module notes), the round-off of patch blocks of condition about A²
+    (A = 1.5e4: A² ε ≈ 5e-8 of the right-hand sides; measured 7.4e-8 η), so 1e-6 η bounds it
+    (σ_alg's alone measured 1.6e-17)."""
     from membranes import scenes, solve
     from membranes.fem.meshes import structured_square
     sol = solve(scenes.square(mesh=structured_square(16, 16, 4.0), levels=2),
                 alg_flux="multilevel")
     est = sol.estimates
     assert sol.converged and est["eta_alg"] > 0.0
-    assert 0.0 < est["eta_rem"] < 1e-12 * est["eta"]
+    assert 0.0 < est["eta_rem"] < 1e-6 * est["eta"]
     assert est["eta"] >= sol.energy_error
