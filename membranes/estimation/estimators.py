@@ -506,6 +506,7 @@ class Estimators:
         bound of the whole lifted residual, C_PF h_Ω (Σ_α μ_α^{-1} ‖r_αh‖²)^{1/2} (0 where
         R = 0), so that η is a guaranteed bound at every iterate; with σ_alg, 0 (the
         multilevel flux, whose divergence is r_αh exactly); `nu_flux` returns the ν flux's.
+        σ_disc's measured divergence defect (`defect_remainder`) is added to either.
 
         Returns a dict: the global eta, eta_disc, eta_lin, eta_alg, eta_F, eta_osc, eta_C
         (Σ_C), eta_lin1, eta_lin2, eta_lin3, eta_rem, eta_1, and eta_K, the local
