@@ -658,11 +658,13 @@ def test_refinement_with_the_factors_of_a_multiple_converges_geometrically():
     A.mult(y, check)
     check.aypx(-1.0, b)
     assert check.norm() == norm         # r is b - A y of the returned y
-    # an unreachable bound: the exact factors' residual is round-off, which a step does not
-    # halve; the step is undone, and the residual stays at round-off (≲ 5e-15 / ‖b‖): settled
+    # an unreachable bound: the exact factors' residual is round-off, which the steps cannot
+    # keep halving (one may, by chance); a step that does not is undone and the solve is
+    # settled with its residual at round-off (≲ 5e-15 / ‖b‖), before the steps run out
+    from membranes.linalg.krylov import REFINEMENTS
     exact = _lu(A, A)
     steps, norm, settled = refine(exact, A, b, y, r, 0.0, solved(exact))
-    assert steps == 0 and 0.0 < norm <= 1e-13 * norm_b and settled
+    assert settled and steps < REFINEMENTS and 0.0 < norm <= 1e-13 * norm_b
     for obj in (pc, exact, A, P, x, b, y, r, check):
         obj.destroy()
 
