@@ -95,7 +95,7 @@ from petsc4py import PETSc
 
 from ..fem.discretisation import boundary_dofs, ghosted_vector, p1_space
 from ..fem.hierarchy import barycentric
-from ..fem.meshes import cell_vertices, owned_cells, triangle_areas
+from ..fem.meshes import cell_vertices, longest_edges, owned_cells, triangle_areas
 from ..forms import equilibration as equilibration_forms
 from ..forms.membrane import membrane_linear
 from .classes import ClassStore
@@ -151,8 +151,7 @@ def child_positions(Vc, Vf, P, parents):
     rounded = np.round(2.0 * beta) / 2.0
     # β errs by the coordinates' round-off ε |x| over the parent's smallest altitude: on a
     # mesh far from the origin more than ROUND_OFF (cells of 1/64 at 1e9: about 3e-5)
-    edges = corners - np.roll(corners, 1, axis=1)
-    altitude = 2.0 * triangle_areas(corners) / np.sqrt((edges ** 2).sum(axis=2)).max(axis=1)
+    altitude = 2.0 * triangle_areas(corners) / longest_edges(corners)
     noise = COORDINATE_ROUND_OFF * np.abs(corners).max(axis=(1, 2)) / altitude
     error = np.abs(beta - rounded).max(axis=(1, 2))
     _check(Vf.mesh.comm, np.all(error <= np.maximum(ROUND_OFF, noise)),

@@ -430,17 +430,22 @@ def triangle_areas(p):
     return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
-def cell_diameters(mesh):
-    """Longest edge h_K of every owned cell."""
-    p = cell_vertices(mesh)
+def longest_edges(p):
+    """h_K, the longest edge of the triangles with vertex coordinates p ((c, 3, 2))."""
     edges = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]], axis=1)
     return np.sqrt((edges ** 2).sum(axis=2)).max(axis=1)
+
+
+def cell_diameters(mesh):
+    """Longest edge h_K of every owned cell."""
+    return longest_edges(cell_vertices(mesh))
 
 
 def aspect_ratios(mesh):
     """Longest edge over smallest altitude, h_K² / (2 |K|), of every owned cell: about the
     square root of the condition of the cell's (and its patch's) local matrices."""
-    return cell_diameters(mesh) ** 2 / (2.0 * triangle_areas(cell_vertices(mesh)))
+    p = cell_vertices(mesh)
+    return longest_edges(p) ** 2 / (2.0 * triangle_areas(p))
 
 
 def mesh_size(mesh):
