@@ -228,7 +228,9 @@ class FluxEquilibration:
         self._loads = {}
         self.defect = None           # the relative divergence defect of the last σ made
         self.defect_sq = None        # ‖∇·σ_α,disc - (Π f ± λ - r)‖² of the last σ made (global)
-        self._area = None            # |K| of the owned cells (the defect's norm), at first use
+        # |K| of the owned cells for the defect's norm: the Estimators hand over their
+        # lifting's (the same cells), else made at the first check
+        self.area = None
 
     @property
     def b(self):
@@ -387,9 +389,9 @@ class FluxEquilibration:
             for c, (touching, _) in enumerate(self.touching()):
                 self._add_data(moments, cells.take(touching, axis=0), f, c)
             defect = largest(moments)
-            if self._area is None:
-                self._area = triangle_areas(cell_vertices(self.mesh))
-            self.defect_sq = norm_squared(moments[cells[:self._area.size]], self._area,
+            if self.area is None:
+                self.area = triangle_areas(cell_vertices(self.mesh))
+            self.defect_sq = norm_squared(moments[cells[:self.area.size]], self.area,
                                           self.comm)
         return check(defect, scale, self.comm, "σ_disc (§5)", mesh=self.mesh)
 

@@ -130,6 +130,8 @@ class Estimators:
         self.lifting = Lifting(V, None if equilibration is None           # R_α ↦ r_αh (§4)
                                else equilibration.r.function_space)     # (its DG1 space)
         self.DG1 = self.lifting.Q
+        if equilibration is not None and equilibration.area is None:
+            equilibration.area = self.lifting.area      # (its defect norm's cells: the same)
         self.RT = (equilibration.rt_space if equilibration is not None
                    else fem.FunctionSpace(mesh, ("RT", 2)))
         # σ_disc's loads and η_osc, made at the first full evaluation (`_data_parts`)
