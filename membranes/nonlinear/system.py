@@ -176,7 +176,8 @@ class NewtonSystem:
         self.n, self.N = disc.n, disc.n_global
         mu1, mu2 = float(disc.mu1), float(disc.mu2)
         self.mu = (mu1, mu2)
-        self.kappa = 0.5 * (1.0 / mu1 + 1.0 / mu2) * length_unit(disc.poincare) ** 2   # κ, §3
+        self.length = length_unit(disc.poincare)                   # ℓ of κ (module notes)
+        self.kappa = 0.5 * (1.0 / mu1 + 1.0 / mu2) * self.length ** 2     # κ of §3, §11
         self.theta = mu2 / (mu1 + mu2)                      # z = μ1 u1 + μ2 u2 ∝ (1-θ) u1 + θ u2
         self.offset = disc.S.getOwnershipRange()[0]          # first owned P1 dof (global)
         self.boundary = disc.boundary_owned
@@ -218,7 +219,7 @@ class NewtonSystem:
                              f"solution scales with f / mu and g (theory §11)")
         if not self.kappa > 0.0:
             raise ValueError(f"the pressure scale kappa = l^2 (1/mu1 + 1/mu2)/2 underflows "
-                             f"double precision (l = {length_unit(disc.poincare):g}, mu1 = "
+                             f"double precision (l = {self.length:g}, mu1 = "
                              f"{mu1:g}, mu2 = {mu2:g}); rescale the lengths or the moduli "
                              f"(theory §3, §11)")
         if self.norm_F < UNDERFLOW_SCALE:
