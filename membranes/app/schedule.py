@@ -94,7 +94,7 @@ class LevelEstimates:
         self.multilevel = None
         if alg_flux == "multilevel":
             from ..estimation.multilevel import MultilevelFlux  # only a run that uses it
-            self.multilevel = MultilevelFlux(disc, hierarchy)
+            self.multilevel = MultilevelFlux(disc, hierarchy, self.est.lifting)
         self.gamma_alg, self.gamma_lin, self.gate = gamma_alg, gamma_lin, gate
         self.eta_disc = None           # η_disc of the last full estimate on this mesh
         self.eta_rec = None            # η_rec of the last gate that made one on this mesh

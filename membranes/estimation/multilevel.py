@@ -345,14 +345,16 @@ class _Level:
 class MultilevelFlux:
     """σ_alg of §6 on the hierarchy of `disc`'s mesh (set up once per hierarchy).
 
-    `MultilevelFlux(disc, hierarchy)`: disc a `Discretisation` on hierarchy.finest (its P1
-    space V and stiffness S are used), hierarchy with J ≥ 1 levels. `sigma(r, out=None)`
+    `MultilevelFlux(disc, hierarchy, lifting=None)`: disc a `Discretisation` on
+    hierarchy.finest (its P1 space V and stiffness S are used), hierarchy with J ≥ 1 levels;
+    `lifting` the estimators' `membranes.estimation.lifting.Lifting` on that mesh, whose DG1
+    space and cell areas are taken instead of making them again. `sigma(r, out=None)`
     returns σ_alg ∈ RT_1(T_J) with ∇·σ_alg = r for the lifted residual r (a DG1 Function on
     T_J), as a new Function of `rt_space` or written into `out` (any RT_1 Function on T_J).
     σ_alg does not depend on μ_α: call it once per membrane.
     """
 
-    def __init__(self, disc, hierarchy):
+    def __init__(self, disc, hierarchy, lifting=None):
         from dolfinx import fem
         from dolfinx.fem.petsc import create_matrix
         if hierarchy.levels < 1:
@@ -374,7 +376,7 @@ class MultilevelFlux:
 
         # the residual, the prolonged coarse solution, the data matrix on T_J
         mesh = disc.mesh
-        self.Q = fem.FunctionSpace(mesh, ("DG", 1))
+        self.Q = lifting.Q if lifting is not None else fem.FunctionSpace(mesh, ("DG", 1))
         self.r, self.rho = fem.Function(self.Q), fem.Function(disc.V)
         # ψ broken (DG1): B acts on each cell's vertex values of ψ (module notes)
         psi, q = ufl.TrialFunction(self.Q), ufl.TestFunction(self.Q)
@@ -384,7 +386,8 @@ class MultilevelFlux:
         ncJ = owned_cells(mesh)
         self.dgJ = self.Q.dofmap.list.array.reshape(-1, 3)[:ncJ].ravel()
         # |K| of the owned cells of T_J (the defect's norm, `_check`)
-        self.areaJ = triangle_areas(cell_vertices(mesh))
+        self.areaJ = lifting.area if lifting is not None \
+            else triangle_areas(cell_vertices(mesh))
         self.rhs_form = fem.form(membrane_linear(self.r, ufl.TestFunction(disc.V)))
         self.rhs = ghosted_vector(disc.V)          # (not dolfinx's: `ghosted_vector`)
         self._coarse_setup(spaces[0])

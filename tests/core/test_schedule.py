@@ -281,7 +281,8 @@ def test_the_multilevel_flux_hands_its_divergence_defects_to_the_remainder(monke
     class Flux:
         defects = iter([1e-20, 4e-20, 9e-20, 16e-20])
 
-        def __init__(self, disc, hierarchy):
+        def __init__(self, disc, hierarchy, lifting):
+            assert lifting == "the lifting"
             self.defect_sq = None
 
         def sigma(self, r):
@@ -289,6 +290,8 @@ def test_the_multilevel_flux_hands_its_divergence_defects_to_the_remainder(monke
             return ("sigma_alg", r)
 
     class Stub:
+        lifting = "the lifting"
+
         def lifted(self, R):
             return ["r1", "r2"]
 
