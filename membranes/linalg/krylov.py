@@ -67,7 +67,14 @@ GMRES's recursive residual estimate (the `rnorm` of the test, the unprecondition
 gates the test: where it says converged, the iterate is built and b - A y computed, and the
 solve goes on while the true residual is above the bound (it drifts from the estimate near
 round-off). With a preconditioned norm (set through the options) the true residual is computed
-at every test. The tolerances, not PETSc's rtol, decide: ``ksp_rtol``, ``ksp_atol``,
+at every test. Where the estimate is below the bound but the true residual has not halved in
+`STAGNATION` iterations, the two have parted for good: the iterates' updates are below the
+round-off of the true residual (the attainable accuracy of the Krylov recurrences), and no
+further iteration reaches the bound. The solve then ends as failed ("stagnated at
+round-off"), not after `max_it` iterations (on strongly graded meshes the exact bound 2e-12
+lies below that floor: BENCHMARKS.md, Robustness). It is not taken as converged: unlike a
+direct solve's floor (`refine`), this one is the method's, not the arithmetic's.
+The tolerances, not PETSc's rtol, decide: ``ksp_rtol``, ``ksp_atol``,
 ``ksp_max_it`` are refused (the limit is `max_it`).
 """
 
@@ -95,6 +102,8 @@ from .preconditioners import (
 
 EXACT_TOL = 2e-12          # exact Newton: ‖R_alg‖/‖B‖ ≤ 2e-12 at every step (§8)
 REFINEMENTS = 10           # iterative refinement steps of a direct solve, at most (`refine`)
+STAGNATION = 100           # iterations of a converged estimate without the true residual
+#                            halving, after which a Krylov solve has stagnated (module notes)
 DEFAULT_NU = 10            # the paper's ν: estimators / inexact tests every 10 Krylov steps
 
 PRESETS = {
@@ -254,7 +263,9 @@ class StoppingTest:
     """The KSP convergence test of the module notes: ‖b - A y‖ ≤ bound after iterations
     i ≡ 0 mod `every` (the initial guess too where `guess`, by default where every = 1), and
     every ν iterations the callback `on_iterate(i, y, r)` (y the current iterate,
-    r = b - A y; True stops)."""
+    r = b - A y; True stops). A solve whose recursive estimate met the bound while the true
+    residual has not halved in `STAGNATION` iterations has stagnated at round-off (module
+    notes): it ends as DIVERGED_BREAKDOWN with `stagnated` set."""
 
     def __init__(self, A, b, bound, every=1, nu=DEFAULT_NU, on_iterate=None, guess=None):
         self.A, self.b, self.bound = A, b, bound
@@ -263,6 +274,8 @@ class StoppingTest:
         self.y, self.r = A.createVecRight(), b.duplicate()
         self.last, self.stopped, self.true_norm = -1, False, None
         self.decided = False        # whether this test ended the solve at the iterate y
+        self.stagnated = False      # whether it ended the solve at the round-off (class notes)
+        self.best, self.since = math.inf, 0   # the least true residual since it last halved
 
     def _build(self, ksp):
         ksp.buildSolution(self.y)
@@ -286,6 +299,12 @@ class StoppingTest:
                 return PETSc.KSP.ConvergedReason.CONVERGED_ATOL
             if not math.isfinite(self.true_norm):
                 return PETSc.KSP.ConvergedReason.DIVERGED_NANORINF
+            if rnorm <= self.bound:           # the estimate says converged, the residual not
+                if self.true_norm <= 0.5 * self.best:
+                    self.best, self.since = self.true_norm, its
+                elif its - self.since >= STAGNATION:
+                    self.stagnated = True
+                    return PETSc.KSP.ConvergedReason.DIVERGED_BREAKDOWN
         if self.on_iterate is not None and its > 0 and its % self.nu == 0:
             # a non-finite iterate (a method whose recurrence broke down unnoticed, such as
             # TFQMR with the right preconditioning of the amg preset) ends the solve: it is
@@ -457,6 +476,9 @@ class LinearSolver:
                 if residual is None:
                     r.destroy()
             name = REASONS.get(reason, str(reason))
+            if test is not None and test.stagnated:
+                name = (f"stagnated at round-off (its own residual estimate below the bound, "
+                        f"the true residual not halved in {STAGNATION} iterations)")
             if not iterative and reason < 0:
                 name += _mumps_info(ksp.getPC())
             if not iterative:

@@ -435,6 +435,73 @@ def test_a_preconditioned_norm_does_not_gate_the_true_residual_test():
     sys_.destroy()
 
 
+class _Scripted(StoppingTest):
+    """A stopping test whose true residual is scripted (`true(its)`), under a KSP that
+    reports the unpreconditioned norm: the stagnation rule alone, apart from any solve."""
+
+    def __init__(self, true, bound):
+        A = PETSc.Mat().createAIJ([2, 2], nnz=1, comm=PETSc.COMM_SELF)
+        A.setUp()
+        A.assemble()
+        super().__init__(A, A.createVecLeft(), bound)
+        A.destroy()
+        self.true = true
+
+    def _build(self, ksp):
+        self.true_norm = self.true(self.its)
+        return self.true_norm
+
+    def __call__(self, ksp, its, rnorm):
+        self.its = its
+        return super().__call__(ksp, its, rnorm)
+
+
+def _run_scripted(true, estimate, iterations=1000):
+    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+    ksp.setType("fgmres")
+    ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+    test = _Scripted(true, bound=1.0)
+    try:
+        for its in range(iterations + 1):
+            reason = test(ksp, its, estimate(its))
+            if reason != PETSc.KSP.ConvergedReason.ITERATING:
+                return its, reason, test.stagnated
+        return iterations, reason, test.stagnated
+    finally:
+        ksp.destroy()
+        test.destroy()
+
+
+def test_a_krylov_solve_whose_true_residual_parts_from_its_estimate_has_stagnated():
+    """The stagnation rule (module notes of krylov): from the first iteration whose estimate
+    is below the bound (7 here) a true residual stuck at 3 × the bound ends the solve
+    STAGNATION = 100 iterations later, as failed; one that halves every 99 iterations, or
+    a stuck one whose estimate stays above the bound (no sign of round-off: a slow solve),
+    runs on. The old test ran the first to max_it."""
+    B = PETSc.KSP.ConvergedReason
+    below = lambda its: 1e-3 if its >= 7 else 10.0           # noqa: E731
+    assert _run_scripted(lambda its: 3.0, below) == (107, B.DIVERGED_BREAKDOWN, True)
+    halving = lambda its: 3.0 * 0.5 ** (its // 99)           # noqa: E731
+    assert _run_scripted(halving, below)[0] == 99 * 2 and _run_scripted(halving, below)[2] \
+        is False
+    assert _run_scripted(lambda its: 3.0, lambda its: 2.0) == (1000, B.ITERATING, False)
+
+
+def test_an_exact_krylov_solve_below_round_off_stagnates_not_runs_to_its_limit():
+    """On `structured_square(16, 16, 5)` (aspect ratio 2.9e5) exact Newton's first FGMRES
+    solve (amg preset, FB) cannot reach 2e-12: its estimate falls to 1e-16 of the bound
+    while ‖R_alg‖/‖B‖ stays at 3.6e-12 (BENCHMARKS.md, Robustness). The run ends not
+    converged, its reason "stagnated at round-off", after STAGNATION iterations past the
+    first converged estimate, not max_it = 10,000 (as it did before the rule)."""
+    from membranes.fem.meshes import structured_square
+    from membranes.linalg.krylov import STAGNATION
+    problem = scenes.square(mesh=structured_square(16, 16, 5.0), levels=0)
+    solution = solve(problem, newton="exact", cfun="fb", errors="none")
+    record = solution.summary()
+    assert not record["converged"] and "stagnated at round-off" in record["reason"]
+    assert STAGNATION < record["linear_iterations"] <= STAGNATION + 30
+
+
 def test_exact_tolerance_is_met_by_the_true_residual():
     disc, sys_, lin, step = _step("fb")
     solver = LinearSolver("paper", disc.comm)
