@@ -289,14 +289,21 @@ def test_force_scale_check_is_where_round_off_squares_underflow():
     scale = checks.UNDERFLOW_SCALE
     assert (eps * 2 * scale) ** 2 >= tiny and (eps * scale / 2) ** 2 < tiny
 
-    def disc(u, mu=(1.0, 1.0)):
-        return SimpleNamespace(mu1=mu[0], mu2=mu[1], data_scales=lambda: (u, 1.0))
+    def disc(u, mu=(1.0, 1.0), ell=1.0):
+        return SimpleNamespace(mu1=mu[0], mu2=mu[1], data_scales=lambda: (u, 1.0),
+                               poincare=ell)
     with pytest.raises(ValueError, match="the estimators underflow double precision"):
         checks.check_force_scale(disc(1e-145))
     with pytest.raises(ValueError, match="the estimators underflow double precision"):
         checks.check_force_scale(disc(1e-120, (1e-25, 1.0)))     # the smaller modulus counts
     checks.check_force_scale(disc(1e-130))
     checks.check_force_scale(disc(1e-130, (1.0, 1e3)))
+    # on a domain of length ℓ = C_PF h_Ω > 1 the pressures μ u / ℓ² count (1e-145, 1e-130
+    # as above), below 1 the forces alone (the fluxes μ u / ℓ and pressures are larger)
+    with pytest.raises(ValueError, match="forces and pressures of size .* = 1e-145"):
+        checks.check_force_scale(disc(1e-5, ell=1e70))
+    checks.check_force_scale(disc(1e-10, ell=1e60))
+    checks.check_force_scale(disc(1e-130, ell=1e-100))
 
 
 def test_force_scale_check_is_at_the_underflow_scale():
@@ -308,7 +315,8 @@ def test_force_scale_check_is_at_the_underflow_scale():
     scale = checks.UNDERFLOW_SCALE
 
     def disc(u, mu):
-        return SimpleNamespace(mu1=mu[0], mu2=mu[1], data_scales=lambda: (u, 1.0))
+        return SimpleNamespace(mu1=mu[0], mu2=mu[1], data_scales=lambda: (u, 1.0),
+                               poincare=0.5)
     for mu in ((1.0, 1.0), (1e-3, 1.0), (1.0, 1e-3)):
         small = min(mu)
         with pytest.raises(ValueError, match="the estimators underflow double precision"):

@@ -174,6 +174,28 @@ def test_domain_scaling(cfun, newton, solver):
                          direct=solver == "direct")
 
 
+def test_a_large_domain_until_its_pressures_underflow():
+    """A mesh scaled by L with loads by 1/L² has the same solution (u unchanged, λ by 1/L²)
+    and the same η. At L = 1e50 (pressures 1e-100) the run is that of L = 1; at L = 1e100
+    the pressures 1e-200 square to 0 in η_osc, η_lin2, η_lin3, with forces μ u of 1: before
+    the pressures' check (`checks.check_force_scale`) adaptive Newton stopped at an iterate
+    with negative pressures (complementarity violation 1.0) whose η was 0.954 of the energy
+    error on a rotated square (probe, 2026-12-03). Now ValueError."""
+    from membranes.fem.meshes import structured_square
+
+    def run(L):
+        mesh = structured_square(8, 8)
+        mesh.geometry.x[:, :2] *= L
+        return solve(scenes.user(mesh=mesh, f1=repr(-1.0 / L ** 2), f2=repr(0.5 / L ** 2)))
+    ref, big = run(1.0), run(1e50)
+    assert ref.converged and big.converged
+    assert big.newton_iterations == ref.newton_iterations
+    # the same run to round-off: η's parts are computed from scaled quantities (ε · a few)
+    assert big.estimates["eta"] == pytest.approx(ref.estimates["eta"], rel=1e-12)
+    with pytest.raises(ValueError, match="forces and pressures of size .* = 1e-200"):
+        run(1e100)
+
+
 def test_moduli_and_data_scaling_until_the_forces_underflow():
     """Moduli by 1e-20 and data by 1e-100 on the radial scene, adaptive: forces μ u of
     1e-120, and the run of c = 1 scaled (u by 1e-100, λ by 1e-120, η and the energy error by

@@ -79,8 +79,9 @@ REM1, REM2 = range(6, 8)                      # with the remainder, no algebraic
 # Components of the one vector-P1 Function that holds the forms' nodal fields
 U1, U2, LPOS, LNEG, E1, E2, DLAM = range(7)
 # The forms square forces, not displacements: μ_α ∇u_αh + σ_α, σ_α,alg, the lifted residuals,
-# λ and f_α, all of size μ_α u for a displacement u (§11: scaling μ1, μ2, f1, f2 by c scales
-# them by c and leaves u alone). Forces below model.checks.UNDERFLOW_SCALE are refused
+# λ and f_α, all of size μ_α u for a displacement u on a domain of unit size (μ u / ℓ and
+# μ u / ℓ² for its length ℓ; §11: scaling μ1, μ2, f1, f2 by c scales them by c and leaves u
+# alone). Sizes below model.checks.UNDERFLOW_SCALE are refused
 # (`check_force_scale`), as the data's displacements are by membranes.nonlinear.system: with
 # μ1 = μ2 = 1e-40 and u ≈ 1e-130 (forces ≈ 1e-170) η_F squared to 0 and η fell to 0.13 times
 # the energy error, with μ = 1e-50 and u ≈ 1e-135 η and the error read 0, and every run said

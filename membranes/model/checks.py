@@ -35,19 +35,28 @@ UNDERFLOW_SCALE = math.sqrt(sys.float_info.min) / sys.float_info.epsilon     # �
 
 
 def check_force_scale(disc):
-    """Refuse data whose forces μ_α u underflow the estimators' squares (notes above and in
-    membranes.estimation.estimators, §11): ValueError when min(μ1, μ2) u_data <
+    """Refuse data whose forces and pressures underflow the estimators' squares (notes above
+    and in membranes.estimation.estimators, §11). The forms square fluxes μ_α ∇u (size μ u /
+    ℓ) and pressures λ, f_α (μ u / ℓ²), ℓ = C_PF h_Ω the domain's length; on a domain of unit
+    size both are about the force μ u. ValueError when min(μ1, μ2) u_data / max(1, ℓ)² <
     UNDERFLOW_SCALE, u_data the data's displacement scale of the Discretisation `disc`
     (`data_scales`, nearly the same on every mesh of a hierarchy, so a certified nested run
-    checks its coarsest level before any Newton step, and `Estimators` its own). Collective."""
+    checks its coarsest level before any Newton step, and `Estimators` its own). Below ℓ = 1
+    the force alone is checked: the fluxes and pressures are larger. Without the ℓ, a square
+    of side 1e100 with loads 1e-200 (pressures 1e-200, squared to 0) ran adaptive Newton to
+    an iterate with negative pressures whose η fell below the energy error (0.954 of it).
+    Collective."""
     mu = (float(disc.mu1), float(disc.mu2))
     u_data = disc.data_scales()[0]
-    if min(mu) * u_data < UNDERFLOW_SCALE:
-        raise ValueError(f"the estimators underflow double precision: forces of size "
-                         f"min(mu1, mu2) u = {min(mu) * u_data:g} < {UNDERFLOW_SCALE:.1e} "
-                         f"(mu1 = {mu[0]:g}, mu2 = {mu[1]:g}, displacements u = "
-                         f"{u_data:g}); rescale the data: the solution scales with f / mu "
-                         f"and g (theory §11)")
+    ell = float(disc.poincare)
+    size = min(mu) * u_data / max(1.0, ell) ** 2
+    if size < UNDERFLOW_SCALE:
+        raise ValueError(f"the estimators underflow double precision: forces and pressures "
+                         f"of size min(mu1, mu2) u / max(1, l)^2 = {size:g} < "
+                         f"{UNDERFLOW_SCALE:.1e} (mu1 = {mu[0]:g}, mu2 = {mu[1]:g}, "
+                         f"displacements u = {u_data:g}, length l = C_PF h_Omega = {ell:g}); "
+                         f"rescale the data: the solution scales with f / mu and g, and a "
+                         f"mesh scaled by s with f by 1/s^2 (theory §11)")
 
 
 # ## Vertex counts of a requested mesh and hierarchy
