@@ -22,15 +22,21 @@ The block condition grows like the square of the cells' aspect ratio A (longest 
 smallest altitude), so on a mesh stretched enough that A² ε reaches the defect, round-off
 explains a failed check: the graded squares of `fem.meshes.structured_square(16, 16, p)`
 passed at p = 4 (A = 1.5e4), and σ_disc failed with a relative defect of 1.2e-7 at p = 8
-(A = 1.7e9, A² ε ≈ 6e2) on T_0. Such a failure is said as a mesh too stretched for a bound in
-double precision (ValueError, bad input); any other as the bug it is (RuntimeError).
+(A = 1.7e9, A² ε ≈ 6e2) on T_0. Likewise a mesh far from the origin for the size of its
+cells: its positions are rounded to ε |x|, a fraction ε |x| / a_K of a cell's altitude a_K, and
+the blocks' round-off grows to about A² ε |x| / h_K (a unit square of cells 0.0625 moved by
+1e14: the σ_disc check failed at 5.0e-2 of the right-hand sides, A² ε |x| / h ≈ 1; by 1e15 the
+defect was NaN). Such a failure, where ε A² reaches the defect, or ε max_K A_K² max(1, |x|_K /
+h_K) (or 1, for a defect that is not finite), is said as a mesh too stretched or too far from
+the origin for a bound in double precision (ValueError, bad input); any other as the bug it
+is (RuntimeError).
 """
 
 import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from ..fem.meshes import aspect_ratios
+from ..fem.meshes import aspect_ratios, cell_vertices, longest_edges
 
 EPS = np.finfo(float).eps
 TOLERANCE = 1e-8
@@ -77,25 +83,51 @@ def largest(values):
     return float(max(a.max(initial=0.0), -a.min(initial=0.0)))
 
 
+def geometric_round_off(mesh):
+    """(A, U, O) over all processes: the largest aspect ratio A_K (longest edge h_K over
+    smallest altitude, `fem.meshes.aspect_ratios`), the largest A_K² max(1, O_K), O_K =
+    |x|_K / h_K the ratio of a cell's largest coordinate to its size, and that O_K (module
+    notes: ε A² is the patch solves' round-off, ε A² O that of a mesh whose positions are
+    rounded to ε |x|). Collective."""
+    p = cell_vertices(mesh)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stretch = aspect_ratios(mesh)
+        offset = np.abs(p).max(axis=(1, 2), initial=0.0) / longest_edges(p)
+        unit = stretch ** 2 * np.maximum(1.0, offset)
+    k = int(np.argmax(np.nan_to_num(unit, nan=np.inf))) if len(unit) else None
+    local = (0.0, 0.0, 0.0) if k is None else (float(unit[k]), float(offset[k]),
+                                                float(stretch.max()))
+    comm = mesh.comm
+    unit, offset = max(comm.allgather(local[:2]))
+    return comm.allreduce(local[2], op=MPI.MAX), unit, offset
+
+
 def check(defect, scale, comm, what, tolerance=None, mesh=None):
     """`defect` (the largest |moment| of the defect on this process) against `tolerance`
     (TOLERANCE if None) · `scale` (the size of the right-hand sides, see the module notes),
     over all processes; if it fails, raises ValueError where the cells of `mesh` are so
-    stretched that round-off explains the defect (module notes), else RuntimeError, naming
-    `what`. Returns the relative defect."""
+    stretched, or lie so far from the origin for their size, that round-off explains the
+    defect (module notes), else RuntimeError, naming `what`. Returns the relative defect."""
     tolerance = TOLERANCE if tolerance is None else tolerance
     defect = comm.allreduce(float(defect), op=MPI.MAX)
     scale = comm.allreduce(float(scale), op=MPI.MAX)
     relative = defect / scale if scale > 0.0 else defect
     if not relative <= tolerance:                     # (also for NaN)
-        stretch = None if mesh is None else comm.allreduce(
-            float(aspect_ratios(mesh).max(initial=0.0)), op=MPI.MAX)
-        if stretch is not None and relative <= stretch ** 2 * EPS:
-            raise ValueError(f"the mesh's cells are too stretched for a guaranteed bound in "
-                             f"double precision: largest aspect ratio {stretch:.1e}, and the "
-                             f"round-off of {what}'s patch solves leaves a divergence defect "
-                             f"of {relative:.1e} of the right-hand sides (above {tolerance:g})"
-                             f"; mesh with less stretched cells (theory §11)")
+        if mesh is not None:
+            stretch, unit, offset = geometric_round_off(mesh)
+            round_off = (f"the round-off of {what}'s patch solves leaves a divergence defect "
+                         f"of {relative:.1e} of the right-hand sides (above {tolerance:g})")
+            if relative <= stretch ** 2 * EPS:
+                raise ValueError(f"the mesh's cells are too stretched for a guaranteed bound "
+                                 f"in double precision: largest aspect ratio {stretch:.1e}, "
+                                 f"and {round_off}; mesh with less stretched cells (theory "
+                                 f"§11)")
+            if relative <= unit * EPS or (unit * EPS >= 1.0 and not np.isfinite(relative)):
+                raise ValueError(f"the mesh lies too far from the origin for the size of its "
+                                 f"cells for a guaranteed bound in double precision: "
+                                 f"coordinates up to {offset:.1e} times a cell's size, and "
+                                 f"{round_off}; translate the mesh towards the origin (theory "
+                                 f"§11)")
         raise RuntimeError(f"{what} violates its divergence identity, so no bound can rest on "
                            f"it: largest DG1 moment of the defect {defect:.3e}, {relative:.1e} "
                            f"of the right-hand sides' (a patch solved with a block not its "

@@ -91,6 +91,7 @@ coarse patches on T_J itself, grouped by ancestry, would be just as exact but co
 import numpy as np
 import scipy.sparse as sp
 import ufl
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from ..fem.discretisation import boundary_dofs, ghosted_vector, p1_space
@@ -153,6 +154,17 @@ def child_positions(Vc, Vf, P, parents):
     # mesh far from the origin more than ROUND_OFF (cells of 1/64 at 1e9: about 3e-5)
     altitude = 2.0 * triangle_areas(corners) / longest_edges(corners)
     noise = COORDINATE_ROUND_OFF * np.abs(corners).max(axis=(1, 2)) / altitude
+    # β's candidates 0, 1/2, 1 lie 1/2 apart: a noise of 1/4 cannot tell them apart (a unit
+    # square of cells 0.0625 moved by 1e14, refined twice: a singular child map further on)
+    worst = Vf.mesh.comm.allreduce(float(noise.max(initial=0.0)), op=MPI.MAX)
+    if not worst < 0.25:
+        raise ValueError(f"the mesh lies too far from the origin for the size of its cells "
+                         f"for the multilevel flux in double precision: the tolerance of a "
+                         f"vertex's place in its parent cell (1e3 eps |x| / altitude) is "
+                         f"{worst:.1e} of the cell, above the 1/4 that tells a corner from an "
+                         f"edge's midpoint; translate the mesh "
+                         f"towards the origin, or use the flux of extra iterations "
+                         f"(alg_flux 'nu')")
     error = np.abs(beta - rounded).max(axis=(1, 2))
     _check(Vf.mesh.comm, np.all(error <= np.maximum(ROUND_OFF, noise)),
            "a fine vertex is neither a coarse vertex nor a coarse edge's midpoint: the "

@@ -30,7 +30,7 @@ from mpi4py import MPI
 
 from ..model.progress import reporter
 from .discretisation import p1_space
-from .meshes import on_boundary, without_ghosts
+from .meshes import cell_vertices, longest_edges, on_boundary, triangle_areas, without_ghosts
 
 
 @dataclass
@@ -184,6 +184,33 @@ def refine(mesh, projection=None):
     return fine, parents, unmoved
 
 
+def _rounded_offsets(mesh):
+    """ε max_K |x|_K / a_K over the owned cells of `mesh` and all processes: the rounding of
+    the positions as a fraction of a cell's altitude a_K. Each uniform refinement halves
+    the altitudes and so doubles it. Collective."""
+    p = cell_vertices(mesh)
+    altitude = 2.0 * triangle_areas(p) / longest_edges(p)
+    local = float((np.abs(p).max(axis=(1, 2)) / altitude).max(initial=0.0))
+    return np.finfo(float).eps * mesh.comm.allreduce(local, op=MPI.MAX)
+
+
+def _check_resolved(fine, j):
+    """Refuse a refinement whose new vertices, rounded to the double nearest the midpoint of
+    an edge, made degenerate triangles (the test of `meshes.checked_cells`: 2 |K| ≤ 1e-12
+    h_K²): a mesh far from the origin for the size of its cells (a unit square of cells
+    0.0625 moved by 1e14, refined twice: the multilevel flux's set-up met a singular
+    Jacobian). Collective."""
+    p = cell_vertices(fine)
+    flat = np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest_edges(p) ** 2)
+    flat = fine.comm.allreduce(flat, op=MPI.SUM)
+    if flat:
+        size = fine.comm.allreduce(float(np.abs(p).max(initial=0.0)), op=MPI.MAX)
+        raise ValueError(f"refinement {j} of the mesh made {flat} degenerate triangle(s): "
+                         f"its coordinates, up to {size:.3g}, are too far from the origin "
+                         f"for the size of its cells in double precision; translate the "
+                         f"mesh towards the origin")
+
+
 def build_hierarchy(coarse, levels, projection=None, domain=None, progress=None):
     """T_0 = `coarse` and `levels` uniform refinements of it (§6), new boundary vertices moved
     onto the curve by `projection` (§9); `domain` names the domain T_0 meshes (scenes only).
@@ -198,9 +225,14 @@ def build_hierarchy(coarse, levels, projection=None, domain=None, progress=None)
     if levels:                                  # (plaza refinement needs it, `meshes`)
         coarse = without_ghosts(coarse)
     h = Hierarchy([coarse], projection=projection, domain=domain)
+    # (only where the rounding is not negligible: a vertex moved by well under its cells'
+    # altitudes leaves no triangle degenerate, and most meshes are checked at no cost)
+    rounding = _rounded_offsets(coarse) if levels else 0.0
     for j in range(1, levels + 1):
         t = time.perf_counter()
         fine, parents, unmoved = refine(h.meshes[-1], projection)
+        if rounding * 2 ** j > 1e-6:
+            _check_resolved(fine, j)
         h.meshes.append(fine)
         h.parent_cells.append(parents)
         h.unmoved.append(unmoved)

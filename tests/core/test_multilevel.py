@@ -392,6 +392,34 @@ def test_a_mesh_far_from_the_origin():
 
 
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial run of solve")
+def test_a_mesh_too_far_from_the_origin_is_refused():
+    """The 8 × 8 square (cells of altitude 0.088) moved by 1e14 or 1e15, its nodes exactly
+    representable: the positions of T_2 are rounded to ulp(1e14) = 1/64, half the side 1/32
+    of its cells, and those of T_1 at 1e15 to 1/8, its cells' side. Found by a probe on a
+    similar mesh (2026-12-03): tracebacks and exit 1, each its own (σ_disc's check at 5.0e-2
+    of the right-hand sides on T_1, NaN at 1e15 on T_0; a singular child map in the
+    multilevel set-up; "a patch problem is singular" on 3 processes). Now a
+    ValueError names the offset: σ_disc's check, whose defect the geometry's round-off
+    A ε |x| / a explains (`divergence.geometric_round_off`); the multilevel flux, whose
+    tolerance for a child's place exceeds 1/4; the refinement, whose new vertices made
+    degenerate triangles. 1e10 (the test above's regime) runs."""
+    from membranes import scenes, solve
+    from membranes.fem.meshes import structured_square
+
+    def problem(shift, levels):
+        mesh = structured_square(8, 8)
+        mesh.geometry.x[:, :2] += shift
+        return scenes.user(mesh=mesh, f1="-1", f2="1", levels=levels)
+    with pytest.raises(ValueError, match="too far from the origin .* σ_disc"):
+        solve(problem(1e14, 2))
+    with pytest.raises(ValueError, match="too far from the origin .* for the multilevel flux"):
+        solve(problem(1e14, 2), alg_flux="multilevel")
+    with pytest.raises(ValueError, match="refinement 1 of the mesh made 384 degenerate"):
+        problem(1e15, 1)
+    assert solve(problem(1e10, 2), alg_flux="multilevel").converged
+
+
+@pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="serial run of solve")
 def test_graded_mesh_defect_enters_the_bound():
     """On a strongly graded mesh (cells of aspect ratio 1.5e4) the patch solves' round-off
     leaves ∇·σ_alg - r_h at 8e-8 of the right-hand sides, beyond the 1e-8 of σ_disc's check:
