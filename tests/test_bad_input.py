@@ -474,11 +474,23 @@ def _filled(X, value):
     ("warm", "unknown initial guess"),
     (np.zeros(5), "iterate layout"),
     (lambda disc: _filled(disc.vector3(), np.nan), "non-finite"),
+    (lambda disc: _filled(disc.vector3(), 1e155), r"up to 1e\+155, beyond 1e\+150"),
 ])
 def test_bad_initial_guess(guess, message):
-    """A named guess that does not exist, an array of the wrong size, NaN: ValueError."""
+    """A named guess that does not exist, an array of the wrong size, NaN, values whose
+    squares overflow (a probe's 1e155 made a nested run's coarse residual inf, and the run
+    went on to a refusal that blamed the data): ValueError."""
     with pytest.raises(ValueError, match=message):
         solve(scenes.disk(h=0.3), newton="exact", initial_guess=guess, estimators=False)
+
+
+def test_loads_infinite_at_a_quadrature_point():
+    """1/(x - 0.5) on the square at h = 0.25, J = 2: the data's sample points miss x = 0.5
+    (its vertices lie at 0.5 ± 6.7e-16), a quadrature point of T_2 does not, and the load
+    vector holds inf. Said as such, not as data to rescale ("the data overflow double
+    precision", a probe's, 2026-12-03)."""
+    with pytest.raises(ValueError, match="the loads are infinite at some quadrature points"):
+        solve(scenes.user(f1="1/(x-0.5)", domain="square", h=0.25, levels=2))
 
 
 GUESS_ON_SOME_PROCESSES = """

@@ -502,6 +502,12 @@ def _with_node_tag(path, tag, binary, where="node"):
 @pytest.mark.parametrize("nodes, cells, reason", [
     # a sliver: area 5e-14 against a longest edge of 1 (2 |K| <= 1e-12 h²)
     ([(0, 0), (1, 0), (0.5, 1e-13)], [(0, 1, 2)], r"has 1 degenerate triangle\(s\) \(zero area"),
+    # a unit square's corners moved by 1e16 (ulp 2): its nodes collapse in pairs, and one
+    # triangle onto a point, refused as "triangles as small as 0 ...: rescale the mesh" (a
+    # probe's, 2026-12-03), which no rescaling cures
+    ([(1e16, 1e16), (1e16 + 0.5, 1e16), (1e16 + 0.5, 1e16 + 0.5), (1e16, 1e16 + 0.5),
+      (1e16 + 0.25, 1e16 + 0.25)], [(0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)],
+     r"has 4 degenerate triangle\(s\) \(zero area"),
     # three triangles on the edge (0, 0)-(1, 0): two of them overlap
     ([(0, 0), (1, 0), (0.5, 1), (0.5, -1), (0.5, -2)], [(0, 1, 2), (0, 1, 3), (0, 1, 4)],
      r"has 1 edge\(s\) of three or more triangles \(overlapping surfaces\?\)$")])

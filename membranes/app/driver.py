@@ -34,6 +34,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from ..fem.discretisation import Discretisation, discretise
+from ..fem.meshes import LARGEST_COORDINATE
 from ..linalg.krylov import Krylov
 from ..model import checks
 from ..model.petsc_options import check_petsc_options_used, parse_petsc_options
@@ -210,6 +211,14 @@ def _initial_guess(initial_guess, disc):
                          "returning one")
     if not disc.comm.allreduce(bool(np.all(np.isfinite(X.array_r))), op=MPI.LAND):
         raise ValueError("the initial guess has non-finite values")
+    # as a mesh's coordinates (`meshes.LARGEST_COORDINATE`): beyond it the residual's and the
+    # estimators' squares overflow, and a nested run's coarse level went on from an infinite
+    # residual to a refusal that blamed the data
+    size = disc.comm.allreduce(float(np.abs(X.array_r).max(initial=0.0)), op=MPI.MAX)
+    if size > LARGEST_COORDINATE:
+        raise ValueError(f"the initial guess has values up to {size:.3g}, beyond "
+                         f"{LARGEST_COORDINATE:.0e}, whose squares overflow double precision: "
+                         f"rescale it")
     return X
 
 

@@ -94,8 +94,9 @@ class Solution:
         u_scale = max(u_data, gmax(np.abs(u1)), gmax(np.abs(u2)))
         lam_u = u_scale / ((1.0 / d.mu1 + 1.0 / d.mu2) * d.poincare ** 2)
         lam_scale = max(lam_data, gmax(np.abs(lam)), lam_u, np.finfo(float).tiny)
+        # (+ 0.0: a max over -w = -0.0 printed "-0.0" in summary.json)
         return float(max(gmax(-w) / u_scale, gmax(-lam) / lam_scale,
-                         gmax(np.abs(w * lam)) / (u_scale * lam_scale)))
+                         gmax(np.abs(w * lam)) / (u_scale * lam_scale))) + 0.0
 
     def summary(self) -> dict[str, Any]:
         """The keys of summary.json (docs/outputs.md)."""

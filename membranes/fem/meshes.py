@@ -263,7 +263,8 @@ def checked_cells(x, cells, what, conforming=False,
     p = x[cells]
     if len(p):
         small = np.max([np.hypot(*(p[:, i] - p[:, i - 1]).T) for i in range(3)], axis=0).min()
-        if small < SMALLEST_TRIANGLE:
+        # (a triangle of size 0, its nodes on one point, is degenerate: below, not a scale)
+        if 0.0 < small < SMALLEST_TRIANGLE:
             raise ValueError(f"{what} has triangles as small as {small:.3g} (longest edge), "
                              f"below {SMALLEST_TRIANGLE:.1e}, whose areas underflow double "
                              f"precision: rescale the mesh")

@@ -81,6 +81,7 @@ import weakref
 from dataclasses import dataclass
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from ..model.checks import UNDERFLOW_SCALE
@@ -212,6 +213,13 @@ class NewtonSystem:
             raise ValueError("the loads are not a number (NaN) at some quadrature points: f1 "
                              "or f2 is undefined somewhere on the mesh (e.g. sqrt or a "
                              "fractional power of a negative number)")
+        infinite = not np.all(np.isfinite(self.WF.array_r))
+        if comm.allreduce(infinite, op=MPI.LOR):
+            # an entry ∫ f φ itself infinite: not a scale that rescaling cures (1/(x - 0.5)
+            # met a quadrature point on x = 0.5, where the data's sample points missed it)
+            raise ValueError("the loads are infinite at some quadrature points: f1 or f2 "
+                             "has a singularity on the mesh (e.g. 1/(x - 0.5) on a line of "
+                             "its points) or exceeds double precision there")
         if not (np.isfinite(self.norm_F) and np.isfinite(self.kappa)):
             raise ValueError(f"the data overflow double precision: ||W (F, 0)|| = "
                              f"{self.norm_F:g}, kappa = {self.kappa:g} (mu1 = {mu1:g}, "

@@ -668,6 +668,15 @@ def test_complementarity_violation_of_iterates_made_by_hand():
         assert got == pytest.approx(expected, rel=1e-12, abs=0)
 
 
+def test_complementarity_violation_is_never_minus_zero():
+    """Exact Newton-min on the disk (h = 0.2, J = 2) ends with w = u1 - u2 = 0 where the
+    membranes touch and λ = 0 off contact: the maxima of -w, -λ were -0.0, and summary.json
+    said "complementarity_violation": -0.0 (a probe's, 2026-12-03)."""
+    sol = solve(scenes.disk(h=0.2, levels=2), newton="exact", errors="none")
+    violation = sol.complementarity_violation()
+    assert violation <= 1e-12 and np.copysign(1.0, violation) == 1.0
+
+
 @serial_only
 def test_complementarity_violation_on_two_processes():
     """The same on two processes, process 0 holding the values set by hand: the maxima
