@@ -30,7 +30,7 @@ from mpi4py import MPI
 
 from ..model.progress import reporter
 from .discretisation import p1_space
-from .meshes import cell_vertices, longest_edges, on_boundary, triangle_areas, without_ghosts
+from .meshes import cell_vertices, degenerate, on_boundary, smallest_altitudes, without_ghosts
 
 
 @dataclass
@@ -189,20 +189,18 @@ def _rounded_offsets(mesh):
     the positions as a fraction of a cell's altitude a_K. Each uniform refinement halves
     the altitudes and so doubles it. Collective."""
     p = cell_vertices(mesh)
-    altitude = 2.0 * triangle_areas(p) / longest_edges(p)
-    local = float((np.abs(p).max(axis=(1, 2)) / altitude).max(initial=0.0))
+    local = float((np.abs(p).max(axis=(1, 2)) / smallest_altitudes(p)).max(initial=0.0))
     return np.finfo(float).eps * mesh.comm.allreduce(local, op=MPI.MAX)
 
 
 def _check_resolved(fine, j):
     """Refuse a refinement whose new vertices, rounded to the double nearest the midpoint of
-    an edge, made degenerate triangles (the test of `meshes.checked_cells`: 2 |K| ≤ 1e-12
-    h_K²): a mesh far from the origin for the size of its cells (a unit square of cells
+    an edge, made degenerate triangles (`meshes.degenerate`, the test of a mesh file's
+    cells): a mesh far from the origin for the size of its cells (a unit square of cells
     0.0625 moved by 1e14, refined twice: the multilevel flux's set-up met a singular
     Jacobian). Collective."""
     p = cell_vertices(fine)
-    flat = np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest_edges(p) ** 2)
-    flat = fine.comm.allreduce(flat, op=MPI.SUM)
+    flat = fine.comm.allreduce(np.count_nonzero(degenerate(p)), op=MPI.SUM)
     if flat:
         size = fine.comm.allreduce(float(np.abs(p).max(initial=0.0)), op=MPI.MAX)
         raise ValueError(f"refinement {j} of the mesh made {flat} degenerate triangle(s): "

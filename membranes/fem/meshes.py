@@ -268,8 +268,7 @@ def checked_cells(x, cells, what, conforming=False,
             raise ValueError(f"{what} has triangles as small as {small:.3g} (longest edge), "
                              f"below {SMALLEST_TRIANGLE:.1e}, whose areas underflow double "
                              f"precision: rescale the mesh")
-    longest = np.max([((p[:, i] - p[:, i - 1]) ** 2).sum(axis=1) for i in range(3)], axis=0)
-    flat = np.count_nonzero(2.0 * triangle_areas(p) <= 1e-12 * longest)
+    flat = np.count_nonzero(degenerate(p))
     if flat:
         raise ValueError(f"{what} has {flat} degenerate triangle(s) (zero area or "
                          f"a repeated vertex)")
@@ -435,6 +434,18 @@ def longest_edges(p):
     """h_K, the longest edge of the triangles with vertex coordinates p ((c, 3, 2))."""
     edges = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]], axis=1)
     return np.sqrt((edges ** 2).sum(axis=2)).max(axis=1)
+
+
+def smallest_altitudes(p):
+    """a_K = 2 |K| / h_K, the smallest altitude of the triangles with vertex coordinates p
+    ((c, 3, 2)): the scale a position's round-off ε |x| is measured against."""
+    return 2.0 * triangle_areas(p) / longest_edges(p)
+
+
+def degenerate(p):
+    """Whether each triangle with vertex coordinates p ((c, 3, 2)) is degenerate: 2 |K| ≤
+    1e-12 h_K² (zero area, a repeated vertex, or a sliver of that flatness)."""
+    return 2.0 * triangle_areas(p) <= 1e-12 * longest_edges(p) ** 2
 
 
 def cell_diameters(mesh):
