@@ -80,7 +80,7 @@ class Solution:
         max(λ_data, |λ|∞, λ_u), λ_u = u_scale / ((1/μ1 + 1/μ2) (C_PF h_Ω)²) the pressure
         that moves the gap by u_scale (u_data's relation to the loads, read backwards). Without
         λ_u, zero loads (λ_data = 0, solution (g, 0, 0)) measured λ's round-off against itself:
-        a violation of 1 where Newton from a zero guess left λ at ±1e-18."""
+        a violation of 1 where Newton from a zero guess left λ at ±1e-18. Collective."""
         d = self.disc
         u1, u2, lam = d.split(self.X)
         inner = d.interior
@@ -99,7 +99,9 @@ class Solution:
                          gmax(np.abs(w * lam)) / (u_scale * lam_scale))) + 0.0
 
     def summary(self) -> dict[str, Any]:
-        """The keys of summary.json (docs/outputs.md)."""
+        """The keys of summary.json (docs/outputs.md). Collective, as
+        `complementarity_violation` is: call it on every process (called on process 0 alone,
+        under `if rank == 0`, it waits for the others for ever), then print on one."""
         p = self.problem
         mesh = p.mesh
         est = self.estimates or {}
