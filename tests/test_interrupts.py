@@ -278,6 +278,27 @@ def test_gmsh_leaves_the_ctrl_c_handler_in_place():
     assert proc.returncode == 0, proc.stderr
 
 
+def test_ctrl_c_is_ours_while_gmsh_loads_its_library():
+    """gmsh.py sets SIGINT to its default before it loads libgmsh (0.75-0.9 s): the handler
+    was put back only after the import, and Ctrl-C in that window killed the run without a
+    word (exit -2; a probe's, 2026-12-03). The handler in place when libgmsh is loaded (seen
+    by a spy on ctypes.CDLL, which gmsh.py calls) is ours. In a fresh process."""
+    code = "\n".join([
+        "import ctypes, signal", "from membranes.app import interrupts",
+        "from membranes.fem import meshes", "interrupts.install()",
+        "mine = signal.getsignal(signal.SIGINT)", "seen = []", "real = ctypes.CDLL",
+        "class Spy(real):", "    def __init__(self, name, *args, **kwargs):",
+        "        if 'gmsh' in str(name):",
+        "            seen.append(signal.getsignal(signal.SIGINT))",
+        "        super().__init__(name, *args, **kwargs)", "ctypes.CDLL = Spy",
+        "with meshes.keeping_sigint():", "    import gmsh",
+        "assert seen and all(h is mine for h in seen), seen",
+        "assert signal.getsignal(signal.SIGINT) is mine"])
+    proc = subprocess.run([sys.executable, "-c", code], env=_env(), cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
 def test_a_signal_while_the_outputs_move_in_waits_for_the_last_rename(tmp_path, monkeypatch):
     """SIGTERM after the first rename of the outputs into a folder of an older run: the
     renames go on to the last, then the run ends as terminated, every output the new one;

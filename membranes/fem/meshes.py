@@ -60,11 +60,20 @@ def keeping_sigint():
     SIGINT to its default, and only gmsh.finalize puts back the handler it found, where a gmsh
     session ran (rank 0). Ctrl-C would end the process at once, without the command line's
     clean-up (membranes.app.interrupts: staged outputs removed, one line). Puts back the
-    handler found before the import."""
+    handler found before the import. And during the import, which loads libgmsh (0.75-0.9 s
+    here), gmsh's own `signal.signal(SIGINT, SIG_DFL)` is not carried out (it is handed the
+    handler in place instead, which gmsh.finalize then puts back): put back only after it,
+    the default killed a run interrupted in that window, silently (exit -2, a probe's)."""
     before = signal.getsignal(signal.SIGINT)
+    setter = signal.signal
+
+    def keep(signum, handler):
+        return signal.getsignal(signum) if signum == signal.SIGINT else setter(signum, handler)
+    signal.signal = keep
     try:
         yield
     finally:
+        signal.signal = setter
         if before is not None and signal.getsignal(signal.SIGINT) is not before:
             signal.signal(signal.SIGINT, before)
 
