@@ -457,6 +457,16 @@ def markdown(problem, runs, summaries, rows, cells, sources, seconds, missing=No
     return "\n".join(lines)
 
 
+def output_names():
+    """The files `write_report` writes (module notes): `main` checks before any run that no
+    folder in DIR has one of these names (the outputs could not move in at the end)."""
+    names = ["table.csv", "error_vs_time.csv", "error_vs_time.png", "report.md",
+             "error_distribution.csv", "contact.csv", *PYVISTA_PICTURES]
+    for m in METHOD_NAMES:
+        names += [f"estimators_{_slug(m)}.csv", f"estimators_{_slug(m)}.png"]
+    return names
+
+
 def write_report(problem, out, say=lambda line: None):
     """Run every method and peer on `problem` and write the report into `out` (collective;
     process 0 writes). Returns (runs {label: Solution}, table rows)."""
@@ -543,7 +553,7 @@ def main(args):
     from .cli import EXIT_NOT_CONVERGED, emit
     comm = MPI.COMM_WORLD
     check_matplotlib()
-    check_output_folder(args.out, comm)
+    check_output_folder(args.out, comm, names=output_names())
     check_memory(args.h, args.levels, args.scene, comm)
     problem = scenes.make(args.scene, h=args.h, levels=args.levels)
     quiet = args.quiet or comm.rank != 0

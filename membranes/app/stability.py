@@ -364,6 +364,9 @@ def markdown(rows, h, seconds, processes):
     return "\n".join(lines) + "\n"
 
 
+OUTPUT_NAMES = ("stability.csv", "stability.md")      # what `write_stability` writes
+
+
 def write_stability(out, h=DEFAULT_H, names=None, methods=METHODS, say=lambda line: None,
                     comm=MPI.COMM_WORLD):
     """Run the selected cases and write stability.csv and stability.md into `out`
@@ -378,14 +381,14 @@ def write_stability(out, h=DEFAULT_H, names=None, methods=METHODS, say=lambda li
         rows = table(cases, runs)
         seconds = time.perf_counter() - t
         if comm.rank == 0:
-            with open(os.path.join(tmp, "stability.csv"), "w", newline="",
+            with open(os.path.join(tmp, OUTPUT_NAMES[0]), "w", newline="",
                       encoding="utf-8") as f:
                 writer = csv.writer(f)
                 writer.writerow(COLUMNS)
                 for r in rows:
                     writer.writerow(["" if json_safe(r.get(c)) is None else json_safe(r[c])
                                      for c in COLUMNS])
-            with open(os.path.join(tmp, "stability.md"), "w", encoding="utf-8") as f:
+            with open(os.path.join(tmp, OUTPUT_NAMES[1]), "w", encoding="utf-8") as f:
                 f.write(markdown(rows, h, seconds, comm.size))
     return rows
 
@@ -407,11 +410,14 @@ def add_parser(sub):
 
 
 def main(args):
+    from ..model.folders import check_output_folder
     from .cli import EXIT_NOT_CONVERGED, emit
     comm = MPI.COMM_WORLD
     names = None if args.cases is None else [n.strip() for n in args.cases.split(",")]
     check_h(args.h)
     select(names)                                  # unknown names: before any run
+    # (no folder named as an output: they could not move in after the runs)
+    check_output_folder(args.out, comm, names=OUTPUT_NAMES)
     quiet = args.quiet or comm.rank != 0
     say = (lambda line: None) if quiet else \
         (lambda line: print(line, file=sys.stderr, flush=True))

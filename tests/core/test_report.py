@@ -49,6 +49,8 @@ def test_every_file_and_nothing_else(made):
         {f"estimators_{report._slug(m)}.csv" for m in METHOD_NAMES}
     assert set(os.listdir(out)) == expected
     assert [p.name for p in out.parent.iterdir()] == ["disk"]
+    # the names `main` checks before the runs are those written
+    assert sorted(report.output_names()) == sorted(expected)
 
 
 @pytest.mark.parametrize("name", PICTURES)
@@ -197,6 +199,13 @@ def test_cli_refuses_an_unwritable_folder_first(tmp_path):
         report.main(args)
     assert existing.read_text() == "mine\n"
     assert [p.name for p in tmp_path.iterdir()] == ["file"]
+    # a folder named as an output: refused before the runs (after them, 7 s at h = 0.3,
+    # before the check; a probe's, 2026-12-03), and left as it was
+    (tmp_path / "out" / "contact.png").mkdir(parents=True)
+    args = parser.parse_args(["report", "--out", str(tmp_path / "out"), "--quiet"])
+    with pytest.raises(ValueError, match="holds a folder named contact.png"):
+        report.main(args)
+    assert os.listdir(tmp_path / "out") == ["contact.png"]
 
 
 def test_runs_that_do_not_converge_are_reported(tmp_path, monkeypatch):

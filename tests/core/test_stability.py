@@ -145,6 +145,19 @@ def test_a_size_beyond_memory_is_refused_before_any_run(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_folder_named_as_an_output_is_refused_before_any_run(tmp_path, monkeypatch):
+    """A folder stability.md in --out: the outputs could not move in; refused after every
+    case had run (a probe's, 2026-12-03), now before any, the folder left as it was."""
+    def never(*args, **kwargs):
+        raise AssertionError("a case was run")
+    monkeypatch.setattr(stability, "run_case", never)
+    (tmp_path / "out" / "stability.md").mkdir(parents=True)
+    args = argparse.Namespace(out=str(tmp_path / "out"), h=0.3, cases="tiny", quiet=True)
+    with pytest.raises(ValueError, match="holds a folder named stability.md"):
+        stability.main(args)
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["stability.md"]
+
+
 def test_markdown_names_the_parallel_paper_preconditioner():
     """Under mpirun the paper preset is block-Jacobi ILU(0) (docs/cli.md), and the page says so."""
     row = dict.fromkeys(stability.COLUMNS)
