@@ -463,3 +463,19 @@ def test_the_bounding_box_constant_is_the_whole_meshs_on_two_processes():
     said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
     exact = 1.0 / (math.pi * math.sqrt(2.0))
     assert len(said) == 2 and all(abs(c - exact) <= 1e-12 * exact for c in said), said
+
+
+def test_a_problem_is_changed_by_replace_not_by_assignment():
+    """`problem.mu2 = 5.0` on the disk scene at J = 0 passed every check: the old exact
+    solution measured the error of the new data, effectivity 0.158 where η was a bound (a
+    probe's, 2026-12-03). A Problem is frozen; `dataclasses.replace` checks the new one as
+    on construction, and refuses the scene's exact solution for other data."""
+    import dataclasses
+    problem = scenes.disk(h=0.3)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        problem.mu2 = 5.0
+    assert problem.mu2 == 1.0
+    with pytest.raises(ValueError, match="does not solve other data"):
+        dataclasses.replace(problem, mu2=5.0)
+    other = dataclasses.replace(problem, mu2=5.0, exact=None)
+    assert other.mu2 == 5.0 and "mu2 = 5" in other.description

@@ -539,6 +539,42 @@ def test_bad_initial_guess_on_some_processes_only():
     assert all(m == "the initial guess has non-finite values" for m in nan), said
 
 
+GUESS_FAILING_ON_ONE = """
+from mpi4py import MPI
+from membranes import scenes, solve
+comm = MPI.COMM_WORLD
+problem = scenes.disk(h=0.3, levels=1)
+
+def guess(disc):
+    X = disc.vector3()                    # (collective: made on every process)
+    if comm.rank == 1:
+        raise FileNotFoundError("guess_1.npy")
+    return X
+try:
+    solve(problem, initial_guess=guess)
+    said = None
+except Exception as e:
+    said = f"{type(e).__name__}: {e}"
+said = comm.gather((said, solve(problem).converged), root=0)
+print(repr(said) if comm.rank == 0 else "", flush=True)
+"""
+
+
+def test_an_initial_guess_function_failing_on_one_process():
+    """Under mpirun -n 3, a guess function that raises on process 1 only (its own file
+    missing): the others waited in the next collective for ever (a probe's, 2026-12-03).
+    Process 1 raises its exception, the others a RuntimeError naming it, and a next solve
+    runs on all."""
+    import ast
+
+    proc = mpirun(["-c", GUESS_FAILING_ON_ONE], processes=3, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    said = ast.literal_eval(proc.stdout.strip().splitlines()[-1])
+    named = "RuntimeError: the initial guess function failed on process 1: " \
+        "FileNotFoundError: guess_1.npy"
+    assert said == [(named, True), ("FileNotFoundError: guess_1.npy", True), (named, True)]
+
+
 # ## Refused at once (issue 29): each case of the issue's table, as a user runs it
 
 REFUSED_AT_ONCE = {

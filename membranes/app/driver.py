@@ -202,7 +202,23 @@ def _initial_guess(initial_guess, disc):
     if isinstance(initial_guess, str):
         _choice("initial guess", initial_guess, INITIAL_GUESSES)
         return disc.vector3()
-    X = initial_guess(disc) if _guess_function(initial_guess) else initial_guess
+    X = initial_guess
+    if _guess_function(initial_guess):
+        # the user's function may fail on some processes only (a file one cannot read): every
+        # process learns of it, or the others wait in the next collective for ever
+        failed = None
+        try:
+            X = initial_guess(disc)
+        except BaseException as e:      # noqa: BLE001  (re-raised below, on every process)
+            failed = e
+        who = disc.comm.allgather(None if failed is None else
+                                  f"{type(failed).__name__}: {failed}")
+        if failed is not None:
+            raise failed
+        first = next((k for k, w in enumerate(who) if w is not None), None)
+        if first is not None:
+            raise RuntimeError(f"the initial guess function failed on process {first}: "
+                               f"{who[first]}")
     # collective: a Vec whose layout is wrong on some processes only must be refused by all
     if not disc.comm.allreduce(hasattr(X, "getLocalSize") and X.getLocalSize() == 3 * disc.n,
                                op=MPI.LAND):
@@ -343,8 +359,10 @@ def solve(problem: Problem,
     Newton steps allowed on each level (100; beyond them the run ends not converged);
     estimators: certify the final iterate (and let adaptive use them); alg_flux: 'nu' or
     'multilevel' (§6); initial_guess: None or 'paper' (the default, (g, 0, 0)), 'zero', or a
-    PETSc Vec in the iterate layout (or a function of the discretisation returning one) on the first
-    mesh solved, whose boundary vertices take the Dirichlet values (u1 = g, u2 = λ = 0);
+    PETSc Vec in the iterate layout (or a function of the discretisation returning one,
+    called on every process: where it raises on some, those raise their exception and the
+    others a RuntimeError naming it) on the first mesh solved, whose boundary vertices take
+    the Dirichlet values (u1 = g, u2 = λ = 0);
     nested: solve T_0, …, T_J in turn, each from the prolonged solution of the last
     (default where the problem has levels ≥ 1); errors: the energy error at the 'final'
     iterate (default), at all recorded 'iterates', or 'none'; progress: True for one stderr

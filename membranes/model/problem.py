@@ -90,8 +90,20 @@ def _sample_points(mesh):
     return np.vstack([x, x[cells].mean(axis=1)]).T
 
 
-@dataclass
+def _set(problem, name, value):
+    """A field of the frozen `Problem` as its checks in `__post_init__` made it."""
+    object.__setattr__(problem, name, value)
+
+
+@dataclass(frozen=True)
 class Problem:
+    """A contact problem on a mesh hierarchy (§1, §9): the moduli, g, the loads, the exact
+    solution where one is known. Immutable: a changed problem is made with
+    `dataclasses.replace`, which checks it as on construction (and refuses an exact solution
+    of other data); an assignment, `problem.mu2 = 5.0`, raises FrozenInstanceError. It used to
+    pass unchecked where the solved level is the problem itself (J = 0 or nested=False): the
+    old exact solution then measured the error of the new data (a probe's: effectivity 0.158
+    where η was a bound)."""
     name: str
     # the meshes T_0, …, T_J; T_J is the computational mesh (not in repr: its arrays are long)
     hierarchy: Hierarchy = field(repr=False)
@@ -129,11 +141,11 @@ class Problem:
         if not isinstance(getattr(self.hierarchy, "finest", None), Mesh):
             raise ValueError(f"hierarchy must be a mesh hierarchy (membranes.fem.hierarchy."
                              f"build_hierarchy), got {type(self.hierarchy).__name__}")
-        self.mu1 = positive_number("mu1", self.mu1)
-        self.mu2 = positive_number("mu2", self.mu2)
-        self.g = positive_number("g", self.g)
+        _set(self, "mu1", positive_number("mu1", self.mu1))
+        _set(self, "mu2", positive_number("mu2", self.mu2))
+        _set(self, "g", positive_number("g", self.g))
         if self.poincare is not None:
-            self.poincare = positive_number("poincare", self.poincare)
+            _set(self, "poincare", positive_number("poincare", self.poincare))
         if self.exact is not None and not isinstance(self.exact, ExactSolution):
             raise ValueError(f"exact must be an ExactSolution or None, got "
                              f"{type(self.exact).__name__}")
@@ -162,7 +174,7 @@ class Problem:
             data = getattr(self, name)
             if isinstance(data, str):
                 data = Formula(data, name)
-                setattr(self, name, data)
+                _set(self, name, data)
             if isinstance(data, Formula):
                 points = _sample_points(self.mesh) if points is None else points
                 bad = ~np.isfinite(data.numpy(points))
@@ -186,7 +198,7 @@ class Problem:
                 v = real_number(name, data)
                 if not np.isfinite(v):
                     raise ValueError(f"{name} must be finite, got {v}")
-                setattr(self, name, v)       # (numpy's and 0-d arrays too: one float)
+                _set(self, name, v)          # (numpy's and 0-d arrays too: one float)
         self._other_data()
 
     def _other_data(self) -> None:
@@ -222,12 +234,12 @@ class Problem:
                       if isinstance(v, (Formula, float, int)) else f"{k} of scene {self.name}"
                       for k, v in zip(("f1", "f2"), data[3:])]
             if moved:
-                self.domain = domain if isinstance(domain, str) else ""
+                _set(self, "domain", domain if isinstance(domain, str) else "")
             where = {"disk": "unit disk", "square": "unit square"}.get(
                 self.domain, f"mesh {self.domain}" if self.domain else "")
-            self.description = ", ".join(([where] if where else []) + words) + \
-                (", exact solution given" if self.exact is not None else "")
-        self.described = (data, self.exact, self.poincare, domain)
+            _set(self, "description", ", ".join(([where] if where else []) + words)
+                 + (", exact solution given" if self.exact is not None else ""))
+        _set(self, "described", (data, self.exact, self.poincare, domain))
 
     def _domain(self):
         """What the hierarchy meshes: the scene's domain name, else its coarse mesh T_0."""
