@@ -479,3 +479,14 @@ def test_a_problem_is_changed_by_replace_not_by_assignment():
         dataclasses.replace(problem, mu2=5.0)
     other = dataclasses.replace(problem, mu2=5.0, exact=None)
     assert other.mu2 == 5.0 and "mu2 = 5" in other.description
+
+
+def test_a_scene_on_another_domain_names_what_holds_on_its_own():
+    """The disk scene on the square's hierarchy: its exact solution and C_PF h_Ω "hold" on
+    the disk only; its C_PF h_Ω alone "holds" (the message said "hold" for one item)."""
+    import dataclasses
+    disk, square = scenes.disk(h=0.3), scenes.square(h=0.3)
+    with pytest.raises(ValueError, match=r"exact solution and C_PF h_Ω \(poincare\) hold on"):
+        dataclasses.replace(disk, hierarchy=square.hierarchy)
+    with pytest.raises(ValueError, match=r"its C_PF h_Ω \(poincare\) holds on its own"):
+        dataclasses.replace(disk, hierarchy=square.hierarchy, exact=None)

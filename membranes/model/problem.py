@@ -220,7 +220,8 @@ class Problem:
             if moved and kept:
                 what = {"exact": "exact solution", "poincare": "C_PF h_Ω (poincare)"}
                 raise ValueError(f"scene {self.name!r}: its {' and '.join(what[k] for k in kept)}"
-                                 f" hold on its own domain only; with a hierarchy of another "
+                                 f" {'hold' if len(kept) > 1 else 'holds'} on its own domain "
+                                 f"only; with a hierarchy of another "
                                  f"domain give {', '.join(k + '=None' for k in kept)} (or "
                                  f"values for the new domain)")
             same = all(a is b or (isinstance(a, float) and a == b) for a, b in zip(old, data))
