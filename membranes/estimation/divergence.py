@@ -36,7 +36,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from ..fem.meshes import aspect_ratios, cell_vertices, longest_edges
+from ..fem.meshes import cell_vertices, offsets, stretches
 
 EPS = np.finfo(float).eps
 TOLERANCE = 1e-8
@@ -85,14 +85,14 @@ def largest(values):
 
 def geometric_round_off(mesh):
     """(A, U, O) over all processes: the largest aspect ratio A_K (longest edge h_K over
-    smallest altitude, `fem.meshes.aspect_ratios`), the largest A_K² max(1, O_K), O_K =
+    smallest altitude, `fem.meshes.stretches`), the largest A_K² max(1, O_K), O_K =
     |x|_K / h_K the ratio of a cell's largest coordinate to its size, and that O_K (module
     notes: ε A² is the patch solves' round-off, ε A² O that of a mesh whose positions are
     rounded to ε |x|). Collective."""
     p = cell_vertices(mesh)
     with np.errstate(divide="ignore", invalid="ignore"):
-        stretch = aspect_ratios(mesh)
-        offset = np.abs(p).max(axis=(1, 2), initial=0.0) / longest_edges(p)
+        stretch = stretches(p)
+        offset = offsets(p) / stretch                                   # |x|_K / h_K
         unit = stretch ** 2 * np.maximum(1.0, offset)
     k = int(np.argmax(np.nan_to_num(unit, nan=np.inf))) if len(unit) else None
     local = (0.0, 0.0, 0.0) if k is None else (float(unit[k]), float(offset[k]),

@@ -96,7 +96,7 @@ from petsc4py import PETSc
 
 from ..fem.discretisation import boundary_dofs, ghosted_vector, p1_space
 from ..fem.hierarchy import barycentric
-from ..fem.meshes import cell_vertices, owned_cells, smallest_altitudes, triangle_areas
+from ..fem.meshes import cell_vertices, offsets, owned_cells, triangle_areas
 from ..forms import equilibration as equilibration_forms
 from ..forms.membrane import membrane_linear
 from .classes import ClassStore
@@ -152,8 +152,7 @@ def child_positions(Vc, Vf, P, parents):
     rounded = np.round(2.0 * beta) / 2.0
     # β errs by the coordinates' round-off ε |x| over the parent's smallest altitude: on a
     # mesh far from the origin more than ROUND_OFF (cells of 1/64 at 1e9: about 3e-5)
-    noise = (COORDINATE_ROUND_OFF * np.abs(corners).max(axis=(1, 2))
-             / smallest_altitudes(corners))
+    noise = COORDINATE_ROUND_OFF * offsets(corners)
     # β's candidates 0, 1/2, 1 lie 1/2 apart: a noise of 1/4 cannot tell them apart (a unit
     # square of cells 0.0625 moved by 1e14, refined twice: a singular child map further on)
     worst = Vf.mesh.comm.allreduce(float(noise.max(initial=0.0)), op=MPI.MAX)

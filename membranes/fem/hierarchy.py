@@ -30,7 +30,7 @@ from mpi4py import MPI
 
 from ..model.progress import reporter
 from .discretisation import p1_space
-from .meshes import cell_vertices, degenerate, on_boundary, smallest_altitudes, without_ghosts
+from .meshes import cell_vertices, degenerate, offsets, on_boundary, without_ghosts
 
 
 @dataclass
@@ -188,8 +188,7 @@ def _rounded_offsets(mesh):
     """ε max_K |x|_K / a_K over the owned cells of `mesh` and all processes: the rounding of
     the positions as a fraction of a cell's altitude a_K. Each uniform refinement halves
     the altitudes and so doubles it. Collective."""
-    p = cell_vertices(mesh)
-    local = float((np.abs(p).max(axis=(1, 2)) / smallest_altitudes(p)).max(initial=0.0))
+    local = float(offsets(cell_vertices(mesh)).max(initial=0.0))
     return np.finfo(float).eps * mesh.comm.allreduce(local, op=MPI.MAX)
 
 

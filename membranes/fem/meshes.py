@@ -451,6 +451,13 @@ def smallest_altitudes(p):
     return 2.0 * triangle_areas(p) / longest_edges(p)
 
 
+def offsets(p):
+    """|x|_K / a_K, the largest coordinate of each triangle with vertex coordinates p
+    ((c, 3, 2)) over its smallest altitude: ε times it is the rounding of its positions as a
+    fraction of the cell (a mesh far from the origin for the size of its cells)."""
+    return np.abs(p).max(axis=(1, 2), initial=0.0) / smallest_altitudes(p)
+
+
 def degenerate(p):
     """Whether each triangle with vertex coordinates p ((c, 3, 2)) is degenerate: 2 |K| ≤
     1e-12 h_K² (zero area, a repeated vertex, or a sliver of that flatness)."""
@@ -462,11 +469,16 @@ def cell_diameters(mesh):
     return longest_edges(cell_vertices(mesh))
 
 
-def aspect_ratios(mesh):
-    """Longest edge over smallest altitude, h_K² / (2 |K|), of every owned cell: about the
-    square root of the condition of the cell's (and its patch's) local matrices."""
-    p = cell_vertices(mesh)
+def stretches(p):
+    """Longest edge over smallest altitude, h_K² / (2 |K|), of the triangles with vertex
+    coordinates p ((c, 3, 2))."""
     return longest_edges(p) ** 2 / (2.0 * triangle_areas(p))
+
+
+def aspect_ratios(mesh):
+    """`stretches` of every owned cell: about the square root of the condition of the
+    cell's (and its patch's) local matrices."""
+    return stretches(cell_vertices(mesh))
 
 
 def mesh_size(mesh):
