@@ -154,6 +154,20 @@ def test_cli_abbreviated_option_is_unknown(command, tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("given, said", [(["--levels", "1"], "--levels 1"),
+                                         (["--levels=1"], "--levels=1"),
+                                         (["--f1", "-1+y", "--g", "2"], "--f1 -1+y --g 2")])
+def test_cli_unknown_option_said_as_given(given, said, tmp_path, capsys):
+    """An option a command does not take is quoted as it was typed: `stability --levels 1`
+    said "--levels=1", the form the parser sees (a value may start with '-')."""
+    from membranes.app.cli import main
+    out = tmp_path / "out"
+    assert main(["stability", "--out", str(out)] + given) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"membranes: error: unrecognized arguments: {said}"
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("case", MESH_CASES)
 def test_cli_bad_meshes(case, bad_meshes, tmp_path, capsys):
     err = cli_bad_input(["--mesh", bad_meshes[case]], tmp_path / "out", capsys)

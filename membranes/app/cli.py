@@ -362,6 +362,18 @@ def _glue_values(argv):
     return out
 
 
+def _unglued(message, argv, glued):
+    """A parser's message with the options `_glue_values` joined written as they were given
+    (`membranes stability --levels 1`: "unrecognized arguments: --levels 1", not
+    "--levels=1")."""
+    given = iter(argv)
+    for item in glued:
+        a = next(given)
+        if item != a:                   # (glued: `a` and the next argument)
+            message = message.replace(item, f"{a} {next(given)}")
+    return message
+
+
 def _leave(errors, code, say):
     """After an error on several processes: the errors of the API are collective (every
     process meets them at the same point), but one met by some processes only would leave
@@ -513,7 +525,11 @@ def _pipe_closed(errors):
 
 def _main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = _parser().parse_args(_glue_values(argv))
+    glued = _glue_values(argv)
+    try:
+        args = _parser().parse_args(glued)
+    except BadInput as e:
+        raise BadInput(_unglued(str(e), argv, glued)) from None
     from . import interrupts
     interrupts.take_back()           # (the signals PETSc's initialisation took)
     if args.command == "scenes":
