@@ -121,6 +121,25 @@ def test_a_mesh_moved_in_place_is_set_up_anew():
     kept.clear()
 
 
+def test_a_solve_inside_a_solve_with_the_same_store_is_refused():
+    """A solve called from another's progress callback with the same store rebound the kept
+    equilibration to its own data measures (here the radial scene without its interface),
+    and the outer solve's σ_disc then failed its divergence check (RuntimeError, defect
+    1e-5). The inner solve is refused, the outer one stops with its error, and the store
+    serves the next solve as before."""
+    radial, kept = scenes.radial(h=0.3, levels=1), Setups()
+
+    def progress(line):
+        if "estimators set up" in line:
+            solve(replace(radial, interface=None), setups=kept)
+
+    with pytest.raises(ValueError, match="setups is in use by a solve that has not ended"):
+        solve(radial, setups=kept, progress=progress)
+    a, b = solve(radial, setups=kept), solve(radial)
+    assert kept.hits == 1 and rel(a.estimates["eta"], b.estimates["eta"]) <= ROUND_OFF
+    kept.clear()
+
+
 def test_setups_must_be_a_store():
     with pytest.raises(ValueError, match="setups must be a membranes.Setups"):
         solve(scenes.disk(h=0.5), setups={})

@@ -26,6 +26,7 @@ the final iterate's after its certificate), so that error and η can be drawn ag
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Any, Callable, Literal, Mapping, Optional, Union
 
@@ -375,7 +376,8 @@ def solve(problem: Problem,
     coarse_tol, 1e-6, no estimators) or 'estimated' (Algorithm 1 with the estimators on
     every level); setups: a `membranes.Setups` that keeps the flux
     equilibration of each mesh for the next solves on it (a parameter study on one
-    hierarchy: the patch systems of §5 depend on the mesh only; membranes.app.setups).
+    hierarchy: the patch systems of §5 depend on the mesh only; membranes.app.setups; one
+    solve at a time: another started with it before this one ends is refused).
     """
     if not isinstance(problem, Problem):
         raise ValueError(f"problem must be a membranes.Problem (from membranes.scenes), got "
@@ -399,140 +401,141 @@ def solve(problem: Problem,
         raise ValueError("with nested iteration the initial guess is that of the coarse mesh "
                          "T_0: give 'paper', 'zero' or a function of the discretisation, or "
                          "nested=False")
-    comm = problem.mesh.comm
-    say = reporter(progress, comm)
-    options = {"newton": newton, "cfun": cfun, "solver": solver,
-               "system": system or krylov.system, "petsc_options": dict(petsc_options or {}),
-               "nu": krylov.nu if krylov.iterative else None,
-               "max_linear_its": krylov.max_it if krylov.iterative else None,
-               "gamma_lin": gamma_lin, "gamma_alg": gamma_alg,
-               "alg_flux": alg_flux, "nested": nested,
-               "tol": None if newton == "adaptive" else tol,        # (adaptive: unused)
-               "coarse": coarse, "coarse_tol": coarse_tol,
-               "initial_guess": initial_guess if isinstance(initial_guess, str) or
-               initial_guess is None else "given"}
+    with (setups.in_use() if setups is not None else contextlib.nullcontext()):
+        comm = problem.mesh.comm
+        say = reporter(progress, comm)
+        options = {"newton": newton, "cfun": cfun, "solver": solver,
+                   "system": system or krylov.system, "petsc_options": dict(petsc_options or {}),
+                   "nu": krylov.nu if krylov.iterative else None,
+                   "max_linear_its": krylov.max_it if krylov.iterative else None,
+                   "gamma_lin": gamma_lin, "gamma_alg": gamma_alg,
+                   "alg_flux": alg_flux, "nested": nested,
+                   "tol": None if newton == "adaptive" else tol,        # (adaptive: unused)
+                   "coarse": coarse, "coarse_tol": coarse_tol,
+                   "initial_guess": initial_guess if isinstance(initial_guess, str) or
+                   initial_guess is None else "given"}
 
-    J = problem.levels
-    levels = list(range(J + 1)) if nested else [J]
-    history, per_level = [], []
-    its_offset, newton_total = 0, 0
-    est_setup, est_time = 0.0, 0.0
-    X, disc, estimate, prev = None, None, None, None
-    clock = _Clock(started)                    # energy errors run off the clock
-    for j in levels:
-        t_level = clock.now()
-        pj = problem.on_level(j)
-        disc = discretise(pj)
-        X0 = _initial_guess(initial_guess, disc) if prev is None else \
-            prolong(problem.hierarchy.prolongation(j), disc, prev[0], prev[1])
-        last = j == J
-        # the adaptive variant's coarse levels without estimators (`_coarse_levels`)
-        variant, level_tol, forcing = newton, tol, None
-        if newton == "adaptive" and krylov.preset == "amg":
-            forcing = ADAPTIVE_FORCING
-        if not last and coarse == "residual":
-            variant, level_tol, forcing = "inexact", coarse_tol, COARSE_FORCING
-        estimate = None
-        tag = f"level {j}: " if nested else ""
-        if alg_flux is not None and prev is None:
-            checks.check_force_scale(disc)     # (the certificate's refusal, before any solve)
-        if alg_flux is not None and (variant == "adaptive" or last):
-            # the set-up is a long silent phase on a fine mesh (the patch systems of §5)
-            if say:
-                say(f"{tag}setting up the estimators on {disc.n_global:,} vertices")
-            hits = setups.hits if setups is not None else 0
-            estimate = LevelEstimates(disc, alg_flux if last else "nu",
-                                      problem.hierarchy.up_to(j),
-                                      gamma_alg or DEFAULT_GAMMA, gamma_lin or DEFAULT_GAMMA,
-                                      gate=GATE, setups=setups)
-            est_setup += estimate.setup_time
-            if say:
-                kept = setups is not None and setups.hits > hits
-                say(f"{tag}estimators set up in {estimate.setup_time:.2f} s" +
-                    (" (flux equilibration kept from an earlier solve)" if kept else ""))
-        error = clock.off(_energy_error, disc) if problem.exact is not None and \
-            errors != "none" and (last or errors == "iterates") else None
-        recorder = _Recorder(estimate if variant == "adaptive" else None,
-                             error if errors == "iterates" else None, clock)
-        t_start = clock.now()
-        result = run_newton(disc, X0, cfun=cfun, variant=variant, system=system,
-                            krylov=krylov, estimate=recorder,
-                            gamma_lin=gamma_lin or DEFAULT_GAMMA,
-                            gamma_alg=gamma_alg or DEFAULT_GAMMA, tol=level_tol,
-                            max_newton=max_newton, forcing=forcing,
-                            progress=(lambda line, tag=tag: say(tag + line)) if say else None)
-        # the records Newton made through the recorder (all but the adaptive X⁰), in order
-        stamped = result.history[1:] if variant == "adaptive" else result.history
-        if len(stamped) != len(recorder.stamps):
-            raise RuntimeError("Newton's records and its estimate calls do not match")
-        for rec, (t, err) in zip(stamped, recorder.stamps):
-            rec["wall_time_s"], rec["energy_error"] = t, err
-        if variant == "adaptive":
-            result.history[0]["wall_time_s"] = t_start
-            result.history[0]["energy_error"] = None if error is None or \
-                errors != "iterates" else clock.off(error, newton_guess(disc, X0))
-        final = record_of_X(result.history)
-        if estimate is not None and (variant != "adaptive" or
-                                     not (final.get("estimates") or {}).get("bound")):
-            # exact, inexact: the certificate; adaptive: an X that Newton left before a full
-            # estimate of it (X⁰ or a gated iterate, at the Newton limit or a failed solve)
-            final["estimates"] = estimate(result.X, final_residual(disc, result.X, cfun))
-            if final is result.history[-1]:   # (else the records' clock would go back)
-                final["wall_time_s"] = clock.now()        # the certificate is part of X^k
-        stops = last or not (result.converged or result.stalled)   # (the `break` below)
-        if errors == "final" and stops and problem.exact is not None:
-            if error is None:        # a coarse level the run ends on: its X is the answer
-                error = clock.off(_energy_error, disc)
-            final["energy_error"] = clock.off(error, result.X)
-        level_time = clock.now() - t_level
-        for rec in result.history:
-            rec["level"] = j
-            rec["cumulative_linear_its"] = rec.pop("krylov_total") + its_offset
-            rec["newton_it"], rec["linear_it"] = rec.pop("k"), rec.pop("i")
-            est = rec.pop("estimates", None) or {}
-            rec.update({k: est.get(k) for k in ESTIMATOR_COLUMNS})
-            rec["bound"] = est.get("bound")
-            if est.get("eta_K") is not None:
-                rec["_eta_K"] = est["eta_K"]
-            rec.setdefault("energy_error", None)
-        history.extend(result.history)
-        newton_total += result.newton_steps
-        its_offset += result.krylov_steps
-        if estimate is not None:
-            est_time += estimate.time
-        per_level.append({"level": j, "n_vertices": int(disc.n_global),
-                          "converged": result.converged, "reason": result.reason,
-                          "newton_iterations": result.newton_steps,
-                          "linear_iterations": result.krylov_steps,
-                          "wall_time_s": level_time, "final_residual": final["residual"],
-                          "energy_error": final["energy_error"], "eta": final.get("eta"),
-                          "times": result.times})
-        if stops and not last:
-            break               # (a coarse level that stalled holds its discrete solution to
-        prev = (result.X, disc.n)   # the floor: the best start for the next one)
-        if not last:
-            disc.destroy()             # its PETSc objects (Solution keeps only T_J's)
-    X = result.X
-    wall = clock.now()
-    final = record_of_X(history)
-    eta_K = final.pop("_eta_K", None)
-    for rec in history:
-        rec.pop("_eta_K", None)
-    estimates = {k: final.get(k) for k in ESTIMATOR_COLUMNS} if final.get("eta") is not None \
-        else None
-    if estimates is not None:
-        estimates["bound"] = final.get("bound")
-    sol = Solution(problem if disc.mesh is problem.mesh else pj, disc, X, result.converged,
-                   result.reason, newton_total, its_offset, wall, history, options,
-                   energy_error=final.get("energy_error"),
-                   energy_error_kind=_error_kind(problem) if final.get("energy_error")
-                   is not None else None,
-                   functions=disc.functions(X), eta_K=eta_K, estimates=estimates,
-                   estimator_times=(est_setup, est_time) if alg_flux is not None
-                   else (None, None), per_level=per_level)
-    del estimate, result, recorder, error
-    release_garbage(problem)            # this solve's, outside its clock
-    return sol
+        J = problem.levels
+        levels = list(range(J + 1)) if nested else [J]
+        history, per_level = [], []
+        its_offset, newton_total = 0, 0
+        est_setup, est_time = 0.0, 0.0
+        X, disc, estimate, prev = None, None, None, None
+        clock = _Clock(started)                    # energy errors run off the clock
+        for j in levels:
+            t_level = clock.now()
+            pj = problem.on_level(j)
+            disc = discretise(pj)
+            X0 = _initial_guess(initial_guess, disc) if prev is None else \
+                prolong(problem.hierarchy.prolongation(j), disc, prev[0], prev[1])
+            last = j == J
+            # the adaptive variant's coarse levels without estimators (`_coarse_levels`)
+            variant, level_tol, forcing = newton, tol, None
+            if newton == "adaptive" and krylov.preset == "amg":
+                forcing = ADAPTIVE_FORCING
+            if not last and coarse == "residual":
+                variant, level_tol, forcing = "inexact", coarse_tol, COARSE_FORCING
+            estimate = None
+            tag = f"level {j}: " if nested else ""
+            if alg_flux is not None and prev is None:
+                checks.check_force_scale(disc)     # (the certificate's refusal, before any solve)
+            if alg_flux is not None and (variant == "adaptive" or last):
+                # the set-up is a long silent phase on a fine mesh (the patch systems of §5)
+                if say:
+                    say(f"{tag}setting up the estimators on {disc.n_global:,} vertices")
+                hits = setups.hits if setups is not None else 0
+                estimate = LevelEstimates(disc, alg_flux if last else "nu",
+                                          problem.hierarchy.up_to(j),
+                                          gamma_alg or DEFAULT_GAMMA, gamma_lin or DEFAULT_GAMMA,
+                                          gate=GATE, setups=setups)
+                est_setup += estimate.setup_time
+                if say:
+                    kept = setups is not None and setups.hits > hits
+                    say(f"{tag}estimators set up in {estimate.setup_time:.2f} s" +
+                        (" (flux equilibration kept from an earlier solve)" if kept else ""))
+            error = clock.off(_energy_error, disc) if problem.exact is not None and \
+                errors != "none" and (last or errors == "iterates") else None
+            recorder = _Recorder(estimate if variant == "adaptive" else None,
+                                 error if errors == "iterates" else None, clock)
+            t_start = clock.now()
+            result = run_newton(disc, X0, cfun=cfun, variant=variant, system=system,
+                                krylov=krylov, estimate=recorder,
+                                gamma_lin=gamma_lin or DEFAULT_GAMMA,
+                                gamma_alg=gamma_alg or DEFAULT_GAMMA, tol=level_tol,
+                                max_newton=max_newton, forcing=forcing,
+                                progress=(lambda line, tag=tag: say(tag + line)) if say else None)
+            # the records Newton made through the recorder (all but the adaptive X⁰), in order
+            stamped = result.history[1:] if variant == "adaptive" else result.history
+            if len(stamped) != len(recorder.stamps):
+                raise RuntimeError("Newton's records and its estimate calls do not match")
+            for rec, (t, err) in zip(stamped, recorder.stamps):
+                rec["wall_time_s"], rec["energy_error"] = t, err
+            if variant == "adaptive":
+                result.history[0]["wall_time_s"] = t_start
+                result.history[0]["energy_error"] = None if error is None or \
+                    errors != "iterates" else clock.off(error, newton_guess(disc, X0))
+            final = record_of_X(result.history)
+            if estimate is not None and (variant != "adaptive" or
+                                         not (final.get("estimates") or {}).get("bound")):
+                # exact, inexact: the certificate; adaptive: an X that Newton left before a full
+                # estimate of it (X⁰ or a gated iterate, at the Newton limit or a failed solve)
+                final["estimates"] = estimate(result.X, final_residual(disc, result.X, cfun))
+                if final is result.history[-1]:   # (else the records' clock would go back)
+                    final["wall_time_s"] = clock.now()        # the certificate is part of X^k
+            stops = last or not (result.converged or result.stalled)   # (the `break` below)
+            if errors == "final" and stops and problem.exact is not None:
+                if error is None:        # a coarse level the run ends on: its X is the answer
+                    error = clock.off(_energy_error, disc)
+                final["energy_error"] = clock.off(error, result.X)
+            level_time = clock.now() - t_level
+            for rec in result.history:
+                rec["level"] = j
+                rec["cumulative_linear_its"] = rec.pop("krylov_total") + its_offset
+                rec["newton_it"], rec["linear_it"] = rec.pop("k"), rec.pop("i")
+                est = rec.pop("estimates", None) or {}
+                rec.update({k: est.get(k) for k in ESTIMATOR_COLUMNS})
+                rec["bound"] = est.get("bound")
+                if est.get("eta_K") is not None:
+                    rec["_eta_K"] = est["eta_K"]
+                rec.setdefault("energy_error", None)
+            history.extend(result.history)
+            newton_total += result.newton_steps
+            its_offset += result.krylov_steps
+            if estimate is not None:
+                est_time += estimate.time
+            per_level.append({"level": j, "n_vertices": int(disc.n_global),
+                              "converged": result.converged, "reason": result.reason,
+                              "newton_iterations": result.newton_steps,
+                              "linear_iterations": result.krylov_steps,
+                              "wall_time_s": level_time, "final_residual": final["residual"],
+                              "energy_error": final["energy_error"], "eta": final.get("eta"),
+                              "times": result.times})
+            if stops and not last:
+                break               # (a coarse level that stalled holds its discrete solution to
+            prev = (result.X, disc.n)   # the floor: the best start for the next one)
+            if not last:
+                disc.destroy()             # its PETSc objects (Solution keeps only T_J's)
+        X = result.X
+        wall = clock.now()
+        final = record_of_X(history)
+        eta_K = final.pop("_eta_K", None)
+        for rec in history:
+            rec.pop("_eta_K", None)
+        estimates = {k: final.get(k) for k in ESTIMATOR_COLUMNS} if final.get("eta") is not None \
+            else None
+        if estimates is not None:
+            estimates["bound"] = final.get("bound")
+        sol = Solution(problem if disc.mesh is problem.mesh else pj, disc, X, result.converged,
+                       result.reason, newton_total, its_offset, wall, history, options,
+                       energy_error=final.get("energy_error"),
+                       energy_error_kind=_error_kind(problem) if final.get("energy_error")
+                       is not None else None,
+                       functions=disc.functions(X), eta_K=eta_K, estimates=estimates,
+                       estimator_times=(est_setup, est_time) if alg_flux is not None
+                       else (None, None), per_level=per_level)
+        del estimate, result, recorder, error
+        release_garbage(problem)            # this solve's, outside its clock
+        return sol
 
 
 def _coarse_levels(coarse, coarse_tol, newton, nested):

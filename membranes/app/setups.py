@@ -27,6 +27,8 @@ iterates, η and counts are those of a run without it (tests/test_setups.py). Wh
 memory: the kept systems stay alive between solves, until `clear()`.
 """
 
+import contextlib
+
 import numpy as np
 from mpi4py import MPI
 
@@ -43,6 +45,7 @@ class Setups:
         # id(mesh) → (mesh, FluxEquilibration, the vertex coordinates it was set up on)
         self._kept = {}
         self.hits = 0                            # set-ups taken again, for the caller
+        self._busy = False                       # a solve with this store is running
 
     def __len__(self):
         return len(self._kept)
@@ -71,6 +74,23 @@ class Setups:
         equilibration = FluxEquilibration(disc.V, disc.dx_data)
         self._kept[id(mesh)] = (mesh, equilibration, mesh.geometry.x.copy())
         return equilibration
+
+    @contextlib.contextmanager
+    def in_use(self):
+        """Around a solve with this store: a second solve with it before the first has ended
+        (one called from the first's progress callback) is refused. It would bind the kept
+        equilibration to its own data measures under the first solve, whose next σ_disc
+        would then integrate the loads of §5 with the wrong quadrature and fail its
+        divergence check (a RuntimeError)."""
+        if self._busy:
+            raise ValueError("setups is in use by a solve that has not ended (a solve called "
+                             "from its progress callback?): give this solve a Setups of its "
+                             "own")
+        self._busy = True
+        try:
+            yield self
+        finally:
+            self._busy = False
 
     def clear(self):
         """Free every kept set-up (collective)."""
