@@ -220,7 +220,7 @@ def _parser():
     s.add_argument("--coarse-tol", type=float, metavar="TOL",
                    help="--coarse residual: the coarse levels' tolerance (default 1e-6)")
     s.add_argument("--out", metavar="DIR", type=os.path.expanduser,    # (--out=~/x too)
-                   help="write summary.json, history.csv, solution.xdmf there")
+                   help="write summary.json, history.csv, solution.xdmf and solution.h5 there")
     s.add_argument("--max-vertices", type=int, metavar="N",
                    help="refuse a computational mesh of more than N vertices (default: "
                         "refuse a run that needs more memory than the processes have)")
