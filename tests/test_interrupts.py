@@ -37,6 +37,32 @@ def _env():
     return env
 
 
+def test_a_swallowed_interrupt_is_not_said(capsys):
+    """The interrupt dropped in a weakref callback is raised again, without Python's "Exception
+    ignored in …" traceback above the one line (under mpirun -n 3, rank 0 met SIGTERM in a
+    WeakKeyDictionary's callback); other dropped exceptions are still said."""
+    said, hook = [], sys.unraisablehook
+    previous = interrupts.install()
+    sys.unraisablehook = interrupts._unsaid(said.append)
+    try:
+        class Dropped:
+            def __init__(self, error):
+                self.error = error
+
+            def __del__(self):
+                raise self.error
+
+        interrupts._pending = interrupts.Terminated
+        Dropped(interrupts.Terminated())
+        Dropped(ValueError("said"))
+        interrupts._pending = None
+        Dropped(interrupts.Terminated())
+    finally:
+        interrupts.restore(previous)
+    assert [type(u.exc_value) for u in said] == [ValueError, interrupts.Terminated]
+    assert sys.unraisablehook is hook
+
+
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # (the drop)
 def test_a_swallowed_interrupt_is_raised_again():
     """A signal whose exception Python drops (raised inside a `__del__` or a weakref callback:
@@ -182,6 +208,64 @@ def test_ctrl_c_under_mpirun_leaves_nothing(tmp_path):
                                 signal.SIGINT)
     assert returncode != 0
     assert os.listdir(tmp_path) == []
+
+
+def test_under_mpirun_process_0_says_it_while_the_others_wait_for_it():
+    """SIGTERM to every process of mpirun -n 2 (as mpirun passes Ctrl-C on) while process 0
+    waits in a collective call for process 1, which runs Python: process 1 raised at once and
+    left, process 0 never came back from the call to run its handler, and mpirun killed it:
+    exit 1 and no line (6 of 30 Ctrl-C's into `membranes solve`). Process 1 now goes on into
+    the call (`among`). (The signals go to the processes, not to mpirun, which now and then
+    left a SIGINT of its own unanswered.)"""
+    source = "\n".join([
+        "import os, sys, time",
+        "from mpi4py import MPI",
+        "from membranes.app import cli, interrupts",
+        "def waits(argv):",
+        "    world = MPI.COMM_WORLD",
+        "    print(f'ready {os.getpid()}', file=sys.stderr, flush=True)",
+        "    if world.rank != 0:",
+        "        end = time.monotonic() + 60",
+        "        while interrupts._pending is None and time.monotonic() < end:",
+        "            time.sleep(0.01)              # (Python: the signal is handled here)",
+        "    world.Barrier()                       # (process 0: in C, until process 1 comes)",
+        "    return 0",
+        "cli._main = waits",
+        "sys.exit(cli.main([]))"])
+    mpirun = [shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe", "-n", "2"]
+    proc = subprocess.Popen(mpirun + [sys.executable, "-c", source], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+    pids = []
+    for line in proc.stderr:
+        if line.startswith("ready"):
+            pids.append(int(line.split()[1]))
+        if len(pids) == 2:
+            time.sleep(0.5)                 # (process 0 in the barrier)
+            for pid in pids:
+                os.kill(pid, signal.SIGTERM)
+            break
+    rest = proc.communicate(timeout=120)[1]
+    lines = rest.strip().splitlines()      # (then mpirun's lines on a process's exit 143)
+    assert proc.returncode != 0
+    assert lines[:1] == ["membranes: terminated"] and lines.count(lines[0]) == 1, rest
+
+
+def test_a_process_other_than_0_raises_after_follow(monkeypatch):
+    """A process other than 0 of several holds its raise back FOLLOW seconds (`among`), then
+    raises as process 0 does: a signal sent to it alone still ends the run."""
+    monkeypatch.setattr(interrupts, "FOLLOW", 0.3)
+    previous = interrupts.install()
+    interrupts.among(1, 2)
+    try:
+        start = time.monotonic()
+        with pytest.raises(interrupts.Terminated):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5.0)
+        assert time.monotonic() - start >= 0.25
+        interrupts.caught()
+    finally:
+        interrupts.restore(previous)
+    assert not interrupts._follower        # (restore: a later run in this process leads)
 
 
 def test_main_puts_back_the_signal_handlers_it_replaced():

@@ -405,6 +405,7 @@ def main(argv=None):
     try:
         from mpi4py import MPI
         world = MPI.COMM_WORLD
+        interrupts.among(world.rank, world.size)
         errors = world.Dup() if world.size > 1 else None
         return _ended(argv, world, errors)
     except BrokenPipeError:   # stdout or stderr read by a process that has gone (`| head`),

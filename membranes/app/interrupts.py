@@ -12,7 +12,10 @@ handler itself, at once: mpirun kills the processes about a second after its SIG
 may come before the exception has made its way up through MPI calls and clean-ups; so are
 the C files of compilations the run leaves unfinished (membranes.fem.jit.abandon). Inside
 a `deferred` block (the renames that move the outputs in, all or nothing) a signal waits for
-the block's end.
+the block's end. On several processes, the processes other than 0 (`among`) hold their raise
+back FOLLOW seconds: process 0, the one that says the line, may be waiting for them in a
+collective call, from which it would never come back to Python if they left it; they go on
+until mpirun ends them once process 0 has gone.
 """
 
 import contextlib
@@ -21,10 +24,13 @@ import signal
 import sys
 
 RETRY = 0.05        # seconds between raises of a pending interrupt
+FOLLOW = 2.0        # seconds before a process other than 0 raises (`among`): beyond the
+                    # second mpirun gives the processes between its SIGTERM and its SIGKILL
 
 _pending = None     # the exception class of the signal met, until `caught`
 _deferring = 0      # inside `deferred` blocks: a signal is raised at the end of the outermost
 staging = None      # the folder this process stages outputs in (outputs.staged_folder)
+_follower = False   # one of several processes, not process 0 (`among`)
 
 
 class Terminated(KeyboardInterrupt):
@@ -57,8 +63,8 @@ def _handler(exception):
             jit.abandon()
         _pending = exception
         signal.signal(signal.SIGALRM, _raise_pending)
-        signal.setitimer(signal.ITIMER_REAL, RETRY, RETRY)
-        if not _deferring:
+        signal.setitimer(signal.ITIMER_REAL, FOLLOW if _follower else RETRY, RETRY)
+        if not _deferring and not _follower:
             raise exception
     return handler
 
@@ -73,11 +79,36 @@ def install():
     ignores SIGHUP so that a run outlives its terminal; a shell script's background job
     ignores SIGINT). Returns what `restore` needs (the handlers before, SIGALRM's too: a
     signal met sets it). Main thread only."""
-    previous = {signal.SIGALRM: signal.getsignal(signal.SIGALRM)}
+    previous = {signal.SIGALRM: signal.getsignal(signal.SIGALRM),
+                "unraisablehook": sys.unraisablehook}
+    sys.unraisablehook = _unsaid(sys.unraisablehook)
     for s, e in SIGNALS:
         if signal.getsignal(s) is not signal.SIG_IGN:
             previous[s] = signal.signal(s, _handler(e))
     return previous
+
+
+def _unsaid(hook):
+    """`hook` (sys.unraisablehook) but for the pending interrupt, dropped in a `__del__` or a
+    weakref callback: it is raised again (`_raise_pending`), and its "Exception ignored in …"
+    traceback stood above the one line (under mpirun -n 3, 1 run in 30)."""
+    def unraisable(unraisable):
+        if not (_pending is not None and isinstance(unraisable.exc_value, KeyboardInterrupt)):
+            hook(unraisable)
+    return unraisable
+
+
+def among(rank, size):
+    """This process is process `rank` of `size` (cli.main, once MPI has started). Under mpirun
+    every process gets the signal, each where it is: one that raised at once and left would
+    leave the others waiting for it in their next collective call, where no Python handler
+    runs, until mpirun kills them, process 0 too, before it says the line (a run of
+    `membranes solve` under mpirun -n 2 ended so 6 times in 30 Ctrl-C's: process 0 in
+    dolfinx's create_mesh or an Alltoallv, process 1 gone). So the processes other than 0
+    go on FOLLOW seconds before they raise: a signal sent to one of them alone still ends
+    the run."""
+    global _follower
+    _follower = size > 1 and rank != 0
 
 
 def take_back():
@@ -118,7 +149,11 @@ def caught():
 
 def restore(previous):
     """Stop raising and put back the handlers `install` replaced."""
+    global _follower
     caught()
+    _follower = False
     for s, handler in previous.items():
-        if handler is not None:         # (None: a handler not set from Python, left as is)
+        if s == "unraisablehook":
+            sys.unraisablehook = handler
+        elif handler is not None:       # (None: a handler not set from Python, left as is)
             signal.signal(s, handler)
