@@ -4,6 +4,7 @@ on as SIGTERM and kills the processes a moment later)."""
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -223,7 +224,7 @@ def test_under_mpirun_process_0_says_it_while_the_others_wait_for_it():
         "from membranes.app import cli, interrupts",
         "def waits(argv):",
         "    world = MPI.COMM_WORLD",
-        "    print(f'ready {os.getpid()}', file=sys.stderr, flush=True)",
+        "    os.write(2, f'ready {os.getpid()}\\n'.encode())    # (one write: whole)",
         "    if world.rank != 0:",
         "        end = time.monotonic() + 60",
         "        while interrupts._pending is None and time.monotonic() < end:",
@@ -236,9 +237,8 @@ def test_under_mpirun_process_0_says_it_while_the_others_wait_for_it():
     proc = subprocess.Popen(mpirun + [sys.executable, "-c", source], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
     pids = []
-    for line in proc.stderr:
-        if line.startswith("ready"):
-            pids.append(int(line.split()[1]))
+    for line in proc.stderr:           # (mpirun may still run two processes' lines together)
+        pids += [int(pid) for pid in re.findall(r"ready (\d+)", line)]
         if len(pids) == 2:
             time.sleep(0.5)                 # (process 0 in the barrier)
             for pid in pids:
@@ -266,6 +266,25 @@ def test_a_process_other_than_0_raises_after_follow(monkeypatch):
     finally:
         interrupts.restore(previous)
     assert not interrupts._follower        # (restore: a later run in this process leads)
+
+
+@pytest.mark.parametrize("error", [FileNotFoundError(2, "No such file or directory"),
+                                   ValueError("a staged file is gone"), RuntimeError("x")])
+def test_an_error_after_a_signal_is_the_signals(monkeypatch, capsys, error):
+    """A process that met a signal and goes on (a process other than 0 for FOLLOW seconds,
+    `interrupts.among`) may then meet an error the handler made: its staging folder removed,
+    its compilations abandoned. The run ends as the signal's, in one line, not with that
+    error (a traceback, exit 1; a ValueError was said as bad input, exit 2)."""
+    from membranes.app import cli
+
+    def run(argv):
+        interrupts._pending = interrupts.Terminated   # (as the handler leaves it, deferred)
+        raise error
+
+    monkeypatch.setattr(cli, "_main", run)
+    assert cli.main([]) == cli.EXIT_TERMINATED
+    assert capsys.readouterr().err == "membranes: terminated\n"
+    assert interrupts._pending is None
 
 
 def test_main_puts_back_the_signal_handlers_it_replaced():

@@ -452,13 +452,15 @@ def _ended(argv, world, errors):
         with writing_stdout():   # (a failed write is met here, not at the interpreter's exit)
             sys.stdout.flush()
         return code
-    except ValueError as e:   # BadInput and every data/mesh error of the API
-        return _one_line(world, errors, e, EXIT_BAD_INPUT)
-    except MemoryError as e:  # a size beyond memory that the checks let through (a limit)
-        return _out_of_memory(world, errors, str(e) or "an allocation failed")
     except BrokenPipeError:
         raise
     except Exception as e:
+        from . import interrupts
+        interrupts.raise_pending()     # (an error met after a signal is the signal's)
+        if isinstance(e, ValueError):  # BadInput and every data/mesh error of the API
+            return _one_line(world, errors, e, EXIT_BAD_INPUT)
+        if isinstance(e, MemoryError):   # a size beyond memory the checks let through
+            return _out_of_memory(world, errors, str(e) or "an allocation failed")
         if "PetscMallocA()" in str(e):       # PETSc's (a petsc4py.PETSc.Error with its trace)
             return _out_of_memory(world, errors, "PETSc could not allocate memory")
         if isinstance(e, ImportError) and e.name == "dolfinx" \

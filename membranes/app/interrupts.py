@@ -138,6 +138,15 @@ def deferred():
         raise _pending
 
 
+def raise_pending():
+    """Raise the interrupt met, if one is pending: an error that follows a signal is the
+    signal's (its handler removed the staging folder and abandoned the compilations under
+    the run, and a process other than 0 goes on FOLLOW seconds after it, `among`, and may
+    meet them): the run ends as interrupted, with its one line, not with that error."""
+    if _pending is not None:
+        raise _pending
+
+
 def caught():
     """The interrupt reached code that handles it: no more raises (its clean-up must not be
     interrupted in turn)."""
