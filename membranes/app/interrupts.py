@@ -91,7 +91,7 @@ def install():
 def _unsaid(hook):
     """`hook` (sys.unraisablehook) but for the pending interrupt, dropped in a `__del__` or a
     weakref callback: it is raised again (`_raise_pending`), and its "Exception ignored in …"
-    traceback stood above the one line (under mpirun -n 3, 1 run in 30)."""
+    traceback stood above the one line (under mpirun; BENCHMARKS.md, "Robustness")."""
     def unraisable(unraisable):
         if not (_pending is not None and isinstance(unraisable.exc_value, KeyboardInterrupt)):
             hook(unraisable)
@@ -102,11 +102,10 @@ def among(rank, size):
     """This process is process `rank` of `size` (cli.main, once MPI has started). Under mpirun
     every process gets the signal, each where it is: one that raised at once and left would
     leave the others waiting for it in their next collective call, where no Python handler
-    runs, until mpirun kills them, process 0 too, before it says the line (a run of
-    `membranes solve` under mpirun -n 2 ended so 6 times in 30 Ctrl-C's: process 0 in
-    dolfinx's create_mesh or an Alltoallv, process 1 gone). So the processes other than 0
-    go on FOLLOW seconds before they raise: a signal sent to one of them alone still ends
-    the run."""
+    runs, until mpirun kills them, process 0 too, before it says the line (process 0 in
+    dolfinx's create_mesh or an Alltoallv, the others gone: exit 1 and no line; BENCHMARKS.md,
+    "Robustness"). So the processes other than 0 go on FOLLOW seconds before they raise: a
+    signal sent to one of them alone still ends the run."""
     global _follower
     _follower = size > 1 and rank != 0
 
