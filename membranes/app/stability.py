@@ -59,6 +59,7 @@ from typing import Callable
 import numpy as np
 from mpi4py import MPI
 
+from . import interrupts
 from .report import PARALLEL_COUNTS
 from .versions import one_line, software
 
@@ -224,6 +225,7 @@ def run_case(case, h=DEFAULT_H, methods=METHODS, say=lambda line: None):
             sol = solve(problem, newton=newton, cfun=cfun, solver=solver,
                         initial_guess=case.initial_guess, **options)
         except Exception as e:      # noqa: BLE001  (a failed run is a row of the matrix)
+            interrupts.raise_pending()      # (unless a signal made it: the signal's)
             out[name] = e
             say(f"stability: {case.name:14s} {name:22s} ERROR {type(e).__name__}: {e}")
             continue

@@ -98,6 +98,20 @@ def test_a_run_that_raises_is_a_failed_row():
     assert "1 of 2 runs converged" in text and "tiny min/adaptive/direct: ValueError" in text
 
 
+def test_a_run_that_raises_after_a_signal_ends_the_matrix():
+    """An error that follows a signal is the signal's (membranes.app.interrupts): a process
+    other than 0 goes on for a moment after it, and a run it then fails (its staging folder
+    or compilations gone) is no failed row to go on from: the matrix ends as interrupted."""
+    from membranes.app import interrupts
+    case = stability.select(["tiny"])[0]
+    interrupts._pending = interrupts.Terminated       # (as a handler leaves it, deferred)
+    try:
+        with pytest.raises(interrupts.Terminated):
+            stability.run_case(case, H, [("min", "adaptive", "direct")])
+    finally:
+        interrupts.caught()
+
+
 def test_scale_defect_measures_the_difference():
     """The defect of a run against itself times s is 0, and a planted change shows."""
     rows, runs = matrix(("tiny", "far_guess"))
