@@ -211,43 +211,80 @@ def test_ctrl_c_under_mpirun_leaves_nothing(tmp_path):
     assert os.listdir(tmp_path) == []
 
 
-def test_under_mpirun_process_0_says_it_while_the_others_wait_for_it():
-    """SIGTERM to every process of mpirun -n 2 (as mpirun passes Ctrl-C on) while process 0
-    waits in a collective call for process 1, which runs Python: process 1 raised at once and
-    left, process 0 never came back from the call to run its handler, and mpirun killed it:
-    exit 1 and no line (6 of 30 Ctrl-C's into `membranes solve`). Process 1 now goes on into
-    the call (`among`). (The signals go to the processes, not to mpirun, which now and then
-    left a SIGINT of its own unanswered.)"""
+def _sigterm_both(body):
+    """Run `body` (the source lines of a function `waits(world)`, indented, with `world`
+    MPI.COMM_WORLD) as the command of `membranes.app.cli.main` under mpirun -n 2; once both
+    processes have said "ready PID", wait 0.5 s and send SIGTERM to both, as mpirun passes
+    Ctrl-C on. (The signals go to the processes, not to mpirun, which now and then left a
+    SIGINT of its own unanswered.) Returns mpirun's exit code and the lines of its stderr
+    after the "ready" lines; a run still going after 60 s is killed and fails the test."""
     source = "\n".join([
         "import os, sys, time",
         "from mpi4py import MPI",
-        "from membranes.app import cli, interrupts",
-        "def waits(argv):",
+        "from membranes.app import cli, interrupts, outputs",
+        "def waits(world):"] + body + [
+        "def command(argv):",
         "    world = MPI.COMM_WORLD",
         "    os.write(2, f'ready {os.getpid()}\\n'.encode())    # (one write: whole)",
+        "    return waits(world)",
+        "cli._main = command",
+        "sys.exit(cli.main([]))"])
+    mpirun = [shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe", "-n", "2"]
+    proc = subprocess.Popen(mpirun + [sys.executable, "-c", source], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT,
+                            start_new_session=True)
+    pids = []
+    for line in proc.stderr:           # (mpirun may still run two processes' lines together)
+        pids += [int(pid) for pid in re.findall(r"ready (\d+)", line)]
+        if len(pids) == 2:
+            time.sleep(0.5)
+            for pid in pids:
+                os.kill(pid, signal.SIGTERM)
+            break
+    try:
+        rest = proc.communicate(timeout=60)[1]
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail("the processes still ran 60 s after the signal")
+    return proc.returncode, rest.strip().splitlines()
+
+
+def test_under_mpirun_process_0_says_it_while_the_others_wait_for_it():
+    """SIGTERM to every process of mpirun -n 2 while process 0 waits in a collective call for
+    process 1, which runs Python: process 1 raised at once and left, process 0 never came
+    back from the call to run its handler, and mpirun killed it: exit 1 and no line (6 of 30
+    Ctrl-C's into `membranes solve`). Process 1 now goes on into the call (`among`)."""
+    code, lines = _sigterm_both([
         "    if world.rank != 0:",
         "        end = time.monotonic() + 60",
         "        while interrupts._pending is None and time.monotonic() < end:",
         "            time.sleep(0.01)              # (Python: the signal is handled here)",
         "    world.Barrier()                       # (process 0: in C, until process 1 comes)",
-        "    return 0",
-        "cli._main = waits",
-        "sys.exit(cli.main([]))"])
-    mpirun = [shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe", "-n", "2"]
-    proc = subprocess.Popen(mpirun + [sys.executable, "-c", source], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
-    pids = []
-    for line in proc.stderr:           # (mpirun may still run two processes' lines together)
-        pids += [int(pid) for pid in re.findall(r"ready (\d+)", line)]
-        if len(pids) == 2:
-            time.sleep(0.5)                 # (process 0 in the barrier)
-            for pid in pids:
-                os.kill(pid, signal.SIGTERM)
-            break
-    rest = proc.communicate(timeout=120)[1]
-    lines = rest.strip().splitlines()      # (then mpirun's lines on a process's exit 143)
-    assert proc.returncode != 0
-    assert lines[:1] == ["membranes: terminated"] and lines.count(lines[0]) == 1, rest
+        "    return 0"])
+    assert code != 0          # (then mpirun's lines on a process's exit 143)
+    assert lines[:1] == ["membranes: terminated"] and lines.count(lines[0]) == 1, lines
+
+
+def test_under_mpirun_a_signal_inside_staged_outputs_ends_process_0_at_once(tmp_path):
+    """`report` and `stability` stage their outputs around all their runs. Process 0 met the
+    signal there and went into the staging's collective clean-up, while process 1 went on
+    with its run (`among`) into a collective of the run's: the two calls did not match
+    (process 0 took process 1's data for its own: "membranes: error: The truth value of an
+    array ... is ambiguous", or waited), and under mpirun 16 of 20 Ctrl-C's into a report
+    ended without a line (11 of 20 before `among`). Process 0 now leaves the staging at once
+    and says the line; nothing is left in or beside the output folder."""
+    out = tmp_path / "out"
+    code, lines = _sigterm_both([
+        f"    with outputs.staged_folder({str(out)!r}, world):",
+        "        end = time.monotonic() + 60",
+        "        while interrupts._pending is None and time.monotonic() < end:",
+        "            time.sleep(0.01)              # (Python: the signal is handled here)",
+        "        world.bcast(list(range(100000)), root=1)     # (process 1: the run goes on)",
+        "    return 0"])
+    assert code != 0
+    assert lines[:1] == ["membranes: terminated"] and lines.count(lines[0]) == 1, lines
+    assert os.listdir(tmp_path) == []
 
 
 def test_a_process_other_than_0_raises_after_follow(monkeypatch):

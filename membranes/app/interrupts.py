@@ -137,6 +137,12 @@ def deferred():
         raise _pending
 
 
+def pending():
+    """Whether a signal was met and its interrupt is still to be raised or handled (a
+    process other than 0 goes on FOLLOW seconds after it, `among`)."""
+    return _pending is not None
+
+
 def raise_pending():
     """Raise the interrupt met, if one is pending: an error that follows a signal is the
     signal's (its handler removed the staging folder and abandoned the compilations under

@@ -176,21 +176,27 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=(), names=()):
     failed = None
     try:
         yield tmp
+    except KeyboardInterrupt:
+        # a signal: the staged files go, and the run ends here, without the collectives
+        # below. The other processes met the signal too, each where it is (a process other
+        # than 0 goes on a moment, `interrupts.among`), so no collective call can be counted
+        # on to meet theirs: process 0 waited in one for ever, or took another's data for
+        # its own; under mpirun a process that has gone ends the rest (membranes.app.cli)
+        interrupts.caught()             # (no second raise inside the clean-up)
+        shutil.rmtree(tmp, ignore_errors=True)
+        interrupts.staging = None
+        raise
     except BaseException as e:          # noqa: BLE001  (every process must learn of it)
         failed = e
-        if isinstance(e, KeyboardInterrupt):
-            interrupts.caught()         # (no second raise inside the clean-up)
-            # the collectives below may wait until the job is killed: the staged files go now
-            shutil.rmtree(tmp, ignore_errors=True)
     if comm.rank != 0:
         interrupts.staging = None       # (process 0 may move the files in from here on)
     everyone = comm.allreduce(failed is None, op=MPI.LAND)
     written = None                      # why a process could not write, if one could not
-    signalled = False                   # whether a process met a signal
+    signalled = False                   # whether a process has met a signal and goes on
     if not everyone:
         mine = f"{failed.strerror or failed}" if isinstance(failed, OSError) and \
             not isinstance(failed, BrokenPipeError) else None      # (`| head`: no output's)
-        reasons = comm.allgather((mine, isinstance(failed, KeyboardInterrupt)))
+        reasons = comm.allgather((mine, interrupts.pending()))
         signalled = any(s for _, s in reasons)
         if not signalled:
             written = next((r for r, _ in reasons if r is not None), None)
@@ -213,8 +219,8 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=(), names=()):
                     shutil.rmtree(tmp, ignore_errors=True)
                 interrupts.staging = None
         error = comm.bcast(error, root=0)
-    if signalled and not isinstance(failed, KeyboardInterrupt):
-        # the handler of the process that met it removed the folder the others write into
+    if signalled:
+        # the handler of a process that met it removed the folder the others write into
         # (`interrupts`): they end as it does, not with a failed write
         raise interrupts.Terminated from failed
     if written is not None:
