@@ -23,6 +23,7 @@ import os
 import sys
 import time
 
+from . import interrupts
 from .logs import quiet_jit_logging
 
 EXIT_BAD_INPUT = 2
@@ -396,8 +397,6 @@ def _leave(errors, code, say):
 
 def main(argv=None):
     _standard_streams()
-    from . import interrupts
-
     # the handlers first: MPI's start (mpi4py's import, a few tenths of a second) would
     # otherwise meet Ctrl-C with a traceback
     previous = interrupts.install()
@@ -455,7 +454,6 @@ def _ended(argv, world, errors):
     except BrokenPipeError:
         raise
     except Exception as e:
-        from . import interrupts
         interrupts.raise_pending()     # (an error met after a signal is the signal's)
         if isinstance(e, ValueError):  # BadInput and every data/mesh error of the API
             return _one_line(world, errors, e, EXIT_BAD_INPUT)
@@ -483,7 +481,6 @@ def _out_of_memory(world, errors, what):
 def _signalled(e, world, errors):
     """The exit code of the signal that raised `e`, said in one line by process 0 (`world`
     None: met in MPI's start)."""
-    from . import interrupts
     interrupts.caught()
     code, said = ((EXIT_HUNG_UP, "hung up") if isinstance(e, interrupts.HungUp) else
                   (EXIT_TERMINATED, "terminated") if isinstance(e, interrupts.Terminated)
@@ -533,7 +530,6 @@ def _main(argv=None):
         args = _parser().parse_args(glued)
     except BadInput as e:
         raise BadInput(_unglued(str(e), argv, glued)) from None
-    from . import interrupts
     interrupts.take_back()           # (the signals PETSc's initialisation took)
     if args.command == "scenes":
         return _scenes()
