@@ -104,5 +104,5 @@ def mpirun(args, processes=2, timeout=120, extra=(), unset=(), environ=None):
 
 def aspect_ratios(mesh):
     """Longest edge over smallest altitude, h_K² / (2 |K|), of every owned cell."""
-    from membranes.fem.meshes import aspect_ratios
-    return aspect_ratios(mesh)
+    from membranes.fem.meshes import cell_vertices, stretches
+    return stretches(cell_vertices(mesh))

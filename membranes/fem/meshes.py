@@ -475,12 +475,6 @@ def stretches(p):
     return longest_edges(p) ** 2 / (2.0 * triangle_areas(p))
 
 
-def aspect_ratios(mesh):
-    """`stretches` of every owned cell: about the square root of the condition of the
-    cell's (and its patch's) local matrices."""
-    return stretches(cell_vertices(mesh))
-
-
 def mesh_size(mesh):
     """h = max_K h_K over all processes."""
     local = cell_diameters(mesh).max(initial=0.0)
