@@ -439,11 +439,13 @@ def test_ctrl_c_is_ours_while_gmsh_loads_its_library():
     assert proc.returncode == 0, proc.stderr
 
 
-def test_a_signal_while_the_outputs_move_in_waits_for_the_last_rename(tmp_path, monkeypatch):
+def test_a_signal_while_the_outputs_move_in_waits_for_the_last_rename(tmp_path, monkeypatch,
+                                                                      capsys):
     """SIGTERM after the first rename of the outputs into a folder of an older run: the
-    renames go on to the last, then the run ends as terminated, every output the new one;
-    the signal used to stop the moves halfway, old and new outputs side by side and the
-    older copies of the moved ones deleted."""
+    renames go on to the last, every output the new one (the signal used to stop the moves
+    halfway, old and new outputs side by side and the older copies of the moved ones
+    deleted); the outputs are then in place, so the signal is said and does not end the run
+    (it ended as terminated, exit 143 with whole outputs)."""
     from mpi4py import MPI
 
     from membranes.app import outputs
@@ -464,17 +466,84 @@ def test_a_signal_while_the_outputs_move_in_waits_for_the_last_rename(tmp_path, 
     monkeypatch.setattr(os, "replace", replace)
     previous = interrupts.install()
     try:
-        with pytest.raises(interrupts.Terminated):
-            with outputs.staged_folder(str(out), MPI.COMM_SELF) as tmp:
-                for name in names:
-                    with open(os.path.join(tmp, name), "w") as f:
-                        f.write("new")
-        interrupts.caught()
+        with outputs.staged_folder(str(out), MPI.COMM_SELF) as tmp:
+            for name in names:
+                with open(os.path.join(tmp, name), "w") as f:
+                    f.write("new")
+        time.sleep(0.3)                   # (no raise again either: SIGALRM's retries stopped)
     finally:
         interrupts.restore(previous)
     assert len(renames) == len(names)
     assert {p.name: p.read_text() for p in out.iterdir()} == dict.fromkeys(names, "new")
     assert os.listdir(tmp_path) == ["out"]
+    assert capsys.readouterr().err.startswith("membranes: terminated after the outputs were "
+                                              "written (they are whole)")
+
+
+def test_a_signal_once_the_outputs_are_in_place_is_said_and_the_run_ends_as_it_would():
+    """After `settle` a signal is said in one line and nothing is raised; a process that
+    starts the handlers again (`install`) is back to raising."""
+    previous = interrupts.install()
+    try:
+        interrupts.settle()
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.3)
+    finally:
+        interrupts.restore(previous)
+    previous = interrupts.install()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5.0)
+        interrupts.caught()
+    finally:
+        interrupts.restore(previous)
+
+
+def test_a_second_signal_once_the_outputs_are_in_place_ends_the_process_at_once():
+    """The first signal after `settle` is said and the run goes on to its end; the second
+    ends the process with the signal's code (an exit that would hang stays stoppable)."""
+    script = ("import os, signal, time\n"
+              "from membranes.app import interrupts\n"
+              "interrupts.install()\n"
+              "interrupts.settle()\n"
+              "os.kill(os.getpid(), signal.SIGTERM)\n"
+              "time.sleep(0.2)\n"
+              "print('went on', flush=True)\n"
+              "os.kill(os.getpid(), signal.SIGTERM)\n"
+              "time.sleep(5.0)\n"
+              "print('not here')\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env=_env(), cwd=ROOT, timeout=60)
+    assert run.returncode == 143, run.stderr
+    assert run.stdout == "went on\n"
+    assert run.stderr.strip().splitlines() == [
+        "membranes: terminated after the outputs were written (they are whole); the run ends "
+        "with its own exit code"]
+
+
+def test_ctrl_c_after_the_outputs_are_written_leaves_the_exit_code_the_runs(tmp_path):
+    """Ctrl-C as the summary line comes (the outputs moved in just before): the run used to
+    end with 130 and `membranes: interrupted`, which say that nothing was written, or with
+    -2 from the interpreter's exit (Python's finalisation puts back SIGINT's default action
+    before MPI and PETSc finish); its outputs are whole and it ends with 0. The signal is
+    said in one line where it comes before the exit has begun; the exit ignores it."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "membranes.app.cli", "solve", "--h", "0.2",
+                             "--levels", "2", "--out", str(out)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+    for line in proc.stdout:
+        if line.startswith("{"):
+            proc.send_signal(signal.SIGINT)
+            break
+    err = proc.communicate(timeout=120)[1]
+    assert proc.returncode == 0, err
+    assert sorted(os.listdir(out)) == ["history.csv", "solution.h5", "solution.xdmf",
+                                       "summary.json"]
+    assert json.loads((out / "summary.json").read_text())["converged"] is True
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(("membranes: interrupted after the outputs", "writing the outputs"))
+    assert "Traceback" not in err
 
 
 @pytest.mark.parametrize("fd", [0, 1, 2], ids=["stdin", "stdout", "stderr"])

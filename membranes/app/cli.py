@@ -395,6 +395,15 @@ def _leave(errors, code, say):
     os._exit(code)
 
 
+def command():
+    """The `membranes` console script and `python -m membranes.app.cli`: `main` in a process
+    that exits right after it, so that a signal met once the run's outputs are in place is
+    said and the exit goes on (`interrupts.settle`), not a KeyboardInterrupt in the
+    interpreter's exit (exit -2, the outputs whole)."""
+    interrupts.process_ends = True
+    return main()
+
+
 def main(argv=None):
     _standard_streams()
     # the handlers first: MPI's start (mpi4py's import, a few tenths of a second) would
@@ -482,9 +491,9 @@ def _signalled(e, world, errors):
     """The exit code of the signal that raised `e`, said in one line by process 0 (`world`
     None: met in MPI's start)."""
     interrupts.caught()
-    code, said = ((EXIT_HUNG_UP, "hung up") if isinstance(e, interrupts.HungUp) else
-                  (EXIT_TERMINATED, "terminated") if isinstance(e, interrupts.Terminated)
-                  else (EXIT_INTERRUPTED, "interrupted"))
+    code = (EXIT_HUNG_UP if isinstance(e, interrupts.HungUp) else EXIT_TERMINATED
+            if isinstance(e, interrupts.Terminated) else EXIT_INTERRUPTED)
+    said = interrupts.said(e)
     if (world.rank if world is not None else _rank()) == 0:
         print(f"membranes: {said}", file=sys.stderr, flush=True)
     if errors is not None:  # the others may wait in a collective: no MPI_Finalize
@@ -545,4 +554,4 @@ def _main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(command())

@@ -16,9 +16,16 @@ the block's end. On several processes, the processes other than 0 (`among`) hold
 back FOLLOW seconds: process 0, the one that says the line, may be waiting for them in a
 collective call, from which it would never come back to Python if they left it; they go on
 until mpirun ends them once process 0 has gone.
+
+Once the run's outputs are in place (`settle`: they move in all at once, at the end) a
+signal no longer ends it as interrupted: what is left is printing its last lines and the
+process's exit, and an exit code of 130 would say that nothing was written. The signal is
+said in one line and the run ends with its own code; a second signal ends the process at
+once (printing to a stream nobody reads, say). The process's exit then ignores them (`restore`).
 """
 
 import contextlib
+import os
 import shutil
 import signal
 import sys
@@ -31,6 +38,10 @@ _pending = None     # the exception class of the signal met, until `caught`
 _deferring = 0      # inside `deferred` blocks: a signal is raised at the end of the outermost
 staging = None      # the folder this process stages outputs in (outputs.staged_folder)
 _follower = False   # one of several processes, not process 0 (`among`)
+_settled = False    # the run's outputs are in place (`settle`): a signal no longer ends it
+_late = None        # the exception class of the signal met after `settle`, if one was
+process_ends = False    # the process exits after the command (cli.command): `restore` keeps
+                        # a settled run's handlers through the exit
 
 
 class Terminated(KeyboardInterrupt):
@@ -53,9 +64,19 @@ def _raise_pending(signum, frame):
         raise _pending
 
 
+def said(exception):
+    """The words of the one line for the signal of `exception` (a class or an instance)."""
+    kind = exception if isinstance(exception, type) else type(exception)
+    return ("hung up" if issubclass(kind, HungUp) else "terminated"
+            if issubclass(kind, Terminated) else "interrupted")
+
+
 def _handler(exception):
     def handler(signum, frame):
         global _pending
+        if _settled:
+            _after_the_outputs(exception, signum)
+            return
         if staging is not None and not _deferring:
             shutil.rmtree(staging, ignore_errors=True)
         jit = sys.modules.get("membranes.fem.jit")      # (loaded: forms may be compiling)
@@ -73,12 +94,29 @@ SIGNALS = ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated),
            (signal.SIGHUP, HungUp))
 
 
+def _after_the_outputs(exception, signum):
+    """A signal once the outputs are in place (`settle`): the first is said and the run goes
+    on to its end; a second ends the process at once, with the signal's exit code."""
+    global _late
+    if _late is not None:
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+        os._exit(128 + signum)
+    _late = exception
+    if not _follower:
+        with contextlib.suppress(OSError):     # (SIGHUP: the terminal may have gone)
+            print(f"membranes: {said(exception)} after the outputs were written (they are "
+                  f"whole); the run ends with its own exit code", file=sys.stderr, flush=True)
+
+
 def install():
     """Raise KeyboardInterrupt on SIGINT, `Terminated` on SIGTERM and `HungUp` on SIGHUP,
     again until `caught`; a signal the process was started with ignored stays ignored (`nohup`
     ignores SIGHUP so that a run outlives its terminal; a shell script's background job
     ignores SIGINT). Returns what `restore` needs (the handlers before, SIGALRM's too: a
     signal met sets it). Main thread only."""
+    global _settled, _late
+    _settled, _late = False, None
     previous = {signal.SIGALRM: signal.getsignal(signal.SIGALRM),
                 "unraisablehook": sys.unraisablehook}
     sys.unraisablehook = _unsaid(sys.unraisablehook)
@@ -133,8 +171,20 @@ def deferred():
         yield
     finally:
         _deferring -= 1
-    if _pending is not None and not _deferring:
+    if _pending is not None and not _deferring and not _settled:
         raise _pending
+
+
+def settle():
+    """The run's outputs are in place (membranes.app.outputs.staged_folder, every file moved
+    in): from now on a signal is said and the run goes on to its end (module notes); a
+    signal met during the last renames (`deferred`) is said likewise, not raised."""
+    global _settled
+    met = _pending
+    caught()
+    _settled = True
+    if met is not None:
+        _after_the_outputs(met, 0)
 
 
 def pending():
@@ -162,10 +212,17 @@ def caught():
 
 
 def restore(previous):
-    """Stop raising and put back the handlers `install` replaced."""
-    global _follower
+    """Stop raising and put back the handlers `install` replaced. After a settled run in a
+    process that exits next (`process_ends`) the signals are ignored instead, for the exit's
+    last moments (`settle`): Python's finalisation puts back the default action of a handler
+    of its own before MPI and PETSc finish, and a SIGINT there ended the process with -2."""
+    global _follower, _settled, _late
     caught()
-    _follower = False
+    if _settled and process_ends:
+        for s, _ in SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+        return
+    _follower, _settled, _late = False, False, None
     for s, handler in previous.items():
         if s == "unraisablehook":
             sys.unraisablehook = handler

@@ -219,6 +219,8 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=(), names=()):
                     shutil.rmtree(tmp, ignore_errors=True)
                 interrupts.staging = None
         error = comm.bcast(error, root=0)
+        if everyone and error is None:
+            interrupts.settle()        # (in place: a signal from here on does not end the run)
     if signalled:
         # the handler of a process that met it removed the folder the others write into
         # (`interrupts`): they end as it does, not with a failed write
