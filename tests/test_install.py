@@ -64,7 +64,7 @@ def test_wheel_holds_every_file_the_code_needs(wheel):
     assert not any(n.startswith("forms/") for n in names)      # (no top-level `forms`)
     assert _modules() <= shipped, sorted(_modules() - shipped)
     assert "membranes/app/render.py" in shipped          # run by its path as a script
-    assert "membranes = membranes.app.cli:main" in entry_points
+    assert "membranes = membranes.app.cli:command" in entry_points
 
 
 def test_wheel_version_is_the_package_version(wheel):
