@@ -107,16 +107,21 @@ def test_no_raise_again_while_the_interrupt_is_handled():
         interrupts._pending = None
 
 
+def _raised_on(sig, exception):
+    """`sig` sent to this process raises `exception` (the handlers installed), then caught."""
+    with pytest.raises(exception):
+        os.kill(os.getpid(), sig)
+        time.sleep(5.0)
+    interrupts.caught()
+
+
 def test_the_handler_removes_the_staging_folder(tmp_path):
     stage = tmp_path / ".membranes-x"
     (stage / "a").mkdir(parents=True)
     previous = interrupts.install()
     interrupts.staging = str(stage)
     try:
-        with pytest.raises(KeyboardInterrupt):
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(5.0)
-        interrupts.caught()
+        _raised_on(signal.SIGINT, KeyboardInterrupt)
     finally:
         interrupts.staging = None
         interrupts.restore(previous)
@@ -492,10 +497,7 @@ def test_a_signal_once_the_outputs_are_in_place_is_said_and_the_run_ends_as_it_w
         interrupts.restore(previous)
     previous = interrupts.install()
     try:
-        with pytest.raises(KeyboardInterrupt):
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(5.0)
-        interrupts.caught()
+        _raised_on(signal.SIGINT, KeyboardInterrupt)
     finally:
         interrupts.restore(previous)
 
