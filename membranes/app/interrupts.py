@@ -21,7 +21,7 @@ Once the run's outputs are in place (`settle`: they move in all at once, at the 
 signal no longer ends it as interrupted: what is left is printing its last lines and the
 process's exit, and an exit code of 130 would say that nothing was written. The signal is
 said in one line and the run ends with its own code; a second signal ends the process at
-once (printing to a stream nobody reads, say). The process's exit then ignores them (`restore`).
+once (printing to a stream nobody reads, say). The process's exit ignores them (`restore`).
 """
 
 import contextlib
@@ -39,9 +39,9 @@ _deferring = 0      # inside `deferred` blocks: a signal is raised at the end of
 staging = None      # the folder this process stages outputs in (outputs.staged_folder)
 _follower = False   # one of several processes, not process 0 (`among`)
 _settled = False    # the run's outputs are in place (`settle`): a signal no longer ends it
-_late = None        # the exception class of the signal met after `settle`, if one was
-process_ends = False    # the process exits after the command (cli.command): `restore` keeps
-                        # a settled run's handlers through the exit
+_late = None        # the exception class of the first signal after `settle` (said), if any
+process_ends = False    # the process exits after the command (cli.command): `restore` then
+                        # has a settled run's exit ignore the signals
 
 
 class Terminated(KeyboardInterrupt):
