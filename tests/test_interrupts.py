@@ -467,6 +467,7 @@ def test_a_signal_while_the_outputs_move_in_waits_for_the_last_rename(tmp_path, 
             renames.append(target)
             if len(renames) == 1:
                 os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(4 * interrupts.RETRY)      # (slow renames: SIGALRM's retries come)
 
     monkeypatch.setattr(os, "replace", replace)
     previous = interrupts.install()
@@ -483,6 +484,59 @@ def test_a_signal_while_the_outputs_move_in_waits_for_the_last_rename(tmp_path, 
     assert os.listdir(tmp_path) == ["out"]
     assert capsys.readouterr().err.startswith("membranes: terminated after the outputs were "
                                               "written (they are whole)")
+
+
+def test_ctrl_c_in_staged_outputs_without_the_handlers_leaves_nothing(tmp_path):
+    """A KeyboardInterrupt inside `staged_folder` where the handlers are not installed (the
+    API in a script or a notebook: Python's own Ctrl-C) removes the staging folder too."""
+    from mpi4py import MPI
+
+    from membranes.app import outputs
+    with pytest.raises(KeyboardInterrupt):
+        with outputs.staged_folder(str(tmp_path / "out"), MPI.COMM_SELF) as tmp:
+            open(os.path.join(tmp, "a.txt"), "w").close()
+            raise KeyboardInterrupt
+    assert os.listdir(tmp_path) == []
+
+
+def test_under_mpirun_staged_outputs_end_with_the_signal_of_one_process(tmp_path):
+    """mpirun -n 2. First a staging that succeeds: no process keeps pointing its handler at
+    the staging folder (after a move that could not be undone, the older files are kept in
+    it, and a later signal would have removed them). Then SIGTERM to process 1 alone, while
+    both write: its handler removes the shared staging folder, so its write fails; process 0,
+    which met no signal, ends as terminated, not with the failed write as bad input."""
+    script = tmp_path / "one_signalled.py"
+    script.write_text("\n".join([
+        "import os, signal, sys, time",
+        "from mpi4py import MPI",
+        "from membranes.app import interrupts, outputs",
+        "world = MPI.COMM_WORLD",
+        "previous = interrupts.install()",
+        "interrupts.among(world.rank, world.size)",
+        "with outputs.staged_folder(os.path.join(sys.argv[1], 'first'), world):",
+        "    pass",
+        "print(world.rank, 'staging', interrupts.staging, flush=True)",
+        "try:",
+        "    with outputs.staged_folder(os.path.join(sys.argv[1], 'second'), world) as tmp:",
+        "        world.Barrier()",
+        "        if world.rank == 1:",
+        "            os.kill(os.getpid(), signal.SIGTERM)   # (this process alone)",
+        "            time.sleep(0.1)",
+        "            open(os.path.join(tmp, 'a.txt'), 'w').close()",
+        "    print(world.rank, 'ended', 'without an error', flush=True)",
+        "except BaseException as e:",
+        "    print(world.rank, 'ended', type(e).__name__, flush=True)",
+        "finally:",
+        "    interrupts.caught()",
+        "    interrupts.restore(previous)"]) + "\n")
+    mpirun = [shutil.which("mpirun"), "--allow-run-as-root", "--oversubscribe", "-n", "2"]
+    run = subprocess.run(mpirun + [sys.executable, str(script), str(tmp_path)], env=_env(),
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    lines = sorted(run.stdout.split("\n"))
+    assert [line for line in lines if "staging" in line] == ["0 staging None",
+                                                             "1 staging None"], run.stderr
+    assert "0 ended Terminated" in lines, run.stdout + run.stderr
+    assert sorted(os.listdir(tmp_path)) == ["first", "one_signalled.py"]
 
 
 def test_a_signal_once_the_outputs_are_in_place_is_said_and_the_run_ends_as_it_would():

@@ -59,7 +59,7 @@ def _raise_pending(signum, frame):
     # (not while an interrupt is being handled, or propagates through a `finally`: it has not
     # been dropped, and a raise there, e.g. in the handler before it calls `caught`, would
     # end the run with a traceback; a run whose plaza refinement met SIGTERM did)
-    if _pending is not None and not _deferring \
+    if _pending is not None and not _deferring and not _settled \
             and not isinstance(sys.exc_info()[1], KeyboardInterrupt):
         raise _pending
 
@@ -115,8 +115,7 @@ def install():
     ignores SIGHUP so that a run outlives its terminal; a shell script's background job
     ignores SIGINT). Returns what `restore` needs (the handlers before, SIGALRM's too: a
     signal met sets it). Main thread only."""
-    global _settled, _late
-    _settled, _late = False, None
+    unsettle()
     previous = {signal.SIGALRM: signal.getsignal(signal.SIGALRM),
                 "unraisablehook": sys.unraisablehook}
     sys.unraisablehook = _unsaid(sys.unraisablehook)
@@ -180,11 +179,18 @@ def settle():
     in): from now on a signal is said and the run goes on to its end (module notes); a
     signal met during the last renames (`deferred`) is said likewise, not raised."""
     global _settled
+    _settled = True             # (first: a signal from here on takes the settled path)
     met = _pending
     caught()
-    _settled = True
-    if met is not None:
+    if met is not None and _late is None:
         _after_the_outputs(met, 0)
+
+
+def unsettle():
+    """Outputs are staged again (membranes.app.outputs.staged_folder): until they are in
+    place, a signal ends the run as before `settle`."""
+    global _settled, _late
+    _settled, _late = False, None
 
 
 def pending():
@@ -216,13 +222,14 @@ def restore(previous):
     process that exits next (`process_ends`) the signals are ignored instead, for the exit's
     last moments (`settle`): Python's finalisation puts back the default action of a handler
     of its own before MPI and PETSc finish, and a SIGINT there ended the process with -2."""
-    global _follower, _settled, _late
+    global _follower
     caught()
     if _settled and process_ends:
         for s, _ in SIGNALS:
             signal.signal(s, signal.SIG_IGN)
         return
-    _follower, _settled, _late = False, False, None
+    _follower = False
+    unsettle()
     for s, handler in previous.items():
         if s == "unraisablehook":
             sys.unraisablehook = handler

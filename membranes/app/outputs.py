@@ -153,6 +153,7 @@ def staged_folder(out, comm=MPI.COMM_SELF, nbytes=0, replaces=(), names=()):
     fails to write (an OSError: a full disk, a quota): the same one line everywhere, not a
     traceback per process; otherwise a process whose block succeeded while another's failed
     raises RuntimeError."""
+    interrupts.unsettle()            # (outputs not in place until this block's end)
     check_output_folder(out, comm, names)
     if nbytes:
         check_output_room(out, nbytes, comm)
