@@ -1113,3 +1113,59 @@ def test_data_scales_against_their_formula():
     u = max(problem.g, c * c * max(lam[0] / problem.mu1, lam[1] / problem.mu2))
     assert disc.data_scales() == pytest.approx((u, max(lam)), rel=1e-14)
     assert u > problem.g                   # (the loads' term is the one compared)
+
+
+# ## From a mutation round of the checks (BENCHMARKS.md, "Robustness"): what no test pinned
+
+def test_cgroup_v1_without_a_limit_is_no_limit(monkeypatch):
+    """cgroup v1 writes "no limit" as 2^63 rounded down to a page (9223372036854771712): no
+    room figure then, as on v2's "max"; a real limit gives limit − usage."""
+    import io
+    files = {"/sys/fs/cgroup/memory/memory.limit_in_bytes": "9223372036854771712\n",
+             "/sys/fs/cgroup/memory/memory.usage_in_bytes": "1000000\n"}
+
+    def fake_open(path, *args, **kwargs):
+        if path in files:
+            return io.StringIO(files[path])
+        raise FileNotFoundError(path)
+
+    monkeypatch.setattr(checks, "open", fake_open, raising=False)
+    assert checks._cgroup_room() is None
+    files["/sys/fs/cgroup/memory/memory.limit_in_bytes"] = str(2 ** 30)
+    assert checks._cgroup_room() == 2 ** 30 - 1e6
+
+
+def test_sizes_of_exactly_one_unit_are_said_in_that_unit():
+    assert checks._bytes(2 ** 30) == "1 GiB" and checks._bytes(2 ** 40) == "1 TiB"
+
+
+def test_the_level_hint_counts_beyond_twenty_levels():
+    """The hint's largest level count is searched up to 64 levels, not cut lower."""
+    vertices = checks.estimate_vertices(1.0, 25)[0]
+    assert checks.largest_levels(vertices, h=1.0) == 25
+
+
+@pytest.mark.parametrize("text", ["z + 1", "x + e", "min(x, nan)"])
+def test_an_unknown_name_in_a_formula_is_named_as_such(text):
+    """Not "'z' is not finite" (an unknown name evaluated to NaN): the message lists the
+    names allowed."""
+    from membranes.model.expressions import Formula
+    with pytest.raises(ValueError, match="unknown name"):
+        Formula(text, "f1")
+
+
+def test_a_formula_of_80_characters_is_shown_whole():
+    from membranes.model.expressions import Formula
+    text = "x + " + "1" * 76
+    assert len(text) == 80 and Formula(text).shown == text
+    assert Formula(text + "1").shown.endswith("...")
+
+
+def test_numpy_option_values_become_python_values():
+    """The API's options may come from numpy arrays; the parsed options are Python values,
+    which json.dumps writes."""
+    import json
+    out = petsc_options.parse_petsc_options({"ksp_gmres_restart": np.int64(50),
+                                             "ksp_rtol": np.float64(1e-8)})
+    assert type(out["ksp_gmres_restart"]) is int and type(out["ksp_rtol"]) is float
+    json.dumps(out)
