@@ -214,6 +214,39 @@ def test_more_steps_takes_the_rate_of_the_last_newton_step(monkeypatch):
     assert second["more_steps"] is False
 
 
+def test_an_iterate_whose_next_step_is_forecast_to_pass_is_not_estimated(monkeypatch):
+    """Before the first full estimate (η_rec standing in for η_disc), an iterate within
+    REC_MARGIN of its gate whose last step's rate takes the next η_lin below the gate is
+    skipped, the next step expected to be the last: η_rec = 0.1, gate target 0.3 · 0.1 =
+    0.03, margin 0.06. X^1 (η_lin 0.2) is skipped; X^2 (η_lin 0.05: above 0.03, within 0.06
+    by 17 %) is forecast at 0.05 · 0.05 / 0.2 = 0.0125, below 0.03 by a factor 2.4: `partial`
+    with `more_steps` False, and no full estimate (one would fail its test, 0.05 > 0.03)."""
+    own = {1: {"eta_disc": 0.1, "eta_lin": 0.2, "eta_alg": 0.0},
+           2: {"eta_disc": 0.1, "eta_lin": 0.05, "eta_alg": 0.0}}
+    stub = StubEstimators(own, eta_rec=0.1)
+    schedule = level_estimates(monkeypatch, stub)
+    assert call(schedule, 1, "newton")["partial"]
+    second = call(schedule, 2, "newton")
+    assert second["partial"] and second["more_steps"] is False
+    assert stub.calls["evaluate"] == [] and schedule.count == 0
+
+
+def test_a_full_krylov_estimate_gives_the_next_gate_its_eta_disc(monkeypatch):
+    """A Krylov iterate estimated in full (X^{k,1}: η_alg 0.001 ≤ 0.3 · 0.1) records its
+    η_disc = 0.1 for the gate of the next Newton iterate, as a Newton iterate's does: X^2
+    (η_lin 0.025 ≤ 0.3 · 0.1 = 0.03, by 17 %) is estimated in full with η_lin alone, no
+    η_rec. Against η_rec = 0.01 instead (target 0.003) it would be skipped."""
+    own = {1: {"eta_disc": 0.1, "eta_lin": 0.05, "eta_alg": 0.001},
+           2: {"eta_disc": 0.1, "eta_lin": 0.025, "eta_alg": 0.0}}
+    stub = StubEstimators(own, eta_rec=0.01)
+    schedule = level_estimates(monkeypatch, stub)
+    assert call(schedule, 0, "step") is None
+    assert call(schedule, 1, "krylov")["bound"]
+    second = call(schedule, 2, "newton")
+    assert "partial" not in second and second["bound"] and second["iterate"] == 2
+    assert stub.calls["recovered"] == [] and stub.calls["linearisation"] == [2]
+
+
 def test_a_krylov_iterate_meeting_the_criterion_alone_is_its_own_answer(monkeypatch):
     """With alg_flux 'nu' a Krylov iterate is estimated first without algebraic flux (§6, "No
     algebraic flux"). X^{k,1}'s own estimate meets η_alg ≤ γ_alg max(η_disc, η_lin) (0.01 ≤
