@@ -491,9 +491,7 @@ def _signalled(e, world, errors):
     """The exit code of the signal that raised `e`, said in one line by process 0 (`world`
     None: met in MPI's start)."""
     interrupts.caught()
-    code = (EXIT_HUNG_UP if isinstance(e, interrupts.HungUp) else EXIT_TERMINATED
-            if isinstance(e, interrupts.Terminated) else EXIT_INTERRUPTED)
-    said = interrupts.said(e)
+    code, said = 128 + interrupts.signal_of(e), interrupts.said(e)   # (EXIT_HUNG_UP, …)
     if (world.rank if world is not None else _rank()) == 0:
         print(f"membranes: {said}", file=sys.stderr, flush=True)
     if errors is not None:  # the others may wait in a collective: no MPI_Finalize

@@ -64,11 +64,16 @@ def _raise_pending(signum, frame):
         raise _pending
 
 
+def signal_of(exception):
+    """The signal whose interrupt `exception` (a class or an instance) is (`SIGNALS`; the
+    exit code of a run it ends is 128 + that number, as the shell's)."""
+    kind = exception if isinstance(exception, type) else type(exception)
+    return next(s for s, e in reversed(SIGNALS) if issubclass(kind, e))   # (subclasses first)
+
+
 def said(exception):
     """The words of the one line for the signal of `exception` (a class or an instance)."""
-    kind = exception if isinstance(exception, type) else type(exception)
-    return ("hung up" if issubclass(kind, HungUp) else "terminated"
-            if issubclass(kind, Terminated) else "interrupted")
+    return WORDS[signal_of(exception)]
 
 
 def _handler(exception):
@@ -92,6 +97,7 @@ def _handler(exception):
 
 SIGNALS = ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated),
            (signal.SIGHUP, HungUp))
+WORDS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated", signal.SIGHUP: "hung up"}
 
 
 def _after_the_outputs(exception, signum):
