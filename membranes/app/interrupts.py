@@ -80,7 +80,7 @@ def _handler(exception):
     def handler(signum, frame):
         global _pending
         if _settled:
-            _after_the_outputs(exception, signum)
+            _after_the_outputs(exception)
             return
         if staging is not None and not _deferring:
             shutil.rmtree(staging, ignore_errors=True)
@@ -100,14 +100,14 @@ SIGNALS = ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated),
 WORDS = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated", signal.SIGHUP: "hung up"}
 
 
-def _after_the_outputs(exception, signum):
+def _after_the_outputs(exception):
     """A signal once the outputs are in place (`settle`): the first is said and the run goes
     on to its end; a second ends the process at once, with the signal's exit code."""
     global _late
     if _late is not None:
         with contextlib.suppress(Exception):
             sys.stdout.flush()
-        os._exit(128 + signum)
+        os._exit(128 + signal_of(exception))
     _late = exception
     if not _follower:
         with contextlib.suppress(OSError):     # (SIGHUP: the terminal may have gone)
@@ -189,7 +189,7 @@ def settle():
     met = _pending
     caught()
     if met is not None and _late is None:
-        _after_the_outputs(met, 0)
+        _after_the_outputs(met)
 
 
 def unsettle():
